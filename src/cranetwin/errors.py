@@ -1,0 +1,79 @@
+"""The one exception tree of cranetwin.
+
+Every package raises a subclass of :class:`CraneTwinError`; the edges (CLI, ingest daemon, API)
+translate them once into an exit message, a dropped-and-counted datagram or a 4xx problem JSON::
+
+    CraneTwinError
+    ├── ModelError              machine description invalid or inconsistent
+    │   └── MachineFileError    a machine file failed to load (carries every problem, with field paths)
+    ├── PhysicsError            state outside the kinematic range of the machine
+    ├── SignalError             bad sample arrays (shape, order, too few knots)
+    ├── SimulationError         bad scenario or unstable integration
+    │   └── ScenarioError       scenario file invalid
+    ├── TwinError               replay input unusable
+    ├── ProtocolError           datagram malformed, forged or replayed
+    ├── StorageError            database problems
+    ├── AnalyticsError          analytics input unusable
+    └── ReportError             export failed
+"""
+
+from __future__ import annotations
+
+
+class CraneTwinError(Exception):
+    """Base of every error cranetwin raises on purpose."""
+
+
+class ModelError(CraneTwinError):
+    """A machine description is invalid or inconsistent."""
+
+
+class MachineFileError(ModelError):
+    """A machine file could not be loaded.
+
+    Attributes:
+        source: File path or built-in name that failed.
+        problems: One ``"field.path: message"`` string per problem found.
+    """
+
+    def __init__(self, source: str, problems: list[str]) -> None:
+        self.source = source
+        self.problems = list(problems)
+        lines = "\n".join(f"  - {p}" for p in self.problems)
+        super().__init__(f"{source}: {len(self.problems)} problem(s)\n{lines}")
+
+
+class PhysicsError(CraneTwinError):
+    """Input state outside the machine's kinematic range or of the wrong shape."""
+
+
+class SignalError(CraneTwinError):
+    """Sample arrays unusable for signal processing."""
+
+
+class SimulationError(CraneTwinError):
+    """Simulation could not run (bad input or unstable integration)."""
+
+
+class ScenarioError(SimulationError):
+    """A scenario file or built-in scenario specification is invalid."""
+
+
+class TwinError(CraneTwinError):
+    """Replay input unusable."""
+
+
+class ProtocolError(CraneTwinError):
+    """A datagram is malformed, forged, replayed or of an unknown version."""
+
+
+class StorageError(CraneTwinError):
+    """A database operation failed."""
+
+
+class AnalyticsError(CraneTwinError):
+    """Analytics input unusable."""
+
+
+class ReportError(CraneTwinError):
+    """An export could not be produced."""
