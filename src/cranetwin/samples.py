@@ -1,0 +1,77 @@
+"""The unit of sensor data that moves between the wire, the database and the twin.
+
+A :class:`SampleBlock` is what one datagram carries once decoded: a run of regularly spaced
+samples of one machine. ``protocol`` decodes datagrams into blocks, ``ingest`` hands them to
+``storage``, and ``storage`` returns :class:`SampleArrays` for a time range to ``twin``.
+Only numpy here, so every layer may import it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class SampleBlock:
+    """A run of samples of one machine, as sent in one datagram.
+
+    Attributes:
+        machine_id: Machine identifier (as registered in storage).
+        seq: Datagram sequence number, unique and increasing per machine; storage writes are
+            idempotent on (machine_id, seq).
+        t0_ns: Timestamp of the first sample [ns since the Unix epoch, machine clock].
+        period_ns: Sample period [ns] (10_000_000 at 100 Hz).
+        channels: Channel names, in column order (names from the machine description).
+        resolution: Quantisation step per channel, in the channel's unit.
+        values: Samples, shape (n, len(channels)) [channel units]; NaN = missing (dropout,
+            or optional channel not sent). Values are multiples of ``resolution``.
+    """
+
+    machine_id: str
+    seq: int
+    t0_ns: int
+    period_ns: int
+    channels: tuple[str, ...]
+    resolution: tuple[float, ...]
+    values: F64
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.values.shape[0])
+
+    @property
+    def t_end_ns(self) -> int:
+        """Timestamp of the last sample [ns]."""
+        return self.t0_ns + (self.n - 1) * self.period_ns
+
+    def times_ns(self) -> I64:
+        """Sample timestamps, shape (n,) [ns]."""
+        return self.t0_ns + np.arange(self.n, dtype=np.int64) * self.period_ns
+
+
+@dataclass(frozen=True)
+class SampleArrays:
+    """Samples of one machine over a time range, as the twin consumes them.
+
+    Attributes:
+        machine_id: Machine identifier.
+        t_s: Sample times, shape (n,) [s since the Unix epoch], strictly increasing.
+        channels: Channel names, in column order.
+        values: Shape (n, len(channels)) [channel units]; NaN = missing.
+    """
+
+    machine_id: str
+    t_s: F64
+    channels: tuple[str, ...]
+    values: F64
+
+    def column(self, name: str) -> F64:
+        """One channel's samples, shape (n,)."""
+        return self.values[:, self.channels.index(name)]
