@@ -68,3 +68,14 @@ def test_load_machine_rejects_toml_syntax_and_missing_file(tmp_path: Path) -> No
         load_machine(_write(tmp_path, "[machine\nname="))
     with pytest.raises(MachineFileError, match="no such file"):
         load_machine(tmp_path / "missing.toml")
+
+
+def test_field_errors_and_reference_errors_reported_together(tmp_path: Path) -> None:
+    src = Path(__file__).parents[1] / "src/cranetwin/machines/patu655.toml"
+    text = src.read_text().replace("mass_kg = 93.26", "mass_kg = -93.26")
+    text = text.replace('body = "extension_boom"', 'body = "nowhere"')
+    with pytest.raises(MachineFileError) as info:
+        load_machine(_write(tmp_path, text))
+    problems = info.value.problems
+    assert any(p.startswith("bodies.0.mass_kg:") for p in problems)
+    assert any(p.startswith("load_point.body:") and "nowhere" in p for p in problems)

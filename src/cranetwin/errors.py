@@ -5,7 +5,7 @@ translate them once into an exit message, a dropped-and-counted datagram or a 4x
 
     CraneTwinError
     ├── ModelError              machine description invalid or inconsistent
-    │   └── MachineFileError    a machine file failed to load (carries every problem, with field paths)
+    │   └── MachineFileError    a machine file failed to load (lists every problem)
     ├── PhysicsError            state outside the kinematic range of the machine
     ├── SignalError             bad sample arrays (shape, order, too few knots)
     ├── SimulationError         bad scenario or unstable integration

@@ -19,7 +19,8 @@ def _kinematic_problems(machine: Machine) -> list[str]:
     # physics owns kinematics; imported lazily so that `model show` works on any schema-valid file
     from cranetwin.physics.kinematics import reach_problems
 
-    return reach_problems(machine)
+    problems: list[str] = reach_problems(machine)
+    return problems
 
 
 @model_app.command("list")
@@ -81,7 +82,9 @@ def show(machine: str = typer.Argument(..., help="Built-in name or TOML file."))
 
 
 @model_app.command("validate")
-def validate(path: Path = typer.Argument(..., help="Machine TOML file (or built-in name).")) -> None:
+def validate(
+    path: Path = typer.Argument(..., help="Machine TOML file (or built-in name)."),
+) -> None:
     """Check a machine file: schema, units/shapes, physical plausibility and cylinder reach.
 
     Prints every problem with its field path; exit status 1 when there are problems.

@@ -10,7 +10,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from cranetwin.errors import MachineFileError
-from cranetwin.model.schema import Machine
+from cranetwin.model.schema import Machine, reference_problems
 
 
 def builtin_machines() -> list[str]:
@@ -45,7 +45,10 @@ def machine_from_dict(data: dict[str, Any], source: str = "<dict>") -> Machine:
     try:
         return Machine.model_validate(data)
     except ValidationError as exc:
-        raise MachineFileError(source, problems_from_validation(exc)) from exc
+        problems = problems_from_validation(exc)
+        # field errors stop pydantic before the cross-reference check: run it on the raw data too
+        problems += [p for p in reference_problems(data) if p not in problems]
+        raise MachineFileError(source, problems) from exc
 
 
 def load_machine(source: str | Path) -> Machine:

@@ -3,9 +3,9 @@
 All quantities are SI. Frames: every body has a frame; a joint's frame sits at ``origin_m`` in the
 parent body's frame (rotated by ``origin_rpy_rad``, roll-pitch-yaw, XYZ fixed axes), and the child
 body's frame equals the joint frame moved by the joint coordinate q (rotation by q [rad] about
-``axis`` for revolute, translation by q [m] along ``axis`` for prismatic). Joints form a serial chain
-from the world (``parent = "world"``) to the tip body. Inertia tensors are about the body's centre of
-mass, in the body frame [kg·m²].
+``axis`` for revolute, translation by q [m] along ``axis`` for prismatic). Joints form a serial
+chain from the world (``parent = "world"``) to the tip body. Inertia tensors are about the body's
+centre of mass, in the body frame [kg·m²].
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ class _Frozen(BaseModel):
 class Visual(_Frozen):
     """A primitive for the 3D view, in the body frame.
 
-    ``segment``: a cylinder of ``radius_m`` from ``from_m`` to ``to_m``; ``box``: a box of ``size_m``
-    centred at ``from_m``; ``mesh``: an STL/GLB file (path relative to the machine file).
+    ``segment``: a cylinder of ``radius_m`` from ``from_m`` to ``to_m``; ``box``: a box of
+    ``size_m`` centred at ``from_m``; ``mesh``: an STL/GLB file (path relative to the machine file).
     """
 
     kind: Literal["segment", "box", "mesh"] = "segment"
@@ -251,7 +251,7 @@ class RatedLoad(_Frozen):
 
     def payload_at(self, reach_m: np.ndarray) -> np.ndarray:
         """Rated payload [kg] at reach [m], linear in between, held beyond the chart's ends."""
-        return np.interp(reach_m, self.reach_m, self.payload_kg)
+        return np.asarray(np.interp(reach_m, self.reach_m, self.payload_kg), dtype=float)
 
 
 class FatigueDetail(_Frozen):
@@ -302,50 +302,7 @@ class Machine(_Frozen):
 
     @model_validator(mode="after")
     def _references(self) -> Machine:
-        problems: list[str] = []
-        body_names = [b.name for b in self.bodies]
-        if len(set(body_names)) != len(body_names):
-            problems.append("bodies: names must be unique")
-        joint_names = [j.name for j in self.joints]
-        if len(set(joint_names)) != len(joint_names):
-            problems.append("joints: names must be unique")
-        expected_parent = WORLD
-        for i, j in enumerate(self.joints):
-            if j.child not in body_names:
-                problems.append(f"joints.{i}.child: unknown body {j.child!r}")
-            if j.parent != expected_parent:
-                problems.append(
-                    f"joints.{i}.parent: {j.parent!r} breaks the serial chain "
-                    f"(expected {expected_parent!r})"
-                )
-            expected_parent = j.child
-        actuated = set()
-        for kind, acts in (("cylinders", self.cylinders), ("torque_drives", self.torque_drives)):
-            for i, a in enumerate(acts):
-                if a.joint not in joint_names:
-                    problems.append(f"{kind}.{i}.joint: unknown joint {a.joint!r}")
-                if a.joint in actuated:
-                    problems.append(f"{kind}.{i}.joint: joint {a.joint!r} already has an actuator")
-                actuated.add(a.joint)
-        for i, j in enumerate(self.joints):
-            if j.name not in actuated:
-                problems.append(f"joints.{i}: joint {j.name!r} has no actuator")
-        actuator_names = {a.name for a in self.cylinders} | {a.name for a in self.torque_drives}
-        channel_names = [c.name for c in self.channels]
-        if len(set(channel_names)) != len(channel_names):
-            problems.append("channels: names must be unique")
-        for i, c in enumerate(self.channels):
-            if c.quantity == "angle":
-                if c.source not in joint_names:
-                    problems.append(f"channels.{i}.source: unknown joint {c.source!r}")
-            elif c.quantity == "load":
-                pass
-            elif c.source not in actuator_names:
-                problems.append(f"channels.{i}.source: unknown actuator {c.source!r}")
-        if self.load_point.body not in body_names:
-            problems.append(f"load_point.body: unknown body {self.load_point.body!r}")
-        if self.cylinders and self.hydraulics is None:
-            problems.append("hydraulics: required when the machine has cylinders")
+        problems = reference_problems(self.model_dump())
         if problems:
             raise ValueError("; ".join(problems))
         return self
@@ -387,3 +344,71 @@ class Machine(_Frozen):
     def chain_bodies(self) -> list[Body]:
         """Bodies in chain order: body i is the child of joint i."""
         return [self.body(j.child) for j in self.joints]
+
+
+def _names(items: object) -> list[str]:
+    if not isinstance(items, list):
+        return []
+    return [str(x.get("name")) for x in items if isinstance(x, dict)]
+
+
+def reference_problems(data: dict[str, object]) -> list[str]:
+    """Cross-references in a (raw or dumped) machine description, as ``"path: message"`` lines.
+
+    Works on plain dicts so that a file with field errors still gets its references checked.
+    """
+    problems: list[str] = []
+    bodies = _names(data.get("bodies"))
+    joints_raw = data.get("joints")
+    joints = [j for j in joints_raw if isinstance(j, dict)] if isinstance(joints_raw, list) else []
+    joint_names = [str(j.get("name")) for j in joints]
+    if len(set(bodies)) != len(bodies):
+        problems.append("bodies: names must be unique")
+    if len(set(joint_names)) != len(joint_names):
+        problems.append("joints: names must be unique")
+    expected_parent = WORLD
+    for i, j in enumerate(joints):
+        if j.get("child") not in bodies:
+            problems.append(f"joints.{i}.child: unknown body {j.get('child')!r}")
+        if j.get("parent") != expected_parent:
+            problems.append(
+                f"joints.{i}.parent: {j.get('parent')!r} breaks the serial chain "
+                f"(expected {expected_parent!r})"
+            )
+        expected_parent = str(j.get("child"))
+    actuated: set[str] = set()
+    actuator_names: set[str] = set()
+    for kind in ("cylinders", "torque_drives"):
+        acts = data.get(kind)
+        for i, a in enumerate(acts if isinstance(acts, list) else []):
+            if not isinstance(a, dict):
+                continue
+            actuator_names.add(str(a.get("name")))
+            joint = a.get("joint")
+            if joint not in joint_names:
+                problems.append(f"{kind}.{i}.joint: unknown joint {joint!r}")
+            elif joint in actuated:
+                problems.append(f"{kind}.{i}.joint: joint {joint!r} already has an actuator")
+            actuated.add(str(joint))
+    for i, name in enumerate(joint_names):
+        if name not in actuated:
+            problems.append(f"joints.{i}: joint {name!r} has no actuator")
+    channels_raw = data.get("channels")
+    channels = [c for c in channels_raw if isinstance(c, dict)] if isinstance(
+        channels_raw, list) else []
+    channel_names = [str(c.get("name")) for c in channels]
+    if len(set(channel_names)) != len(channel_names):
+        problems.append("channels: names must be unique")
+    for i, c in enumerate(channels):
+        source = c.get("source")
+        if c.get("quantity") == "angle":
+            if source not in joint_names:
+                problems.append(f"channels.{i}.source: unknown joint {source!r}")
+        elif c.get("quantity") != "load" and source not in actuator_names:
+            problems.append(f"channels.{i}.source: unknown actuator {source!r}")
+    load_point = data.get("load_point")
+    if isinstance(load_point, dict) and load_point.get("body") not in bodies:
+        problems.append(f"load_point.body: unknown body {load_point.get('body')!r}")
+    if data.get("cylinders") and data.get("hydraulics") is None:
+        problems.append("hydraulics: required when the machine has cylinders")
+    return problems
