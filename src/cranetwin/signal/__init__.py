@@ -1,0 +1,33 @@
+"""Signal processing for the twin: natural cubic splines, Newton-formula differentiation,
+Savitzky–Golay smoothing with automatic window, regularisation, noise injection and NRMSE.
+
+Only numpy and scipy (plus the machine model for channel ranges)."""
+
+from __future__ import annotations
+
+from cranetwin.signal.differentiate import newton_derivative
+from cranetwin.signal.noise import NOISY_QUANTITIES, inject_uniform_noise, nrmse
+from cranetwin.signal.resample import Regular, nominal_period, regularize, uniform_grid
+from cranetwin.signal.smoothing import (
+    SmoothingChoice,
+    choose_window,
+    estimate_noise_std,
+    savgol_smooth,
+)
+from cranetwin.signal.spline import NaturalCubicSpline
+
+__all__ = [
+    "NOISY_QUANTITIES",
+    "NaturalCubicSpline",
+    "Regular",
+    "SmoothingChoice",
+    "choose_window",
+    "estimate_noise_std",
+    "inject_uniform_noise",
+    "newton_derivative",
+    "nominal_period",
+    "nrmse",
+    "regularize",
+    "savgol_smooth",
+    "uniform_grid",
+]

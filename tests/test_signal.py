@@ -1,0 +1,191 @@
+"""Laws of cranetwin.signal: spline, Newton differentiation, smoothing, noise, NRMSE, resampling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.interpolate import CubicSpline
+
+from cranetwin.errors import SignalError
+from cranetwin.model import load_machine
+from cranetwin.samples import SampleArrays
+from cranetwin.signal import (
+    NaturalCubicSpline,
+    choose_window,
+    estimate_noise_std,
+    inject_uniform_noise,
+    newton_derivative,
+    nrmse,
+    regularize,
+    savgol_smooth,
+    uniform_grid,
+)
+
+
+def _irregular_knots(n: int, rng: np.random.Generator) -> np.ndarray:
+    return np.cumsum(rng.uniform(0.005, 0.015, n))
+
+
+def test_spline_reproduces_knots_and_has_natural_ends() -> None:
+    rng = np.random.default_rng(1)
+    x = _irregular_knots(40, rng)
+    y = rng.normal(size=(40, 3))
+    sp = NaturalCubicSpline(x, y)
+    np.testing.assert_allclose(sp(x), y, atol=1e-12)
+    d2 = sp(x[[0, -1]], 2)
+    np.testing.assert_allclose(d2, 0.0, atol=1e-8 * np.abs(sp(x, 2)).max())
+    m = sp.second_derivative_at_knots
+    assert m.shape == (40, 3)
+    np.testing.assert_allclose(m[[0, -1]], 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("uniform", [True, False])
+def test_spline_matches_scipy_natural_cubic_spline(uniform: bool) -> None:
+    rng = np.random.default_rng(2)
+    x = np.linspace(0.0, 2.0, 201) if uniform else _irregular_knots(201, rng)
+    y = np.column_stack([np.sin(7 * x), rng.normal(size=x.shape[0])])
+    ref = CubicSpline(x, y, bc_type="natural")
+    t = np.linspace(x[0] - 0.01, x[-1] + 0.01, 5003)
+    sp = NaturalCubicSpline(x, y)
+    val, d1, d2 = sp.evaluate(t, 2)
+    np.testing.assert_allclose(val, ref(t), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(d1, ref(t, 1), rtol=1e-8, atol=1e-7)
+    np.testing.assert_allclose(d2, ref(t, 2), rtol=1e-7, atol=1e-5)
+
+
+def test_spline_continuity_of_derivatives_at_knots() -> None:
+    rng = np.random.default_rng(3)
+    x = _irregular_knots(30, rng)
+    sp = NaturalCubicSpline(x, rng.normal(size=30))
+    eps = 1e-9
+    inner = x[1:-1]
+    for nu in (0, 1, 2):
+        scale = np.abs(sp(x, nu)).max()
+        np.testing.assert_allclose(sp(inner - eps, nu), sp(inner + eps, nu), atol=1e-5 * scale)
+
+
+def test_spline_two_knots_is_linear_and_bad_input_raises() -> None:
+    sp = NaturalCubicSpline([0.0, 2.0], [1.0, 5.0])
+    np.testing.assert_allclose(sp([0.5, 1.0]), [2.0, 3.0])
+    np.testing.assert_allclose(sp([0.5], 1), [2.0])
+    with pytest.raises(SignalError):
+        NaturalCubicSpline([0.0], [1.0])
+    with pytest.raises(SignalError):
+        NaturalCubicSpline([0.0, 1.0, 1.0], [1.0, 2.0, 3.0])
+    with pytest.raises(SignalError):
+        NaturalCubicSpline([0.0, 1.0, 2.0], [1.0, np.nan, 3.0])
+
+
+def test_spline_interpolation_error_is_fourth_order() -> None:
+    errs = []
+    for n in (51, 101, 201):
+        x = np.linspace(0.0, 1.0, n)
+        sp = NaturalCubicSpline(x, np.sin(2 * np.pi * x))
+        t = np.linspace(0.2, 0.8, 999)  # away from the natural ends (O(h²) there)
+        errs.append(np.abs(sp(t) - np.sin(2 * np.pi * t)).max())
+    rates = np.log2(np.array(errs[:-1]) / np.array(errs[1:]))
+    assert np.all(rates > 3.5)
+
+
+@pytest.mark.parametrize("half_width,order", [(1, 2), (2, 4)])
+def test_newton_derivative_exact_on_polynomials_and_converges(half_width: int, order: int) -> None:
+    rng = np.random.default_rng(4)
+    t = _irregular_knots(60, rng)
+    coeffs = rng.normal(size=order + 1)
+    poly = np.polynomial.Polynomial(coeffs)
+    np.testing.assert_allclose(newton_derivative(t, poly(t), half_width), poly.deriv()(t),
+                               rtol=1e-7, atol=1e-6)
+    errs = []
+    for h in (0.02, 0.01):
+        tt = np.arange(0.0, 1.0, h)
+        d = newton_derivative(tt, np.sin(3 * tt), half_width)
+        errs.append(np.abs(d - 3 * np.cos(3 * tt))[half_width:-half_width].max())
+    assert np.log2(errs[0] / errs[1]) > order - 0.3
+
+
+def test_newton_derivative_uniform_three_point_is_central_difference() -> None:
+    t = np.arange(10) * 0.01
+    y = np.random.default_rng(5).normal(size=(10, 2))
+    d = newton_derivative(t, y, 1)
+    np.testing.assert_allclose(d[1:-1], (y[2:] - y[:-2]) / 0.02, rtol=1e-10)
+
+
+def test_noise_estimate_recovers_sigma_of_uniform_noise_on_oscillating_signal() -> None:
+    rng = np.random.default_rng(6)
+    t = np.arange(20000) * 0.01
+    clean = 5.0 * np.sin(2 * np.pi * 3.6 * t) + 3.0 * np.sin(2 * np.pi * 0.2 * t)
+    a = 0.3
+    sig = estimate_noise_std(clean + rng.uniform(-a, a, t.shape[0]))
+    assert sig == pytest.approx(a / np.sqrt(3.0), rel=0.03)
+    gauss = estimate_noise_std(clean + rng.normal(0.0, 0.2, t.shape[0]))
+    assert gauss == pytest.approx(0.2, rel=0.03)
+    assert estimate_noise_std(clean * 0.0, resolution=0.01) == pytest.approx(0.01 / np.sqrt(12))
+
+
+def test_auto_window_reduces_mse_and_leaves_clean_signal_alone() -> None:
+    rng = np.random.default_rng(7)
+    t = np.arange(6000) * 0.01
+    clean = np.sin(2 * np.pi * 0.3 * t) + 0.3 * np.sin(2 * np.pi * 1.3 * t)
+    noisy = clean + rng.uniform(-0.3, 0.3, t.shape[0])
+    choice = choose_window(noisy)
+    assert choice.window > 1
+    smooth = savgol_smooth(noisy, choice.window, choice.polyorder)
+    mse_in = np.mean((noisy - clean) ** 2)
+    mse_out = np.mean((smooth - clean) ** 2)
+    assert mse_out < 0.15 * mse_in
+    # the estimated risk is close to the achieved MSE, and no window does much better
+    assert choice.risk == pytest.approx(mse_out, rel=0.5)
+    best = min(np.mean((savgol_smooth(noisy, w, p) - clean) ** 2)
+               for w in (15, 21, 27, 35, 45, 61, 81, 101) for p in (1, 3, 5) if p < w - 1)
+    assert mse_out < 1.5 * best
+    # clean data: whatever is chosen leaves the signal as it was (w = 1 or a bias-free window)
+    c = choose_window(clean, resolution=1e-9)
+    assert np.abs(savgol_smooth(clean, c.window, c.polyorder) - clean).max() < 1e-5
+
+
+def test_noise_injection_is_uniform_scaled_by_channel_range_and_seeded() -> None:
+    m = load_machine("patu655")
+    n = 20000
+    ch = ("lift_pA", "lift_s", "slew_angle")
+    vals = np.zeros((n, 3))
+    vals[5, 0] = np.nan
+    s = SampleArrays("m", np.arange(n) * 0.01, ch, vals)
+    a = inject_uniform_noise(s, m, 0.05, seed=11)
+    b = inject_uniform_noise(s, m, 0.05, seed=11)
+    np.testing.assert_array_equal(a.values, b.values)
+    assert np.isnan(a.values[5, 0])
+    for j, name in enumerate(ch[:2]):
+        full = m.channel(name).full_range
+        col = a.values[:, j][np.isfinite(a.values[:, j])]
+        assert np.abs(col).max() <= 0.05 * full
+        assert np.abs(col).max() > 0.049 * full
+        assert np.std(col) == pytest.approx(0.05 * full / np.sqrt(3), rel=0.03)
+    np.testing.assert_array_equal(a.values[:, 2], 0.0)  # angle is not a noisy quantity
+
+
+def test_nrmse_definition() -> None:
+    truth = np.array([0.0, 1.0, 2.0, 3.0, 4.0])
+    est = truth + np.array([0.4, -0.4, 0.4, -0.4, 0.4])
+    assert float(nrmse(est, truth)) == pytest.approx(0.1)
+    with pytest.raises(SignalError):
+        nrmse(np.ones(3), np.ones(3))
+
+
+def test_regularize_fills_dropouts_and_irregular_times() -> None:
+    rng = np.random.default_rng(8)
+    t = np.arange(500) * 0.01 + rng.uniform(-0.002, 0.002, 500)
+    f = np.sin(2 * np.pi * 0.7 * t)
+    vals = np.column_stack([f, 2 * f])
+    vals[100:130, 0] = np.nan
+    vals[300, 1] = np.nan
+    reg = regularize(t, vals, period=0.01)
+    np.testing.assert_allclose(np.diff(reg.t), 0.01, rtol=1e-9)
+    truth = np.sin(2 * np.pi * 0.7 * reg.t)
+    np.testing.assert_allclose(reg.values[:, 0], truth, atol=2e-2)  # bridged a 0.3 s dropout
+    np.testing.assert_allclose(reg.values[:90, 0], truth[:90], atol=1e-3)
+    np.testing.assert_allclose(reg.values[:, 1], 2 * truth, atol=1e-4)
+    gap_t = reg.t[reg.gap[:, 0]]
+    assert gap_t.min() > t[99] and gap_t.max() < t[130]
+    assert not reg.gap[:, 1].any()
+    g = uniform_grid(1.0, 2.0, 1000)
+    assert g.shape == (1001,) and g[-1] == pytest.approx(2.0)
