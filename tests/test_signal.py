@@ -189,3 +189,17 @@ def test_regularize_fills_dropouts_and_irregular_times() -> None:
     assert not reg.gap[:, 1].any()
     g = uniform_grid(1.0, 2.0, 1000)
     assert g.shape == (1001,) and g[-1] == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("uniform", [True, False])
+def test_spline_subdivided_evaluation_equals_pointwise(uniform: bool) -> None:
+    rng = np.random.default_rng(9)
+    x = np.arange(25) * 0.01 if uniform else _irregular_knots(25, rng)
+    sp = NaturalCubicSpline(x, rng.normal(size=(25, 2)))
+    r = 10
+    pts = np.concatenate([(x[:-1, None] + np.diff(x)[:, None] * np.arange(r) / r).ravel(),
+                          x[-1:]])
+    fast = sp.evaluate_subdivided(r, 2)
+    slow = sp.evaluate(pts, 2)
+    for a, b in zip(fast, slow, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-8 * np.abs(b).max())

@@ -18,7 +18,7 @@ from cranetwin.samples import SampleArrays
 
 F64 = npt.NDArray[np.float64]
 
-NOISY_QUANTITIES: tuple[str, ...] = ("pressure_a", "pressure_b", "position", "torque")
+NOISY_QUANTITIES: tuple[str, ...] = ("pressure_a", "pressure_b", "position")
 
 
 def inject_uniform_noise(
@@ -35,8 +35,10 @@ def inject_uniform_noise(
         machine: Machine description; ``machine.channel(name).full_range`` scales the error.
         level: e, the maximum error as a fraction of full range (0.05 = 5 %).
         seed: Seed or generator (same seed, same error).
-        quantities: Channel quantities that get noise (pressures, positions and torque by default;
-            channels unknown to the machine are left untouched).
+        quantities: Channel quantities that get noise: by default the pressures and positions, as
+            in the paper ("error added to the pressure and position sensor data"); pass
+            ``(*NOISY_QUANTITIES, "torque")`` to disturb the slewing torque too. Channels unknown
+            to the machine are left untouched.
 
     Returns:
         New :class:`SampleArrays` with the error added (values not clipped or re-quantised).

@@ -50,7 +50,7 @@ class Regular:
 
 
 def regularize(t: npt.ArrayLike, values: npt.ArrayLike, period: float | None = None,
-               max_gap_s: float | None = None) -> Regular:
+               max_gap_s: float | None = None, origin: float | None = None) -> Regular:
     """Put irregular samples with dropouts (NaN) onto a uniform grid, per channel by spline.
 
     Args:
@@ -58,9 +58,12 @@ def regularize(t: npt.ArrayLike, values: npt.ArrayLike, period: float | None = N
         values: Shape (n, k) [channel units]; NaN = missing.
         period: Grid spacing [s]; the median spacing if None.
         max_gap_s: Gaps longer than this are flagged (default 5 periods).
+        origin: The grid is ``origin + k·period`` (k integer) so that pieces of one stream land on
+            one grid; t_0 if None.
 
     Returns:
-        :class:`Regular` over [t_0, t_{n-1}]. Fast path: already uniform, no NaN -> unchanged.
+        :class:`Regular` on the grid points within [t_0, t_{n-1}]. Fast path: input already
+        uniform on that grid and without NaN -> returned unchanged.
 
     Raises:
         SignalError: A channel with fewer than 2 valid samples, or non-increasing times.
@@ -73,9 +76,15 @@ def regularize(t: npt.ArrayLike, values: npt.ArrayLike, period: float | None = N
     gap_limit = 5.0 * p if max_gap_s is None else float(max_gap_s)
     dt = np.diff(ta)
     finite = np.isfinite(va)
-    if np.all(np.abs(dt - p) <= 1e-6 * p) and finite.all():
+    o = float(ta[0]) if origin is None else float(origin)
+    aligned = abs((ta[0] - o) / p - round((ta[0] - o) / p)) <= 1e-6
+    if aligned and np.all(np.abs(dt - p) <= 1e-6 * p) and finite.all():
         return Regular(ta, va, np.zeros(va.shape, dtype=bool))
-    grid = uniform_grid(float(ta[0]), float(ta[-1]), 1.0 / p)
+    k0 = int(np.ceil((ta[0] - o) / p - 1e-9))
+    k1 = int(np.floor((ta[-1] - o) / p + 1e-9))
+    if k1 < k0:
+        raise SignalError("no grid point falls within the sample times")
+    grid = o + np.arange(k0, k1 + 1, dtype=np.float64) * p
     out = np.empty((grid.shape[0], va.shape[1]))
     gap = np.zeros(out.shape, dtype=bool)
     for j in range(va.shape[1]):
