@@ -1,0 +1,222 @@
+"""Run a scenario on a machine: set up the state, drive the compiled loop, build a Recording."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.errors import ScenarioError, SimulationError
+from cranetwin.model import Machine
+from cranetwin.physics import inverse_dynamics
+from cranetwin.physics.chain import ChainParams, compile_chain
+from cranetwin.physics.kernels import bias, cylinder_kinematics
+from cranetwin.samples import SampleArrays
+from cranetwin.sim import engine as E
+from cranetwin.sim.hydraulics import HydraulicParams, HydraulicSettings, pack
+from cranetwin.sim.recording import Recording, Truth
+from cranetwin.sim.scenario import Scenario
+from cranetwin.sim.sensors import N_SNAP, SensorModel, apply_sensors, sample_steps
+
+log = logging.getLogger(__name__)
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """Integration and model switches.
+
+    Attributes:
+        step_s: Integration step [s] (1e-4 as in the paper).
+        truth_rate_hz: Rate at which the ground truth is stored [Hz]; must divide 1/step_s.
+        scheme: ``semi-implicit`` (fast, default) or ``rk4`` (energy-accurate).
+        friction: Cylinder and slewing friction (Eq. 2) on.
+        valves: Valve flows on (off = all valves closed, slewing motor locked hydraulically).
+        hydraulic_losses: Relief valves and slewing-motor leakage on.
+        holding_pressure_pa: Low-side chamber pressure of the initial static equilibrium [Pa].
+        initial_pressures_pa: Override of the initial (pA, pB) per cylinder, shape (2, 3) [Pa].
+        hydraulics: Simulator-side hydraulic constants.
+    """
+
+    step_s: float = 1.0e-4
+    truth_rate_hz: float = 1000.0
+    scheme: Literal["semi-implicit", "rk4"] = "semi-implicit"
+    friction: bool = True
+    valves: bool = True
+    hydraulic_losses: bool = True
+    holding_pressure_pa: float = 2.0e6
+    initial_pressures_pa: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+    hydraulics: HydraulicSettings = field(default_factory=HydraulicSettings)
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A machine and scenario compiled for the loop (reusable for several runs)."""
+
+    machine: Machine
+    chain: ChainParams
+    hyd: HydraulicParams
+    cj: npt.NDArray[np.int64]
+    sj: int
+
+
+def prepare(machine: Machine, options: SimOptions | None = None) -> Prepared:
+    """Compile ``machine`` for the loop.
+
+    Raises:
+        SimulationError: the machine is not a 4-joint crane with 3 valve-driven cylinders and
+            one torque drive (what this simulator models).
+    """
+    opts = options or SimOptions()
+    if machine.n_joints != E.NJ or len(machine.cylinders) != E.NC or \
+            len(machine.torque_drives) != 1:
+        raise SimulationError(
+            f"machine {machine.name!r}: the simulator models {E.NJ} joints, {E.NC} cylinders and "
+            f"1 torque drive; got {machine.n_joints}, {len(machine.cylinders)}, "
+            f"{len(machine.torque_drives)}")
+    try:
+        hyd = pack(machine, opts.hydraulics)
+    except ValueError as exc:
+        raise SimulationError(f"machine {machine.name!r}: {exc}") from exc
+    chain = compile_chain(machine)
+    return Prepared(machine, chain, hyd, chain.cylinder_joint.astype(np.int64),
+                    machine.joint_index(machine.torque_drives[0].joint))
+
+
+def initial_state(prep: Prepared, scenario: Scenario, options: SimOptions) -> F64:
+    """State at rest in the scenario's pose, chamber pressures in static equilibrium.
+
+    Raises:
+        ScenarioError: a rod of the initial pose is outside its stroke.
+    """
+    q0 = np.asarray(scenario.initial.q, dtype=np.float64)
+    s = np.empty(E.NC)
+    dsdq = np.empty(E.NC)
+    cylinder_kinematics(prep.chain.cyl, q0, s, dsdq)
+    for k, c in enumerate(prep.machine.cylinders):
+        if not (np.isfinite(s[k]) and -1e-9 <= s[k] <= c.stroke_m + 1e-9):
+            raise ScenarioError(f"initial.q: the {c.name} rod position would be {s[k]:.4f} m, "
+                                f"outside its stroke [0, {c.stroke_m}] m")
+    h = np.empty(E.NJ)
+    bias(prep.chain.chain, q0, np.zeros(E.NJ), scenario.initial.payload_kg, h)
+    x = np.zeros(E.N_X)
+    x[E.X_Q:E.X_Q + E.NJ] = q0
+    p_low = options.holding_pressure_pa
+    for k, c in enumerate(prep.machine.cylinders):
+        f = h[prep.cj[k]] / dsdq[k]            # static rod force that holds gravity
+        a1, a2 = c.area_a_m2, c.area_b_m2
+        if f >= 0:
+            x[E.X_PA + k], x[E.X_PB + k] = (f + p_low * a2) / a1, p_low
+        else:
+            x[E.X_PA + k], x[E.X_PB + k] = p_low, (p_low * a1 - f) / a2
+    if options.initial_pressures_pa is not None:
+        p = np.asarray(options.initial_pressures_pa, dtype=np.float64)
+        x[E.X_PA:E.X_PA + E.NC] = p[0]
+        x[E.X_PB:E.X_PB + E.NC] = p[1]
+    x[E.X_TS] = h[prep.sj]
+    return x
+
+
+def _flags(o: SimOptions) -> F64:
+    f = np.zeros(4)
+    f[E.F_FRICTION] = float(o.friction)
+    f[E.F_VALVES] = float(o.valves)
+    f[E.F_LOSSES] = float(o.hydraulic_losses)
+    f[E.F_SCHEME] = E.SCHEME_RK4 if o.scheme == "rk4" else E.SCHEME_SEMI_IMPLICIT
+    return f
+
+
+def simulate(machine: Machine | Prepared, scenario: Scenario, *, duration_s: float | None = None,
+             options: SimOptions | None = None, sensors: SensorModel | None = None,
+             seed: int = 0, start_epoch_s: float = 0.0, wrenches: bool = True,
+             progress: Callable[[float, float], None] | None = None) -> Recording:
+    """Simulate ``scenario`` on ``machine`` and sample its sensors.
+
+    Args:
+        machine: Machine description (or a :func:`prepare` result to skip compiling).
+        scenario: What the operator does.
+        duration_s: Simulated time [s] (default: the scenario's).
+        options: Integration settings.
+        sensors: Sensor model (default :class:`SensorModel`, 100 Hz).
+        seed: Seed of the sensor model's randomness.
+        start_epoch_s: Epoch time of t = 0 [s].
+        wrenches: Compute joint reaction wrenches for the truth (else NaN).
+        progress: Called as ``progress(simulated_s, total_s)`` between chunks.
+
+    Returns:
+        The :class:`~cranetwin.sim.recording.Recording`.
+
+    Raises:
+        ScenarioError: initial pose outside the machine's range.
+        SimulationError: bad options, or the integration went unstable (non-finite state).
+    """
+    opts = options or SimOptions()
+    prep = machine if isinstance(machine, Prepared) else prepare(machine, opts)
+    sensor_model = sensors or SensorModel()
+    duration = float(duration_s if duration_s is not None else scenario.duration_s)
+    dt = opts.step_s
+    if not (0 < dt <= 1e-2) or duration <= 0:
+        raise SimulationError(f"step {dt} s must be in (0, 0.01] and duration {duration} s > 0")
+    n_steps = int(round(duration / dt))
+    every = int(round(1.0 / (opts.truth_rate_hz * dt)))
+    if every < 1 or abs(every * opts.truth_rate_hz * dt - 1.0) > 1e-6:
+        raise SimulationError(f"truth rate {opts.truth_rate_hz} Hz must divide the step rate "
+                              f"{1 / dt:g} Hz")
+    rng = np.random.default_rng(seed)
+    t_nom, snap_steps = sample_steps(duration, dt, sensor_model, rng)
+    x = initial_state(prep, scenario, opts)
+    tab = scenario.tables()
+    truth = np.full((n_steps // every + 1, E.N_T), np.nan)
+    snaps = np.full((snap_steps.shape[0], N_SNAP), np.nan)
+    idx = np.zeros(3, dtype=np.int64)
+    cur = np.zeros(9, dtype=np.int64)
+    flags = _flags(opts)
+    chunk = max(1, int(round(0.5 / dt)))
+    wall = time.perf_counter()
+    for i0 in range(0, n_steps + 1, chunk):
+        i1 = min(i0 + chunk, n_steps)
+        E.run_steps(prep.chain.chain, prep.chain.cyl, prep.hyd.cyl, prep.hyd.glob, prep.hyd.slew,
+                    prep.cj, prep.sj, flags, dt, x, i0, i1, n_steps, every, truth, snap_steps,
+                    snaps, idx, cur, tab.u_t, tab.u_v, tab.u_n, tab.r_t, tab.r_v, tab.r_n,
+                    tab.gain, tab.umax, tab.pay_t, tab.pay_m)
+        if idx[2]:
+            t_fail = float(truth[max(idx[0] - 1, 0), E.T_T])
+            raise SimulationError(f"integration unstable near t = {t_fail:.4f} s (non-finite "
+                                  f"accelerations); try a smaller step than {dt} s")
+        if progress is not None:
+            progress(i1 * dt, duration)
+        if i1 == n_steps:
+            break
+    log.debug("simulated %.3f s in %.3f s", duration, time.perf_counter() - wall)
+    tr = _truth(prep, truth[:idx[0]], start_epoch_s, wrenches)
+    names, values = apply_sensors(prep.machine, snaps[:idx[1]], sensor_model, rng)
+    samples = SampleArrays(machine_id=prep.machine.name, t_s=start_epoch_s + t_nom[:idx[1]],
+                           channels=names, values=values)
+    meta = {"duration_s": duration, "truth_rate_hz": opts.truth_rate_hz, "scheme": opts.scheme,
+            "friction": opts.friction, "valves": opts.valves,
+            "hydraulic_losses": opts.hydraulic_losses,
+            "sensors": sensor_model.model_dump(), "scenario_description": scenario.description}
+    return Recording(machine=prep.machine.name, scenario=scenario.name, seed=seed, step_s=dt,
+                     start_epoch_s=start_epoch_s, samples=samples, truth=tr, meta=meta)
+
+
+def _truth(prep: Prepared, m: F64, t0: float, wrenches: bool) -> Truth:
+    n = m.shape[0]
+
+    def cols(c: int, w: int) -> F64:
+        return np.ascontiguousarray(m[:, c:c + w])
+
+    q, qd, qdd, pay = cols(E.T_Q, 4), cols(E.T_QD, 4), cols(E.T_QDD, 4), m[:, E.T_PAY].copy()
+    wrench = np.full((n, E.NJ, 6), np.nan)
+    if wrenches and n:
+        _, wrench = inverse_dynamics(prep.machine, q, qd, qdd, pay)
+    return Truth(t_s=t0 + m[:, E.T_T], q=q, qd=qd, qdd=qdd, rod_s=cols(E.T_S, 3),
+                 rod_v=cols(E.T_V, 3), p_a=cols(E.T_PA, 3), p_b=cols(E.T_PB, 3),
+                 cyl_force=cols(E.T_F, 3), slew_torque=m[:, E.T_TS].copy(),
+                 joint_torque=cols(E.T_TAU, 4), joint_wrench=wrench, payload_kg=pay,
+                 u=cols(E.T_U, 4))
