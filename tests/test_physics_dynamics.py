@@ -1,0 +1,177 @@
+"""Inverse dynamics, mass matrix and bias forces: Pinocchio agreement and mechanical laws."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cranetwin.model import Machine, load_machine
+from cranetwin.physics import (
+    bias_forces,
+    body_poses,
+    forward_dynamics,
+    gravity_torques,
+    inverse_dynamics,
+    joint_torques,
+    mass_matrix,
+)
+from cranetwin.physics.chain import rpy_matrix
+
+pin = pytest.importorskip("pinocchio")
+
+
+@pytest.fixture(scope="module")
+def machine() -> Machine:
+    return load_machine("patu655")
+
+
+def pinocchio_model(machine: Machine, payload_kg: float) -> object:
+    """The machine's chain built independently in Pinocchio (tool + payload on the load body)."""
+    model = pin.Model()
+    model.gravity.linear = np.asarray(machine.machine.gravity_mps2)
+    parent = 0
+    for joint, body in zip(machine.joints, machine.chain_bodies(), strict=True):
+        axis = np.asarray(joint.axis, dtype=float)
+        jm = (pin.JointModelRevoluteUnaligned(axis) if joint.kind == "revolute"
+              else pin.JointModelPrismaticUnaligned(axis))
+        placement = pin.SE3(rpy_matrix(joint.origin_rpy_rad), np.asarray(joint.origin_m))
+        jid = model.addJoint(parent, jm, placement, joint.name)
+        model.appendBodyToJoint(
+            jid, pin.Inertia(body.mass_kg, np.asarray(body.com_m),
+                             np.asarray(body.inertia_kgm2)), pin.SE3.Identity())
+        if body.name == machine.load_point.body:
+            mass = machine.load_point.tool_mass_kg + payload_kg
+            model.appendBodyToJoint(
+                jid, pin.Inertia(mass, np.asarray(machine.load_point.point_m), np.zeros((3, 3))),
+                pin.SE3.Identity())
+        parent = jid
+    return model
+
+
+def random_states(machine: Machine, n: int, seed: int) -> tuple[np.ndarray, ...]:
+    rng = np.random.default_rng(seed)
+    lo = np.array([j.lower for j in machine.joints])
+    hi = np.array([j.upper for j in machine.joints])
+    q = rng.uniform(lo, hi, size=(n, machine.n_joints))
+    qd = rng.normal(0.0, 1.0, size=(n, machine.n_joints))
+    qdd = rng.normal(0.0, 3.0, size=(n, machine.n_joints))
+    return q, qd, qdd
+
+
+def rel_err(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.max(np.abs(a - b)) / max(1.0, float(np.max(np.abs(b)))))
+
+
+@pytest.mark.parametrize("payload", [0.0, 480.0])
+def test_inverse_dynamics_matches_pinocchio(machine: Machine, payload: float) -> None:
+    q, qd, qdd = random_states(machine, 200, seed=int(payload) + 1)
+    tau, wrench = inverse_dynamics(machine, q, qd, qdd, payload)
+    model = pinocchio_model(machine, payload)
+    data = model.createData()
+    for k in range(q.shape[0]):
+        ref = pin.rnea(model, data, q[k], qd[k], qdd[k])
+        assert rel_err(tau[k], ref) <= 1e-9
+        ref_w = np.array([data.f[i + 1].vector for i in range(machine.n_joints)])
+        assert rel_err(wrench[k], ref_w) <= 1e-9
+
+
+def test_time_varying_payload_matches_per_sample(machine: Machine) -> None:
+    q, qd, qdd = random_states(machine, 50, seed=7)
+    payload = np.linspace(0.0, 500.0, 50)
+    tau, wrench = inverse_dynamics(machine, q, qd, qdd, payload)
+    for k in (0, 17, 49):
+        t1, w1 = inverse_dynamics(machine, q[k], qd[k], qdd[k], float(payload[k]))
+        np.testing.assert_allclose(tau[k], t1[0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(wrench[k], w1[0], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(joint_torques(machine, q, qd, qdd, payload), tau)
+
+
+def test_mass_matrix_symmetric_positive_definite_and_consistent(machine: Machine) -> None:
+    q, qd, qdd = random_states(machine, 100, seed=3)
+    m = mass_matrix(machine, q, 300.0)
+    np.testing.assert_allclose(m, np.swapaxes(m, 1, 2), rtol=0, atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(m) > 0)
+    b = bias_forces(machine, q, qd, 300.0)
+    tau, _ = inverse_dynamics(machine, q, qd, qdd, 300.0)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", m, qdd) + b, tau, rtol=1e-10, atol=1e-8)
+    np.testing.assert_allclose(forward_dynamics(machine, q, qd, tau, 300.0), qdd, atol=1e-8)
+    model = pinocchio_model(machine, 300.0)
+    data = model.createData()
+    for k in range(5):
+        ref = pin.crba(model, data, q[k])
+        ref = np.triu(ref) + np.triu(ref, 1).T
+        assert rel_err(m[k], ref) <= 1e-9
+
+
+def test_gravity_torques_match_hand_computation(machine: Machine) -> None:
+    """Two poses computed by hand from masses, COMs and the chain geometry (boom plane)."""
+    g = 9.81
+    mp = 250.0
+    lift, jib, ext = machine.body("lift_boom"), machine.body("jib_boom"), \
+        machine.body("extension_boom")
+    tool = machine.load_point.tool_mass_kg
+    o2 = np.array([2.881, 0.0216])         # jib joint in the lift-boom frame (x, z)
+    o3 = np.array([-0.415, 0.295])         # extension joint in the jib frame
+    tip = np.array([2.49, 0.0])            # load point in the extension frame
+
+    def rot(a: float) -> np.ndarray:
+        return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+    for th1, th2, ext_l in ((0.0, 0.0, 0.0), (0.5, -1.2, 0.7)):
+        r1 = rot(th1)
+        r2 = r1 @ rot(th2)
+        p2 = r1 @ o2                                   # jib joint, relative to the lift joint
+        p3 = p2 + r2 @ o3                              # extension joint
+        c_lift = r1 @ np.array([lift.com_m[0], lift.com_m[2]])
+        c_jib = p2 + r2 @ np.array([jib.com_m[0], jib.com_m[2]])
+        c_ext = p3 + r2 @ (np.array([ext.com_m[0], ext.com_m[2]]) + [ext_l, 0.0])
+        c_tip = p3 + r2 @ (tip + [ext_l, 0.0])
+        # torque the actuator supplies about -y (raising positive) = sum m g x (lever arm)
+        t1 = g * (lift.mass_kg * c_lift[0] + jib.mass_kg * c_jib[0] + ext.mass_kg * c_ext[0]
+                  + (tool + mp) * c_tip[0])
+        t2 = g * (jib.mass_kg * (c_jib - p2)[0] + ext.mass_kg * (c_ext - p2)[0]
+                  + (tool + mp) * (c_tip - p2)[0])
+        t3 = g * (ext.mass_kg + tool + mp) * np.sin(th1 + th2)   # along the telescope axis
+        tau = gravity_torques(machine, [0.3, th1, th2, ext_l], mp)[0]
+        np.testing.assert_allclose(tau, [0.0, t1, t2, t3], rtol=1e-12, atol=1e-9)
+
+
+def test_power_balance_along_smooth_trajectory(machine: Machine) -> None:
+    """sum(tau·qd) = d(T + V)/dt with T = qd·M·qd/2 and V from the body COM heights."""
+    mp = 300.0
+    t = np.linspace(0.0, 2.0, 4001)
+    dt = t[1] - t[0]
+    w = np.array([1.3, 2.1, 1.7, 2.9])
+    amp = np.array([0.8, 0.4, 0.6, 0.3])
+    mid = np.array([0.0, 0.4, -1.2, 0.5])
+    q = mid + amp * np.sin(np.outer(t, w))
+    qd = amp * w * np.cos(np.outer(t, w))
+    qdd = -amp * w**2 * np.sin(np.outer(t, w))
+    tau, _ = inverse_dynamics(machine, q, qd, qdd, mp)
+    power = np.sum(tau * qd, axis=1)
+    kinetic = 0.5 * np.einsum("ni,nij,nj->n", qd, mass_matrix(machine, q, mp), qd)
+    poses = body_poses(machine, q)
+    grav = np.asarray(machine.machine.gravity_mps2)
+    potential = np.zeros(len(t))
+    for i, body in enumerate(machine.chain_bodies()):
+        com = poses[:, i, :3, :3] @ np.asarray(body.com_m) + poses[:, i, :3, 3]
+        potential -= body.mass_kg * com @ grav
+    lb = [j.child for j in machine.joints].index(machine.load_point.body)
+    tip = poses[:, lb, :3, :3] @ np.asarray(machine.load_point.point_m) + poses[:, lb, :3, 3]
+    potential -= (machine.load_point.tool_mass_kg + mp) * tip @ grav
+    energy = kinetic + potential
+    d_energy = (energy[2:] - energy[:-2]) / (2 * dt)     # central difference, O(dt²)
+    scale = float(np.max(np.abs(power)))
+    assert scale > 1e3
+    assert float(np.max(np.abs(d_energy - power[1:-1]))) <= 1e-5 * scale
+
+
+def test_bad_shapes_raise_physics_error(machine: Machine) -> None:
+    from cranetwin.errors import PhysicsError
+
+    with pytest.raises(PhysicsError, match="expected shape"):
+        inverse_dynamics(machine, np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)))
+    with pytest.raises(PhysicsError, match="shapes differ"):
+        inverse_dynamics(machine, np.zeros((3, 4)), np.zeros((2, 4)), np.zeros((3, 4)))
+    with pytest.raises(PhysicsError, match="payload_kg"):
+        inverse_dynamics(machine, np.zeros((3, 4)), np.zeros((3, 4)), np.zeros((3, 4)), -1.0)
