@@ -11,8 +11,10 @@ slewing drive torque T (1). Each step:
 4. Forward dynamics ``M(q)·qdd = tau − h(q, qd)`` with M and h from ``physics.kernels.rnea_into``
    (unit-acceleration columns for M, zero acceleration for h; Paper Eq. 4 solved for qdd).
 5. Update. ``semi-implicit`` (default, 1e-4 s as in the paper): symplectic Euler for the
-   mechanics (qd += dt·qdd, then q += dt·qd), chamber pressures from the rod displacement of that
-   step with the valve/relief flows linearly implicit, exact spool lag. ``rk4``: classical
+   mechanics (qd += dt·qdd, then q += dt·qd); chamber pressures follow the rod displacement of
+   that step through the exact closed-chamber law p − p0 = −B_oil·ln(Ve/Ve0) (so the oil spring
+   neither gains nor loses energy), then the valve/relief flows, linearly implicit; exact spool
+   lag. ``rk4``: classical
    Runge–Kutta on the whole state (commands held over the step); it conserves energy to ~1e-7
    over 10 s and is used to check the energy balance.
 
@@ -366,11 +368,16 @@ def run_steps(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int,
             for k in range(NC):
                 ca, cb = capacitances(s[k], hc[k, C_A1], hc[k, C_A2], hc[k, C_STROKE],
                                       hc[k, C_V0], hg[G_BOIL], hg[G_BHOSE])
-                ds = (s_new[k] - s[k]) / dt
-                x[X_PA + k] = pressure_step(x[X_PA + k], flow[4 * k] - hc[k, C_A1] * ds,
-                                            flow[4 * k + 2], ca, dt, hg[G_PMIN])
-                x[X_PB + k] = pressure_step(x[X_PB + k], flow[4 * k + 1] + hc[k, C_A2] * ds,
-                                            flow[4 * k + 3], cb, dt, hg[G_PMIN])
+                ca1, cb1 = capacitances(s_new[k], hc[k, C_A1], hc[k, C_A2], hc[k, C_STROKE],
+                                        hc[k, C_V0], hg[G_BOIL], hg[G_BHOSE])
+                # piston motion: exact closed-chamber law p = p0 − B·ln(Ve/Ve0) (Ve = B·C),
+                # which keeps the oil-spring energy exact; then valve/relief flows
+                pa = x[X_PA + k] - hg[G_BOIL] * math.log(ca1 / ca)
+                pb = x[X_PB + k] - hg[G_BOIL] * math.log(cb1 / cb)
+                x[X_PA + k] = pressure_step(pa, flow[4 * k], flow[4 * k + 2], ca1, dt,
+                                            hg[G_PMIN])
+                x[X_PB + k] = pressure_step(pb, flow[4 * k + 1], flow[4 * k + 3], cb1, dt,
+                                            hg[G_PMIN])
                 x[X_U + 1 + k] = spool_step(x[X_U + 1 + k], u_cmd[1 + k], hc[k, C_TAU], dt)
             # slewing drive: torque rate with the updated speed (symplectic pairing)
             w_old = x[X_QD + sj] - dt * qdd[sj]
@@ -379,4 +386,6 @@ def run_steps(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int,
             x[X_U] = spool_step(x[X_U], u_cmd[0], hs[S_TAU], dt)
             for j in range(NJ):
                 x[X_Q + j] = q_new[j]
-        x[X_TS] = min(max(x[X_TS], -hs[S_TMAX]), hs[S_TMAX])
+        if flags[F_LOSSES] > 0.0:
+            # the slewing circuit's relief valve caps the drive torque
+            x[X_TS] = min(max(x[X_TS], -hs[S_TMAX]), hs[S_TMAX])

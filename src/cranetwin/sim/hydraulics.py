@@ -73,8 +73,8 @@ class HydraulicSettings:
     transition_pressure_pa: float = 1.0e5
     relief_gain_m3_s_pa: float = 2.0e-9
     min_pressure_pa: float = 0.0
-    end_stop_stiffness_n_m: float = 5.0e7
-    end_stop_damping_n_s_m: float = 1.0e5
+    end_stop_stiffness_n_m: float = 2.0e8
+    end_stop_damping_n_s_m: float = 2.0e5
     slew_stiffness_nm_rad: float = 4.7e5
     slew_leak_time_s: float = 0.2
     slew_spool_time_s: float = 0.03

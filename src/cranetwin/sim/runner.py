@@ -37,7 +37,8 @@ class SimOptions:
         scheme: ``semi-implicit`` (fast, default) or ``rk4`` (energy-accurate).
         friction: Cylinder and slewing friction (Eq. 2) on.
         valves: Valve flows on (off = all valves closed, slewing motor locked hydraulically).
-        hydraulic_losses: Relief valves and slewing-motor leakage on.
+        hydraulic_losses: Relief valves (cylinders and the slewing torque cap) and slewing-motor
+            leakage on.
         holding_pressure_pa: Low-side chamber pressure of the initial static equilibrium [Pa].
         initial_pressures_pa: Override of the initial (pA, pB) per cylinder, shape (2, 3) [Pa].
         hydraulics: Simulator-side hydraulic constants.
@@ -89,7 +90,8 @@ def prepare(machine: Machine, options: SimOptions | None = None) -> Prepared:
 
 
 def initial_state(prep: Prepared, scenario: Scenario, options: SimOptions) -> F64:
-    """State at rest in the scenario's pose, chamber pressures in static equilibrium.
+    """State in the scenario's initial pose and velocities, with the chamber pressures (and
+    slewing torque) that balance the bias forces h(q, qd), so the machine starts unaccelerated.
 
     Raises:
         ScenarioError: a rod of the initial pose is outside its stroke.
@@ -102,10 +104,12 @@ def initial_state(prep: Prepared, scenario: Scenario, options: SimOptions) -> F6
         if not (np.isfinite(s[k]) and -1e-9 <= s[k] <= c.stroke_m + 1e-9):
             raise ScenarioError(f"initial.q: the {c.name} rod position would be {s[k]:.4f} m, "
                                 f"outside its stroke [0, {c.stroke_m}] m")
+    qd0 = np.asarray(scenario.initial.qd, dtype=np.float64)
     h = np.empty(E.NJ)
-    bias(prep.chain.chain, q0, np.zeros(E.NJ), scenario.initial.payload_kg, h)
+    bias(prep.chain.chain, q0, qd0, scenario.initial.payload_kg, h)
     x = np.zeros(E.N_X)
     x[E.X_Q:E.X_Q + E.NJ] = q0
+    x[E.X_QD:E.X_QD + E.NJ] = qd0
     p_low = options.holding_pressure_pa
     for k, c in enumerate(prep.machine.cylinders):
         f = h[prep.cj[k]] / dsdq[k]            # static rod force that holds gravity

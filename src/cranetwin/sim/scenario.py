@@ -110,14 +110,16 @@ class PayloadEvent(_Frozen):
 
 
 class InitialState(_Frozen):
-    """Initial pose (at rest) and payload.
+    """Initial pose, velocities and payload.
 
     Attributes:
         q: Joint positions [theta0 rad, theta1 rad, theta2 rad, L m].
+        qd: Joint velocities [rad/s, rad/s, rad/s, m/s] (default at rest).
         payload_kg: Payload at the tip at t = 0 [kg].
     """
 
     q: tuple[float, float, float, float] = (0.0, 0.6, -1.6, 0.3)
+    qd: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     payload_kg: float = Field(0.0, ge=0, le=5000.0)
 
 
@@ -330,14 +332,20 @@ def log_loading(duration_s: float = 60.0, payload_kg: float = 300.0, seed: int =
 def random_operator(duration_s: float = 30.0, payload_kg: float = 0.0, seed: int = 0) -> Scenario:
     """A seeded random operator: random waypoints every 1.5–5 s (within 10–90 % of each stroke
     and ±1.5 rad of slewing), random feed-forward bursts, random grabs and releases up to
-    ``payload_kg`` (no payload changes when 0)."""
+    ``payload_kg`` (no payload changes when 0). The first waypoint is the initial pose."""
+    from cranetwin.model import load_machine
+    from cranetwin.physics import cylinder_kinematics
+
     rng = np.random.default_rng(seed)
-    strokes = (0.535, 0.78, 1.2)
+    machine = load_machine("patu655")
+    strokes = tuple(c.stroke_m for c in machine.cylinders)
+    q0 = (0.0, 0.5, -1.4, 0.6)
+    s0 = [float(v) for v in cylinder_kinematics(machine, np.array([q0]))[0][0]]
     knots: dict[str, list[tuple[float, float]]] = {a: [] for a in ACTUATORS}
     ff: dict[str, list[tuple[float, float]]] = {a: [(0.0, 0.0)] for a in ACTUATORS}
     for a in ACTUATORS:
         t = 0.0
-        knots[a].append((0.0, 0.0 if a == "slew" else 0.5 * strokes[ACTUATORS.index(a) - 1]))
+        knots[a].append((0.0, q0[0] if a == "slew" else s0[ACTUATORS.index(a) - 1]))
         while t < duration_s:
             t += float(rng.uniform(1.5, 5.0))
             lo, hi = ((-1.5, 1.5) if a == "slew"
@@ -353,12 +361,11 @@ def random_operator(duration_s: float = 30.0, payload_kg: float = 0.0, seed: int
         while t < duration_s:
             t += float(rng.uniform(3.0, 8.0))
             events.append(PayloadEvent(t_s=t, mass_kg=float(rng.uniform(0.0, payload_kg))))
-    # the initial pose must agree with the first waypoints, or the operator jerks at t = 0
     progs = {a: ActuatorProgram(target=knots[a], voltage=ff[a],
                                 gain=(30.0 if a == "slew" else 60.0)) for a in ACTUATORS}
     return Scenario(name="random", duration_s=duration_s,
                     description=f"random operator, seed {seed}",
-                    initial=InitialState(q=(0.0, 0.5, -1.4, 0.6), payload_kg=0.0),
+                    initial=InitialState(q=q0, payload_kg=0.0),
                     actuators=Actuators(**progs), payload=events)
 
 
