@@ -1,0 +1,272 @@
+"""Web front end routes: pages, static files, the 3D scene and self-contained replay exports.
+
+``create_app`` includes :data:`router`. Pages and static files carry no machine data and need no
+key (the page's scripts send the key with every API call); the scene and export routes read
+machine data and need a viewer key, which they check by calling the API's own routes
+(``/api/v1/machines/{id}/model`` and friends) in-process with the caller's credentials, so the
+role rules live in one place (the API's auth dependency).
+
+Files of ``web/`` are found in the repository next to the package (``src/cranetwin`` →
+``../../web``), which is where an editable install (``pip install -e .``) and the Docker image
+keep them; ``CRANETWIN_WEB_DIR`` overrides the location for other layouts.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Any
+
+import httpx
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import FileResponse, JSONResponse, Response
+
+from cranetwin.errors import CraneTwinError
+from cranetwin.model import load_machine, machine_from_dict
+from cranetwin.viz.export import EXPORT_MAX_SECONDS, export_rate_hz, render_export
+from cranetwin.viz.scene import build_scene
+
+log = logging.getLogger(__name__)
+
+router = APIRouter(tags=["web"])
+
+_SCENE_CACHE: dict[str, dict[str, Any]] = {}
+
+
+class WebError(CraneTwinError):
+    """The web front end cannot serve a request (missing files, upstream API errors)."""
+
+    def __init__(self, status: int, title: str, detail: str) -> None:
+        self.status = status
+        self.title = title
+        self.detail = detail
+        super().__init__(f"{title}: {detail}")
+
+
+def web_dir() -> Path:
+    """Folder of the static web files (``web/`` of the repository, or ``CRANETWIN_WEB_DIR``)."""
+    env = os.environ.get("CRANETWIN_WEB_DIR")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[3] / "web"
+
+
+def vendor_file(name: str) -> Path:
+    """Path of a vendored browser library shipped inside a Python package.
+
+    ``meshcat.min.js``: meshcat's three.js viewer bundle; ``plotly.min.js``: plotly.js.
+    """
+    if name == "meshcat.min.js":
+        return Path(str(resources.files("meshcat") / "viewer" / "dist" / "main.min.js"))
+    if name == "plotly.min.js":
+        return Path(str(resources.files("plotly") / "package_data" / "plotly.min.js"))
+    raise WebError(404, "Not found", f"no vendored file {name!r}; expected meshcat.min.js or "
+                   "plotly.min.js")
+
+
+def _problem(status: int, title: str, detail: str) -> JSONResponse:
+    return JSONResponse({"type": "about:blank", "title": title, "status": status,
+                         "detail": detail}, status_code=status,
+                        media_type="application/problem+json")
+
+
+def _page(name: str) -> Response:
+    path = web_dir() / name
+    if not path.is_file():
+        return _problem(500, "Web files missing",
+                        f"{path} not found: install cranetwin from its repository "
+                        "(pip install -e .) or set CRANETWIN_WEB_DIR to the web/ folder")
+    return FileResponse(path, media_type="text/html", headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/", include_in_schema=False)
+def fleet_page() -> Response:
+    """The fleet page (HTML)."""
+    return _page("index.html")
+
+
+@router.get("/machines/{machine_id}", include_in_schema=False)
+def machine_page(machine_id: str) -> Response:
+    """The machine page (HTML); the machine id is read by the page's script from the path."""
+    return _page("machine.html")
+
+
+_MEDIA = {".js": "text/javascript", ".css": "text/css", ".html": "text/html",
+          ".svg": "image/svg+xml", ".png": "image/png", ".json": "application/json"}
+
+
+@router.get("/static/{path:path}", include_in_schema=False)
+def static_file(path: str) -> Response:
+    """Files of ``web/`` and the vendored viewer/chart libraries under ``/static/vendor/``."""
+    if path.startswith("vendor/"):
+        try:
+            file = vendor_file(path.removeprefix("vendor/"))
+        except WebError as exc:
+            return _problem(exc.status, exc.title, exc.detail)
+        return FileResponse(file, media_type="text/javascript",
+                            headers={"Cache-Control": "public, max-age=86400"})
+    root = web_dir().resolve()
+    file = (root / path).resolve()
+    if root not in file.parents or not file.is_file():
+        return _problem(404, "Not found", f"no static file {path!r}")
+    return FileResponse(file, media_type=_MEDIA.get(file.suffix, "application/octet-stream"),
+                        headers={"Cache-Control": "no-cache"})
+
+
+# --- calls to the API's own routes, with the caller's credentials ---------------------------------
+
+
+def _auth_headers(request: Request) -> dict[str, str]:
+    headers = {"accept": "application/json"}
+    for name in ("x-api-key", "authorization"):
+        if name in request.headers:
+            headers[name] = request.headers[name]
+    key = request.query_params.get("key")
+    if key and "x-api-key" not in headers and "authorization" not in headers:
+        headers["x-api-key"] = key
+    return headers
+
+
+async def _api_get(request: Request, path: str, params: dict[str, Any] | None = None) -> Any:
+    transport = httpx.ASGITransport(app=request.app)
+    async with httpx.AsyncClient(transport=transport, base_url="http://cranetwin.internal",
+                                 timeout=60.0) as client:
+        resp = await client.get(path, params=params, headers=_auth_headers(request))
+    if resp.status_code >= 400:
+        try:
+            body = resp.json()
+            title, detail = str(body.get("title", resp.reason_phrase)), str(body.get("detail", ""))
+        except (ValueError, AttributeError):
+            title, detail = resp.reason_phrase, resp.text[:200]
+        raise WebError(resp.status_code, title, detail)
+    return resp.json()
+
+
+async def _scene_for(request: Request, machine_id: str) -> dict[str, Any]:
+    model_json = await _api_get(request, f"/api/v1/machines/{machine_id}/model")
+    key = hashlib.sha256(json.dumps(model_json, sort_keys=True).encode()).hexdigest()
+    if key in _SCENE_CACHE:
+        return _SCENE_CACHE[key]
+    try:
+        machine = machine_from_dict(model_json, source=f"machine {machine_id}")
+    except CraneTwinError:
+        # the API may return a summary rather than the full description: use the named model
+        name = str(model_json.get("model") or model_json.get("machine", {}).get("name", ""))
+        machine = load_machine(name)
+    commands, spec = build_scene(machine)
+    scene = {
+        "commands": commands,
+        "spec": {**spec.to_json(),
+                 "load_point": {"body": machine.load_point.body,
+                                "point_m": list(machine.load_point.point_m)}},
+    }
+    if len(_SCENE_CACHE) > 32:
+        _SCENE_CACHE.clear()
+    _SCENE_CACHE[key] = scene
+    return scene
+
+
+@router.get("/api/v1/machines/{machine_id}/scene")
+async def machine_scene(machine_id: str, request: Request) -> Response:
+    """meshcat ``set_object`` commands for every body, cylinder, the tool and payload, plus the
+    spec the browser needs to animate them (node paths, barrel lengths, load point). Role viewer.
+    """
+    try:
+        return JSONResponse(await _scene_for(request, machine_id),
+                            headers={"Cache-Control": "private, max-age=3600"})
+    except WebError as exc:
+        return _problem(exc.status, exc.title, exc.detail)
+    except CraneTwinError as exc:
+        return _problem(422, "Cannot draw this machine", str(exc))
+
+
+TimeParam = Annotated[str, Query(description="ISO 8601 or epoch seconds")]
+
+
+def _epoch(value: str, name: str) -> float:
+    try:
+        v = float(value)
+    except ValueError:
+        from datetime import datetime
+
+        try:
+            v = datetime.fromisoformat(value.replace("Z", "+00:00")).timestamp()
+        except ValueError as exc:
+            raise WebError(422, "Invalid time", f"{name}={value!r}: expected ISO 8601 "
+                           "(2026-11-23T10:42:00Z) or epoch seconds") from exc
+    if not math.isfinite(v):
+        raise WebError(422, "Invalid time", f"{name}={value!r} is not finite")
+    return v
+
+
+async def _twin_window(request: Request, machine_id: str, t0: float, t1: float,
+                       rate_hz: float) -> dict[str, Any]:
+    """The API's twin result for [t0, t1], fetched in ≤ 60 s pieces and joined."""
+    parts: list[dict[str, Any]] = []
+    a = t0
+    while a < t1 - 1e-9:
+        b = min(t1, a + 60.0)
+        parts.append(await _api_get(request, f"/api/v1/machines/{machine_id}/twin",
+                                    {"from": a, "to": b, "rate_hz": rate_hz}))
+        a = b
+    from cranetwin.viz.export import join_twin
+
+    return join_twin(parts)
+
+
+@router.get("/api/v1/machines/{machine_id}/export.html")
+async def machine_export(
+    machine_id: str, request: Request,
+    from_: Annotated[str, Query(alias="from", description="ISO 8601 or epoch seconds")],
+    to: Annotated[str, Query(description="ISO 8601 or epoch seconds")],
+) -> Response:
+    """One self-contained HTML file replaying [from, to] (≤ 10 min): 3D animation, charts,
+    events. Opens offline; no server needed. Role viewer.
+    """
+    try:
+        t0, t1 = _epoch(from_, "from"), _epoch(to, "to")
+        if not t1 > t0:
+            raise WebError(422, "Invalid range", f"to ({to}) must be after from ({from_})")
+        if t1 - t0 > EXPORT_MAX_SECONDS:
+            raise WebError(422, "Range too long",
+                           f"{t1 - t0:.0f} s requested; exports hold at most "
+                           f"{EXPORT_MAX_SECONDS:.0f} s (choose a shorter window)")
+        base = f"/api/v1/machines/{machine_id}"
+        machine = await _api_get(request, base)
+        model = await _api_get(request, f"{base}/model")
+        scene = await _scene_for(request, machine_id)
+        twin = await _twin_window(request, machine_id, t0, t1, export_rate_hz(t1 - t0))
+        channels = ",".join(_history_channels(model))
+        try:
+            history = await _api_get(request, f"{base}/history",
+                                     {"from": t0, "to": t1, "channels": channels,
+                                      "max_points": 800})
+        except WebError:
+            history = {"channels": {}}
+        try:
+            events = await _api_get(request, f"{base}/events", {"from": t0, "to": t1})
+        except WebError:
+            events = []
+    except WebError as exc:
+        return _problem(exc.status, exc.title, exc.detail)
+    html = render_export(web_dir(), {
+        "machine": machine, "model": model, "scene": scene, "twin": twin,
+        "history": history, "events": events, "from": t0, "to": t1,
+    })
+    name = f"cranetwin-{machine_id}-{int(t0)}.html"
+    return Response(html, media_type="text/html",
+                    headers={"Content-Disposition": f'attachment; filename="{name}"'})
+
+
+def _history_channels(model: dict[str, Any]) -> list[str]:
+    out = [str(c["name"]) for c in model.get("channels", [])
+           if c.get("quantity") in ("pressure_a", "pressure_b")]
+    out += [f"force:{c['name']}" for c in model.get("cylinders", [])]
+    out.append("payload")
+    out += [f"moment:{j['name']}" for j in model.get("joints", []) if j.get("kind") == "revolute"]
+    return out

@@ -1,0 +1,165 @@
+// The 3D crane: a meshcat viewer filled with the scene commands of /api/v1/machines/{id}/scene,
+// animated by frames {q, poses, cylinder_pins, utilisation, payload_kg, tip}.
+// No imports: this file is also inlined into exported replay HTML files.
+
+export function utilisationColor(u) {
+  // 0 -> green, 0.6 -> amber, 1 -> red, above 1 -> magenta (over rating)
+  if (!(u >= 0)) return [0.45, 0.5, 0.58];
+  if (u > 1.0) return [0.85, 0.1, 0.75];
+  const stops = [[0, [0.16, 0.65, 0.3]], [0.6, [0.95, 0.7, 0.1]], [1, [0.86, 0.15, 0.12]]];
+  for (let i = 1; i < stops.length; i++) {
+    const [u1, c1] = stops[i];
+    const [u0, c0] = stops[i - 1];
+    if (u <= u1) {
+      const a = (u - u0) / (u1 - u0);
+      return [0, 1, 2].map((k) => c0[k] + a * (c1[k] - c0[k]));
+    }
+  }
+  return stops[2][1];
+}
+
+// Column-major 4x4 taking a unit mesh along +z (z in [0, 1]) onto p0 -> p0 + n*len.
+export function segmentMatrix(p0, dir, len) {
+  const n = dir;
+  const helper = Math.abs(n[1]) < 0.9 ? [0, 1, 0] : [1, 0, 0];
+  let u = cross(helper, n);
+  const un = Math.hypot(u[0], u[1], u[2]) || 1;
+  u = [u[0] / un, u[1] / un, u[2] / un];
+  const w = cross(n, u);
+  return [u[0], u[1], u[2], 0, w[0], w[1], w[2], 0,
+    n[0] * len, n[1] * len, n[2] * len, 0, p0[0], p0[1], p0[2], 1];
+}
+function cross(a, b) {
+  return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+}
+function flatPins(p) {
+  // accepts [[bx,by,bz],[rx,ry,rz]] or [bx,by,bz,rx,ry,rz]
+  if (!p) return null;
+  return Array.isArray(p[0]) ? [p[0][0], p[0][1], p[0][2], p[1][0], p[1][1], p[1][2]] : p;
+}
+
+export function logRadius(kg, spec) {
+  const m = Math.max(kg || 0, 0);
+  return Math.sqrt(m / (spec.log_density_kgm3 * Math.PI * spec.log_length_m));
+}
+
+export class Crane3D {
+  constructor(element, sceneData) {
+    this.viewer = new MeshCat.Viewer(element);
+    this.spec = sceneData.spec;
+    this.viewer.handle_command({ type: "set_property", path: "/Background", property: "top_color", value: [0.87, 0.9, 0.94] });
+    this.viewer.handle_command({ type: "set_property", path: "/Background", property: "bottom_color", value: [0.63, 0.69, 0.77] });
+    this.viewer.handle_command({ type: "set_property", path: "/Axes", property: "visible", value: false });
+    for (const cmd of sceneData.commands) this.viewer.handle_command(cmd);
+    this.nodes = {};
+    const find = (path) => this.viewer.scene_tree.find(path.split("/").filter((x) => x.length));
+    for (const body of this.spec.bodies) this.nodes[body] = find(this.spec.body_paths[body]);
+    this.cyl = {};
+    for (const c of this.spec.cylinders) {
+      this.cyl[c] = {
+        barrel: find(`/cranetwin/cylinders/${c}/barrel`),
+        rod: find(`/cranetwin/cylinders/${c}/rod`),
+        barrelMesh: find(`/cranetwin/cylinders/${c}/barrel/<object>`),
+        barrelLen: this.spec.barrel_lengths_m[c],
+      };
+    }
+    this.tool = find(this.spec.tool_path);
+    this.payload = find(this.spec.payload_path);
+    this.trailObj = find(`${this.spec.trail_path}/<object>`);
+    this.trailN = this.spec.trail_points;
+    this.lastUtil = {};
+    this.setCamera([-1.0, -9.0, 4.5], [2.0, 0, 1.4]);
+    if (typeof ResizeObserver !== "undefined") {
+      new ResizeObserver(() => this.resize()).observe(element);
+    }
+    this.element = element;
+    this.resize();
+  }
+
+  resize() {
+    const w = this.element.clientWidth;
+    const h = this.element.clientHeight;
+    if (w > 0 && h > 0) this.viewer.set_3d_pane_size(w, h);
+  }
+
+  setCamera(eye, target) {
+    // meshcat turns its scene -90° about x so that content is z-up inside a y-up three.js world;
+    // the camera and OrbitControls work in that y-up world: (x, y, z) z-up is (x, z, -y) there.
+    const v = this.viewer;
+    const w = (p) => [p[0], p[2], -p[1]];
+    const e = w(eye), t = w(target);
+    v.camera.fov = 45;
+    v.camera.position.set(e[0], e[1], e[2]);
+    v.controls.target.set(t[0], t[1], t[2]);
+    v.controls.update();
+    v.camera.updateProjectionMatrix();
+    v.set_dirty();
+  }
+
+  apply(frame) {
+    const poses = frame.poses || {};
+    for (const body of this.spec.bodies) {
+      const m = poses[body];
+      if (m) this.nodes[body].set_transform(m);
+    }
+    const pins = frame.cylinder_pins || {};
+    const util = frame.utilisation || {};
+    for (const c of this.spec.cylinders) {
+      const p = flatPins(pins[c]);
+      const parts = this.cyl[c];
+      if (p) {
+        const d = [p[3] - p[0], p[4] - p[1], p[5] - p[2]];
+        const len = Math.hypot(d[0], d[1], d[2]) || 1e-9;
+        const n = [d[0] / len, d[1] / len, d[2] / len];
+        const bl = Math.min(parts.barrelLen, len);
+        parts.barrel.set_transform(segmentMatrix([p[0], p[1], p[2]], n, bl));
+        const nr = [-n[0], -n[1], -n[2]];
+        parts.rod.set_transform(segmentMatrix([p[3], p[4], p[5]], nr, Math.max(len - 0.5 * bl, 0.01)));
+      }
+      const u = util[c];
+      if (u !== undefined && u !== null && this.lastUtil[c] !== Math.round(u * 100)) {
+        this.lastUtil[c] = Math.round(u * 100);
+        const mat = parts.barrelMesh.object.material;
+        if (mat && mat.color) {
+          const rgb = utilisationColor(Math.abs(u));
+          mat.color.setRGB(rgb[0], rgb[1], rgb[2]);
+        }
+      }
+    }
+    const tip = frame.tip || this.tipFromPoses(poses);
+    if (tip) {
+      const th = frame.q ? frame.q[0] : 0;
+      const c = Math.cos(th), s = Math.sin(th);
+      this.tool.set_transform([c, s, 0, 0, -s, c, 0, 0, 0, 0, 1, 0, tip[0], tip[1], tip[2], 1]);
+      const r = logRadius(frame.payload_kg, this.spec);
+      const L = r > 0.005 ? this.spec.log_length_m : 0;
+      const rr = L > 0 ? r : 0;
+      this.payload.set_transform([rr, 0, 0, 0, 0, L, 0, 0, 0, 0, rr, 0, 0, 0, -this.spec.tool_drop_m - rr, 1]);
+    }
+    this.viewer.set_dirty();
+  }
+
+  tipFromPoses(poses) {
+    const lp = this.spec.load_point;
+    if (!lp || !poses[lp.body]) return null;
+    const m = poses[lp.body];
+    const p = lp.point_m;
+    return [0, 1, 2].map((i) => m[i] * p[0] + m[4 + i] * p[1] + m[8 + i] * p[2] + m[12 + i]);
+  }
+
+  setTrail(points) {
+    // points: flat [x, y, z, ...] of at most trail_points points (oldest first)
+    const obj = this.trailObj.object;
+    if (!obj || !obj.geometry) return;
+    const attr = obj.geometry.attributes.position;
+    const n = Math.min(points.length / 3, this.trailN);
+    const start = points.length - 3 * n;
+    for (let i = 0; i < 3 * n; i++) attr.array[i] = points[start + i];
+    for (let i = 3 * n; i < 3 * this.trailN; i++) attr.array[i] = n > 0 ? points[points.length - 3 + (i % 3)] : 0;
+    attr.needsUpdate = true;
+    obj.geometry.setDrawRange(0, n);
+    this.viewer.set_dirty();
+  }
+
+  snapshot() { return this.viewer.capture_image(); }
+}

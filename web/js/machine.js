@@ -1,0 +1,510 @@
+// Machine page: 3D crane, live and replay modes, charts on one time cursor, events, share/export.
+import { ApiError, getJSON, wsURL, withKey, isoSeconds, parseTime, relTime, resetKey } from "./api.js";
+import { Crane3D } from "./crane3d.js";
+import { ReplayStore } from "./replay.js";
+import { Charts, chartGroups } from "./charts.js";
+
+const $ = (id) => document.getElementById(id);
+const SPEEDS = [0.25, 0.5, 1, 2, 4, 8, 16];
+const REPLAY_RATE_HZ = 25;
+const LIVE_WINDOW_S = 60;
+const TRAIL_S = 20;
+
+// Measurements read by the browser tests and benchmarks.
+const metrics = window.cranetwin = {
+  ready: false, firstFrameMs: null, sceneMs: null, framesRendered: 0, rafIntervals: [],
+  liveLatencyMs: [], liveFrames: 0, lastLiveT: null, mode: null, cursor: null, errors: [],
+};
+
+// ---- data source: the API, or the data embedded in an exported file ---------------------------
+function apiSource(id) {
+  const base = `/api/v1/machines/${encodeURIComponent(id)}`;
+  return {
+    embedded: false,
+    machine: () => getJSON(base),
+    model: () => getJSON(`${base}/model`),
+    scene: () => getJSON(`${base}/scene`),
+    twin: (a, b, rate) => getJSON(`${base}/twin`, { from: a, to: b, rate_hz: rate }),
+    history: (a, b, channels, maxPoints) => getJSON(`${base}/history`, { from: a, to: b, channels: channels.join(","), max_points: maxPoints }),
+    events: (a, b) => getJSON(`${base}/events`, { from: a, to: b }),
+    liveURL: () => wsURL(`${base}/live`),
+  };
+}
+function embeddedSource(e) {
+  return {
+    embedded: true,
+    machine: async () => e.machine,
+    model: async () => e.model,
+    scene: async () => e.scene,
+    twin: async (a, b) => sliceTwin(e.twin, a, b),
+    history: async () => e.history,
+    events: async () => e.events || [],
+    liveURL: () => null,
+  };
+}
+function sliceTwin(tw, a, b) {
+  const idx = [];
+  tw.t.forEach((t, i) => { if (t >= a - 1e-9 && t <= b + 1e-9) idx.push(i); });
+  const pick = (arr) => idx.map((i) => arr[i]);
+  const out = { t: pick(tw.t), q: pick(tw.q), tip: tw.tip ? pick(tw.tip) : null, poses: {}, cylinder_pins: {}, utilisation: {}, cylinder_forces: {}, payload: tw.payload };
+  for (const k in tw.poses) out.poses[k] = pick(tw.poses[k]);
+  for (const k in tw.cylinder_pins || {}) out.cylinder_pins[k] = pick(tw.cylinder_pins[k]);
+  for (const k in tw.utilisation || {}) out.utilisation[k] = pick(tw.utilisation[k]);
+  for (const k in tw.cylinder_forces || {}) out.cylinder_forces[k] = pick(tw.cylinder_forces[k]);
+  return out;
+}
+
+function loadScript(src) {
+  return new Promise((resolve, reject) => {
+    if (typeof Plotly !== "undefined") { resolve(); return; }
+    const s = document.createElement("script");
+    s.src = src; s.onload = resolve; s.onerror = () => reject(new Error(`cannot load ${src}`));
+    document.head.appendChild(s);
+  });
+}
+
+// ---- page state ---------------------------------------------------------------------------------
+const embed = window.CRANETWIN_EMBED || null;
+const machineId = embed ? embed.machine.machine_id : decodeURIComponent(window.location.pathname.split("/").filter(Boolean).pop());
+const source = embed ? embeddedSource(embed) : apiSource(machineId);
+const params = new URLSearchParams(window.location.search);
+const state = {
+  machine: null, model: null, crane: null, charts: null, groups: null,
+  mode: null, from: null, to: null, cursor: null, playing: false,
+  speed: Math.min(16, Math.max(0.25, parseFloat(params.get("speed")) || 1)),
+  store: null, events: [], live: null, liveFrame: null, liveDirty: false,
+  liveBuffer: { t: [], series: {} }, liveTrail: [], lastWall: null, lastUrlUpdate: 0,
+};
+
+function banner(text, kind = "info") {
+  const b = $("banner");
+  if (!text) { b.hidden = true; return; }
+  b.hidden = false;
+  b.className = `banner ${kind}`;
+  b.textContent = text;
+}
+
+function fmtTime(t) {
+  if (t === null || t === undefined) return "–";
+  return new Date(t * 1000).toISOString().replace("T", " ").replace(/\.(\d)\d\dZ$/, ".$1");
+}
+function toLocalInput(t) { return new Date(t * 1000).toISOString().slice(0, 19); }
+function fromLocalInput(v) { return v ? Date.parse(v + "Z") / 1000 : null; }
+
+// ---- start ------------------------------------------------------------------------------------
+async function start() {
+  const t0 = performance.now();
+  let machine, model, scene;
+  try {
+    [machine, model, scene] = await Promise.all([source.machine(), source.model(), source.scene()]);
+  } catch (err) {
+    return fail(err);
+  }
+  state.machine = machine;
+  state.model = model;
+  document.title = `cranetwin · ${machine.name || machine.machine_id}`;
+  $("title").textContent = machine.name || machine.machine_id;
+  setStatus(machine);
+  state.crane = new Crane3D($("view3d"), scene);
+  window.__crane = state.crane;
+  metrics.sceneMs = performance.now() - t0;
+  buildForceRows();
+  if (embed) { $("mode-live").disabled = true; $("share").hidden = true; $("export").hidden = true; $("back-link").hidden = true; }
+  wireControls();
+  const range = machine.data_range || {};
+  const dataFrom = parseTime(range.from);
+  const dataTo = parseTime(range.to);
+  const wantMode = params.get("mode") || (embed ? "replay" : (machine.status === "live" ? "live" : "replay"));
+  const from = embed ? embed.from : parseTime(params.get("from")) ?? (dataTo !== null ? Math.max(dataFrom ?? dataTo - 600, dataTo - 600) : null);
+  const to = embed ? embed.to : parseTime(params.get("to")) ?? dataTo;
+  requestAnimationFrame(loop);
+  const chartsReady = (embed ? Promise.resolve() : loadScript("/static/vendor/plotly.min.js")).then(() => {
+    state.groups = chartGroups(model);
+    state.charts = new Charts($("charts"), state.groups, (t) => { if (state.mode === "replay") seek(t, true); });
+  }).catch((err) => { $("charts-msg").hidden = false; $("charts-msg").textContent = `Charts unavailable: ${err.message}`; });
+  state.chartsReady = chartsReady;
+  if (wantMode === "live" && !embed) {
+    setMode("live");
+  } else if (from !== null && to !== null && to > from) {
+    setMode("replay", from, to, parseTime(params.get("t")));
+  } else {
+    setMode("replay", null, null);
+    banner("No stored data for this machine yet. When it starts sending, switch to Live.", "warn");
+  }
+}
+
+function fail(err) {
+  metrics.errors.push(String(err));
+  if (err instanceof ApiError && err.status === 401) { askKey(); return; }
+  if (err instanceof ApiError && err.status === 404) { banner(`Unknown machine “${machineId}”. ${err.detail || ""}`, "error"); return; }
+  if (err instanceof ApiError && err.status === 403) { banner(`This key may not view this machine (${err.detail || "forbidden"}).`, "error"); return; }
+  banner(`Could not load the machine: ${err.message}`, "error");
+}
+
+function askKey() {
+  const d = $("key-dialog");
+  $("key-form").onsubmit = (ev) => { ev.preventDefault(); resetKey($("key-input").value.trim()); d.close(); window.location.reload(); };
+  d.showModal();
+}
+
+function setStatus(machine) {
+  const s = $("status");
+  const st = machine.status || "unknown";
+  s.textContent = st === "live" ? "live" : `${st}${machine.last_seen ? " · " + relTime(machine.last_seen) : ""}`;
+  s.className = `badge ${st}`;
+}
+
+function buildForceRows() {
+  const rows = $("force-rows");
+  rows.innerHTML = "";
+  for (const c of state.crane.spec.cylinders) {
+    const tr = document.createElement("tr");
+    tr.innerHTML = `<th scope="row">${c}</th><td id="f-${c}">–</td><td><div class="bar"><div id="u-${c}"></div></div></td>`;
+    rows.appendChild(tr);
+  }
+}
+
+// ---- modes --------------------------------------------------------------------------------------
+function setMode(mode, from, to, t) {
+  state.playing = false;
+  stopLive();
+  state.mode = metrics.mode = mode;
+  $("mode-live").setAttribute("aria-pressed", String(mode === "live"));
+  $("mode-replay").setAttribute("aria-pressed", String(mode === "replay"));
+  document.body.dataset.mode = mode;
+  banner(null);
+  if (mode === "live") { startLive(); } else { startReplay(from ?? state.from, to ?? state.to, t); }
+  updatePlayButton();
+  updateUrl(true);
+}
+
+function startReplay(from, to, t) {
+  if (from === null || to === null || !(to > from)) {
+    $("slider").disabled = true; $("play").disabled = true;
+    return;
+  }
+  state.from = from; state.to = to;
+  $("from").value = toLocalInput(from);
+  $("to").value = toLocalInput(to);
+  const slider = $("slider");
+  slider.disabled = false; $("play").disabled = false;
+  slider.min = "0"; slider.max = String(to - from); slider.step = "0.02";
+  state.store = new ReplayStore(source, from, to, REPLAY_RATE_HZ);
+  state.store.onLoaded = (i, entry) => {
+    if (entry.state === "empty" && state.store.chunkIndex(state.cursor) === i) banner("No data in this part of the range.", "warn");
+    else if (entry.state === "error") banner(`Could not load the replay: ${entry.error.message}`, "error");
+    else if (entry.state === "ready") { if ($("banner").classList.contains("warn")) banner(null); state.needsFrame = true; }
+  };
+  seek(t !== null && t !== undefined && t >= from && t <= to ? t : from, false);
+  source.events(from, to).then((events) => { state.events = events || []; renderEvents(); })
+    .catch(() => { state.events = []; renderEvents(); });
+  state.chartsReady.then(() => loadHistory(from, to));
+  if (!embed) $("export").href = withKey(`/api/v1/machines/${encodeURIComponent(machineId)}/export.html?from=${from}&to=${Math.min(to, from + 600)}`);
+}
+
+async function loadHistory(from, to) {
+  if (!state.charts) return;
+  const channels = state.groups.flatMap((g) => g.channels);
+  const msg = $("charts-msg");
+  try {
+    const maxPoints = Math.min(2000, Math.max(200, Math.round($("charts").clientWidth * 1.5)));
+    const hist = await source.history(from, to, channels, maxPoints);
+    const any = state.charts.setHistory(hist, state.events);
+    msg.hidden = any;
+    if (!any) msg.textContent = "No load history in this range.";
+  } catch (err) {
+    msg.hidden = false;
+    msg.textContent = `Load history unavailable: ${err.message}`;
+  }
+  state.charts.setCursor(state.cursor);
+}
+
+function renderEvents() {
+  const ol = $("events");
+  ol.innerHTML = "";
+  $("events-empty").hidden = state.events.length > 0;
+  for (const ev of state.events) {
+    const li = document.createElement("li");
+    const b = document.createElement("button");
+    b.type = "button";
+    b.className = `event ${ev.severity || ""}`;
+    b.textContent = `${fmtTime(ev.t).slice(11)} ${ev.kind}: ${ev.message || ""}`;
+    b.onclick = () => { if (state.mode !== "replay") setMode("replay"); seek(ev.t, true); };
+    li.appendChild(b);
+    ol.appendChild(li);
+  }
+  if (state.charts && state.mode === "replay") loadHistory(state.from, state.to);
+}
+
+function seek(t, userAction) {
+  if (state.from === null) return;
+  state.cursor = metrics.cursor = Math.min(Math.max(t, state.from), state.to);
+  $("slider").value = String(state.cursor - state.from);
+  state.needsFrame = true;
+  if (userAction) updateUrl(true);
+}
+
+// ---- live ---------------------------------------------------------------------------------------
+function startLive() {
+  $("slider").disabled = true;
+  $("play").disabled = true;
+  state.liveBuffer = { t: [], series: {} };
+  state.liveTrail = [];
+  let backoff = 500;
+  let lastFrameWall = Date.now();
+  const connect = () => {
+    const ws = new WebSocket(source.liveURL());
+    state.live = ws;
+    ws.onopen = () => { backoff = 500; banner("Connected — waiting for data from the machine…", "info"); lastFrameWall = Date.now(); };
+    ws.onmessage = (msg) => {
+      let f;
+      try { f = JSON.parse(msg.data); } catch (_) { return; }
+      if (f.type === "hello") return;
+      if (f.type === "error") { banner(f.detail || f.title || "Live stream error", "error"); return; }
+      lastFrameWall = Date.now();
+      f.receivedAt = performance.now();
+      state.liveFrame = f;
+      state.liveDirty = true;
+      metrics.liveFrames += 1;
+      pushLive(f);
+    };
+    ws.onclose = (ev) => {
+      if (state.live !== ws) return;
+      if (ev.code === 4401 || ev.code === 1008) { banner("The live stream refused this key.", "error"); return; }
+      banner(`Live connection lost — reconnecting in ${(backoff / 1000).toFixed(1)} s…`, "error");
+      state.liveTimer = setTimeout(connect, backoff);
+      backoff = Math.min(backoff * 2, 10000);
+    };
+  };
+  connect();
+  state.liveWatch = setInterval(() => {
+    if (state.mode !== "live") return;
+    const quiet = (Date.now() - lastFrameWall) / 1000;
+    if (quiet > 3 && state.live && state.live.readyState === 1) {
+      const seen = state.machine && state.machine.last_seen ? ` Last seen ${relTime(state.machine.last_seen)}.` : "";
+      banner(`No live data for ${Math.round(quiet)} s — the machine is idle or offline.${seen} Use Replay to see stored data.`, "warn");
+    } else if (quiet <= 1 && $("banner").classList.contains("warn")) {
+      banner(null);
+    } else if (quiet <= 1 && $("banner").textContent.startsWith("Connected")) {
+      banner(null);
+    }
+    if (state.charts) state.charts.setLive(state.liveBuffer);
+  }, 1000);
+}
+
+function stopLive() {
+  if (state.live) { const ws = state.live; state.live = null; ws.close(); }
+  clearTimeout(state.liveTimer);
+  clearInterval(state.liveWatch);
+}
+
+function pushLive(f) {
+  const b = state.liveBuffer;
+  b.t.push(f.t);
+  const add = (name, v) => { (b.series[name] ||= []).push(v ?? null); };
+  for (const [k, v] of Object.entries(f.pressures || {})) add(k, v);
+  for (const [k, v] of Object.entries(f.cylinder_forces || {})) add(`force:${k}`, v);
+  add("payload", f.payload_kg);
+  while (b.t.length > 0 && b.t[0] < f.t - LIVE_WINDOW_S) {
+    b.t.shift();
+    for (const k in b.series) b.series[k].shift();
+  }
+}
+
+// ---- rendering loop -----------------------------------------------------------------------------
+function loop(now) {
+  requestAnimationFrame(loop);
+  if (state.lastWall !== null && (state.playing || state.mode === "live")) metrics.rafIntervals.push(now - state.lastWall);
+  const dt = state.lastWall === null ? 0 : (now - state.lastWall) / 1000;
+  state.lastWall = now;
+  if (!state.crane) return;
+  if (state.mode === "live") {
+    if (!state.liveDirty) return;
+    state.liveDirty = false;
+    const f = state.liveFrame;
+    const tip = state.crane.tipFromPoses(f.poses || {});
+    if (tip) { state.liveTrail.push(tip[0], tip[1], tip[2]); if (state.liveTrail.length > 3 * 600) state.liveTrail.splice(0, 3); }
+    state.crane.apply(f);
+    state.crane.setTrail(state.liveTrail);
+    readout(f);
+    metrics.lastLiveT = f.t;
+    metrics.liveLatencyMs.push(Date.now() - f.t * 1000);
+    rendered();
+    return;
+  }
+  if (state.mode !== "replay" || !state.store) return;
+  if (state.playing) {
+    const next = state.cursor + dt * state.speed;
+    const f = state.store.frameAt(next);
+    if (f && typeof f === "object") {
+      state.cursor = metrics.cursor = Math.min(next, state.to);
+      $("slider").value = String(state.cursor - state.from);
+      state.needsFrame = true;
+      if (state.cursor >= state.to) { state.playing = false; updatePlayButton(); updateUrl(true); }
+    } else if (f === "empty" || f === "error") {
+      state.cursor = Math.min(next, state.to);
+      $("slider").value = String(state.cursor - state.from);
+    }
+  }
+  if (!state.needsFrame) return;
+  const f = state.store.frameAt(state.cursor);
+  if (!f || typeof f !== "object") return;
+  state.needsFrame = false;
+  state.crane.apply(f);
+  state.crane.setTrail(state.store.trail(state.cursor, TRAIL_S, state.crane.trailN));
+  readout(f);
+  rendered();
+}
+
+function rendered() {
+  metrics.framesRendered += 1;
+  if (metrics.firstFrameMs === null) {
+    metrics.firstFrameMs = performance.now();
+    metrics.ready = true;
+    document.body.dataset.ready = "1";
+  }
+}
+
+let lastReadout = 0;
+function readout(f) {
+  const now = performance.now();
+  if (state.charts) state.charts.setCursor(state.mode === "replay" ? state.cursor : null);
+  if (now - lastReadout < 100 && state.playing) return;
+  lastReadout = now;
+  $("now-time").textContent = fmtTime(f.t);
+  $("time-label").textContent = state.mode === "replay" ? `${fmtTime(state.cursor).slice(11)} (${state.speed}×)` : "live";
+  const kg = f.payload_kg;
+  $("now-payload").textContent = kg === null || kg === undefined ? "unknown" : `${Math.round(kg)} kg`;
+  const rated = state.crane.spec.rated_payload_kg;
+  $("payload-bar").style.width = `${Math.min(100, 100 * (kg || 0) / rated)}%`;
+  for (const c of state.crane.spec.cylinders) {
+    const F = (f.cylinder_forces || {})[c];
+    const u = (f.utilisation || {})[c];
+    $(`f-${c}`).textContent = F === undefined || F === null ? "–" : `${(F / 1000).toFixed(1)} kN`;
+    const bar = $(`u-${c}`);
+    const uu = u === undefined || u === null ? 0 : Math.abs(u);
+    bar.style.width = `${Math.min(100, 100 * uu)}%`;
+    bar.className = uu > 1 ? "over" : uu > 0.8 ? "high" : "";
+    bar.parentElement.title = `${Math.round(100 * uu)} % of rating`;
+  }
+}
+
+// ---- controls -----------------------------------------------------------------------------------
+function updatePlayButton() {
+  const b = $("play");
+  b.textContent = state.playing ? "❚❚" : "▶";
+  b.setAttribute("aria-label", state.playing ? "Pause" : "Play");
+  $("speed").value = String(state.speed);
+}
+
+function togglePlay() {
+  if (state.mode !== "replay" || state.from === null) return;
+  if (!state.playing && state.cursor >= state.to) seek(state.from, false);
+  state.playing = !state.playing;
+  updatePlayButton();
+  if (!state.playing) updateUrl(true);
+}
+
+function setSpeed(s) {
+  state.speed = s;
+  updatePlayButton();
+  updateUrl(true);
+}
+
+function shareURL() {
+  const url = new URL(window.location.origin + window.location.pathname);
+  url.searchParams.set("mode", state.mode);
+  if (state.mode === "replay" && state.from !== null) {
+    url.searchParams.set("from", isoSeconds(state.from));
+    url.searchParams.set("to", isoSeconds(state.to));
+    url.searchParams.set("t", state.cursor.toFixed(2));
+    url.searchParams.set("speed", String(state.speed));
+  }
+  return url.toString();
+}
+
+function updateUrl(force) {
+  if (embed) return;
+  const now = performance.now();
+  if (!force && now - state.lastUrlUpdate < 1000) return;
+  state.lastUrlUpdate = now;
+  const u = new URL(shareURL());
+  window.history.replaceState(null, "", u.pathname + u.search);
+}
+
+function jumpEvent(dir) {
+  if (state.events.length === 0) return;
+  if (state.mode !== "replay") setMode("replay");
+  const evs = state.events.map((e) => e.t).sort((a, b) => a - b);
+  const c = state.cursor ?? state.from;
+  const t = dir > 0 ? evs.find((x) => x > c + 0.05) : [...evs].reverse().find((x) => x < c - 0.05);
+  if (t !== undefined) seek(t, true);
+}
+
+function wireControls() {
+  $("mode-live").onclick = () => setMode("live");
+  $("mode-replay").onclick = () => {
+    if (state.from === null) {
+      const r = state.machine.data_range || {};
+      const to = parseTime(r.to);
+      if (to !== null) { setMode("replay", Math.max(parseTime(r.from) ?? to - 600, to - 600), to); return; }
+    }
+    setMode("replay");
+  };
+  $("play").onclick = togglePlay;
+  $("slider").oninput = () => { state.playing = false; updatePlayButton(); seek(state.from + parseFloat($("slider").value), false); };
+  $("slider").onchange = () => updateUrl(true);
+  $("speed").onchange = () => setSpeed(parseFloat($("speed").value));
+  $("range-form").onsubmit = (ev) => {
+    ev.preventDefault();
+    const from = fromLocalInput($("from").value);
+    const to = fromLocalInput($("to").value);
+    if (from === null || to === null || !(to > from)) { banner("The range must end after it starts.", "error"); return; }
+    setMode("replay", from, to, from);
+  };
+  $("preset").onchange = () => {
+    const v = $("preset").value;
+    const r = state.machine.data_range || {};
+    const end = parseTime(r.to) ?? Date.now() / 1000;
+    if (v === "all") setMode("replay", parseTime(r.from) ?? end - 600, end, null);
+    else if (v) setMode("replay", end - parseFloat(v), end, null);
+    $("preset").value = "";
+  };
+  $("share").onclick = async () => {
+    const url = shareURL();
+    try { await navigator.clipboard.writeText(url); banner(`Link copied: ${url}`, "info"); }
+    catch (_) { banner(`Share this link: ${url}`, "info"); }
+    setTimeout(() => banner(null), 4000);
+  };
+  $("help-btn").onclick = () => $("help").showModal();
+  document.addEventListener("keydown", (ev) => {
+    if (ev.target instanceof HTMLInputElement && ev.target.type !== "range") return;
+    if (ev.target instanceof HTMLSelectElement || ev.ctrlKey || ev.metaKey || ev.altKey) return;
+    const step = ev.shiftKey ? 10 : 1;
+    switch (ev.key) {
+      case " ": ev.preventDefault(); togglePlay(); break;
+      case "ArrowRight": if (state.mode === "replay") { ev.preventDefault(); seek(state.cursor + step, true); } break;
+      case "ArrowLeft": if (state.mode === "replay") { ev.preventDefault(); seek(state.cursor - step, true); } break;
+      case "Home": if (state.mode === "replay") { ev.preventDefault(); seek(state.from, true); } break;
+      case "End": if (state.mode === "replay") { ev.preventDefault(); seek(state.to, true); } break;
+      case "+": case "=": setSpeed(SPEEDS[Math.min(SPEEDS.length - 1, SPEEDS.indexOf(state.speed) + 1)] || 1); break;
+      case "-": case "_": setSpeed(SPEEDS[Math.max(0, SPEEDS.indexOf(state.speed) - 1)] || 1); break;
+      case "n": case "N": jumpEvent(1); break;
+      case "p": case "P": jumpEvent(-1); break;
+      case "l": case "L": if (!embed) setMode("live"); break;
+      case "r": case "R": $("mode-replay").click(); break;
+      case "s": case "S": if (!embed) $("share").click(); break;
+      case "?": $("help").showModal(); break;
+      case "Escape": if (!embed && !document.querySelector("dialog[open]")) window.location.href = "/"; break;
+      default: break;
+    }
+  });
+  if (!embed) {
+    setInterval(async () => {
+      try { state.machine = { ...state.machine, ...(await source.machine()) }; setStatus(state.machine); }
+      catch (err) { if (err.status === 0) banner("The cranetwin service does not answer — retrying.", "error"); }
+    }, 10000);
+  }
+}
+
+start();
