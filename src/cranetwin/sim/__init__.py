@@ -3,11 +3,48 @@
 Modules: :mod:`~cranetwin.sim.recording` (the output type), :mod:`~cranetwin.sim.scenario`
 (valve-voltage scenarios), :mod:`~cranetwin.sim.hydraulics` (valve, chambers, relief, end stops,
 friction, slewing drive), :mod:`~cranetwin.sim.sensors` (sampling, quantisation, noise, bias,
-dropouts, jitter) and :mod:`~cranetwin.sim.engine` (the fixed-step integration loop).
+dropouts, jitter), :mod:`~cranetwin.sim.engine` (the compiled fixed-step loop on the
+``physics.kernels``), :mod:`~cranetwin.sim.runner` (:func:`simulate`) and
+:mod:`~cranetwin.sim.energy` (energy bookkeeping for checks). See docs/SIMULATOR.md.
+
+Typical use::
+
+    from cranetwin.model import load_machine
+    from cranetwin.sim import load_scenario, simulate
+
+    rec = simulate(load_machine("patu655"), load_scenario("fig3"))
+    rec.save("fig3.npz")
 """
 
 from __future__ import annotations
 
+from cranetwin.sim.hydraulics import HydraulicSettings
 from cranetwin.sim.recording import Recording, Truth, truth_columns
+from cranetwin.sim.runner import Prepared, SimOptions, prepare, simulate
+from cranetwin.sim.scenario import (
+    BUILTIN,
+    Scenario,
+    ScenarioFileError,
+    builtin_scenario,
+    load_scenario,
+    scenario_from_dict,
+)
+from cranetwin.sim.sensors import SensorModel
 
-__all__ = ["Recording", "Truth", "truth_columns"]
+__all__ = [
+    "BUILTIN",
+    "HydraulicSettings",
+    "Prepared",
+    "Recording",
+    "Scenario",
+    "ScenarioFileError",
+    "SensorModel",
+    "SimOptions",
+    "Truth",
+    "builtin_scenario",
+    "load_scenario",
+    "prepare",
+    "scenario_from_dict",
+    "simulate",
+    "truth_columns",
+]
