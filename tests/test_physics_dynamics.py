@@ -15,7 +15,6 @@ from cranetwin.physics import (
     joint_torques,
     mass_matrix,
 )
-from cranetwin.physics.chain import rpy_matrix
 
 pin = pytest.importorskip("pinocchio")
 
@@ -34,7 +33,7 @@ def pinocchio_model(machine: Machine, payload_kg: float) -> object:
         axis = np.asarray(joint.axis, dtype=float)
         jm = (pin.JointModelRevoluteUnaligned(axis) if joint.kind == "revolute"
               else pin.JointModelPrismaticUnaligned(axis))
-        placement = pin.SE3(rpy_matrix(joint.origin_rpy_rad), np.asarray(joint.origin_m))
+        placement = pin.SE3(pin.rpy.rpyToMatrix(*joint.origin_rpy_rad), np.asarray(joint.origin_m))
         jid = model.addJoint(parent, jm, placement, joint.name)
         model.appendBodyToJoint(
             jid, pin.Inertia(body.mass_kg, np.asarray(body.com_m),
@@ -175,3 +174,66 @@ def test_bad_shapes_raise_physics_error(machine: Machine) -> None:
         inverse_dynamics(machine, np.zeros((3, 4)), np.zeros((2, 4)), np.zeros((3, 4)))
     with pytest.raises(PhysicsError, match="payload_kg"):
         inverse_dynamics(machine, np.zeros((3, 4)), np.zeros((3, 4)), np.zeros((3, 4)), -1.0)
+
+
+def skewed_machine() -> Machine:
+    """PATU 655 with tilted joint frames, a tilted axis and full (non-diagonal) inertias."""
+    import tomllib
+    from importlib import resources
+
+    from cranetwin.model import machine_from_dict
+
+    text = (resources.files("cranetwin") / "machines" / "patu655.toml").read_text("utf-8")
+    data = tomllib.loads(text)
+    data["machine"]["gravity_mps2"] = [0.3, -0.2, -9.8]
+    data["joints"][0]["origin_rpy_rad"] = [0.05, -0.03, 0.2]
+    data["joints"][1]["origin_rpy_rad"] = [0.1, 0.0, -0.1]
+    data["joints"][3]["axis"] = [0.8, 0.0, 0.6]
+    data["joints"][3]["origin_rpy_rad"] = [0.0, 0.2, 0.0]
+    for b in data["bodies"]:
+        b["com_m"] = [b["com_m"][0], 0.07, b["com_m"][2] + 0.02]
+        d = np.diag(np.asarray(b["inertia_kgm2"], dtype=float))
+        full = np.diag(d) + 0.1 * min(d) * np.array([[0, 1, 0.5], [1, 0, -0.7], [0.5, -0.7, 0]])
+        b["inertia_kgm2"] = full.tolist()
+    data["load_point"]["point_m"] = [2.49, 0.05, -0.1]
+    return machine_from_dict(data)
+
+
+def test_specialised_and_generic_kernels_match_pinocchio_on_skewed_chain() -> None:
+    from cranetwin.physics import compile_chain
+    from cranetwin.physics.dynamics import rnea_kernels
+
+    m = skewed_machine()
+    q, qd, qdd = random_states(m, 100, seed=11)
+    payload = np.linspace(0.0, 400.0, 100)
+    params = compile_chain(m)
+    results = []
+    for specialised in (True, False):
+        tau = np.empty((100, 4))
+        wrench = np.empty((100, 4, 6))
+        rnea_kernels(params, specialised)[0](q, qd, qdd, payload, tau, wrench)
+        results.append((tau, wrench))
+    np.testing.assert_allclose(results[0][0], results[1][0], rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(results[0][1], results[1][1], rtol=1e-12, atol=1e-9)
+    for k in (0, 33, 99):
+        model = pinocchio_model(m, float(payload[k]))
+        data = model.createData()
+        ref = pin.rnea(model, data, q[k], qd[k], qdd[k])
+        ref_w = np.array([data.f[i + 1].vector for i in range(4)])
+        for tau, wrench in results:
+            assert rel_err(tau[k], ref) <= 1e-9
+            assert rel_err(wrench[k], ref_w) <= 1e-9
+
+
+def test_inverse_dynamics_writes_into_out_buffers(machine: Machine) -> None:
+    from cranetwin.errors import PhysicsError
+
+    q, qd, qdd = random_states(machine, 10, seed=2)
+    tau, wrench = np.empty((10, 4)), np.empty((10, 4, 6))
+    t1, w1 = inverse_dynamics(machine, q, qd, qdd, 100.0, out=(tau, wrench))
+    assert t1 is tau and w1 is wrench
+    t2, w2 = inverse_dynamics(machine, q, qd, qdd, 100.0)
+    np.testing.assert_array_equal(tau, t2)
+    np.testing.assert_array_equal(wrench, w2)
+    with pytest.raises(PhysicsError, match="out"):
+        inverse_dynamics(machine, q, qd, qdd, out=(np.empty((9, 4)), wrench))

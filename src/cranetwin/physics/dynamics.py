@@ -13,16 +13,55 @@ with time. The loops over samples run in numba kernels (:mod:`cranetwin.physics.
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable
+
 import numpy as np
 import numpy.typing as npt
 
 from cranetwin.errors import PhysicsError
 from cranetwin.model import Machine
 from cranetwin.physics import kernels as K
-from cranetwin.physics.chain import compile_chain
+from cranetwin.physics.chain import ChainParams, compile_chain
 from cranetwin.physics.kinematics import as_joint_array
 
 F64 = npt.NDArray[np.float64]
+RneaKernels = tuple[Callable[..., None], Callable[..., None]]
+
+_log = logging.getLogger(__name__)
+_SPECIAL: dict[int, tuple[ChainParams, RneaKernels]] = {}
+
+
+def rnea_kernels(params: ChainParams, specialised: bool = True) -> RneaKernels:
+    """The batch RNEA kernels ``(rnea_batch, rnea_tau_batch)`` for a compiled machine.
+
+    ``rnea_batch(q, qd, qdd, payload, tau, wrench)`` and ``rnea_tau_batch(q, qd, qdd, payload,
+    tau)`` take contiguous float64 arrays (module ``kernels`` for shapes). With ``specialised``
+    they are generated for this machine (:mod:`cranetwin.physics.codegen`, ≈ 3× faster);
+    otherwise, or if generation fails, the generic kernels bound to ``params.chain``.
+    """
+    chain = params.chain
+
+    def generic(q: F64, qd: F64, qdd: F64, pl: F64, tau: F64, wrench: F64) -> None:
+        K.rnea_batch(chain, q, qd, qdd, pl, tau, wrench)
+
+    def generic_tau(q: F64, qd: F64, qdd: F64, pl: F64, tau: F64) -> None:
+        K.rnea_tau_batch(chain, q, qd, qdd, pl, tau)
+
+    if not specialised:
+        return generic, generic_tau
+    hit = _SPECIAL.get(id(params))
+    if hit is not None and hit[0] is params:
+        return hit[1]
+    try:
+        from cranetwin.physics.codegen import specialised_kernels
+
+        kernels = specialised_kernels(params)
+    except Exception as exc:  # generation is an optimisation: never fail the physics on it
+        _log.warning("specialised RNEA unavailable (%s); using the generic kernel", exc)
+        kernels = (generic, generic_tau)
+    _SPECIAL[id(params)] = (params, kernels)
+    return kernels
 
 
 def as_payload(payload_kg: npt.ArrayLike, n: int) -> F64:
@@ -56,6 +95,7 @@ def inverse_dynamics(
     qd: npt.ArrayLike,
     qdd: npt.ArrayLike,
     payload_kg: npt.ArrayLike = 0.0,
+    out: tuple[F64, F64] | None = None,
 ) -> tuple[F64, F64]:
     """Joint torques/forces and joint reaction wrenches for a motion (RNEA).
 
@@ -65,6 +105,8 @@ def inverse_dynamics(
         qd: Joint velocities, shape (n, n_joints) [rad/s or m/s].
         qdd: Joint accelerations, shape (n, n_joints) [rad/s² or m/s²].
         payload_kg: Payload at the load point, scalar or shape (n,) [kg] (tool mass added).
+        out: Optional preallocated ``(tau, wrench)`` (C-contiguous float64, shapes as returned)
+            to write into, e.g. when processing a long history chunk by chunk.
 
     Returns:
         ``(tau, wrench)``: tau, shape (n, n_joints) [N·m for revolute, N for prismatic joints],
@@ -77,9 +119,18 @@ def inverse_dynamics(
     qa, qda, qdda = _states(machine, q, qd, qdd)
     p = compile_chain(machine)
     n = qa.shape[0]
-    tau = np.empty((n, p.n_joints))
-    wrench = np.empty((n, p.n_joints, 6))
-    K.rnea_batch(p.chain, qa, qda, qdda, as_payload(payload_kg, n), tau, wrench)
+    if out is None:
+        tau = np.empty((n, p.n_joints))
+        wrench = np.empty((n, p.n_joints, 6))
+    else:
+        tau, wrench = out
+        ok = (tau.shape == (n, p.n_joints) and wrench.shape == (n, p.n_joints, 6)
+              and tau.dtype == wrench.dtype == np.float64
+              and tau.flags.c_contiguous and wrench.flags.c_contiguous)
+        if not ok:
+            raise PhysicsError(f"out: expected C-contiguous float64 arrays of shapes "
+                               f"({n}, {p.n_joints}) and ({n}, {p.n_joints}, 6)")
+    rnea_kernels(p)[0](qa, qda, qdda, as_payload(payload_kg, n), tau, wrench)
     return tau, wrench
 
 
@@ -94,7 +145,7 @@ def joint_torques(
     qa, qda, qdda = _states(machine, q, qd, qdd)
     p = compile_chain(machine)
     tau = np.empty((qa.shape[0], p.n_joints))
-    K.rnea_tau_batch(p.chain, qa, qda, qdda, as_payload(payload_kg, qa.shape[0]), tau)
+    rnea_kernels(p)[1](qa, qda, qdda, as_payload(payload_kg, qa.shape[0]), tau)
     return tau
 
 
