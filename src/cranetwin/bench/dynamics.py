@@ -1,0 +1,191 @@
+"""``cranetwin bench dynamics``: one hour of 1 kHz data through inverse dynamics.
+
+Measures :func:`cranetwin.physics.inverse_dynamics` (joint torques AND the joint reaction
+wrenches) over 3.6 M samples of a smooth motion of the built-in crane with a time-varying
+payload, on one thread, in chunks (the wrenches of a whole hour alone would take 690 MB; each
+chunk's outputs are reused). Baseline in the same run: a Python loop of ``pinocchio.rnea`` on
+the same crane, timed on a subset spread over the hour and scaled to all samples; the same
+subset gives ``max_rel_error``. Input generation is not timed; JIT compile time (or numba's
+cache load) is reported apart as ``compile_seconds``.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import typer
+
+from cranetwin.model import Machine, load_machine
+from cranetwin.physics import compile_chain, inverse_dynamics
+from cranetwin.physics.dynamics import rnea_kernels
+
+F64 = npt.NDArray[np.float64]
+
+
+def motion(machine: Machine, t: F64) -> tuple[F64, F64, F64, F64]:
+    """A smooth working motion (sum of sines inside the joint limits) and a payload [kg].
+
+    Returns q, qd, qdd of shape (len(t), n_joints) and payload of shape (len(t),).
+    """
+    lo = np.array([j.lower for j in machine.joints])
+    hi = np.array([j.upper for j in machine.joints])
+    mid, half = 0.5 * (lo + hi), 0.4 * (hi - lo)
+    half[0] = min(half[0], 1.5)
+    w = np.array([0.21, 0.37, 0.29, 0.43])[: machine.n_joints] * 2 * np.pi / 10
+    ph = np.outer(t, w)
+    q = mid + half * np.sin(ph)
+    qd = half * w * np.cos(ph)
+    qdd = -half * w**2 * np.sin(ph)
+    payload = 250.0 + 200.0 * np.sin(2 * np.pi * t / 37.0)
+    return q, qd, qdd, payload
+
+
+def pinocchio_model(machine: Machine, payload_kg: float) -> Any:
+    """The same chain in Pinocchio (tool + payload as a point inertia on the load body)."""
+    import pinocchio as pin
+
+    model = pin.Model()
+    model.gravity.linear = np.asarray(machine.machine.gravity_mps2)
+    parent = 0
+    for joint, body in zip(machine.joints, machine.chain_bodies(), strict=True):
+        axis = np.asarray(joint.axis, dtype=float)
+        jm = (pin.JointModelRevoluteUnaligned(axis) if joint.kind == "revolute"
+              else pin.JointModelPrismaticUnaligned(axis))
+        placement = pin.SE3(pin.rpy.rpyToMatrix(*joint.origin_rpy_rad),
+                            np.asarray(joint.origin_m))
+        jid = model.addJoint(parent, jm, placement, joint.name)
+        model.appendBodyToJoint(jid, pin.Inertia(body.mass_kg, np.asarray(body.com_m),
+                                                 np.asarray(body.inertia_kgm2)),
+                                pin.SE3.Identity())
+        if body.name == machine.load_point.body:
+            model.appendBodyToJoint(
+                jid, pin.Inertia(machine.load_point.tool_mass_kg + payload_kg,
+                                 np.asarray(machine.load_point.point_m), np.zeros((3, 3))),
+                pin.SE3.Identity())
+        parent = jid
+    return model
+
+
+def _baseline(machine: Machine, t: F64, reps: int) -> tuple[float, float, float]:
+    """(seconds per call of a Python loop of pin.rnea, max rel. error of tau, of wrenches)."""
+    import pinocchio as pin
+
+    q, qd, qdd, payload = motion(machine, t)
+    # the payload changes the model: Pinocchio needs one model per payload value, so the
+    # subset uses the mean payload for the timed loop and per-sample models for the errors
+    model = pinocchio_model(machine, float(payload.mean()))
+    data = model.createData()
+    best = np.inf
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        for k in range(len(t)):
+            pin.rnea(model, data, q[k], qd[k], qdd[k])
+        best = min(best, (time.perf_counter() - t0) / len(t))
+    tau, wrench = inverse_dynamics(machine, q, qd, qdd, payload)
+    err_t = err_w = 0.0
+    for k in range(0, len(t), max(1, len(t) // 500)):
+        m = pinocchio_model(machine, float(payload[k]))
+        d = m.createData()
+        ref = pin.rnea(m, d, q[k], qd[k], qdd[k])
+        ref_w = np.array([d.f[i + 1].vector for i in range(machine.n_joints)])
+        err_t = max(err_t, float(np.max(np.abs(tau[k] - ref)) / max(1.0, np.max(np.abs(ref)))))
+        err_w = max(err_w, float(np.max(np.abs(wrench[k] - ref_w))
+                                 / max(1.0, np.max(np.abs(ref_w)))))
+    return best, err_t, err_w
+
+
+def run(samples: int = 3_600_000, rate_hz: float = 1000.0, chunk: int = 65_536,
+        baseline_samples: int = 20_000, reps: int = 3) -> dict[str, Any]:
+    """Run the benchmark and return its figures (see the module docstring)."""
+    machine = load_machine("patu655")
+    t0 = time.perf_counter()
+    params = compile_chain(machine)
+    rnea_kernels(params)  # code generation + JIT compile or numba cache load
+    probe = np.zeros((1, machine.n_joints))
+    inverse_dynamics(machine, probe, probe, probe, 0.0)
+    compile_seconds = time.perf_counter() - t0
+
+    tau = np.empty((chunk, machine.n_joints))
+    wrench = np.empty((chunk, machine.n_joints, 6))
+    best = np.inf
+    checksum = 0.0
+    for _ in range(reps):
+        total = 0.0
+        checksum = 0.0
+        for start in range(0, samples, chunk):
+            n = min(chunk, samples - start)
+            t = (start + np.arange(n)) / rate_hz
+            q, qd, qdd, payload = motion(machine, t)
+            out = (tau[:n], wrench[:n])
+            t1 = time.perf_counter()
+            inverse_dynamics(machine, q, qd, qdd, payload, out=out)
+            total += time.perf_counter() - t1
+            checksum = max(checksum, float(np.abs(wrench[:n, :, 3:]).max()))
+        best = min(best, total)
+
+    # generic (array-driven) kernel on one chunk, for the record
+    n = min(chunk, samples)
+    q, qd, qdd, payload = motion(machine, np.arange(n) / rate_hz)
+    generic = rnea_kernels(params, specialised=False)[0]
+    generic(q[:10], qd[:10], qdd[:10], payload[:10], tau[:10], wrench[:10])
+    t1 = time.perf_counter()
+    generic(q, qd, qdd, payload, tau[:n], wrench[:n])
+    generic_ns = (time.perf_counter() - t1) / n * 1e9
+
+    result: dict[str, Any] = {
+        "benchmark": "dynamics",
+        "machine": machine.name,
+        "samples": samples,
+        "rate_hz": rate_hz,
+        "seconds": best,
+        "ns_per_sample": best / samples * 1e9,
+        "includes": "joint torques + joint reaction wrenches (n, 4, 6), input checks",
+        "chunk_samples": chunk,
+        "threads": 1,
+        "compile_seconds": compile_seconds,
+        "generic_kernel_ns_per_sample": generic_ns,
+        "baseline": "Python loop of pinocchio.rnea, timed on a subset and scaled",
+        "baseline_subset_samples": baseline_samples,
+        "baseline_seconds": None,
+        "speedup": None,
+        "max_rel_error": None,
+    }
+    try:
+        import pinocchio  # noqa: F401
+    except ImportError:
+        result["baseline"] = "pinocchio not installed (pip install pin): no baseline"
+    else:
+        t_sub = np.linspace(0.0, (samples - 1) / rate_hz, baseline_samples)
+        per_call, err_t, err_w = _baseline(machine, t_sub, reps)
+        result["baseline_seconds"] = per_call * samples
+        result["baseline_ns_per_call"] = per_call * 1e9
+        result["speedup"] = per_call * samples / best
+        result["max_rel_error"] = max(err_t, err_w)
+        result["max_rel_error_tau"] = err_t
+        result["max_rel_error_wrench"] = err_w
+    result["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    result["max_joint_moment_nm"] = checksum  # keeps the outputs observable
+    return result
+
+
+def register(bench_app: typer.Typer) -> None:
+    @bench_app.command("dynamics")
+    def dynamics(
+        as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
+        samples: int = typer.Option(3_600_000, help="Samples (3.6 M = one hour at 1 kHz)."),
+        chunk: int = typer.Option(65_536, help="Samples per chunk (outputs reused)."),
+        reps: int = typer.Option(3, help="Repetitions; the best time is reported."),
+    ) -> None:
+        """Inverse dynamics with joint reaction wrenches over one hour of 1 kHz data."""
+        r = run(samples=samples, chunk=chunk, reps=reps)
+        if as_json:
+            typer.echo(json.dumps(r))
+            return
+        for key, value in r.items():
+            typer.echo(f"{key:>30}: {value:.6g}" if isinstance(value, float)
+                       else f"{key:>30}: {value}")
