@@ -159,15 +159,18 @@ def _solve_spd(m: F64, b: F64, out: F64, lo: F64) -> None:
 def _eval(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int, x: F64,
           payload: float, u_cmd: F64, flags: F64, s: F64, dsdq: F64, v: F64, force: F64,
           tau: F64, qdd: F64, flow: F64, mm: F64, hb: F64, lo: F64, wr: F64, work: F64,
-          e: F64, zero: F64, rhs: F64) -> float:
+          e: F64, zero: F64, rhs: F64, kin_ready: bool) -> float:
     """Everything the state implies: kinematics, forces, accelerations, chamber flows.
+
+    ``kin_ready``: s and dsdq already hold the kinematics of x (skip recomputing them).
 
     Writes s, dsdq, v, force (3,), tau, qdd (4,), flow (12,) = [QA, QB, gA, gB] per cylinder
     (valve + relief, into the chamber, and their −∂/∂p), returns the slewing dT/dt [N·m/s].
     """
     q = x[X_Q:X_Q + NJ]
     qd = x[X_QD:X_QD + NJ]
-    cylinder_kinematics(cyl, q, s, dsdq)
+    if not kin_ready:
+        cylinder_kinematics(cyl, q, s, dsdq)
     for j in range(NJ):
         tau[j] = 0.0
     fric = flags[F_FRICTION] > 0.0
@@ -241,7 +244,7 @@ def _deriv(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int, x:
            work: F64, e: F64, zero: F64, rhs: F64) -> None:
     """dx/dt of the whole state (for the RK4 scheme)."""
     dtorque = _eval(chain, cyl, hc, hg, hs, cj, sj, x, payload, u_cmd, flags, s, dsdq, v, force,
-                    tau, qdd, flow, mm, hb, lo, wr, work, e, zero, rhs)
+                    tau, qdd, flow, mm, hb, lo, wr, work, e, zero, rhs, False)
     for j in range(NJ):
         dx[X_Q + j] = x[X_QD + j]
         dx[X_QD + j] = qdd[j]
@@ -294,14 +297,14 @@ def run_steps(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int,
     k4 = np.empty(N_X)
     xt = np.empty(N_X)
     last = i1 + 1 if i1 == n_steps else i1
+    # kinematics of the current state (the operator tracks rod positions); carried over steps
+    cylinder_kinematics(cyl, x[X_Q:X_Q + NJ], s, dsdq)
     for i in range(i0, last):
         t = i * dt
-        # kinematics first: the operator tracks rod positions
-        cylinder_kinematics(cyl, x[X_Q:X_Q + NJ], s, dsdq)
         payload = _commands(t, x, s, u_t, u_v, u_n, r_t, r_v, r_n, gain, umax, pay_t, pay_m,
                             cur, u_cmd)
         dtorque = _eval(chain, cyl, hc, hg, hs, cj, sj, x, payload, u_cmd, flags, s, dsdq, v,
-                        force, tau, qdd, flow, mm, hb, lo, wr, work, e, zero, rhs)
+                        force, tau, qdd, flow, mm, hb, lo, wr, work, e, zero, rhs, True)
         ok = True
         for j in range(NJ):
             if not math.isfinite(qdd[j]):
@@ -359,6 +362,7 @@ def run_steps(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int,
             for k in range(NC):
                 x[X_PA + k] = max(x[X_PA + k], hg[G_PMIN])
                 x[X_PB + k] = max(x[X_PB + k], hg[G_PMIN])
+            cylinder_kinematics(cyl, x[X_Q:X_Q + NJ], s, dsdq)
         else:
             # symplectic Euler for the mechanics
             for j in range(NJ):
@@ -386,6 +390,9 @@ def run_steps(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int,
             x[X_U] = spool_step(x[X_U], u_cmd[0], hs[S_TAU], dt)
             for j in range(NJ):
                 x[X_Q + j] = q_new[j]
+            for k in range(NC):
+                s[k] = s_new[k]
+                dsdq[k] = dsdq_new[k]
         if flags[F_LOSSES] > 0.0:
             # the slewing circuit's relief valve caps the drive torque
             x[X_TS] = min(max(x[X_TS], -hs[S_TMAX]), hs[S_TMAX])
