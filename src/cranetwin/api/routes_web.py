@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import httpx
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
 
 from cranetwin.errors import CraneTwinError
@@ -118,7 +118,24 @@ def static_file(path: str) -> Response:
                         headers={"Cache-Control": "no-cache"})
 
 
-# --- calls to the API's own routes, with the caller's credentials ---------------------------------
+# --- auth and calls to the API's own routes, with the caller's credentials ----------------------
+
+
+async def require_viewer(request: Request) -> None:
+    """The API's key check (role viewer) when the app has the API's services.
+
+    Apps without them (the synthetic preview of :mod:`cranetwin.viz.preview`) check keys in their
+    own middleware; the data these routes read comes from the API's routes, called with the
+    caller's credentials, so a key that may not read a machine gets its 401/403 either way.
+    """
+    if getattr(request.app.state, "services", None) is None:
+        return
+    from cranetwin.api.deps import require_role
+
+    await require_role("viewer")(request)
+
+
+ViewerDep = Depends(require_viewer)
 
 
 def _auth_headers(request: Request) -> dict[str, str]:
@@ -171,7 +188,7 @@ async def _scene_for(request: Request, machine_id: str) -> dict[str, Any]:
     return scene
 
 
-@router.get("/api/v1/machines/{machine_id}/scene")
+@router.get("/api/v1/machines/{machine_id}/scene", dependencies=[ViewerDep])
 async def machine_scene(machine_id: str, request: Request) -> Response:
     """meshcat ``set_object`` commands for every body, cylinder, the tool and payload, plus the
     spec the browser needs to animate them (node paths, barrel lengths, load point). Role viewer.
@@ -219,7 +236,7 @@ async def _twin_window(request: Request, machine_id: str, t0: float, t1: float,
     return join_twin(parts)
 
 
-@router.get("/api/v1/machines/{machine_id}/export.html")
+@router.get("/api/v1/machines/{machine_id}/export.html", dependencies=[ViewerDep])
 async def machine_export(
     machine_id: str, request: Request,
     from_: Annotated[str, Query(alias="from", description="ISO 8601 or epoch seconds")],

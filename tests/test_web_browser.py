@@ -1,0 +1,248 @@
+"""Browser tests: Playwright (Python) driving Debian's Chromium against the preview app.
+
+Skipped with a reason when Chromium or Playwright is missing. Screenshots go to tests/artifacts/.
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+ARTIFACTS = Path(__file__).parent / "artifacts"
+END = 1_795_000_000.0  # fixed end of the preview's stored range [epoch s]
+
+pytestmark = [pytest.mark.browser]
+if not Path(CHROMIUM).exists():
+    pytestmark.append(pytest.mark.skip(reason="Chromium not installed (apt-get install chromium; "
+                                              "`make system-deps` does it)"))
+playwright_api = pytest.importorskip("playwright.sync_api",
+                                     reason="playwright not installed (pip install -e '.[dev]')")
+Image = pytest.importorskip("PIL.Image", reason="Pillow needed for pixel checks")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class ServerThread:
+    """uvicorn serving an ASGI app on a free loopback port in a thread."""
+
+    def __init__(self, app: Any) -> None:
+        import uvicorn
+
+        self.port = _free_port()
+        config = uvicorn.Config(app, host="127.0.0.1", port=self.port, log_level="warning",
+                                ws="websockets-sansio")
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+
+    def __enter__(self) -> ServerThread:
+        self.thread.start()
+        deadline = time.time() + 20
+        while not self.server.started:
+            if time.time() > deadline:
+                raise RuntimeError("uvicorn did not start")
+            time.sleep(0.05)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.server.should_exit = True
+        self.thread.join(10)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[ServerThread]:
+    from cranetwin.viz.preview import PreviewMachine, create_preview_app
+
+    machines = [PreviewMachine("crane-1", "Crane 1", 250.0, 0.0),
+                PreviewMachine("crane-2", "Crane 2", 450.0, 13.0, alarms=2),
+                PreviewMachine("crane-3", "Crane 3", 700.0, 27.0, status="offline")]
+    app = create_preview_app(machines, history_s=900.0, end=END, auto_live=False)
+    with ServerThread(app) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    with playwright_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture()
+def page(browser: Any) -> Iterator[Any]:
+    ctx = browser.new_context(viewport={"width": 1280, "height": 860})
+    pg = ctx.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.errors = errors
+    yield pg
+    ctx.close()
+
+
+def _shot(locator: Any, name: str) -> Any:
+    ARTIFACTS.mkdir(exist_ok=True)
+    png = locator.screenshot(path=str(ARTIFACTS / name))
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+
+
+def _wait_ready(page: Any) -> None:
+    page.wait_for_function("window.cranetwin && window.cranetwin.ready === true", timeout=30000)
+
+
+def _boom_pixels(img: Any) -> Any:
+    """Mask of the booms' yellow (#f2b01e, shaded) in an RGB image."""
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    return (r > 140) & (g > 90) & (b < 90) & (r - b > 90)
+
+
+def test_fleet_page_lists_machines(page: Any, server: ServerThread) -> None:
+    page.goto(f"{server.url}/?key=viewer-key")
+    _wait_ready(page)
+    rows = page.locator("#rows tr")
+    assert rows.count() == 3
+    text = page.locator("#rows").inner_text()
+    for name in ("Crane 1", "Crane 2", "Crane 3"):
+        assert name in text
+    assert "offline" in page.locator("tr[data-machine-id=crane-3]").inner_text()
+    assert page.locator("tr[data-machine-id=crane-2] td.alarm").inner_text() == "2"
+    assert "key=" not in page.url  # the key is remembered, not left in the address bar
+    _shot(page, "fleet.png")
+    page.locator("tr[data-machine-id=crane-1] a").click()
+    page.wait_for_url("**/machines/crane-1**")
+    assert not page.errors
+
+
+def test_missing_key_asks_for_one(browser: Any, server: ServerThread) -> None:
+    ctx = browser.new_context()
+    pg = ctx.new_page()
+    pg.goto(f"{server.url}/")
+    pg.wait_for_selector("#key-dialog[open]", timeout=10000)
+    pg.fill("#key-input", "viewer-key")
+    pg.click("#key-form button")
+    pg.wait_for_function("window.cranetwin.ready === true", timeout=10000)
+    assert pg.locator("#rows tr").count() == 3
+    ctx.close()
+
+
+def _replay(page: Any, server: ServerThread, t: float) -> None:
+    page.goto(f"{server.url}/machines/crane-2?key=viewer-key&mode=replay"
+              f"&from={END - 600}&to={END}&t={t}")
+    _wait_ready(page)
+    page.wait_for_function(f"Math.abs(window.cranetwin.cursor - {t}) < 0.01")
+    page.wait_for_timeout(300)
+
+
+def test_3d_view_draws_the_crane(page: Any, server: ServerThread) -> None:
+    _replay(page, server, END - 300)
+    img = _shot(page.locator("#view3d"), "machine-3d.png")
+    _shot(page, "machine-page.png")
+    boom = _boom_pixels(img)
+    # non-blank: the booms cover a real part of the view, and the picture is not one colour
+    assert boom.mean() > 0.005, f"boom pixels {boom.mean():.4f}"
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 200
+    assert not page.errors
+
+
+def test_slider_moves_the_boom(page: Any, server: ServerThread) -> None:
+    _replay(page, server, END - 600)
+    a = _shot(page.locator("#view3d"), "slider-a.png")
+    slider = page.locator("#slider")
+    slider.focus()
+    # keyboard: move 10 s forward (Shift+→), the boom moves
+    page.keyboard.press("Shift+ArrowRight")
+    page.wait_for_function(f"Math.abs(window.cranetwin.cursor - {END - 590}) < 0.01")
+    page.wait_for_timeout(300)
+    b = _shot(page.locator("#view3d"), "slider-b.png")
+    # and dragging the slider (input event) to another time
+    slider.evaluate("(el) => { el.value = '200'; el.dispatchEvent(new Event('input'));"
+                    " el.dispatchEvent(new Event('change')); }")
+    page.wait_for_function(f"Math.abs(window.cranetwin.cursor - {END - 400}) < 0.01")
+    page.wait_for_timeout(300)
+    c = _shot(page.locator("#view3d"), "slider-c.png")
+    for x, y in ((a, b), (b, c)):
+        changed = np.abs(x - y).sum(axis=2) > 60
+        assert changed.mean() > 0.002, f"only {changed.mean():.4f} of the pixels changed"
+        # what moved is the crane: boom pixels appear or disappear
+        assert (_boom_pixels(x) ^ _boom_pixels(y)).sum() > 50
+    # the share link carries the time
+    assert f"t={END - 400:.2f}" in page.url
+    assert not page.errors
+
+
+def test_play_advances_and_charts_follow(page: Any, server: ServerThread) -> None:
+    _replay(page, server, END - 500)
+    page.wait_for_selector("#charts .main-svg", timeout=20000)
+    page.select_option("#speed", "4")
+    page.keyboard.press("Space")
+    page.wait_for_timeout(1500)
+    page.keyboard.press("Space")
+    t = page.evaluate("window.cranetwin.cursor")
+    assert END - 500 + 3 < t < END - 500 + 10, t  # ~4 s/s for ~1.5 s
+    cursor_style = page.locator(".chart-cursor").evaluate("(el) => el.style.display")
+    assert cursor_style == "block"
+    assert "speed=4" in page.url
+    assert not page.errors
+
+
+def test_live_updates_within_a_second(page: Any, server: ServerThread) -> None:
+    page.goto(f"{server.url}/machines/crane-1?key=viewer-key&mode=live")
+    page.wait_for_function("window.cranetwin.mode === 'live' && window.cranetwin.sceneMs !== null")
+    page.wait_for_timeout(500)  # websocket connected
+    httpx.post(f"{server.url}/api/v1/_preview/push/crane-1")  # warm-up (first-call JIT)
+    latencies = []
+    for _ in range(5):
+        sent = time.time()
+        r = httpx.post(f"{server.url}/api/v1/_preview/push/crane-1")
+        t = r.json()["t"]
+        page.wait_for_function(f"window.cranetwin.lastLiveT === {t}", timeout=1000)
+        latencies.append(time.time() - sent)
+    assert max(latencies) < 1.0, latencies
+    _shot(page, "live.png")
+    # no frames: the page says so
+    page.wait_for_function("document.getElementById('banner').textContent.includes('No live data')",
+                           timeout=8000)
+    assert not page.errors
+
+
+def test_unknown_machine_says_so(page: Any, server: ServerThread) -> None:
+    page.goto(f"{server.url}/machines/nope?key=viewer-key")
+    page.wait_for_function("document.getElementById('banner').textContent.includes('Unknown')")
+
+
+def test_exported_file_replays_offline(page: Any, server: ServerThread, tmp_path: Path) -> None:
+    r = httpx.get(f"{server.url}/api/v1/machines/crane-2/export.html",
+                  params={"from": END - 60, "to": END}, headers={"X-API-Key": "viewer-key"})
+    assert r.status_code == 200
+    f = tmp_path / "replay.html"
+    f.write_bytes(r.content)
+    # block every network request: the file must not need any
+    page.route("http://**", lambda route: route.abort())
+    page.goto(f.as_uri())
+    _wait_ready(page)
+    img = _shot(page.locator("#view3d"), "export-3d.png")
+    assert _boom_pixels(img).mean() > 0.005
+    page.keyboard.press("Shift+ArrowRight")
+    page.wait_for_function(f"Math.abs(window.cranetwin.cursor - {END - 50}) < 0.01")
+    page.wait_for_selector("#charts .main-svg", timeout=20000)
+    assert not page.errors
