@@ -204,3 +204,41 @@ def test_physics_import_does_not_pull_web_or_database() -> None:
                          check=False)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"
+
+
+def test_moment_arm_rates_match_finite_differences(machine: Machine) -> None:
+    from cranetwin.physics import moment_arm_rates
+
+    q = working_grid(machine, 100, seed=4)
+    h = 1e-6
+    rates = moment_arm_rates(machine, q)
+    for k, cyl in enumerate(machine.cylinders):
+        j = machine.joint_index(cyl.joint)
+        qp, qm = q.copy(), q.copy()
+        qp[:, j] += h
+        qm[:, j] -= h
+        fd = (moment_arms(machine, qp)[:, k] - moment_arms(machine, qm)[:, k]) / (2 * h)
+        np.testing.assert_allclose(rates[:, k], fd, rtol=0, atol=1e-8)
+
+
+def test_joint_motion_from_cylinders_inverts_the_chain_rule(machine: Machine) -> None:
+    from cranetwin.physics import joint_motion_from_cylinders
+
+    t = np.linspace(0.0, 3.0, 301)
+    mid = np.array([0.2, 0.5, -1.3, 0.5])
+    amp = np.array([0.5, 0.3, 0.5, 0.3])
+    w = np.array([1.1, 1.7, 1.3, 2.0])
+    q = mid + amp * np.sin(np.outer(t, w))
+    qd = amp * w * np.cos(np.outer(t, w))
+    qdd = -amp * w**2 * np.sin(np.outer(t, w))
+    # rod motion by finite differences in time of s(q(t)) (independent of the chain rule)
+    h = 1e-4
+    s = cylinder_lengths(machine, q)
+    sp = cylinder_lengths(machine, mid + amp * np.sin(np.outer(t + h, w)))
+    sm = cylinder_lengths(machine, mid + amp * np.sin(np.outer(t - h, w)))
+    v = (sp - sm) / (2 * h)
+    a = (sp - 2 * s + sm) / h**2
+    q2, qd2, qdd2 = joint_motion_from_cylinders(machine, s, v, a, q[:, 0], qd[:, 0], qdd[:, 0])
+    np.testing.assert_allclose(q2, q, atol=1e-12)
+    np.testing.assert_allclose(qd2, qd, atol=1e-7)
+    np.testing.assert_allclose(qdd2, qdd, atol=1e-4)

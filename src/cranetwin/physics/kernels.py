@@ -431,6 +431,80 @@ def cylinder_state(cyl, k, q):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def cylinder_state2(cyl, k, q):  # type: ignore[no-untyped-def]
+    """:func:`cylinder_state` plus the second derivative: (s, ds/dq, d²s/dq²) of cylinder
+    ``k`` at the position q of its joint [m, m/rad, m/rad²]. NaN where it cannot assemble."""
+    o = 1 + k * CYL_BLOCK
+    kind = int(cyl[o])
+    closed = cyl[o + 2]
+    if kind == CYL_REVOLUTE:
+        # L² = K0 − 2 rho cos u: L L' = rho sin u, L'² + L L'' = rho cos u
+        k0 = cyl[o + 5]
+        rho = cyl[o + 6]
+        u = q - cyl[o + 7]
+        l2 = k0 - 2.0 * rho * math.cos(u)
+        if l2 <= 0.0:
+            return math.nan, math.nan, math.nan
+        ln = math.sqrt(l2)
+        d1 = rho * math.sin(u) / ln
+        return ln - closed, d1, (rho * math.cos(u) - d1 * d1) / ln
+    if kind == CYL_PRISMATIC:
+        # L L' = d·e + q, L'² + L L'' = 1
+        de = cyl[o + 5]
+        l2 = cyl[o + 6] + 2.0 * de * q + q * q
+        if l2 <= 0.0:
+            return math.nan, math.nan, math.nan
+        ln = math.sqrt(l2)
+        d1 = (de + q) / ln
+        return ln - closed, d1, (1.0 - d1 * d1) / ln
+    ex, ey, fx, fy, ok = four_bar_points(cyl, k, q)
+    if not ok:
+        return math.nan, math.nan, math.nan
+    cx = cyl[o + 9]
+    cy = cyl[o + 10]
+    r1x = ex - cyl[o + 11]
+    r1y = ey - cyl[o + 12]
+    r2x = ex - fx
+    r2y = ey - fy
+    det = r1x * r2y - r1y * r2x
+    lx = ex - cx
+    ly = ey - cy
+    ln = math.sqrt(lx * lx + ly * ly)
+    if det == 0.0:
+        return ln - closed, math.nan, math.nan
+    # first derivative: r1·E' = 0, r2·E' = r2·F', F' = (−Fy, Fx)
+    fdx = -fy
+    fdy = fx
+    rhs = r2x * fdx + r2y * fdy
+    dex = -r1y * rhs / det
+    dey = r1x * rhs / det
+    # second: r1·E'' = −|E'|², r2·E'' = r2·F'' − |E' − F'|², F'' = −F
+    b1 = -(dex * dex + dey * dey)
+    gx = dex - fdx
+    gy = dey - fdy
+    b2 = -(r2x * fx + r2y * fy) - (gx * gx + gy * gy)
+    ddx = (b1 * r2y - r1y * b2) / det
+    ddy = (r1x * b2 - r2x * b1) / det
+    d1 = (lx * dex + ly * dey) / ln
+    # L L' = (E − C)·E'  =>  L'² + L L'' = |E'|² + (E − C)·E''
+    d2 = ((dex * dex + dey * dey) + (lx * ddx + ly * ddy) - d1 * d1) / ln
+    return ln - closed, d1, d2
+
+
+@njit(cache=True)
+def cylinder_kinematics2_batch(cyl, q, s_out, d1_out, d2_out):  # type: ignore[no-untyped-def]
+    """s, ds/dq, d²s/dq² of every cylinder over samples: q (n, nj), outputs (n, nc)."""
+    nc = int(cyl[0])
+    for i in range(q.shape[0]):
+        for k in range(nc):
+            ji = int(cyl[1 + k * CYL_BLOCK + 1])
+            s, d1, d2 = cylinder_state2(cyl, k, q[i, ji])
+            s_out[i, k] = s
+            d1_out[i, k] = d1
+            d2_out[i, k] = d2
+
+
+@njit(cache=True)
 def cylinder_kinematics(cyl, q, s_out, dsdq_out):  # type: ignore[no-untyped-def]
     """Rod positions s (nc,) [m] and moment arms ds_k/dq_joint(k) (nc,) for joint positions q."""
     nc = int(cyl[0])

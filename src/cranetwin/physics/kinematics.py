@@ -98,6 +98,78 @@ def cylinder_kinematics(machine: Machine, q: npt.ArrayLike) -> tuple[F64, F64]:
     return s, d
 
 
+def moment_arm_rates(machine: Machine, q: npt.ArrayLike) -> F64:
+    """Analytic second derivatives d²s_k/dq_j(k)² (the rate of change of the moment arms).
+
+    Args:
+        machine: Machine description.
+        q: Joint positions, shape (n, n_joints) [rad or m].
+
+    Returns:
+        d²s/dq², shape (n, n_cylinders) [m/rad² or 1/m].
+    """
+    return _kinematics2(machine, as_joint_array(machine, q))[2]
+
+
+def _kinematics2(machine: Machine, qa: F64) -> tuple[F64, F64, F64]:
+    p = compile_chain(machine)
+    shape = (qa.shape[0], p.n_cylinders)
+    s, d1, d2 = np.empty(shape), np.empty(shape), np.empty(shape)
+    K.cylinder_kinematics2_batch(p.cyl, qa, s, d1, d2)
+    return s, d1, d2
+
+
+def joint_motion_from_cylinders(
+    machine: Machine,
+    s: npt.ArrayLike,
+    v: npt.ArrayLike,
+    a: npt.ArrayLike,
+    q_other: npt.ArrayLike | None = None,
+    qd_other: npt.ArrayLike | None = None,
+    qdd_other: npt.ArrayLike | None = None,
+) -> tuple[F64, F64, F64]:
+    """Joint positions, velocities and accelerations from rod positions, velocities and
+    accelerations: qd = v/s', qdd = (a − s''·qd²)/s' (chain rule on s = s(q)).
+
+    Args:
+        machine: Machine description.
+        s, v, a: Rod positions [m], velocities [m/s], accelerations [m/s²], shape
+            (n, n_cylinders).
+        q_other, qd_other, qdd_other: The joints no cylinder drives (see
+            :func:`joints_from_cylinders`); zeros when omitted.
+
+    Returns:
+        (q, qd, qdd), each shape (n, n_joints).
+
+    Raises:
+        PhysicsError: as :func:`joints_from_cylinders`, or shapes that differ.
+    """
+    p = compile_chain(machine)
+    q = joints_from_cylinders(machine, s, q_other)
+    n = q.shape[0]
+    va = np.asarray(v, dtype=np.float64).reshape(n, -1)
+    aa = np.asarray(a, dtype=np.float64).reshape(n, -1)
+    if va.shape != (n, p.n_cylinders) or aa.shape != (n, p.n_cylinders):
+        raise PhysicsError(f"v, a: expected shape ({n}, {p.n_cylinders}), got "
+                           f"{np.shape(v)} and {np.shape(a)}")
+    _, d1, d2 = _kinematics2(machine, q)
+    cj = p.cylinder_joint
+    free = [j for j in range(p.n_joints) if j not in set(cj.tolist())]
+    qd = np.zeros_like(q)
+    qdd = np.zeros_like(q)
+    for arr, other, name in ((qd, qd_other, "qd_other"), (qdd, qdd_other, "qdd_other")):
+        if other is not None:
+            o = np.asarray(other, dtype=np.float64).reshape(n, -1)
+            if o.shape != (n, len(free)):
+                raise PhysicsError(f"{name}: expected shape ({n}, {len(free)}), got "
+                                   f"{np.shape(other)}")
+            arr[:, free] = o
+    with np.errstate(divide="ignore", invalid="ignore"):
+        qd[:, cj] = va / d1
+        qdd[:, cj] = (aa - d2 * qd[:, cj] ** 2) / d1
+    return q, qd, qdd
+
+
 def joints_from_cylinders(
     machine: Machine, s: npt.ArrayLike, q_other: npt.ArrayLike | None = None
 ) -> F64:
