@@ -10,6 +10,7 @@ from cranetwin.signal.noise import NOISY_QUANTITIES, inject_uniform_noise, nrmse
 from cranetwin.signal.resample import Regular, nominal_period, regularize, uniform_grid
 from cranetwin.signal.smoothing import (
     SmoothingChoice,
+    choose_derivative_window,
     choose_window,
     estimate_noise_std,
     savgol_smooth,
@@ -21,6 +22,7 @@ __all__ = [
     "NaturalCubicSpline",
     "Regular",
     "SmoothingChoice",
+    "choose_derivative_window",
     "choose_window",
     "estimate_noise_std",
     "inject_uniform_noise",

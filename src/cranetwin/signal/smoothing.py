@@ -76,22 +76,29 @@ def estimate_noise_std(y: npt.ArrayLike, resolution: float = 0.0, order: int = 4
     return float(max(sigma, resolution / np.sqrt(12.0)))
 
 
-def savgol_smooth(y: npt.ArrayLike, window: int, polyorder: int) -> F64:
-    """Savitzky–Golay smoothing along axis 0 (edges by polynomial fit, scipy ``mode="interp"``).
+def savgol_smooth(y: npt.ArrayLike, window: int, polyorder: int, deriv: int = 0,
+                  delta: float = 1.0) -> F64:
+    """Savitzky–Golay smoothing (or derivative) along axis 0 (edges by polynomial fit, scipy
+    ``mode="interp"``).
 
     Args:
         y: Uniformly spaced samples, shape (n,) or (n, k).
-        window: Odd window length [samples]; 1 returns a copy.
+        window: Odd window length [samples]; 1 returns a copy (deriv must then be 0).
         polyorder: Polynomial order, < window.
+        deriv: Derivative order of the fitted polynomial (0 = smoothed values).
+        delta: Sample spacing [s] (scales derivatives).
     """
     ya = np.asarray(y, dtype=np.float64)
     if window <= 1:
+        if deriv:
+            raise SignalError("a derivative needs a window > 1")
         return ya.copy()
     if window % 2 == 0 or polyorder >= window:
         raise SignalError(f"window must be odd and > polyorder, got {window}, {polyorder}")
     if ya.shape[0] < window:
         raise SignalError(f"{ya.shape[0]} samples are fewer than the window {window}")
-    out: F64 = savgol_filter(ya, window, polyorder, axis=0, mode="interp")
+    out: F64 = savgol_filter(ya, window, polyorder, deriv=deriv, delta=delta, axis=0,
+                             mode="interp")
     return out
 
 
@@ -153,3 +160,71 @@ def choose_window(
             if risk < best.risk:
                 best = SmoothingChoice(w, p, s, risk)
     return best
+
+
+def choose_derivative_window(
+    y: npt.ArrayLike,
+    sigma: float | None = None,
+    resolution: float = 0.0,
+    deriv: int = 2,
+    polyorder: int = 3,
+    windows: tuple[int, ...] = DEFAULT_WINDOWS,
+    threshold: float = 2.0,
+    max_samples: int = 40_000,
+) -> SmoothingChoice:
+    """Savitzky–Golay window for estimating a derivative, by Lepski's rule.
+
+    A window good for the values is far too short for a second derivative (noise grows as
+    1/w^(2k+1)), and bias cannot be estimated without knowing the derivative, so windows are
+    compared with each other: going up from the shortest, window w is accepted while for every
+    accepted shorter w' the mean square difference of the two derivative estimates stays within
+    ``threshold`` × its pure-noise value σ²·‖h_w − h_w'‖² (h: the filters' coefficients). The
+    longest accepted window is returned: the smoothest estimate whose bias is not yet visible
+    above the noise.
+
+    Args:
+        y: Uniformly spaced samples of one signal, shape (n,).
+        sigma: Noise standard deviation (estimated if None).
+        resolution: Quantisation step (floor of the noise estimate).
+        deriv: Derivative order the window is chosen for (1 or 2).
+        polyorder: Polynomial order of the filters.
+        windows: Candidate odd windows.
+        threshold: Accept while mean square difference <= threshold × noise-only expectation.
+        max_samples: Evaluate on at most this many samples (evenly spread segments).
+
+    Returns:
+        :class:`SmoothingChoice` (risk = NaN: not estimated for derivatives).
+    """
+    ya = np.asarray(y, dtype=np.float64)
+    s = estimate_noise_std(ya, resolution) if sigma is None else float(sigma)
+    n = ya.shape[0]
+    cands = [w for w in windows if w > polyorder + 1 and w <= n // 2]
+    if not cands:
+        return SmoothingChoice(1, 0, s, float("nan"))
+    wmax = max(cands)
+    segs = _segments(n, max(8 * wmax, 2000), max_samples)
+    edge = wmax // 2
+
+    def est(w: int) -> F64:
+        parts = []
+        for sl in segs:
+            d = savgol_filter(ya[sl], w, polyorder, deriv=deriv, mode="interp")
+            parts.append(d[edge : d.shape[0] - edge] if d.shape[0] > 2 * edge + 1 else d)
+        return np.concatenate(parts)
+
+    def coeffs(w: int) -> F64:
+        h = np.zeros(wmax)
+        c = savgol_coeffs(w, polyorder, deriv=deriv, use="dot")
+        h[wmax // 2 - w // 2 : wmax // 2 + w // 2 + 1] = c
+        return h
+
+    accepted: list[tuple[int, F64, F64]] = []
+    for w in cands:
+        d = est(w)
+        h = coeffs(w)
+        ok = all(float(np.mean((d - d2) ** 2)) <= threshold * s * s * float(np.sum((h - h2) ** 2))
+                 for _, d2, h2 in accepted)
+        if not ok:
+            break
+        accepted.append((w, d, h))
+    return SmoothingChoice(accepted[-1][0], polyorder, s, float("nan"))

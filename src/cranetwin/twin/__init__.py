@@ -1,0 +1,9 @@
+"""The twin: replay of sensor samples through the machine's physics (``replay``, ``TwinStream``),
+payload estimation, and calibration of friction and masses."""
+
+from __future__ import annotations
+
+from cranetwin.twin.replay import ReplayOptions, TwinStream, iter_replay, replay
+from cranetwin.twin.result import TwinResult
+
+__all__ = ["ReplayOptions", "TwinResult", "TwinStream", "iter_replay", "replay"]

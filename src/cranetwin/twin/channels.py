@@ -1,0 +1,124 @@
+"""Which sensor channel feeds which actuator, and how each is smoothed."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.errors import TwinError
+from cranetwin.model import Machine
+from cranetwin.signal import SmoothingChoice, choose_derivative_window, choose_window
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ChannelMap:
+    """Column indices of the channels the twin reads, in ``machine.cylinders`` order.
+
+    Attributes:
+        names: Channel names in the twin's working order: per cylinder pA, pB, s, then the slewing
+            torque (if the machine has a torque drive), then the slew angle (if sent).
+        p_a: Working-order indices of the pA channels, one per cylinder.
+        p_b: Working-order indices of the pB channels.
+        s: Working-order indices of the rod position channels.
+        torque: Index of the slewing-torque channel or None.
+        angle: Index of the slew-angle channel or None.
+        resolution: Quantisation step per working channel (0 if unknown).
+    """
+
+    names: tuple[str, ...]
+    p_a: tuple[int, ...]
+    p_b: tuple[int, ...]
+    s: tuple[int, ...]
+    torque: int | None
+    angle: int | None
+    resolution: tuple[float, ...]
+
+    @property
+    def derivative_channels(self) -> tuple[int, ...]:
+        """Working indices of the channels whose rates the twin needs (rod positions, angle)."""
+        return self.s + ((self.angle,) if self.angle is not None else ())
+
+    @property
+    def choice_names(self) -> tuple[str, ...]:
+        """Names of the smoothing choices: every channel, then ``name'`` for the windows used
+        to differentiate the position channels."""
+        return self.names + tuple(self.names[j] + "'" for j in self.derivative_channels)
+
+    @staticmethod
+    def build(machine: Machine, available: tuple[str, ...]) -> ChannelMap:
+        """Map a machine's channels onto the columns present in a recording.
+
+        Raises:
+            TwinError: A cylinder lacks its pA, pB or s channel among ``available``.
+        """
+        by_key = {(c.source, c.quantity): c for c in machine.channels if c.name in available}
+        names: list[str] = []
+        res: list[float] = []
+        idx: dict[str, list[int]] = {"pressure_a": [], "pressure_b": [], "position": []}
+        for cyl in machine.cylinders:
+            for q in ("pressure_a", "pressure_b", "position"):
+                ch = by_key.get((cyl.name, q))
+                if ch is None:
+                    raise TwinError(f"cylinder {cyl.name!r} needs a {q} channel; the recording has "
+                                    f"{list(available)}")
+                idx[q].append(len(names))
+                names.append(ch.name)
+                res.append(ch.resolution)
+        torque: int | None = None
+        angle: int | None = None
+        for drive in machine.torque_drives:
+            ch = by_key.get((drive.name, "torque"))
+            if ch is not None:
+                torque = len(names)
+                names.append(ch.name)
+                res.append(ch.resolution)
+            joint_angle = by_key.get((drive.joint, "angle"))
+            if joint_angle is not None:
+                angle = len(names)
+                names.append(joint_angle.name)
+                res.append(joint_angle.resolution)
+        return ChannelMap(tuple(names), tuple(idx["pressure_a"]), tuple(idx["pressure_b"]),
+                          tuple(idx["position"]), torque, angle, tuple(res))
+
+
+def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
+                     enabled: bool = True) -> tuple[SmoothingChoice, ...]:
+    """Savitzky–Golay choices, from regularly sampled data, in ``cmap.choice_names`` order.
+
+    Pressures pA and pB of a cylinder share one window, chosen on the hydraulic force
+    A1·pA − A2·pB (Eq. 1 without friction), the quantity the twin needs from them.
+
+    Args:
+        machine: Machine (cylinder areas).
+        cmap: Channel map.
+        values: Regular samples in working order, shape (n, len(cmap.names)), finite.
+        enabled: If False every channel gets window 1 (no smoothing).
+
+    Position channels get a second window for their derivatives (rod velocity and
+    acceleration), chosen by Lepski's rule (:func:`cranetwin.signal.choose_derivative_window`):
+    a second derivative needs far more smoothing than the values.
+    """
+    none = SmoothingChoice(1, 0, 0.0, 0.0)
+    out = [none] * len(cmap.choice_names)
+    if not enabled:
+        return tuple(out)
+    for i, j in enumerate(cmap.derivative_channels):
+        out[len(cmap.names) + i] = choose_derivative_window(values[:, j],
+                                                            resolution=cmap.resolution[j])
+    for c, cyl in enumerate(machine.cylinders):
+        ia, ib = cmap.p_a[c], cmap.p_b[c]
+        force = cyl.area_a_m2 * values[:, ia] - cyl.area_b_m2 * values[:, ib]
+        res = float(np.hypot(cyl.area_a_m2 * cmap.resolution[ia],
+                             cyl.area_b_m2 * cmap.resolution[ib]))
+        ch = choose_window(force, resolution=res)
+        out[ia] = out[ib] = ch
+        js = cmap.s[c]
+        out[js] = choose_window(values[:, js], resolution=cmap.resolution[js])
+    for opt in (cmap.torque, cmap.angle):
+        if opt is not None:
+            out[opt] = choose_window(values[:, opt], resolution=cmap.resolution[opt])
+    return tuple(out)

@@ -1,0 +1,70 @@
+"""Payload mass from the pressures: weighted least squares over a sliding window.
+
+The paper assumes the payload known; the twin measures it. The payload is a point mass m at the
+load point, so the inverse-dynamics joint loads are affine in m::
+
+    tau_id(q, qd, qdd; m) = tau_0 + m·g,   g = tau_id(…; 1 kg) − tau_id(…; 0 kg)
+
+and the actuator loads computed from the pressures (Eq. 1–2 through the moment arms) should
+equal them. Over a centred window of N instants and the cylinder-driven joints c, with weights
+w_c = 1/σ_c² (σ_c: error of that joint's actuator load), the estimate and its standard error are::
+
+    m̂ = Σ w_c·g_c·r_c / Σ w_c·g_c²,      r = tau_act − tau_0
+    σ_m̂² = [Σ w_c·(r_c − m̂·g_c)² / (n_eff − 1)] / Σ w_c·g_c²
+
+with n_eff the number of independent errors in the window (samples × joints × the smoothing's
+variance reduction), because interpolated and smoothed samples are correlated.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.errors import TwinError
+
+F64 = npt.NDArray[np.float64]
+
+
+def _moving_sum(x: F64, half: int) -> F64:
+    """Centred moving sum over [i − half, i + half] ∩ [0, n), along axis 0."""
+    n = x.shape[0]
+    c = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)])
+    i = np.arange(n)
+    hi = np.minimum(i + half + 1, n)
+    lo = np.maximum(i - half, 0)
+    out: F64 = c[hi] - c[lo]
+    return out
+
+
+def sliding_payload(
+    g: F64, r: F64, weights: F64, half_window: int, independent_fraction: F64
+) -> tuple[F64, F64]:
+    """Sliding-window weighted least-squares payload.
+
+    Args:
+        g: Joint-load sensitivity to payload, shape (k, n_c) [N·m/kg or N/kg].
+        r: Actuator load minus no-payload inverse dynamics, shape (k, n_c) [N·m or N].
+        weights: 1/σ² per joint, shape (n_c,) [1/(N·m)²].
+        half_window: Half window [instants]; the window has 2·half + 1 instants.
+        independent_fraction: Independent errors per instant per joint, shape (n_c,), in (0, 1].
+
+    Returns:
+        (m̂, σ_m̂), each shape (k,) [kg]; NaN estimate and inf σ where g vanishes.
+    """
+    if g.shape != r.shape or g.ndim != 2:
+        raise TwinError(f"g {g.shape} and r {r.shape} must both be (k, n_c)")
+    wg = g * weights[None, :]
+    sgg = _moving_sum(np.sum(wg * g, axis=1), half_window)
+    sgr = _moving_sum(np.sum(wg * r, axis=1), half_window)
+    srr = _moving_sum(np.sum(r * r * weights[None, :], axis=1), half_window)
+    count = _moving_sum(np.ones(g.shape[0]), half_window)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m = sgr / sgg
+        rss = np.maximum(srr - m * sgr, 0.0)
+        n_eff = count * float(np.sum(independent_fraction))
+        std = np.sqrt(rss / np.maximum(n_eff - 1.0, 1.0) / sgg)
+    bad = ~(sgg > 0)
+    m[bad] = np.nan
+    std[bad] = np.inf
+    return m, std

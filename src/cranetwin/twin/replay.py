@@ -1,0 +1,571 @@
+"""Replay: sparse, noisy sensor samples in; motion and loads of the machine on a fine grid out.
+
+Pipeline (paper Sect. 2, with the steps it leaves open made explicit)::
+
+    samples ─ regularise (irregular times, dropouts) ─ Savitzky–Golay (window from noise level)
+      ─ natural cubic spline to the grid (values, rate, acceleration)
+      ─ kinematics: theta1, theta2, L from the rod positions; theta0 from the slew-angle channel
+        or by integrating the slewing dynamics from the pillar torque
+      ─ cylinder forces, Eq. 1–2 ─ actuator joint loads F·ds/dq
+      ─ payload by sliding-window least squares (if not given) ─ inverse dynamics (RNEA):
+        joint loads, residual, joint reaction wrenches
+
+Everything runs per *chunk* of samples with enough overlap that every output instant sees the
+same data as a whole-recording computation would: Savitzky–Golay is a finite filter, the
+natural spline's dependence on far knots decays by ≈ 0.27 per knot (``settle_samples`` knots of
+margin leave < 1e-20 of it), and the payload window is centred. So the streaming form
+(:class:`TwinStream`, fed block by block as datagrams arrive) equals the batch form
+(:func:`replay`), which is the stream fed everything at once — seams included.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+from scipy.signal import savgol_coeffs
+
+from cranetwin import physics
+from cranetwin.errors import PhysicsError, TwinError
+from cranetwin.model import Machine
+from cranetwin.samples import SampleArrays
+from cranetwin.signal import (
+    NaturalCubicSpline,
+    SmoothingChoice,
+    newton_derivative,
+    nominal_period,
+    regularize,
+    savgol_smooth,
+)
+from cranetwin.twin.channels import ChannelMap, choose_smoothing
+from cranetwin.twin.payload import sliding_payload
+from cranetwin.twin.result import TwinResult
+from cranetwin.twin.slew import SlewState, integrate_slew
+
+F64 = npt.NDArray[np.float64]
+B = npt.NDArray[np.bool_]
+
+_ARM_STEP = 1e-6  # central-difference step for d(ds/dq)/dq [rad or m]
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    """Settings of a replay.
+
+    Attributes:
+        grid_hz: Output grid rate [Hz]; must be an integer multiple of the sample rate.
+        smooth: Savitzky–Golay smoothing on (window chosen from the noise level) or off.
+        smoothing: Fixed smoothing choices per working channel (skips the automatic choice).
+        velocity: Rod velocity from the derivative of the position spline (``"spline"``) or by
+            Newton's divided-difference formula at the samples, then splined (``"newton"``).
+        payload_window_s: Length of the payload least-squares window [s].
+        chunk_samples: Samples per processing chunk (memory and cache size).
+        settle_samples: Spline margin on each side of a chunk [samples].
+        sample_period_s: Nominal sample period [s]; the median spacing of the first data if None.
+        choose_after_s: Streaming: data collected before the smoothing windows are chosen [s].
+        theta0_initial: Slew angle at the start when it is integrated from torque [rad].
+        max_gap_s: Dropouts longer than this are flagged in ``TwinResult.gap`` (5 periods if None).
+        lookahead_s: Streaming: raw data held back for regularisation [s] (50 periods if None).
+    """
+
+    grid_hz: float = 1000.0
+    smooth: bool = True
+    smoothing: tuple[SmoothingChoice, ...] | None = None
+    velocity: Literal["spline", "newton"] = "spline"
+    payload_window_s: float = 2.0
+    chunk_samples: int = 2000
+    settle_samples: int = 40
+    sample_period_s: float | None = None
+    choose_after_s: float = 10.0
+    theta0_initial: float = 0.0
+    max_gap_s: float | None = None
+    lookahead_s: float | None = None
+
+
+class _Buf:
+    """Rows indexed by a global sample index k: rows [base, base + len)."""
+
+    def __init__(self, width: int) -> None:
+        self.base = 0
+        self.arr = np.empty((0, width))
+
+    @property
+    def end(self) -> int:
+        return self.base + self.arr.shape[0]
+
+    def append(self, rows: F64) -> None:
+        self.arr = np.concatenate([self.arr, rows.reshape(rows.shape[0], -1)], axis=0)
+
+    def get(self, k0: int, k1: int) -> F64:
+        if k0 < self.base or k1 > self.end:
+            raise TwinError(f"internal: rows {k0}..{k1} outside buffer {self.base}..{self.end}")
+        return self.arr[k0 - self.base : k1 - self.base]
+
+    def trim(self, keep_from: int) -> None:
+        cut = keep_from - self.base
+        if cut > 0:
+            self.arr = self.arr[cut:].copy()
+            self.base = keep_from
+
+
+def _h0(choice: SmoothingChoice) -> float:
+    if choice.window <= 1:
+        return 1.0
+    return float(savgol_coeffs(choice.window, choice.polyorder)[choice.window // 2])
+
+
+class TwinStream:
+    """Replay fed block by block; yields results for every instant that can no longer change.
+
+    Args:
+        machine: Machine description.
+        channels: Column names of the sample arrays that will be pushed.
+        options: Replay settings.
+        payload: Known payload [kg] (scalar) or None to estimate it from the pressures.
+    """
+
+    def __init__(self, machine: Machine, channels: tuple[str, ...],
+                 options: ReplayOptions | None = None, payload: float | None = None) -> None:
+        self.machine = machine
+        self.opt = options or ReplayOptions()
+        self.payload = payload
+        self.cmap = ChannelMap.build(machine, channels)
+        self._cols = [channels.index(n) for n in self.cmap.names]
+        self._nch = len(self.cmap.names)
+        self._raw_t = np.empty(0)
+        self._raw_v = np.empty((0, self._nch))
+        self._origin: float | None = None
+        self._period: float | None = self.opt.sample_period_s
+        self._r = 0
+        self._choices: tuple[SmoothingChoice, ...] | None = self.opt.smoothing
+        self._dcols = list(self.cmap.derivative_channels)
+        n_choice = len(self.cmap.choice_names)
+        if self._choices is not None and len(self._choices) != n_choice:
+            raise TwinError(f"smoothing: expected {n_choice} choices {self.cmap.choice_names}, "
+                            f"got {len(self._choices)}")
+        self._reg = _Buf(self._nch)
+        self._gap = _Buf(1)
+        # smoothed channels | integrated theta0 | rates | accelerations of the position channels
+        self._nd = len(self.cmap.derivative_channels)
+        self._sm = _Buf(self._nch + 1 + 2 * self._nd)
+        self._sm_valid = 0  # smoothed rows [.., _sm_valid) have final values
+        self._theta_done = 0
+        self._out_done = 0
+        self._slew = SlewState(theta0=self.opt.theta0_initial)
+        self._integrate = self.cmap.angle is None
+        self._drive = machine.torque_drives[0] if machine.torque_drives else None
+        self._slew_joint = machine.joint_index(self._drive.joint) if self._drive else None
+        self._cyl_joint = [machine.joint_index(c.joint) for c in machine.cylinders]
+        self._finished = False
+
+    # -- geometry of the margins -------------------------------------------------------------
+    @property
+    def _hw(self) -> int:
+        if self._choices is None:
+            return 0
+        return max(c.window // 2 for c in self._choices)
+
+    @property
+    def _wh(self) -> int:
+        assert self._period is not None
+        return max(1, int(round(self.opt.payload_window_s / self._period / 2)))
+
+    # -- public API ----------------------------------------------------------------------------
+    def push(self, samples: SampleArrays) -> TwinResult | None:
+        """Add samples (in time order, after those pushed before); return what became final."""
+        parts = list(self.push_iter(samples))
+        return TwinResult.concat(parts) if parts else None
+
+    def flush(self) -> TwinResult | None:
+        """End of the stream: return everything not yet returned."""
+        parts = list(self.flush_iter())
+        return TwinResult.concat(parts) if parts else None
+
+    def push_iter(self, samples: SampleArrays) -> Iterator[TwinResult]:
+        """Like :meth:`push`, one chunk at a time (bounded memory for long recordings)."""
+        if self._finished:
+            raise TwinError("stream already flushed")
+        t = np.asarray(samples.t_s, dtype=np.float64)
+        if t.shape[0] == 0:
+            return
+        if self._raw_t.shape[0] and not t[0] > self._raw_t[-1]:
+            raise TwinError("pushed samples must come after the samples pushed before")
+        vals = np.asarray(samples.values, dtype=np.float64)[:, self._cols]
+        self._raw_t = np.concatenate([self._raw_t, t])
+        self._raw_v = np.concatenate([self._raw_v, vals])
+        yield from self._advance(final=False)
+
+    def flush_iter(self) -> Iterator[TwinResult]:
+        """Like :meth:`flush`, one chunk at a time."""
+        if self._finished:
+            return
+        yield from self._advance(final=True)
+        self._finished = True
+
+    # -- stages ----------------------------------------------------------------------------------
+    def _advance(self, final: bool) -> Iterator[TwinResult]:
+        if self._raw_t.shape[0] < 2 and not final:
+            return
+        if self._raw_t.shape[0] < 4:
+            if final and self._raw_t.shape[0] == 0:
+                return
+            if final:
+                raise TwinError(f"replay needs at least 4 samples, got {self._raw_t.shape[0]}")
+            return
+        if self._period is None:
+            self._period = nominal_period(self._raw_t)
+        if self._origin is None:
+            self._origin = float(self._raw_t[0])
+        r = self.opt.grid_hz * self._period
+        if abs(r - round(r)) > 1e-3 * r or round(r) < 1:
+            raise TwinError(f"grid_hz {self.opt.grid_hz} must be an integer multiple of the "
+                            f"sample rate {1 / self._period:g} Hz")
+        self._r = int(round(r))
+        self._stage_regular(final)
+        if self._choices is None:
+            have = self._reg.end * self._period
+            if not final and have < self.opt.choose_after_s:
+                return
+            self._choices = choose_smoothing(self.machine, self.cmap, self._reg.arr,
+                                             self.opt.smooth)
+        self._stage_smooth(final)
+        if self._integrate:
+            self._stage_slew(final)
+        yield from self._stage_output(final)
+        self._trim()
+
+    def _stage_regular(self, final: bool) -> None:
+        assert self._period is not None and self._origin is not None
+        p = self._period
+        look = 50 * p if self.opt.lookahead_s is None else self.opt.lookahead_s
+        t_last = float(self._raw_t[-1])
+        horizon = t_last if final else t_last - look
+        k_hi = int(np.floor((horizon - self._origin) / p + 1e-9))  # inclusive
+        k0 = self._reg.end
+        if k_hi < k0:
+            return
+        reg = regularize(self._raw_t, self._raw_v, period=p, max_gap_s=self.opt.max_gap_s,
+                         origin=self._origin)
+        kr0 = int(round((reg.t[0] - self._origin) / p))
+        if kr0 > k0:
+            raise TwinError("internal: regularised samples do not continue the stream")
+        self._reg.append(reg.values[k0 - kr0 : k_hi - kr0 + 1])
+        self._gap.append(np.any(reg.gap, axis=1)[k0 - kr0 : k_hi - kr0 + 1].astype(float))
+        # keep raw samples that the next regularisation needs (lookahead of context)
+        keep_t = self._origin + (k_hi + 1) * p - look - 2 * p
+        keep = int(np.searchsorted(self._raw_t, keep_t))
+        keep = min(keep, self._raw_t.shape[0] - 2)
+        if keep > 0:
+            self._raw_t = self._raw_t[keep:]
+            self._raw_v = self._raw_v[keep:]
+
+    def _stage_smooth(self, final: bool) -> None:
+        assert self._choices is not None
+        hw = self._hw
+        n_reg = self._reg.end
+        k_hi = n_reg if final else n_reg - hw  # exclusive
+        k0 = self._sm_valid
+        if k_hi <= k0:
+            return
+        lo = max(self._reg.base, k0 - hw)
+        hi = n_reg if final else min(n_reg, k_hi + hw)
+        raw = self._reg.get(lo, hi)
+        nd = self._nd
+        out = np.full((raw.shape[0], self._nch + 1 + 2 * nd), np.nan)
+        groups: dict[tuple[int, int], list[int]] = {}
+        for j, c in enumerate(self._choices[: self._nch]):
+            groups.setdefault((c.window, c.polyorder), []).append(j)
+        for (w, p), cols in groups.items():
+            if w > 1 and raw.shape[0] < w:
+                raise TwinError(f"{raw.shape[0]} samples are fewer than the smoothing window {w}")
+            out[:, cols] = savgol_smooth(raw[:, cols], w, p)
+        dt = self._period
+        assert dt is not None
+        for i, j in enumerate(self._dcols):
+            c = self._choices[self._nch + i]
+            w = c.window if c.window > 1 else 5
+            w = min(w, raw.shape[0] - (1 - raw.shape[0] % 2))
+            p = min(max(c.polyorder, 3), w - 1)
+            col = raw[:, j]
+            out[:, self._nch + 1 + i] = savgol_smooth(col, w, p, deriv=1, delta=dt)
+            out[:, self._nch + 1 + nd + i] = savgol_smooth(col, w, p, deriv=2, delta=dt)
+        block = out[k0 - lo : k_hi - lo]
+        if self._sm.end != k0:
+            raise TwinError("internal: smoothing does not continue the stream")
+        self._sm.append(block)
+        self._sm_valid = k_hi
+
+    def _sample_state(self, k0: int, k1: int, theta0: F64 | None) -> tuple[F64, F64, F64, F64]:
+        """q, qd, qdd and actuator loads at samples [k0, k1) from the smoothed channels."""
+        assert self._period is not None
+        m = self.machine
+        sm = self._sm.get(k0, k1)
+        t = np.arange(k0, k1) * self._period
+        s = self._clip_s(sm[:, list(self.cmap.s)])
+        nc = len(self.cmap.s)
+        v = sm[:, self._nch + 1 : self._nch + 1 + nc]
+        a = sm[:, self._nch + 1 + self._nd : self._nch + 1 + self._nd + nc]
+        del t
+        q_other = np.zeros((s.shape[0], m.n_joints - len(m.cylinders)))
+        if theta0 is not None and q_other.shape[1]:
+            q_other[:, 0] = theta0
+        q, qd, qdd = self._joint_motion(s, v, a, q_other)
+        f = self._forces(sm, v)
+        tau = physics.actuator_torques(m, q, f)
+        return q, qd, qdd, tau
+
+    def _stage_slew(self, final: bool) -> None:
+        assert self._period is not None and self._drive is not None
+        wh = self._wh
+        avail = self._sm_valid
+        edge = 4  # two nested 5-point Newton derivatives
+        k_hi = avail if final else avail - wh - edge
+        k0 = self._theta_done
+        if k_hi <= k0:
+            return
+        lo = max(self._sm.base, k0 - wh - edge)
+        hi = avail if final else min(avail, k_hi + wh + edge)
+        q, qd, qdd, tau = self._sample_state(lo, hi, None)
+        if self.payload is not None:
+            mass = np.full(q.shape[0], float(self.payload))
+        else:
+            mass, _ = self._estimate_payload(q, qd, qdd, tau, wh)
+            mass = np.nan_to_num(np.maximum(mass, 0.0))
+        sl = slice(k0 - lo, k_hi - lo)
+        mm = physics.mass_matrix(self.machine, q[sl], mass[sl])
+        j0 = self._slew_joint
+        assert j0 is not None
+        m00 = mm[:, j0, j0]
+        others = [j for j in range(self.machine.n_joints) if j != j0]
+        coupling = np.einsum("nj,nj->n", mm[:, j0, others], qd[sl][:, others])
+        if self.cmap.torque is None:
+            torque = np.zeros(m00.shape[0])
+        else:
+            torque = self._sm.get(k0, k_hi)[:, self.cmap.torque]
+        fr = self._drive.friction
+        theta, _ = integrate_slew(self._period, torque, m00, coupling, fr.coulomb,
+                                  fr.coulomb_velocity, fr.viscous, self._slew)
+        self._sm.arr[k0 - self._sm.base : k_hi - self._sm.base, self._nch] = theta
+        self._theta_done = k_hi
+
+    def _stage_output(self, final: bool) -> Iterator[TwinResult]:
+        ready = self._theta_done if self._integrate else self._sm_valid
+        n_total = self._sm_valid
+        margin = self._wh + self.opt.settle_samples
+        k_end = n_total if final else ready - margin
+        while self._out_done < k_end:
+            ka = self._out_done
+            kb = min(k_end, ka + self.opt.chunk_samples)
+            last = final and kb == n_total
+            yield self._chunk(ka, kb, last, ready)
+            self._out_done = kb
+
+    def _trim(self) -> None:
+        need = self._out_done - self._wh - self.opt.settle_samples - 4
+        need = min(need, self._theta_done - self._wh - 8, self._sm_valid - 2 * self._hw - 8)
+        if need > 0:
+            self._sm.trim(min(need, self._sm.end))
+            self._reg.trim(min(need, self._reg.end))
+            self._gap.trim(min(need, self._gap.end))
+
+    # -- physics helpers -----------------------------------------------------------------------
+    def _clip_s(self, s: F64) -> F64:
+        lo = np.zeros(len(self.machine.cylinders))
+        hi = np.array([c.stroke_m for c in self.machine.cylinders])
+        out: F64 = np.clip(s, lo, hi)
+        return out
+
+    def _joint_motion(self, s: F64, v: F64, a: F64, q_other: F64) -> tuple[F64, F64, F64]:
+        m = self.machine
+        try:
+            q = physics.joints_from_cylinders(m, s, q_other if q_other.shape[1] else None)
+        except PhysicsError as exc:
+            raise TwinError(f"rod positions do not fit the machine geometry: {exc}") from exc
+        _, arm = physics.cylinder_kinematics(m, q)
+        cj = self._cyl_joint
+        qp = q.copy()
+        qm = q.copy()
+        qp[:, cj] += _ARM_STEP
+        qm[:, cj] -= _ARM_STEP
+        darm = (physics.moment_arms(m, qp) - physics.moment_arms(m, qm)) / (2 * _ARM_STEP)
+        qd = np.zeros_like(q)
+        qdd = np.zeros_like(q)
+        qd[:, cj] = v / arm
+        qdd[:, cj] = (a - darm * qd[:, cj] ** 2) / arm
+        return q, qd, qdd
+
+    def _forces(self, vals: F64, v: F64) -> F64:
+        f = np.empty((vals.shape[0], len(self.machine.cylinders)))
+        for c, cyl in enumerate(self.machine.cylinders):
+            f[:, c] = physics.cylinder_force(vals[:, self.cmap.p_a[c]], vals[:, self.cmap.p_b[c]],
+                                             v[:, c], cyl)
+        return f
+
+    def _estimate_payload(self, q: F64, qd: F64, qdd: F64, tau_act: F64,
+                          half: int) -> tuple[F64, F64]:
+        assert self._choices is not None
+        m = self.machine
+        cj = self._cyl_joint
+        t0 = physics.joint_torques(m, q, qd, qdd, 0.0)
+        t1 = physics.joint_torques(m, q, qd, qdd, 1.0)
+        _, arm = physics.cylinder_kinematics(m, q)
+        g = (t1 - t0)[:, cj] / arm  # force per kg at each cylinder
+        res = (tau_act - t0)[:, cj] / arm
+        weights = np.empty(len(cj))
+        frac = np.empty(len(cj))
+        for c, cyl in enumerate(m.cylinders):
+            ch = self._choices[self.cmap.p_a[c]]
+            weights[c] = 1.0 / (max(ch.risk, 0.0) + cyl.friction.coulomb ** 2)
+            frac[c] = _h0(ch)
+        return sliding_payload(g, res, weights, half, frac)
+
+    # -- one chunk ------------------------------------------------------------------------------
+    def _chunk(self, ka: int, kb: int, last: bool, ready: int) -> TwinResult:
+        assert self._period is not None and self._origin is not None and self._choices is not None
+        m = self.machine
+        r = self._r
+        p = self._period
+        wh = self._wh
+        n_total = self._sm_valid if last else ready  # rows with every column final
+        e0 = max(0, ka - wh)
+        e1 = min(n_total - 1, kb + wh)  # inclusive
+        f0 = max(self._sm.base, e0 - self.opt.settle_samples)
+        f1 = min(n_total - 1, e1 + self.opt.settle_samples)  # inclusive
+        knots_t = np.arange(f0, f1 + 1) * p
+        sm = self._sm.get(f0, f1 + 1)
+        nc = len(m.cylinders)
+        nd = self._nd
+        pos_cols = list(self.cmap.s)
+        ang = self.cmap.angle
+        if self._integrate:
+            pos_cols.append(self._nch)
+        elif ang is not None:
+            pos_cols.append(ang)
+        val_cols = [j for j in range(self._nch) if j not in pos_cols]
+        npos = len(pos_cols)
+        pos_val = NaturalCubicSpline(knots_t, sm[:, pos_cols]).evaluate_subdivided(r, 0)[0]
+        if self.opt.velocity == "newton":
+            # the paper's way: Newton's formula on the (smoothed) positions, then splined
+            vel = newton_derivative(knots_t, sm[:, pos_cols], 2 if sm.shape[0] >= 5 else 1)
+            vg, ag = NaturalCubicSpline(knots_t, vel).evaluate_subdivided(r, 1)
+        else:
+            # Savitzky–Golay derivative filters at the samples (window by Lepski's rule), splined
+            rates = self._nch + 1 + np.arange(nd)
+            rate_cols = list(rates[:npos]) + list(rates[npos:]) if ang is not None else list(
+                rates[:nc])
+            acc_cols = [c + nd for c in rate_cols]
+            both = NaturalCubicSpline(knots_t, sm[:, rate_cols + acc_cols])
+            va = both.evaluate_subdivided(r, 0)[0]
+            vg = np.empty((va.shape[0], npos))
+            ag = np.empty((va.shape[0], npos))
+            vg[:, : len(rate_cols)] = va[:, : len(rate_cols)]
+            ag[:, : len(rate_cols)] = va[:, len(rate_cols):]
+            if self._integrate and npos > nc:
+                _, tv, ta = NaturalCubicSpline(knots_t, sm[:, self._nch]).evaluate_subdivided(r, 2)
+                vg[:, nc] = tv
+                ag[:, nc] = ta
+        posg = [pos_val, vg, ag]
+        valg = NaturalCubicSpline(knots_t, sm[:, val_cols]).evaluate_subdivided(r, 0)[0]
+        # grid index j = k·r + i; crop to the extended range [e0·r, e1·r]
+        a0 = (e0 - f0) * r
+        a1 = (e1 - f0) * r + 1
+        pos, vel_g, acc = (x[a0:a1] for x in posg)
+        vals = np.empty((a1 - a0, self._nch))
+        vals[:, val_cols] = valg[a0:a1]
+        s = self._clip_s(pos[:, :nc])
+        v = vel_g[:, :nc]
+        acc_s = acc[:, :nc]
+        q_other = np.zeros((s.shape[0], m.n_joints - nc))
+        th = thd = thdd = None
+        if q_other.shape[1] and len(pos_cols) > nc:
+            th, thd, thdd = pos[:, nc], vel_g[:, nc], acc[:, nc]
+            q_other[:, 0] = th
+        q, qd, qdd = self._joint_motion(s, v, acc_s, q_other)
+        if th is not None and self._slew_joint is not None:
+            qd[:, self._slew_joint] = thd
+            qdd[:, self._slew_joint] = thdd
+        f = self._forces(vals, v)
+        drive = None
+        if self._drive is not None:
+            if self.cmap.torque is not None:
+                tq = vals[:, self.cmap.torque] - physics.friction_force(
+                    qd[:, self._slew_joint], self._drive.friction)
+            else:
+                tq = np.full(q.shape[0], np.nan)
+            drive = tq[:, None]
+        tau_act = physics.actuator_torques(m, q, f, drive) if drive is not None and np.all(
+            np.isfinite(drive)) else physics.actuator_torques(m, q, f)
+        if drive is not None and not np.all(np.isfinite(drive)):
+            tau_act[:, self._slew_joint] = np.nan
+        # payload at the sample instants of the extended range, then onto the grid
+        o0 = (ka - e0) * r
+        o1 = (kb - 1 - e0) * r + 1 if last else (kb - e0) * r  # last: up to the last sample
+        if self.payload is not None:
+            mass_g = np.full(o1 - o0, float(self.payload))
+            std_g = np.zeros(o1 - o0)
+        else:
+            idx = np.arange(0, q.shape[0], r)
+            mk, sk = self._estimate_payload(q[idx], qd[idx], qdd[idx], tau_act[idx], wh)
+            ks = slice(ka - e0, min(kb - e0 + 1, idx.shape[0]))
+            mk, sk = mk[ks], sk[ks]
+            frac = (np.arange(o1 - o0) % r) / r
+            i0 = np.arange(o1 - o0) // r
+            i1 = np.minimum(i0 + 1, mk.shape[0] - 1)
+            mass_g = mk[i0] + frac * (mk[i1] - mk[i0])
+            std_g = sk[i0] + frac * (sk[i1] - sk[i0])
+        sl = slice(o0, o1)
+        qo, qdo, qddo = q[sl], qd[sl], qdd[sl]
+        id_mass = np.nan_to_num(np.maximum(mass_g, 0.0))
+        tau_id, wrench = physics.inverse_dynamics(m, qo, qdo, qddo, id_mass)
+        gap = self._gap.get(ka, kb)[:, 0] > 0
+        gap_g = np.repeat(gap, r)[: o1 - o0] if r > 1 else gap
+        if gap_g.shape[0] < o1 - o0:
+            gap_g = np.concatenate([gap_g, np.zeros(o1 - o0 - gap_g.shape[0], dtype=bool)])
+        t = self._origin + (ka + np.arange(o1 - o0) / r) * p
+        cols = self.cmap
+        return TwinResult(
+            t_s=t, q=qo, qd=qdo, qdd=qddo, rod_s=s[sl], rod_v=v[sl],
+            p_a=vals[sl][:, list(cols.p_a)], p_b=vals[sl][:, list(cols.p_b)],
+            cyl_force=f[sl], actuator_torque=tau_act[sl], id_torque=tau_id,
+            residual=tau_act[sl] - tau_id, joint_wrench=wrench, payload_kg=mass_g,
+            payload_std_kg=std_g, gap=gap_g,
+            smoothing=dict(zip(cols.choice_names, self._choices, strict=True)),
+        )
+
+
+def iter_replay(samples: SampleArrays, machine: Machine, grid_hz: float = 1000.0,
+                payload: float | None = None,
+                options: ReplayOptions | None = None) -> Iterator[TwinResult]:
+    """Replay a whole recording chunk by chunk (bounded memory); see :func:`replay`."""
+    opt = options or ReplayOptions()
+    if opt.grid_hz != grid_hz:
+        opt = ReplayOptions(**{**opt.__dict__, "grid_hz": grid_hz})
+    if opt.sample_period_s is None and samples.t_s.shape[0] >= 2:
+        opt = ReplayOptions(**{**opt.__dict__, "sample_period_s": nominal_period(samples.t_s)})
+    stream = TwinStream(machine, samples.channels, opt, payload)
+    yield from stream.push_iter(samples)
+    yield from stream.flush_iter()
+
+
+def replay(samples: SampleArrays, machine: Machine, grid_hz: float = 1000.0,
+           payload: float | None = None, options: ReplayOptions | None = None) -> TwinResult:
+    """Reconstruct the machine's motion and loads from its sensor samples.
+
+    Args:
+        samples: Sensor samples (pA, pB, s per cylinder, slewing torque, optional slew angle);
+            irregular times and NaN dropouts are allowed.
+        machine: Machine description.
+        grid_hz: Output grid rate [Hz], an integer multiple of the sample rate.
+        payload: Known payload [kg], or None to estimate it (sliding-window least squares).
+        options: Further settings (:class:`ReplayOptions`).
+
+    Returns:
+        :class:`TwinResult` from the first to the last sample time.
+
+    Raises:
+        TwinError: Missing channels, too few samples, rod positions outside the geometry.
+    """
+    return TwinResult.concat(list(iter_replay(samples, machine, grid_hz, payload, options)))

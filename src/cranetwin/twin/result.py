@@ -1,0 +1,101 @@
+"""The replay output: motion and loads of the machine on the model's time grid."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.errors import TwinError
+from cranetwin.model import Machine
+from cranetwin.signal import SmoothingChoice
+
+F64 = npt.NDArray[np.float64]
+B = npt.NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class TwinResult:
+    """Everything the twin reconstructs, on a uniform grid of m instants.
+
+    Joints in ``machine.joints`` order (PATU 655: theta0, theta1, theta2, L); cylinders in
+    ``machine.cylinders`` order (lift, jib, extension).
+
+    Attributes:
+        t_s: Grid times, shape (m,) [s, timebase of the samples].
+        q: Joint positions, shape (m, n_joints) [rad or m].
+        qd: Joint velocities, shape (m, n_joints) [rad/s or m/s].
+        qdd: Joint accelerations, shape (m, n_joints) [rad/s² or m/s²].
+        rod_s: Rod positions (smoothed, interpolated), shape (m, n_cyl) [m].
+        rod_v: Rod velocities, shape (m, n_cyl) [m/s].
+        p_a: Piston-side pressures, shape (m, n_cyl) [Pa].
+        p_b: Rod-side pressures, shape (m, n_cyl) [Pa].
+        cyl_force: Cylinder forces, Eq. 1–2 (friction at rod_v), shape (m, n_cyl) [N].
+        actuator_torque: Joint loads of the actuators: F·ds/dq for cylinders, measured drive
+            torque minus drive friction for torque drives, shape (m, n_joints) [N·m or N].
+        id_torque: Inverse-dynamics joint loads of (q, qd, qdd) with the payload estimate,
+            shape (m, n_joints) [N·m or N].
+        residual: actuator_torque − id_torque, shape (m, n_joints); what the model does not
+            explain (sensor noise, friction and model errors, wrong payload).
+        joint_wrench: Joint reaction wrenches [fx, fy, fz, mx, my, mz] in the child body's frame
+            at the joint origin (``physics.inverse_dynamics`` convention), shape
+            (m, n_joints, 6) [N, N·m]: the load history of the structure.
+        payload_kg: Payload used (given, or estimated by sliding-window least squares),
+            shape (m,) [kg].
+        payload_std_kg: One-sigma uncertainty of the estimate, shape (m,) [kg] (0 if given).
+        gap: True where an input channel had to be bridged across a dropout, shape (m,).
+        smoothing: The Savitzky–Golay choice per working channel name.
+    """
+
+    t_s: F64
+    q: F64
+    qd: F64
+    qdd: F64
+    rod_s: F64
+    rod_v: F64
+    p_a: F64
+    p_b: F64
+    cyl_force: F64
+    actuator_torque: F64
+    id_torque: F64
+    residual: F64
+    joint_wrench: F64
+    payload_kg: F64
+    payload_std_kg: F64
+    gap: B
+    smoothing: dict[str, SmoothingChoice] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        """Number of grid instants m."""
+        return int(self.t_s.shape[0])
+
+    def body_poses(self, machine: Machine) -> F64:
+        """World poses of the chain bodies, shape (m, n_joints, 4, 4) (computed on demand)."""
+        from cranetwin.physics import body_poses
+
+        return body_poses(machine, self.q)
+
+    def tip_path(self, machine: Machine) -> F64:
+        """World position of the load point, shape (m, 3) [m] (computed on demand)."""
+        from cranetwin.physics import load_point_position
+
+        return load_point_position(machine, self.q)
+
+    @staticmethod
+    def concat(parts: Sequence[TwinResult]) -> TwinResult:
+        """Join consecutive results (e.g. the chunks of a stream) into one.
+
+        Raises:
+            TwinError: No parts, or parts not in increasing time order.
+        """
+        if not parts:
+            raise TwinError("nothing to concatenate: no replay output")
+        for a, b in zip(parts, parts[1:], strict=False):
+            if a.n and b.n and not b.t_s[0] > a.t_s[-1]:
+                raise TwinError("results to concatenate must follow each other in time")
+        arrays = {f.name: np.concatenate([getattr(p, f.name) for p in parts])
+                  for f in fields(TwinResult) if f.name != "smoothing"}
+        return TwinResult(**arrays, smoothing=dict(parts[0].smoothing))
