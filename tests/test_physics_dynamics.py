@@ -237,3 +237,21 @@ def test_inverse_dynamics_writes_into_out_buffers(machine: Machine) -> None:
     np.testing.assert_array_equal(wrench, w2)
     with pytest.raises(PhysicsError, match="out"):
         inverse_dynamics(machine, q, qd, qdd, out=(np.empty((9, 4)), wrench))
+
+
+def test_crba_matches_rnea_columns_and_pinocchio_on_skewed_chain() -> None:
+    from cranetwin.physics import compile_chain
+    from cranetwin.physics import kernels as K
+
+    m = skewed_machine()
+    params = compile_chain(m)
+    q, _, _ = random_states(m, 50, seed=5)
+    crba = mass_matrix(m, q, 210.0)
+    model = pinocchio_model(m, 210.0)
+    data = model.createData()
+    cols = np.empty((4, 4))
+    for k in range(50):
+        K.mass_matrix_rnea(params.chain, q[k], 210.0, cols)
+        assert rel_err(crba[k], cols) <= 1e-12
+        ref = pin.crba(model, data, q[k])
+        assert rel_err(crba[k], np.triu(ref) + np.triu(ref, 1).T) <= 1e-9

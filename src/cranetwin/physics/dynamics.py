@@ -152,8 +152,8 @@ def joint_torques(
 def mass_matrix(machine: Machine, q: npt.ArrayLike, payload_kg: npt.ArrayLike = 0.0) -> F64:
     """Joint-space mass matrix M(q), shape (n, n_joints, n_joints) [kg, kg·m, kg·m²].
 
-    Symmetric positive definite; column j is the RNEA torque for qdd = e_j without gravity
-    and velocity.
+    Symmetric positive definite; by the composite-rigid-body algorithm (column j equals the
+    RNEA torque for qdd = e_j without gravity and velocity, which the tests check).
     """
     (qa,) = _states(machine, q)
     p = compile_chain(machine)
