@@ -48,7 +48,6 @@ from cranetwin.twin.slew import SlewState, integrate_slew
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
 
-_ARM_STEP = 1e-6  # central-difference step for d(ds/dq)/dq [rad or m]
 
 
 @dataclass(frozen=True)
@@ -379,23 +378,11 @@ class TwinStream:
         return out
 
     def _joint_motion(self, s: F64, v: F64, a: F64, q_other: F64) -> tuple[F64, F64, F64]:
-        m = self.machine
         try:
-            q = physics.joints_from_cylinders(m, s, q_other if q_other.shape[1] else None)
+            return physics.joint_motion_from_cylinders(
+                self.machine, s, v, a, q_other if q_other.shape[1] else None)
         except PhysicsError as exc:
             raise TwinError(f"rod positions do not fit the machine geometry: {exc}") from exc
-        _, arm = physics.cylinder_kinematics(m, q)
-        cj = self._cyl_joint
-        qp = q.copy()
-        qm = q.copy()
-        qp[:, cj] += _ARM_STEP
-        qm[:, cj] -= _ARM_STEP
-        darm = (physics.moment_arms(m, qp) - physics.moment_arms(m, qm)) / (2 * _ARM_STEP)
-        qd = np.zeros_like(q)
-        qdd = np.zeros_like(q)
-        qd[:, cj] = v / arm
-        qdd[:, cj] = (a - darm * qd[:, cj] ** 2) / arm
-        return q, qd, qdd
 
     def _forces(self, vals: F64, v: F64) -> F64:
         f = np.empty((vals.shape[0], len(self.machine.cylinders)))
