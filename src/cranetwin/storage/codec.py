@@ -1,0 +1,137 @@
+"""Compression of sample arrays for the ``sample_blocks`` table.
+
+Values are quantised at the channel resolution to integers (lossless for values that are
+multiples of the resolution, as sensors send them), differenced along time per channel,
+zigzag-mapped to unsigned integers of the smallest width that holds them (1, 2, 4 or 8 bytes),
+byte-shuffled (all low bytes, then the next byte plane, ...) and deflated with zlib. Missing
+samples (NaN) are kept as a packed bit mask. Layout of the blob::
+
+    offset  size  field
+    0       1     format version (1)
+    1       1     integer width w in bytes (1, 2, 4, 8)
+    2       1     flags: bit 0 = NaN mask present
+    3       1     reserved (0)
+    4       4     n, samples (uint32, little endian)
+    8       4     c, channels (uint32, little endian)
+    12      ...   zlib( shuffled zigzag deltas, channel-major: c*n*w bytes
+                        [+ packbits(mask, channel-major): ceil(c*n/8) bytes] )
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.errors import StorageError
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+VERSION = 1
+_HEAD = struct.Struct("<BBBxII")
+_LIMIT = 2.0**52  # |quantised value| beyond which float64 → int64 is no longer exact
+_WIDTHS = ((1, np.uint8), (2, np.uint16), (4, np.uint32), (8, np.uint64))
+
+
+class CodecError(StorageError):
+    """A stored block could not be encoded or decoded."""
+
+
+def quantise(values: F64, resolution: Sequence[float]) -> tuple[I64, npt.NDArray[np.bool_]]:
+    """Integers k with values ≈ k · resolution, and the NaN mask.
+
+    Args:
+        values: Shape (n, c) [channel units]; NaN = missing.
+        resolution: Quantisation step per channel, length c [channel units].
+
+    Returns:
+        ``(k, mask)``, both shape (n, c); k is 0 where mask (NaN) is set.
+
+    Raises:
+        CodecError: Shapes disagree, a resolution is not positive, or a value is infinite or too
+            large to quantise exactly.
+    """
+    res = np.asarray(resolution, dtype=np.float64)
+    if values.ndim != 2 or values.shape[1] != res.shape[0]:
+        raise CodecError(f"values shape {values.shape} does not match {res.shape[0]} channels")
+    if not np.all(res > 0):
+        raise CodecError(f"resolutions must be > 0, got {res.tolist()}")
+    mask = np.isnan(values)
+    scaled = np.rint(np.where(mask, 0.0, values) / res)
+    if not np.all(np.abs(scaled) < _LIMIT):
+        raise CodecError("values are infinite or too large for their resolution")
+    return scaled.astype(np.int64), mask
+
+
+def encode(values: F64, resolution: Sequence[float], level: int = 6) -> bytes:
+    """Compress sample values (quantise, delta, zigzag, byte-shuffle, zlib).
+
+    Args:
+        values: Shape (n, c) [channel units], multiples of ``resolution``; NaN = missing.
+        resolution: Quantisation step per channel, length c.
+        level: zlib level (1 fastest … 9 smallest).
+
+    Returns:
+        The blob described in the module docstring.
+    """
+    k, mask = quantise(values, resolution)
+    n, c = k.shape
+    kt = np.ascontiguousarray(k.T)  # channel-major: each channel's run is contiguous
+    d = np.diff(kt, axis=1, prepend=np.zeros((c, 1), dtype=np.int64))
+    z = ((d << 1) ^ (d >> 63)).view(np.uint64)
+    top = int(z.max()) if z.size else 0
+    width, dtype = next((w, t) for w, t in _WIDTHS if top < 2 ** (8 * w))
+    planes = z.astype(dtype).reshape(-1).view(np.uint8).reshape(-1, width).T.tobytes()
+    has_mask = bool(mask.any())
+    body = planes + (np.packbits(mask.T.reshape(-1)).tobytes() if has_mask else b"")
+    return _HEAD.pack(VERSION, width, int(has_mask), n, c) + zlib.compress(body, level)
+
+
+def decode_ints(blob: bytes) -> tuple[I64, npt.NDArray[np.bool_]]:
+    """Inverse of the integer part of :func:`encode`.
+
+    Returns:
+        ``(k, mask)``, shape (n, c): quantised values and NaN mask.
+
+    Raises:
+        CodecError: The blob is truncated, corrupt or of an unknown version.
+    """
+    if len(blob) < _HEAD.size:
+        raise CodecError(f"block blob of {len(blob)} bytes is shorter than its header")
+    version, width, flags, n, c = _HEAD.unpack_from(blob)
+    if version != VERSION or width not in (1, 2, 4, 8):
+        raise CodecError(f"unknown block format version {version} / width {width}")
+    try:
+        body = zlib.decompress(blob[_HEAD.size:])
+    except zlib.error as exc:
+        raise CodecError(f"corrupt block blob: {exc}") from exc
+    nplane = n * c * width
+    nmask = (n * c + 7) // 8 if flags & 1 else 0
+    if len(body) != nplane + nmask:
+        raise CodecError(f"block body has {len(body)} bytes, expected {nplane + nmask}")
+    dtype = dict(_WIDTHS)[width]
+    planes = np.frombuffer(body, dtype=np.uint8, count=nplane).reshape(width, n * c)
+    z = np.ascontiguousarray(planes.T).view(dtype).reshape(c, n).astype(np.uint64)
+    d = (z >> np.uint64(1)).view(np.int64) ^ -(z & np.uint64(1)).view(np.int64)
+    k = np.cumsum(d, axis=1).T
+    if nmask:
+        bits = np.frombuffer(body, dtype=np.uint8, offset=nplane)
+        mask = np.unpackbits(bits, count=n * c).astype(bool).reshape(c, n).T
+    else:
+        mask = np.zeros((n, c), dtype=bool)
+    return np.ascontiguousarray(k), mask
+
+
+def decode(blob: bytes, resolution: Sequence[float]) -> F64:
+    """Decompress a blob back to values, shape (n, c) [channel units], NaN where missing."""
+    k, mask = decode_ints(blob)
+    res = np.asarray(resolution, dtype=np.float64)
+    if res.shape[0] != k.shape[1]:
+        raise CodecError(f"blob has {k.shape[1]} channels, {res.shape[0]} resolutions given")
+    out = k * res
+    out[mask] = np.nan
+    return out

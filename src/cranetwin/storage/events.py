@@ -1,0 +1,57 @@
+"""Events found by analytics (overload, end-stop impact, over-pressure, ...), with evidence.
+
+Unique on (machine, time, kind): writing the same event again (a replay re-run) stores it once.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+from sqlalchemy import BigInteger, ForeignKey, Index, String, Text, UniqueConstraint
+from sqlalchemy.orm import Mapped, mapped_column
+
+from cranetwin.storage.base import Base
+
+
+class EventRow(Base):
+    """One event of one machine."""
+
+    __tablename__ = "events"
+    __table_args__ = (UniqueConstraint("machine_pk", "t_ns", "kind"),
+                      Index("ix_events_machine_t", "machine_pk", "t_ns"))
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    machine_pk: Mapped[int] = mapped_column(ForeignKey("machines.id", ondelete="CASCADE"))
+    t_ns: Mapped[int] = mapped_column(BigInteger)
+    kind: Mapped[str] = mapped_column(String(64))
+    severity: Mapped[str] = mapped_column(String(16))
+    evidence_json: Mapped[str] = mapped_column(Text, default="{}")
+
+
+SEVERITIES = ("info", "warning", "critical")
+
+
+@dataclass(frozen=True)
+class Event:
+    """An event as analytics produce it and the API shows it.
+
+    Attributes:
+        machine_id: Machine identifier.
+        t_s: Event time [s since the epoch, machine clock].
+        kind: e.g. ``overload``, ``end_stop_impact``, ``over_pressure``, ``overspeed``.
+        severity: ``info``, ``warning`` or ``critical``.
+        evidence: JSON-serialisable details (measured value, limit, channel, ...).
+    """
+
+    machine_id: str
+    t_s: float
+    kind: str
+    severity: str = "warning"
+    evidence: dict[str, Any] = field(default_factory=dict)
+
+
+def to_event(machine_id: str, row: EventRow) -> Event:
+    """Public view of an event row."""
+    return Event(machine_id, row.t_ns / 1e9, row.kind, row.severity, json.loads(row.evidence_json))

@@ -1,0 +1,106 @@
+"""Registered machines: identity on the wire, model, HMAC secret, metadata, last known status.
+
+The secret is needed to verify datagrams, so it is stored; it is never part of
+:class:`MachineInfo` (what listings and the API see) and never logged.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+from sqlalchemy import BigInteger, Float, Integer, LargeBinary, String, Text, select
+from sqlalchemy.orm import Mapped, Session, mapped_column
+
+from cranetwin.errors import StorageError
+from cranetwin.storage.base import Base
+
+WIRE_ID_MAX = 2**32 - 1
+
+
+class UnknownMachineError(StorageError):
+    """No machine is registered under the given id."""
+
+
+class MachineRow(Base):
+    """One registered machine."""
+
+    __tablename__ = "machines"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    machine_id: Mapped[str] = mapped_column(String(128), unique=True)
+    wire_id: Mapped[int] = mapped_column(BigInteger, unique=True)
+    model: Mapped[str] = mapped_column(Text, default="patu655")
+    secret: Mapped[bytes] = mapped_column(LargeBinary)
+    meta_json: Mapped[str] = mapped_column(Text, default="{}")
+    last_seen_ns: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    latitude_deg: Mapped[float | None] = mapped_column(Float, nullable=True)
+    longitude_deg: Mapped[float | None] = mapped_column(Float, nullable=True)
+    altitude_m: Mapped[float | None] = mapped_column(Float, nullable=True)
+    operating_hours: Mapped[float | None] = mapped_column(Float, nullable=True)
+    status_ns: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+
+
+@dataclass(frozen=True)
+class MachineInfo:
+    """What is public about a machine (no secret).
+
+    Attributes:
+        machine_id: Identifier used everywhere above the wire.
+        wire_id: 32-bit id carried in datagrams.
+        model: Built-in machine name (``patu655``) or the machine description as TOML text.
+        metadata: Free-form JSON object (owner, site, serial number, ...).
+        last_seen_s: Time of the newest stored sample or status [s since the epoch, machine
+            clock], or None if nothing was received yet.
+        latitude_deg, longitude_deg, altitude_m: Last reported GPS position, or None.
+        operating_hours: Last reported operating-hours counter [h], or None.
+    """
+
+    machine_id: str
+    wire_id: int
+    model: str
+    metadata: dict[str, Any] = field(default_factory=dict)
+    last_seen_s: float | None = None
+    latitude_deg: float | None = None
+    longitude_deg: float | None = None
+    altitude_m: float | None = None
+    operating_hours: float | None = None
+
+
+def to_info(row: MachineRow) -> MachineInfo:
+    """Public view of a machine row (drops the secret)."""
+    return MachineInfo(
+        machine_id=row.machine_id, wire_id=int(row.wire_id), model=row.model,
+        metadata=json.loads(row.meta_json or "{}"),
+        last_seen_s=None if row.last_seen_ns is None else row.last_seen_ns / 1e9,
+        latitude_deg=row.latitude_deg, longitude_deg=row.longitude_deg,
+        altitude_m=row.altitude_m, operating_hours=row.operating_hours,
+    )
+
+
+def check_new(machine_id: str, wire_id: int, secret: bytes) -> None:
+    """Validate a machine to be registered.
+
+    Raises:
+        StorageError: Empty id, wire id outside [0, 2**32 − 1], or a secret shorter than 16 bytes.
+    """
+    if not machine_id or len(machine_id) > 128:
+        raise StorageError(f"machine id must be 1..128 characters, got {machine_id!r}")
+    if not 0 <= wire_id <= WIRE_ID_MAX:
+        raise StorageError(f"wire id must be in [0, {WIRE_ID_MAX}], got {wire_id}")
+    if len(secret) < 16:
+        raise StorageError(f"secret must be at least 16 bytes, got {len(secret)}")
+
+
+def get_row(session: Session, machine_id: str) -> MachineRow:
+    """The row of ``machine_id``.
+
+    Raises:
+        UnknownMachineError: No such machine.
+    """
+    row = session.scalars(select(MachineRow).where(MachineRow.machine_id == machine_id)).first()
+    if row is None:
+        raise UnknownMachineError(f"no machine {machine_id!r} is registered; add it first "
+                                  "(cranetwin machines add)")
+    return row

@@ -1,0 +1,1 @@
+"""Alembic migrations of the cranetwin schema, applied programmatically by ``Store.open``."""

@@ -1,0 +1,332 @@
+"""The storage facade every other package calls: :class:`Store`.
+
+One :class:`Store` wraps one engine. Each method is one transaction; repositories in the
+concept modules (``machines``, ``blocks``, ``summaries``, ``events``) take the session.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any, cast
+
+import numpy as np
+from sqlalchemy import Engine, Table, bindparam, func, select, update
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.exc import IntegrityError, SQLAlchemyError
+from sqlalchemy.orm import Session
+
+from cranetwin.errors import StorageError
+from cranetwin.samples import F64, SampleArrays, SampleBlock
+from cranetwin.storage import blocks as blocks_mod
+from cranetwin.storage import events as events_mod
+from cranetwin.storage import machines as machines_mod
+from cranetwin.storage import summaries as summaries_mod
+from cranetwin.storage.engine import DEFAULT_URL, make_engine, migrate
+from cranetwin.storage.events import Event, EventRow
+from cranetwin.storage.machines import MachineInfo, MachineRow, UnknownMachineError
+from cranetwin.storage.summaries import Summaries
+
+
+@dataclass(frozen=True)
+class StorageStats:
+    """Size of the stored raw data.
+
+    Attributes:
+        blocks: Number of stored blocks.
+        samples: Number of stored samples (rows of all blocks).
+        data_bytes: Bytes of compressed sample data (blob payloads, excluding row overhead).
+    """
+
+    blocks: int
+    samples: int
+    data_bytes: int
+
+
+_EPS_NS = 1000
+
+
+def _ns(t_s: float) -> int:
+    return int(round(t_s * 1e9))
+
+
+class Store:
+    """Machines, raw sample blocks, summaries and events in one SQL database.
+
+    Create it with :meth:`open`; it is safe to share between threads (each call opens its own
+    session from the engine's pool).
+    """
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+        self._pk: dict[str, int] = {}
+
+    @classmethod
+    def open(cls, url: str = DEFAULT_URL, *, echo: bool = False) -> Store:
+        """Connect to ``url`` and migrate its schema to the newest revision.
+
+        Raises:
+            StorageError: Bad URL, unreachable server or failed migration.
+        """
+        store = cls(make_engine(url, echo=echo))
+        migrate(store.engine)
+        return store
+
+    def close(self) -> None:
+        """Release the engine's connections."""
+        self.engine.dispose()
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def dialect(self) -> str:
+        """``sqlite`` or ``postgresql``."""
+        return self.engine.dialect.name
+
+    def _session(self) -> Session:
+        return Session(self.engine, expire_on_commit=False)
+
+    def _machine_pk(self, s: Session, machine_id: str) -> int:
+        pk = self._pk.get(machine_id)
+        if pk is None:
+            pk = machines_mod.get_row(s, machine_id).id
+            self._pk[machine_id] = pk
+        return pk
+
+    # -- machines -------------------------------------------------------------------------
+    def add_machine(self, machine_id: str, wire_id: int, secret: bytes, model: str = "patu655",
+                    metadata: dict[str, Any] | None = None) -> MachineInfo:
+        """Register a machine.
+
+        Args:
+            machine_id: Identifier used above the wire (1..128 characters).
+            wire_id: 32-bit id the machine puts in its datagrams.
+            secret: HMAC key shared with the machine (≥ 16 bytes).
+            model: Built-in machine name or machine description TOML text.
+            metadata: JSON object (owner, site, ...).
+
+        Raises:
+            StorageError: Invalid values, or the machine id or wire id is already registered.
+        """
+        machines_mod.check_new(machine_id, wire_id, secret)
+        row = MachineRow(machine_id=machine_id, wire_id=wire_id, model=model, secret=bytes(secret),
+                         meta_json=json.dumps(metadata or {}))
+        try:
+            with self._session() as s, s.begin():
+                s.add(row)
+        except IntegrityError as exc:
+            raise StorageError(f"machine {machine_id!r} or wire id {wire_id} is already "
+                               "registered; choose unused ones") from exc
+        return machines_mod.to_info(row)
+
+    def get_machine(self, machine_id: str) -> MachineInfo:
+        """Public info of one machine.
+
+        Raises:
+            UnknownMachineError: No such machine.
+        """
+        with self._session() as s:
+            return machines_mod.to_info(machines_mod.get_row(s, machine_id))
+
+    def machines(self) -> list[MachineInfo]:
+        """Every registered machine, ordered by id (no secrets)."""
+        with self._session() as s:
+            rows = s.scalars(select(MachineRow).order_by(MachineRow.machine_id)).all()
+            return [machines_mod.to_info(r) for r in rows]
+
+    def machine_keys(self) -> dict[int, tuple[str, bytes]]:
+        """What the ingest daemon needs to verify datagrams: wire_id → (machine_id, secret)."""
+        with self._session() as s:
+            rows = s.execute(select(MachineRow.wire_id, MachineRow.machine_id, MachineRow.secret))
+            return {int(w): (m, bytes(k)) for w, m, k in rows}
+
+    def update_status(self, machine_id: str, t_s: float, *, latitude_deg: float | None = None,
+                      longitude_deg: float | None = None, altitude_m: float | None = None,
+                      operating_hours: float | None = None) -> None:
+        """Record a low-rate status report (GPS, operating hours) unless a newer one is stored.
+
+        Raises:
+            UnknownMachineError: No such machine.
+        """
+        t = _ns(t_s)
+        with self._session() as s, s.begin():
+            row = machines_mod.get_row(s, machine_id)
+            if row.status_ns is not None and row.status_ns >= t:
+                return
+            row.status_ns = t
+            row.last_seen_ns = max(row.last_seen_ns or t, t)
+            for name, v in (("latitude_deg", latitude_deg), ("longitude_deg", longitude_deg),
+                            ("altitude_m", altitude_m), ("operating_hours", operating_hours)):
+                if v is not None:
+                    setattr(row, name, float(v))
+
+    # -- raw samples ----------------------------------------------------------------------
+    def write_blocks(self, blocks: Sequence[SampleBlock]) -> int:
+        """Store sample blocks in one transaction, durable when this returns.
+
+        Blocks whose (machine_id, seq) is already stored are ignored (idempotent); summaries
+        are updated from the newly stored blocks only.
+
+        Returns:
+            Number of blocks newly stored.
+
+        Raises:
+            UnknownMachineError: A block names an unregistered machine.
+            StorageError: The database rejected the write.
+        """
+        if not blocks:
+            return 0
+        try:
+            with self._session() as s, s.begin():
+                unique: dict[tuple[int, int], SampleBlock] = {}
+                for b in blocks:
+                    unique.setdefault((self._machine_pk(s, b.machine_id), b.seq), b)
+                params = [blocks_mod.block_params(pk, b) for (pk, _), b in unique.items()]
+                new = blocks_mod.insert_new(s, params)
+                acc: dict[summaries_mod.Key, summaries_mod.Agg] = {}
+                last: dict[int, int] = {}
+                for key in new:
+                    b = unique[key]
+                    summaries_mod.accumulate(acc, key[0], b.channels, b.times_ns(), b.values)
+                    last[key[0]] = max(last.get(key[0], b.t_end_ns), b.t_end_ns)
+                summaries_mod.merge(s, acc)
+                if last:
+                    m = cast(Table, MachineRow.__table__)
+                    s.execute(update(m).where(
+                        m.c.id == bindparam("pk"),
+                        (m.c.last_seen_ns.is_(None)) | (m.c.last_seen_ns < bindparam("t")))
+                        .values(last_seen_ns=bindparam("t")),
+                        [{"pk": pk, "t": t} for pk, t in last.items()])
+                return len(new)
+        except UnknownMachineError:
+            raise
+        except SQLAlchemyError as exc:
+            raise StorageError(f"could not store {len(blocks)} block(s): {exc}") from exc
+
+    def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
+        """Samples of one machine with t0_s ≤ t < t1_s, oldest first.
+
+        Blocks with different channel layouts are merged on the union of their channels (NaN
+        where a block lacks a channel). A timestamp stored twice (two blocks overlapping) appears
+        once. Both bounds are shifted down by 1 µs (``_EPS_NS``) so that a bound given as the
+        float64 seconds of a sample time (≈ 0.24 µs resolution today) includes that sample at
+        ``t0_s`` and excludes it at ``t1_s``.
+
+        Returns:
+            ``SampleArrays`` with t_s shape (n,) [s] strictly increasing, values (n, c).
+        """
+        t0, t1 = _ns(t0_s) - _EPS_NS, _ns(t1_s) - _EPS_NS
+        with self._session() as s:
+            stored = blocks_mod.read_range(s, self._machine_pk(s, machine_id), t0, t1 - 1)
+        chans: dict[str, int] = {}
+        for b in stored:
+            for c in b.channels:
+                chans.setdefault(c, len(chans))
+        if not stored:
+            return SampleArrays(machine_id, np.zeros(0), (), np.zeros((0, 0)))
+        t_all = np.concatenate([b.times_ns() for b in stored])
+        vals: F64 = np.full((t_all.size, len(chans)), np.nan)
+        row = 0
+        for b in stored:
+            cols = [chans[c] for c in b.channels]
+            vals[row:row + b.values.shape[0], cols] = b.values
+            row += b.values.shape[0]
+        keep = (t_all >= t0) & (t_all < t1)
+        t_all, vals = t_all[keep], vals[keep]
+        t_u, first = np.unique(t_all, return_index=True)  # sorted, first occurrence kept
+        return SampleArrays(machine_id, t_u.astype(np.float64) / 1e9, tuple(chans), vals[first])
+
+    def stats(self, machine_id: str | None = None) -> StorageStats:
+        """Number of blocks and samples and compressed bytes stored (one machine or all)."""
+        b = blocks_mod.BlockRow
+        stmt = select(func.count(), func.coalesce(func.sum(b.n), 0),
+                      func.coalesce(func.sum(func.length(b.data)), 0))
+        with self._session() as s:
+            if machine_id is not None:
+                stmt = stmt.where(b.machine_pk == self._machine_pk(s, machine_id))
+            nb, ns, nbytes = s.execute(stmt).one()
+        return StorageStats(int(nb), int(ns), int(nbytes))
+
+    # -- summaries ------------------------------------------------------------------------
+    def summaries(self, machine_id: str, channels: Iterable[str], t0_s: float, t1_s: float,
+                  max_points: int = 1000) -> Summaries:
+        """Min/max/mean per bucket of [t0_s, t1_s), at most ``max_points`` buckets per channel.
+
+        Reads only the summaries table (1-s buckets for spans up to ``max_points`` seconds,
+        1-min buckets, merged into wider ones, beyond), never raw samples.
+        """
+        with self._session() as s:
+            pk = self._machine_pk(s, machine_id)
+            return summaries_mod.query(s, pk, machine_id, channels, t0_s, t1_s, max_points)
+
+    def write_summaries(self, machine_id: str, t_s: F64, channels: Sequence[str],
+                        values: F64) -> int:
+        """Store summaries of derived channels (e.g. ``force:lift``) computed by the twin.
+
+        The 1-s and 1-min buckets that ``t_s`` touches are overwritten (idempotent re-runs);
+        write whole minutes to keep the 1-min buckets complete.
+
+        Args:
+            machine_id: Machine identifier.
+            t_s: Sample times, shape (n,) [s], non-decreasing.
+            channels: Derived channel names, length c.
+            values: Shape (n, c) [channel units]; NaN = missing.
+
+        Returns:
+            Number of bucket rows written.
+        """
+        t = np.asarray(t_s, dtype=np.float64)
+        v = np.asarray(values, dtype=np.float64)
+        if t.ndim != 1 or v.shape != (t.size, len(channels)):
+            raise StorageError(f"values shape {v.shape} must be (len(t_s), len(channels)) = "
+                               f"({t.size}, {len(channels)})")
+        if t.size == 0:
+            return 0
+        if np.any(np.diff(t) < 0):
+            raise StorageError("t_s must be non-decreasing")
+        t_ns = np.rint(t * 1e9).astype(np.int64)
+        with self._session() as s, s.begin():
+            pk = self._machine_pk(s, machine_id)
+            return summaries_mod.replace(s, pk, channels, t_ns, v)
+
+    # -- events ---------------------------------------------------------------------------
+    def add_events(self, events: Sequence[Event]) -> int:
+        """Store events; one already stored (same machine, time, kind) is ignored.
+
+        Returns:
+            Number of events newly stored.
+        """
+        for e in events:
+            if e.severity not in events_mod.SEVERITIES:
+                raise StorageError(f"event severity {e.severity!r} must be one of "
+                                   f"{events_mod.SEVERITIES}")
+        if not events:
+            return 0
+        with self._session() as s, s.begin():
+            rows = [{"machine_pk": self._machine_pk(s, e.machine_id), "t_ns": _ns(e.t_s),
+                     "kind": e.kind, "severity": e.severity,
+                     "evidence_json": json.dumps(e.evidence)} for e in events]
+            ins = (postgresql.insert(EventRow) if self.dialect == "postgresql"
+                   else sqlite.insert(EventRow))
+            stmt = ins.on_conflict_do_nothing(
+                index_elements=["machine_pk", "t_ns", "kind"]).returning(EventRow.id)
+            return len(s.execute(stmt, rows).all())
+
+    def events(self, machine_id: str, t0_s: float, t1_s: float, kinds: Iterable[str] | None = None,
+               limit: int | None = None) -> list[Event]:
+        """Events of one machine with t0_s ≤ t < t1_s, oldest first (optionally of some kinds)."""
+        with self._session() as s:
+            pk = self._machine_pk(s, machine_id)
+            stmt = (select(EventRow).where(EventRow.machine_pk == pk,
+                                           EventRow.t_ns >= _ns(t0_s), EventRow.t_ns < _ns(t1_s))
+                    .order_by(EventRow.t_ns, EventRow.id))
+            if kinds is not None:
+                stmt = stmt.where(EventRow.kind.in_(list(kinds)))
+            if limit is not None:
+                stmt = stmt.limit(limit)
+            return [events_mod.to_event(machine_id, r) for r in s.scalars(stmt)]

@@ -1,0 +1,66 @@
+"""Shared fixtures: ``db_url`` runs a test on SQLite (a temporary file) and on PostgreSQL.
+
+PostgreSQL is ``postgresql+psycopg://postgres@127.0.0.1:5432/test`` (override with
+``CRANETWIN_TEST_PG``); each test gets its own schema (dropped afterwards) through the URL's
+``search_path``, so tests never see each other's rows. The PostgreSQL parameter is skipped, with
+the reason, only when no server answers.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Iterator
+from functools import cache
+from pathlib import Path
+
+import pytest
+
+PG_URL = os.environ.get("CRANETWIN_TEST_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
+
+
+def _pg_conninfo() -> str:
+    return PG_URL.replace("postgresql+psycopg://", "postgresql://", 1)
+
+
+@cache
+def pg_unreachable_reason() -> str | None:
+    """None if the test PostgreSQL server answers, else why not."""
+    try:
+        import psycopg
+
+        with psycopg.connect(_pg_conninfo(), connect_timeout=3) as conn:
+            conn.execute("SELECT 1")
+    except Exception as exc:  # any failure means: no usable server here
+        return f"no PostgreSQL server reachable at {PG_URL}: {exc}"
+    return None
+
+
+@pytest.fixture
+def pg_url() -> Iterator[str]:
+    """A PostgreSQL URL whose search_path is a fresh, empty schema (dropped afterwards)."""
+    reason = pg_unreachable_reason()
+    if reason:
+        pytest.skip(reason)
+    import psycopg
+
+    schema = f"t_{uuid.uuid4().hex[:12]}"
+    with psycopg.connect(_pg_conninfo(), autocommit=True) as conn:
+        conn.execute(f'CREATE SCHEMA "{schema}"')
+    sep = "&" if "?" in PG_URL else "?"
+    yield f"{PG_URL}{sep}options=-csearch_path%3D{schema}"
+    with psycopg.connect(_pg_conninfo(), autocommit=True) as conn:
+        conn.execute(f'DROP SCHEMA "{schema}" CASCADE')
+
+
+@pytest.fixture
+def sqlite_url(tmp_path: Path) -> str:
+    """A SQLite URL of a fresh file in the test's temporary directory."""
+    return f"sqlite:///{tmp_path / 'cranetwin.db'}"
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
+def db_url(request: pytest.FixtureRequest) -> str:
+    """The same test on SQLite and on PostgreSQL."""
+    name = "pg_url" if request.param == "postgresql" else "sqlite_url"
+    return str(request.getfixturevalue(name))
