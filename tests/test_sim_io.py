@@ -185,3 +185,22 @@ def test_loading_a_foreign_file_is_a_clear_error(tmp_path: Path) -> None:
     f.write_text("a,b\n1,2\n")
     with pytest.raises(SimulationError, match="not a readable cranetwin recording"):
         Recording.load(f)
+
+
+def test_live_session_in_chunks_matches_the_batch_run(prep: Prepared) -> None:
+    from cranetwin.sim import Session
+
+    sensors = SensorModel.ideal().model_copy(update={"jitter_s": 1e-3})
+    sc = load_scenario("log-loading", duration_s=30.0)
+    batch = simulate(prep, sc, duration_s=1.5, sensors=sensors, seed=3)
+    live = Session(prep, sc, sensors=sensors, seed=3, start_epoch_s=0.0)
+    blocks = [live.advance(dt) for dt in (0.13, 0.5, 0.37)]
+    blocks.append(live.advance(0.5, final=True))
+    t = np.concatenate([b.t_s for b in blocks])
+    v = np.concatenate([b.values for b in blocks])
+    assert np.array_equal(t, batch.samples.t_s)
+    assert np.array_equal(v, batch.samples.values)
+    assert np.array_equal(live.truth(wrenches=False).q, batch.truth.q)
+    assert live.t_s == pytest.approx(1.5)
+    with pytest.raises(SimulationError, match="finished"):
+        live.advance(0.1)

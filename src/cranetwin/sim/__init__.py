@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from cranetwin.sim.hydraulics import HydraulicSettings
 from cranetwin.sim.recording import Recording, Truth, truth_columns
-from cranetwin.sim.runner import Prepared, SimOptions, prepare, simulate
+from cranetwin.sim.runner import Prepared, Session, SimOptions, prepare, simulate
 from cranetwin.sim.scenario import (
     BUILTIN,
     Scenario,
@@ -39,6 +39,7 @@ __all__ = [
     "Scenario",
     "ScenarioFileError",
     "SensorModel",
+    "Session",
     "SimOptions",
     "Truth",
     "builtin_scenario",

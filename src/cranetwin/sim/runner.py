@@ -21,7 +21,7 @@ from cranetwin.sim import engine as E
 from cranetwin.sim.hydraulics import HydraulicParams, HydraulicSettings, pack
 from cranetwin.sim.recording import Recording, Truth
 from cranetwin.sim.scenario import Scenario
-from cranetwin.sim.sensors import N_SNAP, SensorModel, apply_sensors, sample_steps
+from cranetwin.sim.sensors import N_SNAP, SampleClock, SensorModel, SensorReader
 
 log = logging.getLogger(__name__)
 F64 = npt.NDArray[np.float64]
@@ -135,6 +135,122 @@ def _flags(o: SimOptions) -> F64:
     return f
 
 
+class Session:
+    """A simulation that advances chunk by chunk: the core of :func:`simulate`, and a live
+    source of samples (e.g. a simulated fleet streaming to the ingest daemon).
+
+    Example::
+
+        live = Session(prepare(machine), load_scenario("log-loading", duration_s=86400.0),
+                       keep_truth=False, start_epoch_s=time.time())
+        while True:
+            block = live.advance(0.1)     # SampleArrays of the samples taken in the last 0.1 s
+            ...
+
+    Args:
+        prep: Compiled machine (:func:`prepare`).
+        scenario: Operator program (commands hold their last value after its knots end).
+        options: Integration settings.
+        sensors: Sensor model.
+        seed: Seed of the sensor model's randomness.
+        start_epoch_s: Epoch time of t = 0 [s].
+        keep_truth: Accumulate the ground truth (memory ≈ 0.3 MB per simulated second at 1 kHz).
+
+    Raises:
+        ScenarioError: initial pose outside the machine's range.
+        SimulationError: bad options.
+    """
+
+    def __init__(self, prep: Prepared, scenario: Scenario, *, options: SimOptions | None = None,
+                 sensors: SensorModel | None = None, seed: int = 0, start_epoch_s: float = 0.0,
+                 keep_truth: bool = True) -> None:
+        self.prep = prep
+        self.scenario = scenario
+        self.options = opts = options or SimOptions()
+        self.sensors = sensors or SensorModel()
+        self.seed = seed
+        self.start_epoch_s = start_epoch_s
+        self.keep_truth = keep_truth
+        dt = opts.step_s
+        if not 0 < dt <= 1e-2:
+            raise SimulationError(f"step {dt} s must be in (0, 0.01]")
+        every = int(round(1.0 / (opts.truth_rate_hz * dt)))
+        if every < 1 or abs(every * opts.truth_rate_hz * dt - 1.0) > 1e-6:
+            raise SimulationError(f"truth rate {opts.truth_rate_hz} Hz must divide the step rate "
+                                  f"{1 / dt:g} Hz")
+        self.every = every
+        # separate streams: the sampling schedule does not depend on how the run is chunked
+        self._clock = SampleClock(self.sensors, dt, np.random.default_rng([seed, 1]))
+        self._reader = SensorReader(prep.machine, self.sensors, np.random.default_rng([seed, 2]))
+        self.x = initial_state(prep, scenario, opts)
+        self._tab = scenario.tables()
+        self._cur = np.zeros(9, dtype=np.int64)
+        self._flags = _flags(opts)
+        self.step_index = 0
+        self._truth_chunks: list[F64] = []
+        self._finished = False
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """Channel names of the samples, in column order."""
+        return self._reader.names
+
+    @property
+    def t_s(self) -> float:
+        """Current simulation time [s]."""
+        return self.step_index * self.options.step_s
+
+    def _run(self, i1: int, final: bool) -> tuple[F64, F64]:
+        """Integrate to step i1 (and record step i1 itself when ``final``)."""
+        i0 = self.step_index
+        t_nom, steps = self._clock.take(i1, inclusive=final)
+        hi = i1 if final else i1 - 1
+        n_truth = 0
+        if self.keep_truth and hi >= i0:
+            n_truth = hi // self.every - (i0 - 1) // self.every if i0 > 0 else hi // self.every + 1
+        truth = np.full((n_truth, E.N_T), np.nan)
+        snaps = np.full((steps.shape[0], N_SNAP), np.nan)
+        idx = np.zeros(3, dtype=np.int64)
+        tab, p = self._tab, self.prep
+        E.run_steps(p.chain.chain, p.chain.cyl, p.hyd.cyl, p.hyd.glob, p.hyd.slew, p.cj, p.sj,
+                    self._flags, self.options.step_s, self.x, i0, i1, i1 if final else -1,
+                    self.every, truth, steps, snaps, idx, self._cur, tab.u_t, tab.u_v, tab.u_n,
+                    tab.r_t, tab.r_v, tab.r_n, tab.gain, tab.umax, tab.pay_t, tab.pay_m)
+        if idx[2]:
+            raise SimulationError(
+                f"integration unstable before t = {i1 * self.options.step_s:.4f} s (non-finite "
+                f"accelerations); try a smaller step than {self.options.step_s} s")
+        self.step_index = i1
+        if self.keep_truth:
+            self._truth_chunks.append(truth[:idx[0]])
+        return t_nom[:idx[1]], snaps[:idx[1]]
+
+    def advance(self, seconds: float, *, final: bool = False) -> SampleArrays:
+        """Simulate ``seconds`` more and return the samples taken meanwhile.
+
+        Args:
+            seconds: Simulated time to add [s] (rounded to whole steps).
+            final: Also record the state at the new end time (truth row and a sample due
+                then); the session cannot advance afterwards.
+
+        Raises:
+            SimulationError: the session is finished, or the integration went unstable.
+        """
+        if self._finished:
+            raise SimulationError("session already finished")
+        i1 = self.step_index + int(round(seconds / self.options.step_s))
+        t_nom, snaps = self._run(i1, final)
+        self._finished = final
+        return SampleArrays(machine_id=self.prep.machine.name, t_s=self.start_epoch_s + t_nom,
+                            channels=self.channels, values=self._reader.read(snaps))
+
+    def truth(self, wrenches: bool = True) -> Truth:
+        """Ground truth accumulated so far (empty when ``keep_truth`` is off)."""
+        rows = (np.concatenate(self._truth_chunks) if self._truth_chunks
+                else np.zeros((0, E.N_T)))
+        return _truth(self.prep, rows, self.start_epoch_s, wrenches)
+
+
 def simulate(machine: Machine | Prepared, scenario: Scenario, *, duration_s: float | None = None,
              options: SimOptions | None = None, sensors: SensorModel | None = None,
              seed: int = 0, start_epoch_s: float = 0.0, wrenches: bool = True,
@@ -153,7 +269,8 @@ def simulate(machine: Machine | Prepared, scenario: Scenario, *, duration_s: flo
         progress: Called as ``progress(simulated_s, total_s)`` between chunks.
 
     Returns:
-        The :class:`~cranetwin.sim.recording.Recording`.
+        The :class:`~cranetwin.sim.recording.Recording`: samples from t = 0 to ``duration_s``
+        inclusive, truth at ``truth_rate_hz`` over the same span.
 
     Raises:
         ScenarioError: initial pose outside the machine's range.
@@ -161,52 +278,36 @@ def simulate(machine: Machine | Prepared, scenario: Scenario, *, duration_s: flo
     """
     opts = options or SimOptions()
     prep = machine if isinstance(machine, Prepared) else prepare(machine, opts)
-    sensor_model = sensors or SensorModel()
     duration = float(duration_s if duration_s is not None else scenario.duration_s)
-    dt = opts.step_s
-    if not (0 < dt <= 1e-2) or duration <= 0:
-        raise SimulationError(f"step {dt} s must be in (0, 0.01] and duration {duration} s > 0")
-    n_steps = int(round(duration / dt))
-    every = int(round(1.0 / (opts.truth_rate_hz * dt)))
-    if every < 1 or abs(every * opts.truth_rate_hz * dt - 1.0) > 1e-6:
-        raise SimulationError(f"truth rate {opts.truth_rate_hz} Hz must divide the step rate "
-                              f"{1 / dt:g} Hz")
-    rng = np.random.default_rng(seed)
-    t_nom, snap_steps = sample_steps(duration, dt, sensor_model, rng)
-    x = initial_state(prep, scenario, opts)
-    tab = scenario.tables()
-    truth = np.full((n_steps // every + 1, E.N_T), np.nan)
-    snaps = np.full((snap_steps.shape[0], N_SNAP), np.nan)
-    idx = np.zeros(3, dtype=np.int64)
-    cur = np.zeros(9, dtype=np.int64)
-    flags = _flags(opts)
-    chunk = max(1, int(round(0.5 / dt)))
+    if duration <= 0:
+        raise SimulationError(f"duration {duration} s must be > 0")
+    session = Session(prep, scenario, options=opts, sensors=sensors, seed=seed,
+                      start_epoch_s=start_epoch_s)
+    n_steps = int(round(duration / opts.step_s))
+    chunk = max(1, int(round(0.5 / opts.step_s)))
+    parts: list[SampleArrays] = []
     wall = time.perf_counter()
-    for i0 in range(0, n_steps + 1, chunk):
-        i1 = min(i0 + chunk, n_steps)
-        E.run_steps(prep.chain.chain, prep.chain.cyl, prep.hyd.cyl, prep.hyd.glob, prep.hyd.slew,
-                    prep.cj, prep.sj, flags, dt, x, i0, i1, n_steps, every, truth, snap_steps,
-                    snaps, idx, cur, tab.u_t, tab.u_v, tab.u_n, tab.r_t, tab.r_v, tab.r_n,
-                    tab.gain, tab.umax, tab.pay_t, tab.pay_m)
-        if idx[2]:
-            t_fail = float(truth[max(idx[0] - 1, 0), E.T_T])
-            raise SimulationError(f"integration unstable near t = {t_fail:.4f} s (non-finite "
-                                  f"accelerations); try a smaller step than {dt} s")
+    while True:
+        n = min(chunk, n_steps - session.step_index)
+        final = session.step_index + n == n_steps
+        parts.append(session.advance(n * opts.step_s, final=final))
         if progress is not None:
-            progress(i1 * dt, duration)
-        if i1 == n_steps:
+            progress(session.t_s, duration)
+        if final:
             break
     log.debug("simulated %.3f s in %.3f s", duration, time.perf_counter() - wall)
-    tr = _truth(prep, truth[:idx[0]], start_epoch_s, wrenches)
-    names, values = apply_sensors(prep.machine, snaps[:idx[1]], sensor_model, rng)
-    samples = SampleArrays(machine_id=prep.machine.name, t_s=start_epoch_s + t_nom[:idx[1]],
-                           channels=names, values=values)
+    samples = SampleArrays(machine_id=prep.machine.name,
+                           t_s=np.concatenate([p.t_s for p in parts]),
+                           channels=session.channels,
+                           values=np.concatenate([p.values for p in parts]))
+    sensor_model = session.sensors
     meta = {"duration_s": duration, "truth_rate_hz": opts.truth_rate_hz, "scheme": opts.scheme,
             "friction": opts.friction, "valves": opts.valves,
             "hydraulic_losses": opts.hydraulic_losses,
             "sensors": sensor_model.model_dump(), "scenario_description": scenario.description}
-    return Recording(machine=prep.machine.name, scenario=scenario.name, seed=seed, step_s=dt,
-                     start_epoch_s=start_epoch_s, samples=samples, truth=tr, meta=meta)
+    return Recording(machine=prep.machine.name, scenario=scenario.name, seed=seed,
+                     step_s=opts.step_s, start_epoch_s=start_epoch_s, samples=samples,
+                     truth=session.truth(wrenches), meta=meta)
 
 
 def _truth(prep: Prepared, m: F64, t0: float, wrenches: bool) -> Truth:

@@ -61,24 +61,64 @@ class SensorModel(BaseModel):
                    dropout_probability=0.0, jitter_s=0.0)
 
 
+class SampleClock:
+    """The logger's sampling schedule, produced chunk by chunk.
+
+    Sample k has the nominal time k/rate; the logger really samples at the integration step
+    nearest k/rate + e_k (e_k the clipped jitter), never before the previous sample's step.
+    """
+
+    def __init__(self, model: SensorModel, step_s: float, rng: np.random.Generator) -> None:
+        self.period = 1.0 / model.rate_hz
+        self.step_s = step_s
+        self.jitter_s = model.jitter_s
+        self.rng = rng
+        self.next_k = 0
+        self._last_step = 0
+        self._jitter = np.zeros(0)     # drawn jitter of samples next_k, next_k + 1, ...
+
+    def take(self, step_end: int, inclusive: bool = False) -> tuple[F64, I64]:
+        """Samples whose step index is below ``step_end`` (or equal, if ``inclusive``).
+
+        Returns:
+            (nominal times [s] shape (m,), step indices shape (m,), non-decreasing).
+        """
+        t_end = step_end * self.step_s
+        k_max = int(np.floor(t_end / self.period + 0.4 + 1e-9)) + 1   # jitter reach ±0.4 T
+        count = max(0, k_max - self.next_k + 1)
+        if self._jitter.shape[0] < count:
+            extra = count - self._jitter.shape[0]
+            new = np.zeros(extra)
+            if self.jitter_s > 0:
+                new = np.clip(self.rng.normal(0.0, self.jitter_s, extra),
+                              -0.4 * self.period, 0.4 * self.period)
+            self._jitter = np.concatenate([self._jitter, new])
+        k = self.next_k + np.arange(count)
+        t_nom = k * self.period
+        steps = np.maximum(np.rint((t_nom + self._jitter[:count]) / self.step_s), 0)
+        steps = np.maximum.accumulate(np.maximum(steps, self._last_step)).astype(np.int64)
+        m = int(np.searchsorted(steps, step_end, side="right" if inclusive else "left"))
+        if inclusive:
+            # the last sample of a run may not wait for a step beyond the end
+            late = (t_nom <= t_end + 1e-12) & (steps > step_end)
+            steps[late] = step_end
+            m = int(np.count_nonzero(steps <= step_end))
+        self.next_k += m
+        self._jitter = self._jitter[m:]
+        if m:
+            self._last_step = int(steps[m - 1])
+        return np.asarray(t_nom[:m], dtype=np.float64), steps[:m]
+
+
 def sample_steps(duration_s: float, step_s: float, model: SensorModel,
                  rng: np.random.Generator) -> tuple[F64, I64]:
-    """Nominal sample times and the integration steps at which the logger really samples.
+    """The whole schedule of a run of ``duration_s``: nominal times and integration steps.
 
     Returns:
         (t_nominal [s] shape (m,), step indices shape (m,), non-decreasing, within
         [0, round(duration_s/step_s)]).
     """
-    period = 1.0 / model.rate_hz
-    n_steps = int(round(duration_s / step_s))
-    m = int(np.floor(duration_s * model.rate_hz + 1e-9)) + 1
-    t_nom = np.arange(m, dtype=np.float64) * period
-    jitter = np.zeros(m)
-    if model.jitter_s > 0:
-        jitter = np.clip(rng.normal(0.0, model.jitter_s, m), -0.4 * period, 0.4 * period)
-    steps = np.clip(np.rint((t_nom + jitter) / step_s), 0, n_steps).astype(np.int64)
-    steps = np.maximum.accumulate(steps).astype(np.int64)
-    return t_nom, steps
+    return SampleClock(model, step_s, rng).take(int(round(duration_s / step_s)), inclusive=True)
 
 
 def channel_source_column(machine: Machine, ch: Channel) -> int:
@@ -101,9 +141,54 @@ def channel_source_column(machine: Machine, ch: Channel) -> int:
     raise SimulationError(f"channel {ch.name!r}: the simulator cannot produce {ch.quantity!r}")
 
 
+class SensorReader:
+    """Turns true values at the sampling instants into channel readings, chunk by chunk
+    (per-channel bias drawn once; dropout bursts carry over chunk boundaries)."""
+
+    def __init__(self, machine: Machine, model: SensorModel, rng: np.random.Generator) -> None:
+        self.model = model
+        self.rng = rng
+        self.channels = [c for c in machine.channels if model.include_optional or not c.optional]
+        self.names = tuple(c.name for c in self.channels)
+        self.columns = [channel_source_column(machine, c) for c in self.channels]
+        spans = np.array([c.full_range for c in self.channels])
+        self.bias = (rng.normal(0.0, model.bias_fraction * spans) if model.bias_fraction > 0
+                     else np.zeros(len(self.channels)))
+        self._burst_left = np.zeros(len(self.channels), dtype=np.int64)
+
+    def read(self, snapshots: F64) -> F64:
+        """Readings for true values ``snapshots`` (m, N_SNAP) -> (m, n_channels), NaN = lost."""
+        m = snapshots.shape[0]
+        model = self.model
+        out = np.empty((m, len(self.channels)))
+        for j, ch in enumerate(self.channels):
+            x = snapshots[:, self.columns[j]] + self.bias[j]
+            if model.noise_fraction > 0:
+                x = x + self.rng.normal(0.0, model.noise_fraction * ch.full_range, m)
+            x = np.round(x / ch.resolution) * ch.resolution
+            out[:, j] = np.clip(x, ch.min, ch.max)
+            if model.dropout_probability > 0:
+                out[self._dropouts(m, j), j] = np.nan
+        return out
+
+    def _dropouts(self, m: int, j: int) -> npt.NDArray[np.bool_]:
+        """Bursty loss mask: burst starts at rate p/L, lengths geometric with mean L."""
+        mask = np.zeros(m, dtype=bool)
+        carry = int(min(self._burst_left[j], m))
+        mask[:carry] = True
+        self._burst_left[j] -= carry
+        mean = self.model.dropout_burst_mean
+        starts = np.flatnonzero(self.rng.uniform(size=m) < self.model.dropout_probability / mean)
+        for k in starts:
+            end = int(k) + int(self.rng.geometric(1.0 / mean))
+            mask[k:end] = True
+            self._burst_left[j] = max(int(self._burst_left[j]), end - m)
+        return mask
+
+
 def apply_sensors(machine: Machine, snapshots: F64, model: SensorModel,
                   rng: np.random.Generator) -> tuple[tuple[str, ...], F64]:
-    """Turn true values at the sampling instants into channel readings.
+    """Readings of a whole run in one go (see :class:`SensorReader`).
 
     Args:
         machine: Machine description (channels, ranges, resolutions).
@@ -114,29 +199,5 @@ def apply_sensors(machine: Machine, snapshots: F64, model: SensorModel,
     Returns:
         (channel names, values shape (m, n_channels) [channel units], NaN = dropout).
     """
-    chans = [c for c in machine.channels if model.include_optional or not c.optional]
-    m = snapshots.shape[0]
-    out = np.empty((m, len(chans)))
-    for j, ch in enumerate(chans):
-        x = snapshots[:, channel_source_column(machine, ch)].copy()
-        span = ch.full_range
-        if model.bias_fraction > 0:
-            x += rng.normal(0.0, model.bias_fraction * span)
-        if model.noise_fraction > 0:
-            x += rng.normal(0.0, model.noise_fraction * span, m)
-        x = np.round(x / ch.resolution) * ch.resolution
-        out[:, j] = np.clip(x, ch.min, ch.max)
-        if model.dropout_probability > 0:
-            out[_dropout_mask(m, model, rng), j] = np.nan
-    return tuple(c.name for c in chans), out
-
-
-def _dropout_mask(m: int, model: SensorModel, rng: np.random.Generator) -> npt.NDArray[np.bool_]:
-    """Bursty loss mask: burst starts at rate p/L, lengths geometric with mean L."""
-    mask = np.zeros(m, dtype=bool)
-    mean = model.dropout_burst_mean
-    starts = np.flatnonzero(rng.uniform(size=m) < model.dropout_probability / mean)
-    for k in starts:
-        length = int(rng.geometric(1.0 / mean))
-        mask[k:k + length] = True
-    return mask
+    reader = SensorReader(machine, model, rng)
+    return reader.names, reader.read(snapshots)
