@@ -242,3 +242,19 @@ def test_joint_motion_from_cylinders_inverts_the_chain_rule(machine: Machine) ->
     np.testing.assert_allclose(q2, q, atol=1e-12)
     np.testing.assert_allclose(qd2, qd, atol=1e-7)
     np.testing.assert_allclose(qdd2, qdd, atol=1e-4)
+
+
+def test_reach_problems_flags_dead_centre_inside_working_range() -> None:
+    data = _patu_dict()
+    cyls, joints = data["cylinders"], data["joints"]
+    assert isinstance(cyls, list) and isinstance(joints, list)
+    # shortest pin distance 0.7518 m (at theta1 = −56.8°) ≈ closed length, and the joint limits
+    # reach both sides of it: the lever changes sign inside the working range
+    cyls[0]["closed_length_m"] = 0.752
+    joints[1]["lower"] = -1.6
+    joints[1]["upper"] = 0.99
+    problems = reach_problems(machine_from_dict(data))
+    assert len(problems) == 1
+    assert problems[0].startswith("cylinders.0.base_pin_m: the moment arm vanishes (dead centre)")
+    angle = float(problems[0].split("= ")[1].split("°")[0])
+    assert abs(angle - -56.8) < 3.0
