@@ -313,8 +313,8 @@ class TwinStream:
             q_other[:, 0] = theta0
         q, qd, qdd = self._joint_motion(s, v, a, q_other)
         f = self._forces(sm, v)
-        tau = physics.actuator_torques(m, q, f)
-        return q, qd, qdd, tau
+        _, arm = physics.cylinder_kinematics(m, q)
+        return q, qd, qdd, self._actuator_loads(q, f, arm, None)
 
     def _stage_slew(self, final: bool) -> None:
         assert self._period is not None and self._drive is not None
@@ -331,7 +331,7 @@ class TwinStream:
         if self.payload is not None:
             mass = np.full(q.shape[0], float(self.payload))
         else:
-            mass, _ = self._estimate_payload(q, qd, qdd, tau, wh)
+            mass, _ = self._estimate_payload(q, qd, qdd, tau, wh, None)
             mass = np.nan_to_num(np.maximum(mass, 0.0))
         sl = slice(k0 - lo, k_hi - lo)
         mm = physics.mass_matrix(self.machine, q[sl], mass[sl])
@@ -391,14 +391,24 @@ class TwinStream:
                                              v[:, c], cyl)
         return f
 
+    def _actuator_loads(self, q: F64, f: F64, arm: F64, drive: F64 | None) -> F64:
+        """Joint loads of the actuators: F·ds/dq (virtual work, as physics.actuator_torques,
+        reusing the moment arms already computed) plus the net drive torque, (n, n_joints)."""
+        tau = np.zeros_like(q)
+        tau[:, self._cyl_joint] = f * arm
+        if self._slew_joint is not None:
+            tau[:, self._slew_joint] = np.nan if drive is None else drive
+        return tau
+
     def _estimate_payload(self, q: F64, qd: F64, qdd: F64, tau_act: F64,
-                          half: int) -> tuple[F64, F64]:
+                          half: int, arm: F64 | None) -> tuple[F64, F64]:
         assert self._choices is not None
         m = self.machine
         cj = self._cyl_joint
         t0 = physics.joint_torques(m, q, qd, qdd, 0.0)
         t1 = physics.joint_torques(m, q, qd, qdd, 1.0)
-        _, arm = physics.cylinder_kinematics(m, q)
+        if arm is None:
+            _, arm = physics.cylinder_kinematics(m, q)
         g = (t1 - t0)[:, cj] / arm  # force per kg at each cylinder
         res = (tau_act - t0)[:, cj] / arm
         weights = np.empty(len(cj))
@@ -476,17 +486,11 @@ class TwinStream:
             qdd[:, self._slew_joint] = thdd
         f = self._forces(vals, v)
         drive = None
-        if self._drive is not None:
-            if self.cmap.torque is not None:
-                tq = vals[:, self.cmap.torque] - physics.friction_force(
-                    qd[:, self._slew_joint], self._drive.friction)
-            else:
-                tq = np.full(q.shape[0], np.nan)
-            drive = tq[:, None]
-        tau_act = physics.actuator_torques(m, q, f, drive) if drive is not None and np.all(
-            np.isfinite(drive)) else physics.actuator_torques(m, q, f)
-        if drive is not None and not np.all(np.isfinite(drive)):
-            tau_act[:, self._slew_joint] = np.nan
+        if self._drive is not None and self.cmap.torque is not None:
+            drive = vals[:, self.cmap.torque] - physics.friction_force(
+                qd[:, self._slew_joint], self._drive.friction)
+        _, arm = physics.cylinder_kinematics(m, q)
+        tau_act = self._actuator_loads(q, f, arm, drive)
         # payload at the sample instants of the extended range, then onto the grid
         o0 = (ka - e0) * r
         o1 = (kb - 1 - e0) * r + 1 if last else (kb - e0) * r  # last: up to the last sample
@@ -495,7 +499,8 @@ class TwinStream:
             std_g = np.zeros(o1 - o0)
         else:
             idx = np.arange(0, q.shape[0], r)
-            mk, sk = self._estimate_payload(q[idx], qd[idx], qdd[idx], tau_act[idx], wh)
+            mk, sk = self._estimate_payload(q[idx], qd[idx], qdd[idx], tau_act[idx], wh,
+                                            arm[idx])
             ks = slice(ka - e0, min(kb - e0 + 1, idx.shape[0]))
             mk, sk = mk[ks], sk[ks]
             frac = (np.arange(o1 - o0) % r) / r
