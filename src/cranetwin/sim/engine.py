@@ -24,12 +24,17 @@ snapshots at precomputed step indices (see :mod:`cranetwin.sim.sensors`).
 
 from __future__ import annotations
 
+import hashlib
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from cranetwin.physics import chain as chain_module
+from cranetwin.physics import kernels as kernels_module
 from cranetwin.physics.kernels import cylinder_kinematics, rnea_into
 from cranetwin.sim.hydraulics import (
     C_A1,
@@ -73,6 +78,36 @@ from cranetwin.sim.sensors import SNAP_PA, SNAP_PB, SNAP_Q, SNAP_S, SNAP_SLEW_TO
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
+
+
+def _drop_stale_cache() -> None:
+    """Delete this module's numba cache when a module it compiles in has changed.
+
+    numba keys a cached function on its own source file only, but the loop below inlines the
+    physics kernels and the hydraulic kernels: after either changes, the cached loop would
+    silently run the old code. A stamp of those sources next to the cache decides.
+    """
+    here = Path(__file__).resolve()
+    deps = [here, here.with_name("hydraulics.py"), here.with_name("sensors.py"),
+            Path(kernels_module.__file__).resolve(), Path(chain_module.__file__).resolve()]
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in deps)).hexdigest()
+    cache_dirs = [here.parent / "__pycache__"]
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        cache_dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]))
+    for d in cache_dirs:
+        stamp = d / "engine.deps-stamp"
+        try:
+            if stamp.exists() and stamp.read_text() == digest:
+                continue
+            for f in d.rglob("engine.*.nb[ic]"):
+                f.unlink(missing_ok=True)
+            d.mkdir(parents=True, exist_ok=True)
+            stamp.write_text(digest)
+        except OSError:      # read-only install: numba then compiles in memory anyway
+            continue
+
+
+_drop_stale_cache()
 
 NJ = 4
 NC = 3
