@@ -1,0 +1,125 @@
+"""``cranetwin bench replay``: one hour of 100 Hz sensor data replayed onto a 1 kHz grid.
+
+Input: a synthetic hour (:mod:`cranetwin.twin.synthetic`: analytic motion of the PATU 655
+through its kinematics and inverse dynamics, the paper's channel set without the slew angle,
+so theta0 is integrated from the pillar torque) with 0.5 % uniform sensor error, so that the
+smoothing windows are real. Input generation and numba compile/cache load are not timed.
+
+Timed: :func:`cranetwin.twin.iter_replay` over the whole hour, chunk by chunk, each chunk's
+outputs reduced (maxima of the joint wrenches and cylinder forces) and dropped, as a load
+history job would. ``cpu_seconds`` is the process CPU time of that loop (on a busy shared
+machine the wall time is longer). ``peak_rss_mib`` is the process's peak resident memory.
+
+Baseline in the same run: scipy ``CubicSpline(bc_type="natural")`` per channel and a plain
+per-grid-instant path (kinematics, Eq. 1–2 and inverse dynamics called one instant at a time
+through the same physics functions), timed on ``baseline_seconds_of_data`` of the recording and
+scaled to the hour; ``speedup`` = scaled baseline / measured.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import time
+from typing import Any
+
+import numpy as np
+import typer
+from scipy.interpolate import CubicSpline
+
+from cranetwin import physics
+from cranetwin.model import load_machine
+from cranetwin.signal import inject_uniform_noise
+from cranetwin.twin import iter_replay
+from cranetwin.twin.synthetic import make
+
+
+def _peak_rss_mib() -> float:
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+
+
+def _baseline(samples: Any, machine: Any, grid_hz: float, seconds: float) -> float:
+    """Seconds for the per-instant path on the first ``seconds`` of data."""
+    t = samples.t_s
+    n = int(seconds * 100) + 1
+    t_sub = t[:n]
+    vals = samples.values[:n]
+    grid = np.arange(int(round((t_sub[-1] - t_sub[0]) * grid_hz)) + 1) / grid_hz + t_sub[0]
+    names = samples.channels
+    start = time.perf_counter()
+    splines = [CubicSpline(t_sub, vals[:, j], bc_type="natural") for j in range(len(names))]
+    col = {nm: i for i, nm in enumerate(names)}
+    cyls = machine.cylinders
+    for tk in grid:
+        s = np.array([[float(splines[col[c]](tk)) for c in ("lift_s", "jib_s", "ext_s")]])
+        v = np.array([[float(splines[col[c]](tk, 1)) for c in ("lift_s", "jib_s", "ext_s")]])
+        a = np.array([[float(splines[col[c]](tk, 2)) for c in ("lift_s", "jib_s", "ext_s")]])
+        q, qd, qdd = physics.joint_motion_from_cylinders(machine, s, v, a)
+        f = [physics.cylinder_force(float(splines[col[p + "_pA"]](tk)),
+                                    float(splines[col[p + "_pB"]](tk)), v[0, i], cyls[i])
+             for i, p in enumerate(("lift", "jib", "ext"))]
+        physics.actuator_torques(machine, q, np.array([f]))
+        physics.inverse_dynamics(machine, q, qd, qdd, 150.0)
+    return time.perf_counter() - start
+
+
+def run(recording_seconds: float = 3600.0, grid_hz: float = 1000.0,
+        baseline_seconds_of_data: float = 2.0) -> dict[str, Any]:
+    """Run the benchmark; return its figures (see the module docstring)."""
+    machine = load_machine("patu655")
+    warm = make(machine, duration_s=20.0, fine_hz=None, scale=0.5)
+    t0 = time.perf_counter()
+    for _ in iter_replay(warm.samples, machine, grid_hz):
+        pass
+    compile_seconds = time.perf_counter() - t0
+    syn = make(machine, duration_s=recording_seconds, fine_hz=None, scale=0.5,
+               payload=lambda t: 150.0 + 100.0 * np.sin(2 * np.pi * t / 600.0))
+    noisy = inject_uniform_noise(syn.samples, machine, 0.005, seed=0)
+    start = time.perf_counter()
+    cpu0 = time.process_time()
+    n_grid = 0
+    wrench_max = np.zeros((machine.n_joints, 6))
+    force_max = np.zeros(len(machine.cylinders))
+    for part in iter_replay(noisy, machine, grid_hz):
+        n_grid += part.n
+        np.maximum(wrench_max, np.abs(part.joint_wrench).max(axis=0), out=wrench_max)
+        np.maximum(force_max, np.abs(part.cyl_force).max(axis=0), out=force_max)
+    wall = time.perf_counter() - start
+    cpu = time.process_time() - cpu0
+    peak = _peak_rss_mib()
+    base = _baseline(noisy, machine, grid_hz, baseline_seconds_of_data)
+    base_scaled = base * recording_seconds / baseline_seconds_of_data
+    return {
+        "recording_seconds": recording_seconds,
+        "sample_hz": 100.0,
+        "grid_hz": grid_hz,
+        "grid_points": n_grid,
+        "wall_seconds": round(wall, 3),
+        "real_time_factor": round(recording_seconds / wall, 1),
+        "cpu_seconds": round(cpu, 3),  # on a shared machine wall > cpu when others run
+        "peak_rss_mib": round(peak, 1),
+        "compile_seconds": round(compile_seconds, 3),
+        "baseline": "scipy CubicSpline + per-instant physics calls, "
+                    f"{baseline_seconds_of_data:g} s of data timed and scaled",
+        "baseline_seconds": round(base_scaled, 1),
+        "speedup": round(base_scaled / wall, 1),
+        "max_cylinder_force_n": [round(float(x), 1) for x in force_max],
+    }
+
+
+def register(bench_app: typer.Typer) -> None:
+    @bench_app.command("replay")
+    def replay_cmd(
+        seconds: float = typer.Option(3600.0, help="Recording length [s] at 100 Hz."),
+        grid_hz: float = typer.Option(1000.0, help="Output grid rate [Hz]."),
+        as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
+    ) -> None:
+        """Replay one hour of 100 Hz data onto a 1 kHz grid; time, memory, baseline ratio."""
+        out = run(seconds, grid_hz)
+        if as_json:
+            typer.echo(json.dumps(out))
+        else:
+            for k, v in out.items():
+                typer.echo(f"{k}: {v}")
