@@ -96,3 +96,15 @@ def test_pressure_rates_conserve_oil_volume(machine: Machine) -> None:
     np.testing.assert_allclose(H.pressure_rates_nb(be, vd, a1, a2, st, 0.2, 0.1, 1e-4, 2e-4),
                                pressure_rates(be, vd, a1, a2, st, 0.2, 0.1, 1e-4, 2e-4),
                                rtol=1e-15)
+
+
+def test_actuator_inputs_of_wrong_shape_raise_physics_error(machine: Machine) -> None:
+    from cranetwin.errors import PhysicsError
+
+    q = np.zeros((5, 4))
+    with pytest.raises(PhysicsError, match=r"cylinder_forces: expected shape \(5, 3\)"):
+        actuator_torques(machine, q, np.zeros((5, 2)))
+    with pytest.raises(PhysicsError, match=r"drive_torques: expected shape \(5, 1\)"):
+        actuator_torques(machine, q, np.zeros((5, 3)), np.zeros((4,)))
+    np.testing.assert_array_equal(actuator_torques(machine, q, np.zeros((5, 3)), np.ones(5))[:, 0],
+                                  np.ones(5))

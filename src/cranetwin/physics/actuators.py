@@ -6,10 +6,9 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from cranetwin.errors import PhysicsError
 from cranetwin.model import Cylinder, Friction, Machine
 from cranetwin.physics.chain import compile_chain
-from cranetwin.physics.kinematics import as_joint_array, moment_arms
+from cranetwin.physics.kinematics import as_columns, as_joint_array, moment_arms
 
 F64 = npt.NDArray[np.float64]
 
@@ -70,17 +69,11 @@ def actuator_torques(
     qa = as_joint_array(machine, q)
     p = compile_chain(machine)
     n = qa.shape[0]
-    f = np.asarray(cylinder_forces, dtype=np.float64).reshape(n, -1)
-    if f.shape[1] != p.n_cylinders:
-        raise PhysicsError(f"cylinder_forces: expected shape ({n}, {p.n_cylinders}), "
-                           f"got {np.shape(cylinder_forces)}")
+    f = as_columns("cylinder_forces", cylinder_forces, n, p.n_cylinders)
     tau = np.zeros((n, p.n_joints))
     tau[:, p.cylinder_joint] += f * moment_arms(machine, qa)
     if drive_torques is not None:
-        d = np.asarray(drive_torques, dtype=np.float64).reshape(n, -1)
-        if d.shape[1] != len(machine.torque_drives):
-            raise PhysicsError(f"drive_torques: expected shape ({n}, "
-                               f"{len(machine.torque_drives)}), got {np.shape(drive_torques)}")
+        d = as_columns("drive_torques", drive_torques, n, len(machine.torque_drives))
         for i, drive in enumerate(machine.torque_drives):
             tau[:, machine.joint_index(drive.joint)] += d[:, i]
     return tau

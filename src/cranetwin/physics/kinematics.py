@@ -57,6 +57,20 @@ def as_joint_array(machine: Machine, q: npt.ArrayLike, name: str = "q") -> F64:
     return a
 
 
+def as_columns(name: str, x: npt.ArrayLike, n: int, k: int) -> F64:
+    """``x`` as a float64 array of shape (n, k); (n,) is accepted when k = 1.
+
+    Raises:
+        PhysicsError: any other shape.
+    """
+    a = np.asarray(x, dtype=np.float64)
+    if a.ndim == 1 and k == 1 and a.shape[0] == n:
+        a = a.reshape(n, 1)
+    if a.shape != (n, k):
+        raise PhysicsError(f"{name}: expected shape ({n}, {k}), got {np.shape(x)}")
+    return a
+
+
 def cylinder_lengths(machine: Machine, q: npt.ArrayLike) -> F64:
     """Cylinder rod positions s = pin distance − closed length.
 
@@ -147,11 +161,8 @@ def joint_motion_from_cylinders(
     p = compile_chain(machine)
     q = joints_from_cylinders(machine, s, q_other)
     n = q.shape[0]
-    va = np.asarray(v, dtype=np.float64).reshape(n, -1)
-    aa = np.asarray(a, dtype=np.float64).reshape(n, -1)
-    if va.shape != (n, p.n_cylinders) or aa.shape != (n, p.n_cylinders):
-        raise PhysicsError(f"v, a: expected shape ({n}, {p.n_cylinders}), got "
-                           f"{np.shape(v)} and {np.shape(a)}")
+    va = as_columns("v", v, n, p.n_cylinders)
+    aa = as_columns("a", a, n, p.n_cylinders)
     _, d1, d2 = _kinematics2(machine, q)
     cj = p.cylinder_joint
     free = [j for j in range(p.n_joints) if j not in set(cj.tolist())]
@@ -159,11 +170,7 @@ def joint_motion_from_cylinders(
     qdd = np.zeros_like(q)
     for arr, other, name in ((qd, qd_other, "qd_other"), (qdd, qdd_other, "qdd_other")):
         if other is not None:
-            o = np.asarray(other, dtype=np.float64).reshape(n, -1)
-            if o.shape != (n, len(free)):
-                raise PhysicsError(f"{name}: expected shape ({n}, {len(free)}), got "
-                                   f"{np.shape(other)}")
-            arr[:, free] = o
+            arr[:, free] = as_columns(name, other, n, len(free))
     with np.errstate(divide="ignore", invalid="ignore"):
         qd[:, cj] = va / d1
         qdd[:, cj] = (aa - d2 * qd[:, cj] ** 2) / d1
@@ -200,14 +207,8 @@ def joints_from_cylinders(
     free = [j for j in range(p.n_joints) if j not in set(p.cylinder_joint.tolist())]
     q = np.zeros((n, p.n_joints))
     if q_other is not None:
-        qo = np.asarray(q_other, dtype=np.float64)
-        if qo.ndim == 1 and len(free) == 1:
-            qo = qo.reshape(-1, 1)
-        if qo.shape != (n, len(free)):
-            raise PhysicsError(
-                f"q_other: expected shape ({n}, {len(free)}) for joints "
-                f"{[machine.joints[j].name for j in free]}, got {np.shape(q_other)}")
-        q[:, free] = qo
+        q[:, free] = as_columns(
+            f"q_other (joints {[machine.joints[j].name for j in free]})", q_other, n, len(free))
     col = np.empty(n)
     for k in range(p.n_cylinders):
         K.cylinder_joint_batch(p.cyl, k, np.ascontiguousarray(sa[:, k]), col)
