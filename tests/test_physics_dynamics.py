@@ -255,3 +255,15 @@ def test_crba_matches_rnea_columns_and_pinocchio_on_skewed_chain() -> None:
         assert rel_err(crba[k], cols) <= 1e-12
         ref = pin.crba(model, data, q[k])
         assert rel_err(crba[k], np.triu(ref) + np.triu(ref, 1).T) <= 1e-9
+
+
+def test_bias_and_forward_dynamics_match_pinocchio(machine: Machine) -> None:
+    q, qd, qdd = random_states(machine, 30, seed=9)
+    tau = np.random.default_rng(9).normal(0.0, 5e3, (30, 4))
+    b = bias_forces(machine, q, qd, 150.0)
+    acc = forward_dynamics(machine, q, qd, tau, 150.0)
+    model = pinocchio_model(machine, 150.0)
+    data = model.createData()
+    for k in range(30):
+        assert rel_err(b[k], pin.nonLinearEffects(model, data, q[k], qd[k])) <= 1e-9
+        assert rel_err(acc[k], pin.aba(model, data, q[k], qd[k], tau[k])) <= 1e-9
