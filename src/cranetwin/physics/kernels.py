@@ -11,7 +11,7 @@ Build the parameters once, outside your ``@njit`` loop, and pass the two float64
     @njit
     def step(chain, cyl, q, qd, u, ...):
         M = np.empty((nj, nj)); b = np.empty(nj)
-        K.mass_matrix(chain, q, payload_kg, M)        # M(q), shape (nj, nj) [kg, kg·m, kg·m²]
+        K.mass_matrix(chain, q, payload_kg, M)        # M(q) (nj, nj) [kg, kg·m, kg·m²], CRBA
         K.bias(chain, q, qd, payload_kg, b)           # C(q, qd)·qd + g(q), shape (nj,)
         s = np.empty(nc); dsdq = np.empty(nc)
         K.cylinder_kinematics(cyl, q, s, dsdq)        # rod positions [m], ds_k/dq_joint(k)
@@ -25,6 +25,10 @@ and :func:`mass_matrix_into` (composite-rigid-body algorithm, scratch ``work`` (
 
     K.mass_matrix_into(chain, q, payload_kg, M, work, comp)
     K.rnea_into(chain, q, qd, zeros, payload_kg, 1.0, h, wrench, work)   # h = C·qd + g
+
+Also: :func:`cylinder_state2` (s, ds/dq, d²s/dq² of one cylinder), :func:`cylinder_joint`
+(inverse kinematics of one cylinder), :func:`joint_transforms`.
+
 Conventions: q, qd, qdd shape (n_joints,) [rad, m, per s, per s²]; payload [kg] is a point mass
 at the machine's load point (added to the tool mass lumped in ``chain``); gravity from ``chain``.
 ``wrench`` rows are [fx, fy, fz, mx, my, mz]: the spatial force transmitted from the parent
