@@ -1,0 +1,158 @@
+"""Runs of a boolean condition that may span the chunks of a history.
+
+A :class:`RunTracker` is fed consecutive chunks ``(t, mask, values)`` and returns the runs (maximal
+stretches where ``mask`` holds) once they are closed, with statistics of ``values`` over the run.
+A run still open at the end of a chunk is carried over; runs closer than ``merge_gap_s`` are
+joined; runs shorter than ``min_duration_s`` are dropped. :meth:`flush` closes what is open (end
+of the record). Splitting a history into chunks does not change the runs found.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+F64 = npt.NDArray[np.float64]
+B = npt.NDArray[np.bool_]
+
+
+@dataclass
+class Run:
+    """One run of a condition.
+
+    Attributes:
+        t_start: Time of the first sample in the run [s].
+        t_end: Time of the last sample in the run [s].
+        n: Samples in the run.
+        first: Values at the first sample, shape (k,).
+        last: Values at the last sample, shape (k,).
+        vmax: Maxima over the run, shape (k,).
+        vmin: Minima over the run, shape (k,).
+        vsum: Sums over the run, shape (k,).
+        t_peak: Time of the maximum of column 0 [s].
+    """
+
+    t_start: float
+    t_end: float
+    n: int
+    first: F64
+    last: F64
+    vmax: F64
+    vmin: F64
+    vsum: F64
+    t_peak: float
+
+    @property
+    def duration_s(self) -> float:
+        """t_end − t_start [s]."""
+        return self.t_end - self.t_start
+
+    @property
+    def mean(self) -> F64:
+        """Means over the run, shape (k,)."""
+        return self.vsum / max(self.n, 1)
+
+    def join(self, other: Run) -> Run:
+        """This run followed by ``other`` (bridging any gap between them)."""
+        peak_other = other.vmax[0] > self.vmax[0]
+        return Run(self.t_start, other.t_end, self.n + other.n, self.first, other.last,
+                   np.maximum(self.vmax, other.vmax), np.minimum(self.vmin, other.vmin),
+                   self.vsum + other.vsum, other.t_peak if peak_other else self.t_peak)
+
+
+@dataclass
+class RunTracker:
+    """Finds runs of a condition across chunks.
+
+    Attributes:
+        min_duration_s: Runs shorter than this (t_end − t_start) are dropped [s].
+        merge_gap_s: Runs separated by less than this are joined [s] (0: never).
+        max_gap_s: A time step longer than this (no data: machine off) ends a run [s]
+            (0: never).
+    """
+
+    min_duration_s: float = 0.0
+    merge_gap_s: float = 0.0
+    max_gap_s: float = 0.0
+    _open: Run | None = field(default=None, init=False)
+    _pending: Run | None = field(default=None, init=False)
+
+    def _emit(self, run: Run, out: list[Run]) -> None:
+        if self._pending is not None:
+            if run.t_start - self._pending.t_end < self.merge_gap_s:
+                self._pending = self._pending.join(run)
+                return
+            if self._pending.duration_s >= self.min_duration_s:
+                out.append(self._pending)
+        self._pending = run
+
+    def feed(self, t: F64, mask: B, values: Sequence[F64]) -> list[Run]:
+        """Fold the next chunk.
+
+        Args:
+            t: Times, shape (n,) [s].
+            mask: The condition, shape (n,).
+            values: k statistics columns, each shape (n,); column 0 is the one whose peak is
+                timed. Only the samples inside runs are read.
+
+        Returns:
+            Runs closed (and released past the merge gap) by this chunk.
+        """
+        out: list[Run] = []
+        n = t.shape[0]
+        if n == 0:
+            return out
+        m = np.asarray(mask, dtype=bool)
+        if not m.any():
+            starts = ends = np.empty(0, dtype=np.int64)
+        else:
+            brk = np.zeros(n + 1, dtype=bool)  # brk[i]: a new stretch starts at sample i
+            brk[0] = brk[n] = True
+            if self.max_gap_s > 0 and n > 1:
+                brk[1:n] = np.diff(t) > self.max_gap_s
+            prev = np.concatenate([[False], m[:-1]])
+            nxt = np.concatenate([m[1:], [False]])
+            starts = np.flatnonzero(m & (~prev | brk[:n]))
+            ends = np.flatnonzero(m & (~nxt | brk[1:])) + 1  # exclusive
+        gap_before = (self._open is not None and self.max_gap_s > 0
+                      and float(t[0]) - self._open.t_end > self.max_gap_s)
+        if self._open is not None and (starts.size == 0 or starts[0] != 0 or gap_before):
+            # the open run ended just before this chunk
+            self._emit(self._open, out)
+            self._open = None
+        for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
+            seg = np.column_stack([v[s:e] for v in values])
+            i_pk = int(np.argmax(seg[:, 0]))
+            run = Run(float(t[s]), float(t[e - 1]), e - s, seg[0].copy(), seg[-1].copy(),
+                      seg.max(axis=0), seg.min(axis=0), seg.sum(axis=0), float(t[s + i_pk]))
+            if s == 0 and self._open is not None:
+                run = self._open.join(run)
+                self._open = None
+            if e == n:
+                self._open = run
+            else:
+                self._emit(run, out)
+        if self._pending is not None and self._open is None and n and \
+                float(t[-1]) - self._pending.t_end >= self.merge_gap_s:
+            if self._pending.duration_s >= self.min_duration_s:
+                out.append(self._pending)
+            self._pending = None
+        return out
+
+    def flush(self) -> list[Run]:
+        """Close and return whatever is open or pending (end of the record), without mutating."""
+        out: list[Run] = []
+        pending, opened = self._pending, self._open
+        if opened is not None:
+            if pending is not None and opened.t_start - pending.t_end < self.merge_gap_s:
+                pending = pending.join(opened)
+            else:
+                if pending is not None and pending.duration_s >= self.min_duration_s:
+                    out.append(pending)
+                pending = opened
+        if pending is not None and pending.duration_s >= self.min_duration_s:
+            out.append(pending)
+        return out
