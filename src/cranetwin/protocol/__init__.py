@@ -1,0 +1,66 @@
+"""Wire protocol between machines and the ingest daemon (sans-IO, versioned; docs/PROTOCOL.md).
+
+Pure functions and state machines over bytes and a caller-supplied ``now``: no sockets, no
+clocks, no threads, no files (the spill file and the sockets live in :mod:`cranetwin.ingest`).
+Dependencies: the standard library plus numpy. DESIGN.md lists "stdlib" for this package; numpy
+is used because the daemon must decode 100,000 samples/s on two cores, and bit-packing in pure
+Python is ~50× too slow. numpy does no I/O, so the package is still sans-IO.
+
+Datagrams (all authenticated with HMAC-SHA256/128 under a per-machine secret):
+
+* data (0x01): a batch of samples, quantised at sensor resolution, delta + bit-packed
+  (:func:`encode_data`, :func:`decode_data` → :class:`~cranetwin.samples.SampleBlock`);
+* status (0x02): GPS, operating hours, low-rate channels (:func:`encode_status`,
+  :func:`decode_status` → :class:`StatusReport`);
+* ack (0x03): cumulative + selective acknowledgement from the server (:func:`encode_ack`,
+  :func:`decode_ack` → :class:`Ack`).
+
+State machines: :class:`Receiver` (server side: keys, replay window, acks, clock offset) and
+:class:`Sender` (machine side: batching, retransmission, bounded memory with spill). Every
+rejection raises a :class:`DatagramError` whose ``reason`` is one of :data:`REASONS`.
+"""
+
+from __future__ import annotations
+
+from cranetwin.protocol.ack import Ack, decode_ack, encode_ack
+from cranetwin.protocol.data import decode_data, encode_data, on_grid, quantise
+from cranetwin.protocol.errors import (
+    REASONS,
+    BadHmacError,
+    DatagramError,
+    GarbageError,
+    LayoutError,
+    ReplayedError,
+    TruncatedError,
+    UnknownMachineError,
+    WrongVersionError,
+)
+from cranetwin.protocol.measure import WireStats, measure_bytes_per_sample
+from cranetwin.protocol.receiver import Receiver
+from cranetwin.protocol.sender import MemorySpill, Sender, Spill, datagram_seq
+from cranetwin.protocol.status import StatusReport, decode_status, encode_status
+from cranetwin.protocol.wire import (
+    IP_UDP_OVERHEAD_V4,
+    IP_UDP_OVERHEAD_V6,
+    MAX_DATAGRAM,
+    TAG_BYTES,
+    TYPE_ACK,
+    TYPE_DATA,
+    TYPE_STATUS,
+    VERSION,
+    ChannelSpec,
+    Header,
+    Layout,
+    MachineKey,
+    peek_header,
+)
+
+__all__ = [
+    "IP_UDP_OVERHEAD_V4", "IP_UDP_OVERHEAD_V6", "MAX_DATAGRAM", "REASONS", "TAG_BYTES",
+    "TYPE_ACK", "TYPE_DATA", "TYPE_STATUS", "VERSION",
+    "Ack", "BadHmacError", "ChannelSpec", "DatagramError", "GarbageError", "Header", "Layout",
+    "LayoutError", "MachineKey", "MemorySpill", "Receiver", "ReplayedError", "Sender", "Spill",
+    "StatusReport", "TruncatedError", "UnknownMachineError", "WireStats", "WrongVersionError",
+    "datagram_seq", "decode_ack", "decode_data", "decode_status", "encode_ack", "encode_data",
+    "encode_status", "measure_bytes_per_sample", "on_grid", "peek_header", "quantise",
+]

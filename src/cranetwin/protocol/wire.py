@@ -1,0 +1,262 @@
+"""Wire primitives: constants, varints, the common header, channel layouts, keys and tags.
+
+Every multi-byte integer is big-endian ("network order"), except varints, which are unsigned
+LEB128 (7 bits per byte, least significant group first, high bit = "more bytes follow", at most
+10 bytes, value < 2**64; the same as Protocol Buffers). Signed values in varints are zigzag
+mapped: ``z = (v << 1) ^ (v >> 63)``, i.e. 0, −1, 1, −2, … → 0, 1, 2, 3, … See docs/PROTOCOL.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import struct
+from collections.abc import Iterable
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Protocol
+
+from cranetwin.protocol.errors import (
+    BadHmacError,
+    GarbageError,
+    TruncatedError,
+    WrongVersionError,
+)
+
+MAGIC = b"CT"
+VERSION = 1
+TYPE_DATA = 0x01
+TYPE_STATUS = 0x02
+TYPE_ACK = 0x03
+TYPES = (TYPE_DATA, TYPE_STATUS, TYPE_ACK)
+TAG_BYTES = 16
+"""HMAC-SHA256 truncated to 128 bits: forging one datagram takes ~2**127 tries on average
+(NIST SP 800-107 allows truncation to ≥ 64 bits for HMAC), and saves 16 bytes per datagram."""
+HEADER = struct.Struct(">2sBBI")  # magic, version, type, wire id
+HEADER_BYTES = HEADER.size  # 8
+MAX_DATAGRAM = 1200
+"""Largest datagram the sender produces [bytes of UDP payload]: fits the MTU of 4G and VPN links
+(1280-byte IPv6 minimum MTU minus 48 bytes of IPv6+UDP headers, with margin)."""
+MAX_CHANNELS = 32
+U64_MAX = 2**64 - 1
+IP_UDP_OVERHEAD_V4 = 28  # 20 bytes IPv4 + 8 bytes UDP, not counted in bytes/sample
+IP_UDP_OVERHEAD_V6 = 48  # 40 bytes IPv6 + 8 bytes UDP
+
+
+# --- varints -----------------------------------------------------------------------------------
+def zigzag(v: int) -> int:
+    """Map a signed 64-bit integer to unsigned: 0, −1, 1, −2 → 0, 1, 2, 3."""
+    return ((v << 1) ^ (v >> 63)) & U64_MAX
+
+
+def unzigzag(z: int) -> int:
+    """Inverse of :func:`zigzag`."""
+    return (z >> 1) ^ -(z & 1)
+
+
+def put_varint(out: bytearray, value: int) -> None:
+    """Append ``value`` (0 ≤ value < 2**64) as an unsigned LEB128 varint."""
+    if not 0 <= value <= U64_MAX:
+        raise ValueError(f"varint value {value} outside [0, 2**64)")
+    while value >= 0x80:
+        out.append((value & 0x7F) | 0x80)
+        value >>= 7
+    out.append(value)
+
+
+def get_varint(buf: bytes | memoryview, pos: int, end: int) -> tuple[int, int]:
+    """Read an unsigned LEB128 varint from ``buf[pos:end]``.
+
+    Returns:
+        ``(value, new_pos)``.
+
+    Raises:
+        TruncatedError: the varint runs past ``end``.
+        GarbageError: longer than 10 bytes or ≥ 2**64.
+    """
+    value = 0
+    shift = 0
+    while True:
+        if pos >= end:
+            raise TruncatedError("varint runs past the end of the datagram")
+        b = buf[pos]
+        pos += 1
+        value |= (b & 0x7F) << shift
+        if not b & 0x80:
+            break
+        shift += 7
+        if shift >= 70:
+            raise GarbageError("varint longer than 10 bytes")
+    if value > U64_MAX:
+        raise GarbageError("varint value ≥ 2**64")
+    return value, pos
+
+
+# --- layouts and keys --------------------------------------------------------------------------
+class ChannelLike(Protocol):
+    """What the protocol needs of a channel (``cranetwin.model.schema.Channel`` fits)."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def min(self) -> float: ...
+    @property
+    def max(self) -> float: ...
+    @property
+    def resolution(self) -> float: ...
+    @property
+    def optional(self) -> bool: ...
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """One channel of a layout.
+
+    Attributes:
+        name: Channel name from the machine description.
+        min: Lower end of the sensor range [channel unit].
+        max: Upper end of the sensor range [channel unit].
+        resolution: Quantisation step [channel unit]; values travel as k = round(v / resolution).
+        optional: Declared optional in the machine description (may be absent or sent by status).
+    """
+
+    name: str
+    min: float
+    max: float
+    resolution: float
+    optional: bool = False
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The ordered channel list both ends agree on, from the machine description.
+
+    Attributes:
+        channels: Channels in column order (at most 32).
+    """
+
+    channels: tuple[ChannelSpec, ...]
+
+    def __post_init__(self) -> None:
+        if not 1 <= len(self.channels) <= MAX_CHANNELS:
+            raise ValueError(f"a layout has 1..{MAX_CHANNELS} channels, got {len(self.channels)}")
+        for c in self.channels:
+            if not c.resolution > 0:
+                raise ValueError(f"channel {c.name!r}: resolution must be > 0")
+            if len(c.name.encode()) > 255:
+                raise ValueError(f"channel {c.name!r}: name longer than 255 bytes")
+
+    @classmethod
+    def from_channels(cls, channels: Iterable[ChannelLike]) -> Layout:
+        """Layout of ``machine.channels`` (objects with name, min, max, resolution, optional)."""
+        return cls(tuple(ChannelSpec(c.name, float(c.min), float(c.max), float(c.resolution),
+                                     bool(c.optional)) for c in channels))
+
+    @cached_property
+    def names(self) -> tuple[str, ...]:
+        """Channel names in column order."""
+        return tuple(c.name for c in self.channels)
+
+    @cached_property
+    def resolutions(self) -> tuple[float, ...]:
+        """Quantisation steps in column order [channel units]."""
+        return tuple(c.resolution for c in self.channels)
+
+    @cached_property
+    def layout_id(self) -> int:
+        """32-bit id: first 4 bytes (big-endian) of SHA-256 over, per channel in order,
+        ``u8 len(name) ‖ name (UTF-8) ‖ f64 resolution (big-endian IEEE 754)``."""
+        h = hashlib.sha256()
+        for c in self.channels:
+            name = c.name.encode()
+            h.update(bytes([len(name)]) + name + struct.pack(">d", c.resolution))
+        return int.from_bytes(h.digest()[:4], "big")
+
+    def index(self, name: str) -> int:
+        """Column of channel ``name`` (ValueError if absent)."""
+        return self.names.index(name)
+
+
+@dataclass(frozen=True)
+class MachineKey:
+    """What one end needs to speak for a machine: identity, secret and layout.
+
+    Attributes:
+        wire_id: 32-bit id carried in every datagram.
+        machine_id: Identifier above the wire (``SampleBlock.machine_id``).
+        secret: Per-machine HMAC key (≥ 16 bytes). Never logged: ``repr`` hides it.
+        layout: Channel layout of the machine.
+    """
+
+    wire_id: int
+    machine_id: str
+    secret: bytes
+    layout: Layout
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.wire_id < 2**32:
+            raise ValueError(f"wire id must be in [0, 2**32), got {self.wire_id}")
+        if len(self.secret) < 16:
+            raise ValueError("the per-machine secret must be at least 16 bytes")
+
+    def __repr__(self) -> str:
+        return (f"MachineKey(wire_id={self.wire_id}, machine_id={self.machine_id!r}, "
+                f"secret=<{len(self.secret)} bytes>, layout_id={self.layout.layout_id:#010x})")
+
+
+# --- header and tag ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Header:
+    """The 8 bytes every datagram starts with.
+
+    Attributes:
+        version: Protocol version (1).
+        type: ``TYPE_DATA``, ``TYPE_STATUS`` or ``TYPE_ACK``.
+        wire_id: Machine wire id.
+    """
+
+    version: int
+    type: int
+    wire_id: int
+
+
+def peek_header(datagram: bytes) -> Header:
+    """Read and check the common header, without authenticating anything.
+
+    Raises:
+        GarbageError: wrong magic or unknown type.
+        TruncatedError: shorter than header + tag.
+        WrongVersionError: version ≠ 1.
+    """
+    if len(datagram) < HEADER_BYTES:
+        if not MAGIC.startswith(bytes(datagram[:2])):
+            raise GarbageError("not a cranetwin datagram (bad magic)")
+        raise TruncatedError(f"{len(datagram)} bytes: shorter than the {HEADER_BYTES}-byte header")
+    magic, version, typ, wire_id = HEADER.unpack_from(datagram, 0)
+    if magic != MAGIC:
+        raise GarbageError("not a cranetwin datagram (bad magic)")
+    if version != VERSION:
+        raise WrongVersionError(f"protocol version {version}, this code speaks {VERSION}", wire_id)
+    if typ not in TYPES:
+        raise GarbageError(f"unknown datagram type {typ:#04x}", wire_id)
+    if len(datagram) < HEADER_BYTES + TAG_BYTES:
+        raise TruncatedError("datagram shorter than header + HMAC tag", wire_id)
+    return Header(version, typ, wire_id)
+
+
+def tag(secret: bytes, body: bytes | bytearray | memoryview) -> bytes:
+    """HMAC-SHA256 of ``body`` under ``secret``, truncated to :data:`TAG_BYTES`."""
+    return hmac.new(secret, body, hashlib.sha256).digest()[:TAG_BYTES]
+
+
+def verify(secret: bytes, datagram: bytes, wire_id: int) -> memoryview:
+    """Check the trailing tag in constant time; return the authenticated part (without tag).
+
+    Raises:
+        BadHmacError: the tag does not verify.
+    """
+    view = memoryview(datagram)
+    body = view[:-TAG_BYTES]
+    if not hmac.compare_digest(tag(secret, body), bytes(view[-TAG_BYTES:])):
+        raise BadHmacError("HMAC tag does not verify under the machine's key", wire_id)
+    return body
