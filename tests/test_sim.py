@@ -62,6 +62,7 @@ def test_static_holding_pressures_balance_gravity(machine: Machine, prep: Prepar
     _, dsdq = kin(machine, q_end)
     f_static = g[0, [1, 2, 3]] / dsdq[0]
     coulomb = np.array([c.friction.coulomb for c in machine.cylinders])
+    # measured: within 6 N (the tanh friction lets the rods creep to equilibrium)
     assert np.all(np.abs(f_hyd - f_static) <= coulomb), (f_hyd, f_static)
     # and it really did move: the start was off by several kN on the lift cylinder
     assert abs(tr.cyl_force[0, 0] - f_static[0]) > 5 * coulomb[0]

@@ -294,6 +294,9 @@ def log_loading(duration_s: float = 60.0, payload_kg: float = 300.0, seed: int =
 
     The operator tracks rod-position and slewing-angle waypoints (``target`` knots).
     """
+    from cranetwin.model import load_machine
+    from cranetwin.physics import joints_from_cylinders
+
     rng = np.random.default_rng(seed)
     pile, bunk = -1.3, 1.1           # slewing angles of the pile and the load space [rad]
     up = (0.40, 0.30, 0.35)          # lift, jib, extension rod positions high [m]
@@ -321,11 +324,14 @@ def log_loading(duration_s: float = 60.0, payload_kg: float = 300.0, seed: int =
         at(t + 24.0, bunk, down)
         at(t + 27.0, bunk, up)
         t += 27.0
+    # start at rest in the "up" pose the operator's first waypoint asks for
+    q_up = joints_from_cylinders(load_machine("patu655"), np.array([up]))[0]
+    q0 = (0.0, float(q_up[1]), float(q_up[2]), float(q_up[3]))
     progs = {a: ActuatorProgram(target=knots[a], gain=(40.0 if a == "slew" else 80.0))
              for a in ACTUATORS}
     return Scenario(name="log-loading", duration_s=duration_s,
                     description=f"timber loading cycle, logs of ~{payload_kg:g} kg",
-                    initial=InitialState(q=(0.0, 0.75, -1.45, 0.35), payload_kg=0.0),
+                    initial=InitialState(q=q0, payload_kg=0.0),
                     actuators=Actuators(**progs), payload=events)
 
 
