@@ -204,3 +204,13 @@ def test_live_session_in_chunks_matches_the_batch_run(prep: Prepared) -> None:
     assert live.t_s == pytest.approx(1.5)
     with pytest.raises(SimulationError, match="finished"):
         live.advance(0.1)
+
+
+def test_targets_outside_the_machine_are_named(prep: Prepared, tmp_path: Path) -> None:
+    f = tmp_path / "far.toml"
+    f.write_text('name = "far"\n[actuators.lift]\ntarget = [[0, 0.3], [2, 0.9]]\n'
+                 '[actuators.slew]\ntarget = [[0, 0.0], [1, 4.0]]\n')
+    with pytest.raises(ScenarioFileError) as exc:
+        simulate(prep, load_scenario(f), duration_s=0.1)
+    assert any(p.startswith("actuators.lift.target.1:") for p in exc.value.problems)
+    assert any(p.startswith("actuators.slew.target.1:") for p in exc.value.problems)

@@ -89,6 +89,28 @@ def prepare(machine: Machine, options: SimOptions | None = None) -> Prepared:
                     machine.joint_index(machine.torque_drives[0].joint))
 
 
+def check_scenario(machine: Machine, scenario: Scenario) -> None:
+    """Check a scenario against a machine: targets inside the strokes and joint limits.
+
+    Raises:
+        ScenarioFileError: one ``field.path: message`` line per target knot out of range.
+    """
+    from cranetwin.sim.scenario import ACTUATORS, ScenarioFileError
+
+    problems: list[str] = []
+    progs = scenario.actuators.ordered()
+    slew_joint = machine.joints[machine.joint_index(machine.torque_drives[0].joint)]
+    ranges = [(slew_joint.lower, slew_joint.upper, "rad", "joint limits")]
+    ranges += [(0.0, c.stroke_m, "m", "stroke") for c in machine.cylinders]
+    for name, prog, (lo, hi, unit, what) in zip(ACTUATORS, progs, ranges, strict=True):
+        for i, (_, r) in enumerate(prog.target):
+            if not lo <= r <= hi:
+                problems.append(f"actuators.{name}.target.{i}: {r:g} {unit} is outside the "
+                                f"{what} [{lo:g}, {hi:g}] {unit} of {machine.name}")
+    if problems:
+        raise ScenarioFileError(scenario.name, problems)
+
+
 def initial_state(prep: Prepared, scenario: Scenario, options: SimOptions) -> F64:
     """State in the scenario's initial pose and velocities, with the chamber pressures (and
     slewing torque) that balance the bias forces h(q, qd), so the machine starts unaccelerated.
@@ -179,6 +201,7 @@ class Session:
             raise SimulationError(f"truth rate {opts.truth_rate_hz} Hz must divide the step rate "
                                   f"{1 / dt:g} Hz")
         self.every = every
+        check_scenario(prep.machine, scenario)
         # separate streams: the sampling schedule does not depend on how the run is chunked
         self._clock = SampleClock(self.sensors, dt, np.random.default_rng([seed, 1]))
         self._reader = SensorReader(prep.machine, self.sensors, np.random.default_rng([seed, 2]))
