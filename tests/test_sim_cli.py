@@ -18,13 +18,13 @@ def test_simulate_writes_a_seeded_recording(tmp_path: Path) -> None:
         out = tmp_path / name
         res = runner.invoke(app, ["simulate", "--scenario", "random", "--duration", "0.5",
                                   "--rate", "50", "--seed", "4", "--payload", "200",
-                                  "--quiet", "--out", str(out)])
+                                  "--machine-id", "crane-7", "--quiet", "--out", str(out)])
         assert res.exit_code == 0, res.output
         outs.append(Recording.load(out))
     a, b = outs
     assert a.samples.values.shape == (26, 11)
     assert np.array_equal(a.samples.values, b.samples.values, equal_nan=True)
-    assert a.scenario == "random" and a.seed == 4
+    assert a.scenario == "random" and a.seed == 4 and a.samples.machine_id == "crane-7"
 
 
 def test_simulate_csv_and_bad_scenario(tmp_path: Path) -> None:

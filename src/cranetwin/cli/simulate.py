@@ -38,6 +38,8 @@ def simulate_command(
     dropout: float | None = typer.Option(None, "--dropout", help="Dropout probability."),
     start_epoch: float = typer.Option(0.0, "--start-epoch",
                                       help="Epoch time of t = 0 [s] (0 = simulation time)."),
+    machine_id: str | None = typer.Option(None, "--machine-id",
+                                          help="Identifier on the samples (default: name)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Simulate a crane (hydraulics + multibody, 1e-4 s step) and write sensor samples and
@@ -78,6 +80,7 @@ def simulate_command(
         rec = simulate(m, sc, duration_s=total, options=SimOptions(step_s=step,
                                                                    truth_rate_hz=truth_rate),
                        sensors=sensors, seed=seed, start_epoch_s=start_epoch,
+                       machine_id=machine_id,
                        progress=lambda done, _tot: bar.update(task, completed=done))
     wall = time.perf_counter() - wall
     path = rec.save(out)

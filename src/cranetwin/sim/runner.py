@@ -177,6 +177,8 @@ class Session:
         seed: Seed of the sensor model's randomness.
         start_epoch_s: Epoch time of t = 0 [s].
         keep_truth: Accumulate the ground truth (memory ≈ 0.3 MB per simulated second at 1 kHz).
+        machine_id: Identifier stamped on the samples (default: the machine's name); give each
+            crane of a simulated fleet its own.
 
     Raises:
         ScenarioError: initial pose outside the machine's range.
@@ -185,8 +187,9 @@ class Session:
 
     def __init__(self, prep: Prepared, scenario: Scenario, *, options: SimOptions | None = None,
                  sensors: SensorModel | None = None, seed: int = 0, start_epoch_s: float = 0.0,
-                 keep_truth: bool = True) -> None:
+                 keep_truth: bool = True, machine_id: str | None = None) -> None:
         self.prep = prep
+        self.machine_id = machine_id or prep.machine.name
         self.scenario = scenario
         self.options = opts = options or SimOptions()
         self.sensors = sensors or SensorModel()
@@ -264,7 +267,7 @@ class Session:
         i1 = self.step_index + int(round(seconds / self.options.step_s))
         t_nom, snaps = self._run(i1, final)
         self._finished = final
-        return SampleArrays(machine_id=self.prep.machine.name, t_s=self.start_epoch_s + t_nom,
+        return SampleArrays(machine_id=self.machine_id, t_s=self.start_epoch_s + t_nom,
                             channels=self.channels, values=self._reader.read(snaps))
 
     def truth(self, wrenches: bool = True) -> Truth:
@@ -277,7 +280,8 @@ class Session:
 def simulate(machine: Machine | Prepared, scenario: Scenario, *, duration_s: float | None = None,
              options: SimOptions | None = None, sensors: SensorModel | None = None,
              seed: int = 0, start_epoch_s: float = 0.0, wrenches: bool = True,
-             progress: Callable[[float, float], None] | None = None) -> Recording:
+             progress: Callable[[float, float], None] | None = None,
+             machine_id: str | None = None) -> Recording:
     """Simulate ``scenario`` on ``machine`` and sample its sensors.
 
     Args:
@@ -290,6 +294,7 @@ def simulate(machine: Machine | Prepared, scenario: Scenario, *, duration_s: flo
         start_epoch_s: Epoch time of t = 0 [s].
         wrenches: Compute joint reaction wrenches for the truth (else NaN).
         progress: Called as ``progress(simulated_s, total_s)`` between chunks.
+        machine_id: Identifier stamped on the samples (default: the machine's name).
 
     Returns:
         The :class:`~cranetwin.sim.recording.Recording`: samples from t = 0 to ``duration_s``
@@ -305,7 +310,7 @@ def simulate(machine: Machine | Prepared, scenario: Scenario, *, duration_s: flo
     if duration <= 0:
         raise SimulationError(f"duration {duration} s must be > 0")
     session = Session(prep, scenario, options=opts, sensors=sensors, seed=seed,
-                      start_epoch_s=start_epoch_s)
+                      start_epoch_s=start_epoch_s, machine_id=machine_id)
     n_steps = int(round(duration / opts.step_s))
     chunk = max(1, int(round(0.5 / opts.step_s)))
     parts: list[SampleArrays] = []
@@ -319,7 +324,7 @@ def simulate(machine: Machine | Prepared, scenario: Scenario, *, duration_s: flo
         if final:
             break
     log.debug("simulated %.3f s in %.3f s", duration, time.perf_counter() - wall)
-    samples = SampleArrays(machine_id=prep.machine.name,
+    samples = SampleArrays(machine_id=session.machine_id,
                            t_s=np.concatenate([p.t_s for p in parts]),
                            channels=session.channels,
                            values=np.concatenate([p.values for p in parts]))
