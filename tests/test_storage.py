@@ -140,13 +140,18 @@ def _raw_buckets(values: np.ndarray, t_ns: np.ndarray, width_s: int,
     return lo, hi, mean, cnt
 
 
+@pytest.mark.parametrize("final_rollup", [False, True])
 @pytest.mark.parametrize("max_points", [1000, 7, 3])
-def test_summaries_agree_with_raw_samples_and_never_double_count(store: Store,
-                                                                 max_points: int) -> None:
+def test_summaries_agree_with_raw_samples_and_never_double_count(
+        store: Store, max_points: int, final_rollup: bool) -> None:
     blocks = [make_block("crane-1", s, n=250) for s in range(60)]  # 150 s, crosses minutes
     store.write_blocks(blocks[:40])
+    assert store.rollup() >= 2  # minutes rolled up, then touched again by late blocks below
     store.write_blocks(blocks[20:])  # half of it again: must not be counted twice
     store.write_blocks(blocks[::7])
+    if final_rollup:
+        assert store.rollup() >= 1
+        assert store.rollup() == 0
     raw = store.read_samples("crane-1", 0, 2e9)
     t0, t1 = raw.t_s[0] - 0.5, raw.t_s[-1] + 1
     summ = store.summaries("crane-1", ["lift_s", "slew_torque"], t0, t1, max_points=max_points)

@@ -79,6 +79,13 @@ def encode(values: F64, resolution: Sequence[float], level: int = 6) -> bytes:
         The blob described in the module docstring.
     """
     k, mask = quantise(values, resolution)
+    return encode_ints(k, mask, level)
+
+
+def encode_ints(k: I64, mask: npt.NDArray[np.bool_] | None = None, level: int = 6) -> bytes:
+    """Compress an integer array, shape (n, c), with an optional missing-value mask (n, c)."""
+    if mask is None:
+        mask = np.zeros(k.shape, dtype=bool)
     n, c = k.shape
     kt = np.ascontiguousarray(k.T)  # channel-major: each channel's run is contiguous
     d = np.diff(kt, axis=1, prepend=np.zeros((c, 1), dtype=np.int64))
@@ -135,3 +142,64 @@ def decode(blob: bytes, resolution: Sequence[float]) -> F64:
     out = k * res
     out[mask] = np.nan
     return out
+
+
+def encode_many(k: I64, mask: npt.NDArray[np.bool_], level: int = 6) -> list[bytes]:
+    """:func:`encode_ints` of B equally shaped arrays at once (same bytes, less overhead).
+
+    Args:
+        k: Quantised values, shape (B, n, c); mask: missing samples, shape (B, n, c).
+
+    Returns:
+        B blobs; ``decode_ints(blobs[i])`` gives back ``(k[i], mask[i])``.
+    """
+    nb, n, c = k.shape
+    kt = np.ascontiguousarray(k.transpose(0, 2, 1))  # (B, c, n): channel-major per block
+    d = np.diff(kt, axis=2, prepend=np.zeros((nb, c, 1), dtype=np.int64))
+    z = ((d << 1) ^ (d >> 63)).view(np.uint64).reshape(nb, c * n)
+    top = z.max(axis=1) if z.size else np.zeros(nb, dtype=np.uint64)
+    has_mask: npt.NDArray[np.bool_] = np.asarray(mask.reshape(nb, -1).any(axis=1))
+    out: list[bytes] = [b""] * nb
+    for width, dtype in _WIDTHS:
+        lim = np.uint64(2 ** (8 * width) - 1) if width < 8 else np.iinfo(np.uint64).max
+        lower = np.uint64(2 ** (8 * (width // 2)) - 1) if width > 1 else None
+        sel = top <= lim
+        if lower is not None:
+            sel &= top > lower
+        idx = np.flatnonzero(sel)
+        if idx.size == 0:
+            continue
+        planes = np.ascontiguousarray(
+            z[idx].astype(dtype).view(np.uint8).reshape(idx.size, c * n, width)
+            .transpose(0, 2, 1))
+        for row, b in enumerate(idx.tolist()):
+            body = planes[row].tobytes()
+            if has_mask[b]:
+                body += np.packbits(mask[b].T.reshape(-1)).tobytes()
+            out[b] = _HEAD.pack(VERSION, width, int(has_mask[b]), n, c) + zlib.compress(body,
+                                                                                          level)
+    return out
+
+
+def encode_plain(k: I64) -> bytes:
+    """Small integer arrays (summaries), shape (r, c): header + zlib of little-endian int64."""
+    r, c = k.shape
+    return _HEAD.pack(VERSION, 8, 0x80, r, c) + zlib.compress(k.astype("<i8").tobytes(), 1)
+
+
+def decode_plain(blob: bytes) -> I64:
+    """Inverse of :func:`encode_plain`.
+
+    Raises:
+        CodecError: Truncated or corrupt blob.
+    """
+    if len(blob) < _HEAD.size:
+        raise CodecError(f"summary blob of {len(blob)} bytes is shorter than its header")
+    version, _, flags, r, c = _HEAD.unpack_from(blob)
+    try:
+        body = zlib.decompress(blob[_HEAD.size:])
+    except zlib.error as exc:
+        raise CodecError(f"corrupt summary blob: {exc}") from exc
+    if version != VERSION or flags != 0x80 or len(body) != 8 * r * c:
+        raise CodecError("summary blob has an unknown format or a wrong length")
+    return np.frombuffer(body, dtype="<i8").reshape(r, c).astype(np.int64)

@@ -9,10 +9,10 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
-from sqlalchemy import Engine, Table, bindparam, func, select, update
+from sqlalchemy import Engine, func, select
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session
@@ -186,22 +186,21 @@ class Store:
                 unique: dict[tuple[int, int], SampleBlock] = {}
                 for b in blocks:
                     unique.setdefault((self._machine_pk(s, b.machine_id), b.seq), b)
-                params = [blocks_mod.block_params(pk, b) for (pk, _), b in unique.items()]
-                new = blocks_mod.insert_new(s, params)
-                acc: dict[summaries_mod.Key, summaries_mod.Agg] = {}
+                rows = blocks_mod.block_rows([(pk, b) for (pk, _), b in unique.items()])
+                new = blocks_mod.insert_new(s, rows)
                 last: dict[int, int] = {}
+                minutes: set[tuple[int, int]] = set()
                 for key in new:
                     b = unique[key]
-                    summaries_mod.accumulate(acc, key[0], b.channels, b.times_ns(), b.values)
+                    minutes.update(summaries_mod.block_minutes(key[0], b.t0_ns, b.t_end_ns))
                     last[key[0]] = max(last.get(key[0], b.t_end_ns), b.t_end_ns)
-                summaries_mod.merge(s, acc)
+                summaries_mod.mark_dirty(s, minutes)
                 if last:
-                    m = cast(Table, MachineRow.__table__)
-                    s.execute(update(m).where(
-                        m.c.id == bindparam("pk"),
-                        (m.c.last_seen_ns.is_(None)) | (m.c.last_seen_ns < bindparam("t")))
-                        .values(last_seen_ns=bindparam("t")),
-                        [{"pk": pk, "t": t} for pk, t in last.items()])
+                    ph = "?" if self.dialect == "sqlite" else "%s"
+                    s.connection().exec_driver_sql(
+                        f"UPDATE machines SET last_seen_ns = {ph} WHERE id = {ph} AND "
+                        f"(last_seen_ns IS NULL OR last_seen_ns < {ph})",
+                        [(t, pk, t) for pk, t in last.items()])
                 return len(new)
         except UnknownMachineError:
             raise
@@ -263,6 +262,19 @@ class Store:
         with self._session() as s:
             pk = self._machine_pk(s, machine_id)
             return summaries_mod.query(s, pk, machine_id, channels, t0_s, t1_s, max_points)
+
+    def rollup(self, before_s: float | None = None) -> int:
+        """Recompute stale 1-min summaries of raw channels (an optimisation: queries are exact
+        without it). The ingest daemon calls it periodically and on shutdown.
+
+        Args:
+            before_s: Only minutes ending at or before this time [s since the epoch]; None = all.
+
+        Returns:
+            Number of machine-minutes rolled up.
+        """
+        with self._session() as s, s.begin():
+            return summaries_mod.rollup(s, before_s)
 
     def write_summaries(self, machine_id: str, t_s: F64, channels: Sequence[str],
                         values: F64) -> int:

@@ -1,10 +1,17 @@
-"""Per-interval summaries (count, min, max, sum per channel) at 1 s and 1 min.
+"""Per-interval summaries (count, min, max, mean per channel) at 1 s and 1 min.
 
-Load-history queries read these instead of raw samples: a 24-hour chart of one channel is at most
-1440 one-minute rows. Summaries of raw channels are maintained by ``Store.write_blocks`` from the
-blocks that were *newly* inserted in the same transaction, so a retransmitted block is never
-counted twice. Derived channels (``force:lift``, ...) are written by the twin worker with
-:func:`replace`, which overwrites the buckets it covers, so re-running a replay is idempotent too.
+Load-history queries read these instead of raw samples (a 24-hour chart of one channel is at most
+1440 one-minute rows). Three sources, none of which can count a sample twice:
+
+* **1 s, raw channels**: the per-second aggregates stored with each block
+  (:func:`cranetwin.storage.blocks.per_second`), written in the block's own row, so a duplicate
+  block (ignored by the unique key) adds nothing.
+* **1 min, raw channels**: rows of the ``summaries`` table *recomputed* (not incremented) from the
+  per-second aggregates of the minute by :func:`rollup`. Every transaction that stores a new block
+  marks its minutes in ``summary_dirty``; a query computes dirty minutes on the fly from the
+  blocks, so results are exact before and after the rollup runs.
+* **derived channels** (``force:lift``, ...): rows written by the twin with :func:`replace`,
+  which overwrites the buckets it covers, so re-running a replay is idempotent.
 """
 
 from __future__ import annotations
@@ -15,29 +22,20 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import (
-    BigInteger,
-    Float,
-    ForeignKey,
-    Integer,
-    String,
-    case,
-    delete,
-    func,
-    insert,
-    select,
-)
-from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy import BigInteger, Float, ForeignKey, Integer, String, delete, insert, select
 from sqlalchemy.orm import Mapped, Session, mapped_column
 
 from cranetwin.errors import StorageError
 from cranetwin.samples import F64
+from cranetwin.storage import bulk
 from cranetwin.storage.base import Base
+from cranetwin.storage.blocks import SEC, read_second_aggregates
 
 LEVELS_S: tuple[int, ...] = (1, 60)
-"""Bucket widths maintained on write [s]."""
+"""Stored bucket widths [s]."""
+MINUTE = 60
 
-Key = tuple[int, str, int, int]  # machine_pk, channel, level_s, bucket_s
+Key = tuple[str, int, int]  # channel, level_s, bucket_s
 Agg = list[float]  # [count, min, max, sum]
 
 
@@ -57,13 +55,132 @@ class SummaryRow(Base):
     vsum: Mapped[float] = mapped_column(Float)
 
 
-def accumulate(acc: dict[Key, Agg], machine_pk: int, channels: Sequence[str], t_ns: npt.NDArray[
-        np.int64], values: F64) -> None:
-    """Add samples to in-memory bucket aggregates (NaN samples are skipped).
+class DirtyMinute(Base):
+    """A minute of a machine whose 1-min raw summaries are stale (new blocks since the rollup).
+
+    ``version`` is bumped by every writer that touches the minute, so a rollup deletes the mark
+    only if no block arrived while it computed.
+    """
+
+    __tablename__ = "summary_dirty"
+
+    machine_pk: Mapped[int] = mapped_column(ForeignKey("machines.id", ondelete="CASCADE"),
+                                            primary_key=True)
+    minute_s: Mapped[int] = mapped_column(BigInteger, primary_key=True)
+    version: Mapped[int] = mapped_column(BigInteger, default=0)
+
+
+def mark_dirty(session: Session, minutes: Iterable[tuple[int, int]]) -> None:
+    """Mark (machine_pk, minute_s) pairs stale, in the caller's transaction."""
+    rows = sorted({(pk, m, 0) for pk, m in minutes})
+    bulk.insert_rows(session.connection(), DirtyMinute.__tablename__,
+                     ("machine_pk", "minute_s", "version"), rows,
+                     "ON CONFLICT (machine_pk, minute_s) DO UPDATE SET "
+                     "version = summary_dirty.version + 1")
+
+
+def block_minutes(machine_pk: int, t0_ns: int, t_end_ns: int) -> list[tuple[int, int]]:
+    """(machine_pk, minute_s) of every minute a block spans."""
+    a, b = t0_ns // (MINUTE * SEC), t_end_ns // (MINUTE * SEC)
+    return [(machine_pk, int(m) * MINUTE) for m in range(a, b + 1)]
+
+
+@dataclass
+class _Records:
+    """Flat aggregate records: bucket start [s], channel index, count, min, max, sum."""
+
+    sec: list[npt.NDArray[np.int64]]
+    col: list[npt.NDArray[np.int64]]
+    n: list[npt.NDArray[np.int64]]
+    lo: list[F64]
+    hi: list[F64]
+    sm: list[F64]
+
+    @classmethod
+    def empty(cls) -> _Records:
+        return cls([], [], [], [], [], [])
+
+    def add(self, sec: npt.NDArray[np.int64], j: int, n: npt.NDArray[np.int64], lo: F64, hi: F64,
+            sm: F64) -> None:
+        self.sec.append(sec)
+        self.col.append(np.full(sec.shape, j, dtype=np.int64))
+        self.n.append(n)
+        self.lo.append(lo)
+        self.hi.append(hi)
+        self.sm.append(sm)
+
+
+def _raw_seconds(session: Session, machine_pk: int, t0_s: int, t1_s: int,
+                 col: dict[str, int] | None, recs: _Records) -> set[str]:
+    """Add per-second raw records in [t0_s, t1_s) (channels in ``col``, or all: their names are
+    then added to ``col``). Returns the raw channel names seen."""
+    seen: set[str] = set()
+    for agg in read_second_aggregates(session, machine_pk, t0_s, t1_s):
+        inside = (agg.sec >= t0_s) & (agg.sec < t1_s)
+        for js, ch in enumerate(agg.channels):
+            seen.add(ch)
+            if col is None or ch not in col:
+                continue
+            keep = inside & (agg.count[:, js] > 0)
+            if keep.any():
+                recs.add(agg.sec[keep], col[ch], agg.count[keep, js], agg.min[keep, js],
+                         agg.max[keep, js], agg.sum[keep, js])
+    return seen
+
+
+def _minute_from_seconds(session: Session, machine_pk: int, minute_s: int) -> dict[str, Agg]:
+    """Exact 1-min aggregates of the raw channels, computed from the blocks' per-second ones."""
+    recs = _Records.empty()
+    names: dict[str, int] = {}
+    for agg in read_second_aggregates(session, machine_pk, minute_s, minute_s + MINUTE):
+        for ch in agg.channels:
+            names.setdefault(ch, len(names))
+    _raw_seconds(session, machine_pk, minute_s, minute_s + MINUTE, names, recs)
+    out: dict[str, Agg] = {}
+    if not recs.sec:
+        return out
+    col, n = np.concatenate(recs.col), np.concatenate(recs.n)
+    lo, hi, sm = np.concatenate(recs.lo), np.concatenate(recs.hi), np.concatenate(recs.sm)
+    for ch, j in names.items():
+        sel = col == j
+        if sel.any():
+            out[ch] = [int(n[sel].sum()), float(lo[sel].min()), float(hi[sel].max()),
+                       float(sm[sel].sum())]
+    return out
+
+
+def rollup(session: Session, before_s: float | None = None) -> int:
+    """Recompute stale 1-min raw summaries (minutes ending at or before ``before_s``, or all).
+
+    Returns:
+        Number of machine-minutes rolled up.
+    """
+    stmt = select(DirtyMinute.machine_pk, DirtyMinute.minute_s, DirtyMinute.version)
+    if before_s is not None:
+        stmt = stmt.where(DirtyMinute.minute_s + MINUTE <= before_s)
+    done = 0
+    conn = session.connection()
+    upsert = ("ON CONFLICT (machine_pk, channel, level_s, bucket_s) DO UPDATE SET "
+              "n = excluded.n, vmin = excluded.vmin, vmax = excluded.vmax, vsum = excluded.vsum")
+    for pk, minute, version in session.execute(stmt).all():
+        aggs = _minute_from_seconds(session, pk, minute)
+        rows = [(pk, ch, MINUTE, minute, a[0], a[1], a[2], a[3]) for ch, a in aggs.items()]
+        bulk.insert_rows(conn, SummaryRow.__tablename__,
+                         ("machine_pk", "channel", "level_s", "bucket_s", "n", "vmin", "vmax",
+                          "vsum"), rows, upsert)
+        session.execute(delete(DirtyMinute).where(
+            DirtyMinute.machine_pk == pk, DirtyMinute.minute_s == minute,
+            DirtyMinute.version == version))
+        done += 1
+    return done
+
+
+def accumulate(acc: dict[Key, Agg], channels: Sequence[str], t_ns: npt.NDArray[np.int64],
+               values: F64) -> None:
+    """Add samples to in-memory 1-s and 1-min bucket aggregates (NaN samples are skipped).
 
     Args:
-        acc: Aggregates to update, keyed (machine_pk, channel, level_s, bucket_s).
-        machine_pk: Machine row id.
+        acc: Aggregates to update, keyed (channel, level_s, bucket_s).
         channels: Channel names, length c.
         t_ns: Sample times, shape (n,), non-decreasing [ns].
         values: Shape (n, c) [channel units]; NaN = missing.
@@ -71,12 +188,10 @@ def accumulate(acc: dict[Key, Agg], machine_pk: int, channels: Sequence[str], t_
     if t_ns.size == 0:
         return
     ok = ~np.isnan(values)
-    vmin = np.where(ok, values, np.inf)
-    vmax = np.where(ok, values, -np.inf)
-    vsum = np.where(ok, values, 0.0)
-    cnt = ok.astype(np.int64)
+    vmin, vmax = np.where(ok, values, np.inf), np.where(ok, values, -np.inf)
+    vsum, cnt = np.where(ok, values, 0.0), ok.astype(np.int64)
     for level in LEVELS_S:
-        bucket = (t_ns // (level * 1_000_000_000)) * level
+        bucket = (t_ns // (level * SEC)) * level
         starts = np.concatenate(([0], np.flatnonzero(np.diff(bucket)) + 1))
         mins = np.minimum.reduceat(vmin, starts, axis=0)
         maxs = np.maximum.reduceat(vmax, starts, axis=0)
@@ -84,42 +199,13 @@ def accumulate(acc: dict[Key, Agg], machine_pk: int, channels: Sequence[str], t_
         cnts = np.add.reduceat(cnt, starts, axis=0)
         for i, b in enumerate(bucket[starts].tolist()):
             for j, ch in enumerate(channels):
-                c = int(cnts[i, j])
-                if c == 0:
-                    continue
-                key = (machine_pk, ch, level, b)
-                a = acc.get(key)
-                if a is None:
-                    acc[key] = [c, float(mins[i, j]), float(maxs[i, j]), float(sums[i, j])]
-                else:
-                    a[0] += c
-                    a[1] = min(a[1], float(mins[i, j]))
-                    a[2] = max(a[2], float(maxs[i, j]))
-                    a[3] += float(sums[i, j])
+                if cnts[i, j] > 0:
+                    acc[(ch, level, b)] = [int(cnts[i, j]), float(mins[i, j]),
+                                           float(maxs[i, j]), float(sums[i, j])]
 
 
-def _rows(acc: dict[Key, Agg]) -> list[dict[str, object]]:
-    return [{"machine_pk": k[0], "channel": k[1], "level_s": k[2], "bucket_s": k[3],
-             "n": int(a[0]), "vmin": a[1], "vmax": a[2], "vsum": a[3]} for k, a in acc.items()]
-
-
-def merge(session: Session, acc: dict[Key, Agg]) -> None:
-    """Add aggregates to the table (count and sum added, min/max combined) — an upsert."""
-    if not acc:
-        return
-    dialect = session.get_bind().dialect.name
-    ins = postgresql.insert(SummaryRow) if dialect == "postgresql" else sqlite.insert(SummaryRow)
-    t, x = SummaryRow, ins.excluded
-    stmt = ins.on_conflict_do_update(
-        index_elements=["machine_pk", "channel", "level_s", "bucket_s"],
-        set_={"n": t.n + x.n, "vsum": t.vsum + x.vsum,
-              "vmin": case((x.vmin < t.vmin, x.vmin), else_=t.vmin),
-              "vmax": case((x.vmax > t.vmax, x.vmax), else_=t.vmax)})
-    session.execute(stmt, _rows(acc))
-
-
-def replace(session: Session, machine_pk: int, channels: Sequence[str], t_ns: npt.NDArray[
-        np.int64], values: F64) -> int:
+def replace(session: Session, machine_pk: int, channels: Sequence[str],
+            t_ns: npt.NDArray[np.int64], values: F64) -> int:
     """Overwrite the buckets covered by ``t_ns`` with aggregates of ``values`` (derived channels).
 
     Buckets at both ends of the span are overwritten with what this call sees, so callers write
@@ -129,15 +215,17 @@ def replace(session: Session, machine_pk: int, channels: Sequence[str], t_ns: np
         Number of bucket rows written.
     """
     acc: dict[Key, Agg] = {}
-    accumulate(acc, machine_pk, channels, t_ns, values)
+    accumulate(acc, channels, t_ns, values)
     for level in LEVELS_S:
-        lo = int(t_ns[0] // (level * 1_000_000_000)) * level
-        hi = int(t_ns[-1] // (level * 1_000_000_000)) * level
+        lo = int(t_ns[0] // (level * SEC)) * level
+        hi = int(t_ns[-1] // (level * SEC)) * level
         session.execute(delete(SummaryRow).where(
             SummaryRow.machine_pk == machine_pk, SummaryRow.channel.in_(list(channels)),
             SummaryRow.level_s == level, SummaryRow.bucket_s.between(lo, hi)))
     if acc:
-        session.execute(insert(SummaryRow), _rows(acc))
+        session.execute(insert(SummaryRow), [
+            {"machine_pk": machine_pk, "channel": k[0], "level_s": k[1], "bucket_s": k[2],
+             "n": int(a[0]), "vmin": a[1], "vmax": a[2], "vsum": a[3]} for k, a in acc.items()])
     return len(acc)
 
 
@@ -147,7 +235,7 @@ class Summaries:
 
     Attributes:
         machine_id: Machine identifier.
-        bucket_s: Bucket width [s] (1, 60 or a multiple of 60).
+        bucket_s: Bucket width [s] (1, 60 or a multiple of either).
         t_s: Bucket start times, shape (m,) [s since the epoch]; m ≤ max_points.
         channels: Channel names, length c.
         min, max, mean: Shape (m, c) [channel units]; NaN where a bucket has no sample.
@@ -171,12 +259,15 @@ def choose_width(t0_s: float, t1_s: float, max_points: int) -> tuple[int, int, i
     Returns:
         ``(level_s, width_s, origin_s)``: level read, bucket width (a multiple of it) and the
         first bucket's start (a multiple of the width).
+
+    Raises:
+        StorageError: ``max_points < 1`` or an empty range.
     """
     if max_points < 1:
         raise StorageError(f"max_points must be ≥ 1, got {max_points}")
     if not t1_s > t0_s:
         raise StorageError(f"empty time range [{t0_s}, {t1_s}); expected t1 > t0")
-    level = 1 if (t1_s - t0_s) <= max_points else 60
+    level = 1 if (t1_s - t0_s) <= max_points else MINUTE
     width = level * max(1, math.ceil((t1_s - t0_s) / (level * max_points)))
     while True:
         origin = math.floor(t0_s / width) * width
@@ -187,25 +278,52 @@ def choose_width(t0_s: float, t1_s: float, max_points: int) -> tuple[int, int, i
 
 def query(session: Session, machine_pk: int, machine_id: str, channels: Iterable[str],
           t0_s: float, t1_s: float, max_points: int) -> Summaries:
-    """Read bucketed aggregates of [t0_s, t1_s) (buckets that start in the range's grid)."""
+    """Bucketed aggregates over the bucket grid covering [t0_s, t1_s) (whole buckets)."""
     chans = tuple(channels)
+    col = {c: j for j, c in enumerate(chans)}
     level, width, origin = choose_width(t0_s, t1_s, max_points)
     m = math.ceil((t1_s - origin) / width)
-    g = ((SummaryRow.bucket_s - origin) // width).label("g")  # integer division, both dialects
-    stmt = (select(SummaryRow.channel, g, func.sum(SummaryRow.n), func.min(SummaryRow.vmin),
-                   func.max(SummaryRow.vmax), func.sum(SummaryRow.vsum))
-            .where(SummaryRow.machine_pk == machine_pk, SummaryRow.level_s == level,
-                   SummaryRow.channel.in_(chans), SummaryRow.bucket_s >= origin,
-                   SummaryRow.bucket_s < origin + m * width)
-            .group_by(SummaryRow.channel, g))
+    end = origin + m * width
+    recs = _Records.empty()
+    stale: dict[int, set[str]] = {}  # dirty minute → raw channels recomputed for it
+    if level == 1:
+        _raw_seconds(session, machine_pk, origin, end, col, recs)
+    else:
+        dirty = session.scalars(select(DirtyMinute.minute_s).where(
+            DirtyMinute.machine_pk == machine_pk, DirtyMinute.minute_s >= origin,
+            DirtyMinute.minute_s < end)).all()
+        for minute in dirty:
+            aggs = _minute_from_seconds(session, machine_pk, int(minute))
+            stale[int(minute)] = set(aggs)
+            for ch, a in aggs.items():
+                if ch in col:
+                    recs.add(np.array([minute], dtype=np.int64), col[ch],
+                             np.array([a[0]], dtype=np.int64), np.array([a[1]]),
+                             np.array([a[2]]), np.array([a[3]]))
+    rows = session.execute(
+        select(SummaryRow.channel, SummaryRow.bucket_s, SummaryRow.n, SummaryRow.vmin,
+               SummaryRow.vmax, SummaryRow.vsum)
+        .where(SummaryRow.machine_pk == machine_pk, SummaryRow.level_s == level,
+               SummaryRow.channel.in_(chans), SummaryRow.bucket_s >= origin,
+               SummaryRow.bucket_s < end)).all()
+    for ch, b, n, lo, hi, sm in rows:
+        if ch in stale.get(int(b), ()):
+            continue  # superseded by the on-the-fly recomputation above
+        recs.add(np.array([b], dtype=np.int64), col[ch], np.array([n], dtype=np.int64),
+                 np.array([lo]), np.array([hi]), np.array([sm]))
     shape = (m, len(chans))
-    vmin, vmax, vsum = np.full(shape, np.nan), np.full(shape, np.nan), np.zeros(shape)
-    count = np.zeros(shape, dtype=np.int64)
-    col = {c: j for j, c in enumerate(chans)}
-    for ch, gi, n, lo, hi, s in session.execute(stmt):
-        i, j = int(gi), col[ch]
-        count[i, j], vmin[i, j], vmax[i, j], vsum[i, j] = int(n), lo, hi, s
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(count > 0, vsum / np.maximum(count, 1), np.nan)
+    vmin, vmax = np.full(shape, np.inf), np.full(shape, -np.inf)
+    vsum, count = np.zeros(shape), np.zeros(shape, dtype=np.int64)
+    if recs.sec:
+        g = (np.concatenate(recs.sec) - origin) // width
+        j = np.concatenate(recs.col)
+        np.add.at(count, (g, j), np.concatenate(recs.n))
+        np.minimum.at(vmin, (g, j), np.concatenate(recs.lo))
+        np.maximum.at(vmax, (g, j), np.concatenate(recs.hi))
+        np.add.at(vsum, (g, j), np.concatenate(recs.sm))
+    has = count > 0
+    mean = np.where(has, vsum / np.maximum(count, 1), np.nan)
+    vmin[~has] = np.nan
+    vmax[~has] = np.nan
     t = origin + width * np.arange(m, dtype=np.float64)
     return Summaries(machine_id, width, t, chans, vmin, vmax, mean, count)

@@ -1,5 +1,5 @@
 # ruff: noqa: E501
-"""Initial schema: machines, sample_blocks, summaries, events.
+"""Initial schema: machines, sample_blocks, summaries, summary_dirty, events.
 
 Revision ID: 0001
 Revises:
@@ -60,6 +60,7 @@ def upgrade() -> None:
     sa.Column('n', sa.Integer(), nullable=False),
     sa.Column('channels', sa.Text(), nullable=False),
     sa.Column('resolution', sa.Text(), nullable=False),
+    sa.Column('summary', sa.LargeBinary(), nullable=False),
     sa.Column('data', sa.LargeBinary(), nullable=False),
     sa.ForeignKeyConstraint(['machine_pk'], ['machines.id'], name=op.f('fk_sample_blocks_machine_pk_machines'), ondelete='CASCADE'),
     sa.PrimaryKeyConstraint('id', name=op.f('pk_sample_blocks')),
@@ -69,6 +70,13 @@ def upgrade() -> None:
         batch_op.create_index('ix_sample_blocks_machine_t_end', ['machine_pk', 't_end_ns'], unique=False)
         batch_op.create_index('ix_sample_blocks_machine_t_start', ['machine_pk', 't_start_ns'], unique=False)
 
+    op.create_table('summary_dirty',
+    sa.Column('machine_pk', sa.Integer(), nullable=False),
+    sa.Column('minute_s', sa.BigInteger(), nullable=False),
+    sa.Column('version', sa.BigInteger(), nullable=False),
+    sa.ForeignKeyConstraint(['machine_pk'], ['machines.id'], name=op.f('fk_summary_dirty_machine_pk_machines'), ondelete='CASCADE'),
+    sa.PrimaryKeyConstraint('machine_pk', 'minute_s', name=op.f('pk_summary_dirty'))
+    )
     op.create_table('summaries',
     sa.Column('machine_pk', sa.Integer(), nullable=False),
     sa.Column('channel', sa.String(length=64), nullable=False),
@@ -86,6 +94,7 @@ def upgrade() -> None:
 def downgrade() -> None:
     """Downgrade schema."""
     op.drop_table('summaries')
+    op.drop_table('summary_dirty')
     with op.batch_alter_table('sample_blocks', schema=None) as batch_op:
         batch_op.drop_index('ix_sample_blocks_machine_t_start')
         batch_op.drop_index('ix_sample_blocks_machine_t_end')
