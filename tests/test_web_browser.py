@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import io
 import shutil
-import socket
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -33,45 +31,9 @@ playwright_api = pytest.importorskip("playwright.sync_api",
 Image = pytest.importorskip("PIL.Image", reason="Pillow needed for pixel checks")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class ServerThread:
-    """uvicorn serving an ASGI app on a free loopback port in a thread."""
-
-    def __init__(self, app: Any) -> None:
-        import uvicorn
-
-        self.port = _free_port()
-        config = uvicorn.Config(app, host="127.0.0.1", port=self.port, log_level="warning",
-                                ws="websockets-sansio")
-        self.server = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.server.run, daemon=True)
-
-    def __enter__(self) -> ServerThread:
-        self.thread.start()
-        deadline = time.time() + 20
-        while not self.server.started:
-            if time.time() > deadline:
-                raise RuntimeError("uvicorn did not start")
-            time.sleep(0.05)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.server.should_exit = True
-        self.thread.join(10)
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-
 @pytest.fixture(scope="module")
-def server() -> Iterator[ServerThread]:
-    from cranetwin.viz.preview import PreviewMachine, create_preview_app
+def server() -> Iterator[Any]:
+    from cranetwin.viz.preview import PreviewMachine, ServerThread, create_preview_app
 
     machines = [PreviewMachine("crane-1", "Crane 1", 250.0, 0.0),
                 PreviewMachine("crane-2", "Crane 2", 450.0, 13.0, alarms=2),
@@ -116,7 +78,7 @@ def _boom_pixels(img: Any) -> Any:
     return (r > 140) & (g > 90) & (b < 90) & (r - b > 90)
 
 
-def test_fleet_page_lists_machines(page: Any, server: ServerThread) -> None:
+def test_fleet_page_lists_machines(page: Any, server: Any) -> None:
     page.goto(f"{server.url}/?key=viewer-key")
     _wait_ready(page)
     rows = page.locator("#rows tr")
@@ -133,7 +95,7 @@ def test_fleet_page_lists_machines(page: Any, server: ServerThread) -> None:
     assert not page.errors
 
 
-def test_missing_key_asks_for_one(browser: Any, server: ServerThread) -> None:
+def test_missing_key_asks_for_one(browser: Any, server: Any) -> None:
     ctx = browser.new_context()
     pg = ctx.new_page()
     pg.goto(f"{server.url}/")
@@ -145,7 +107,7 @@ def test_missing_key_asks_for_one(browser: Any, server: ServerThread) -> None:
     ctx.close()
 
 
-def _replay(page: Any, server: ServerThread, t: float) -> None:
+def _replay(page: Any, server: Any, t: float) -> None:
     page.goto(f"{server.url}/machines/crane-2?key=viewer-key&mode=replay"
               f"&from={END - 600}&to={END}&t={t}")
     _wait_ready(page)
@@ -153,7 +115,7 @@ def _replay(page: Any, server: ServerThread, t: float) -> None:
     page.wait_for_timeout(300)
 
 
-def test_3d_view_draws_the_crane(page: Any, server: ServerThread) -> None:
+def test_3d_view_draws_the_crane(page: Any, server: Any) -> None:
     _replay(page, server, END - 300)
     img = _shot(page.locator("#view3d"), "machine-3d.png")
     _shot(page, "machine-page.png")
@@ -164,7 +126,7 @@ def test_3d_view_draws_the_crane(page: Any, server: ServerThread) -> None:
     assert not page.errors
 
 
-def test_slider_moves_the_boom(page: Any, server: ServerThread) -> None:
+def test_slider_moves_the_boom(page: Any, server: Any) -> None:
     _replay(page, server, END - 600)
     a = _shot(page.locator("#view3d"), "slider-a.png")
     slider = page.locator("#slider")
@@ -190,7 +152,7 @@ def test_slider_moves_the_boom(page: Any, server: ServerThread) -> None:
     assert not page.errors
 
 
-def test_play_advances_and_charts_follow(page: Any, server: ServerThread) -> None:
+def test_play_advances_and_charts_follow(page: Any, server: Any) -> None:
     _replay(page, server, END - 500)
     page.wait_for_selector("#charts .main-svg", timeout=20000)
     page.select_option("#speed", "4")
@@ -205,11 +167,13 @@ def test_play_advances_and_charts_follow(page: Any, server: ServerThread) -> Non
     assert not page.errors
 
 
-def test_live_updates_within_a_second(page: Any, server: ServerThread) -> None:
+def test_live_updates_within_a_second(page: Any, server: Any) -> None:
     page.goto(f"{server.url}/machines/crane-1?key=viewer-key&mode=live")
     page.wait_for_function("window.cranetwin.mode === 'live' && window.cranetwin.sceneMs !== null")
     page.wait_for_timeout(500)  # websocket connected
-    httpx.post(f"{server.url}/api/v1/_preview/push/crane-1")  # warm-up (first-call JIT)
+    # warm-up: first-call JIT on the server; the page then loads its charts library
+    httpx.post(f"{server.url}/api/v1/_preview/push/crane-1")
+    page.wait_for_selector("#charts .main-svg", timeout=20000)
     latencies = []
     for _ in range(5):
         sent = time.time()
@@ -225,12 +189,12 @@ def test_live_updates_within_a_second(page: Any, server: ServerThread) -> None:
     assert not page.errors
 
 
-def test_unknown_machine_says_so(page: Any, server: ServerThread) -> None:
+def test_unknown_machine_says_so(page: Any, server: Any) -> None:
     page.goto(f"{server.url}/machines/nope?key=viewer-key")
     page.wait_for_function("document.getElementById('banner').textContent.includes('Unknown')")
 
 
-def test_exported_file_replays_offline(page: Any, server: ServerThread, tmp_path: Path) -> None:
+def test_exported_file_replays_offline(page: Any, server: Any, tmp_path: Path) -> None:
     r = httpx.get(f"{server.url}/api/v1/machines/crane-2/export.html",
                   params={"from": END - 60, "to": END}, headers={"X-API-Key": "viewer-key"})
     assert r.status_code == 200

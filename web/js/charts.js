@@ -68,7 +68,7 @@ export class Charts {
         const x = s.t.map((t) => t * 1000);
         const color = PALETTE[c % PALETTE.length];
         const sc = (v) => (v === null ? null : v * g.scale);
-        traces.push({ x, y: s.max.map(sc), yaxis, type: "scattergl", mode: "lines", line: { width: 0, color }, hoverinfo: "skip" });
+        traces.push({ x, y: s.max.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 0, color }, hoverinfo: "skip" });
         traces.push({ x, y: s.min.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 0, color }, fill: "tonexty", fillcolor: hexAlpha(color, 0.18), hoverinfo: "skip" });
         traces.push({ x, y: s.mean.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 1.2, color }, name: g.label(name) });
       });
@@ -115,8 +115,8 @@ export class Charts {
     const px = xa._offset + xa.l2p(t * 1000);
     if (!(px >= xa._offset && px <= xa._offset + xa._length)) { this.cursor.style.display = "none"; return; }
     this.cursor.style.display = "block";
-    this.cursor.style.left = `${this.div.offsetLeft + px}px`;
-    this.cursor.style.top = `${this.div.offsetTop + fl.margin.t}px`;
+    // moved by a compositor transform: no layout, no repaint of the charts
+    this.cursor.style.transform = `translate(${this.div.offsetLeft + px}px, ${this.div.offsetTop + fl.margin.t}px)`;
     this.cursor.style.height = `${fl.height - fl.margin.t - fl.margin.b}px`;
   }
 }

@@ -12,6 +12,7 @@ const TRAIL_S = 20;
 
 // Measurements read by the browser tests and benchmarks.
 const metrics = window.cranetwin = {
+  moduleStartMs: performance.now(),
   ready: false, firstFrameMs: null, sceneMs: null, framesRendered: 0, rafIntervals: [],
   liveLatencyMs: [], liveFrames: 0, lastLiveT: null, mode: null, cursor: null, errors: [],
 };
@@ -94,9 +95,15 @@ function fromLocalInput(v) { return v ? Date.parse(v + "Z") / 1000 : null; }
 // ---- start ------------------------------------------------------------------------------------
 async function start() {
   const t0 = performance.now();
+  const machineP = source.machine();
+  const modelP = source.model();
+  const sceneP = source.scene();
   let machine, model, scene;
   try {
-    [machine, model, scene] = await Promise.all([source.machine(), source.model(), source.scene()]);
+    machine = await machineP;
+    // the replay range is known now: fetch the first frame while the scene is still on its way
+    planReplay(machine);
+    [model, scene] = await Promise.all([modelP, sceneP]);
   } catch (err) {
     return fail(err);
   }
@@ -111,25 +118,41 @@ async function start() {
   buildForceRows();
   if (embed) { $("mode-live").disabled = true; $("share").hidden = true; $("export").hidden = true; $("back-link").hidden = true; }
   wireControls();
-  const range = machine.data_range || {};
-  const dataFrom = parseTime(range.from);
-  const dataTo = parseTime(range.to);
-  const wantMode = params.get("mode") || (embed ? "replay" : (machine.status === "live" ? "live" : "replay"));
-  const from = embed ? embed.from : parseTime(params.get("from")) ?? (dataTo !== null ? Math.max(dataFrom ?? dataTo - 600, dataTo - 600) : null);
-  const to = embed ? embed.to : parseTime(params.get("to")) ?? dataTo;
   requestAnimationFrame(loop);
-  const chartsReady = (embed ? Promise.resolve() : loadScript("/static/vendor/plotly.min.js")).then(() => {
+  // plotly (4.6 MB to parse) is loaded once the crane is drawn, so it never delays that paint
+  const afterPaint = Promise.race([firstFrame, new Promise((r) => setTimeout(r, 3000))]);
+  const chartsReady = afterPaint.then(() => (embed ? null : loadScript("/static/vendor/plotly.min.js"))).then(() => {
     state.groups = chartGroups(model);
     state.charts = new Charts($("charts"), state.groups, (t) => { if (state.mode === "replay") seek(t, true); });
   }).catch((err) => { $("charts-msg").hidden = false; $("charts-msg").textContent = `Charts unavailable: ${err.message}`; });
   state.chartsReady = chartsReady;
-  if (wantMode === "live" && !embed) {
+  const plan = state.plan;
+  if (plan.mode === "live") {
     setMode("live");
-  } else if (from !== null && to !== null && to > from) {
-    setMode("replay", from, to, parseTime(params.get("t")));
+  } else if (plan.from !== null) {
+    setMode("replay", plan.from, plan.to, plan.t);
   } else {
     setMode("replay", null, null);
     banner("No stored data for this machine yet. When it starts sending, switch to Live.", "warn");
+  }
+}
+
+// Mode and range from the URL (or the embedded export, or the machine's stored data range).
+function planReplay(machine) {
+  const range = machine.data_range || {};
+  const dataFrom = parseTime(range.from);
+  const dataTo = parseTime(range.to);
+  const mode = params.get("mode") || (embed ? "replay" : (machine.status === "live" ? "live" : "replay"));
+  const from = embed ? embed.from : parseTime(params.get("from")) ?? (dataTo !== null ? Math.max(dataFrom ?? dataTo - 600, dataTo - 600) : null);
+  const to = embed ? embed.to : parseTime(params.get("to")) ?? dataTo;
+  const ok = from !== null && to !== null && to > from;
+  let t = parseTime(params.get("t"));
+  if (ok) t = t !== null && t >= from && t <= to ? t : from;
+  state.plan = { mode: mode === "live" && !embed ? "live" : "replay", from: ok ? from : null, to: ok ? to : null, t };
+  if (state.plan.mode === "replay" && ok) {
+    state.store = new ReplayStore(source, from, to, REPLAY_RATE_HZ);
+    if (!source.embedded) state.store.prime(t);
+    state.store.ensure(t);
   }
 }
 
@@ -189,13 +212,17 @@ function startReplay(from, to, t) {
   const slider = $("slider");
   slider.disabled = false; $("play").disabled = false;
   slider.min = "0"; slider.max = String(to - from); slider.step = "0.02";
-  state.store = new ReplayStore(source, from, to, REPLAY_RATE_HZ);
+  if (!state.store || state.store.from !== from || state.store.to !== to) {
+    state.store = new ReplayStore(source, from, to, REPLAY_RATE_HZ);
+    if (!source.embedded) state.store.prime(t ?? from);
+  }
   state.store.onLoaded = (i, entry) => {
     if (entry.state === "empty" && state.store.chunkIndex(state.cursor) === i) banner("No data in this part of the range.", "warn");
     else if (entry.state === "error") banner(`Could not load the replay: ${entry.error.message}`, "error");
-    else if (entry.state === "ready") { if ($("banner").classList.contains("warn")) banner(null); state.needsFrame = true; }
+    else if (entry.state === "ready") { if (i >= 0 && $("banner").classList.contains("warn")) banner(null); state.needsFrame = true; }
   };
-  seek(t !== null && t !== undefined && t >= from && t <= to ? t : from, false);
+  const t0 = t !== null && t !== undefined && t >= from && t <= to ? t : from;
+  seek(t0, false);
   source.events(from, to).then((events) => { state.events = events || []; renderEvents(); })
     .catch(() => { state.events = []; renderEvents(); });
   state.chartsReady.then(() => loadHistory(from, to));
@@ -338,7 +365,7 @@ function loop(now) {
     const f = state.store.frameAt(next);
     if (f && typeof f === "object") {
       state.cursor = metrics.cursor = Math.min(next, state.to);
-      $("slider").value = String(state.cursor - state.from);
+      if (now - (state.lastSliderPaint || 0) > 100) { state.lastSliderPaint = now; $("slider").value = String(state.cursor - state.from); }
       state.needsFrame = true;
       if (state.cursor >= state.to) { state.playing = false; updatePlayButton(); updateUrl(true); }
     } else if (f === "empty" || f === "error") {
@@ -356,10 +383,14 @@ function loop(now) {
   rendered();
 }
 
+let firstFrameDone;
+const firstFrame = new Promise((r) => { firstFrameDone = r; });
+
 function rendered() {
   metrics.framesRendered += 1;
   if (metrics.firstFrameMs === null) {
     metrics.firstFrameMs = performance.now();
+    setTimeout(firstFrameDone, 50); // let the frame reach the screen first
     metrics.ready = true;
     document.body.dataset.ready = "1";
   }
@@ -368,8 +399,8 @@ function rendered() {
 let lastReadout = 0;
 function readout(f) {
   const now = performance.now();
-  if (state.charts) state.charts.setCursor(state.mode === "replay" ? state.cursor : null);
   if (now - lastReadout < 100 && state.playing) return;
+  if (state.charts) state.charts.setCursor(state.mode === "replay" ? state.cursor : null);
   lastReadout = now;
   $("now-time").textContent = fmtTime(f.t);
   $("time-label").textContent = state.mode === "replay" ? `${fmtTime(state.cursor).slice(11)} (${state.speed}×)` : "live";

@@ -17,6 +17,19 @@ export class ReplayStore {
 
   chunkIndex(t) { return Math.max(0, Math.floor((t - this.from) / CHUNK_S)); }
 
+  // A one-second window around t, fetched first so the crane is drawn before its chunk arrives.
+  prime(t) {
+    const a = Math.max(this.from, t - 0.5);
+    const b = Math.min(this.to, a + 1);
+    this.primer = { state: "loading", data: null, a, b };
+    const entry = this.primer;
+    this.source.twin(a, b, this.rateHz).then((data) => {
+      if (data && data.t && data.t.length > 0) { entry.data = prepare(data); entry.state = "ready"; }
+      else entry.state = "empty";
+      if (this.onLoaded) this.onLoaded(-1, entry);
+    }).catch(() => { entry.state = "error"; });
+  }
+
   ensure(t) {
     const i = this.chunkIndex(t);
     this.load(i);
@@ -44,7 +57,9 @@ export class ReplayStore {
 
   // Fills this.frame for time t; returns null when the chunk is not there (yet).
   frameAt(t) {
-    const entry = this.ensure(t);
+    let entry = this.ensure(t);
+    if ((!entry || entry.state !== "ready") && this.primer && this.primer.state === "ready"
+        && t >= this.primer.a && t <= this.primer.b) entry = this.primer;
     if (!entry || entry.state !== "ready") return entry ? entry.state : null;
     const d = entry.data;
     const n = d.t.length;

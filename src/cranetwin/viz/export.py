@@ -195,6 +195,7 @@ def render_export(web_dir: Path, data: dict[str, Any]) -> str:
     packed = "\n".join(
         f'<script type="text/plain" id="{k}">{_gzip_b64(v)}</script>' for k, v in blobs.items())
     page = re.sub(r'<link rel="stylesheet" href="/static/css/app.css">', lambda _: "", page)
+    page = re.sub(r'<link rel="modulepreload" href="[^"]*">\n?', lambda _: "", page)
     page = re.sub(r'<script src="/static/vendor/meshcat.min.js"[^>]*></script>', lambda _: "", page)
     page = page.replace("</head>", f"<style>{css}</style>\n{meta}\n</head>", 1)
     page, n = re.subn(r'<script type="module" src="/static/js/machine.js"></script>',

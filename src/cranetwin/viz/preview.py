@@ -12,6 +12,7 @@ Live: every machine streams the scripted cycle at ``live_hz``; frames pushed wit
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Annotated, Any
@@ -224,3 +225,43 @@ def create_preview_app(machines: list[PreviewMachine] | None = None, *,
         return {"t": frame["t"]}
 
     return app
+
+
+class ServerThread:
+    """uvicorn serving an ASGI app on a free loopback port in a background thread.
+
+    Use as a context manager; ``url`` is the base URL. For tests and benchmarks.
+    """
+
+    def __init__(self, app: Any, port: int = 0) -> None:
+        import socket
+
+        import uvicorn
+
+        if port == 0:
+            with socket.socket() as s:
+                s.bind(("127.0.0.1", 0))
+                port = int(s.getsockname()[1])
+        self.port = port
+        config = uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
+                                ws="websockets-sansio")
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+
+    def __enter__(self) -> ServerThread:
+        self.thread.start()
+        deadline = time.time() + 30
+        while not self.server.started:
+            if time.time() > deadline or not self.thread.is_alive():
+                raise RuntimeError(f"uvicorn did not start on port {self.port}")
+            time.sleep(0.05)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.server.should_exit = True
+        self.thread.join(10)
+
+    @property
+    def url(self) -> str:
+        """Base URL, e.g. ``http://127.0.0.1:41234``."""
+        return f"http://127.0.0.1:{self.port}"
