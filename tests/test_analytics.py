@@ -288,8 +288,8 @@ def test_productivity_counts_cycles_payload_and_idle(machine: Machine) -> None:
 
 def test_incremental_equals_batch(machine: Machine) -> None:
     sc = SyntheticCrane(machine, seed=6, days=2, shift_h=1.0,
-                        misuse=Misuse(overload=(3,), end_stop=(30,), overspeed=(85,)))
-    t = np.concatenate([sc.shift_bounds(d)[0] + np.arange(36_000) / 20.0 for d in range(2)])
+                        misuse=Misuse(overload=(3,), end_stop=(30,), overspeed=(83,)))
+    t = np.concatenate([sc.shift_bounds(d)[0] + np.arange(72_000) / 20.0 for d in range(2)])
     h = sc.history(t)
     batch = analyse(machine, h)
     rng = np.random.default_rng(7)
@@ -307,14 +307,17 @@ def test_incremental_equals_batch(machine: Machine) -> None:
             (ei.kind, ei.t_start, ei.t_end, ei.severity, ei.component)
         assert ei.value == pytest.approx(eb.value, rel=1e-12)
         assert ei.evidence == pytest.approx(eb.evidence, rel=1e-12)
-    assert len(inc.cycles) == len(batch.cycles) > 100
+    assert len(inc.cycles) == len(batch.cycles) > 50
+    assert batch.idle_s > 2 * 1700
     for cb, ci in zip(batch.cycles, inc.cycles, strict=True):
         assert (cb.t_grab, cb.t_release, cb.lift, cb.swing) == \
             (ci.t_grab, ci.t_release, ci.lift, ci.swing)
         assert ci.payload_kg == pytest.approx(cb.payload_kg, rel=1e-12)
     assert inc.idle_s == pytest.approx(batch.idle_s)
-    assert {k: (v.recorded_s, v.working_s, v.cycles) for k, v in inc.days.items()} == \
-        pytest.approx({k: (v.recorded_s, v.working_s, v.cycles) for k, v in batch.days.items()})
+    assert inc.days.keys() == batch.days.keys()
+    for k, v in batch.days.items():
+        assert (inc.days[k].recorded_s, inc.days[k].working_s, inc.days[k].cycles) == \
+            pytest.approx((v.recorded_s, v.working_s, v.cycles))
     assert [x.damage for x in inc.life] == pytest.approx([x.damage for x in batch.life])
 
 
