@@ -39,3 +39,14 @@ def test_simulate_csv_and_bad_scenario(tmp_path: Path) -> None:
                               "--out", str(tmp_path / "x.npz")])
     assert res.exit_code != 0
     assert "actuators.lift.gain" in str(res.exception)
+
+
+def test_sim_imports_no_web_or_database_stack() -> None:
+    import subprocess
+    import sys
+
+    code = ("import sys, cranetwin.sim; "
+            "print(sorted(m for m in ('fastapi', 'sqlalchemy', 'uvicorn') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "[]"
