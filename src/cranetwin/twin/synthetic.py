@@ -87,7 +87,7 @@ def _channels(machine: Machine, t: F64, payload: Payload, p_b: float,
 def make(machine: Machine, duration_s: float = 12.0, rate_hz: float = 100.0,
          payload: Payload = 150.0, fine_hz: float | None = 1000.0, p_b: float = 2.0e6,
          with_angle: bool = False, friction: Mapping[str, Friction] | None = None,
-         scale: float = 1.0) -> Synthetic:
+         scale: float = 1.0, quantize: bool = False) -> Synthetic:
     """Sample the analytic motion at ``rate_hz``; truth at ``fine_hz`` (sample times if None).
 
     Args:
@@ -101,6 +101,7 @@ def make(machine: Machine, duration_s: float = 12.0, rate_hz: float = 100.0,
         friction: Cylinder friction actually present, by cylinder name (default: the
             machine's), e.g. to test calibration against a machine file that is wrong.
         scale: Frequency scale of the motion.
+        quantize: Round the channels to the machine's sensor resolution.
     """
     fr = dict(friction or {})
     ts = np.arange(int(round(duration_s * rate_hz)) + 1) / rate_hz
@@ -111,6 +112,9 @@ def make(machine: Machine, duration_s: float = 12.0, rate_hz: float = 100.0,
             "slew_torque": d["slew"]}
     if with_angle:
         cols["slew_angle"] = d["q"][:, 0]
+    if quantize:
+        cols = {k: np.round(v / machine.channel(k).resolution) * machine.channel(k).resolution
+                for k, v in cols.items()}
     samples = SampleArrays("synthetic", ts, tuple(cols), np.column_stack(list(cols.values())))
     if fine_hz is None:
         f = d
