@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from cranetwin.errors import SimulationError
 from cranetwin.model import Machine
 from cranetwin.physics import body_poses, load_point_position, mass_matrix
 from cranetwin.sim.hydraulics import HydraulicSettings
@@ -31,6 +32,9 @@ def energy_terms(machine: Machine, truth: Truth,
         machine: The simulated machine.
         truth: Ground truth of the run (payload may vary; energy jumps where it does).
         settings: Hydraulic settings used in the run (slewing stiffness).
+
+    Raises:
+        SimulationError: the machine has no hydraulics.
 
     Returns:
         ``kinetic``, ``gravity``, ``hydraulic``, ``slew_spring`` and ``total``, each shape (n,)
@@ -49,7 +53,8 @@ def energy_terms(machine: Machine, truth: Truth,
     tip = load_point_position(machine, q)
     gravity -= (machine.load_point.tool_mass_kg + truth.payload_kg) * (tip @ g)
     h = machine.hydraulics
-    assert h is not None
+    if h is None:
+        raise SimulationError(f"machine {machine.name!r} has no hydraulics section")
     b_oil = h.oil_bulk_modulus_pa
     v0e = h.dead_volume_m3 * b_oil / h.hose_bulk_modulus_pa
     hydraulic = np.zeros(truth.n)

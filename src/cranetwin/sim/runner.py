@@ -85,8 +85,13 @@ def prepare(machine: Machine, options: SimOptions | None = None) -> Prepared:
     except ValueError as exc:
         raise SimulationError(f"machine {machine.name!r}: {exc}") from exc
     chain = compile_chain(machine)
-    return Prepared(machine, chain, hyd, chain.cylinder_joint.astype(np.int64),
-                    machine.joint_index(machine.torque_drives[0].joint))
+    sj = machine.joint_index(machine.torque_drives[0].joint)
+    cj = chain.cylinder_joint.astype(np.int64)
+    if sj != 0 or sorted(cj.tolist()) != [1, 2, 3]:
+        raise SimulationError(
+            f"machine {machine.name!r}: the simulator expects the torque drive on the first "
+            f"joint and one cylinder on each of the others (slew, lift, jib, extension)")
+    return Prepared(machine, chain, hyd, cj, sj)
 
 
 def check_scenario(machine: Machine, scenario: Scenario) -> None:
