@@ -1,0 +1,148 @@
+"""Analytics and report downloads of a range: replay → :mod:`cranetwin.analytics` → JSON/file.
+
+The range (at most ``Settings.max_analytics_range_s``) is replayed window by window at the
+sample rate, each window folded into an :class:`cranetwin.analytics.AnalyticsState` (rainflow
+spectra per load channel, Miner damage and remaining life per fatigue detail, ISO 4301 duty
+classification, events, work cycles and productivity), and the report is returned as JSON, or
+rendered as CSV / HTML / PDF.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import html
+import io
+import math
+from typing import Any
+
+import numpy as np
+
+from cranetwin.api.params import TimeRange, iso
+from cranetwin.api.replayer import Replayer
+from cranetwin.errors import AnalyticsError, CraneTwinError
+from cranetwin.model import Machine
+
+WINDOW_S = 60.0
+MARGIN_S = 2.0
+
+
+def _jsonable(x: Any) -> Any:
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return {f.name: _jsonable(getattr(x, f.name)) for f in dataclasses.fields(x)}
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return _jsonable(x.item())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def analytics_report(backend: Any, replayer: Replayer, machine: Machine, machine_id: str,
+                     rng: TimeRange) -> Any:
+    """The :class:`cranetwin.analytics.AnalyticsReport` of [from, to), or None without data."""
+    from cranetwin.analytics import AnalyticsState, LoadHistory
+    from cranetwin.physics import horizontal_reach
+
+    state = AnalyticsState(machine)
+    a = rng.t0_s
+    folded = False
+    while a < rng.t1_s:
+        b = min(rng.t1_s, a + WINDOW_S)
+        samples = backend.read_samples(machine_id, a - MARGIN_S, b + MARGIN_S)
+        inside = (samples.t_s >= a) & (samples.t_s < b)
+        if int(inside.sum()) >= 8 and samples.t_s.shape[0] >= 16:
+            period = float(np.median(np.diff(samples.t_s)))
+            grid_hz = max(1.0, float(round(1.0 / period)))
+            try:
+                res = replayer.replay(machine_id, machine, samples, grid_hz)
+            except CraneTwinError:
+                res = None
+            if res is not None:
+                k = (res.t_s >= a) & (res.t_s < b)
+                if int(k.sum()) >= 2:
+                    q = res.q[k]
+                    h = LoadHistory.from_arrays(
+                        machine, t_s=res.t_s[k], cyl_force=res.cyl_force[k], q=q,
+                        qd=res.qd[k], payload_kg=np.maximum(res.payload_kg[k], 0.0),
+                        reach_m=horizontal_reach(machine, q), joint_wrench=res.joint_wrench[k],
+                        rod_s=res.rod_s[k], rod_v=res.rod_v[k], p_a=res.p_a[k], p_b=res.p_b[k])
+                    state.update(h)
+                    folded = True
+        a = b
+    return state.report() if folded else None
+
+
+def analytics_json(report: Any, rng: TimeRange) -> dict[str, Any]:
+    """JSON of an analytics report (null figures when the range held no data)."""
+    out: dict[str, Any] = {"from": iso(rng.t0_s), "to": iso(rng.t1_s)}
+    if report is None:
+        out.update({"n_samples": 0, "spectra": [], "life": [], "classification": None,
+                    "duty": None, "events": [], "cycles": [], "productivity": None})
+        return out
+    data = _jsonable(report)
+    data.pop("days", None)
+    out.update(data)
+    out["productivity"] = {
+        "recorded_s": report.recorded_s, "idle_s": report.idle_s,
+        "working_s": report.working_s, "utilisation": report.utilisation,
+        "work_cycles": len(report.cycles),
+        "payload_per_working_hour_kg": _jsonable(report.payload_per_working_hour_kg),
+        "mean_cycle_time_s": _jsonable(report.mean_cycle_time_s),
+    }
+    return out
+
+
+def render(data: dict[str, Any], fmt: str, machine_id: str) -> tuple[bytes, str, str]:
+    """``(body, media type, file name)`` of a report in ``csv``, ``html`` or ``pdf``."""
+    rows: list[tuple[str, str]] = [("machine", machine_id), ("from", str(data["from"])),
+                                   ("to", str(data["to"])),
+                                   ("samples", str(data.get("n_samples", 0)))]
+    prod = data.get("productivity") or {}
+    for k, v in prod.items():
+        rows.append((f"productivity.{k}", str(v)))
+    for life in data.get("life", []):
+        rows.append((f"damage.{life.get('name')}", str(life.get("damage"))))
+    cls = data.get("classification")
+    if cls:
+        rows += [(f"classification.{k}", str(v)) for k, v in cls.items()]
+    rows.append(("events", str(len(data.get("events", [])))))
+    stem = f"cranetwin-{machine_id}-report"
+    if fmt == "csv":
+        buf = io.StringIO()
+        w = csv.writer(buf)
+        w.writerow(["quantity", "value"])
+        w.writerows(rows)
+        return buf.getvalue().encode(), "text/csv", f"{stem}.csv"
+    if fmt == "html":
+        body = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>"
+                       for k, v in rows)
+        page = (f"<!doctype html><meta charset=utf-8><title>{html.escape(stem)}</title>"
+                f"<h1>cranetwin report: {html.escape(machine_id)}</h1><table>{body}</table>")
+        return page.encode(), "text/html", f"{stem}.html"
+    if fmt == "pdf":
+        from reportlab.lib.pagesizes import A4  # type: ignore[import-untyped]
+        from reportlab.pdfgen import canvas  # type: ignore[import-untyped]
+
+        buf_b = io.BytesIO()
+        c = canvas.Canvas(buf_b, pagesize=A4)
+        y = A4[1] - 60
+        c.setFont("Helvetica-Bold", 14)
+        c.drawString(50, y, f"cranetwin report: {machine_id}")
+        c.setFont("Helvetica", 9)
+        for k, v in rows:
+            y -= 14
+            if y < 50:
+                c.showPage()
+                c.setFont("Helvetica", 9)
+                y = A4[1] - 50
+            c.drawString(50, y, k[:60])
+            c.drawString(300, y, v[:60])
+        c.save()
+        return buf_b.getvalue(), "application/pdf", f"{stem}.pdf"
+    raise AnalyticsError(f"unknown report format {fmt!r}; expected pdf, csv or html")

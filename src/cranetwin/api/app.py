@@ -1,0 +1,99 @@
+"""The application factory: ``create_app(settings)``."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from cranetwin import __version__
+from cranetwin.api import routes_aemp, routes_data, routes_live, routes_machines, routes_ops
+from cranetwin.api.errors import install_error_handlers
+from cranetwin.api.services import Services
+from cranetwin.api.settings import Settings
+
+log = logging.getLogger(__name__)
+
+DESCRIPTION = """
+Camera-less digital twin of hydraulic cranes: stored sensor samples, their replay through the
+machine's physics (positions, cylinder forces, joint loads, payload), load history, events and
+ISO 15143-3 fleet snapshots.
+
+**Keys.** Every route except `/healthz` needs an API key (`cranetwin keys create --role viewer`)
+in `X-API-Key`, as `Authorization: Bearer <key>`, or as `?key=` (browser links, websockets).
+Roles: viewer < fleet < admin. No key → 401, lower role → 403.
+
+**Units.** SI throughout: time [s since the Unix epoch] (parameters `from`/`to` also accept
+ISO 8601), lengths [m], angles [rad], forces [N], moments [N·m], pressures [Pa], masses [kg].
+
+**Errors.** `application/problem+json` with `type`, `title`, `status`, `detail` (and `errors` for
+validation). Bad input is always a 4xx.
+"""
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the FastAPI app; the lifespan opens the store, starts the twin worker, and closes
+    both on shutdown.
+
+    Args:
+        settings: Service settings; read from the environment (``CRANETWIN_*``) when None.
+    """
+    cfg = settings if settings is not None else Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        services = Services.open(cfg)
+        app.state.services = services
+        await services.start()
+        log.info("cranetwin API serving %s", cfg.database_url)
+        try:
+            yield
+        finally:
+            await services.close()
+            app.state.services = None
+
+    app = FastAPI(title="cranetwin", version=__version__, description=DESCRIPTION,
+                  lifespan=lifespan)
+    app.state.settings = cfg
+    app.state.services = None
+    install_error_handlers(app)
+
+    @app.middleware("http")
+    async def _metrics(request, call_next):  # type: ignore[no-untyped-def]
+        services = request.app.state.services
+        if services is None:
+            return await call_next(request)
+        return await services.metrics.middleware(request, call_next)
+
+    for module in (routes_ops, routes_machines, routes_data, routes_aemp, routes_live):
+        app.include_router(module.router)
+    try:
+        from cranetwin.api import routes_web
+    except ImportError as exc:  # the web front end is optional
+        log.warning("web routes not available: %s", exc)
+    else:
+        app.include_router(routes_web.router)
+    _register_problem_schema(app)
+    return app
+
+
+def _register_problem_schema(app: FastAPI) -> None:
+    """Make sure ``#/components/schemas/Problem`` exists in the OpenAPI document."""
+    from fastapi.openapi.utils import get_openapi
+
+    from cranetwin.api.schemas import Problem
+
+    def openapi() -> dict[str, object]:
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = get_openapi(title=app.title, version=app.version, description=app.description,
+                             routes=app.routes)
+        comps = schema.setdefault("components", {}).setdefault("schemas", {})
+        comps.setdefault("Problem", Problem.model_json_schema(ref_template=
+                                                              "#/components/schemas/{model}"))
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]

@@ -1,0 +1,348 @@
+"""The API's adapter over :class:`cranetwin.storage.Store`: the one module that knows storage.
+
+Routes and services see :class:`MachineRecord`, :class:`Progress`, numpy arrays and
+:class:`~cranetwin.samples.SampleArrays`; storage errors for unknown machines become 404
+problem JSON, a taken id 409, an unknown model 422. The API's own tables (keys, twin progress,
+:mod:`cranetwin.storage.apikeys`) are read and written here with sessions on the store's engine.
+"""
+
+from __future__ import annotations
+
+import secrets
+import threading
+import time
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from cranetwin.api.errors import ApiError
+from cranetwin.api.schemas import MachineCreate, MachineUpdate
+from cranetwin.errors import CraneTwinError, ModelError, StorageError
+from cranetwin.model import Machine, builtin_machines, load_machine
+from cranetwin.samples import SampleArrays
+from cranetwin.storage import Store
+from cranetwin.storage import apikeys as keyrepo
+from cranetwin.storage import summaries as summ
+from cranetwin.storage.blocks import BlockRow
+from cranetwin.storage.machines import get_row
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MachineRecord:
+    """A registered machine as the API sees it.
+
+    Attributes:
+        machine_id: Identifier.
+        name: Display name (metadata ``name``, else the id).
+        model: Machine description name (built-in) or ``"custom"`` for inline TOML.
+        model_source: Built-in name or TOML text, as stored.
+        wire_id: Numeric id on the wire.
+        location: (latitude [deg], longitude [deg], time [s]) or None.
+    """
+
+    machine_id: str
+    name: str
+    model: str
+    model_source: str
+    wire_id: int | None
+    location: tuple[float, float, float] | None
+
+
+@dataclass(frozen=True)
+class Progress:
+    """The twin worker's state of one machine (mirrors ``twin_progress``)."""
+
+    machine_id: str
+    watermark_s: float
+    windows: int = 0
+    operating_s: float = 0.0
+    idle_s: float = 0.0
+    load_count: int = 0
+    payload_total_kg: float = 0.0
+    load_cube_sum: float = 0.0
+    overloads: int = 0
+    max_payload_kg: float = 0.0
+    in_lift: bool = False
+    lift_peak_kg: float = 0.0
+    lift_peak_ratio: float = 0.0
+    last_payload_kg: float | None = None
+    theta0_rad: float | None = None
+
+    @staticmethod
+    def empty(machine_id: str, watermark_s: float = 0.0) -> Progress:
+        """Progress before the first window."""
+        return Progress(machine_id=machine_id, watermark_s=watermark_s)
+
+
+@lru_cache(maxsize=64)
+def _load_model(source: str) -> Machine:
+    if source in builtin_machines():
+        return load_machine(source)
+    import tomllib
+
+    from cranetwin.model import machine_from_dict
+
+    return machine_from_dict(tomllib.loads(source), "stored machine description")
+
+
+class Backend:
+    """Store access for the API.
+
+    Args:
+        store: An open :class:`cranetwin.storage.Store`.
+    """
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        self._progress_cache: dict[str, Progress] = {}
+        self._pks: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    @classmethod
+    def open(cls, url: str) -> Backend:
+        """Open (and migrate) the database at ``url``."""
+        return cls(Store.open(url))
+
+    def close(self) -> None:
+        """Close the store."""
+        self.store.close()
+
+    def session(self) -> Session:
+        """A new ORM session on the store's engine."""
+        return Session(self.store.engine)
+
+    # -- machines -----------------------------------------------------------------------------
+    @staticmethod
+    def _record(info: Any) -> MachineRecord:
+        meta = dict(info.metadata or {})
+        source = str(info.model)
+        model = source if "\n" not in source and "[" not in source else "custom"
+        loc = None
+        if info.latitude_deg is not None and info.longitude_deg is not None:
+            t = meta.get("location_t_s") or info.last_seen_s or 0.0
+            loc = (float(info.latitude_deg), float(info.longitude_deg), float(t))
+        return MachineRecord(machine_id=info.machine_id, name=str(meta.get("name") or
+                                                                   info.machine_id),
+                             model=model, model_source=source, wire_id=int(info.wire_id),
+                             location=loc)
+
+    def list_machines(self) -> list[MachineRecord]:
+        """Every registered machine, by id."""
+        return sorted((self._record(i) for i in self.store.machines()),
+                      key=lambda r: r.machine_id)
+
+    def machine_or_404(self, machine_id: str) -> MachineRecord:
+        """The machine ``machine_id``; 404 when none is registered."""
+        try:
+            info = self.store.get_machine(machine_id)
+        except StorageError:
+            info = None
+        if info is None:
+            raise ApiError(404, "Unknown machine", f"no machine {machine_id!r} is registered "
+                           "(GET /api/v1/machines lists them)")
+        return self._record(info)
+
+    def model_of(self, rec: MachineRecord) -> Machine:
+        """The machine description of ``rec`` (cached)."""
+        try:
+            return _load_model(rec.model_source)
+        except CraneTwinError as exc:
+            raise ApiError(422, "Invalid machine description",
+                           f"machine {rec.machine_id!r}: {exc}") from exc
+
+    def create_machine(self, body: MachineCreate) -> tuple[MachineRecord, str]:
+        """Register a machine; returns it and its HMAC secret (hex)."""
+        if body.model not in builtin_machines():
+            raise ApiError(422, "Unknown model", f"model {body.model!r}: expected one of "
+                           f"{', '.join(builtin_machines())}")
+        existing = {i.machine_id: i for i in self.store.machines()}
+        if body.machine_id in existing:
+            raise ApiError(409, "Machine exists", f"machine {body.machine_id!r} is already "
+                           "registered (PATCH it to change metadata)")
+        wire_ids = {int(i.wire_id) for i in existing.values()}
+        if body.wire_id is not None and body.wire_id in wire_ids:
+            raise ApiError(409, "Wire id taken", f"wire_id {body.wire_id} is used by another "
+                           "machine")
+        wire_id = body.wire_id if body.wire_id is not None else (max(wire_ids, default=0) + 1)
+        secret = secrets.token_bytes(32)
+        meta: dict[str, Any] = {"name": body.name or body.machine_id}
+        try:
+            self.store.add_machine(body.machine_id, wire_id=wire_id, model=body.model,
+                                   secret=secret, metadata=meta)
+            if body.location is not None:
+                self._set_location(body.machine_id, body.location.lat, body.location.lon)
+        except ModelError as exc:
+            raise ApiError(422, "Invalid machine", str(exc)) from exc
+        return self.machine_or_404(body.machine_id), secret.hex()
+
+    def _set_location(self, machine_id: str, lat: float, lon: float) -> None:
+        with self.session() as s, s.begin():
+            row = get_row(s, machine_id)
+            row.latitude_deg, row.longitude_deg = lat, lon
+
+    def update_machine(self, machine_id: str, body: MachineUpdate) -> MachineRecord:
+        """Change a machine's display name and/or location."""
+        import json
+
+        with self.session() as s, s.begin():
+            row = get_row(s, machine_id)
+            meta = json.loads(row.meta_json or "{}")
+            if body.name is not None:
+                meta["name"] = body.name
+            if body.location is not None:
+                row.latitude_deg, row.longitude_deg = body.location.lat, body.location.lon
+                meta["location_t_s"] = time.time()
+            row.meta_json = json.dumps(meta)
+        return self.machine_or_404(machine_id)
+
+    # -- samples ------------------------------------------------------------------------------
+    def _pk(self, s: Session, machine_id: str) -> int:
+        pk = self._pks.get(machine_id)
+        if pk is None:
+            pk = int(get_row(s, machine_id).id)
+            self._pks[machine_id] = pk
+        return pk
+
+    def data_range(self, machine_id: str) -> tuple[float, float] | None:
+        """(first, last) stored sample time [s], or None when nothing is stored."""
+        b = BlockRow
+        with self.session() as s:
+            pk = self._pk(s, machine_id)
+            lo, hi = s.execute(select(func.min(b.t_start_ns), func.max(b.t_end_ns))
+                               .where(b.machine_pk == pk)).one()
+        return None if lo is None else (lo / 1e9, hi / 1e9)
+
+    def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
+        """Samples with t in [t0_s, t1_s]."""
+        out: SampleArrays = self.store.read_samples(machine_id, t0_s, t1_s)
+        return out
+
+    def read_after(self, machine_id: str, after_s: float) -> SampleArrays | None:
+        """Samples newer than ``after_s`` (live follower), at most the last 10 s of them."""
+        dr = self.data_range(machine_id)
+        if dr is None or dr[1] <= after_s:
+            return None
+        s = self.read_samples(machine_id, max(after_s, dr[1] - 10.0), dr[1] + 1.0)
+        keep = s.t_s > after_s
+        return SampleArrays(s.machine_id, s.t_s[keep], s.channels, s.values[keep])
+
+    def next_sample_time(self, machine_id: str, after_s: float) -> float | None:
+        """Start of the first stored block ending at or after ``after_s`` [s], or None."""
+        b = BlockRow
+        with self.session() as s:
+            pk = self._pk(s, machine_id)
+            r = s.execute(select(func.min(b.t_start_ns)).where(
+                b.machine_pk == pk, b.t_end_ns >= int(round(after_s * 1e9)))).scalar()
+        return None if r is None else max(r / 1e9, after_s)
+
+    # -- summaries ----------------------------------------------------------------------------
+    def finest_interval_s(self) -> float:
+        """Width of the finest stored summary bucket [s]."""
+        return float(min(summ.LEVELS_S))
+
+    def summaries(self, machine_id: str, channels: list[str], t0_s: float, t1_s: float,
+                  max_points: int) -> dict[str, tuple[F64, F64, F64, F64]]:
+        """Per channel (t, min, max, mean) of non-empty buckets, ≤ max_points each."""
+        res = self.store.summaries(machine_id, channels, t0_s, t1_s, max_points)
+        out = {}
+        for j, ch in enumerate(res.channels):
+            ok = res.count[:, j] > 0
+            out[ch] = (res.t_s[ok], res.min[ok, j], res.max[ok, j], res.mean[ok, j])
+        for ch in channels:
+            out.setdefault(ch, (np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0)))
+        return out
+
+    # -- events -------------------------------------------------------------------------------
+    def events(self, machine_id: str, t0_s: float, t1_s: float) -> list[dict[str, Any]]:
+        """Events in [t0_s, t1_s) as contract dicts (t, kind, severity, message, evidence)."""
+        out = []
+        for e in self.store.events(machine_id, t0_s, t1_s):
+            ev = dict(e.evidence or {})
+            msg = str(ev.get("message") or _message(e.kind, ev))
+            out.append({"t": float(e.t_s), "kind": e.kind, "severity": e.severity,
+                        "message": msg, "evidence": ev})
+        return out
+
+    def count_events(self, machine_id: str, t0_s: float, t1_s: float, level: str) -> int:
+        """Events of the most severe level (``critical``) in a range."""
+        return sum(1 for e in self.store.events(machine_id, t0_s, t1_s)
+                   if e.severity == "critical")
+
+    # -- keys ---------------------------------------------------------------------------------
+    def key_lookup(self, key_id: str) -> tuple[str, str, Any] | None:
+        """``(secret_sha256, name, role)`` of an active key."""
+        with self.session() as s:
+            return keyrepo.active_key(s, key_id)
+
+    def create_key(self, role: str, name: str = "") -> tuple[str, str]:
+        """A new key of ``role``: ``(key_id, token)``; only the hash is stored."""
+        from cranetwin.api.auth import new_key
+
+        key_id, token, digest = new_key()
+        with self.session() as s, s.begin():
+            keyrepo.add_key(s, key_id, digest, role, name)
+        return key_id, token
+
+    # -- twin worker progress -----------------------------------------------------------------
+    def progress(self, machine_id: str) -> Progress | None:
+        """The worker's stored progress of a machine."""
+        with self.session() as s:
+            row = keyrepo.get_progress(s, machine_id)
+            if row is None:
+                return None
+            p = Progress(**{f: getattr(row, f) for f in Progress.__dataclass_fields__})
+        with self._lock:
+            self._progress_cache[machine_id] = p
+        return p
+
+    def cached_progress(self, machine_id: str) -> Progress | None:
+        """Last progress seen by this process (no database read; for the live stream)."""
+        with self._lock:
+            return self._progress_cache.get(machine_id)
+
+    def save_progress(self, prog: Progress) -> None:
+        """Store progress alone (a skipped or failed window)."""
+        with self.session() as s, s.begin():
+            self._upsert_progress(s, prog)
+        with self._lock:
+            self._progress_cache[prog.machine_id] = prog
+
+    @staticmethod
+    def _upsert_progress(s: Session, prog: Progress) -> None:
+        row = s.get(keyrepo.TwinProgressRow, prog.machine_id)
+        values = asdict(prog)
+        values["updated_s"] = time.time()
+        if row is None:
+            s.add(keyrepo.TwinProgressRow(**values))
+        else:
+            for k, v in values.items():
+                setattr(row, k, v)
+
+    def commit_window(self, prog: Progress, channels: list[str], t_s: F64, values: F64) -> None:
+        """Derived summaries of one window and the new progress, in one transaction."""
+        with self.session() as s, s.begin():
+            if t_s.size:
+                pk = self._pk(s, prog.machine_id)
+                t_ns = np.round(t_s * 1e9).astype(np.int64)
+                summ.replace(s, pk, channels, t_ns, values)
+            self._upsert_progress(s, prog)
+        with self._lock:
+            self._progress_cache[prog.machine_id] = prog
+
+
+def _message(kind: str, ev: dict[str, Any]) -> str:
+    parts = [kind.replace("_", " ")]
+    for k in ("value", "limit", "channel"):
+        if k in ev:
+            parts.append(f"{k} {ev[k]}")
+    return ", ".join(parts)
+
+
+__all__ = ["Backend", "MachineRecord", "Progress"]

@@ -1,0 +1,100 @@
+"""Data of one machine over a time range: samples, twin replay, load history, events, find."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Query
+from fastapi.responses import Response
+
+from cranetwin.api.deps import CurrentKey, FleetKey, MachineDep, ServicesDep
+from cranetwin.api.errors import PROBLEM_RESPONSES
+from cranetwin.api.params import RangeDep
+from cranetwin.api.schemas import EventOut, FindOut, HistoryOut, SamplesPage, TwinOut
+
+router = APIRouter(prefix="/api/v1/machines/{machine_id}", tags=["data"],
+                   responses=PROBLEM_RESPONSES)
+
+
+@router.get("/samples", response_model=SamplesPage, summary="Raw samples (paginated)")
+def get_samples(
+    key: CurrentKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
+    limit: Annotated[int, Query(ge=1, le=100_000, description="samples per page (at most "
+                                "CRANETWIN_MAX_SAMPLES_LIMIT, 10000)")] = 1000,
+    cursor: Annotated[str | None, Query(max_length=64, description="next_cursor of the "
+                                        "previous page")] = None,
+) -> SamplesPage:
+    """Stored samples in [from, to), oldest first, ``limit`` per page; follow ``next_cursor``."""
+    return services.samples_page(machine, rng, limit, cursor)
+
+
+@router.get("/twin", response_model=TwinOut, summary="Twin replay of a window")
+def get_twin(
+    key: CurrentKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
+    rate_hz: Annotated[float, Query(gt=0, le=1000, description="output rate [Hz]",
+                                    examples=[50])] = 50.0,
+) -> Response:
+    """Joint coordinates, body poses, tip path, cylinder pins and forces (Eq. 1–2), joint
+    torques and reaction wrenches (inverse dynamics), payload estimate — for [from, to) at
+    ``rate_hz``. At most CRANETWIN_MAX_TWIN_RANGE_S (120 s) and 12000 output samples per call;
+    results are cached per (machine, window, rate)."""
+    return services.twin_window(machine, rng, rate_hz)
+
+
+@router.get("/history", response_model=HistoryOut, summary="Load history (min/max/mean)")
+def get_history(
+    key: CurrentKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
+    channels: Annotated[str, Query(max_length=2000, description="comma-separated channel "
+                                   "names: raw (`lift_pA`) or derived (`force:lift`, `payload`, "
+                                   "`moment:theta1`, `working`)",
+                                   examples=["lift_pA,force:lift,payload"])],
+    max_points: Annotated[int, Query(ge=1, le=100_000, description="most buckets per channel "
+                                     "(≤ CRANETWIN_MAX_HISTORY_POINTS, 10000)")] = 2000,
+) -> HistoryOut:
+    """Min/max/mean per bucket from the stored per-interval summaries (never from raw samples);
+    buckets are whole summary intervals, at most ``max_points`` of them per channel."""
+    return services.history(machine, rng, channels, max_points)
+
+
+@router.get("/events", response_model=list[EventOut], summary="Events in a range")
+def get_events(key: CurrentKey, machine: MachineDep, services: ServicesDep,
+               rng: RangeDep) -> list[EventOut]:
+    """Stored events (overload, end-stop impact, over-pressure, …) in [from, to), oldest first."""
+    return services.events(machine, rng)
+
+
+@router.get("/find", response_model=FindOut, summary="Find the moment a condition held")
+def find_moment(
+    key: CurrentKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
+    channel: Annotated[str, Query(max_length=100, description="raw or derived channel",
+                                  examples=["force:lift"])],
+    op: Annotated[Literal["gt", "lt"], Query(description="gt: value above; lt: below")],
+    value: Annotated[float, Query(description="threshold in the channel's unit",
+                                  examples=[60000.0], allow_inf_nan=False)],
+    which: Annotated[Literal["first", "last"], Query(description="earliest or latest")] = "first",
+) -> FindOut:
+    """When ``channel`` first (last) went above (``gt``) or below (``lt``) ``value`` in
+    [from, to): from the summaries, refined to the exact sample for raw channels."""
+    return services.find(machine, rng, channel, op, value, which)
+
+
+@router.get("/analytics", summary="Load spectrum, damage, duty class, productivity (fleet)",
+            response_model=dict[str, Any])
+def get_analytics(key: FleetKey, machine: MachineDep, services: ServicesDep,
+                  rng: RangeDep) -> dict[str, Any]:
+    """Analytics of [from, to) from the derived history: load spectrum, Miner damage, duty
+    class and productivity."""
+    return services.analytics(machine, rng)
+
+
+@router.get("/report", summary="Report download (fleet)",
+            responses={200: {"content": {"application/pdf": {}, "text/csv": {},
+                                         "text/html": {}},
+                             "description": "the report file"}},
+            response_class=Response)
+def get_report(
+    key: FleetKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
+    format: Annotated[Literal["pdf", "csv", "html"], Query(description="file format")] = "pdf",
+) -> Response:
+    """A maintenance report of [from, to) as PDF, CSV or HTML."""
+    return services.report(machine, rng, format)

@@ -1,0 +1,65 @@
+"""Machines: list, register, update, one machine, its description (geometry for the 3D view)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, status
+
+from cranetwin.api.deps import AdminKey, CurrentKey, MachineDep, MachineIdPath, ServicesDep
+from cranetwin.api.errors import PROBLEM_RESPONSES
+from cranetwin.api.schemas import (
+    MachineCreate,
+    MachineCreated,
+    MachineDetail,
+    MachinePublic,
+    MachineUpdate,
+)
+
+router = APIRouter(prefix="/api/v1/machines", tags=["machines"], responses=PROBLEM_RESPONSES)
+
+
+@router.get("", response_model=list[MachinePublic], summary="All machines with their status")
+def list_machines(key: CurrentKey, services: ServicesDep) -> list[MachinePublic]:
+    """Every registered machine: status (live/idle/offline), last seen, payload, alarms, GPS."""
+    return [services.machine_public(rec) for rec in services.backend.list_machines()]
+
+
+@router.post("", response_model=MachineCreated, status_code=status.HTTP_201_CREATED,
+             summary="Register a machine (admin)")
+def create_machine(key: AdminKey, services: ServicesDep,
+                   body: Annotated[MachineCreate, Body(openapi_examples={"crane": {"value": {
+                       "machine_id": "crane-2", "model": "patu655", "name": "Crane 2"}}})],
+                   ) -> MachineCreated:
+    """Register a machine of a built-in model. The HMAC secret its sender needs is returned
+    in this response only (409 if the id is taken, 422 for an unknown model)."""
+    rec, secret = services.backend.create_machine(body)
+    detail = services.machine_detail(rec)
+    return MachineCreated(**detail.model_dump(by_alias=True), wire_id=rec.wire_id, secret=secret)
+
+
+@router.patch("/{machine_id}", response_model=MachineDetail, summary="Update metadata (admin)")
+def update_machine(key: AdminKey, machine: MachineDep, services: ServicesDep,
+                   body: MachineUpdate) -> MachineDetail:
+    """Change the display name or location; omitted fields stay."""
+    rec = services.backend.update_machine(machine.machine_id, body)
+    return services.machine_detail(rec)
+
+
+@router.get("/{machine_id}", response_model=MachineDetail, summary="One machine")
+def get_machine(key: CurrentKey, machine: MachineDep, services: ServicesDep) -> MachineDetail:
+    """The machine, its status and the time range of its stored samples."""
+    return services.machine_detail(machine)
+
+
+@router.get("/{machine_id}/model", summary="Machine description (bodies, joints, cylinders…)",
+            response_model=dict[str, Any])
+def get_model(key: CurrentKey, machine: MachineDep, services: ServicesDep) -> dict[str, Any]:
+    """The full machine description as JSON — the same fields as the machine's TOML file
+    (``machine``, ``bodies`` with visuals, ``joints``, ``cylinders``, ``torque_drives``,
+    ``channels``, ``load_point``, ``rated_load``, …), all SI: lengths [m], masses [kg],
+    inertias [kg·m²], pressures [Pa]."""
+    return services.backend.model_of(machine).model_dump(mode="json")
+
+
+__all__ = ["router", "MachineIdPath"]

@@ -1,0 +1,248 @@
+"""Background twin worker: follows stored samples window by window and stores derived summaries.
+
+For each machine, windows of ``worker_window_s`` (60 s, aligned to whole minutes so that the
+storage's 1-min summary level stays exact) are replayed once samples exist a little past their
+end (``worker_settle_s``). The window is replayed with ``twin_margin_s`` of samples either side
+(so the spline, smoothing and payload window see the same data as a whole-day replay) and the
+instants inside it are reduced to derived channels:
+
+* ``force:<cylinder>`` — cylinder force (Eq. 1–2) [N];
+* ``payload`` — payload estimate [kg];
+* ``moment:<joint>`` — magnitude of the joint reaction moment (revolute joints) [N·m];
+* ``torque:<joint>`` — inverse-dynamics joint torque/force [N·m or N];
+* ``working`` — 1 while any joint moves (|qd| above 0.02 rad/s or 0.01 m/s), else 0.
+
+The summaries of a window and the machine's new progress row (watermark = end of the window,
+cumulative counters) are committed in ONE transaction, and derived summaries are written by
+overwriting their buckets: a crash before the commit leaves the window unprocessed (it is done
+again, once), a crash after it leaves it done. After downtime the worker starts from the
+watermark and catches up; empty stretches (machine off) are skipped in one step.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from dataclasses import replace as dc_replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.errors import CraneTwinError
+from cranetwin.model import Machine
+
+if TYPE_CHECKING:
+    from cranetwin.api.backend import Backend, MachineRecord, Progress
+    from cranetwin.api.metrics import Metrics
+    from cranetwin.api.replayer import Replayer
+    from cranetwin.api.settings import Settings
+
+log = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+
+MOVING_RAD_S = 0.02
+MOVING_M_S = 0.01
+
+
+def derived_channels(machine: Machine) -> list[str]:
+    """Names of the derived channels the worker stores for ``machine``."""
+    out = [f"force:{c.name}" for c in machine.cylinders]
+    out.append("payload")
+    out += [f"moment:{j.name}" for j in machine.joints if j.kind == "revolute"]
+    out += [f"torque:{j.name}" for j in machine.joints]
+    out.append("working")
+    return out
+
+
+def derive(machine: Machine, res: object, keep: npt.NDArray[np.bool_]) -> tuple[list[str], F64]:
+    """Derived channel values at the kept instants of a replay result.
+
+    Args:
+        machine: Machine description.
+        res: :class:`~cranetwin.twin.TwinResult`.
+        keep: Which grid instants to use, shape (m,).
+
+    Returns:
+        (channel names, values of shape (k, n_channels)) in :func:`derived_channels` order.
+    """
+    from cranetwin.twin import TwinResult
+
+    assert isinstance(res, TwinResult)
+    cols: list[F64] = [res.cyl_force[keep, k] for k in range(len(machine.cylinders))]
+    cols.append(res.payload_kg[keep])
+    w = res.joint_wrench[keep]
+    for i, j in enumerate(machine.joints):
+        if j.kind == "revolute":
+            cols.append(np.linalg.norm(w[:, i, 3:], axis=1))
+    cols += [res.id_torque[keep, i] for i in range(machine.n_joints)]
+    limits = np.array([MOVING_RAD_S if j.kind == "revolute" else MOVING_M_S
+                       for j in machine.joints])
+    moving = np.any(np.abs(res.qd[keep]) > limits, axis=1)
+    cols.append(moving.astype(np.float64))
+    return derived_channels(machine), np.column_stack(cols)
+
+
+def update_counters(prog: Progress, machine: Machine, t_s: F64, payload_kg: F64,
+                    reach_m: F64, working: F64, period_s: float, threshold_kg: float) -> Progress:
+    """Cumulative counters after one window.
+
+    Operating time = samples × period; idle = the part with ``working`` = 0. Lifts are detected
+    on 1-s means of the payload with hysteresis (start above ``threshold_kg``, end below half of
+    it); at a lift's end it is counted, its peak added to the payload total, (peak/rated)³ to the
+    spectrum sum, and it is an overload when the peak exceeded the rated load at its reach.
+
+    Args:
+        prog: Progress before the window.
+        machine: Machine description (rated-load chart).
+        t_s: Grid times of the window, shape (k,) [s].
+        payload_kg: Payload estimate, shape (k,) [kg].
+        reach_m: Horizontal reach of the load point, shape (k,) [m].
+        working: 1 moving / 0 still, shape (k,).
+        period_s: Grid period [s].
+        threshold_kg: Lift threshold [kg].
+    """
+    rated_max = float(max(machine.rated_load.payload_kg))
+    op = prog.operating_s + len(t_s) * period_s
+    idle = prog.idle_s + float(np.sum(working < 0.5)) * period_s
+    in_lift, peak, ratio = prog.in_lift, prog.lift_peak_kg, prog.lift_peak_ratio
+    count, total, cube, over = prog.load_count, prog.payload_total_kg, prog.load_cube_sum, \
+        prog.overloads
+    mx = prog.max_payload_kg
+    last = prog.last_payload_kg
+    if len(t_s):
+        sec = np.floor(t_s).astype(np.int64)
+        starts = np.concatenate(([0], np.flatnonzero(np.diff(sec)) + 1))
+        pl = np.where(np.isfinite(payload_kg), payload_kg, 0.0)
+        means = np.add.reduceat(pl, starts) / np.diff(np.append(starts, len(t_s)))
+        rated_at = machine.rated_load.payload_at(reach_m[starts])
+        for m, r in zip(means.tolist(), rated_at.tolist(), strict=True):
+            if not in_lift and m > threshold_kg:
+                in_lift, peak, ratio = True, m, m / r
+            elif in_lift:
+                if m > peak:
+                    peak = m
+                ratio = max(ratio, m / r)
+                if m < threshold_kg / 2:
+                    count += 1
+                    total += peak
+                    cube += (peak / rated_max) ** 3
+                    over += int(ratio > 1.0)
+                    mx = max(mx, peak)
+                    in_lift, peak, ratio = False, 0.0, 0.0
+        finite = payload_kg[np.isfinite(payload_kg)]
+        last = float(finite[-1]) if finite.size else last
+    return dc_replace(prog, operating_s=op, idle_s=idle, in_lift=in_lift, lift_peak_kg=peak,
+                      lift_peak_ratio=ratio, load_count=count, payload_total_kg=total,
+                      load_cube_sum=cube, overloads=over, max_payload_kg=mx,
+                      last_payload_kg=last)
+
+
+class TwinWorker:
+    """Replays every machine's new samples into derived summaries (see module docstring)."""
+
+    def __init__(self, backend: Backend, settings: Settings, metrics: Metrics | None = None,
+                 replayer: Replayer | None = None, max_windows_per_pass: int = 30) -> None:
+        from cranetwin.api.replayer import Replayer
+
+        self.replayer = replayer if replayer is not None else Replayer()
+        self.backend = backend
+        self.settings = settings
+        self.metrics = metrics
+        self.max_windows_per_pass = max_windows_per_pass
+
+    async def run_forever(self) -> None:
+        """Process passes until cancelled, sleeping when caught up."""
+        while True:
+            try:
+                done = await asyncio.to_thread(self.run_once)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("twin worker pass failed")
+                done = 0
+            if done == 0:
+                await asyncio.sleep(self.settings.worker_interval_s)
+            else:
+                await asyncio.sleep(0)
+
+    def run_once(self) -> int:
+        """One pass over all machines: at most ``max_windows_per_pass`` windows each.
+
+        Returns:
+            Windows processed (0 = every machine is caught up).
+        """
+        total = 0
+        for rec in self.backend.list_machines():
+            total += self.catch_up(rec, self.max_windows_per_pass)
+        return total
+
+    def catch_up(self, rec: MachineRecord, max_windows: int | None = None) -> int:
+        """Process the ready windows of one machine, oldest first; returns how many."""
+        from cranetwin.api.backend import Progress
+
+        s = self.settings
+        win = s.worker_window_s
+        dr = self.backend.data_range(rec.machine_id)
+        if dr is None:
+            return 0
+        prog = self.backend.progress(rec.machine_id)
+        if prog is None:
+            prog = Progress.empty(rec.machine_id, math.floor(dr[0] / win) * win)
+        done = 0
+        while max_windows is None or done < max_windows:
+            w0 = prog.watermark_s
+            if w0 + win + s.worker_settle_s > dr[1]:
+                break
+            nxt = self.backend.next_sample_time(rec.machine_id, w0)
+            if nxt is None:
+                break
+            if nxt >= w0 + win:  # nothing in this window: skip the gap in one step
+                prog = dc_replace(prog, watermark_s=math.floor(nxt / win) * win)
+                self.backend.save_progress(prog)
+                continue
+            prog = self.process_window(rec, prog)
+            done += 1
+        if self.metrics is not None:
+            self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
+        return done
+
+    def process_window(self, rec: MachineRecord, prog: Progress) -> Progress:
+        """Replay [watermark, watermark + window), commit its summaries and progress together."""
+        from cranetwin.physics import horizontal_reach
+
+        s = self.settings
+        machine = self.backend.model_of(rec)
+        w0, w1 = prog.watermark_s, prog.watermark_s + s.worker_window_s
+        m = s.twin_margin_s
+        samples = self.backend.read_samples(rec.machine_id, w0 - m, w1 + m)
+        new = dc_replace(prog, watermark_s=w1, windows=prog.windows + 1)
+        n_in = int(np.count_nonzero((samples.t_s >= w0) & (samples.t_s < w1)))
+        try:
+            if n_in < 8:
+                raise CraneTwinError(f"only {n_in} samples in the window")
+            period = float(np.median(np.diff(samples.t_s)))
+            grid_hz = max(1.0, float(round(1.0 / period)))
+            res = self.replayer.replay(rec.machine_id, machine, samples, grid_hz,
+                                       theta0_initial=prog.theta0_rad or 0.0)
+        except CraneTwinError as exc:
+            log.warning("machine %s window %.0f–%.0f not replayed: %s", rec.machine_id, w0, w1,
+                        exc)
+            if self.metrics is not None:
+                self.metrics.worker_errors.labels(rec.machine_id).inc()
+            self.backend.save_progress(new)
+            return new
+        keep = (res.t_s >= w0) & (res.t_s < w1)
+        names, values = derive(machine, res, keep)
+        t = res.t_s[keep]
+        reach = horizontal_reach(machine, res.q[keep]) if t.size else np.zeros(0)
+        new = update_counters(new, machine, t, res.payload_kg[keep], reach, values[:, -1],
+                              1.0 / grid_hz, s.payload_lift_threshold_kg)
+        if t.size:
+            new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
+        self.backend.commit_window(new, names, t, values)
+        if self.metrics is not None:
+            self.metrics.worker_windows.labels(rec.machine_id).inc()
+        return new
