@@ -11,7 +11,8 @@ Nothing is ever dropped: a datagram leaves the sender only when an ack covers it
 in order as acks free memory, so a link that is down for hours costs disk, not RAM. Each
 in-memory datagram is retransmitted when its timer expires, with exponential backoff from
 ``rto_ns`` up to ``max_rto_ns``; the first ack after a silence resets the backoff of all
-pending datagrams so that recovery starts at once.
+pending datagrams (next try one initial timeout after its last send) so that recovery starts at
+once.
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ class _Pending:
     next_send_ns: int
     rto_ns: int
     sends: int = 0
-    first_sent_ns: int = 0
+    last_sent_ns: int = 0
 
 
 def datagram_seq(datagram: bytes) -> int:
@@ -186,9 +187,9 @@ class Sender:
             self.acked_samples += self._samples_of.pop(s, 0)
         if silent or done:
             for p in self._pending.values():
-                if p.sends > 1:
+                if p.sends > 1:  # backed off: the link works again, retry 1 RTO after last send
                     p.rto_ns = self.rto_ns
-                    p.next_send_ns = min(p.next_send_ns, now_ns)
+                    p.next_send_ns = min(p.next_send_ns, p.last_sent_ns + self.rto_ns)
         self._refill()
         return ack
 
@@ -202,9 +203,8 @@ class Sender:
             if p.next_send_ns <= now_ns:
                 if p.sends:
                     self.retransmissions += 1
-                else:
-                    p.first_sent_ns = now_ns
                 p.sends += 1
+                p.last_sent_ns = now_ns
                 p.next_send_ns = now_ns + p.rto_ns
                 p.rto_ns = min(2 * p.rto_ns, self.max_rto_ns)
                 out.append(p.datagram)
