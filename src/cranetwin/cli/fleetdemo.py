@@ -1,0 +1,53 @@
+"""``cranetwin fleetdemo``: ingest daemon + API + simulated cranes, one Ctrl-C stops all."""
+
+from __future__ import annotations
+
+import logging
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``cranetwin fleetdemo``."""
+
+    @app.command("fleetdemo")
+    def fleetdemo(
+        machines: int = typer.Option(3, min=1, max=50, help="Number of simulated cranes."),
+        port: int = typer.Option(8000, help="TCP port of the API and web UI."),
+        udp_port: int = typer.Option(5005, help="UDP port of the ingest daemon."),
+        host: str = typer.Option("127.0.0.1", help="Bind address of the API."),
+        db: str = typer.Option("sqlite:///cranetwin-demo.db",
+                               help="Database URL (a demo SQLite file is recreated each run)."),
+        speed: float = typer.Option(1.0, min=0.1, max=20.0, help="Simulation speed (1 = real "
+                                    "time)."),
+        attach: bool = typer.Option(False, help="Only register cranes and stream, to a service "
+                                    "and daemon that run elsewhere (docker-compose)."),
+        api: str | None = typer.Option(None, help="API base URL when attached."),
+        ingest: str | None = typer.Option(None, help="Daemon host:port when attached."),
+        public_url: str | None = typer.Option(None, help="Base URL to print for the browser."),
+    ) -> None:
+        """Run the demo: daemon and service on SQLite, a viewer key, cranes streaming
+        log-loading cycles over UDP. Prints the URL to open; Ctrl-C stops everything."""
+        from cranetwin.demo import DemoConfig, DemoError, FleetDemo
+
+        logging.basicConfig(level=logging.INFO, format="%(message)s")
+        config = DemoConfig(machines=machines, db_url=None if attach and db.startswith(
+            "sqlite:///cranetwin-demo") else db, host=host, port=port, udp_port=udp_port,
+            speed=speed, attach=attach, api_url=api, ingest_addr=ingest, public_url=public_url)
+        demo = FleetDemo(config)
+        try:
+            url = demo.start()
+            typer.echo("")
+            typer.echo(f"cranetwin demo running: {machines} crane(s) streaming over UDP to "
+                       f"{config.ingest}; logs in {demo.logdir}/")
+            typer.echo(f"open  {url}")
+            typer.echo("Ctrl-C stops everything.")
+            demo.watch()
+        except KeyboardInterrupt:
+            typer.echo("\nstopping: cranes, ingest daemon, API …")
+        except DemoError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            demo.stop()
+            raise typer.Exit(2) from exc
+        demo.stop()
+        typer.echo("stopped.")
