@@ -33,13 +33,18 @@ class DatagramError(ProtocolError):
     Attributes:
         reason: Short, fixed drop reason (for counters).
         wire_id: Machine wire id from the header, if it could be read.
+        machine_id: Machine identifier, set when the datagram was authenticated (``replayed``):
+            the server should answer a replay with a fresh ack, since the sender evidently
+            missed the earlier one.
     """
 
     reason: ClassVar[str] = "garbage"
 
-    def __init__(self, message: str, wire_id: int | None = None) -> None:
+    def __init__(self, message: str, wire_id: int | None = None,
+                 machine_id: str | None = None) -> None:
         super().__init__(message)
         self.wire_id = wire_id
+        self.machine_id = machine_id
 
 
 class GarbageError(DatagramError):

@@ -2,7 +2,10 @@
 
 The daemon feeds every datagram with its own receive time to :meth:`Receiver.receive`, stores
 what comes back, calls :meth:`Receiver.mark_durable` once the write is committed and sends the
-bytes of :meth:`Receiver.ack` back to the machine's address. No sockets, no clocks, no threads.
+bytes of :meth:`Receiver.ack` back to the machine's address. On :class:`ReplayedError` it drops
+the datagram and also sends ``ack(err.machine_id, now)``: the machine retransmits because it
+missed the earlier ack, and without a fresh one it would retransmit forever once it has nothing
+new to send. No sockets, no clocks, no threads.
 
 Replay rule (per machine; ``floor`` and ``durable`` are the receiver's state):
 
@@ -120,7 +123,7 @@ class Receiver:
         st.raise_floor(seq - lag)
         if seq < st.floor or seq in st.durable:
             raise ReplayedError(f"seq {seq} of {st.key.machine_id!r} is already durable "
-                                f"(window floor {st.floor})", head.wire_id)
+                                f"(window floor {st.floor})", head.wire_id, st.key.machine_id)
         st.accepted += 1
         if isinstance(item, SampleBlock):
             st.offsets.append(now_ns - (item.t_end_ns + item.period_ns))
