@@ -26,7 +26,8 @@ def list_machines(key: CurrentKey, services: ServicesDep) -> list[MachinePublic]
 
 
 @router.post("", response_model=MachineCreated, status_code=status.HTTP_201_CREATED,
-             summary="Register a machine (admin)")
+             summary="Register a machine (admin)",
+             responses={409: {**PROBLEM_RESPONSES[404], "description": "Id already taken"}})
 def create_machine(key: AdminKey, services: ServicesDep,
                    body: Annotated[MachineCreate, Body(openapi_examples={"crane": {"value": {
                        "machine_id": "crane-2", "model": "patu655", "name": "Crane 2"}}})],
