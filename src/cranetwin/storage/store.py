@@ -179,8 +179,18 @@ class Store:
             UnknownMachineError: A block names an unregistered machine.
             StorageError: The database rejected the write.
         """
+        return len(self.store_blocks(blocks))
+
+    def store_blocks(self, blocks: Sequence[SampleBlock]) -> list[SampleBlock]:
+        """Like :meth:`write_blocks`, but returns the blocks that were newly stored (for live
+        fan-out), in input order.
+
+        Raises:
+            UnknownMachineError: A block names an unregistered machine.
+            StorageError: The database rejected the write.
+        """
         if not blocks:
-            return 0
+            return []
         try:
             with self._session() as s, s.begin():
                 unique: dict[tuple[int, int], SampleBlock] = {}
@@ -201,7 +211,7 @@ class Store:
                         f"UPDATE machines SET last_seen_ns = {ph} WHERE id = {ph} AND "
                         f"(last_seen_ns IS NULL OR last_seen_ns < {ph})",
                         [(t, pk, t) for pk, t in last.items()])
-                return len(new)
+                return [b for key, b in unique.items() if key in new]
         except UnknownMachineError:
             raise
         except SQLAlchemyError as exc:
