@@ -413,10 +413,11 @@ def run_steps(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int,
                 # which keeps the oil-spring energy exact; then valve/relief flows
                 pa = x[X_PA + k] - hg[G_BOIL] * math.log(ca1 / ca)
                 pb = x[X_PB + k] - hg[G_BOIL] * math.log(cb1 / cb)
-                x[X_PA + k] = pressure_step(pa, flow[4 * k], flow[4 * k + 2], ca1, dt,
-                                            hg[G_PMIN])
-                x[X_PB + k] = pressure_step(pb, flow[4 * k + 1], flow[4 * k + 3], cb1, dt,
-                                            hg[G_PMIN])
+                # flows linearised about the pressure after the displacement (Q − g·Δp)
+                qa = flow[4 * k] - flow[4 * k + 2] * (pa - x[X_PA + k])
+                qb = flow[4 * k + 1] - flow[4 * k + 3] * (pb - x[X_PB + k])
+                x[X_PA + k] = pressure_step(pa, qa, flow[4 * k + 2], ca1, dt, hg[G_PMIN])
+                x[X_PB + k] = pressure_step(pb, qb, flow[4 * k + 3], cb1, dt, hg[G_PMIN])
                 x[X_U + 1 + k] = spool_step(x[X_U + 1 + k], u_cmd[1 + k], hc[k, C_TAU], dt)
             # slewing drive: torque rate with the updated speed (symplectic pairing)
             w_old = x[X_QD + sj] - dt * qdd[sj]

@@ -71,7 +71,7 @@ class HydraulicSettings:
     """
 
     transition_pressure_pa: float = 1.0e5
-    relief_gain_m3_s_pa: float = 2.0e-9
+    relief_gain_m3_s_pa: float = 1.0e-8
     min_pressure_pa: float = 0.0
     end_stop_stiffness_n_m: float = 2.0e8
     end_stop_damping_n_s_m: float = 2.0e5
