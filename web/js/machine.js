@@ -287,7 +287,7 @@ function startLive() {
       let f;
       try { f = JSON.parse(msg.data); } catch (_) { return; }
       if (f.type === "hello") return;
-      if (f.type === "error") { banner(f.detail || f.title || "Live stream error", "error"); return; }
+      if (f.type === "error") { state.liveError = true; banner(f.detail || f.title || "Live stream error", "error"); return; }
       lastFrameWall = Date.now();
       f.receivedAt = performance.now();
       state.liveFrame = f;
@@ -297,7 +297,8 @@ function startLive() {
     };
     ws.onclose = (ev) => {
       if (state.live !== ws) return;
-      if (ev.code === 4401 || ev.code === 1008) { banner("The live stream refused this key.", "error"); return; }
+      if (ev.code === 4401 || ev.code === 4403 || ev.code === 1008) { banner("The live stream refused this key.", "error"); return; }
+      if (ev.code === 4404) { banner(`Unknown machine “${machineId}”.`, "error"); return; }
       banner(`Live connection lost — reconnecting in ${(backoff / 1000).toFixed(1)} s…`, "error");
       state.liveTimer = setTimeout(connect, backoff);
       backoff = Math.min(backoff * 2, 10000);
