@@ -5,7 +5,7 @@ step 1e-4 s, semi-implicit scheme, truth kept at 1 kHz) on one thread: ``real_ti
 simulated seconds / wall seconds of the integration (best of ``reps``). Not timed: JIT compile
 or numba cache load (reported as ``compile_seconds``). Also reported: the wall time of a whole
 recording (integration + sensor model + joint reaction wrenches), the RK4 scheme's factor, and
-the factor at a 5e-4 s step (≈ 1 mm / 0.5 bar from a 5e-5 s reference: enough for a demo fleet).
+the factor at a 5e-4 s step (≈ 25 µm / 0.16 bar from a 5e-5 s reference: fine for a demo fleet).
 
 Baseline, in the same run: the very same step function with numba's JIT disabled
 (``NUMBA_DISABLE_JIT=1``, i.e. plain Python/NumPy executing the same code), in a subprocess over
