@@ -13,6 +13,7 @@ from cranetwin.signal import (
     NaturalCubicSpline,
     choose_window,
     estimate_noise_std,
+    ici_smooth,
     inject_uniform_noise,
     newton_derivative,
     nrmse,
@@ -203,3 +204,16 @@ def test_spline_subdivided_evaluation_equals_pointwise(uniform: bool) -> None:
     slow = sp.evaluate(pts, 2)
     for a, b in zip(fast, slow, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-8 * np.abs(b).max())
+
+
+def test_ici_smoothing_beats_best_fixed_window_on_steps() -> None:
+    rng = np.random.default_rng(10)
+    t = np.arange(4000) * 0.01
+    clean = np.where(t % 8.0 < 4.0, 1.0, -1.0) + 0.3 * np.sin(2 * np.pi * 0.2 * t)
+    y = clean + rng.uniform(-0.3, 0.3, t.shape[0])
+    sigma = estimate_noise_std(y)
+    adaptive = ici_smooth(y, sigma)
+    best_fixed = min(np.mean((savgol_smooth(y, w, 3) - clean) ** 2)
+                     for w in (5, 7, 9, 11, 15, 21, 27, 35, 45, 61, 81, 101, 131))
+    assert np.mean((adaptive - clean) ** 2) < 0.8 * best_fixed
+    assert np.mean((adaptive - clean) ** 2) < 0.2 * np.mean((y - clean) ** 2)

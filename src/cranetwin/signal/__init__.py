@@ -9,15 +9,19 @@ from cranetwin.signal.differentiate import newton_derivative
 from cranetwin.signal.noise import NOISY_QUANTITIES, inject_uniform_noise, nrmse
 from cranetwin.signal.resample import Regular, nominal_period, regularize, uniform_grid
 from cranetwin.signal.smoothing import (
+    ICI_WINDOWS,
     SmoothingChoice,
     choose_derivative_window,
     choose_window,
     estimate_noise_std,
+    ici_select,
+    ici_smooth,
     savgol_smooth,
 )
 from cranetwin.signal.spline import NaturalCubicSpline
 
 __all__ = [
+    "ICI_WINDOWS",
     "NOISY_QUANTITIES",
     "NaturalCubicSpline",
     "Regular",
@@ -25,6 +29,8 @@ __all__ = [
     "choose_derivative_window",
     "choose_window",
     "estimate_noise_std",
+    "ici_select",
+    "ici_smooth",
     "inject_uniform_noise",
     "newton_derivative",
     "nominal_period",

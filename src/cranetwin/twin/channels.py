@@ -9,7 +9,12 @@ import numpy.typing as npt
 
 from cranetwin.errors import TwinError
 from cranetwin.model import Machine
-from cranetwin.signal import SmoothingChoice, choose_derivative_window, choose_window
+from cranetwin.signal import (
+    ICI_WINDOWS,
+    SmoothingChoice,
+    choose_derivative_window,
+    choose_window,
+)
 
 F64 = npt.NDArray[np.float64]
 
@@ -86,17 +91,21 @@ class ChannelMap:
 
 
 def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
-                     enabled: bool = True) -> tuple[SmoothingChoice, ...]:
+                     enabled: bool = True,
+                     adaptive: bool = True) -> tuple[SmoothingChoice, ...]:
     """Savitzky–Golay choices, from regularly sampled data, in ``cmap.choice_names`` order.
 
-    Pressures pA and pB of a cylinder share one window, chosen on the hydraulic force
-    A1·pA − A2·pB (Eq. 1 without friction), the quantity the twin needs from them.
+    Pressures pA and pB of a cylinder share their windows, chosen on the hydraulic force
+    A1·pA − A2·pB (Eq. 1 without friction), the quantity the twin needs from them; the window
+    adapts sample by sample (LPA-ICI, :func:`cranetwin.signal.ici_select`) because valve steps
+    make the pressures jump: long windows in between, short ones at the jumps.
 
     Args:
         machine: Machine (cylinder areas).
         cmap: Channel map.
         values: Regular samples in working order, shape (n, len(cmap.names)), finite.
         enabled: If False every channel gets window 1 (no smoothing).
+        adaptive: Pressures by LPA-ICI (True) or by the fixed SURE window (False).
 
     Position channels get a second window for their derivatives (rod velocity and
     acceleration), chosen by Lepski's rule (:func:`cranetwin.signal.choose_derivative_window`):
@@ -115,7 +124,10 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         res = float(np.hypot(cyl.area_a_m2 * cmap.resolution[ia],
                              cyl.area_b_m2 * cmap.resolution[ib]))
         ch = choose_window(force, resolution=res)
-        out[ia] = out[ib] = ch
+        # pressures: window adapted per sample (LPA-ICI) on the force, up to the longest
+        # candidate; sigma and the fixed window's risk kept for the payload weights
+        out[ia] = out[ib] = (SmoothingChoice(max(ICI_WINDOWS), 3, ch.sigma, ch.risk,
+                                             adaptive=True) if adaptive else ch)
         js = cmap.s[c]
         out[js] = choose_window(values[:, js], resolution=cmap.resolution[js])
     for opt in (cmap.torque, cmap.angle):

@@ -33,8 +33,10 @@ from cranetwin.errors import PhysicsError, TwinError
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import (
+    ICI_WINDOWS,
     NaturalCubicSpline,
     SmoothingChoice,
+    ici_select,
     newton_derivative,
     nominal_period,
     regularize,
@@ -57,6 +59,7 @@ class ReplayOptions:
     Attributes:
         grid_hz: Output grid rate [Hz]; must be an integer multiple of the sample rate.
         smooth: Savitzky–Golay smoothing on (window chosen from the noise level) or off.
+        adaptive_pressures: Pressure windows adapted per sample (LPA-ICI) rather than fixed.
         smoothing: Fixed smoothing choices per working channel (skips the automatic choice).
         velocity: Rod velocity from the derivative of the position spline (``"spline"``) or by
             Newton's divided-difference formula at the samples, then splined (``"newton"``).
@@ -72,6 +75,7 @@ class ReplayOptions:
 
     grid_hz: float = 1000.0
     smooth: bool = True
+    adaptive_pressures: bool = True
     smoothing: tuple[SmoothingChoice, ...] | None = None
     velocity: Literal["spline", "newton"] = "spline"
     payload_window_s: float = 2.0
@@ -229,7 +233,7 @@ class TwinStream:
             if not final and have < self.opt.choose_after_s:
                 return
             self._choices = choose_smoothing(self.machine, self.cmap, self._reg.arr,
-                                             self.opt.smooth)
+                                             self.opt.smooth, self.opt.adaptive_pressures)
         self._stage_smooth(final)
         if self._integrate:
             self._stage_slew(final)
@@ -275,8 +279,15 @@ class TwinStream:
         nd = self._nd
         out = np.full((raw.shape[0], self._nch + 1 + 2 * nd), np.nan)
         groups: dict[tuple[int, int], list[int]] = {}
-        for j, c in enumerate(self._choices[: self._nch]):
-            groups.setdefault((c.window, c.polyorder), []).append(j)
+        for j, choice in enumerate(self._choices[: self._nch]):
+            if not choice.adaptive:
+                groups.setdefault((choice.window, choice.polyorder), []).append(j)
+        for ci, cyl in enumerate(self.machine.cylinders):
+            ia, ib = self.cmap.p_a[ci], self.cmap.p_b[ci]
+            ch = self._choices[ia]
+            if ch.adaptive:
+                out[:, [ia, ib]] = self._ici_pressures(raw[:, ia], raw[:, ib], cyl.area_a_m2,
+                                                       cyl.area_b_m2, ch)
         for (w, p), cols in groups.items():
             if w > 1 and raw.shape[0] < w:
                 raise TwinError(f"{raw.shape[0]} samples are fewer than the smoothing window {w}")
@@ -296,6 +307,18 @@ class TwinStream:
             raise TwinError("internal: smoothing does not continue the stream")
         self._sm.append(block)
         self._sm_valid = k_hi
+
+    @staticmethod
+    def _ici_pressures(pa: F64, pb: F64, a1: float, a2: float,
+                       ch: SmoothingChoice) -> F64:
+        ws = [w for w in ICI_WINDOWS
+              if (w == 1 or w > ch.polyorder + 1) and w <= min(ch.window, pa.shape[0])]
+        ea = np.stack([savgol_smooth(pa, w, ch.polyorder) for w in ws])
+        eb = np.stack([savgol_smooth(pb, w, ch.polyorder) for w in ws])
+        sds = np.array([ch.sigma * np.sqrt(_h0(SmoothingChoice(w, ch.polyorder, 0.0, 0.0)))
+                        for w in ws])
+        k = ici_select(a1 * ea - a2 * eb, sds)[None, :]
+        return np.column_stack([np.take_along_axis(ea, k, 0)[0], np.take_along_axis(eb, k, 0)[0]])
 
     def _sample_state(self, k0: int, k1: int, theta0: F64 | None) -> tuple[F64, F64, F64, F64]:
         """q, qd, qdd and actuator loads at samples [k0, k1) from the smoothed channels."""
@@ -416,7 +439,8 @@ class TwinStream:
         for c, cyl in enumerate(m.cylinders):
             ch = self._choices[self.cmap.p_a[c]]
             weights[c] = 1.0 / (max(ch.risk, 0.0) + cyl.friction.coulomb ** 2)
-            frac[c] = _h0(ch)
+            # independent errors per sample ≈ the smoother's variance gain, risk/σ²
+            frac[c] = float(np.clip(ch.risk / ch.sigma**2, 1e-3, 1.0)) if ch.sigma > 0 else 1.0
         return sliding_payload(g, res, weights, half, frac)
 
     # -- one chunk ------------------------------------------------------------------------------
