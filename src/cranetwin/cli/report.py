@@ -1,0 +1,96 @@
+"""``cranetwin report``: load-history report (PDF, HTML or CSV) of one machine.
+
+Data from storage (``--machine ID --from --to``, replayed by the twin), from a simulator
+recording (``--recording rec.npz``, its ground truth) or synthetic (``--demo``).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+from pathlib import Path
+
+import typer
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from cranetwin.errors import ReportError
+from cranetwin.model import load_machine
+
+
+def parse_time(text: str) -> float:
+    """Epoch seconds from ``1700000000``, ``2023-11-14`` or ``2023-11-14T06:00:00[+00:00]``
+    (naive times are UTC)."""
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    try:
+        t = dt.datetime.fromisoformat(text)
+    except ValueError as exc:
+        raise ReportError(f"bad time {text!r}: expected epoch seconds or ISO 8601, e.g. "
+                          "2023-11-14T06:00:00") from exc
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=dt.UTC)
+    return t.timestamp()
+
+
+def report(
+    out: Path = typer.Option(..., "--out", "-o", help="Output file (.pdf, .html) or CSV "
+                             "directory / .zip."),
+    fmt: str = typer.Option("pdf", "--format", "-f", help="pdf | html | csv"),
+    machine: str | None = typer.Option(None, "--machine", "-m",
+                                       help="Machine id in storage (or, with --recording/--demo, "
+                                            "a built-in machine or TOML file)."),
+    t_from: str | None = typer.Option(None, "--from", help="Start (epoch s or ISO 8601 UTC)."),
+    t_to: str | None = typer.Option(None, "--to", help="End (epoch s or ISO 8601 UTC)."),
+    db: str = typer.Option(os.environ.get("CRANETWIN_DATABASE_URL", "sqlite:///cranetwin.db"),
+                           "--db", help="Storage URL."),
+    recording: Path | None = typer.Option(None, "--recording", help="Simulator recording "
+                                          "(.npz or .csv) to analyse instead of storage."),
+    demo: bool = typer.Option(False, "--demo", help="Synthetic 8-hour shifts with a few "
+                              "injected misuse events."),
+    days: int = typer.Option(30, "--days", help="Days of --demo data."),
+    rate_hz: float = typer.Option(100.0, "--rate-hz", help="Sample rate of --demo data [Hz]."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+) -> None:
+    """Write a load-history report: usage, load spectra, damage and remaining life, duty class,
+    events, productivity."""
+    from cranetwin.reports import (
+        DemoSource,
+        RecordingSource,
+        Source,
+        StoreSource,
+        build_report,
+        write,
+    )
+
+    fmt = fmt.lower()
+    src: Source
+    if demo:
+        src = DemoSource(load_machine(machine or "patu655"), days=days, rate_hz=rate_hz)
+    elif recording is not None:
+        from cranetwin.sim import Recording
+
+        name = machine or Recording.load(recording).machine
+        src = RecordingSource(load_machine(name), recording)
+    else:
+        if machine is None or t_from is None or t_to is None:
+            raise ReportError("give --machine ID --from T0 --to T1 (storage), or --recording "
+                              "FILE, or --demo")
+        src = StoreSource(db, machine, parse_time(t_from), parse_time(t_to))
+    with Progress(TextColumn("{task.description}"), BarColumn(),
+                  TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(),
+                  TimeRemainingColumn(), disable=quiet) as bar:
+        task = bar.add_task("analysing", total=src.total())
+        rep = build_report(src, progress=lambda n: bar.advance(task, n))
+        bar.update(task, completed=src.total())
+        wtask = bar.add_task(f"writing {fmt}", total=7)
+        path = write(rep, src.machine, fmt, out, src.label, progress=lambda: bar.advance(wtask))
+        bar.update(wtask, completed=7)
+    typer.echo(f"{path}: {len(rep.cycles)} work cycles, {len(rep.events)} events, "
+               f"{rep.n_samples:,} samples")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``cranetwin report``."""
+    app.command("report")(report)

@@ -1,0 +1,210 @@
+"""Where report data come from: simulator recordings, twin results, storage, or a demo.
+
+Each source yields consecutive :class:`~cranetwin.analytics.LoadHistory` chunks (bounded memory)
+and knows its total size for a progress bar. The reach and height of the load point need the
+kinematics, which is why these adapters live here and not in :mod:`cranetwin.analytics`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.analytics import LoadHistory
+from cranetwin.analytics.synthetic import Misuse, SyntheticCrane
+from cranetwin.errors import CraneTwinError, ReportError
+from cranetwin.model import Machine, load_machine
+
+if TYPE_CHECKING:
+    from cranetwin.sim import Recording
+    from cranetwin.twin import TwinResult
+
+F64 = npt.NDArray[np.float64]
+DAY_S = 86400.0
+WINDOW_S = 4 * 3600.0  # storage is read and replayed four hours at a time
+
+
+def _reach_height(machine: Machine, q: F64) -> tuple[F64, F64]:
+    from cranetwin.physics import load_point_position
+
+    tip = load_point_position(machine, q)
+    base = np.asarray(machine.joints[0].origin_m, dtype=float)
+    d = tip - base
+    return np.hypot(d[:, 0], d[:, 1]), d[:, 2]
+
+
+def history_from_recording(machine: Machine, rec: Recording) -> LoadHistory:
+    """The simulator's ground truth of a recording as a load history.
+
+    Args:
+        machine: The machine simulated.
+        rec: A :class:`cranetwin.sim.Recording` (its ``truth`` is used: exact forces, wrenches,
+            pressures and payload on the fine grid).
+
+    Raises:
+        ReportError: The recording has no joint wrenches (not computed by the simulator).
+    """
+    tr = rec.truth
+    if not np.all(np.isfinite(tr.joint_wrench)):
+        raise ReportError("the recording's truth has no joint wrenches; simulate with them on")
+    reach, height = _reach_height(machine, tr.q)
+    return LoadHistory.from_arrays(
+        machine, t_s=tr.t_s, cyl_force=tr.cyl_force, q=tr.q, qd=tr.qd, payload_kg=tr.payload_kg,
+        reach_m=reach, height_m=height, joint_wrench=tr.joint_wrench, rod_s=tr.rod_s,
+        rod_v=tr.rod_v, p_a=tr.p_a, p_b=tr.p_b)
+
+
+def history_from_twin(machine: Machine, res: TwinResult) -> LoadHistory:
+    """A twin replay result as a load history (NaN-free instants only).
+
+    Args:
+        machine: The machine replayed.
+        res: A :class:`cranetwin.twin.TwinResult`.
+    """
+    reach, height = _reach_height(machine, res.q)
+    ok = np.isfinite(res.cyl_force).all(axis=1) & np.isfinite(res.joint_wrench).all(axis=(1, 2))
+    ok &= np.isfinite(res.payload_kg) & np.isfinite(res.q).all(axis=1)
+
+    def k(a: F64) -> F64:
+        return a if ok.all() else a[ok]
+    return LoadHistory.from_arrays(
+        machine, t_s=k(res.t_s), cyl_force=k(res.cyl_force), q=k(res.q), qd=k(res.qd),
+        payload_kg=np.maximum(k(res.payload_kg), 0.0), reach_m=k(reach), height_m=k(height),
+        joint_wrench=k(res.joint_wrench), rod_s=k(res.rod_s), rod_v=k(res.rod_v),
+        p_a=k(res.p_a), p_b=k(res.p_b))
+
+
+class Source(Protocol):
+    """A stream of load-history chunks of one machine."""
+
+    machine: Machine
+    label: str
+
+    def total(self) -> int:
+        """Units of progress (samples or chunks) that :meth:`chunks` will report."""
+        ...
+
+    def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
+        """Consecutive chunks (None: progress without data), each with its units of progress."""
+        ...
+
+
+@dataclass
+class DemoSource:
+    """Synthetic shifts (see :class:`cranetwin.analytics.synthetic.SyntheticCrane`) with a few
+    injected misuse events, for a report that works without any data."""
+
+    machine: Machine
+    days: int = 30
+    rate_hz: float = 100.0
+    seed: int = 0
+    start_epoch_s: float | None = None
+    label: str = "demo: synthetic 8-hour shifts"
+
+    def __post_init__(self) -> None:
+        per_day = int(8 * 3600 // 45) + 1
+        last = max(self.days - 1, 0)
+        mis = Misuse(overload=(17,), end_stop=(min(1, last) * per_day + 33,),
+                     overspeed=(min(4, last) * per_day + 101,))
+        kw = {} if self.start_epoch_s is None else {"start_epoch_s": self.start_epoch_s}
+        self.crane = SyntheticCrane(self.machine, seed=self.seed, days=self.days, misuse=mis,
+                                    **kw)
+
+    def total(self) -> int:
+        return int(self.days * 8 * 3600 * self.rate_hz)
+
+    def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
+        for h in self.crane.chunks(self.rate_hz, 3600.0):
+            yield h, h.n
+
+
+@dataclass
+class RecordingSource:
+    """A simulator recording file (``.npz`` or ``.csv``), analysed on its ground truth."""
+
+    machine: Machine
+    path: Path
+    label: str = ""
+
+    def __post_init__(self) -> None:
+        from cranetwin.sim import Recording
+
+        try:
+            self.rec = Recording.load(self.path)
+        except CraneTwinError:
+            raise
+        except (OSError, ValueError, KeyError) as exc:
+            raise ReportError(f"cannot read recording {self.path}: {exc}") from exc
+        self.label = self.label or f"recording {self.path.name} (scenario {self.rec.scenario})"
+
+    def total(self) -> int:
+        return self.rec.truth.n
+
+    def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
+        h = history_from_recording(self.machine, self.rec)
+        step = 360_000
+        for a in range(0, h.n, step):
+            part = h.slice(a, min(a + step, h.n))
+            yield part, part.n
+
+
+@dataclass
+class StoreSource:
+    """Samples of a registered machine read from storage day by day and replayed by the twin."""
+
+    url: str
+    machine_id: str
+    t0_s: float
+    t1_s: float
+    grid_hz: float = 100.0
+    label: str = ""
+
+    def __post_init__(self) -> None:
+        try:
+            from cranetwin.storage import Store
+        except ImportError as exc:  # pragma: no cover - storage is part of the package
+            raise ReportError(f"storage is not available: {exc}") from exc
+        self.store = Store.open(self.url)
+        info = {m.machine_id: m for m in self.store.machines()}
+        if self.machine_id not in info:
+            raise ReportError(f"unknown machine {self.machine_id!r}; registered: "
+                              f"{sorted(info)}")
+        model = info[self.machine_id].model
+        if "\n" in model or "[" in model:
+            import tomllib
+
+            from cranetwin.model import machine_from_dict
+
+            self.machine = machine_from_dict(tomllib.loads(model), f"machine {self.machine_id}")
+        else:
+            self.machine = load_machine(model)
+        if not self.t1_s > self.t0_s:
+            raise ReportError(f"--to ({self.t1_s}) must be after --from ({self.t0_s})")
+        self.label = self.label or f"machine {self.machine_id} from {self.url}"
+
+    def total(self) -> int:
+        return int(np.ceil((self.t1_s - self.t0_s) / WINDOW_S))
+
+    def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
+        from cranetwin.twin import iter_replay
+
+        t = self.t0_s
+        last = -np.inf
+        while t < self.t1_s:
+            t_next = min(t + WINDOW_S, self.t1_s)
+            samples = self.store.read_samples(self.machine_id, t, t_next)
+            if samples.t_s.shape[0] >= 16:
+                for res in iter_replay(samples, self.machine, grid_hz=self.grid_hz):
+                    h = history_from_twin(self.machine, res) if res.n else None
+                    if h is not None and h.n:
+                        h = h.slice(int(np.searchsorted(h.t_s, last, side="right")), h.n)
+                        if h.n:
+                            last = float(h.t_s[-1])
+                            yield h, 0
+            yield None, 1
+            t = t_next
