@@ -214,3 +214,16 @@ def test_targets_outside_the_machine_are_named(prep: Prepared, tmp_path: Path) -
         simulate(prep, load_scenario(f), duration_s=0.1)
     assert any(p.startswith("actuators.lift.target.1:") for p in exc.value.problems)
     assert any(p.startswith("actuators.slew.target.1:") for p in exc.value.problems)
+
+
+def test_recording_cuts_into_sample_blocks(recording: Recording, machine: Machine) -> None:
+    blocks = recording.blocks(samples_per_block=25, first_seq=100)
+    assert [b.seq for b in blocks] == list(range(100, 100 + len(blocks)))
+    assert sum(b.n for b in blocks) == recording.samples.values.shape[0]
+    assert blocks[0].period_ns == 10_000_000
+    assert blocks[0].resolution == tuple(machine.channel(c).resolution
+                                         for c in recording.samples.channels)
+    times = np.concatenate([b.times_ns() for b in blocks]) / 1e9
+    assert np.allclose(times, recording.samples.t_s, atol=1e-9)
+    assert np.array_equal(np.concatenate([b.values for b in blocks]), recording.samples.values,
+                          equal_nan=True)

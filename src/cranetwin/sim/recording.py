@@ -26,7 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.errors import SimulationError
-from cranetwin.samples import SampleArrays
+from cranetwin.samples import SampleArrays, SampleBlock
 
 F64 = npt.NDArray[np.float64]
 
@@ -166,6 +166,31 @@ class Recording:
     samples: SampleArrays
     truth: Truth
     meta: dict[str, Any] = field(default_factory=dict)
+
+    def blocks(self, samples_per_block: int = 10, first_seq: int = 0) -> list[SampleBlock]:
+        """The samples cut into datagram-sized :class:`~cranetwin.samples.SampleBlock` s.
+
+        Args:
+            samples_per_block: Samples per block (the last block may be shorter).
+            first_seq: Sequence number of the first block (then +1 per block).
+
+        Raises:
+            SimulationError: the recording has no sample rate or resolutions in ``meta``.
+        """
+        try:
+            rate = float(self.meta["sensors"]["rate_hz"])
+            resolution = tuple(float(r) for r in self.meta["channel_resolution"])
+        except (KeyError, TypeError) as exc:
+            raise SimulationError(f"recording meta lacks {exc} (not made by simulate?)") from exc
+        period_ns = int(round(1e9 / rate))
+        smp = self.samples
+        out = []
+        for b, i in enumerate(range(0, smp.values.shape[0], samples_per_block)):
+            out.append(SampleBlock(machine_id=smp.machine_id, seq=first_seq + b,
+                                   t0_ns=int(round(smp.t_s[i] * 1e9)), period_ns=period_ns,
+                                   channels=smp.channels, resolution=resolution,
+                                   values=smp.values[i:i + samples_per_block].copy()))
+        return out
 
     @property
     def duration_s(self) -> float:

@@ -337,7 +337,8 @@ def simulate(machine: Machine | Prepared, scenario: Scenario, *, duration_s: flo
     meta = {"duration_s": duration, "truth_rate_hz": opts.truth_rate_hz, "scheme": opts.scheme,
             "friction": opts.friction, "valves": opts.valves,
             "hydraulic_losses": opts.hydraulic_losses,
-            "sensors": sensor_model.model_dump(), "scenario_description": scenario.description}
+            "sensors": sensor_model.model_dump(), "scenario_description": scenario.description,
+            "channel_resolution": [prep.machine.channel(c).resolution for c in session.channels]}
     return Recording(machine=prep.machine.name, scenario=scenario.name, seed=seed,
                      step_s=opts.step_s, start_epoch_s=start_epoch_s, samples=samples,
                      truth=session.truth(wrenches), meta=meta)
