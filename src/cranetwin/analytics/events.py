@@ -87,7 +87,7 @@ class EventConfig:
     pressure_min_s: float = 0.02
     overspeed_tolerance: float = 0.05
     overspeed_min_s: float = 0.2
-    shock_rate_per_s: float = 8.0
+    shock_rate_per_s: float = 15.0
     shock_window_s: float = 0.05
     max_gap_s: float = 1.0
 
@@ -150,7 +150,7 @@ class EventDetector:
 
     # -- run -> event ---------------------------------------------------------------------------
     def _overload_event(self, r: Run) -> Event:
-        ratio, payload, reach, rated = r.vmax[0], r.vmax[1], r.mean[2], r.mean[3]
+        ratio, payload, reach, rated = r.at_peak
         return Event(
             "overload", r.t_start, r.t_end, _severity(ratio, self.cfg.critical_ratio), "load",
             float(ratio * G * rated * reach), float(G * rated * reach), "N*m",
@@ -163,7 +163,8 @@ class EventDetector:
         return Event(
             "payload_above_rating", r.t_start, r.t_end, _severity(ratio, self.cfg.critical_ratio),
             "load", float(r.vmax[1]), self._max_rated, "kg",
-            {"payload_ratio": ratio, "reach_m": float(r.mean[2]), "duration_s": r.duration_s})
+            {"payload_ratio": ratio, "reach_m": float(r.at_peak[2]), "duration_s": r.duration_s,
+             "t_peak": r.t_peak})
 
     def _overspeed_event(self, r: Run) -> Event:
         assert self._slew is not None

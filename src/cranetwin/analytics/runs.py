@@ -33,6 +33,7 @@ class Run:
         vmin: Minima over the run, shape (k,).
         vsum: Sums over the run, shape (k,).
         t_peak: Time of the maximum of column 0 [s].
+        at_peak: Values at that time, shape (k,).
     """
 
     t_start: float
@@ -44,6 +45,7 @@ class Run:
     vmin: F64
     vsum: F64
     t_peak: float
+    at_peak: F64
 
     @property
     def duration_s(self) -> float:
@@ -60,7 +62,8 @@ class Run:
         peak_other = other.vmax[0] > self.vmax[0]
         return Run(self.t_start, other.t_end, self.n + other.n, self.first, other.last,
                    np.maximum(self.vmax, other.vmax), np.minimum(self.vmin, other.vmin),
-                   self.vsum + other.vsum, other.t_peak if peak_other else self.t_peak)
+                   self.vsum + other.vsum, other.t_peak if peak_other else self.t_peak,
+                   other.at_peak if peak_other else self.at_peak)
 
 
 @dataclass
@@ -127,7 +130,8 @@ class RunTracker:
             seg = np.column_stack([v[s:e] for v in values])
             i_pk = int(np.argmax(seg[:, 0]))
             run = Run(float(t[s]), float(t[e - 1]), e - s, seg[0].copy(), seg[-1].copy(),
-                      seg.max(axis=0), seg.min(axis=0), seg.sum(axis=0), float(t[s + i_pk]))
+                      seg.max(axis=0), seg.min(axis=0), seg.sum(axis=0), float(t[s + i_pk]),
+                      seg[i_pk].copy())
             if s == 0 and self._open is not None:
                 run = self._open.join(run)
                 self._open = None
