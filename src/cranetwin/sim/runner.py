@@ -181,7 +181,7 @@ class Session:
         sensors: Sensor model.
         seed: Seed of the sensor model's randomness.
         start_epoch_s: Epoch time of t = 0 [s].
-        keep_truth: Accumulate the ground truth (memory ≈ 0.3 MB per simulated second at 1 kHz).
+        keep_truth: Accumulate the ground truth (≈ 0.3 MB per simulated second at 1 kHz).
         machine_id: Identifier stamped on the samples (default: the machine's name); give each
             crane of a simulated fleet its own.
 
