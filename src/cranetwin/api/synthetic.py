@@ -113,7 +113,7 @@ def simulated_samples(model: str = "patu655", base_s: float = 120.0,
 
 def tiled_blocks(machine_id: str, machine: Machine, start_s: float, duration_s: float,
                  block_s: float = 1.0, base: SampleArrays | None = None,
-                 seq0: int = 0) -> Iterator[SampleBlock]:
+                 seq0: int = 0, origin_s: float | None = None) -> Iterator[SampleBlock]:
     """Blocks of ``duration_s`` seconds starting at ``start_s`` (epoch seconds, a whole number of
     sample periods), the base recording repeated.
 
@@ -125,6 +125,8 @@ def tiled_blocks(machine_id: str, machine: Machine, start_s: float, duration_s: 
         block_s: Samples per block / sample rate [s].
         base: Recording to tile (default :func:`simulated_samples`).
         seq0: Sequence number of the first block.
+        origin_s: Time at which the base recording starts a repetition (default ``start_s``);
+            give the same origin to consecutive calls to continue the motion seamlessly.
     """
     src = base if base is not None else simulated_samples(machine.name)
     period_ns = int(round(float(np.median(np.diff(src.t_s))) * 1e9))
@@ -135,10 +137,11 @@ def tiled_blocks(machine_id: str, machine: Machine, start_s: float, duration_s: 
                 else 0.0 for c in src.channels)
     vals = src.values
     start_ns = int(round(start_s * 1e9))
+    shift = int(round(((start_s - origin_s) if origin_s is not None else 0.0) * 1e9 / period_ns))
     seq = seq0
     for k0 in range(0, n_total, per_block):
         k1 = min(n_total, k0 + per_block)
-        idx = np.arange(k0, k1) % n_base
+        idx = (np.arange(k0, k1) + shift) % n_base
         block_vals = vals[idx]
         if np.isnan(block_vals).all():
             continue
