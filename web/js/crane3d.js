@@ -43,14 +43,10 @@ export function logRadius(kg, spec) {
   return Math.sqrt(m / (spec.log_density_kgm3 * Math.PI * spec.log_length_m));
 }
 
-export function softwareGL() {
+export function softwareGL(gl) {
   try {
-    const gl = document.createElement("canvas").getContext("webgl");
-    if (!gl) return true;
     const ext = gl.getExtension("WEBGL_debug_renderer_info");
     const name = ext ? String(gl.getParameter(ext.UNMASKED_RENDERER_WEBGL)) : "";
-    const lose = gl.getExtension("WEBGL_lose_context");
-    if (lose) lose.loseContext();
     return /swiftshader|llvmpipe|software|softpipe/i.test(name);
   } catch (_) {
     return true;
@@ -59,12 +55,12 @@ export function softwareGL() {
 
 export class Crane3D {
   constructor(element, sceneData) {
-    // Our own renderer: multisampling only on a real GPU (software WebGL, e.g. SwiftShader in
-    // headless Chromium or llvmpipe, spends most of a frame on it), and no shadow passes.
+    // Our own renderer: no multisampling (software WebGL, e.g. SwiftShader in headless Chromium,
+    // spends most of a frame on it; on real GPUs the device pixel ratio smooths edges) and no
+    // shadow passes. Software rasterisers also draw at 0.7× resolution: measured 30 → 60 fps.
     const THREE = MeshCat.THREE;
-    // Software rasterisers also draw at 0.7× resolution: measured 30 → 60 fps in headless Chromium.
-    const software = softwareGL();
-    const renderer = new THREE.WebGLRenderer({ antialias: !software, alpha: false, powerPreference: "high-performance" });
+    const renderer = new THREE.WebGLRenderer({ antialias: false, alpha: false, powerPreference: "high-performance" });
+    const software = softwareGL(renderer.getContext());
     renderer.shadowMap.enabled = false;
     element.appendChild(renderer.domElement);
     this.viewer = new MeshCat.Viewer(element, true, renderer);
