@@ -1,0 +1,179 @@
+"""``cranetwin bench analytics``: a 30-day load-history report of one crane.
+
+Input: 30 days of 8-hour shifts at 100 Hz (240 h, 86.4 M samples per channel) of synthetic load
+histories (:mod:`cranetwin.analytics.synthetic`: 3 cylinder forces, 4 joint moments, 4 joint
+positions and velocities, payload, reach, height, 3 rod positions and velocities, 6 pressures),
+generated one hour at a time; generation is timed separately and not counted.
+Timed (``wall_seconds``, ``cpu_seconds``): :meth:`AnalyticsState.update` on every chunk — rainflow
+of the 7 load channels, events, work cycles, usage — and the final :meth:`~AnalyticsState.report`
+(spectra, Miner damage, classification, duty record). ``report_pdf_seconds``: writing the PDF.
+``samples_per_second``: samples per channel / wall_seconds.
+Baseline in the same run: a pure-Python rainflow in the style of the ``rainflow`` package
+(per-sample reversal generator with the same classes, then a stack count), and fatpack's own
+``find_reversals`` + ``find_rainflow_cycles`` (pure-Python cycle loop), both on the 7 load channels
+of ``baseline_hours`` of the same data, scaled to the full period. ``speedup`` = scaled pure-Python
+rainflow of the load channels alone / our whole analysis.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import fatpack
+import numpy as np
+import typer
+
+from cranetwin.analytics import AnalyticsState, LoadHistory, load_channels
+from cranetwin.analytics.state import default_class_widths
+from cranetwin.analytics.synthetic import SyntheticCrane
+from cranetwin.model import Machine, load_machine
+
+
+def _peak_rss_mib() -> float:
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+
+
+def _py_rainflow(y: list[float], width: float) -> int:
+    """Pure-Python rainflow: classify, find reversals sample by sample, count with a stack."""
+    count = 0
+    stack: list[float] = []
+    last = None
+    direction = 0
+    for v in y:
+        lv = (v // width) * width
+        if last is None:
+            last = lv
+            stack.append(lv)
+            continue
+        if lv == last:
+            continue
+        d = 1 if lv > last else -1
+        if direction and d != direction:
+            stack.append(last)
+            while len(stack) >= 4:
+                s0, s1, s2, s3 = stack[-4:]
+                r1, r2, r3 = abs(s1 - s0), abs(s2 - s1), abs(s3 - s2)
+                if r2 <= r1 and r2 <= r3:
+                    count += 1
+                    del stack[-3:-1]
+                else:
+                    break
+        direction, last = d, lv
+    return count
+
+
+def _baseline(machine: Machine, crane: SyntheticCrane, hours: float,
+              rate_hz: float) -> dict[str, float]:
+    t0, _ = crane.shift_bounds(0)
+    h = crane.history(t0 + np.arange(int(hours * 3600 * rate_hz)) / rate_hz)
+    widths = default_class_widths(machine)
+    chans = [h.load_channel(machine, c) for c in load_channels(machine)]
+    start = time.perf_counter()
+    for ch, c in zip(chans, load_channels(machine), strict=True):
+        _py_rainflow(ch.tolist(), widths[c])
+    py = time.perf_counter() - start
+    start = time.perf_counter()
+    for ch, c in zip(chans, load_channels(machine), strict=True):
+        k = int(np.ceil((ch.max() - ch.min()) / widths[c])) + 1
+        rev, _ = fatpack.find_reversals(ch, k=k)
+        fatpack.find_rainflow_cycles(rev)
+    fp = time.perf_counter() - start
+    state = AnalyticsState(machine)
+    start = time.perf_counter()
+    for c in load_channels(machine):
+        state.counters[c].update(h.load_channel(machine, c))
+        state.counters[c].snapshot()
+    ours = time.perf_counter() - start
+    return {"py": py, "fatpack": fp, "ours": ours}
+
+
+def run(days: int = 30, rate_hz: float = 100.0, baseline_hours: float = 0.25,
+        pdf: bool = True) -> dict[str, Any]:
+    """Run the benchmark; return its figures (see the module docstring)."""
+    machine = load_machine("patu655")
+    crane = SyntheticCrane(machine, seed=0, days=days)
+    state = AnalyticsState(machine)
+    gen = wall = cpu = 0.0
+    n = 0
+    it = crane.chunks(rate_hz, 3600.0)
+    while True:
+        g0 = time.perf_counter()
+        h: LoadHistory | None = next(it, None)
+        gen += time.perf_counter() - g0
+        if h is None:
+            break
+        w0, c0 = time.perf_counter(), time.process_time()
+        state.update(h)
+        wall += time.perf_counter() - w0
+        cpu += time.process_time() - c0
+        n += h.n
+        del h
+    w0, c0 = time.perf_counter(), time.process_time()
+    rep = state.report()
+    wall += time.perf_counter() - w0
+    cpu += time.process_time() - c0
+    pdf_s = float("nan")
+    if pdf:
+        from cranetwin.reports import write
+
+        with tempfile.TemporaryDirectory() as d:
+            p0 = time.perf_counter()
+            write(rep, machine, "pdf", Path(d) / "r.pdf", "bench: synthetic shifts")
+            pdf_s = time.perf_counter() - p0
+    base = _baseline(machine, crane, baseline_hours, rate_hz)
+    hours = n / rate_hz / 3600.0
+    scale = hours / baseline_hours
+    worst = max(rep.life, key=lambda e: e.damage)
+    return {
+        "hours": round(hours, 3),
+        "days": days,
+        "rate_hz": rate_hz,
+        "samples_per_channel": n,
+        "load_channels": len(load_channels(machine)),
+        "wall_seconds": round(wall, 3),
+        "cpu_seconds": round(cpu, 3),
+        "samples_per_second": round(n / wall),
+        "report_pdf_seconds": round(pdf_s, 3),
+        "report_total_seconds": round(wall + pdf_s, 3),
+        "generate_seconds_not_counted": round(gen, 3),
+        "peak_rss_mib": round(_peak_rss_mib(), 1),
+        "baseline_hours_measured": baseline_hours,
+        "baseline_pure_python_rainflow_scaled_seconds": round(base["py"] * scale, 2),
+        "baseline_fatpack_rainflow_scaled_seconds": round(base["fatpack"] * scale, 2),
+        "ours_rainflow_only_scaled_seconds": round(base["ours"] * scale, 2),
+        "rainflow_speedup_vs_pure_python": round(base["py"] / base["ours"], 1),
+        "rainflow_speedup_vs_fatpack": round(base["fatpack"] / base["ours"], 1),
+        "speedup": round(base["py"] * scale / wall, 2),
+        "work_cycles": len(rep.cycles),
+        "events": len(rep.events),
+        "kp": round(rep.classification.kp, 4) if rep.classification else None,
+        "max_damage": worst.damage,
+    }
+
+
+def bench_analytics(
+    days: int = typer.Option(30, help="Days of 8-hour shifts."),
+    rate_hz: float = typer.Option(100.0, help="Sample rate [Hz]."),
+    baseline_hours: float = typer.Option(0.25, help="Hours of data the baselines run on."),
+    pdf: bool = typer.Option(True, help="Also time writing the PDF report."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
+) -> None:
+    """Time a 30-day load-history analysis (rainflow, damage, events, productivity)."""
+    res = run(days, rate_hz, baseline_hours, pdf)
+    if as_json:
+        typer.echo(json.dumps(res))
+    else:
+        for k, v in res.items():
+            typer.echo(f"{k:48s} {v}")
+
+
+def register(bench_app: typer.Typer) -> None:
+    """Add ``cranetwin bench analytics``."""
+    bench_app.command("analytics")(bench_analytics)
