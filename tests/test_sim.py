@@ -238,3 +238,21 @@ def test_relief_valve_caps_pressure_and_lets_an_overload_sink(machine: Machine,
     held = simulate(prep, sc, options=SimOptions(hydraulic_losses=False),
                     sensors=SensorModel.ideal(), wrenches=False).truth
     assert abs(held.rod_s[-1, 0] - held.rod_s[0, 0]) < 2e-3
+
+
+def test_truth_forces_follow_eq_1_2_and_the_slewing_torque(machine: Machine,
+                                                          prep: Prepared) -> None:
+    from cranetwin.physics import actuator_torques, cylinder_force, friction_force
+
+    tr = simulate(prep, builtin_scenario("fig3"), duration_s=6.0, sensors=SensorModel.ideal(),
+                  wrenches=False).truth
+    inside = np.all((tr.rod_s >= 0) & (tr.rod_s <= [c.stroke_m for c in machine.cylinders]),
+                    axis=1)
+    assert inside.all()
+    for k, c in enumerate(machine.cylinders):     # physics' Eq. 1–2, independently coded
+        f = cylinder_force(tr.p_a[:, k], tr.p_b[:, k], tr.rod_v[:, k], c)
+        assert np.allclose(f, tr.cyl_force[:, k], rtol=1e-12, atol=1e-6)
+    slew = tr.slew_torque - friction_force(tr.qd[:, 0], machine.torque_drives[0].friction)
+    tau = actuator_torques(machine, tr.q, tr.cyl_force, slew[:, None])
+    assert np.allclose(tau, tr.joint_torque, rtol=1e-10, atol=1e-6)
+    assert np.ptp(tr.slew_torque) > 1000.0
