@@ -112,8 +112,8 @@ def run(recording_seconds: float = 3600.0, grid_hz: float = 1000.0,
 def register(bench_app: typer.Typer) -> None:
     @bench_app.command("replay")
     def replay_cmd(
-        seconds: float = typer.Option(3600.0, help="Recording length [s] at 100 Hz."),
-        grid_hz: float = typer.Option(1000.0, help="Output grid rate [Hz]."),
+        seconds: float = typer.Option(3600.0, help="Recording length in seconds, at 100 Hz."),
+        grid_hz: float = typer.Option(1000.0, help="Output grid rate in Hz."),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     ) -> None:
         """Replay one hour of 100 Hz data onto a 1 kHz grid; time, memory, baseline ratio."""

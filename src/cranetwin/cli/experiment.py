@@ -32,7 +32,8 @@ def noise(
     scenario: str = typer.Option("fig3", help="Built-in scenario (fig3, log-loading, random)."),
     levels: str = typer.Option("0:10:1", help="Error levels e [%]: start:stop:step or list."),
     seeds: int = typer.Option(20, help="Noise realisations per level."),
-    duration: float | None = typer.Option(None, help="Simulated duration [s]."),
+    duration: float | None = typer.Option(
+        None, help="Simulated duration in seconds (default: the scenario's)."),
     machine: str = typer.Option("patu655", help="Machine name or TOML file."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     plot: str | None = typer.Option(None, "--plot", help="Write a Fig. 7-like PNG here."),
