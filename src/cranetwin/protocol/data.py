@@ -12,6 +12,7 @@ left out via the channel mask. Byte layout: docs/PROTOCOL.md, "Data datagram".
 from __future__ import annotations
 
 import struct
+from functools import lru_cache
 
 import numpy as np
 import numpy.typing as npt
@@ -158,8 +159,7 @@ def encode_data(key: MachineKey, seq: int, t0_ns: int, period_ns: int, values: F
         w_arr = np.asarray(widths, dtype=np.int64)
         sel = w_arr > 0
         offs = (d[:, sel] - dmin[sel]).astype(np.uint64).T.ravel()  # channel-major rows
-        w_rows = np.repeat(w_arr[sel], n - 1)
-        out += np.packbits(_row_bits(offs, w_rows)).tobytes()
+        out += np.packbits(_row_bits(offs, n - 1, tuple(int(w) for w in w_arr[sel]))).tobytes()
     out += tag(key.secret, out)
     return bytes(out)
 
@@ -206,7 +206,7 @@ def decode_data(datagram: bytes, key: MachineKey) -> SampleBlock:
     firsts: list[int] = []
     dmins: list[int] = []
     widths: list[int] = []
-    gaps: list[npt.NDArray[np.bool_] | None] = []
+    gaps: list[bytes | None] = []
     nbitmap = (n + 7) // 8
     for _ in cols:
         if pos >= end:
@@ -233,10 +233,10 @@ def decode_data(datagram: bytes, key: MachineKey) -> SampleBlock:
         if flags & FLAG_DROPOUTS:
             if pos + nbitmap > end:
                 raise TruncatedError("dropout bitmap runs past the end", wid)
-            bm = np.unpackbits(np.frombuffer(body[pos:pos + nbitmap], dtype=np.uint8))
-            if bm[n:].any():
+            pad = 8 * nbitmap - n
+            if pad and body[pos + nbitmap - 1] & ((1 << pad) - 1):
                 raise GarbageError("dropout bitmap padding bits are not zero", wid)
-            gaps.append(bm[:n].astype(bool))
+            gaps.append(bytes(body[pos:pos + nbitmap]))
             pos += nbitmap
         else:
             gaps.append(None)
@@ -246,53 +246,66 @@ def decode_data(datagram: bytes, key: MachineKey) -> SampleBlock:
         raise TruncatedError(f"packed deltas need {nbytes} bytes, {end - pos} left", wid)
     if end - pos > nbytes:
         raise GarbageError(f"{end - pos - nbytes} unexpected bytes before the tag", wid)
-    bits = np.unpackbits(np.frombuffer(body[pos:end], dtype=np.uint8))
-    if bits[nbits:].any():
+    if nbits % 8 and body[end - 1] & ((1 << (8 - nbits % 8)) - 1):
         raise GarbageError("bit-stream padding bits are not zero", wid)
     ncol = len(cols)
-    values = np.full((n, c), np.nan)
     if not ncol:
         return SampleBlock(machine_id=key.machine_id, seq=seq, t0_ns=t0_ns,
                            period_ns=period_ns, channels=layout.names,
-                           resolution=layout.resolutions, values=values)
+                           resolution=layout.resolutions, values=np.full((n, c), np.nan))
     k = np.empty((n, ncol), dtype=np.int64)
     k[0] = [_wrap(f) for f in firsts]
     if n > 1:
-        w_arr = np.asarray(widths, dtype=np.int64)
+        nz = tuple(w for w in widths if w)
         offs = np.zeros((ncol, n - 1), dtype=np.uint64)
-        sel = w_arr > 0
-        if sel.any():
-            w_rows = np.repeat(w_arr[sel], n - 1)
-            offs[sel] = _row_values(bits[:nbits], w_rows).reshape(-1, n - 1)
+        if nz:
+            starts, shift, _ = _bit_plan(n - 1, nz)
+            bits = np.unpackbits(np.frombuffer(body[pos:end], dtype=np.uint8), count=nbits)
+            vals_nz = np.add.reduceat(bits.astype(np.uint64) << shift, starts)
+            offs[[i for i, w in enumerate(widths) if w]] = vals_nz.reshape(-1, n - 1)
         dm = np.asarray([_wrap(x) & (2**64 - 1) for x in dmins], dtype=np.uint64)
         with np.errstate(over="ignore"):
             d = (offs.T + dm).view(np.int64)
             k[1:] = k[0] + np.cumsum(d, axis=0)
     res = np.asarray(layout.resolutions, dtype=np.float64)
-    vals = k.astype(np.float64) * res[cols]
-    for i, g in enumerate(gaps):
-        if g is not None:
-            vals[g, i] = np.nan
-    values[:, cols] = vals
+    vals = k.astype(np.float64) * (res if ncol == c else res[cols])
+    gi = [i for i, g in enumerate(gaps) if g is not None]
+    if gi:
+        bm = np.unpackbits(np.frombuffer(b"".join(g for g in gaps if g is not None),
+                                         dtype=np.uint8)).reshape(len(gi), -1)[:, :n]
+        sub = vals[:, gi]
+        sub[bm.T.astype(bool)] = np.nan
+        vals[:, gi] = sub
+    if ncol == c:
+        values = vals
+    else:
+        values = np.full((n, c), np.nan)
+        values[:, cols] = vals
     return SampleBlock(machine_id=key.machine_id, seq=seq, t0_ns=t0_ns, period_ns=period_ns,
                        channels=layout.names, resolution=layout.resolutions, values=values)
 
 
-def _row_bits(vals: U64, w_rows: I64) -> npt.NDArray[np.uint8]:
-    """Bits of ``vals[r]`` in ``w_rows[r]`` bits each, most significant first, concatenated."""
+@lru_cache(maxsize=4096)
+def _bit_plan(n1: int, widths: tuple[int, ...]) -> tuple[I64, U64, I64]:
+    """Where the bits of rows of ``widths`` (each repeated n1 times) sit in a packed stream.
+
+    Returns:
+        ``(starts, shift, row)``: first bit of each row, shape (R,); left shift of each bit
+        within its row value, shape (nbits,); row of each bit, shape (nbits,).
+    """
+    w_rows = np.repeat(np.asarray(widths, dtype=np.int64), n1)
     starts = np.cumsum(w_rows) - w_rows
-    nbits = int(w_rows.sum())
-    row = np.repeat(np.arange(len(w_rows)), w_rows)
-    shift = (w_rows[row] - 1 - (np.arange(nbits) - starts[row])).astype(np.uint64)
+    row = np.repeat(np.arange(w_rows.size), w_rows)
+    shift = (w_rows[row] - 1 - (np.arange(row.size) - starts[row])).astype(np.uint64)
+    for arr in (starts, shift, row):
+        arr.flags.writeable = False
+    return starts, shift, row
+
+
+def _row_bits(vals: U64, n1: int, widths: tuple[int, ...]) -> npt.NDArray[np.uint8]:
+    """Bits of each value (rows of ``widths``, n1 values each), most significant first."""
+    _, shift, row = _bit_plan(n1, widths)
     return ((vals[row] >> shift) & np.uint64(1)).astype(np.uint8)
-
-
-def _row_values(bits: npt.NDArray[np.uint8], w_rows: I64) -> U64:
-    """Inverse of :func:`_row_bits`: unsigned values from a bit stream of row widths."""
-    starts = np.cumsum(w_rows) - w_rows
-    row = np.repeat(np.arange(len(w_rows)), w_rows)
-    shift = (w_rows[row] - 1 - (np.arange(bits.shape[0]) - starts[row])).astype(np.uint64)
-    return np.add.reduceat(bits.astype(np.uint64) << shift, starts)
 
 
 def _wrap(v: int) -> int:
