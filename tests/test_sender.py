@@ -4,8 +4,10 @@ server on loopback (real sockets, real asyncio)."""
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import socket
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -239,3 +241,75 @@ def test_synthetic_source_does_not_depend_on_chunking() -> None:
     whole = src.read(0, 3000)
     parts = np.concatenate([src.read(i, 7) for i in range(0, 3000, 7)])[:3000]
     assert np.array_equal(whole, parts, equal_nan=True)
+
+
+def test_status_carries_the_optional_channels() -> None:
+    key = MachineKey(13, "crane-13", SECRET, LAYOUT)
+    src = SyntheticSource(key, seed=13, dropout=0.0)
+
+    async def main() -> None:
+        srv, port, task = await _serve({13: key})
+        await run_sender(key, ("127.0.0.1", port), src, speed=50.0, duration_s=1.0,
+                         status_every_s=0.5, tick_s=0.02)
+        task.cancel()
+        status = [b for b in srv.stored.values() if isinstance(b, StatusReport)]
+        assert status and all(set(s.channels) == {"slew_angle"} for s in status)
+        j = LAYOUT.index("slew_angle")
+        t_first = min(b.t0_ns for b in srv.stored.values() if isinstance(b, SampleBlock))
+        for s in status:  # the status repeats the latest sample of the optional channel
+            i = (s.t_ns - t_first) // PERIOD
+            assert s.channels["slew_angle"] == pytest.approx(src.read(i, 1)[0, j])
+
+    asyncio.run(main())
+
+
+def _udp_server_thread(keys: dict[int, MachineKey]) -> tuple[int, dict[tuple[str, int], object],
+                                                             threading.Event]:
+    """A blocking loopback server in a thread: receive, store, ack at once."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(0.05)
+    stored: dict[tuple[str, int], object] = {}
+    done = threading.Event()
+    rx = Receiver(keys)
+
+    def loop() -> None:
+        while not done.is_set():
+            try:
+                data, addr = sock.recvfrom(2048)
+            except TimeoutError:
+                continue
+            try:
+                item = rx.receive(data, 0)
+            except ReplayedError as err:
+                assert err.machine_id
+                sock.sendto(rx.ack(err.machine_id, 0), addr)
+                continue
+            stored[(item.machine_id, item.seq)] = item
+            rx.mark_durable(item.machine_id, item.seq)
+            sock.sendto(rx.ack(item.machine_id, 0), addr)
+        sock.close()
+
+    threading.Thread(target=loop, daemon=True).start()
+    return sock.getsockname()[1], stored, done
+
+
+def test_send_cli_streams_a_small_fleet(monkeypatch: pytest.MonkeyPatch) -> None:
+    keys = {100 + i: MachineKey(100 + i, f"cli-{i}", SECRET, LAYOUT) for i in range(2)}
+    port, stored, done = _udp_server_thread(keys)
+    monkeypatch.setenv("CRANETWIN_MACHINE_KEY", SECRET.hex())
+    try:
+        r = CliRunner().invoke(app, ["send", "--machine", "cli", "--wire-id", "100",
+                                     "--machines", "2", "--scenario", "synthetic",
+                                     "--host", f"127.0.0.1:{port}", "--speed", "50",
+                                     "--duration", "1", "--json"])
+    finally:
+        done.set()
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    assert [o["unacked"] for o in out] == [0, 0] and [o["samples"] for o in out] == [100, 100]
+    assert SECRET.hex() not in r.output
+    for i in range(2):
+        n = sum(b.n for (m, _), b in stored.items() if m == f"cli-{i}"
+                and isinstance(b, SampleBlock))
+        assert n == 100

@@ -326,7 +326,9 @@ async def run_sender(key: MachineKey, server: tuple[str, int], source: SampleSou
         spill_path: Spill file (default: an in-memory spill, unbounded).
         max_unacked: Datagrams kept in memory.
         first_seq: First sequence number (default: Unix time in ms, ahead of any earlier run).
-        status_every_s: Status datagram interval [s of data time]; 0 = none.
+        status_every_s: Status datagram interval [s of data time]; 0 = none. A status carries
+            GPS, the operating-hours counter and the latest values of the layout's optional
+            channels (declared ``optional`` in the machine description).
         position_deg: GPS latitude, longitude reported in status [deg].
         stop: Set to stop streaming (then the sender drains).
         drain_timeout_s: How long to wait for the last acks after streaming ends [s].
@@ -383,11 +385,14 @@ async def run_sender(key: MachineKey, server: tuple[str, int], source: SampleSou
                 stats.samples += due - pushed
                 pushed = due
             data_s = pushed * period_ns / 1e9
-            if status_every_s > 0 and data_s >= next_status:
+            if status_every_s > 0 and data_s >= next_status and pushed:
                 next_status += status_every_s
+                last = source.read(pushed - 1, 1)[0]
+                low_rate = {c.name: float(last[j]) for j, c in enumerate(key.layout.channels)
+                            if c.optional and not math.isnan(last[j])}
                 core.push_status(StatusReport(
-                    key.machine_id, 0, t0 + pushed * period_ns, position_deg[0],
-                    position_deg[1], 120.0, hours0 + data_s / 3600.0))
+                    key.machine_id, 0, t0 + (pushed - 1) * period_ns, position_deg[0],
+                    position_deg[1], 120.0, hours0 + data_s / 3600.0, low_rate))
             send_due(now)
             proto.wake.clear()
             with contextlib.suppress(asyncio.TimeoutError):
