@@ -125,7 +125,7 @@ def choose_window(
     resolution: float = 0.0,
     windows: tuple[int, ...] = DEFAULT_WINDOWS,
     polyorders: tuple[int, ...] = DEFAULT_POLYORDERS,
-    max_samples: int = 20_000,
+    max_samples: int = 8_000,
 ) -> SmoothingChoice:
     """Choose the Savitzky–Golay window minimising Stein's unbiased estimate of the MSE.
 
@@ -179,7 +179,7 @@ def choose_derivative_window(
     polyorder: int = 3,
     windows: tuple[int, ...] = DEFAULT_WINDOWS,
     threshold: float = 2.0,
-    max_samples: int = 20_000,
+    max_samples: int = 8_000,
 ) -> SmoothingChoice:
     """Savitzky–Golay window for estimating a derivative, by Lepski's rule.
 
