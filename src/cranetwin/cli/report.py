@@ -43,8 +43,8 @@ def report(
                                             "a built-in machine or TOML file)."),
     t_from: str | None = typer.Option(None, "--from", help="Start (epoch s or ISO 8601 UTC)."),
     t_to: str | None = typer.Option(None, "--to", help="End (epoch s or ISO 8601 UTC)."),
-    db: str = typer.Option(os.environ.get("CRANETWIN_DATABASE_URL", "sqlite:///cranetwin.db"),
-                           "--db", help="Storage URL."),
+    db: str | None = typer.Option(None, "--db", help="Storage URL (default: "
+                                  "CRANETWIN_DATABASE_URL or sqlite:///cranetwin.db)."),
     recording: Path | None = typer.Option(None, "--recording", help="Simulator recording "
                                           "(.npz or .csv) to analyse instead of storage."),
     demo: bool = typer.Option(False, "--demo", help="Synthetic 8-hour shifts with a few "
@@ -77,7 +77,8 @@ def report(
         if machine is None or t_from is None or t_to is None:
             raise ReportError("give --machine ID --from T0 --to T1 (storage), or --recording "
                               "FILE, or --demo")
-        src = StoreSource(db, machine, parse_time(t_from), parse_time(t_to))
+        url = db or os.environ.get("CRANETWIN_DATABASE_URL", "sqlite:///cranetwin.db")
+        src = StoreSource(url, machine, parse_time(t_from), parse_time(t_to))
     with Progress(TextColumn("{task.description}"), BarColumn(),
                   TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(),
                   TimeRemainingColumn(), disable=quiet) as bar:
