@@ -253,3 +253,21 @@ def test_status_is_sent_and_acknowledged_like_data() -> None:
     rx.mark_durable(KEY.machine_id, 7)
     sender.receive(rx.ack(KEY.machine_id, T0), T0)
     assert sender.idle
+
+
+def test_restamped_lag_verifies_and_moves_the_receiver_floor() -> None:
+    from cranetwin.protocol.sender import datagram_lag, restamp_lag
+
+    sender = Sender(KEY, PERIOD, first_seq=40, batch_samples=10)
+    sender.push(T0, _signal(30))
+    dgs = sender.datagrams_to_send(T0)
+    assert [datagram_lag(d) for d in dgs] == [0, 1, 2]
+    again = restamp_lag(dgs[2], KEY.secret, 0)
+    rx = Receiver({KEY.wire_id: KEY})
+    a, b = rx.receive(dgs[2], T0), rx.receive(again, T0)
+    assert isinstance(a, SampleBlock) and isinstance(b, SampleBlock)
+    assert np.array_equal(a.values, b.values, equal_nan=True)
+    assert rx.floor(KEY.machine_id) == 42
+    sender.receive(encode_ack(KEY, 41), T0)  # 40 acked: the rest now carry the new oldest
+    dgs = sender.datagrams_to_send(T0 + 10**10)
+    assert [datagram_lag(d) for d in dgs] == [0, 1]

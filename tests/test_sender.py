@@ -313,3 +313,33 @@ def test_send_cli_streams_a_small_fleet(monkeypatch: pytest.MonkeyPatch) -> None
         n = sum(b.n for (m, _), b in stored.items() if m == f"cli-{i}"
                 and isinstance(b, SampleBlock))
         assert n == 100
+
+
+def test_spill_left_by_an_earlier_run_is_sent_first_and_not_skipped(tmp_path: Path) -> None:
+    """A restarted sender with a non-empty spill file must send the old datagrams before (and
+    without the receiver's floor jumping over them because of) the new ones."""
+    key = MachineKey(14, "crane-14", SECRET, LAYOUT)
+    src = SyntheticSource(key, seed=14)
+    old = Sender(key, PERIOD, first_seq=100, batch_samples=50, max_unacked=2,
+                 spill=FileSpill(tmp_path / "s"))
+    old.push(0, src.read(0, 500))  # 10 datagrams, nothing acked; the process dies here
+    assert old.in_memory == 2 and old.spilled == 8
+    old.spill.close()  # type: ignore[attr-defined]
+    new = Sender(key, PERIOD, first_seq=10_000, batch_samples=50, max_unacked=2,
+                 spill=FileSpill(tmp_path / "s"))
+    assert new.in_memory == 2 and new.spilled == 6  # seqs 102… reloaded (100, 101 were in RAM)
+    new.push(500 * PERIOD, src.read(500, 100))
+    rx = Receiver({14: key})
+    got: dict[int, SampleBlock] = {}
+    now = 0
+    while not new.idle:
+        for dg in new.datagrams_to_send(now):
+            item = rx.receive(dg, now)  # must never be rejected as replayed
+            assert isinstance(item, SampleBlock)
+            got[item.seq] = item
+            rx.mark_durable("crane-14", item.seq)
+        new.receive(rx.ack("crane-14", now), now)
+        now += 10**8
+    assert sorted(got) == list(range(102, 110)) + [10_000, 10_001]
+    v = np.concatenate([got[s].values for s in sorted(got)])
+    assert np.array_equal(v, on_grid(src.read(100, 500), LAYOUT.resolutions), equal_nan=True)

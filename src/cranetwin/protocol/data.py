@@ -285,8 +285,18 @@ def decode_data(datagram: bytes, key: MachineKey) -> SampleBlock:
                        channels=layout.names, resolution=layout.resolutions, values=values)
 
 
-@lru_cache(maxsize=4096)
+_PLAN_CACHE_BITS = 16384  # plans of larger (rare, > 2 KB) bit streams are not cached
+
+
 def _bit_plan(n1: int, widths: tuple[int, ...]) -> tuple[I64, U64, I64]:
+    """:func:`_make_bit_plan`, cached for datagram-sized streams (memory bound ≈ 4096 × 260 KB
+    worst case, typically a few MB)."""
+    if n1 * sum(widths) <= _PLAN_CACHE_BITS:
+        return _cached_bit_plan(n1, widths)
+    return _make_bit_plan(n1, widths)
+
+
+def _make_bit_plan(n1: int, widths: tuple[int, ...]) -> tuple[I64, U64, I64]:
     """Where the bits of rows of ``widths`` (each repeated n1 times) sit in a packed stream.
 
     Returns:
@@ -300,6 +310,9 @@ def _bit_plan(n1: int, widths: tuple[int, ...]) -> tuple[I64, U64, I64]:
     for arr in (starts, shift, row):
         arr.flags.writeable = False
     return starts, shift, row
+
+
+_cached_bit_plan = lru_cache(maxsize=4096)(_make_bit_plan)
 
 
 def _row_bits(vals: U64, n1: int, widths: tuple[int, ...]) -> npt.NDArray[np.uint8]:

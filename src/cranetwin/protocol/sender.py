@@ -12,7 +12,8 @@ in order as acks free memory, so a link that is down for hours costs disk, not R
 in-memory datagram is retransmitted when its timer expires, with exponential backoff from
 ``rto_ns`` up to ``max_rto_ns``; the first ack after a silence resets the backoff of all
 pending datagrams (next try one initial timeout after its last send) so that recovery starts at
-once.
+once. Every transmission carries the current oldest unacknowledged seq (the ``lag`` field is
+rewritten and the tag recomputed when it changed), so the receiver's replay window follows.
 """
 
 from __future__ import annotations
@@ -27,9 +28,18 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.protocol.ack import Ack, decode_ack
-from cranetwin.protocol.data import MAX_SAMPLES, encode_data
-from cranetwin.protocol.status import StatusReport, encode_status
-from cranetwin.protocol.wire import HEADER_BYTES, MAX_DATAGRAM, MachineKey
+from cranetwin.protocol.data import DATA_FIXED_END, MAX_SAMPLES, encode_data
+from cranetwin.protocol.status import STATUS_FIXED_END, StatusReport, encode_status
+from cranetwin.protocol.wire import (
+    HEADER_BYTES,
+    MAX_DATAGRAM,
+    TAG_BYTES,
+    TYPE_DATA,
+    MachineKey,
+    get_varint,
+    put_varint,
+    tag,
+)
 
 F64 = npt.NDArray[np.float64]
 _SEQ = struct.Struct(">Q")
@@ -71,6 +81,27 @@ class _Pending:
     rto_ns: int
     sends: int = 0
     last_sent_ns: int = 0
+    lag: int = -1  # seq − oldest_unacked written in the datagram (-1: not parsed yet)
+
+
+def restamp_lag(datagram: bytes, secret: bytes, lag: int) -> bytes:
+    """``datagram`` (data or status, made by this sender) with its lag field replaced and the tag
+    recomputed. Retransmissions carry the current oldest unacknowledged seq this way, so the
+    receiver's window moves past seqs that were acked meanwhile (e.g. after a restart left a gap
+    in the sequence numbers)."""
+    fixed = DATA_FIXED_END if datagram[3] == TYPE_DATA else STATUS_FIXED_END
+    _, after = get_varint(datagram, fixed, len(datagram) - TAG_BYTES)
+    out = bytearray(datagram[:fixed])
+    put_varint(out, lag)
+    out += datagram[after:-TAG_BYTES]
+    out += tag(secret, out)
+    return bytes(out)
+
+
+def datagram_lag(datagram: bytes) -> int:
+    """The lag field of a data or status datagram."""
+    fixed = DATA_FIXED_END if datagram[3] == TYPE_DATA else STATUS_FIXED_END
+    return get_varint(datagram, fixed, len(datagram) - TAG_BYTES)[0]
 
 
 def datagram_seq(datagram: bytes) -> int:
@@ -126,6 +157,7 @@ class Sender:
         self.sent_bytes = 0
         self.acked_samples = 0
         self._samples_of: dict[int, int] = {}
+        self._refill()  # a spill file left by an earlier run is sent first
 
     # --- input ---------------------------------------------------------------------------------
     def push(self, t0_ns: int, values: F64) -> None:
@@ -197,10 +229,16 @@ class Sender:
     def datagrams_to_send(self, now_ns: int) -> list[bytes]:
         """Datagrams due now (new ones and retransmissions, oldest first, ≤ ``max_burst``)."""
         out: list[bytes] = []
-        for p in self._pending.values():
+        oldest = next(iter(self._pending), 0)
+        for seq, p in self._pending.items():
             if len(out) >= self.max_burst:
                 break
             if p.next_send_ns <= now_ns:
+                if p.lag < 0:
+                    p.lag = datagram_lag(p.datagram)
+                if p.lag != seq - oldest:
+                    p.lag = seq - oldest
+                    p.datagram = restamp_lag(p.datagram, self.key.secret, p.lag)
                 if p.sends:
                     self.retransmissions += 1
                 p.sends += 1
@@ -270,12 +308,16 @@ class Sender:
 
     def _enqueue(self, seq: int, datagram: bytes, n_samples: int) -> None:
         self._samples_of[seq] = n_samples
+        self._refill()
         if len(self._pending) < self.max_unacked and not len(self.spill):
             self._pending[seq] = _Pending(datagram, 0, self.rto_ns)
         else:
             self.spill.append(datagram)
 
     def _refill(self) -> None:
+        """Move the oldest spilled datagrams into memory while there is room. Invariant: the
+        spill is empty or memory is full, so memory always holds the oldest unacknowledged
+        datagrams and ``_oldest`` is right."""
         while len(self._pending) < self.max_unacked and len(self.spill):
             dg = self.spill.popleft()
             self._pending[datagram_seq(dg)] = _Pending(dg, 0, self.rto_ns)
