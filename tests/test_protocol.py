@@ -297,3 +297,17 @@ def test_protocol_imports_no_io_modules() -> None:
             "'fastapi', 'selectors'} & set(sys.modules); print(sorted(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_length_limits() -> None:
+    rng = np.random.default_rng(9)
+    k = np.cumsum(rng.integers(-2, 3, (4096, 11)), axis=0)
+    v = k * np.asarray(KEY.layout.resolutions)
+    assert np.array_equal(decode_data(encode_data(KEY, 0, 0, PERIOD, v), KEY).values, v)
+    one = decode_data(encode_data(KEY, 0, 5, PERIOD, v[:1]), KEY)
+    assert one.n == 1 and np.array_equal(one.values, v[:1])
+    for bad in (v[:0], np.vstack([v, v[:1]])):
+        with pytest.raises(ValueError):
+            encode_data(KEY, 0, 0, PERIOD, bad)
+    with pytest.raises(ValueError):
+        encode_data(KEY, 5, 0, PERIOD, v[:3], oldest_unacked=6)
