@@ -161,3 +161,86 @@ def test_live_sample_reaches_the_page_within_a_second(page: Any, service: Servic
     _shot(page, "e2e-live.png")
     assert max(latencies[1:]) < 1.0, latencies
     assert not page.errors
+
+
+def _processes_with(text: str) -> list[int]:
+    """PIDs whose command line contains ``text`` (read from /proc)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+            except OSError:
+                continue
+            if text in cmd:
+                pids.append(int(entry.name))
+    return pids
+
+
+def test_demo_simulator_udp_daemon_db_api_websocket_page(browser: Any,
+                                                          tmp_path: Path) -> None:
+    """The whole chain: `cranetwin fleetdemo` (simulator → sender → UDP → ingest daemon →
+    SQLite → API → live websocket) → Chromium; then Ctrl-C stops every process."""
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        udp = s.getsockname()[1]
+    db = tmp_path / "demo-e2e.db"
+    env = {**os.environ, "CRANETWIN_DEMO_LOGS": str(tmp_path / "logs")}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "from cranetwin.cli import main; main()", "fleetdemo",
+         "--machines", "1", "--port", str(port), "--udp-port", str(udp), "--db", f"sqlite:///{db}",
+         "--cycle-seconds", "40"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
+    try:
+        url = None
+        deadline = time.time() + 120
+        lines = []
+        assert proc.stdout is not None
+        while url is None and time.time() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if line.startswith("open  "):
+                url = line.split()[1]
+        assert url, "".join(lines)
+        key = url.split("key=")[1]
+        ctx = browser.new_context(viewport={"width": 1280, "height": 860})
+        page = ctx.new_page()
+        page.goto(f"http://127.0.0.1:{port}/machines/crane-1?key={key}&mode=live")
+        # the sender simulates first (JIT + 40 s of crane at > 20x real time), then streams
+        page.wait_for_function("window.cranetwin && window.cranetwin.liveFrames > 5",
+                               timeout=150_000)
+        page.wait_for_selector("#charts .main-svg", timeout=30000)
+        page.wait_for_timeout(1500)
+        page.evaluate("window.cranetwin.liveLatencyMs = []")
+        f0 = page.evaluate("window.cranetwin.liveFrames")
+        page.wait_for_timeout(4000)
+        lat = sorted(page.evaluate("window.cranetwin.liveLatencyMs"))
+        frames = page.evaluate("window.cranetwin.liveFrames") - f0
+        _shot(page, "e2e-demo-live.png")
+        ctx.close()
+        assert frames >= 20, f"only {frames} live frames in 4 s"
+        p95 = lat[int(0.95 * (len(lat) - 1))]
+        print(f"demo live: {frames / 4:.0f} frames/s, sample→screen p50 {lat[len(lat) // 2]:.0f} "
+              f"ms, p95 {p95:.0f} ms")
+        assert p95 < 1000, lat  # a sample reaches the screen within a second
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            out, _ = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise
+    assert proc.returncode == 0, out
+    assert "stopped." in out
+    assert _processes_with(str(db)) == []  # daemon, API and sender all gone

@@ -8,7 +8,7 @@ commands a deployment runs, see ``docker-compose.yml``):
 3. an admin key (to register machines) and a viewer key (printed in the URL) via
    ``cranetwin keys create``; machines registered with ``POST /api/v1/machines``;
 4. one ``cranetwin send`` per crane, streaming the simulator's ``log-loading`` work cycle with its
-   own log mass over UDP, in real time.
+   own log mass (a scenario file per crane) over UDP, in real time.
 
 With ``attach=True`` only steps 3–4 run, against a service and daemon started elsewhere (the
 ``fleet`` service of docker-compose). Children run in their own sessions so that the terminal's
@@ -63,6 +63,9 @@ class DemoConfig:
         ingest_addr: ``host:port`` of the daemon when attached.
         public_url: Base URL printed for the browser (default: the API URL).
         model: Machine model of the cranes.
+        scenario_s: Length of each crane's simulated work cycle [s] (the sender repeats it).
+        batch: Samples per datagram (5 at 100 Hz: 20 datagrams/s, so the live view gets 20
+            frames/s; the sender's default of 50 saves bytes but adds 0.5 s of latency).
     """
 
     machines: int = 3
@@ -77,6 +80,8 @@ class DemoConfig:
     ingest_addr: str | None = None
     public_url: str | None = None
     model: str = "patu655"
+    scenario_s: float = 120.0
+    batch: int = 5
     extra_env: dict[str, str] = field(default_factory=dict)
 
     @property
@@ -194,11 +199,14 @@ class FleetDemo:
                 "machine_id": mid, "model": c.model,
                 "name": f"Crane {i + 1} ({payload:.0f} kg logs)",
                 "location": {"lat": 62.60 + 0.01 * i, "lon": 29.76 + 0.02 * i}})
-            secret = str(created["secret"])
-            self._spawn(f"send-{mid}", ["send", "--machine", mid, "--key", secret,
-                                        "--scenario", "log-loading", "--payload", f"{payload}",
-                                        "--host", c.ingest, "--speed", f"{c.speed}",
-                                        "--seed", str(i + 1)])
+            scenario = self._scenario_file(mid, payload, seed=i + 1)
+            self._spawn(f"send-{mid}", ["send", "--machine", mid,
+                                        "--wire-id", str(created["wire_id"]),
+                                        "--key-file", str(self._secret_file(mid, created)),
+                                        "--scenario", str(scenario), "--host", c.ingest,
+                                        "--speed", f"{c.speed}", "--seed", str(i + 1),
+                                        "--sim-seconds", f"{c.scenario_s}",
+                                        "--batch", str(c.batch)])
             self.machine_ids.append(mid)
         public = c.public_url or c.api
         url = f"{public}/?key={self.viewer_key}"
@@ -207,6 +215,24 @@ class FleetDemo:
         except OSError:
             pass
         return url
+
+    def _scenario_file(self, mid: str, payload_kg: float, seed: int) -> Path:
+        """The ``log-loading`` cycle with logs of ``payload_kg`` as a scenario file."""
+        from cranetwin.sim.scenario import log_loading
+
+        scenario = log_loading(duration_s=self.config.scenario_s, payload_kg=payload_kg,
+                               seed=seed)
+        path = self.logdir / f"scenario-{mid}.json"
+        self.logdir.mkdir(parents=True, exist_ok=True)
+        path.write_text(scenario.model_dump_json(), "utf-8")
+        return path
+
+    def _secret_file(self, mid: str, created: dict[str, Any]) -> Path:
+        """The machine's HMAC secret in a private file (never on a command line)."""
+        path = self.logdir / f"secret-{mid}"
+        path.touch(mode=0o600)
+        path.write_text(str(created["secret"]), "utf-8")
+        return path
 
     def _fresh_sqlite(self) -> None:
         url = self.config.db_url or ""

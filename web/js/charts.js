@@ -41,7 +41,7 @@ export class Charts {
       paper_bgcolor: "rgba(0,0,0,0)",
       plot_bgcolor: "#fff",
       font: { size: 11 },
-      xaxis: { type: "date", anchor: `y${n}`, showgrid: true, gridcolor: "#eee" },
+      xaxis: { type: "date", anchor: "free", position: 0, showgrid: true, gridcolor: "#eee" },
       shapes: [],
       annotations: [],
     };
@@ -86,7 +86,7 @@ export class Charts {
       g.channels.forEach((name, c) => {
         const ys = buffer.series[name];
         if (!ys || ys.length === 0) return;
-        traces.push({ x: buffer.t.map((t) => t * 1000), y: ys.map((v) => v * g.scale), yaxis, type: "scatter", mode: "lines",
+        traces.push({ x: buffer.t.map((t) => t * 1000), y: ys.map((v) => (v === null ? null : v * g.scale)), yaxis, type: "scatter", mode: "lines",
           line: { width: 1.2, color: PALETTE[c % PALETTE.length] }, name: g.label(name) });
       });
     });

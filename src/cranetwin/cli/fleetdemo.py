@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import signal
 
 import typer
 
@@ -25,15 +26,23 @@ def register(app: typer.Typer) -> None:
         api: str | None = typer.Option(None, help="API base URL when attached."),
         ingest: str | None = typer.Option(None, help="Daemon host:port when attached."),
         public_url: str | None = typer.Option(None, help="Base URL to print for the browser."),
+        cycle_seconds: float = typer.Option(120.0, min=20.0, help="Length of each crane's "
+                                            "simulated work cycle, repeated [s]."),
     ) -> None:
         """Run the demo: daemon and service on SQLite, a viewer key, cranes streaming
         log-loading cycles over UDP. Prints the URL to open; Ctrl-C stops everything."""
         from cranetwin.demo import DemoConfig, DemoError, FleetDemo
 
         logging.basicConfig(level=logging.INFO, format="%(message)s")
+
+        def _terminate(signum: int, frame: object) -> None:  # docker stop, timeout, kill
+            raise KeyboardInterrupt
+
+        signal.signal(signal.SIGTERM, _terminate)
         config = DemoConfig(machines=machines, db_url=None if attach and db.startswith(
             "sqlite:///cranetwin-demo") else db, host=host, port=port, udp_port=udp_port,
-            speed=speed, attach=attach, api_url=api, ingest_addr=ingest, public_url=public_url)
+            speed=speed, attach=attach, api_url=api, ingest_addr=ingest, public_url=public_url,
+            scenario_s=cycle_seconds)
         demo = FleetDemo(config)
         try:
             url = demo.start()
