@@ -8,11 +8,15 @@ the reason, only when no server answers.
 
 from __future__ import annotations
 
+import asyncio
 import os
+import threading
 import uuid
 from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -64,3 +68,36 @@ def db_url(request: pytest.FixtureRequest) -> str:
     """The same test on SQLite and on PostgreSQL."""
     name = "pg_url" if request.param == "postgresql" else "sqlite_url"
     return str(request.getfixturevalue(name))
+
+
+# --- ingest helpers -----------------------------------------------------------------------------
+SECRET = b"test-secret-0123456789abcdef"
+
+
+@contextmanager
+def running_daemon(store: Any, bus: Any = None, **config: Any) -> Iterator[Any]:
+    """An :class:`IngestDaemon` serving on a free loopback port in a background thread."""
+    from cranetwin.ingest.daemon import DaemonConfig, IngestDaemon, new_event_loop
+
+    cfg = DaemonConfig(**{"port": 0, "batch_wait_s": 0.01, "metrics_interval_s": 0.2,
+                          "key_refresh_s": 0.0, **config})
+    daemon = IngestDaemon(store, cfg, bus)
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            with asyncio.Runner(loop_factory=new_event_loop) as r:
+                r.run(daemon.serve(install_signal_handlers=False))
+        except BaseException as exc:  # surfaced by the test below
+            errors.append(exc)
+
+    t = threading.Thread(target=run, name="test-daemon", daemon=True)
+    t.start()
+    assert daemon.ready.wait(20), f"daemon did not start: {errors}"
+    try:
+        yield daemon
+    finally:
+        daemon.stop()
+        t.join(60)
+        assert not t.is_alive(), "daemon did not shut down"
+        assert not errors, errors

@@ -116,8 +116,13 @@ class Fleet:
     """
 
     def __init__(self, senders: Sequence[Sender], server: tuple[str, int],
-                 uplink: LossyLink | None = None, downlink: LossyLink | None = None) -> None:
+                 uplink: LossyLink | None = None, downlink: LossyLink | None = None,
+                 sources: dict[int, F64] | None = None, speed: float = 1.0) -> None:
         self.senders = {s.key.wire_id: s for s in senders}
+        self.sources = sources or {}
+        self.speed = speed
+        self._pushed = dict.fromkeys(self.sources, 0)
+        self._start: float | None = None
         self.server = server
         self.uplink, self.downlink = uplink, downlink
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -140,7 +145,8 @@ class Fleet:
                 pass  # like a loss: retransmitted later
 
     def step(self, timeout_s: float = 0.01) -> None:
-        """Send what is due, then read acks for up to ``timeout_s``."""
+        """Push samples whose time has come, send what is due, read acks for ≤ ``timeout_s``."""
+        self._feed()
         now = time.time_ns()
         out: list[bytes] = []
         for w, s in self.senders.items():
@@ -167,9 +173,30 @@ class Fleet:
             except (DatagramError, KeyError):
                 self.bad_acks += 1
 
+    def _feed(self) -> None:
+        """Real-time sources: push each machine's samples up to (elapsed × speed)."""
+        if not self.sources:
+            return
+        if self._start is None:
+            self._start = time.monotonic()
+        elapsed = (time.monotonic() - self._start) * self.speed
+        for w, vals in self.sources.items():
+            done = self._pushed[w]
+            if done >= vals.shape[0]:
+                continue
+            s = self.senders[w]
+            due = vals.shape[0] if self.speed <= 0 else min(
+                vals.shape[0], int(elapsed / (s.period_ns * 1e-9)) + 1)
+            if due > done:
+                s.push(T0_NS + done * s.period_ns, vals[done:due])
+                self._pushed[w] = due
+                if due == vals.shape[0]:
+                    s.flush()
+
     def idle(self) -> bool:
-        """True when every sender has every datagram acknowledged."""
-        return all(s.idle for s in self.senders.values())
+        """True when every source is pushed and every datagram acknowledged."""
+        return (all(self._pushed[w] >= v.shape[0] for w, v in self.sources.items())
+                and all(s.idle for s in self.senders.values()))
 
     def run(self, timeout_s: float, until: Callable[[], bool] | None = None) -> bool:
         """Step until idle (or ``until()``), at most ``timeout_s``; True if it got there."""
@@ -241,12 +268,14 @@ def start_daemon(db_url: str, port: int, metrics: Path, *extra: str) -> subproce
 
 # --- the benchmark ----------------------------------------------------------------------------
 def _sender_proc(wire_ids: list[int], secret: bytes, samples: int, server: tuple[str, int],
-                 start: Any, result: Any) -> None:
+                 speed: float, batch_samples: int, start: Any, result: Any) -> None:
     layout = patu_layout()
-    senders = [make_sender(MachineKey(w, f"bench-{w}", secret, layout),
-                           grid_values(layout, samples, w), rto_s=1.0, max_unacked=8,
-                           max_burst=8) for w in wire_ids]
-    fleet = Fleet(senders, server)
+    senders = [Sender(MachineKey(w, f"bench-{w}", secret, layout), PERIOD_NS, first_seq=1,
+                      batch_samples=batch_samples, max_unacked=64, max_burst=16,
+                      rto_ns=5_000_000_000, max_rto_ns=20_000_000_000)
+               for w in wire_ids]
+    fleet = Fleet(senders, server, sources={w: grid_values(layout, samples, w)
+                                            for w in wire_ids}, speed=speed)
     start.wait()
     t0 = time.time()
     ok = fleet.run(timeout_s=600)
@@ -254,6 +283,15 @@ def _sender_proc(wire_ids: list[int], secret: bytes, samples: int, server: tuple
                 "sent": sum(s.sent_datagrams for s in senders),
                 "retransmissions": sum(s.retransmissions for s in senders)})
     fleet.close()
+
+
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of a process so far [s] (Linux /proc), or None."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def _baseline(db_url: str, n: int) -> float:
@@ -285,7 +323,8 @@ def _baseline(db_url: str, n: int) -> float:
 
 
 def run_bench(db_url: str, machines: int, samples: int, processes: int,
-              baseline_samples: int) -> dict[str, Any]:
+              baseline_samples: int, speed: float = 1.0,
+              batch_samples: int = 100) -> dict[str, Any]:
     """Run the benchmark; returns the figures (see module docstring)."""
     from cranetwin.storage import Store
 
@@ -307,7 +346,8 @@ def run_bench(db_url: str, machines: int, samples: int, processes: int,
             start, result = ctx.Event(), ctx.Queue()
             ids = list(range(1, machines + 1))
             procs = [ctx.Process(target=_sender_proc, args=(ids[i::processes], secret, samples,
-                                                            ("127.0.0.1", port), start, result))
+                                                            ("127.0.0.1", port), speed,
+                                                            batch_samples, start, result))
                      for i in range(processes)]
             for p in procs:
                 p.start()
@@ -316,6 +356,7 @@ def run_bench(db_url: str, machines: int, samples: int, processes: int,
             res = [result.get(timeout=900) for _ in procs]
             for p in procs:
                 p.join()
+            daemon_cpu = _cpu_seconds(daemon.pid)
             daemon.send_signal(signal.SIGTERM)
             daemon.wait(timeout=120)
             stats = json.loads(metrics.read_text())
@@ -342,12 +383,18 @@ def run_bench(db_url: str, machines: int, samples: int, processes: int,
     base = _baseline(db_url, baseline_samples)
     return {
         "database": dialect, "machines": machines, "samples_per_machine": samples,
-        "sender_processes": processes, "samples_sent": sent, "samples_stored": stored,
+        "sender_processes": processes, "speed": speed, "batch_samples": batch_samples,
+        "offered_samples_per_second": round(machines * 100 * speed) if speed > 0 else None,
+        "samples_sent": sent, "samples_stored": stored,
         "lost": lost, "duplicated": dup, "machines_mismatched": mismatched,
         "all_acked": all(r["ok"] for r in res), "seconds": round(t1 - t0, 3),
         "samples_per_second": round(rate),
         "bytes_per_sample": round(sum(r["wire_bytes"] for r in res) / sent, 2),
         "db_blob_bytes_per_sample": round(data_bytes / max(stored, 1), 2),
+        "daemon_cpu_seconds": daemon_cpu,
+        "daemon_cpu_us_per_sample": None if daemon_cpu is None else round(daemon_cpu / sent * 1e6,
+                                                                           2),
+        "load_average_1min": os.getloadavg()[0],
         "datagrams_sent": sum(r["sent"] for r in res),
         "retransmissions": sum(r["retransmissions"] for r in res),
         "daemon": {k: stats[k] for k in ("received", "stored_blocks", "duplicates", "dropped",
@@ -364,13 +411,17 @@ def ingest(
     machines: int = typer.Option(1000, help="Simulated machines (100 Hz, 11 channels each)."),
     samples: int = typer.Option(1000, help="Samples per machine."),
     processes: int = typer.Option(2, help="Sender processes."),
+    speed: float = typer.Option(1.0, help="Time scale of the senders (1 = real time, 100 Hz per "
+                                "machine; 0 = as fast as possible)."),
+    batch_samples: int = typer.Option(100, help="Samples per datagram (1 s at 100 Hz)."),
     baseline_samples: int = typer.Option(100_000, help="Samples for the row-per-sample baseline."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
 ) -> None:
     """Fleet → UDP → daemon → database throughput, with exact read-back and a baseline."""
     with tempfile.TemporaryDirectory() as tmp:
         url = db or f"sqlite:///{Path(tmp) / 'bench.db'}"
-        out = run_bench(url, machines, samples, processes, baseline_samples)
+        out = run_bench(url, machines, samples, processes, baseline_samples, speed,
+                        batch_samples)
         if db is None:
             out["db_file_bytes_per_sample"] = round(
                 sum(f.stat().st_size for f in Path(tmp).glob("bench.db*")) / out["samples_sent"],

@@ -2,15 +2,21 @@
 
 Shape (after uvicorn's ``serve()`` and the sans-IO split of h11/aioquic)::
 
-    socket ─► _IngestProtocol.datagram_received ─► Receiver.receive (HMAC, replay window, decode)
-                 (event loop thread)                      │ bad → dropped[reason] += 1
-                                                          ▼
-                                                 bounded queue.Queue ── full → dropped["queue_full"]
-                                                          ▼
-                              writer thread: batch ≤ batch_max or batch_wait_s ─► Store.store_blocks
-                                                          │ (one transaction, durable on return)
-                                                          ▼
-               event loop: Receiver.mark_durable, one ack per machine ─► socket;  LiveBus.publish
+    socket ─► _IngestProtocol.datagram_received (event loop: bytes, address, receive time)
+                 │
+                 ▼
+          bounded queue.Queue ── full → dropped["queue_full"] (the sender retransmits)
+                 │
+                 ▼  writer thread, batches of ≤ batch_max datagrams or batch_wait_s:
+          Receiver.receive (HMAC, replay window, decode) ── bad → dropped[reason] += 1
+                 ▼
+          Store.store_blocks (one transaction, durable on return)
+                 ▼
+          Receiver.mark_durable, one ack per (machine, address) ─► socket;  LiveBus.publish
+
+The event loop only moves bytes into the queue, so the socket is drained even while a batch is
+being decoded and written (a slow loop overflows the kernel buffer and turns into loss); the
+protocol state lives in the writer thread alone.
 
 Nothing is acknowledged before it is committed, and storage ignores a (machine, seq) it already
 holds, so a sender that retransmits until acknowledged gets every sample stored exactly once,
@@ -40,7 +46,16 @@ from typing import Any
 
 from cranetwin.errors import CraneTwinError
 from cranetwin.model import builtin_machines, load_machine, machine_from_dict
-from cranetwin.protocol import DatagramError, Layout, MachineKey, Receiver, ReplayedError
+from cranetwin.protocol import (
+    TYPE_ACK,
+    DatagramError,
+    Layout,
+    MachineKey,
+    Receiver,
+    ReplayedError,
+    datagram_seq,
+    peek_header,
+)
 from cranetwin.protocol.status import StatusReport
 from cranetwin.samples import SampleBlock
 from cranetwin.storage import Store
@@ -49,6 +64,7 @@ from cranetwin.storage.live import LiveBus
 log = logging.getLogger(__name__)
 
 Addr = tuple[Any, ...]
+Item = SampleBlock | StatusReport
 _STOP = object()
 
 
@@ -72,7 +88,7 @@ class DaemonConfig:
     host: str = "127.0.0.1"
     port: int = 5005
     queue_max: int = 50_000
-    batch_max: int = 4000
+    batch_max: int = 1000
     batch_wait_s: float = 0.05
     rcvbuf_bytes: int = 8 * 1024 * 1024
     metrics_path: Path | None = None
@@ -158,6 +174,7 @@ class IngestDaemon:
         self._receiver = Receiver(self._lookup)
         self._queue: queue.Queue[Any] = queue.Queue(self.config.queue_max)
         self._transport: asyncio.DatagramTransport | None = None
+        self._sock: socket.socket | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
         self._started = time.monotonic()
@@ -198,45 +215,74 @@ class IngestDaemon:
         m.received += 1
         m.received_bytes += len(data)
         try:
-            item = self._receiver.receive(data, self._clock())
-        except ReplayedError as exc:
-            m.dropped[exc.reason] += 1
-            self._reack(exc.wire_id, addr)  # its ack was probably lost: repeat it
-            return
-        except DatagramError as exc:
-            m.dropped[exc.reason] += 1
-            return
-        except Exception:  # a bug must not stop ingest: count, log once per kind, go on
-            m.dropped["internal_error"] += 1
-            if m.dropped["internal_error"] == 1:
-                log.exception("unexpected error decoding a datagram (counted, dropped)")
-            return
-        try:
-            self._queue.put_nowait((item, addr))
-            m.accepted += 1
+            self._queue.put_nowait((data, addr, self._clock()))
         except queue.Full:
             m.dropped["queue_full"] += 1
 
-    def _reack(self, wire_id: int | None, addr: Addr) -> None:
-        key = self._keys.get(wire_id) if wire_id is not None else None
-        if key is None or self._transport is None:
-            return
-        with contextlib.suppress(KeyError):
-            self._transport.sendto(self._receiver.ack(key.machine_id, self._clock()), addr)
-            self.metrics.acks_sent += 1
+    def _decode(self, raw: list[tuple[bytes, Addr, int]]) -> list[tuple[Item, Addr]]:
+        """Writer thread: authenticate and decode; bad datagrams are counted and dropped.
 
-    def _after_commit(self, items: list[tuple[SampleBlock | StatusReport, Addr]]) -> None:
-        """Loop thread: mark durable, then one ack per (machine, address)."""
+        Retransmissions are recognised before the (costly) decode from the header's wire id and
+        seq: a copy of a datagram already in this batch, or below the machine's durable floor,
+        is counted as ``replayed`` and answered with one ack per address and batch. Under
+        overload this keeps retransmissions from eating the capacity that would clear them.
+        """
+        m = self.metrics
+        items: list[tuple[Item, Addr]] = []
+        seen: set[tuple[int, int]] = set()
+        reack: dict[tuple[str, Addr], None] = {}
+        for data, addr, now in raw:
+            try:
+                head = peek_header(data)
+                key = self._keys.get(head.wire_id)
+                ws = (head.wire_id, -1)
+                if key is not None and head.type != TYPE_ACK:
+                    ws = (head.wire_id, datagram_seq(data))
+                    if ws in seen:  # a copy of one accepted (authentic) earlier in this batch
+                        m.dropped["replayed"] += 1
+                        continue
+                    if ws[1] < self._receiver.floor(key.machine_id):
+                        m.dropped["replayed"] += 1
+                        reack[(key.machine_id, addr)] = None
+                        continue
+                items.append((self._receiver.receive(data, now), addr))
+                seen.add(ws)
+            except ReplayedError as exc:
+                m.dropped[exc.reason] += 1
+                rk = self._keys.get(exc.wire_id) if exc.wire_id is not None else None
+                if rk is not None:
+                    reack[(rk.machine_id, addr)] = None  # its ack was probably lost
+            except DatagramError as exc:
+                m.dropped[exc.reason] += 1
+            except Exception:  # a bug must not stop ingest: count, log once, go on
+                m.dropped["internal_error"] += 1
+                if m.dropped["internal_error"] == 1:
+                    log.exception("unexpected error decoding a datagram (counted, dropped)")
+        now_ns = self._clock()
+        for machine_id, addr in reack:
+            with contextlib.suppress(KeyError):
+                self._sendto(self._receiver.ack(machine_id, now_ns), addr)
+        m.accepted += len(items)
+        return items
+
+    def _sendto(self, data: bytes, addr: Addr) -> None:
+        if self._sock is None:
+            return
+        try:
+            self._sock.sendto(data, addr)
+            self.metrics.acks_sent += 1
+        except OSError:  # full buffer or unreachable: the sender retransmits and is acked then
+            self.metrics.dropped["ack_send_error"] += 1
+
+    def _after_commit(self, items: list[tuple[Item, Addr]]) -> None:
+        """Writer thread, after commit: mark durable, then one ack per (machine, address)."""
         dest: dict[tuple[str, Addr], None] = {}
         for item, addr in items:
             self._receiver.mark_durable(item.machine_id, item.seq)
             dest[(item.machine_id, addr)] = None
-        if self._transport is None or self._transport.is_closing():
-            return
         now = self._clock()
         for machine_id, addr in dest:
-            self._transport.sendto(self._receiver.ack(machine_id, now), addr)
-            self.metrics.acks_sent += 1
+            self._sendto(self._receiver.ack(machine_id, now), addr)
 
     # -- writer thread --------------------------------------------------------------------
     def _writer(self) -> None:
@@ -269,10 +315,12 @@ class IngestDaemon:
                             items.append(rest)
                     break
                 items.append(nxt)
-            self._write(items)
+            self._write(self._decode(items))
             self._maybe_rollup()
 
-    def _write(self, items: list[tuple[SampleBlock | StatusReport, Addr]]) -> None:
+    def _write(self, items: list[tuple[Item, Addr]]) -> None:
+        if not items:
+            return
         m = self.metrics
         t = time.perf_counter()
         blocks = [i for i, _ in items if isinstance(i, SampleBlock)]
@@ -291,9 +339,7 @@ class IngestDaemon:
         m.stored_blocks += len(new)
         m.stored_samples += sum(b.n for b in new)
         m.duplicates += len(blocks) - len(new)
-        if self._loop is not None and not self._loop.is_closed():
-            with contextlib.suppress(RuntimeError):  # loop already closed at shutdown
-                self._loop.call_soon_threadsafe(self._after_commit, items)
+        self._after_commit(items)
         if self.bus is not None and new:
             try:
                 self.bus.publish(new)
@@ -377,6 +423,7 @@ class IngestDaemon:
         self._stop = asyncio.Event()
         self.reload_keys()
         sock = self._socket()
+        self._sock = sock
         transport, _ = await self._loop.create_datagram_endpoint(
             lambda: _IngestProtocol(self), sock=sock)
         self._transport = transport
@@ -400,9 +447,7 @@ class IngestDaemon:
             if sock_stop is not None:
                 sock_stop()
             self._queue.put(_STOP)
-            await asyncio.to_thread(writer.join)
-            await asyncio.sleep(0)  # run the last _after_commit callbacks: final acks
-            await asyncio.sleep(0)
+            await asyncio.to_thread(writer.join)  # last batch written and acknowledged
             reporter.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await reporter

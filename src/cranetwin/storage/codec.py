@@ -144,7 +144,7 @@ def decode(blob: bytes, resolution: Sequence[float]) -> F64:
     return out
 
 
-def encode_many(k: I64, mask: npt.NDArray[np.bool_], level: int = 6) -> list[bytes]:
+def encode_many(k: I64, mask: npt.NDArray[np.bool_], level: int = 1) -> list[bytes]:
     """:func:`encode_ints` of B equally shaped arrays at once (same bytes, less overhead).
 
     Args:
