@@ -381,3 +381,19 @@ def test_analytics_imports_only_numpy_fatpack_model_errors() -> None:
     for banned in ("fastapi", "sqlalchemy", "starlette", "uvicorn", "websockets", "asyncio",
                    "cranetwin.physics", "cranetwin.twin", "cranetwin.storage", "cranetwin.api"):
         assert banned not in mods, banned
+
+
+def test_payload_above_hook_rating_is_its_own_event(machine: Machine) -> None:
+    from dataclasses import replace
+
+    sc = SyntheticCrane(machine, seed=4, days=1)
+    h = _window(sc, 0, 2)
+    pl = h.payload_kg.copy()
+    cap = max(machine.rated_load.payload_kg)
+    pl[2000:2200] = 1.2 * cap  # 2 s at 120 % of the chart's largest payload
+    rep = analyse(machine, replace(h, payload_kg=pl))
+    ev = [e for e in rep.events if e.kind == "payload_above_rating"]
+    assert len(ev) == 1
+    assert ev[0].value == pytest.approx(1.2 * cap) and ev[0].limit == cap
+    assert ev[0].t_start == pytest.approx(h.t_s[2000]) and ev[0].t_end == pytest.approx(h.t_s[2199])
+    assert any(e.kind == "overload" and e.t_start == ev[0].t_start for e in rep.events)

@@ -4,6 +4,8 @@ Not physics: a closed-form, quasi-static approximation (loads = weights × lever
 two-boom crane, plus a damped 1.8 Hz boom oscillation after each grab and stop), good enough to
 exercise the analytics with realistic magnitudes. Every channel is a pure function of time, so
 any split into chunks gives identical samples (what the incremental-equals-batch test needs).
+The smooth profiles of a cycle are tabulated every millisecond and looked up (exact on any
+sample grid that is a multiple of 1 ms, the nearest millisecond otherwise).
 
 One work cycle of ``CYCLE_S`` seconds: reach out empty (0–8 s) → grab (payload ramps in
 8.5–9.5 s) → lift (11–17 s) → swing loaded (17–29 s) → lower and release (29–33 s, payload ramps
@@ -25,6 +27,7 @@ from cranetwin.model import Machine
 F64 = npt.NDArray[np.float64]
 G = 9.81
 CYCLE_S = 45.0
+TPL_S = 0.001  # time step of the tabulated cycle profiles [s]
 DAY_S = 86400.0
 
 
@@ -94,7 +97,7 @@ class SyntheticCrane:
         self._mass = np.minimum(np.clip(rng.lognormal(np.log(230.0), 0.4, n), 60.0, None), cap)
         self._lift_to = np.full(n, 0.6)
         self._hit = np.zeros(n, dtype=bool)
-        self._swing_end = np.full(n, 29.0)
+        self._fast = np.zeros(n, dtype=bool)
         ml = self.machine
         for k in self.misuse.overload:
             self._mass[k] = self.misuse.overload_factor * float(
@@ -104,7 +107,7 @@ class SyntheticCrane:
             self._lift_to[k] = j1.upper
             self._hit[k] = True
         for k in self.misuse.overspeed:
-            self._swing_end[k] = 19.0
+            self._fast[k] = True
         mid = per_shift // 2
         self._idle = np.zeros(n, dtype=bool)
         brk = int(1800 // CYCLE_S)
@@ -112,6 +115,17 @@ class SyntheticCrane:
             self._idle[d * per_shift + mid: d * per_shift + mid + brk] = True
         self._mass[self._idle] = 0.0
         self._nominal_v = nominal_speed_mps(ml)
+        # Profiles of one cycle tabulated every TPL_S (exact at every sample time on a 1 ms grid)
+        tau: F64 = np.arange(int(round(CYCLE_S / TPL_S)) + 1, dtype=np.float64) * TPL_S
+        tpl: dict[str, F64] = {}
+        for name, (a, b) in {"1": (0.0, 8.0), "2": (17.0, 29.0), "2f": (17.0, 19.0),
+                             "3": (11.0, 17.0), "4": (29.0, 33.0), "g1": (8.5, 9.5),
+                             "g2": (31.0, 32.0)}.items():
+            tpl["r" + name], tpl["d" + name] = _ramp(tau, a, b)
+        tpl["lin"] = np.clip((tau - 11.0) / 4.0, 0.0, 1.0)
+        tpl["dlin"] = np.where((tau > 11.0) & (tau < 15.0), 0.25, 0.0)
+        tpl["osc"] = _osc(tau, 9.5) + _osc(tau, 17.0) + _osc(tau, 29.0)
+        self._tpl = tpl
 
     @staticmethod
     def _reach(q1: F64, q2: F64, ext: F64) -> F64:
@@ -142,17 +156,22 @@ class SyntheticCrane:
         i = np.minimum((in_shift // CYCLE_S).astype(np.int64), self._per_shift - 1)
         k = np.clip(day * self._per_shift + i, 0, self._mass.size - 1)
         tau = in_shift - i * CYCLE_S
+        it = np.clip(np.rint(tau / TPL_S).astype(np.int64), 0, self._tpl["r1"].size - 1)
+        tp = self._tpl
         idle = self._idle[k]
         a_drop = -0.8
-        r1, d1 = _ramp(tau, 0.0, 8.0)
-        sw_end = self._swing_end[k]
-        r2, d2 = _ramp(tau, 17.0, sw_end)
-        r3, d3 = _ramp(tau, 11.0, 17.0)
-        r4, d4 = _ramp(tau, 29.0, 33.0)
+        r1, d1 = tp["r1"][it], tp["d1"][it]
+        r2, d2 = tp["r2"][it], tp["d2"][it]
+        fast = self._fast[k]
+        if fast.any():
+            r2 = np.where(fast, tp["r2f"][it], r2)
+            d2 = np.where(fast, tp["d2f"][it], d2)
+        r3, d3 = tp["r3"][it], tp["d3"][it]
         hit = self._hit[k]
-        lin = np.clip((tau - 11.0) / 4.0, 0.0, 1.0)
-        r3 = np.where(hit, lin, r3)
-        d3 = np.where(hit, np.where((tau > 11.0) & (tau < 15.0), 0.25, 0.0), d3)
+        if hit.any():
+            r3 = np.where(hit, tp["lin"][it], r3)
+            d3 = np.where(hit, tp["dlin"][it], d3)
+        r4, d4 = tp["r4"][it], tp["d4"][it]
         move = np.where(idle, 0.0, 1.0)
         dq0 = self._a_pick[k] - a_drop
         q0 = a_drop + move * dq0 * (r1 - r2)
@@ -165,23 +184,21 @@ class SyntheticCrane:
         dl = self._l_pick[k] - 0.1
         ext = 0.1 + move * dl * (r1 - r2)
         extd = move * dl * (d1 - d2)
-        g1, _ = _ramp(tau, 8.5, 9.5)
-        g2, _ = _ramp(tau, 31.0, 32.0)
-        payload = self._mass[k] * (g1 - g2)
+        payload = self._mass[k] * (tp["rg1"][it] - tp["rg2"][it])
         c1, s12 = np.cos(q1), np.cos(q1 + q2)
         reach = -0.09 + 2.881 * c1 + (2.1 + ext) * s12
         height = 1.426 + 2.881 * np.sin(q1) + (2.1 + ext) * np.sin(q1 + q2)
         w = G * (payload + ml.load_point.tool_mass_kg)
-        dyn = 1.0 + 0.15 * move * (_osc(tau, 9.5) + _osc(tau, 17.0) + _osc(tau, 29.0))
+        dyn = 1.0 + 0.15 * move * tp["osc"][it]
         self_m1 = G * (143.66 * 1.229 * c1 + 76.7 * (2.881 * c1 + 0.6 * s12)
                        + 58.63 * (2.881 * c1 + (1.0 + ext) * s12))
         m1 = w * dyn * (reach + 0.09) + self_m1
         m2 = w * dyn * (2.1 + ext) * s12 + G * (76.7 * 0.6 + 58.63 * (1.0 + ext)) * s12
         m0 = m1 + 0.09 * (w + G * 279.0)
         m3 = np.abs(w * dyn * (2.075 + ext) * s12 + G * 58.63 * (0.83 + ext) * s12)
-        # deterministic pseudo-noise from the sample time (0.2 % of the load)
-        ph = np.sin(t * 12.9898e3) * 43758.5453
-        noise = 0.004 * (ph - np.floor(ph) - 0.5)
+        # deterministic pseudo-noise from the sample time (uniform, ±0.2 % of the load)
+        h32 = (np.rint(t * 1000.0).astype(np.int64) * 2654435761) & 0xFFFFFFFF
+        noise = 0.004 * (h32 / 4294967296.0 - 0.5)
         jm = np.column_stack([m0, m1, np.abs(m2), m3]) * (1.0 + noise)[:, None]
         f_lift = m1 / 0.35
         f_jib = m2 / 0.30
