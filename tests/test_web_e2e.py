@@ -1,28 +1,21 @@
-"""The web UI on the real service: ``create_app`` on SQLite, stored samples → twin → page.
-
-Data: kinematic samples of the API's synthetic source (exact, known payload) stored for 4
-minutes, twin-worker summaries computed, then the browser replays them; live: samples written to
-the store now reach the page through the API's live fan-out and websocket.
-"""
+"""End to end: ``cranetwin fleetdemo`` (simulator → sender → UDP → ingest daemon → SQLite →
+API → live websocket) → Chromium, then Ctrl-C stops every process. (The UI features are tested
+on the real app in ``test_web_browser.py``.)"""
 
 from __future__ import annotations
 
-import io
 import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
-import numpy as np
 import pytest
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 ARTIFACTS = Path(__file__).parent / "artifacts"
-MID = "crane-1"
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 if not Path(CHROMIUM).exists():
@@ -30,45 +23,6 @@ if not Path(CHROMIUM).exists():
                                               "`make system-deps` does it)"))
 playwright_api = pytest.importorskip("playwright.sync_api",
                                      reason="playwright not installed (pip install -e '.[dev]')")
-Image = pytest.importorskip("PIL.Image", reason="Pillow needed for pixel checks")
-
-
-class Service:
-    def __init__(self, srv: Any, app: Any, keys: dict[str, str], t0: float, span: float) -> None:
-        self.srv, self.app, self.keys, self.t0, self.span = srv, app, keys, t0, span
-
-    @property
-    def url(self) -> str:
-        return str(self.srv.url)
-
-
-@pytest.fixture(scope="module")
-def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
-    from cranetwin.api import Settings, create_app
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
-    from cranetwin.api.worker import TwinWorker
-    from cranetwin.model import load_machine
-    from cranetwin.viz.preview import ServerThread
-
-    url = f"sqlite:///{tmp_path_factory.mktemp('web_e2e') / 'web.db'}"
-    app = create_app(Settings(database_url=url, worker_enabled=False))
-    machine = load_machine("patu655")
-    span = 240.0
-    t0 = float(int(time.time() - 3600) // 60 * 60)  # a whole minute, an hour ago
-    with ServerThread(app) as srv:
-        services = app.state.services
-        keys = {r: services.backend.create_key(r, f"web e2e {r}")[1]
-                for r in ("viewer", "admin")}
-        r = httpx.post(f"{srv.url}/api/v1/machines", headers={"X-API-Key": keys["admin"]},
-                       json={"machine_id": MID, "model": "patu655", "name": "Crane 1"})
-        assert r.status_code == 201, r.text
-        base = kinematic_samples(machine, 120.0)
-        services.backend.store.write_blocks(list(tiled_blocks(MID, machine, t0, span, 1.0,
-                                                              base=base)))
-        worker = TwinWorker(services.backend, services.settings, services.metrics,
-                            services.replayer)
-        worker.catch_up(services.backend.machine_or_404(MID))
-        yield Service(srv, app, keys, t0, span)
 
 
 @pytest.fixture(scope="module")
@@ -79,88 +33,9 @@ def browser() -> Iterator[Any]:
         b.close()
 
 
-@pytest.fixture()
-def page(browser: Any) -> Iterator[Any]:
-    ctx = browser.new_context(viewport={"width": 1280, "height": 860})
-    pg = ctx.new_page()
-    errors: list[str] = []
-    pg.on("pageerror", lambda e: errors.append(str(e)))
-    pg.errors = errors
-    yield pg
-    ctx.close()
-
-
-def _shot(locator: Any, name: str) -> Any:
+def _shot(locator: Any, name: str) -> None:
     ARTIFACTS.mkdir(exist_ok=True)
-    png = locator.screenshot(path=str(ARTIFACTS / name))
-    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
-
-
-def _boom(img: Any) -> Any:
-    r, g, b = img[..., 0], img[..., 1], img[..., 2]
-    return (r > 140) & (g > 90) & (b < 90) & (r - b > 90)
-
-
-def test_fleet_page_lists_the_stored_machine(page: Any, service: Service) -> None:
-    page.goto(f"{service.url}/?key={service.keys['viewer']}")
-    page.wait_for_function("window.cranetwin && window.cranetwin.ready === true", timeout=20000)
-    assert page.locator(f"tr[data-machine-id={MID}]").count() == 1
-    assert "Crane 1" in page.locator("#rows").inner_text()
-    assert not page.errors
-
-
-def test_replay_of_stored_data_draws_and_moves_the_crane(page: Any, service: Service) -> None:
-    t0, t1 = service.t0, service.t0 + service.span
-    page.goto(f"{service.url}/machines/{MID}?key={service.keys['viewer']}&mode=replay"
-              f"&from={t0}&to={t1}&t={t0 + 20}")
-    page.wait_for_function("window.cranetwin && window.cranetwin.ready === true", timeout=30000)
-    page.wait_for_timeout(300)
-    a = _shot(page.locator("#view3d"), "e2e-replay-a.png")
-    assert _boom(a).mean() > 0.002
-    page.locator("#slider").focus()
-    page.keyboard.press("Shift+ArrowRight")
-    page.wait_for_function(f"Math.abs(window.cranetwin.cursor - {t0 + 30}) < 0.01")
-    page.wait_for_timeout(500)
-    b = _shot(page.locator("#view3d"), "e2e-replay-b.png")
-    assert (np.abs(a - b).sum(axis=2) > 60).mean() > 0.002
-    # charts from the stored (derived) summaries
-    page.wait_for_selector("#charts .main-svg", timeout=20000)
-    page.wait_for_function("document.querySelectorAll('#charts .scatterlayer .trace').length > 3",
-                           timeout=20000)
-    _shot(page, "e2e-replay-page.png")
-    payload = page.locator("#now-payload").inner_text()
-    assert payload.endswith("kg")
-    assert not page.errors
-
-
-def test_live_sample_reaches_the_page_within_a_second(page: Any, service: Service) -> None:
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
-    from cranetwin.model import load_machine
-
-    machine = load_machine("patu655")
-    base = kinematic_samples(machine, 120.0)
-    page.goto(f"{service.url}/machines/{MID}?key={service.keys['viewer']}&mode=live")
-    page.wait_for_function("window.cranetwin && window.cranetwin.mode === 'live'"
-                           " && window.cranetwin.sceneMs !== null", timeout=30000)
-    page.wait_for_timeout(1000)
-    store = service.app.state.services.backend.store
-    latencies = []
-    seq = 500_000
-    for k in range(4):
-        start = float(int(time.time()))  # whole seconds: tiled_blocks wants sample-aligned starts
-        blocks = list(tiled_blocks(MID, machine, start, 1.0, 1.0, base=base, seq0=seq))
-        seq += len(blocks)
-        sent = time.time()
-        store.write_blocks(blocks)
-        page.wait_for_function(f"window.cranetwin.lastLiveT !== null && "
-                               f"window.cranetwin.lastLiveT >= {start + 0.9}", timeout=3000)
-        latencies.append(time.time() - sent)
-        if k == 0:  # first frame drawn: the page now loads its charts library; let it settle
-            page.wait_for_selector("#charts .main-svg", timeout=20000)
-            page.wait_for_timeout(1500)
-    _shot(page, "e2e-live.png")
-    assert max(latencies[1:]) < 1.0, latencies
-    assert not page.errors
+    locator.screenshot(path=str(ARTIFACTS / name))
 
 
 def _processes_with(text: str) -> list[int]:

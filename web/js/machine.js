@@ -14,7 +14,7 @@ const TRAIL_S = 20;
 const metrics = window.cranetwin = {
   moduleStartMs: performance.now(),
   ready: false, firstFrameMs: null, sceneMs: null, framesRendered: 0, rafIntervals: [],
-  liveLatencyMs: [], liveFrames: 0, lastLiveT: null, mode: null, cursor: null, errors: [],
+  liveLatencyMs: [], liveFrames: 0, lastLiveT: null, mode: null, cursor: null, drawnT: null, errors: [],
 };
 
 // ---- data source: the API, or the data embedded in an exported file ---------------------------
@@ -378,6 +378,7 @@ function loop(now) {
   const f = state.store.frameAt(state.cursor);
   if (!f || typeof f !== "object") return;
   state.needsFrame = false;
+  metrics.drawnT = f.t;
   state.crane.apply(f);
   state.crane.setTrail(state.store.trail(state.cursor, TRAIL_S, state.crane.trailN));
   readout(f);
