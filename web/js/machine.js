@@ -195,6 +195,7 @@ function setMode(mode, from, to, t) {
   $("mode-live").setAttribute("aria-pressed", String(mode === "live"));
   $("mode-replay").setAttribute("aria-pressed", String(mode === "replay"));
   document.body.dataset.mode = mode;
+  $("export").setAttribute("aria-disabled", String(mode !== "replay"));
   banner(null);
   if (mode === "live") { startLive(); } else { startReplay(from ?? state.from, to ?? state.to, t); }
   updatePlayButton();
@@ -510,6 +511,9 @@ function wireControls() {
     setTimeout(() => banner(null), 4000);
   };
   $("help-btn").onclick = () => $("help").showModal();
+  $("export").onclick = (ev) => {
+    if (state.mode !== "replay" || state.from === null) { ev.preventDefault(); banner("Export needs a replay range: switch to Replay (R) and choose one.", "warn"); }
+  };
   document.addEventListener("keydown", (ev) => {
     if (ev.target instanceof HTMLInputElement && ev.target.type !== "range") return;
     if (ev.target instanceof HTMLSelectElement || ev.ctrlKey || ev.metaKey || ev.altKey) return;
