@@ -177,6 +177,14 @@ class TwinStream:
         return max(1, int(round(self.opt.payload_window_s / self._period / 2)))
 
     # -- public API ----------------------------------------------------------------------------
+    def set_smoothing(self, choices: tuple[SmoothingChoice, ...]) -> None:
+        """Fix the smoothing choices (``cmap.choice_names`` order) before the first push."""
+        if len(choices) != len(self.cmap.choice_names):
+            raise TwinError(f"smoothing: expected {len(self.cmap.choice_names)} choices")
+        if self._reg.end:
+            raise TwinError("smoothing can only be set before data are pushed")
+        self._choices = tuple(choices)
+
     def push(self, samples: SampleArrays) -> TwinResult | None:
         """Add samples (in time order, after those pushed before); return what became final."""
         parts = list(self.push_iter(samples))
@@ -553,16 +561,32 @@ class TwinStream:
 
 
 def iter_replay(samples: SampleArrays, machine: Machine, grid_hz: float = 1000.0,
-                payload: float | None = None,
-                options: ReplayOptions | None = None) -> Iterator[TwinResult]:
-    """Replay a whole recording chunk by chunk (bounded memory); see :func:`replay`."""
+                payload: float | None = None, options: ReplayOptions | None = None,
+                block_samples: int = 6000) -> Iterator[TwinResult]:
+    """Replay a whole recording chunk by chunk (bounded memory); see :func:`replay`.
+
+    The smoothing windows are chosen on the whole recording first; the samples are then fed
+    to a :class:`TwinStream` ``block_samples`` at a time, so memory does not grow with the
+    recording's length (the stream's seams equal the whole-recording result).
+    """
     opt = options or ReplayOptions()
     if opt.grid_hz != grid_hz:
         opt = ReplayOptions(**{**opt.__dict__, "grid_hz": grid_hz})
-    if opt.sample_period_s is None and samples.t_s.shape[0] >= 2:
+    n = samples.t_s.shape[0]
+    if opt.sample_period_s is None and n >= 2:
         opt = ReplayOptions(**{**opt.__dict__, "sample_period_s": nominal_period(samples.t_s)})
     stream = TwinStream(machine, samples.channels, opt, payload)
-    yield from stream.push_iter(samples)
+    if opt.smoothing is None and n >= 4 and opt.sample_period_s is not None:
+        cols = [samples.channels.index(c) for c in stream.cmap.names]
+        reg = regularize(samples.t_s, samples.values[:, cols], period=opt.sample_period_s,
+                         max_gap_s=opt.max_gap_s)
+        stream.set_smoothing(choose_smoothing(machine, stream.cmap, reg.values, opt.smooth,
+                                              opt.adaptive_pressures))
+        del reg
+    for i in range(0, n, block_samples):
+        j = min(n, i + block_samples)
+        yield from stream.push_iter(SampleArrays(samples.machine_id, samples.t_s[i:j],
+                                                 samples.channels, samples.values[i:j]))
     yield from stream.flush_iter()
 
 
