@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SECRET, running_daemon
 
+from conftest import SECRET, running_daemon
 from cranetwin.bench.ingest import T0_NS, Fleet, grid_values, make_sender, patu_layout
 from cranetwin.protocol import MachineKey, StatusReport, decode_ack, encode_data
 from cranetwin.samples import SampleBlock

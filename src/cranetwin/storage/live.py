@@ -15,6 +15,7 @@ bounded and the oldest notes are dropped (counted in ``Subscription.dropped``).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import queue
 import socket
@@ -295,16 +296,20 @@ class RedisBus:
         sock.sendall(_resp(b"SUBSCRIBE", self._channel))
         reader = _RespReader(sock)
         reader.read()  # subscribe confirmation
-        sock.settimeout(0.2)
+        sock.settimeout(None)  # blocking reads; close() shuts the socket down to end them
         sub = _ThreadSubscription(self._maxsize)
+
+        def stop() -> None:
+            sub._stop.set()
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
+
+        sub.close = stop  # type: ignore[method-assign]
 
         def run() -> None:
             try:
                 while not sub._stop.is_set():
-                    try:
-                        msg = reader.read()
-                    except TimeoutError:
-                        continue
+                    msg = reader.read()
                     if isinstance(msg, list) and msg and msg[0] == b"message":
                         for note in _notes(msg[2]):
                             sub.put(note)
