@@ -201,3 +201,15 @@ def test_storage_source_replays_through_the_twin(machine: Machine, clean_run: Re
         assert a.payload_kg == pytest.approx(b.payload_kg, rel=0.2)  # the twin's estimate
     lift = next(i for i, d in enumerate(machine.fatigue) if d.load == "cylinder:lift:force")
     assert rep.life[lift].damage == pytest.approx(truth.life[lift].damage, rel=0.25)
+
+
+def test_report_window_limits_the_data(machine: Machine) -> None:
+    from cranetwin.errors import ReportError
+
+    src = DemoSource(machine, days=3, rate_hz=5.0)
+    t0, _ = src.crane.shift_bounds(1)
+    rep = build_report(src, t0_s=t0 - 3600.0, t1_s=t0 + 86400.0 - 3600.0)
+    assert len(rep.days) == 1 and rep.t_start == pytest.approx(t0)
+    assert rep.n_samples == 8 * 3600 * 5
+    with pytest.raises(ReportError, match="no data"):
+        build_report(src, t0_s=0.0, t1_s=1.0)

@@ -41,8 +41,10 @@ def report(
     machine: str | None = typer.Option(None, "--machine", "-m",
                                        help="Machine id in storage (or, with --recording/--demo, "
                                             "a built-in machine or TOML file)."),
-    t_from: str | None = typer.Option(None, "--from", help="Start (epoch s or ISO 8601 UTC)."),
-    t_to: str | None = typer.Option(None, "--to", help="End (epoch s or ISO 8601 UTC)."),
+    t_from: str | None = typer.Option(None, "--from", help="Start (epoch s or ISO 8601 UTC); "
+                                      "also limits --recording/--demo data."),
+    t_to: str | None = typer.Option(None, "--to", help="End, exclusive (epoch s or ISO 8601 "
+                                    "UTC)."),
     db: str | None = typer.Option(None, "--db", help="Storage URL (default: "
                                   "CRANETWIN_DATABASE_URL or sqlite:///cranetwin.db)."),
     recording: Path | None = typer.Option(None, "--recording", help="Simulator recording "
@@ -83,7 +85,10 @@ def report(
                   TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(),
                   TimeRemainingColumn(), disable=quiet) as bar:
         task = bar.add_task("analysing", total=src.total())
-        rep = build_report(src, progress=lambda n: bar.advance(task, n))
+        window = (None if t_from is None else parse_time(t_from),
+                  None if t_to is None else parse_time(t_to))
+        rep = build_report(src, progress=lambda n: bar.advance(task, n), t0_s=window[0],
+                           t1_s=window[1])
         bar.update(task, completed=src.total())
         wtask = bar.add_task(f"writing {fmt}", total=7)
         path = write(rep, src.machine, fmt, out, src.label, progress=lambda: bar.advance(wtask))

@@ -9,7 +9,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
+
 from cranetwin.analytics import AnalyticsConfig, AnalyticsReport, AnalyticsState
+from cranetwin.errors import ReportError
 from cranetwin.reports.sources import (
     DemoSource,
     RecordingSource,
@@ -22,14 +25,27 @@ from cranetwin.reports.writers import FORMATS, SECTIONS, csv_tables, write
 
 
 def build_report(source: Source, config: AnalyticsConfig | None = None,
-                 progress: Callable[[int], None] | None = None) -> AnalyticsReport:
-    """Analyse every chunk of ``source``; ``progress(units)`` is called after each chunk."""
+                 progress: Callable[[int], None] | None = None, t0_s: float | None = None,
+                 t1_s: float | None = None) -> AnalyticsReport:
+    """Analyse every chunk of ``source`` (only instants with t0_s ≤ t < t1_s if given);
+    ``progress(units)`` is called after each chunk.
+
+    Raises:
+        ReportError: No data in the window.
+    """
     state = AnalyticsState(source.machine, config)
+    lo = -np.inf if t0_s is None else t0_s
+    hi = np.inf if t1_s is None else t1_s
     for h, units in source.chunks():
         if h is not None and h.n:
-            state.update(h)
+            a, b = np.searchsorted(h.t_s, [lo, hi], side="left")
+            if b > a:
+                state.update(h.slice(int(a), int(b)))
         if progress is not None and units:
             progress(units)
+    if state.n_samples == 0:
+        raise ReportError(f"no data from {source.label} in the window {lo} s to {hi} s "
+                          "(epoch seconds); check --from/--to")
     return state.report()
 
 
