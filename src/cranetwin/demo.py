@@ -24,6 +24,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.error
 import urllib.request
@@ -106,11 +107,12 @@ class FleetDemo:
         self.children: list[tuple[str, subprocess.Popen[bytes]]] = []
         self.viewer_key: str | None = None
         self.machine_ids: list[str] = []
-        self.logdir = Path(os.environ.get("CRANETWIN_DEMO_LOGS", "cranetwin-demo-logs"))
+        default = Path(tempfile.gettempdir()) / f"cranetwin-demo-{os.getuid()}"
+        self.logdir = Path(os.environ.get("CRANETWIN_DEMO_LOGS", default))
 
     # --- processes ---------------------------------------------------------------------------
     def _spawn(self, name: str, args: list[str]) -> subprocess.Popen[bytes]:
-        self.logdir.mkdir(parents=True, exist_ok=True)
+        self.logdir.mkdir(mode=0o700, parents=True, exist_ok=True)
         out = open(self.logdir / f"{name}.log", "ab")  # noqa: SIM115 - closed with the child
         env = {**os.environ, **self.config.extra_env}
         proc = subprocess.Popen([*cranetwin_command(), *args], stdout=out,
@@ -223,7 +225,7 @@ class FleetDemo:
         scenario = log_loading(duration_s=self.config.scenario_s, payload_kg=payload_kg,
                                seed=seed)
         path = self.logdir / f"scenario-{mid}.json"
-        self.logdir.mkdir(parents=True, exist_ok=True)
+        self.logdir.mkdir(mode=0o700, parents=True, exist_ok=True)
         path.write_text(scenario.model_dump_json(), "utf-8")
         return path
 
