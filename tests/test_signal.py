@@ -217,3 +217,14 @@ def test_ici_smoothing_beats_best_fixed_window_on_steps() -> None:
                      for w in (5, 7, 9, 11, 15, 21, 27, 35, 45, 61, 81, 101, 131))
     assert np.mean((adaptive - clean) ** 2) < 0.8 * best_fixed
     assert np.mean((adaptive - clean) ** 2) < 0.2 * np.mean((y - clean) ** 2)
+
+
+@pytest.mark.parametrize("window,polyorder,deriv", [(5, 3, 0), (21, 3, 0), (61, 5, 0),
+                                                    (27, 3, 1), (101, 3, 2), (7, 1, 0)])
+def test_savgol_smooth_equals_scipy_interp_mode(window: int, polyorder: int, deriv: int) -> None:
+    from scipy.signal import savgol_filter
+
+    y = np.random.default_rng(11).normal(size=(400, 2)).cumsum(axis=0)
+    ours = savgol_smooth(y, window, polyorder, deriv=deriv, delta=0.01)
+    ref = savgol_filter(y, window, polyorder, deriv=deriv, delta=0.01, axis=0, mode="interp")
+    np.testing.assert_allclose(ours, ref, rtol=1e-8, atol=1e-8 * np.abs(ref).max())

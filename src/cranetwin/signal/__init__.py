@@ -11,6 +11,7 @@ from cranetwin.signal.resample import Regular, nominal_period, regularize, unifo
 from cranetwin.signal.smoothing import (
     ICI_WINDOWS,
     SmoothingChoice,
+    centre_weight,
     choose_derivative_window,
     choose_window,
     estimate_noise_std,
@@ -26,6 +27,7 @@ __all__ = [
     "NaturalCubicSpline",
     "Regular",
     "SmoothingChoice",
+    "centre_weight",
     "choose_derivative_window",
     "choose_window",
     "estimate_noise_std",

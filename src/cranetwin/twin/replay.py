@@ -26,7 +26,6 @@ from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
-from scipy.signal import savgol_coeffs
 
 from cranetwin import physics
 from cranetwin.errors import PhysicsError, TwinError
@@ -36,6 +35,7 @@ from cranetwin.signal import (
     ICI_WINDOWS,
     NaturalCubicSpline,
     SmoothingChoice,
+    centre_weight,
     ici_select,
     newton_derivative,
     nominal_period,
@@ -115,9 +115,7 @@ class _Buf:
 
 
 def _h0(choice: SmoothingChoice) -> float:
-    if choice.window <= 1:
-        return 1.0
-    return float(savgol_coeffs(choice.window, choice.polyorder)[choice.window // 2])
+    return centre_weight(choice.window, choice.polyorder)
 
 
 class TwinStream:
