@@ -241,3 +241,37 @@ def test_codec_rejects_corrupt_blobs() -> None:
 def test_codec_compresses_sensor_like_data() -> None:
     b = make_block("m", 0, n=1000)
     assert len(codec.encode(b.values, RES)) < 0.25 * b.values.nbytes
+
+
+@settings(max_examples=40, deadline=None)
+@given(b=st.integers(1, 6), n=st.integers(1, 30), c=st.integers(1, 5),
+       scale=st.sampled_from([1, 100, 40_000, 2**31, 2**50]), seed=st.integers(0, 2**16))
+def test_vectorised_encoding_equals_per_block_encoding(b: int, n: int, c: int, scale: int,
+                                                       seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    k = rng.integers(-scale, scale, size=(b, n, c))
+    mask = rng.random(k.shape) < 0.1
+    k[mask] = 0
+    blobs = codec.encode_many(k, mask)
+    for i in range(b):
+        assert blobs[i] == codec.encode_ints(k[i], mask[i], level=1)
+        kk, mm = codec.decode_ints(blobs[i])
+        assert np.array_equal(kk, k[i]) and np.array_equal(mm, mask[i])
+
+
+def test_per_second_summary_of_a_block_matches_numpy() -> None:
+    from cranetwin.storage.blocks import per_second
+
+    b = make_block("m", 0, n=250)  # starts 0.25 s into a second: 3 partial/whole seconds
+    k, mask = codec.quantise(b.values, RES)
+    mask[5, 1] = True
+    (agg,) = per_second(k[None], mask[None], np.array([b.t0_ns]), np.array([PERIOD]))
+    m = agg.shape[0] // 4
+    sec = b.times_ns() // 10**9
+    assert m == sec[-1] - sec[0] + 1 == 3
+    for i, s in enumerate(range(sec[0], sec[-1] + 1)):
+        for j in range(len(CHANNELS)):
+            sel = (sec == s) & ~mask[:, j]
+            assert agg[i, j] == sel.sum()
+            assert agg[m + i, j] == k[sel, j].min() and agg[2 * m + i, j] == k[sel, j].max()
+            assert agg[3 * m + i, j] == k[sel, j].sum()

@@ -134,7 +134,7 @@ class Store:
             return machines_mod.to_info(machines_mod.get_row(s, machine_id))
 
     def machines(self) -> list[MachineInfo]:
-        """Every registered machine, ordered by id (no secrets)."""
+        """Every registered machine, ordered by machine id (no secrets)."""
         with self._session() as s:
             rows = s.scalars(select(MachineRow).order_by(MachineRow.machine_id)).all()
             return [machines_mod.to_info(r) for r in rows]
