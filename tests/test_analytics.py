@@ -295,8 +295,10 @@ def test_incremental_equals_batch(machine: Machine) -> None:
     rng = np.random.default_rng(7)
     cuts = np.sort(rng.choice(np.arange(1, h.n), 60, replace=False))
     st = AnalyticsState(machine)
-    for a, b in zip(np.r_[0, cuts], np.r_[cuts, h.n], strict=True):
+    for j, (a, b) in enumerate(zip(np.r_[0, cuts], np.r_[cuts, h.n], strict=True)):
         st.update(h.slice(int(a), int(b)))
+        if j == 30:  # persist and resume half-way, as a service between runs would
+            st = AnalyticsState.loads(st.dumps())
     inc = st.report()
     for sb, si in zip(batch.spectra, inc.spectra, strict=True):
         assert np.array_equal(sb.cycles.lower, si.cycles.lower)
@@ -362,7 +364,7 @@ def test_joint_moment_is_magnitude_of_wrench_moment(machine: Machine) -> None:
 # --- purity ---------------------------------------------------------------------------------------
 
 ALLOWED = {"__future__", "numpy", "numpy.typing", "fatpack", "dataclasses", "collections.abc",
-           "copy", "typing", "math"}
+           "copy", "typing", "math", "pickle", "functools"}
 
 
 def test_analytics_imports_only_numpy_fatpack_model_errors() -> None:
@@ -397,3 +399,8 @@ def test_payload_above_hook_rating_is_its_own_event(machine: Machine) -> None:
     assert ev[0].value == pytest.approx(1.2 * cap) and ev[0].limit == cap
     assert ev[0].t_start == pytest.approx(h.t_s[2000]) and ev[0].t_end == pytest.approx(h.t_s[2199])
     assert any(e.kind == "overload" and e.t_start == ev[0].t_start for e in rep.events)
+
+
+def test_state_loads_rejects_foreign_bytes() -> None:
+    with pytest.raises(AnalyticsError, match="not an analytics state"):
+        AnalyticsState.loads(b"\x80\x04junk")

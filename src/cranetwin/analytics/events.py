@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import numpy.typing as npt
@@ -141,10 +142,11 @@ class EventDetector:
         }
         for i, cyl in enumerate(machine.cylinders):
             for side in "AB":
-                self._trackers[f"p:{i}:{side}"] = (RunTracker(c.pressure_min_s, 0.0, c.max_gap_s),
-                                                   self._pressure_event(cyl.name, side))
+                self._trackers[f"p:{i}:{side}"] = (
+                    RunTracker(c.pressure_min_s, 0.0, c.max_gap_s),
+                    partial(self._pressure_event, cyl.name, side))
             self._trackers[f"shock:{i}"] = (RunTracker(0.0, 0.5, c.max_gap_s),
-                                            self._shock_event(i))
+                                            partial(self._shock_event, i))
         self._tail: tuple[F64, F64 | None, F64 | None, F64] | None = None
         self.events: list[Event] = []
 
@@ -175,26 +177,21 @@ class EventDetector:
             j.name, float(r.vmax[0]), j.velocity_limit, "rad/s",
             {"speed_ratio": ratio, "duration_s": r.duration_s, "t_peak": r.t_peak})
 
-    def _pressure_event(self, name: str, side: str) -> Converter:
-        def conv(r: Run) -> Event:
-            relief = float(self._relief_p or 1.0)
-            ratio = float(r.vmax[0] / relief)
-            return Event("over_pressure", r.t_start, r.t_end,
-                         _severity(ratio, self.cfg.critical_ratio), f"{name}:{side}",
-                         float(r.vmax[0]), relief, "Pa",
-                         {"pressure_ratio": ratio, "duration_s": r.duration_s,
-                          "t_peak": r.t_peak})
-        return conv
+    def _pressure_event(self, name: str, side: str, r: Run) -> Event:
+        relief = float(self._relief_p or 1.0)
+        ratio = float(r.vmax[0] / relief)
+        return Event("over_pressure", r.t_start, r.t_end,
+                     _severity(ratio, self.cfg.critical_ratio), f"{name}:{side}",
+                     float(r.vmax[0]), relief, "Pa",
+                     {"pressure_ratio": ratio, "duration_s": r.duration_s, "t_peak": r.t_peak})
 
-    def _shock_event(self, i: int) -> Converter:
-        def conv(r: Run) -> Event:
-            lim = self.cfg.shock_rate_per_s * float(self._relief_f[i])
-            ratio = float(r.vmax[0] / lim)
-            return Event("shock_load", r.t_start, r.t_end, _severity(ratio, 2.0),
-                         self.machine.cylinders[i].name, float(r.vmax[0]), lim, "N/s",
-                         {"rate_ratio": ratio, "force_max_n": float(r.vmax[1]),
-                          "force_min_n": float(r.vmin[1]), "t_peak": r.t_peak})
-        return conv
+    def _shock_event(self, i: int, r: Run) -> Event:
+        lim = self.cfg.shock_rate_per_s * float(self._relief_f[i])
+        ratio = float(r.vmax[0] / lim)
+        return Event("shock_load", r.t_start, r.t_end, _severity(ratio, 2.0),
+                     self.machine.cylinders[i].name, float(r.vmax[0]), lim, "N/s",
+                     {"rate_ratio": ratio, "force_max_n": float(r.vmax[1]),
+                      "force_min_n": float(r.vmin[1]), "t_peak": r.t_peak})
 
     def _feed(self, key: str, t: F64, mask: npt.NDArray[np.bool_],
               vals: Sequence[F64]) -> None:

@@ -8,6 +8,7 @@ history in any number of chunks gives the same :class:`AnalyticsReport` as feedi
 
 from __future__ import annotations
 
+import pickle
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,6 +41,7 @@ from cranetwin.model import Machine
 F64 = npt.NDArray[np.float64]
 G = 9.81
 DAY_S = 86400.0
+STATE_MAGIC = b"cranetwin-analytics-state-1\n"
 
 
 def load_channels(machine: Machine) -> list[str]:
@@ -186,6 +188,30 @@ class AnalyticsState:
         self.events.update(h)
         self.productivity.update(h)
         return self
+
+    def dumps(self) -> bytes:
+        """The whole state as bytes, to keep between runs (e.g. in the database) and continue
+        with :meth:`loads` where this one stopped.
+
+        The format is Python's pickle behind a version tag: store it only where the service
+        itself writes (loading bytes from an untrusted source can run code).
+        """
+        return STATE_MAGIC + pickle.dumps(self, protocol=pickle.HIGHEST_PROTOCOL)
+
+    @staticmethod
+    def loads(data: bytes) -> AnalyticsState:
+        """A state written by :meth:`dumps` (same cranetwin state version).
+
+        Raises:
+            AnalyticsError: Not a state of this version.
+        """
+        if not data.startswith(STATE_MAGIC):
+            raise AnalyticsError("not an analytics state of version "
+                                 f"{STATE_MAGIC.decode(errors='replace').strip()}")
+        state = pickle.loads(data[len(STATE_MAGIC):])
+        if not isinstance(state, AnalyticsState):
+            raise AnalyticsError(f"expected an AnalyticsState, got {type(state).__name__}")
+        return state
 
     def report(self) -> AnalyticsReport:
         """A snapshot of the analysis so far (the state is not changed)."""

@@ -67,7 +67,10 @@ def summary(rep: AnalyticsReport, machine: Machine, source: str) -> Table:
         rows.append(["Projected group (design)", f"{c.label} ({c.design_group or '-'})"])
     if worst is not None:
         rows.append(["Most damaged detail", f"{worst.name}: D = {worst.damage:.3g}"])
-        rows.append(["Next service (damage step)", _date_after(rep, worst.next_service_days)])
+        soon = min(rep.life, key=lambda e: e.next_service_days)
+        rows.append(["Next service (earliest damage step)",
+                     f"{_date_after(rep, soon.next_service_days)} ({soon.name}, "
+                     f"D = {soon.next_service_damage:.2g})"])
     return Table("Summary", ["item", "value"], rows)
 
 
