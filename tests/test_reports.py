@@ -213,3 +213,16 @@ def test_report_window_limits_the_data(machine: Machine) -> None:
     assert rep.n_samples == 8 * 3600 * 5
     with pytest.raises(ReportError, match="no data"):
         build_report(src, t0_s=0.0, t1_s=1.0)
+
+
+def test_render_gives_downloadable_bytes(machine: Machine,
+                                         demo: tuple[AnalyticsReport, str]) -> None:
+    from cranetwin.reports import render
+
+    rep, label = demo
+    pdf, media, name = render(rep, machine, "pdf", label)
+    assert pdf.startswith(b"%PDF") and media == "application/pdf" and name.endswith(".pdf")
+    zipped, media, name = render(rep, machine, "csv", label)
+    assert media == "application/zip" and zipfile.ZipFile(io.BytesIO(zipped)).testzip() is None
+    html_bytes, media, _ = render(rep, machine, "html", label)
+    assert html_bytes.startswith(b"<!doctype html>") and media.startswith("text/html")

@@ -217,3 +217,24 @@ def write(rep: AnalyticsReport, machine: Machine, fmt: str, out: Path, source: s
         return write_html(rep, machine, out, source, figs, progress)
     except OSError as exc:
         raise ReportError(f"cannot write {out}: {exc}") from exc
+
+
+MEDIA_TYPES = {"pdf": "application/pdf", "html": "text/html; charset=utf-8",
+               "csv": "application/zip"}
+
+
+def render(rep: AnalyticsReport, machine: Machine, fmt: str, source: str) -> tuple[bytes, str, str]:
+    """The report as bytes for a download (e.g. from the API): ``(content, media type, file
+    name)``; CSV comes as a zip of the CSV files.
+
+    Raises:
+        ReportError: Unknown format or the report could not be produced.
+    """
+    import tempfile
+
+    if fmt not in FORMATS:
+        raise ReportError(f"unknown format {fmt!r}; expected one of {FORMATS}")
+    name = f"{machine.name}-report.{'zip' if fmt == 'csv' else fmt}"
+    with tempfile.TemporaryDirectory() as d:
+        path = write(rep, machine, fmt, Path(d) / name, source)
+        return path.read_bytes(), MEDIA_TYPES[fmt], name
