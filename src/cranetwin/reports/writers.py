@@ -58,6 +58,14 @@ def _sections(rep: AnalyticsReport, machine: Machine, source: str,
 
 # --- PDF ------------------------------------------------------------------------------------------
 
+def _col_widths(tab: T.Table, width: float) -> list[float]:
+    """Column widths proportional to the longest text of each column (9 to 50 characters)."""
+    cols = list(zip(tab.header, *tab.rows, strict=True))
+    chars = [min(max(9, *(len(str(c)) for c in col)), 50) for col in cols]
+    total = float(sum(chars))
+    return [width * c / total for c in chars]
+
+
 def _font() -> str:
     """Register DejaVu Sans (shipped with matplotlib; covers Σ, Δ, σ) and return its name."""
     from pathlib import Path as _P
@@ -115,7 +123,7 @@ def write_pdf(rep: AnalyticsReport, machine: Machine, out: Path, source: str,
             if len(data) == 1:
                 story.append(Paragraph("(none)", body))
                 continue
-            t = LongTable(data, repeatRows=1, colWidths=[width / len(tab.header)] * len(tab.header))
+            t = LongTable(data, repeatRows=1, colWidths=_col_widths(tab, width))
             t.setStyle(TableStyle([
                 ("GRID", (0, 0), (-1, -1), 0.25, colors.grey),
                 ("BACKGROUND", (0, 0), (-1, 0), colors.HexColor("#dde6f0")),
