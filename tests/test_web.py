@@ -239,3 +239,14 @@ async def test_export_rejects_bad_ranges(client) -> None:  # type: ignore[no-unt
         assert r.status_code == 422, params
         assert r.json()["detail"]
     assert (await client.get(url, params={"from": 0, "to": 5})).status_code == 401
+
+
+def test_rest_frame_is_inside_the_joint_limits(machine) -> None:  # type: ignore[no-untyped-def]
+    from cranetwin.viz.poses import rest_frame, rest_q
+
+    q = rest_q(machine)
+    for qi, j in zip(q, machine.joints, strict=True):
+        assert j.lower <= qi <= j.upper, j.name
+    f = rest_frame(machine)
+    assert f["payload_kg"] == 0.0
+    assert np.allclose(f["tip"], load_point_position(machine, q[None, :])[0])

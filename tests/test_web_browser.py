@@ -254,3 +254,14 @@ def test_exported_file_replays_offline(page: Any, server: Service, tmp_path: Pat
     page.wait_for_function(f"Math.abs(window.cranetwin.drawnT - {END - 50}) < 0.01")
     page.wait_for_selector("#charts .main-svg", timeout=20000)
     assert not page.errors
+
+
+def test_range_without_data_says_so(page: Any, server: Service) -> None:
+    a, b = END - 7200, END - 6600  # an hour before the stored data
+    page.goto(f"{server.url}/machines/crane-2?key={server.viewer}&mode=replay&from={a}&to={b}")
+    page.wait_for_function("document.getElementById('banner').textContent.includes('No data')",
+                           timeout=20000)
+    page.wait_for_function("document.getElementById('charts-msg').textContent"
+                           ".includes('No load history')", timeout=20000)
+    _shot(page, "no-data.png")
+    assert not page.errors

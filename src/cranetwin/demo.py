@@ -191,15 +191,18 @@ class FleetDemo:
         self.viewer_key = self._run_cli(["keys", "create", "--role", "viewer",
                                          "--name", "fleet demo viewer", *db])
         existing = {m["machine_id"] for m in self._request("GET", "/api/v1/machines", admin)}
+        k = 0
         for i in range(c.machines):
-            mid = f"crane-{i + 1}"
+            # a machine's secret is shown only once: on a database that already has crane-k
+            # (a restarted docker-compose fleet) register the next free id instead
+            k += 1
+            while f"crane-{k}" in existing:
+                k += 1
+            mid = f"crane-{k}"
             payload = float(c.payloads_kg[i % len(c.payloads_kg)])
-            if mid in existing:  # a rerun on the same database: new secret needed to send
-                raise DemoError(f"machine {mid} already registered in {c.db_url}: its secret is "
-                                "shown only once; remove the database file or use another --db")
             created = self._request("POST", "/api/v1/machines", admin, {
                 "machine_id": mid, "model": c.model,
-                "name": f"Crane {i + 1} ({payload:.0f} kg logs)",
+                "name": f"Crane {k} ({payload:.0f} kg logs)",
                 "location": {"lat": 62.60 + 0.01 * i, "lon": 29.76 + 0.02 * i}})
             scenario = self._scenario_file(mid, payload, seed=i + 1)
             self._spawn(f"send-{mid}", ["send", "--machine", mid,

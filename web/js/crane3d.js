@@ -95,6 +95,8 @@ export class Crane3D {
     }
     this.element = element;
     this.resize();
+    // parked pose until data arrives (no log on the grapple)
+    if (this.spec.rest_frame) this.apply(this.spec.rest_frame);
   }
 
   resize() {

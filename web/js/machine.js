@@ -381,6 +381,7 @@ function loop(now) {
 
 function drawReplayFrame() {
   const f = state.store.frameAt(state.cursor);
+  if ((f === "loading" || f === "empty") && !state.playing) $("time-label").textContent = `${fmtTime(state.cursor).slice(11)} (${f === "empty" ? "no data" : "loading…"})`;
   if (!f || typeof f !== "object") return;
   state.needsFrame = false;
   metrics.drawnT = f.t;

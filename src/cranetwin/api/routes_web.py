@@ -29,6 +29,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from cranetwin.errors import CraneTwinError
 from cranetwin.model import load_machine, machine_from_dict
 from cranetwin.viz.export import EXPORT_MAX_SECONDS, export_rate_hz, render_export
+from cranetwin.viz.poses import rest_frame
 from cranetwin.viz.scene import build_scene
 
 log = logging.getLogger(__name__)
@@ -180,7 +181,8 @@ async def _scene_for(request: Request, machine_id: str) -> dict[str, Any]:
         "commands": commands,
         "spec": {**spec.to_json(),
                  "load_point": {"body": machine.load_point.body,
-                                "point_m": list(machine.load_point.point_m)}},
+                                "point_m": list(machine.load_point.point_m)},
+                 "rest_frame": rest_frame(machine)},
     }
     if len(_SCENE_CACHE) > 32:
         _SCENE_CACHE.clear()

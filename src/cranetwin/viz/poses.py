@@ -47,3 +47,22 @@ def frame_arrays(machine: Machine, q: npt.ArrayLike) -> dict[str, Any]:
                           for k, c in enumerate(machine.cylinders)},
         "tip": tip.tolist(),
     }
+
+
+def rest_q(machine: Machine) -> F64:
+    """A tidy parked pose, shape (n_joints,): each joint a fifth of the way into its range from
+    the lower limit (the jib folded, the boom low), slew and telescope at zero where allowed."""
+    q = np.array([j.lower + 0.2 * (j.upper - j.lower) for j in machine.joints])
+    for i, j in enumerate(machine.joints):
+        if j.lower <= 0.0 <= j.upper and (j.kind == "prismatic" or i == 0):
+            q[i] = 0.0
+    return q
+
+
+def rest_frame(machine: Machine) -> dict[str, Any]:
+    """One frame (live-frame shape) of :func:`rest_q`, drawn before any data arrives."""
+    q = rest_q(machine)
+    f = frame_arrays(machine, q[None, :])
+    return {"t": None, "q": q.tolist(), "poses": {k: v[0] for k, v in f["poses"].items()},
+            "cylinder_pins": {k: v[0] for k, v in f["cylinder_pins"].items()},
+            "tip": f["tip"][0], "payload_kg": 0.0, "utilisation": {}, "cylinder_forces": {}}
