@@ -250,3 +250,31 @@ def test_rest_frame_is_inside_the_joint_limits(machine) -> None:  # type: ignore
     f = rest_frame(machine)
     assert f["payload_kg"] == 0.0
     assert np.allclose(f["tip"], load_point_position(machine, q[None, :])[0])
+
+
+def test_linkage_drawing_closes_the_four_bar(machine) -> None:  # type: ignore[no-untyped-def]
+    """The browser draws D→E and E→F from the body poses and the rod pin E: their lengths must
+    be the linkage's link lengths at every pose (as the page computes them, column-major)."""
+    _, spec = build_scene(machine)
+    links = spec.extras["linkages"]
+    assert set(links) == {c.name for c in machine.cylinders if c.linkage is not None}
+    rng = np.random.default_rng(3)
+    lo = np.array([j.lower for j in machine.joints])
+    hi = np.array([j.upper for j in machine.joints])
+    q = lo + (hi - lo) * rng.uniform(0.1, 0.9, size=(20, 4))
+    f = frame_arrays(machine, q)
+
+    def world(body: str, p: list[float], k: int) -> np.ndarray:
+        m = np.asarray(f["poses"][body][k])
+        return np.array([m[i] * p[0] + m[4 + i] * p[1] + m[8 + i] * p[2] + m[12 + i]
+                         for i in range(3)])
+
+    for name, lk in links.items():
+        cyl = machine.cylinder(name)
+        assert cyl.linkage is not None
+        for k in range(len(q)):
+            e = np.asarray(f["cylinder_pins"][name][k][3:])
+            d = world(lk["parent_body"], lk["pivot_m"], k)
+            fc = world(lk["child_body"], lk["coupler_m"], k)
+            assert np.linalg.norm(e - d) == pytest.approx(cyl.linkage.pivot_link_m, abs=1e-9)
+            assert np.linalg.norm(e - fc) == pytest.approx(cyl.linkage.coupler_link_m, abs=1e-9)

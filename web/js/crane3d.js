@@ -32,6 +32,15 @@ export function segmentMatrix(p0, dir, len) {
 function cross(a, b) {
   return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
 }
+function transformPoint(m, p) {
+  // m: column-major 4x4, p: [x, y, z] in the body frame -> world
+  return [0, 1, 2].map((i) => m[i] * p[0] + m[4 + i] * p[1] + m[8 + i] * p[2] + m[12 + i]);
+}
+function setSegment(node, a, b) {
+  const d = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+  const len = Math.hypot(d[0], d[1], d[2]) || 1e-9;
+  node.set_transform(segmentMatrix(a, [d[0] / len, d[1] / len, d[2] / len], len));
+}
 function flatPins(p) {
   // accepts [[bx,by,bz],[rx,ry,rz]] or [bx,by,bz,rx,ry,rz]
   if (!p) return null;
@@ -82,7 +91,12 @@ export class Crane3D {
         rod: find(`/cranetwin/cylinders/${c}/rod`),
         barrelMesh: find(`/cranetwin/cylinders/${c}/barrel/<object>`),
         barrelLen: this.spec.barrel_lengths_m[c],
+        linkage: (this.spec.linkages || {})[c] || null,
       };
+      if (this.cyl[c].linkage) {
+        this.cyl[c].pivotLink = find(`/cranetwin/cylinders/${c}/pivot_link`);
+        this.cyl[c].couplerLink = find(`/cranetwin/cylinders/${c}/coupler_link`);
+      }
     }
     this.tool = find(this.spec.tool_path);
     this.payload = find(this.spec.payload_path);
@@ -138,6 +152,14 @@ export class Crane3D {
         parts.barrel.set_transform(segmentMatrix([p[0], p[1], p[2]], n, bl));
         const nr = [-n[0], -n[1], -n[2]];
         parts.rod.set_transform(segmentMatrix([p[3], p[4], p[5]], nr, Math.max(len - 0.5 * bl, 0.01)));
+        const lk = parts.linkage;
+        if (lk && poses[lk.parent_body] && poses[lk.child_body]) {
+          const e = [p[3], p[4], p[5]];
+          const d = transformPoint(poses[lk.parent_body], lk.pivot_m);
+          const f = transformPoint(poses[lk.child_body], lk.coupler_m);
+          setSegment(parts.pivotLink, d, e);
+          setSegment(parts.couplerLink, e, f);
+        }
       }
       const u = util[c];
       if (u !== undefined && u !== null && this.lastUtil[c] !== Math.round(u * 100)) {
@@ -165,9 +187,7 @@ export class Crane3D {
   tipFromPoses(poses) {
     const lp = this.spec.load_point;
     if (!lp || !poses[lp.body]) return null;
-    const m = poses[lp.body];
-    const p = lp.point_m;
-    return [0, 1, 2].map((i) => m[i] * p[0] + m[4 + i] * p[1] + m[8 + i] * p[2] + m[12 + i]);
+    return transformPoint(poses[lp.body], lp.point_m);
   }
 
   setTrail(points) {

@@ -300,6 +300,7 @@ def build_scene(machine: Machine, base_dir: Path | None = None,
             cmds.append(set_object(f"{_body_path(body.name)}/v{i}",
                                    mesh_object(mesh, v.color, name=f"{body.name}.{i}")))
     barrels: dict[str, float] = {}
+    linkages: dict[str, dict[str, Any]] = {}
     for cyl in machine.cylinders:
         barrel_r = 0.5 * cyl.bore_m + 0.012
         barrel = trimesh.creation.cylinder(radius=barrel_r, segment=[[0, 0, 0], [0, 0, 1]],
@@ -311,6 +312,18 @@ def build_scene(machine: Machine, base_dir: Path | None = None,
         cmds.append(set_object(f"{ROOT}/cylinders/{cyl.name}/rod",
                                mesh_object(rod, "#c9ced6", name=f"{cyl.name}.rod")))
         barrels[cyl.name] = 0.92 * cyl.closed_length_m
+        if cyl.linkage is not None:
+            # four-bar: link D→E (pivot on the parent body to the rod end) and E→F (rod end to
+            # the coupler pin on the child body), unit +z meshes stretched every frame
+            joint = machine.joints[machine.joint_index(cyl.joint)]
+            link = trimesh.creation.box(extents=(0.05, 0.03, 1.0))
+            link.apply_translation((0.0, 0.0, 0.5))
+            for part in ("pivot_link", "coupler_link"):
+                cmds.append(set_object(f"{ROOT}/cylinders/{cyl.name}/{part}",
+                                       mesh_object(link, "#c9901a", name=f"{cyl.name}.{part}")))
+            linkages[cyl.name] = {"parent_body": joint.parent, "pivot_m": list(cyl.linkage.pivot_m),
+                                  "child_body": joint.child,
+                                  "coupler_m": list(cyl.linkage.coupler_pin_m)}
     tool = f"{ROOT}/tool"
     rotator = trimesh.creation.cylinder(radius=0.06, segment=np.array([[0, 0, 0], [0, 0, -0.3]]),
                                         sections=12)
@@ -333,7 +346,7 @@ def build_scene(machine: Machine, base_dir: Path | None = None,
         payload_path=f"{tool}/payload",
         trail_path=f"{ROOT}/trail",
         rated_payload_kg=float(max(machine.rated_load.payload_kg)),
-        extras={"trail_points": trail_points, "tool_drop_m": TOOL_DROP_M,
+        extras={"trail_points": trail_points, "tool_drop_m": TOOL_DROP_M, "linkages": linkages,
                 "log_length_m": LOG_LENGTH_M, "log_density_kgm3": LOG_DENSITY_KGM3},
     )
     return cmds, spec
