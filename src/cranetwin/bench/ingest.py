@@ -123,6 +123,7 @@ class Fleet:
         self.speed = speed
         self._pushed = dict.fromkeys(self.sources, 0)
         self._start: float | None = None
+        self._due = dict.fromkeys(self.senders, 0)  # cached next_timer_ns (0 = look now)
         self.server = server
         self.uplink, self.downlink = uplink, downlink
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -150,10 +151,14 @@ class Fleet:
         now = time.time_ns()
         out: list[bytes] = []
         for w, s in self.senders.items():
+            if self._due[w] > now:
+                continue
             due = s.datagrams_to_send(now)
             for dg in due:
                 self._sizes[(w, datagram_seq(dg))] = len(dg)
             out.extend(due)
+            nxt = s.next_timer_ns()
+            self._due[w] = (now + 10**12) if nxt is None else nxt
         if self.uplink is not None:
             out = self.uplink.transmit(out)
         self._send(out)
@@ -169,7 +174,9 @@ class Fleet:
         now = time.time_ns()
         for a in acks:
             try:
-                self.senders[peek_header(a).wire_id].receive(a, now)
+                w = peek_header(a).wire_id
+                self.senders[w].receive(a, now)
+                self._due[w] = 0  # acks free window space and may reset timers
             except (DatagramError, KeyError):
                 self.bad_acks += 1
 
@@ -190,6 +197,7 @@ class Fleet:
             if due > done:
                 s.push(T0_NS + done * s.period_ns, vals[done:due])
                 self._pushed[w] = due
+                self._due[w] = 0
                 if due == vals.shape[0]:
                     s.flush()
 
@@ -233,10 +241,11 @@ def patu_layout() -> Layout:
 
 
 def make_sender(key: MachineKey, values: F64, *, first_seq: int = 1, rto_s: float = 0.2,
-                max_unacked: int = 16, max_burst: int = 16) -> Sender:
+                max_unacked: int = 16, max_burst: int = 16, batch_samples: int = 50) -> Sender:
     """A sender with ``values`` (100 Hz from :data:`T0_NS`) already batched into datagrams."""
     s = Sender(key, PERIOD_NS, first_seq=first_seq, max_unacked=max_unacked, max_burst=max_burst,
-               rto_ns=int(rto_s * 1e9), max_rto_ns=int(max(4 * rto_s, 1.0) * 1e9))
+               rto_ns=int(rto_s * 1e9), max_rto_ns=int(max(4 * rto_s, 1.0) * 1e9),
+               batch_samples=batch_samples)
     s.push(T0_NS, values)
     s.flush()
     return s

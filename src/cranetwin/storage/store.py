@@ -93,9 +93,12 @@ class Store:
 
     def _machine_pk(self, s: Session, machine_id: str) -> int:
         pk = self._pk.get(machine_id)
-        if pk is None:
-            pk = machines_mod.get_row(s, machine_id).id
-            self._pk[machine_id] = pk
+        if pk is None:  # load every id at once: a fleet's first batch names them all
+            rows = s.execute(select(MachineRow.machine_id, MachineRow.id)).all()
+            self._pk.update({m: int(i) for m, i in rows})
+            pk = self._pk.get(machine_id)
+            if pk is None:
+                pk = machines_mod.get_row(s, machine_id).id  # raises UnknownMachineError
         return pk
 
     # -- machines -------------------------------------------------------------------------
