@@ -14,7 +14,8 @@ def test_calibration_recovers_friction_and_mass() -> None:
     true = {"lift": Friction(coulomb=600.0, coulomb_velocity=0.01, viscous=900.0),
             "jib": Friction(coulomb=400.0, coulomb_velocity=0.003, viscous=500.0),
             "extension": Friction(coulomb=300.0, coulomb_velocity=0.006, viscous=700.0)}
-    syn = make(m, duration_s=240.0, payload=220.0, fine_hz=None, friction=true, scale=0.5,
+    # motion at 0.3x the synthetic's default frequencies: joint speeds like the crane's
+    syn = make(m, duration_s=240.0, payload=220.0, fine_hz=None, friction=true, scale=0.3,
                quantize=True)
     cal = calibrate(syn.samples, m)
     assert cal.extra_mass_kg == pytest.approx(220.0, rel=0.02)

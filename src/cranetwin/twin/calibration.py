@@ -11,6 +11,10 @@ linear in the extra mass m (payload plus any tool-mass error) and in every (Fc, 
 squares over all cylinders. vc enters nonlinearly and is searched on a 1-D logarithmic grid per
 cylinder (coordinate search, the other parameters re-solved at each point). Residuals are
 reported before (machine-file friction, no extra mass) and after, as RMS force [N].
+
+Both sides are low-passed by the same moving average (the derivative-smoothing window): the
+accelerations in tau_0 are smoothed, the pressures are not, and their fast hydraulic
+oscillations would otherwise leak into the fit.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from cranetwin.errors import TwinError
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.twin.replay import ReplayOptions, replay
+from cranetwin.twin.result import TwinResult
 
 F64 = npt.NDArray[np.float64]
 
@@ -65,16 +70,37 @@ class Calibration:
     samples_used: int
 
 
-def _design(vc: F64, v: F64, g: F64) -> F64:
-    """Columns [m, Fc_0, b_0, Fc_1, b_1, …] stacked over cylinders: shape (n·nc, 1 + 2nc)."""
+def _moving_average(x: F64, width: int) -> F64:
+    """Moving average along axis 0, 'valid' part only: shape (n − width + 1, …)."""
+    if width <= 1:
+        return x
+    c = np.cumsum(np.concatenate([np.zeros((1,) + x.shape[1:]), x]), axis=0)
+    out: F64 = (c[width:] - c[:-width]) / width
+    return out
+
+
+def _design(vc: F64, v: F64, g: F64, width: int) -> F64:
+    """Columns [m, Fc_0, b_0, Fc_1, b_1, …] stacked over cylinders, each low-passed by a
+    moving average of ``width`` instants: shape (n'·nc, 1 + 2nc)."""
     n, nc = v.shape
-    a = np.zeros((n * nc, 1 + 2 * nc))
+    m = n - max(width, 1) + 1
+    a = np.zeros((m * nc, 1 + 2 * nc))
     for c in range(nc):
-        rows = slice(c * n, (c + 1) * n)
-        a[rows, 0] = g[:, c]
-        a[rows, 1 + 2 * c] = np.tanh(v[:, c] / vc[c])
-        a[rows, 2 + 2 * c] = v[:, c]
+        rows = slice(c * m, (c + 1) * m)
+        a[rows, 0] = _moving_average(g[:, c], width)
+        a[rows, 1 + 2 * c] = _moving_average(np.tanh(v[:, c] / vc[c]), width)
+        a[rows, 2 + 2 * c] = _moving_average(v[:, c], width)
     return a
+
+
+def res_rate(res: TwinResult) -> float:
+    """Grid rate of a replay result [Hz]."""
+    return float(1.0 / np.median(np.diff(res.t_s[:100])))
+
+
+def sample_rate(samples: SampleArrays) -> float:
+    """Nominal sample rate [Hz]."""
+    return float(1.0 / np.median(np.diff(samples.t_s)))
 
 
 def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
@@ -116,10 +142,15 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
     y = hyd - tau0[:, cj] / arm  # what friction and the extra mass must explain [N]
     g = g_all[:, cj] / arm
     v = res.rod_v[idx]
-    yv = y.T.reshape(-1)
+    # "filter both sides": the accelerations come smoothed over the derivative window, the
+    # pressures carry the fast hydraulic oscillations they miss; the same moving average on
+    # the force and on every regressor removes that mismatch without biasing the parameters
+    wd = max((c.window for k, c in res.smoothing.items() if k.endswith("'")), default=1)
+    width = max(1, int(round(wd * res_rate(res) / decimate / sample_rate(samples))))
+    yv = _moving_average(y, width).T.reshape(-1)
 
     def solve(vc: F64) -> tuple[F64, F64]:
-        a = _design(vc, v, g)
+        a = _design(vc, v, g, width)
         x = np.asarray(np.linalg.solve(a.T @ a, a.T @ yv), dtype=np.float64)
         return x, yv - a @ x
 
@@ -141,8 +172,8 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
             vc[c] = search(vc, c, VC_GRID)
             vc[c] = search(vc, c, vc[c] * np.geomspace(1 / step, step, 13))
     x, r = solve(vc)
-    a = _design(vc, v, g)
-    n = v.shape[0]
+    a = _design(vc, v, g, width)
+    n = v.shape[0] - width + 1
     dof = max(a.shape[0] - a.shape[1], 1)
     sigma2 = float(np.dot(r, r)) / dof
     try:
@@ -154,8 +185,8 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
     fits = []
     for c, cyl in enumerate(cyls):
         fr = cyl.friction
-        before = (y[:, c] - fr.coulomb * np.tanh(v[:, c] / fr.coulomb_velocity)
-                  - fr.viscous * v[:, c])
+        before = _moving_average(y[:, c] - fr.coulomb * np.tanh(v[:, c] / fr.coulomb_velocity)
+                                 - fr.viscous * v[:, c], width)
         after = r[c * n : (c + 1) * n]
         fits.append(CylinderFit(
             name=cyl.name, coulomb_file=fr.coulomb, coulomb=float(x[1 + 2 * c]),
