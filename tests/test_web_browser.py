@@ -265,3 +265,19 @@ def test_range_without_data_says_so(page: Any, server: Service) -> None:
                            ".includes('No load history')", timeout=20000)
     _shot(page, "no-data.png")
     assert not page.errors
+
+
+def test_scene_and_export_use_the_api_keys(server: Service) -> None:
+    """On the real app the web data routes apply the API's auth: 401 without a key, 200 with."""
+    for path in ("/api/v1/machines/crane-2/scene",
+                 f"/api/v1/machines/crane-2/export.html?from={END - 20}&to={END}"):
+        r = httpx.get(f"{server.url}{path}")
+        assert r.status_code == 401 and r.headers["content-type"].startswith(
+            "application/problem+json"), path
+        r = httpx.get(f"{server.url}{path}", headers={"X-API-Key": "ctk_000000000000_nope"})
+        assert r.status_code == 401, path
+        r = httpx.get(f"{server.url}{path}", headers={"X-API-Key": server.viewer})
+        assert r.status_code == 200, (path, r.text[:200])
+    r = httpx.get(f"{server.url}/api/v1/machines/nope/scene",
+                  headers={"X-API-Key": server.viewer})
+    assert r.status_code == 404
