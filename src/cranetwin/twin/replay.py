@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -50,6 +50,13 @@ from cranetwin.twin.slew import SlewState, integrate_slew
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
 
+
+
+class HasSamples(Protocol):
+    """Anything carrying sensor samples, e.g. :class:`cranetwin.sim.Recording`."""
+
+    @property
+    def samples(self) -> SampleArrays: ...
 
 
 @dataclass(frozen=True)
@@ -558,7 +565,7 @@ class TwinStream:
         )
 
 
-def iter_replay(samples: SampleArrays, machine: Machine, grid_hz: float = 1000.0,
+def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: float = 1000.0,
                 payload: float | None = None, options: ReplayOptions | None = None,
                 block_samples: int = 6000) -> Iterator[TwinResult]:
     """Replay a whole recording chunk by chunk (bounded memory); see :func:`replay`.
@@ -567,6 +574,11 @@ def iter_replay(samples: SampleArrays, machine: Machine, grid_hz: float = 1000.0
     to a :class:`TwinStream` ``block_samples`` at a time, so memory does not grow with the
     recording's length (the stream's seams equal the whole-recording result).
     """
+    if not isinstance(samples, SampleArrays):  # a sim Recording (or anything with .samples)
+        inner = getattr(samples, "samples", None)
+        if not isinstance(inner, SampleArrays):
+            raise TwinError("replay needs SampleArrays or a Recording with .samples")
+        samples = inner
     opt = options or ReplayOptions()
     if opt.grid_hz != grid_hz:
         opt = ReplayOptions(**{**opt.__dict__, "grid_hz": grid_hz})
@@ -588,13 +600,14 @@ def iter_replay(samples: SampleArrays, machine: Machine, grid_hz: float = 1000.0
     yield from stream.flush_iter()
 
 
-def replay(samples: SampleArrays, machine: Machine, grid_hz: float = 1000.0,
+def replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: float = 1000.0,
            payload: float | None = None, options: ReplayOptions | None = None) -> TwinResult:
     """Reconstruct the machine's motion and loads from its sensor samples.
 
     Args:
-        samples: Sensor samples (pA, pB, s per cylinder, slewing torque, optional slew angle);
-            irregular times and NaN dropouts are allowed.
+        samples: Sensor samples (pA, pB, s per cylinder, slewing torque, optional slew angle),
+            or a simulator ``Recording`` (its ``.samples`` are used); irregular times and NaN
+            dropouts are allowed.
         machine: Machine description.
         grid_hz: Output grid rate [Hz], an integer multiple of the sample rate.
         payload: Known payload [kg], or None to estimate it (sliding-window least squares).
