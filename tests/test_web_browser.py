@@ -281,3 +281,16 @@ def test_scene_and_export_use_the_api_keys(server: Service) -> None:
     r = httpx.get(f"{server.url}/api/v1/machines/nope/scene",
                   headers={"X-API-Key": server.viewer})
     assert r.status_code == 404
+
+
+def test_export_button_downloads_the_window(page: Any, server: Service, tmp_path: Path) -> None:
+    _replay(page, server, END - 300)
+    with page.expect_download(timeout=60000) as info:
+        page.click("#export")
+    path = tmp_path / "export.html"
+    info.value.save_as(str(path))
+    html = path.read_text()
+    assert 'id="ct-data"' in html and 'id="ct-meshcat"' in html
+    assert 1_000_000 < len(html) < 5_000_000
+    page.wait_for_function("document.getElementById('banner').textContent.includes('Exported')")
+    assert not page.errors

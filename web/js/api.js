@@ -60,18 +60,29 @@ export async function getJSON(path, params = {}) {
   return resp.json();
 }
 
+// Downloads a file with the key in a header (never in a URL that server logs would keep).
+export async function download(path, filename) {
+  const resp = await fetch(new URL(path, window.location.origin), { headers: { "X-API-Key": key() } });
+  if (!resp.ok) {
+    let detail = resp.statusText;
+    try { const body = await resp.json(); detail = body.detail || body.title || detail; } catch (_) { /* not JSON */ }
+    throw new ApiError(resp.status, "Download failed", detail);
+  }
+  const blob = await resp.blob();
+  const a = document.createElement("a");
+  a.href = URL.createObjectURL(blob);
+  a.download = filename;
+  document.body.appendChild(a);
+  a.click();
+  setTimeout(() => { URL.revokeObjectURL(a.href); a.remove(); }, 1000);
+  return blob.size;
+}
+
 export function wsURL(path) {
   const url = new URL(path, window.location.origin);
   url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
   url.searchParams.set("key", key());
   return url.toString();
-}
-
-export function withKey(path) {
-  // Links between our own pages need no key (it is remembered); kept for exports/downloads.
-  const url = new URL(path, window.location.origin);
-  url.searchParams.set("key", key());
-  return url.pathname + url.search;
 }
 
 // Time helpers: the API speaks epoch seconds or ISO 8601.

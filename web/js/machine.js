@@ -1,5 +1,5 @@
 // Machine page: 3D crane, live and replay modes, charts on one time cursor, events, share/export.
-import { ApiError, getJSON, wsURL, withKey, isoSeconds, parseTime, relTime, resetKey } from "./api.js";
+import { ApiError, download, getJSON, wsURL, isoSeconds, parseTime, relTime, resetKey } from "./api.js";
 import { Crane3D } from "./crane3d.js";
 import { ReplayStore } from "./replay.js";
 import { Charts, chartGroups } from "./charts.js";
@@ -228,7 +228,6 @@ function startReplay(from, to, t) {
   source.events(from, to).then((events) => { state.events = events || []; renderEvents(); })
     .catch(() => { state.events = []; renderEvents(); });
   state.chartsReady.then(() => loadHistory(from, to));
-  if (!embed) $("export").href = withKey(`/api/v1/machines/${encodeURIComponent(machineId)}/export.html?from=${from}&to=${Math.min(to, from + 600)}`);
 }
 
 async function loadHistory(from, to) {
@@ -521,8 +520,21 @@ function wireControls() {
     setTimeout(() => banner(null), 4000);
   };
   $("help-btn").onclick = () => $("help").showModal();
-  $("export").onclick = (ev) => {
-    if (state.mode !== "replay" || state.from === null) { ev.preventDefault(); banner("Export needs a replay range: switch to Replay (R) and choose one.", "warn"); }
+  $("export").onclick = async (ev) => {
+    ev.preventDefault();
+    if (state.mode !== "replay" || state.from === null) { banner("Export needs a replay range: switch to Replay (R) and choose one.", "warn"); return; }
+    // the window around the cursor, at most 10 minutes
+    const len = Math.min(600, state.to - state.from);
+    const a = Math.max(state.from, Math.min(state.cursor - len / 2, state.to - len));
+    const b = a + len;
+    banner(`Exporting ${fmtTime(a)} – ${fmtTime(b).slice(11)} …`, "info");
+    try {
+      const size = await download(`/api/v1/machines/${encodeURIComponent(machineId)}/export.html?from=${a}&to=${b}`,
+        `cranetwin-${machineId}-${isoSeconds(a).replace(/[:]/g, "")}.html`);
+      banner(`Exported (${(size / 1e6).toFixed(1)} MB): one HTML file that replays offline.`, "info");
+    } catch (err) {
+      banner(`Export failed: ${err.message}`, "error");
+    }
   };
   document.addEventListener("keydown", (ev) => {
     if (ev.target instanceof HTMLInputElement && ev.target.type !== "range") return;
