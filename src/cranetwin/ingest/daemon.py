@@ -7,16 +7,17 @@ Shape (after uvicorn's ``serve()`` and the sans-IO split of h11/aioquic)::
                  ▼
           bounded queue.Queue ── full → dropped["queue_full"] (the sender retransmits)
                  │
-                 ▼  writer thread, batches of ≤ batch_max datagrams or batch_wait_s:
+                 ▼  decoder thread, batches of ≤ batch_max datagrams or batch_wait_s:
           Receiver.receive (HMAC, replay window, decode) ── bad → dropped[reason] += 1
-                 ▼
-          Store.store_blocks (one transaction, durable on return)
+                 ▼  queue of 2 decoded batches (back-pressure)
+          writer thread: Store.store_blocks (one transaction, durable on return)
                  ▼
           Receiver.mark_durable, one ack per (machine, address) ─► socket;  LiveBus.publish
 
 The event loop only moves bytes into the queue, so the socket is drained even while a batch is
-being decoded and written (a slow loop overflows the kernel buffer and turns into loss); the
-protocol state lives in the writer thread alone.
+being decoded and written (a slow loop overflows the kernel buffer and turns into loss).
+Decoding the next batch overlaps the database round trip of the current one. The protocol
+state (:class:`~cranetwin.protocol.Receiver`) is shared by the two threads under one lock.
 
 Nothing is acknowledged before it is committed, and storage ignores a (machine, seq) it already
 holds, so a sender that retransmits until acknowledged gets every sample stored exactly once,
@@ -173,6 +174,8 @@ class IngestDaemon:
         self._keys_loaded = 0.0
         self._receiver = Receiver(self._lookup)
         self._queue: queue.Queue[Any] = queue.Queue(self.config.queue_max)
+        self._decoded: queue.Queue[Any] = queue.Queue(2)
+        self._rx_lock = threading.Lock()  # the Receiver is shared by decoder and writer
         self._transport: asyncio.DatagramTransport | None = None
         self._sock: socket.socket | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -241,11 +244,15 @@ class IngestDaemon:
                     if ws in seen:  # a copy of one accepted (authentic) earlier in this batch
                         m.dropped["replayed"] += 1
                         continue
-                    if ws[1] < self._receiver.floor(key.machine_id):
+                    with self._rx_lock:
+                        floor = self._receiver.floor(key.machine_id)
+                    if ws[1] < floor:
                         m.dropped["replayed"] += 1
                         reack[(key.machine_id, addr)] = None
                         continue
-                items.append((self._receiver.receive(data, now), addr))
+                with self._rx_lock:
+                    item = self._receiver.receive(data, now)
+                items.append((item, addr))
                 seen.add(ws)
             except ReplayedError as exc:
                 m.dropped[exc.reason] += 1
@@ -260,8 +267,9 @@ class IngestDaemon:
                     log.exception("unexpected error decoding a datagram (counted, dropped)")
         now_ns = self._clock()
         for machine_id, addr in reack:
-            with contextlib.suppress(KeyError):
-                self._sendto(self._receiver.ack(machine_id, now_ns), addr)
+            with contextlib.suppress(KeyError), self._rx_lock:
+                ack = self._receiver.ack(machine_id, now_ns)
+            self._sendto(ack, addr)
         m.accepted += len(items)
         return items
 
@@ -277,22 +285,27 @@ class IngestDaemon:
     def _after_commit(self, items: list[tuple[Item, Addr]]) -> None:
         """Writer thread, after commit: mark durable, then one ack per (machine, address)."""
         dest: dict[tuple[str, Addr], None] = {}
-        for item, addr in items:
-            self._receiver.mark_durable(item.machine_id, item.seq)
-            dest[(item.machine_id, addr)] = None
-        now = self._clock()
-        for machine_id, addr in dest:
-            self._sendto(self._receiver.ack(machine_id, now), addr)
+        acks: list[tuple[bytes, Addr]] = []
+        with self._rx_lock:
+            for item, addr in items:
+                self._receiver.mark_durable(item.machine_id, item.seq)
+                dest[(item.machine_id, addr)] = None
+            now = self._clock()
+            for machine_id, addr in dest:
+                acks.append((self._receiver.ack(machine_id, now), addr))
+        for ack, addr in acks:
+            self._sendto(ack, addr)
 
     # -- writer thread --------------------------------------------------------------------
-    def _writer(self) -> None:
+    def _decoder(self) -> None:
+        """Decoder thread: raw datagrams → decoded batches (overlaps the writer's database
+        round trips, which release the GIL)."""
         cfg = self.config
         done = False
         while not done:
             try:
                 first = self._queue.get(timeout=0.5)
             except queue.Empty:
-                self._maybe_rollup()
                 continue
             if first is _STOP:
                 break
@@ -315,8 +328,37 @@ class IngestDaemon:
                             items.append(rest)
                     break
                 items.append(nxt)
-            self._write(self._decode(items))
+            batch = self._decode(items)
+            if batch:
+                self._decoded.put(batch)  # blocks when the writer is behind: back-pressure
+        self._decoded.put(_STOP)
+
+    def _writer(self) -> None:
+        """Writer thread: decoded batches → one transaction each (merging any that queued up
+        meanwhile) → acks."""
+        while True:
+            try:
+                first = self._decoded.get(timeout=0.5)
+            except queue.Empty:
+                self._maybe_rollup()
+                continue
+            if first is _STOP:
+                return
+            items = list(first)
+            stop = False
+            while len(items) < self.config.batch_max:
+                try:
+                    more = self._decoded.get_nowait()
+                except queue.Empty:
+                    break
+                if more is _STOP:
+                    stop = True
+                    break
+                items.extend(more)
+            self._write(items)
             self._maybe_rollup()
+            if stop:
+                return
 
     def _write(self, items: list[tuple[Item, Addr]]) -> None:
         if not items:
@@ -333,6 +375,10 @@ class IngestDaemon:
             m.write_errors += 1
             log.error("write of %d item(s) failed, not acknowledged (senders retransmit): %s",
                       len(items), exc)
+            return
+        except Exception:  # a bug must not kill the writer: nothing is acked, senders retry
+            m.write_errors += 1
+            log.exception("unexpected error writing %d item(s); not acknowledged", len(items))
             return
         m.write_seconds += time.perf_counter() - t
         m.batches += 1
@@ -433,7 +479,9 @@ class IngestDaemon:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     self._loop.add_signal_handler(sig, self._stop.set)
+        decoder = threading.Thread(target=self._decoder, name="ingest-decoder", daemon=True)
         writer = threading.Thread(target=self._writer, name="ingest-writer", daemon=True)
+        decoder.start()
         writer.start()
         reporter = asyncio.create_task(self._report())
         log.info("ingest listening on udp %s:%d, %d machine(s), rcvbuf %d bytes", host, port,
@@ -447,6 +495,7 @@ class IngestDaemon:
             if sock_stop is not None:
                 sock_stop()
             self._queue.put(_STOP)
+            await asyncio.to_thread(decoder.join)
             await asyncio.to_thread(writer.join)  # last batch written and acknowledged
             reporter.cancel()
             with contextlib.suppress(asyncio.CancelledError):

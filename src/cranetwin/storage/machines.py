@@ -34,7 +34,7 @@ class MachineRow(Base):
     model: Mapped[str] = mapped_column(Text, default="patu655")
     secret: Mapped[bytes] = mapped_column(LargeBinary)
     meta_json: Mapped[str] = mapped_column(Text, default="{}")
-    last_seen_ns: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    last_seen_ns: Mapped[int | None] = mapped_column(BigInteger, nullable=True)  # status only
     latitude_deg: Mapped[float | None] = mapped_column(Float, nullable=True)
     longitude_deg: Mapped[float | None] = mapped_column(Float, nullable=True)
     altitude_m: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -68,12 +68,18 @@ class MachineInfo:
     operating_hours: float | None = None
 
 
-def to_info(row: MachineRow) -> MachineInfo:
-    """Public view of a machine row (drops the secret)."""
+def to_info(row: MachineRow, newest_block_ns: int | None = None) -> MachineInfo:
+    """Public view of a machine row (drops the secret).
+
+    Args:
+        row: The machine row.
+        newest_block_ns: End of the machine's newest stored block [ns], if any.
+    """
+    seen = [t for t in (row.last_seen_ns, newest_block_ns) if t is not None]
     return MachineInfo(
         machine_id=row.machine_id, wire_id=int(row.wire_id), model=row.model,
         metadata=json.loads(row.meta_json or "{}"),
-        last_seen_s=None if row.last_seen_ns is None else row.last_seen_ns / 1e9,
+        last_seen_s=max(seen) / 1e9 if seen else None,
         latitude_deg=row.latitude_deg, longitude_deg=row.longitude_deg,
         altitude_m=row.altitude_m, operating_hours=row.operating_hours,
     )

@@ -134,13 +134,27 @@ class Store:
             UnknownMachineError: No such machine.
         """
         with self._session() as s:
-            return machines_mod.to_info(machines_mod.get_row(s, machine_id))
+            row = machines_mod.get_row(s, machine_id)
+            return machines_mod.to_info(row, self._newest_block_ns(s, [row.id]).get(row.id))
 
     def machines(self) -> list[MachineInfo]:
         """Every registered machine, ordered by machine id (no secrets)."""
         with self._session() as s:
             rows = s.scalars(select(MachineRow).order_by(MachineRow.machine_id)).all()
-            return [machines_mod.to_info(r) for r in rows]
+            newest = self._newest_block_ns(s, [r.id for r in rows])
+            return [machines_mod.to_info(r, newest.get(r.id)) for r in rows]
+
+    @staticmethod
+    def _newest_block_ns(s: Session, pks: Sequence[int]) -> dict[int, int]:
+        """End time of each machine's newest block [ns] (one index probe per machine; the write
+        path does not update the machine row, so ingest never contends on it)."""
+        b = blocks_mod.BlockRow
+        out: dict[int, int] = {}
+        for pk in pks:
+            t = s.scalar(select(func.max(b.t_end_ns)).where(b.machine_pk == pk))
+            if t is not None:
+                out[pk] = int(t)
+        return out
 
     def machine_keys(self) -> dict[int, tuple[str, bytes]]:
         """What the ingest daemon needs to verify datagrams: wire_id → (machine_id, secret)."""
@@ -201,19 +215,11 @@ class Store:
                     unique.setdefault((self._machine_pk(s, b.machine_id), b.seq), b)
                 rows = blocks_mod.block_rows([(pk, b) for (pk, _), b in unique.items()])
                 new = blocks_mod.insert_new(s, rows)
-                last: dict[int, int] = {}
                 minutes: set[tuple[int, int]] = set()
                 for key in new:
                     b = unique[key]
                     minutes.update(summaries_mod.block_minutes(key[0], b.t0_ns, b.t_end_ns))
-                    last[key[0]] = max(last.get(key[0], b.t_end_ns), b.t_end_ns)
                 summaries_mod.mark_dirty(s, minutes)
-                if last:
-                    ph = "?" if self.dialect == "sqlite" else "%s"
-                    s.connection().exec_driver_sql(
-                        f"UPDATE machines SET last_seen_ns = {ph} WHERE id = {ph} AND "
-                        f"(last_seen_ns IS NULL OR last_seen_ns < {ph})",
-                        [(t, pk, t) for pk, t in last.items()])
                 return [b for key, b in unique.items() if key in new]
         except UnknownMachineError:
             raise
