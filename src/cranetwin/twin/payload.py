@@ -26,7 +26,7 @@ from cranetwin.errors import TwinError
 F64 = npt.NDArray[np.float64]
 
 
-def _moving_sum(x: F64, half: int) -> F64:
+def moving_sum(x: F64, half: int) -> F64:
     """Centred moving sum over [i − half, i + half] ∩ [0, n), along axis 0."""
     n = x.shape[0]
     c = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)])
@@ -55,10 +55,10 @@ def sliding_payload(
     if g.shape != r.shape or g.ndim != 2:
         raise TwinError(f"g {g.shape} and r {r.shape} must both be (k, n_c)")
     wg = g * weights[None, :]
-    sgg = _moving_sum(np.sum(wg * g, axis=1), half_window)
-    sgr = _moving_sum(np.sum(wg * r, axis=1), half_window)
-    srr = _moving_sum(np.sum(r * r * weights[None, :], axis=1), half_window)
-    count = _moving_sum(np.ones(g.shape[0]), half_window)
+    sgg = moving_sum(np.sum(wg * g, axis=1), half_window)
+    sgr = moving_sum(np.sum(wg * r, axis=1), half_window)
+    srr = moving_sum(np.sum(r * r * weights[None, :], axis=1), half_window)
+    count = moving_sum(np.ones(g.shape[0]), half_window)
     with np.errstate(divide="ignore", invalid="ignore"):
         m = sgr / sgg
         rss = np.maximum(srr - m * sgr, 0.0)

@@ -43,7 +43,7 @@ from cranetwin.signal import (
     savgol_smooth,
 )
 from cranetwin.twin.channels import ChannelMap, choose_smoothing
-from cranetwin.twin.payload import sliding_payload
+from cranetwin.twin.payload import moving_sum, sliding_payload
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.slew import SlewState, integrate_slew
 
@@ -177,9 +177,24 @@ class TwinStream:
         return max(c.window // 2 for c in self._choices)
 
     @property
-    def _wh(self) -> int:
+    def _payload_half(self) -> int:
         assert self._period is not None
         return max(1, int(round(self.opt.payload_window_s / self._period / 2)))
+
+    @property
+    def _prefilter(self) -> int:
+        """Width [samples] of the moving average applied to the payload regression's force and
+        regressor alike: the longest derivative window. The accelerations are smoothed over
+        it, the pressures are not; low-passing both removes the mismatch ("filter both
+        sides"), which otherwise biases the estimate by tens of kg in fast motion."""
+        if self._choices is None:
+            return 1
+        return max([1] + [c.window for c in self._choices[self._nch :]])
+
+    @property
+    def _wh(self) -> int:
+        """Samples the payload estimate at an instant reaches on each side."""
+        return self._payload_half + self._prefilter // 2
 
     # -- public API ----------------------------------------------------------------------------
     def set_smoothing(self, choices: tuple[SmoothingChoice, ...]) -> None:
@@ -447,6 +462,12 @@ class TwinStream:
             _, arm = physics.cylinder_kinematics(m, q)
         g = (t1 - t0)[:, cj] / arm  # force per kg at each cylinder
         res = (tau_act - t0)[:, cj] / arm
+        pf = self._prefilter // 2
+        if pf > 0:
+            count = moving_sum(np.ones(g.shape[0]), pf)[:, None]
+            g = moving_sum(g, pf) / count
+            res = moving_sum(res, pf) / count
+        half = self._payload_half
         weights = np.empty(len(cj))
         frac = np.empty(len(cj))
         for c, cyl in enumerate(m.cylinders):
