@@ -39,6 +39,8 @@ def register(app: typer.Typer) -> None:
             raise KeyboardInterrupt
 
         signal.signal(signal.SIGTERM, _terminate)
+        # Ctrl-C even when started from a shell that ignores SIGINT in background jobs
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         config = DemoConfig(machines=machines, db_url=None if attach and db.startswith(
             "sqlite:///cranetwin-demo") else db, host=host, port=port, udp_port=udp_port,
             speed=speed, attach=attach, api_url=api, ingest_addr=ingest, public_url=public_url,
