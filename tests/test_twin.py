@@ -127,8 +127,7 @@ def test_dropouts_and_irregular_timestamps(machine: Machine, syn: Synthetic) -> 
     vals[300:320, 0] = np.nan  # 0.2 s dropout of lift_pA
     vals[500, :] = np.nan
     vals[700:703, 2] = np.nan
-    # the jittered samples carry the values at their true times
-    from cranetwin.twin.synthetic import make as _make  # noqa: F401 (same motion law)
+    # the values stay those of the nominal times: the jitter acts as a timing error
     jit = SampleArrays("j", t, syn.samples.channels, vals)
     res = replay(jit, machine, grid_hz=1000, payload=150.0,
                  options=ReplayOptions(sample_period_s=0.01))
