@@ -36,7 +36,7 @@ export class Charts {
     const h = (1 - gap * (n - 1)) / n;
     const layout = {
       margin: { l: 58, r: 10, t: 8, b: 28 },
-      showlegend: false,
+      showlegend: true,
       hovermode: "x",
       paper_bgcolor: "rgba(0,0,0,0)",
       plot_bgcolor: "#fff",
@@ -49,6 +49,9 @@ export class Charts {
       const name = k === 0 ? "yaxis" : `yaxis${k + 1}`;
       const top = 1 - k * (h + gap);
       layout[name] = { domain: [top - h, top], title: { text: g.title, font: { size: 10 } }, gridcolor: "#eee", zeroline: false };
+      // one small legend per chart, in its top-right corner
+      layout[legendId(k)] = { x: 1, xanchor: "right", y: top, yanchor: "top", orientation: "h",
+        bgcolor: "rgba(255,255,255,0.7)", font: { size: 10 }, itemclick: "toggle" };
     });
     for (const ev of events || []) {
       layout.shapes.push({ type: "line", xref: "x", yref: "paper", x0: ev.t * 1000, x1: ev.t * 1000, y0: 0, y1: 1,
@@ -68,9 +71,10 @@ export class Charts {
         const x = s.t.map((t) => t * 1000);
         const color = PALETTE[c % PALETTE.length];
         const sc = (v) => (v === null ? null : v * g.scale);
-        traces.push({ x, y: s.max.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 0, color }, hoverinfo: "skip" });
-        traces.push({ x, y: s.min.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 0, color }, fill: "tonexty", fillcolor: hexAlpha(color, 0.18), hoverinfo: "skip" });
-        traces.push({ x, y: s.mean.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 1.2, color }, name: g.label(name) });
+        const group = `${g.key}:${name}`;
+        traces.push({ x, y: s.max.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 0, color }, hoverinfo: "skip", showlegend: false, legendgroup: group });
+        traces.push({ x, y: s.min.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 0, color }, fill: "tonexty", fillcolor: hexAlpha(color, 0.18), hoverinfo: "skip", showlegend: false, legendgroup: group });
+        traces.push({ x, y: s.mean.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 1.2, color }, name: g.label(name), legend: legendId(k), legendgroup: group });
       });
     });
     this.liveMode = false;
@@ -87,7 +91,7 @@ export class Charts {
         const ys = buffer.series[name];
         if (!ys || ys.length === 0) return;
         traces.push({ x: buffer.t.map((t) => t * 1000), y: ys.map((v) => (v === null ? null : v * g.scale)), yaxis, type: "scatter", mode: "lines",
-          line: { width: 1.2, color: PALETTE[c % PALETTE.length] }, name: g.label(name) });
+          line: { width: 1.2, color: PALETTE[c % PALETTE.length] }, name: g.label(name), legend: legendId(k) });
       });
     });
     this.liveMode = true;
@@ -120,6 +124,8 @@ export class Charts {
     this.cursor.style.height = `${fl.height - fl.margin.t - fl.margin.b}px`;
   }
 }
+
+function legendId(k) { return k === 0 ? "legend" : `legend${k + 1}`; }
 
 function hexAlpha(hex, a) {
   const v = parseInt(hex.slice(1), 16);

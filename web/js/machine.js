@@ -415,7 +415,8 @@ function readout(f) {
   if (state.charts) state.charts.setCursor(state.mode === "replay" ? state.cursor : null);
   lastReadout = now;
   $("now-time").textContent = fmtTime(f.t);
-  $("time-label").textContent = state.mode === "replay" ? `${fmtTime(state.cursor).slice(11)} (${state.speed}×)` : "live";
+  $("time-label").textContent = state.mode === "replay" ? `${fmtTime(state.cursor).slice(11)} (${state.speed}×)`
+    : `live · ${Math.max(0, Math.round(Date.now() - f.t * 1000))} ms behind`;
   const kg = f.payload_kg;
   $("now-payload").textContent = kg === null || kg === undefined ? "unknown" : `${Math.round(kg)} kg`;
   const rated = state.crane.spec.rated_payload_kg;
