@@ -442,3 +442,24 @@ def test_report_downloads(ctx: Ctx, fmt: str, media: str, magic: bytes) -> None:
     assert r.headers["content-type"].startswith(media)
     assert r.content.startswith(magic)
     assert "attachment" in r.headers["content-disposition"]
+
+
+def test_live_frames_follow_bus_notes(base: SampleArrays, tmp_path) -> None:
+    from cranetwin.storage.live import InProcessBus
+
+    bus = InProcessBus()
+    app = create_app(Settings(database_url=f"sqlite:///{tmp_path / 'bus.db'}",
+                              worker_enabled=False), bus=bus)
+    machine = load_machine("patu655")
+    with TestClient(app) as client:
+        services: Services = app.state.services
+        _, key = services.backend.create_key("viewer")
+        services.backend.store.add_machine(MID, wire_id=3, secret=b"k" * 32)
+        with client.websocket_connect(f"/api/v1/machines/{MID}/live?key={key}") as ws:
+            assert ws.receive_json()["type"] == "hello"
+            for k in range(3):
+                blocks = list(tiled_blocks(MID, machine, T0 + k, 1.0, 1.0, base=base, seq0=k))
+                services.backend.store.write_blocks(blocks)
+                bus.publish(blocks)
+                frame = ws.receive_json()
+                assert frame["t"] == pytest.approx(T0 + k + 0.99, abs=1e-6)

@@ -33,18 +33,20 @@ validation). Bad input is always a 4xx.
 """
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
+def create_app(settings: Settings | None = None, *, bus: object = None) -> FastAPI:
     """Build the FastAPI app; the lifespan opens the store, starts the twin worker, and closes
     both on shutdown.
 
     Args:
         settings: Service settings; read from the environment (``CRANETWIN_*``) when None.
+        bus: The live bus of an ingest daemon running in the same process
+            (``cranetwin.storage.live.InProcessBus``); None to use ``settings.live_bus_url``.
     """
     cfg = settings if settings is not None else Settings()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        services = Services.open(cfg)
+        services = Services.open(cfg, bus)
         app.state.services = services
         await services.start()
         log.info("cranetwin API serving %s", cfg.database_url)

@@ -1,7 +1,9 @@
 """Live stream: one follower task per watched machine, fanned out to every websocket client.
 
-The follower polls the store for samples newer than the last it saw, ``live_rate_hz`` times a
-second, turns the newest into a frame (:class:`~cranetwin.api.views.LiveKinematics`: pose,
+The follower reads the samples newer than the last it saw — when the ingest daemon's live bus
+(:mod:`cranetwin.storage.live`) announces a newly stored block of its machine, or at the latest
+every ``1 / live_rate_hz`` s when there is no bus — at most ``live_rate_hz`` times a second,
+turns the newest into a frame (:class:`~cranetwin.api.views.LiveKinematics`: pose,
 cylinder pins and forces, pressures), serialises it once and offers it to every client. Each
 client has a queue of one frame: a slow client skips frames instead of slowing the others or
 growing memory. The follower starts with the first client of a machine and stops with the last.
@@ -12,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -65,12 +68,14 @@ class Follower:
         self.machine_id = machine_id
         self.machine = machine
         self.read_new = read_new
-        self.after_t = latest if latest is not None else time.time() - 1.0
+        self.after_t = latest if latest is not None else 0.0
         self.period_s = period_s
         self.extra = extra
         self.on_frame = on_frame
         self.clients: set[Client] = set()
         self.task: asyncio.Task[None] | None = None
+        self.wake = asyncio.Event()
+        self.poll_s = period_s
         self._kin: LiveKinematics | None = None
         self._prev: np.ndarray | None = None
 
@@ -86,7 +91,14 @@ class Follower:
                 raise
             except Exception:  # keep following: one bad read must not end the stream
                 log.exception("live follower of %s failed a poll", self.machine_id)
+            # at most one frame per period; then wait for a bus note (or the poll period)
             await asyncio.sleep(max(0.0, self.period_s - (time.monotonic() - start)))
+            if self.poll_s > self.period_s:
+                try:
+                    await asyncio.wait_for(self.wake.wait(), timeout=self.poll_s)
+                except TimeoutError:
+                    pass
+            self.wake.clear()
 
     def _publish(self, samples: SampleArrays) -> None:
         if self._kin is None or self._kin.channels != samples.channels:
@@ -107,10 +119,38 @@ class Follower:
 
 
 class LiveHub:
-    """The followers of all watched machines."""
+    """The followers of all watched machines, woken by the live bus when there is one.
 
-    def __init__(self) -> None:
+    Args:
+        bus: The ingest daemon's live fan-out (``cranetwin.storage.live.LiveBus``) or None to
+            poll the store only.
+    """
+
+    def __init__(self, bus: Any = None) -> None:
         self.followers: dict[str, Follower] = {}
+        self.bus = bus
+        self._sub: Any = None
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    def _listen(self) -> None:
+        """Bus thread: wake the follower of each announced machine."""
+        sub = self._sub
+        while sub is not None and self._sub is sub:
+            note = sub.get(timeout=0.5)
+            if note is None or self._loop is None:
+                continue
+            f = self.followers.get(note.machine_id)
+            if f is not None:
+                self._loop.call_soon_threadsafe(f.wake.set)
+
+    def _start_bus(self) -> None:
+        if self.bus is None or self._thread is not None:
+            return
+        self._loop = asyncio.get_running_loop()
+        self._sub = self.bus.subscribe()
+        self._thread = threading.Thread(target=self._listen, name="live-bus", daemon=True)
+        self._thread.start()
 
     @property
     def n_clients(self) -> int:
@@ -119,9 +159,12 @@ class LiveHub:
 
     def subscribe(self, machine_id: str, make: Callable[[], Follower]) -> Client:
         """A new client of ``machine_id``, starting its follower if needed."""
+        self._start_bus()
         f = self.followers.get(machine_id)
         if f is None:
             f = make()
+            if self.bus is not None:
+                f.poll_s = 1.0  # the bus wakes it; poll rarely as a safety net
             self.followers[machine_id] = f
             f.task = asyncio.get_running_loop().create_task(f.run(), name=f"live-{machine_id}")
         client = Client()
@@ -146,3 +189,9 @@ class LiveHub:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
         self.followers.clear()
+        sub, self._sub = self._sub, None
+        if sub is not None:
+            sub.close()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None

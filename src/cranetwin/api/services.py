@@ -62,21 +62,31 @@ class Services:
         backend: The store adapter (opened).
     """
 
-    def __init__(self, settings: Settings, backend: Backend) -> None:
+    def __init__(self, settings: Settings, backend: Backend, bus: Any = None) -> None:
         self.settings = settings
         self.backend = backend
         self.metrics = Metrics()
         self.keys = KeyVerifier(backend.key_lookup)
         self.twin_cache: LruCache[bytes] = LruCache(settings.twin_cache_entries)
-        self.live = LiveHub()
+        self.live = LiveHub(bus)
         self.replayer = Replayer()
         self.worker: TwinWorker | None = None
         self._worker_task: asyncio.Task[None] | None = None
 
     @classmethod
-    def open(cls, settings: Settings) -> Services:
-        """Open the store at ``settings.database_url`` and build the services."""
-        return cls(settings, Backend.open(settings.database_url))
+    def open(cls, settings: Settings, bus: Any = None) -> Services:
+        """Open the store at ``settings.database_url`` and build the services.
+
+        Args:
+            settings: Service settings.
+            bus: A live bus shared with an in-process ingest daemon, or None to open
+                ``settings.live_bus_url`` (if set; else the live view polls the store).
+        """
+        if bus is None and settings.live_bus_url:
+            from cranetwin.storage.live import open_bus
+
+            bus = open_bus(settings.live_bus_url)
+        return cls(settings, Backend.open(settings.database_url), bus)
 
     async def start(self) -> None:
         """Start background tasks (the twin worker, if enabled)."""

@@ -32,6 +32,9 @@ class Settings(BaseSettings):
     nominal_rate_hz: float = Field(100.0, gt=0, description="expected sensor sample rate [Hz]")
     twin_cache_entries: int = Field(64, ge=0, description="replay results kept in the LRU cache")
     live_rate_hz: float = Field(25.0, ge=1, le=50, description="live websocket frames per second")
+    live_bus_url: str | None = Field(
+        None, description="ingest daemon's live fan-out (memory://, postgresql://…, "
+                          "redis://host:port); unset: the live view polls the store")
     live_offline_s: float = Field(
         300.0, gt=0, description="a machine not seen for this long is 'offline' [s]")
     live_idle_s: float = Field(
