@@ -19,7 +19,7 @@ system-deps:
 	@bash .ci/system-deps
 
 demo: setup
-	$(BIN)/cranetwin demo
+	$(BIN)/cranetwin fleetdemo
 
 test: system-deps setup
 	@$(BIN)/python -m pytest -q; rc=$$?; \
