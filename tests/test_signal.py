@@ -228,3 +228,25 @@ def test_savgol_smooth_equals_scipy_interp_mode(window: int, polyorder: int, der
     ours = savgol_smooth(y, window, polyorder, deriv=deriv, delta=0.01)
     ref = savgol_filter(y, window, polyorder, deriv=deriv, delta=0.01, axis=0, mode="interp")
     np.testing.assert_allclose(ours, ref, rtol=1e-8, atol=1e-8 * np.abs(ref).max())
+
+
+def test_ici_smooth_pair_equals_stacked_ici() -> None:
+    """The compiled early-stopping pass equals ici_select over full Savitzky–Golay stacks of
+    the force, applied to pA and pB (edges included)."""
+    from cranetwin.signal import ICI_WINDOWS, centre_weight, ici_select, ici_smooth_pair
+
+    rng = np.random.default_rng(3)
+    n = 700
+    t = np.arange(n) * 0.01
+    pa = 8e6 + 3e6 * (t > 2.5) + 4e5 * np.sin(2 * np.pi * 5 * t) + rng.uniform(-4e5, 4e5, n)
+    pb = 2e6 + 1e6 * np.cos(2 * np.pi * 0.3 * t) + rng.uniform(-4e5, 4e5, n)
+    a1, a2, sigma = 0.0064, 0.0035, 1500.0
+    ws = [w for w in ICI_WINDOWS if w == 1 or w > 4]
+    ea = np.stack([savgol_smooth(pa, w, 3) for w in ws])
+    eb = np.stack([savgol_smooth(pb, w, 3) for w in ws])
+    sds = np.array([sigma * np.sqrt(centre_weight(w, 3)) for w in ws])
+    k = ici_select(a1 * ea - a2 * eb, sds)
+    assert len(set(k.tolist())) > 3  # the rule really adapts here
+    want = np.column_stack([ea[k, np.arange(n)], eb[k, np.arange(n)]])
+    got = ici_smooth_pair(pa, pb, a1, a2, sigma, tuple(ICI_WINDOWS), 3)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)

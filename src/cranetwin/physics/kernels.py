@@ -810,3 +810,93 @@ def four_bar_points_batch(cyl, k, q, out):  # type: ignore[no-untyped-def]
         out[i, 1] = ey
         out[i, 2] = fx
         out[i, 3] = fy
+
+
+@njit(cache=True, error_model="numpy")
+def cylinder_motion(cyl, k, s):  # type: ignore[no-untyped-def]
+    """Inverse kinematics and the first two derivatives of the forward map in one go:
+    (q, ds/dq, d²s/dq²) of cylinder ``k`` at rod position s [m] — the same numbers as
+    :func:`cylinder_joint` followed by :func:`cylinder_state2`, reusing the inverse's
+    intermediate points (pin length L = s + closed, cos/sin of the crank angle, the four-bar's
+    E and F) instead of recomputing them from q. NaN where the geometry cannot produce s."""
+    o = 1 + k * CYL_BLOCK
+    kind = int(cyl[o])
+    ln = s + cyl[o + 2]
+    centre = cyl[o + 4]
+    if kind == CYL_REVOLUTE:
+        # L² = K0 − 2 rho cos u, u = q − phi: L L' = rho sin u, L'² + L L'' = rho cos u
+        rho = cyl[o + 6]
+        c = (cyl[o + 5] - ln * ln) / (2.0 * rho)
+        if c > 1.0 or c < -1.0 or ln <= 0.0:
+            return math.nan, math.nan, math.nan
+        sign = cyl[o + 8]
+        q = _wrap(cyl[o + 7] + sign * math.acos(c), centre)
+        d1 = rho * sign * math.sqrt(1.0 - c * c) / ln
+        return q, d1, (rho * c - d1 * d1) / ln
+    if kind == CYL_PRISMATIC:
+        de = cyl[o + 5]
+        disc = de * de - cyl[o + 6] + ln * ln
+        if disc < 0.0 or ln <= 0.0:
+            return math.nan, math.nan, math.nan
+        q = -de + cyl[o + 8] * math.sqrt(disc)
+        d1 = (de + q) / ln
+        return q, d1, (1.0 - d1 * d1) / ln
+    cx = cyl[o + 9]
+    cy = cyl[o + 10]
+    ex, ey, ok = _circle_intersection(cx, cy, ln, cyl[o + 11], cyl[o + 12], cyl[o + 15],
+                                      cyl[o + 18])
+    if not ok or ln <= 0.0:
+        return math.nan, math.nan, math.nan
+    f0x = cyl[o + 13]
+    f0y = cyl[o + 14]
+    rf = math.sqrt(f0x * f0x + f0y * f0y)
+    fx, fy, ok = _circle_intersection(0.0, 0.0, rf, ex, ey, cyl[o + 16], cyl[o + 19])
+    if not ok:
+        return math.nan, math.nan, math.nan
+    q = _wrap(math.atan2(fy, fx) - math.atan2(f0y, f0x), centre)
+    # derivatives as cylinder_state2, at the E and F just found
+    r1x = ex - cyl[o + 11]
+    r1y = ey - cyl[o + 12]
+    r2x = ex - fx
+    r2y = ey - fy
+    det = r1x * r2y - r1y * r2x
+    if det == 0.0:
+        return q, math.nan, math.nan
+    lx = ex - cx
+    ly = ey - cy
+    fdx = -fy
+    fdy = fx
+    rhs = r2x * fdx + r2y * fdy
+    dex = -r1y * rhs / det
+    dey = r1x * rhs / det
+    b1 = -(dex * dex + dey * dey)
+    gx = dex - fdx
+    gy = dey - fdy
+    b2 = -(r2x * fx + r2y * fy) - (gx * gx + gy * gy)
+    ddx = (b1 * r2y - r1y * b2) / det
+    ddy = (r1x * b2 - r2x * b1) / det
+    d1 = (lx * dex + ly * dey) / ln
+    d2 = ((dex * dex + dey * dey) + (lx * ddx + ly * ddy) - d1 * d1) / ln
+    return q, d1, d2
+
+
+@njit(cache=True, error_model="numpy")
+def cylinder_motion_batch(cyl, s, v, a, q, qd, qdd, arm):  # type: ignore[no-untyped-def]
+    """Joint motion of the cylinder-driven joints and the moment arms in one pass.
+
+    For every sample i and cylinder k: q_j = inverse kinematics of s[i, k] (as
+    :func:`cylinder_joint`), then (ds/dq, d²s/dq²) there (as :func:`cylinder_state2`) and the
+    chain rule qd_j = v/s', qdd_j = (a − s''·qd_j²)/s'. Fills the columns j of the driven
+    joints in q, qd, qdd (n, nj) and arm (n, nc) = ds/dq; leaves the other columns untouched.
+    NaN where the geometry cannot produce s.
+    """
+    nc = int(cyl[0])
+    for i in range(s.shape[0]):
+        for k in range(nc):
+            ji = int(cyl[1 + k * CYL_BLOCK + 1])
+            qj, d1, d2 = cylinder_motion(cyl, k, s[i, k])
+            w = v[i, k] / d1
+            q[i, ji] = qj
+            qd[i, ji] = w
+            qdd[i, ji] = (a[i, k] - d2 * w * w) / d1
+            arm[i, k] = d1

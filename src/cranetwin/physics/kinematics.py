@@ -158,23 +158,57 @@ def joint_motion_from_cylinders(
     Raises:
         PhysicsError: as :func:`joints_from_cylinders`, or shapes that differ.
     """
+    q, qd, qdd, _ = joint_motion_and_arms(machine, s, v, a, q_other, qd_other, qdd_other)
+    return q, qd, qdd
+
+
+def joint_motion_and_arms(
+    machine: Machine,
+    s: npt.ArrayLike,
+    v: npt.ArrayLike,
+    a: npt.ArrayLike,
+    q_other: npt.ArrayLike | None = None,
+    qd_other: npt.ArrayLike | None = None,
+    qdd_other: npt.ArrayLike | None = None,
+) -> tuple[F64, F64, F64, F64]:
+    """:func:`joint_motion_from_cylinders` plus the moment arms ds/dq, in one fused pass
+    (inverse kinematics, s' and s'' and the chain rule per sample, no temporaries).
+
+    Args:
+        machine: Machine description.
+        s, v, a: Rod positions [m], velocities [m/s], accelerations [m/s²], shape
+            (n, n_cylinders).
+        q_other, qd_other, qdd_other: The joints no cylinder drives; zeros when omitted.
+
+    Returns:
+        (q, qd, qdd), each shape (n, n_joints), and ds/dq, shape (n, n_cylinders) [m/rad or
+        m/m] (what :func:`cylinder_kinematics` returns as its second array).
+
+    Raises:
+        PhysicsError: as :func:`joints_from_cylinders`, or shapes that differ.
+    """
     p = compile_chain(machine)
-    q = joints_from_cylinders(machine, s, q_other)
-    n = q.shape[0]
-    va = as_columns("v", v, n, p.n_cylinders)
-    aa = as_columns("a", a, n, p.n_cylinders)
-    _, d1, d2 = _kinematics2(machine, q)
+    sa = np.ascontiguousarray(s, dtype=np.float64)
+    if sa.ndim != 2 or sa.shape[1] != p.n_cylinders:
+        q = joints_from_cylinders(machine, s, q_other)  # shape handling and its errors
+        sa = np.ascontiguousarray(np.reshape(sa, (q.shape[0], p.n_cylinders)))
+    n = sa.shape[0]
+    va = np.ascontiguousarray(as_columns("v", v, n, p.n_cylinders), dtype=np.float64)
+    aa = np.ascontiguousarray(as_columns("a", a, n, p.n_cylinders), dtype=np.float64)
     cj = p.cylinder_joint
     free = [j for j in range(p.n_joints) if j not in set(cj.tolist())]
+    q = np.zeros((n, p.n_joints))
     qd = np.zeros_like(q)
     qdd = np.zeros_like(q)
-    for arr, other, name in ((qd, qd_other, "qd_other"), (qdd, qdd_other, "qdd_other")):
+    for arr, other, name in ((q, q_other, "q_other"), (qd, qd_other, "qd_other"),
+                             (qdd, qdd_other, "qdd_other")):
         if other is not None:
             arr[:, free] = as_columns(name, other, n, len(free))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        qd[:, cj] = va / d1
-        qdd[:, cj] = (aa - d2 * qd[:, cj] ** 2) / d1
-    return q, qd, qdd
+    arm = np.empty((n, p.n_cylinders))
+    K.cylinder_motion_batch(p.cyl, sa, va, aa, q, qd, qdd, arm)
+    if not np.all(np.isfinite(q[:, cj])):
+        joints_from_cylinders(machine, sa, q_other)  # raises the descriptive PhysicsError
+    return q, qd, qdd, arm
 
 
 def joints_from_cylinders(

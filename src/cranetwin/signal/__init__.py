@@ -17,7 +17,9 @@ from cranetwin.signal.smoothing import (
     estimate_noise_std,
     ici_select,
     ici_smooth,
+    ici_smooth_pair,
     savgol_smooth,
+    sg_filter,
 )
 from cranetwin.signal.spline import NaturalCubicSpline
 
@@ -33,11 +35,13 @@ __all__ = [
     "estimate_noise_std",
     "ici_select",
     "ici_smooth",
+    "ici_smooth_pair",
     "inject_uniform_noise",
     "newton_derivative",
     "nominal_period",
     "nrmse",
     "regularize",
     "savgol_smooth",
+    "sg_filter",
     "uniform_grid",
 ]

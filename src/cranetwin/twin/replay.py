@@ -36,7 +36,7 @@ from cranetwin.signal import (
     NaturalCubicSpline,
     SmoothingChoice,
     centre_weight,
-    ici_select,
+    ici_smooth_pair,
     newton_derivative,
     nominal_period,
     regularize,
@@ -339,14 +339,8 @@ class TwinStream:
     @staticmethod
     def _ici_pressures(pa: F64, pb: F64, a1: float, a2: float,
                        ch: SmoothingChoice) -> F64:
-        ws = [w for w in ICI_WINDOWS
-              if (w == 1 or w > ch.polyorder + 1) and w <= min(ch.window, pa.shape[0])]
-        ea = np.stack([savgol_smooth(pa, w, ch.polyorder) for w in ws])
-        eb = np.stack([savgol_smooth(pb, w, ch.polyorder) for w in ws])
-        sds = np.array([ch.sigma * np.sqrt(_h0(SmoothingChoice(w, ch.polyorder, 0.0, 0.0)))
-                        for w in ws])
-        k = ici_select(a1 * ea - a2 * eb, sds)[None, :]
-        return np.column_stack([np.take_along_axis(ea, k, 0)[0], np.take_along_axis(eb, k, 0)[0]])
+        ws = tuple(w for w in ICI_WINDOWS if w <= ch.window)
+        return ici_smooth_pair(pa, pb, a1, a2, ch.sigma, ws, ch.polyorder)
 
     def _sample_state(self, k0: int, k1: int, theta0: F64 | None) -> tuple[F64, F64, F64, F64]:
         """q, qd, qdd and actuator loads at samples [k0, k1) from the smoothed channels."""
@@ -362,9 +356,8 @@ class TwinStream:
         q_other = np.zeros((s.shape[0], m.n_joints - len(m.cylinders)))
         if theta0 is not None and q_other.shape[1]:
             q_other[:, 0] = theta0
-        q, qd, qdd = self._joint_motion(s, v, a, q_other)
+        q, qd, qdd, arm = self._joint_motion(s, v, a, q_other)
         f = self._forces(sm, v)
-        _, arm = physics.cylinder_kinematics(m, q)
         return q, qd, qdd, self._actuator_loads(q, f, arm, None)
 
     def _stage_slew(self, final: bool) -> None:
@@ -428,9 +421,11 @@ class TwinStream:
         out: F64 = np.clip(s, lo, hi)
         return out
 
-    def _joint_motion(self, s: F64, v: F64, a: F64, q_other: F64) -> tuple[F64, F64, F64]:
+    def _joint_motion(self, s: F64, v: F64, a: F64,
+                      q_other: F64) -> tuple[F64, F64, F64, F64]:
+        """q, qd, qdd (n, n_joints) and moment arms ds/dq (n, n_cylinders), one fused pass."""
         try:
-            return physics.joint_motion_from_cylinders(
+            return physics.joint_motion_and_arms(
                 self.machine, s, v, a, q_other if q_other.shape[1] else None)
         except PhysicsError as exc:
             raise TwinError(f"rod positions do not fit the machine geometry: {exc}") from exc
@@ -501,29 +496,33 @@ class TwinStream:
             pos_cols.append(ang)
         val_cols = [j for j in range(self._nch) if j not in pos_cols]
         npos = len(pos_cols)
-        pos_val = NaturalCubicSpline(knots_t, sm[:, pos_cols]).evaluate_subdivided(r, 0)[0]
         if self.opt.velocity == "newton":
+            pos_val = NaturalCubicSpline(knots_t, sm[:, pos_cols]).evaluate_subdivided(r, 0)[0]
             # the paper's way: Newton's formula on the (smoothed) positions, then splined
             vel = newton_derivative(knots_t, sm[:, pos_cols], 2 if sm.shape[0] >= 5 else 1)
             vg, ag = NaturalCubicSpline(knots_t, vel).evaluate_subdivided(r, 1)
+            valg = NaturalCubicSpline(knots_t, sm[:, val_cols]).evaluate_subdivided(r, 0)[0]
         else:
-            # Savitzky–Golay derivative filters at the samples (window by Lepski's rule), splined
+            # Savitzky–Golay derivative filters at the samples (window by Lepski's rule), splined;
+            # positions, rates, accelerations and the other channels share the knots: one spline
             rates = self._nch + 1 + np.arange(nd)
             rate_cols = list(rates[:npos]) + list(rates[npos:]) if ang is not None else list(
                 rates[:nc])
             acc_cols = [c + nd for c in rate_cols]
-            both = NaturalCubicSpline(knots_t, sm[:, rate_cols + acc_cols])
-            va = both.evaluate_subdivided(r, 0)[0]
-            vg = np.empty((va.shape[0], npos))
-            ag = np.empty((va.shape[0], npos))
-            vg[:, : len(rate_cols)] = va[:, : len(rate_cols)]
-            ag[:, : len(rate_cols)] = va[:, len(rate_cols):]
+            nr = len(rate_cols)
+            every = NaturalCubicSpline(knots_t, sm[:, pos_cols + rate_cols + acc_cols + val_cols])
+            allg = every.evaluate_subdivided(r, 0)[0]
+            pos_val = allg[:, :npos]
+            vg = np.empty((allg.shape[0], npos))
+            ag = np.empty((allg.shape[0], npos))
+            vg[:, :nr] = allg[:, npos : npos + nr]
+            ag[:, :nr] = allg[:, npos + nr : npos + 2 * nr]
+            valg = allg[:, npos + 2 * nr :]
             if self._integrate and npos > nc:
                 _, tv, ta = NaturalCubicSpline(knots_t, sm[:, self._nch]).evaluate_subdivided(r, 2)
                 vg[:, nc] = tv
                 ag[:, nc] = ta
         posg = [pos_val, vg, ag]
-        valg = NaturalCubicSpline(knots_t, sm[:, val_cols]).evaluate_subdivided(r, 0)[0]
         # grid index j = k·r + i; crop to the extended range [e0·r, e1·r]
         a0 = (e0 - f0) * r
         a1 = (e1 - f0) * r + 1
@@ -538,7 +537,7 @@ class TwinStream:
         if q_other.shape[1] and len(pos_cols) > nc:
             th, thd, thdd = pos[:, nc], vel_g[:, nc], acc[:, nc]
             q_other[:, 0] = th
-        q, qd, qdd = self._joint_motion(s, v, acc_s, q_other)
+        q, qd, qdd, arm = self._joint_motion(s, v, acc_s, q_other)
         if th is not None and self._slew_joint is not None:
             qd[:, self._slew_joint] = thd
             qdd[:, self._slew_joint] = thdd
@@ -547,7 +546,6 @@ class TwinStream:
         if self._drive is not None and self.cmap.torque is not None:
             drive = vals[:, self.cmap.torque] - physics.friction_force(
                 qd[:, self._slew_joint], self._drive.friction)
-        _, arm = physics.cylinder_kinematics(m, q)
         tau_act = self._actuator_loads(q, f, arm, drive)
         # payload at the sample instants of the extended range, then onto the grid
         o0 = (ka - e0) * r
