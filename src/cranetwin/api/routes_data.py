@@ -50,7 +50,7 @@ def get_history(
                                    examples=["lift_pA,force:lift,payload"])],
     max_points: Annotated[int, Query(ge=1, le=100_000, description="most buckets per channel "
                                      "(≤ CRANETWIN_MAX_HISTORY_POINTS, 10000)")] = 2000,
-) -> HistoryOut:
+) -> Response:
     """Min/max/mean per bucket from the stored per-interval summaries (never from raw samples);
     buckets are whole summary intervals, at most ``max_points`` of them per channel."""
     return services.history(machine, rng, channels, max_points)

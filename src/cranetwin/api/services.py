@@ -30,12 +30,10 @@ from cranetwin.api.schemas import (
     DataRange,
     EventOut,
     FindOut,
-    HistoryOut,
     Location,
     MachineDetail,
     MachinePublic,
     SamplesPage,
-    Series,
 )
 from cranetwin.api.settings import Settings
 from cranetwin.api.views import twin_json
@@ -246,8 +244,9 @@ class Services:
                            f"({', '.join(raw)}) or derived ones ({', '.join(derived)})")
 
     def history(self, rec: MachineRecord, rng: TimeRange, channels: str,
-                max_points: int) -> HistoryOut:
-        """Min/max/mean per bucket of each channel, from the stored summaries."""
+                max_points: int) -> Response:
+        """Min/max/mean per bucket of each channel, from the stored summaries (JSON of
+        :class:`HistoryOut`, serialised straight from the arrays)."""
         s = self.settings
         rng.limit(s.max_history_range_s, "load history")
         if max_points > s.max_history_points:
@@ -261,12 +260,9 @@ class Services:
                            f"{len(names)} channels; at most {MAX_HISTORY_CHANNELS} per request")
         self._check_channels(self.backend.model_of(rec), names)
         data = self.backend.summaries(rec.machine_id, names, rng.t0_s, rng.t1_s, max_points)
-        out: dict[str, Series] = {}
-        for n in names:
-            t, lo, hi, mean = data[n]
-            out[n] = Series(t=t.tolist(), min=_nullable(lo), max=_nullable(hi),
-                            mean=_nullable(mean))
-        return HistoryOut(channels=out)
+        out = {n: {"t": data[n][0], "min": data[n][1], "max": data[n][2], "mean": data[n][3]}
+               for n in names}
+        return JsonBytes(orjson.dumps({"channels": out}, option=orjson.OPT_SERIALIZE_NUMPY))
 
     def find(self, rec: MachineRecord, rng: TimeRange, channel: str, op: Literal["gt", "lt"],
              value: float, which: Literal["first", "last"]) -> FindOut:
