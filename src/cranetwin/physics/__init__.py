@@ -28,6 +28,7 @@ from __future__ import annotations
 from cranetwin.physics.actuators import (
     actuator_torques,
     cylinder_force,
+    cylinder_forces,
     cylinder_forces_from_torques,
     friction_force,
 )
@@ -71,6 +72,7 @@ __all__ = [
     "chamber_volumes",
     "compile_chain",
     "cylinder_force",
+    "cylinder_forces",
     "cylinder_forces_from_torques",
     "cylinder_kinematics",
     "cylinder_lengths",

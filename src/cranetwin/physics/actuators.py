@@ -7,6 +7,7 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.model import Cylinder, Friction, Machine
+from cranetwin.physics import kernels as K
 from cranetwin.physics.chain import compile_chain
 from cranetwin.physics.kinematics import as_columns, as_joint_array, moment_arms
 
@@ -46,6 +47,32 @@ def cylinder_force(
     pb = np.asarray(pB, dtype=np.float64)
     return np.asarray(pa * cylinder.area_a_m2 - pb * cylinder.area_b_m2
                       - friction_force(v, cylinder.friction), dtype=np.float64)
+
+
+def cylinder_forces(machine: Machine, pA: npt.ArrayLike, pB: npt.ArrayLike,
+                    v: npt.ArrayLike) -> F64:
+    """Eq. 1–2 for every cylinder of the machine in one compiled pass.
+
+    Args:
+        machine: Machine description (cylinder areas and friction).
+        pA, pB: Chamber pressures, shape (n, n_cylinders) [Pa].
+        v: Rod velocities, shape (n, n_cylinders) [m/s].
+
+    Returns:
+        F, shape (n, n_cylinders) [N], > 0 pushing; as :func:`cylinder_force` per column.
+    """
+    nc = len(machine.cylinders)
+    pa = np.asarray(pA, dtype=np.float64)
+    n = pa.shape[0] if pa.ndim == 2 else -1
+    pa = as_columns("pA", pa, n, nc)
+    pb = as_columns("pB", pB, n, nc)
+    va = as_columns("v", v, n, nc)
+    params = np.array([[c.area_a_m2, c.area_b_m2, c.friction.coulomb,
+                        c.friction.coulomb_velocity, c.friction.viscous]
+                       for c in machine.cylinders], dtype=np.float64).reshape(nc, 5)
+    out = np.empty((n, nc))
+    K.cylinder_forces_batch(pa, pb, va, params, out)
+    return out
 
 
 def actuator_torques(

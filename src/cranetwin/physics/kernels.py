@@ -853,7 +853,8 @@ def cylinder_motion(cyl, k, s):  # type: ignore[no-untyped-def]
     fx, fy, ok = _circle_intersection(0.0, 0.0, rf, ex, ey, cyl[o + 16], cyl[o + 19])
     if not ok:
         return math.nan, math.nan, math.nan
-    q = _wrap(math.atan2(fy, fx) - math.atan2(f0y, f0x), centre)
+    # angle from F0 to F: one atan2 of (F0 × F, F0 · F) instead of the difference of two
+    q = _wrap(math.atan2(f0x * fy - f0y * fx, f0x * fx + f0y * fy), centre)
     # derivatives as cylinder_state2, at the E and F just found
     r1x = ex - cyl[o + 11]
     r1y = ey - cyl[o + 12]
@@ -900,3 +901,20 @@ def cylinder_motion_batch(cyl, s, v, a, q, qd, qdd, arm):  # type: ignore[no-unt
             qd[i, ji] = w
             qdd[i, ji] = (a[i, k] - d2 * w * w) / d1
             arm[i, k] = d1
+
+
+@njit(cache=True)
+def cylinder_forces_batch(pa, pb, v, params, out):  # type: ignore[no-untyped-def]
+    """Eq. 1–2 over samples: out[i, k] = pA·A1 − pB·A2 − (Fc·tanh(v/vc) + b·v).
+
+    Args:
+        pa, pb: Chamber pressures, shape (n, nc) [Pa] (any strides).
+        v: Rod velocities, shape (n, nc) [m/s].
+        params: Per cylinder (A1 [m²], A2 [m²], Fc [N], vc [m/s], b [N·s/m]), shape (nc, 5).
+        out: Forces, shape (n, nc) [N].
+    """
+    for i in range(pa.shape[0]):
+        for k in range(params.shape[0]):
+            vk = v[i, k]
+            out[i, k] = (pa[i, k] * params[k, 0] - pb[i, k] * params[k, 1]
+                         - (params[k, 2] * math.tanh(vk / params[k, 3]) + params[k, 4] * vk))

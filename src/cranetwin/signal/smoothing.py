@@ -337,9 +337,10 @@ def ici_smooth(y: npt.ArrayLike, sigma: float, windows: tuple[int, ...] = ICI_WI
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=True)
 def _sg_at(y, i, w, h, left, right):  # type: ignore[no-untyped-def]
-    """Savitzky–Golay value at sample i, window w (as :func:`savgol_smooth`)."""
+    """Savitzky–Golay smoothed value (deriv 0) at sample i, window w (as :func:`savgol_smooth`;
+    fastmath only reorders the sums)."""
     n = y.shape[0]
     half = w // 2
     acc = 0.0
@@ -350,31 +351,71 @@ def _sg_at(y, i, w, h, left, right):  # type: ignore[no-untyped-def]
         r = i - (n - half)
         for j in range(w):
             acc += right[r, j] * y[n - w + j]
-    else:
-        for j in range(w):
-            acc += h[j] * y[i - half + j]
+    else:  # centre filters of values are symmetric: h[j] = h[w-1-j]
+        acc = h[half] * y[i]
+        for j in range(half):
+            acc += h[j] * (y[i - half + j] + y[i + half - j])
     return acc
 
 
 @njit(cache=True)
-def _ici_pair_kernel(pa, pb, a1, a2, wins, hs, lefts, rights, sds, gamma, out):  # type: ignore[no-untyped-def]
+def _ici_pair_kernel(pa, pb, a1, a2, wins, hs, lefts, rights, even, sds, gamma, out):  # type: ignore[no-untyped-def]
+    """Per sample: pA, pB and force a1·pA − a2·pB estimates of increasing window until the ICI
+    intervals stop intersecting; keeps the last window whose intervals all intersect.
+    Interior centre filters are even polynomials in the offset j, h_j = Σ_m even[k, m]·j^(2m),
+    so nested windows' estimates come from ring sums Σ j^(2m)(y[i−j] + y[i+j]) accumulated as
+    the window grows: all windows of a sample cost one pass over the largest."""
     n = pa.shape[0]
     nw = wins.shape[0]
-    force = a1 * pa - a2 * pb
+    nm = even.shape[1]
+    sa = np.zeros(nm)
+    sb = np.zeros(nm)
     for i in range(n):
         lo = -np.inf
         hi = np.inf
-        chosen = nw - 1
+        for m in range(nm):
+            sa[m] = 0.0
+            sb[m] = 0.0
+        done = -1  # ring sums hold offsets 0 … done
+        pa_prev = pa[i]
+        pb_prev = pb[i]
         for k in range(nw):
-            e = _sg_at(force, i, wins[k], hs[k], lefts[k], rights[k])
+            w = wins[k]
+            half = w // 2
+            if i < half or i >= n - half:
+                ea = _sg_at(pa, i, w, hs[k], lefts[k], rights[k])
+                eb = _sg_at(pb, i, w, hs[k], lefts[k], rights[k])
+            else:
+                for jj in range(done + 1, half + 1):
+                    if jj == 0:
+                        sa[0] += pa[i]
+                        sb[0] += pb[i]
+                    else:
+                        ya = pa[i - jj] + pa[i + jj]
+                        yb = pb[i - jj] + pb[i + jj]
+                        pw = 1.0
+                        j2 = float(jj * jj)
+                        for m in range(nm):
+                            sa[m] += pw * ya
+                            sb[m] += pw * yb
+                            pw *= j2
+                done = half
+                ea = 0.0
+                eb = 0.0
+                for m in range(nm):
+                    ea += even[k, m] * sa[m]
+                    eb += even[k, m] * sb[m]
+            e = a1 * ea - a2 * eb
             lo = max(lo, e - gamma * sds[k])
             hi = min(hi, e + gamma * sds[k])
-            if lo > hi:
-                chosen = max(k - 1, 0)
+            if lo > hi and k > 0:
                 break
-        w = wins[chosen]
-        out[i, 0] = _sg_at(pa, i, w, hs[chosen], lefts[chosen], rights[chosen])
-        out[i, 1] = _sg_at(pb, i, w, hs[chosen], lefts[chosen], rights[chosen])
+            pa_prev = ea
+            pb_prev = eb
+            if lo > hi:  # k == 0: keep the first window
+                break
+        out[i, 0] = pa_prev
+        out[i, 1] = pb_prev
 
 
 def ici_smooth_pair(pa: npt.ArrayLike, pb: npt.ArrayLike, a1: float, a2: float, sigma: float,
@@ -416,10 +457,21 @@ def ici_smooth_pair(pa: npt.ArrayLike, pb: npt.ArrayLike, a1: float, a2: float, 
         hs[k, :w] = h
         lefts[k, : w // 2, :w] = left
         rights[k, : w // 2, :w] = right
+    nm = polyorder // 2 + 1
+    even = np.zeros((len(ws), nm))
+    for k, w in enumerate(ws):
+        half = w // 2
+        j2 = np.arange(half + 1, dtype=np.float64) ** 2
+        basis = j2[:, None] ** np.arange(nm)[None, :]  # (half+1, nm)
+        target = hs[k, half : w]
+        coef = np.linalg.lstsq(basis, target, rcond=None)[0]
+        if not np.allclose(basis @ coef, target, rtol=0, atol=1e-12 * np.abs(target).max()):
+            raise SignalError(f"internal: SG filter ({w}, {polyorder}) is not even-polynomial")
+        even[k] = coef
     sds = np.array([sigma * np.sqrt(centre_weight(w, polyorder)) for w in ws])
     out = np.empty((n, 2))
     _ici_pair_kernel(xa, xb, float(a1), float(a2), np.array(ws, dtype=np.int64), hs, lefts,
-                     rights, sds, float(gamma), out)
+                     rights, even, sds, float(gamma), out)
     return out
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 from scipy.linalg import solve_banded
 
 from cranetwin.errors import SignalError
@@ -22,6 +23,30 @@ from cranetwin.errors import SignalError
 F64 = npt.NDArray[np.float64]
 
 _UNIFORM_RTOL = 1e-9
+
+
+@njit(cache=True)
+def _subdivide(c, h, h0, uniform, r, v0, v1, v2):  # type: ignore[no-untyped-def]
+    """Spline pieces c (n_int, 4, k) at x_i + j·h_i/r, j = 0 … r−1, into rows i·r + j of v0
+    (values) and, when they have rows, v1 (first) and v2 (second derivative)."""
+    n_int = c.shape[0]
+    k = c.shape[2]
+    d1 = v1.shape[0] > 0
+    d2 = v2.shape[0] > 0
+    for i in range(n_int):
+        for j in range(r):
+            dx = h0 * j / r if uniform else h[i] * (j / r)
+            row = i * r + j
+            for m in range(k):
+                a0 = c[i, 0, m]
+                b = c[i, 1, m]
+                c2 = c[i, 2, m]
+                d = c[i, 3, m]
+                v0[row, m] = a0 + dx * (b + dx * (c2 + dx * d))
+                if d1:
+                    v1[row, m] = b + dx * (2.0 * c2 + 3.0 * d * dx)
+                if d2:
+                    v2[row, m] = 2.0 * c2 + 6.0 * d * dx
 
 
 class NaturalCubicSpline:
@@ -140,19 +165,13 @@ class NaturalCubicSpline:
         k = self.k
         h = np.diff(self.x)[:, None]
         c = self._coef.reshape(n_int, 4, k)
-        a0, b, c2, d = (np.ascontiguousarray(c[:, i]) for i in range(4))
         last = self.evaluate(self.x[-1:], derivatives)
         full = [np.empty((n_int * r + 1, k)) for _ in range(derivatives + 1)]
-        outs = [f[:-1].reshape(n_int, r, k) for f in full]
         for nu in range(derivatives + 1):
             full[nu][-1] = np.asarray(last[nu]).reshape(k)
-        for j in range(r):
-            dx: F64 | float = self._h0 * j / r if self._uniform else h * (j / r)
-            outs[0][:, j] = a0 + dx * (b + dx * (c2 + dx * d))
-            if derivatives >= 1:
-                outs[1][:, j] = b + dx * (2.0 * c2 + 3.0 * d * dx)
-            if derivatives >= 2:
-                outs[2][:, j] = 2.0 * c2 + 6.0 * d * dx
+        empty = np.empty((0, k))
+        _subdivide(c, np.ascontiguousarray(h[:, 0]), self._h0, self._uniform, r, full[0],
+                   full[1] if derivatives >= 1 else empty, full[2] if derivatives >= 2 else empty)
         return [f[:, 0] if self._scalar else f for f in full]
 
     def __call__(self, t: npt.ArrayLike, nu: int = 0) -> F64:

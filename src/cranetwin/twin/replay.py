@@ -431,11 +431,8 @@ class TwinStream:
             raise TwinError(f"rod positions do not fit the machine geometry: {exc}") from exc
 
     def _forces(self, vals: F64, v: F64) -> F64:
-        f = np.empty((vals.shape[0], len(self.machine.cylinders)))
-        for c, cyl in enumerate(self.machine.cylinders):
-            f[:, c] = physics.cylinder_force(vals[:, self.cmap.p_a[c]], vals[:, self.cmap.p_b[c]],
-                                             v[:, c], cyl)
-        return f
+        return physics.cylinder_forces(self.machine, vals[:, list(self.cmap.p_a)],
+                                       vals[:, list(self.cmap.p_b)], v)
 
     def _actuator_loads(self, q: F64, f: F64, arm: F64, drive: F64 | None) -> F64:
         """Joint loads of the actuators: F·ds/dq (virtual work, as physics.actuator_torques,
