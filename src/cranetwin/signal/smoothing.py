@@ -200,7 +200,7 @@ def choose_window(
         for p in polyorders:
             if p >= w - 1:
                 continue
-            h = savgol_coeffs(w, p)
+            h = _sg_operators(w, p, 0)[0]
             h0 = float(h[w // 2])
             sq = 0.0
             cnt = 0
@@ -259,12 +259,12 @@ def choose_derivative_window(
     edge = wmax // 2
 
     def est(w: int) -> F64:
-        h = savgol_coeffs(w, polyorder, deriv=deriv, use="dot")
+        h = _sg_operators(w, polyorder, deriv)[0]
         return np.concatenate([_core(ya[sl], h, edge) for sl in segs])
 
     def coeffs(w: int) -> F64:
         h = np.zeros(wmax)
-        c = savgol_coeffs(w, polyorder, deriv=deriv, use="dot")
+        c = _sg_operators(w, polyorder, deriv)[0]
         h[wmax // 2 - w // 2 : wmax // 2 + w // 2 + 1] = c
         return h
 
@@ -418,6 +418,37 @@ def _ici_pair_kernel(pa, pb, a1, a2, wins, hs, lefts, rights, even, sds, gamma, 
         out[i, 1] = pb_prev
 
 
+@lru_cache(maxsize=64)
+def _ici_operators(ws: tuple[int, ...], polyorder: int) -> tuple[F64, F64, F64, F64]:
+    """Padded centre filters (nw, wmax), edge operators (nw, wmax//2, wmax) and the even
+    polynomial coefficients of the centre filters (nw, polyorder//2 + 1) of the ICI windows."""
+    wmax = max(ws)
+    hmax = max(1, wmax // 2)
+    hs = np.zeros((len(ws), wmax))
+    lefts = np.zeros((len(ws), hmax, wmax))
+    rights = np.zeros((len(ws), hmax, wmax))
+    for k, w in enumerate(ws):
+        if w == 1:
+            hs[k, 0] = 1.0
+            continue
+        h, left, right = _sg_operators(w, polyorder, 0)
+        hs[k, :w] = h
+        lefts[k, : w // 2, :w] = left
+        rights[k, : w // 2, :w] = right
+    nm = polyorder // 2 + 1
+    even = np.zeros((len(ws), nm))
+    for k, w in enumerate(ws):
+        half = w // 2
+        j2 = np.arange(half + 1, dtype=np.float64) ** 2
+        basis = j2[:, None] ** np.arange(nm)[None, :]  # (half+1, nm)
+        target = hs[k, half : w]
+        coef = np.linalg.lstsq(basis, target, rcond=None)[0]
+        if not np.allclose(basis @ coef, target, rtol=0, atol=1e-12 * np.abs(target).max()):
+            raise SignalError(f"internal: SG filter ({w}, {polyorder}) is not even-polynomial")
+        even[k] = coef
+    return hs, lefts, rights, even
+
+
 def ici_smooth_pair(pa: npt.ArrayLike, pb: npt.ArrayLike, a1: float, a2: float, sigma: float,
                     windows: tuple[int, ...] = ICI_WINDOWS, polyorder: int = 3,
                     gamma: float = ICI_GAMMA) -> F64:
@@ -444,30 +475,7 @@ def ici_smooth_pair(pa: npt.ArrayLike, pb: npt.ArrayLike, a1: float, a2: float, 
     ws = [w for w in windows if (w == 1 or w > polyorder + 1) and w <= n]
     if not ws:
         raise SignalError(f"no ICI window fits {n} samples")
-    wmax = max(ws)
-    hmax = max(1, wmax // 2)
-    hs = np.zeros((len(ws), wmax))
-    lefts = np.zeros((len(ws), hmax, wmax))
-    rights = np.zeros((len(ws), hmax, wmax))
-    for k, w in enumerate(ws):
-        if w == 1:
-            hs[k, 0] = 1.0
-            continue
-        h, left, right = _sg_operators(w, polyorder, 0)
-        hs[k, :w] = h
-        lefts[k, : w // 2, :w] = left
-        rights[k, : w // 2, :w] = right
-    nm = polyorder // 2 + 1
-    even = np.zeros((len(ws), nm))
-    for k, w in enumerate(ws):
-        half = w // 2
-        j2 = np.arange(half + 1, dtype=np.float64) ** 2
-        basis = j2[:, None] ** np.arange(nm)[None, :]  # (half+1, nm)
-        target = hs[k, half : w]
-        coef = np.linalg.lstsq(basis, target, rcond=None)[0]
-        if not np.allclose(basis @ coef, target, rtol=0, atol=1e-12 * np.abs(target).max()):
-            raise SignalError(f"internal: SG filter ({w}, {polyorder}) is not even-polynomial")
-        even[k] = coef
+    hs, lefts, rights, even = _ici_operators(tuple(ws), polyorder)
     sds = np.array([sigma * np.sqrt(centre_weight(w, polyorder)) for w in ws])
     out = np.empty((n, 2))
     _ici_pair_kernel(xa, xb, float(a1), float(a2), np.array(ws, dtype=np.int64), hs, lefts,
