@@ -225,11 +225,17 @@ class Backend:
         return out
 
     def read_after(self, machine_id: str, after_s: float) -> SampleArrays | None:
-        """Samples newer than ``after_s`` (live follower), at most the last 10 s of them."""
-        dr = self.data_range(machine_id)
-        if dr is None or dr[1] <= after_s:
-            return None
-        s = self.read_samples(machine_id, max(after_s, dr[1] - 10.0), dr[1] + 1.0)
+        """Samples newer than ``after_s`` (live follower), at most the last 10 s of them.
+
+        One query in the usual case (new samples just after ``after_s``); when there are none
+        within 10 s, the newest stored 10 s (a gap, or a follower far behind).
+        """
+        s = self.read_samples(machine_id, after_s, after_s + 10.0)
+        if s.t_s.shape[0] == 0 or s.t_s[-1] <= after_s:
+            dr = self.data_range(machine_id)
+            if dr is None or dr[1] <= after_s:
+                return None
+            s = self.read_samples(machine_id, max(after_s, dr[1] - 10.0), dr[1] + 1.0)
         keep = s.t_s > after_s
         return SampleArrays(s.machine_id, s.t_s[keep], s.channels, s.values[keep])
 
