@@ -80,7 +80,7 @@ def running_daemon(store: Any, bus: Any = None, **config: Any) -> Iterator[Any]:
     from cranetwin.ingest.daemon import DaemonConfig, IngestDaemon, new_event_loop
 
     cfg = DaemonConfig(**{"port": 0, "batch_wait_s": 0.01, "metrics_interval_s": 0.2,
-                          "key_refresh_s": 0.0, **config})
+                          **config})
     daemon = IngestDaemon(store, cfg, bus)
     errors: list[BaseException] = []
 

@@ -157,7 +157,7 @@ def test_fuzz_100k_datagrams_while_serving_a_valid_sender(db_url: str) -> None:
                     s.sendto(dg, address)
                 except OSError:
                     pass
-                if i % 500 == 499:
+                if i % 200 == 199:
                     time.sleep(0.002)  # stay under the socket buffer, so most are processed
             s.close()
             done.set()
@@ -171,11 +171,19 @@ def test_fuzz_100k_datagrams_while_serving_a_valid_sender(db_url: str) -> None:
         t.join(120)
         assert done.is_set()
         deadline = time.monotonic() + 60
-        while d.snapshot()["queue_depth"] > 0 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        last = -1
+        while time.monotonic() < deadline:  # until the socket buffer and the queue are drained
+            snap = d.snapshot()
+            if snap["received"] == last and snap["queue_depth"] == 0:
+                break
+            last = snap["received"]
+            time.sleep(0.3)
     m = d.snapshot()
     assert m["dropped"].get("internal_error", 0) == 0, m["dropped"]
     for reason in ("garbage", "truncated", "bad_hmac", "wrong_version", "unknown_machine"):
         assert m["dropped"].get(reason, 0) > 0, (reason, m["dropped"])
-    assert m["dropped_total"] >= 0.9 * len(hostile)  # nearly all reached it and were refused
+    assert m["received"] >= 0.5 * len(hostile)  # most got past the kernel's socket buffer
+    # every datagram that arrived is accounted for: accepted (authentic) or dropped with a reason
+    assert m["received"] == m["accepted"] + m["dropped_total"], json.dumps(m)
+    assert m["accepted"] < 0.1 * m["received"]
     assert_stored_exactly(store, sent)

@@ -176,6 +176,7 @@ class IngestDaemon:
         self._queue: queue.Queue[Any] = queue.Queue(self.config.queue_max)
         self._decoded: queue.Queue[Any] = queue.Queue(2)
         self._rx_lock = threading.Lock()  # the Receiver is shared by decoder and writer
+        self._stopping = False
         self._transport: asyncio.DatagramTransport | None = None
         self._sock: socket.socket | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -217,6 +218,9 @@ class IngestDaemon:
         m = self.metrics
         m.received += 1
         m.received_bytes += len(data)
+        if self._stopping:  # arrived after shutdown began: not acked, so the sender retries
+            m.dropped["shutdown"] += 1
+            return
         try:
             self._queue.put_nowait((data, addr, self._clock()))
         except queue.Full:
@@ -491,7 +495,8 @@ class IngestDaemon:
             await self._stop.wait()
         finally:
             log.info("ingest shutting down: flushing %d queued datagram(s)", self._queue.qsize())
-            sock_stop = getattr(transport, "pause_reading", None)  # uvloop and asyncio have it
+            self._stopping = True
+            sock_stop = getattr(transport, "pause_reading", None)  # not every loop has it
             if sock_stop is not None:
                 sock_stop()
             self._queue.put(_STOP)
