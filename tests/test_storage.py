@@ -174,12 +174,16 @@ def test_summaries_reject_bad_range(store: Store) -> None:
         store.summaries("crane-1", ["lift_s"], 0.0, 10.0, 0)
 
 
-def test_write_summaries_overwrites_buckets(store: Store) -> None:
+def test_write_summaries_windows_add_up_and_reruns_change_nothing(store: Store) -> None:
     t = 1_700_000_040.0 + np.arange(0, 120, 0.01)  # two whole minutes
     v = np.column_stack([np.sin(t), 1e5 * np.cos(t)])
     chans = ["force:lift", "force:jib"]
     for _ in range(2):  # a replay re-run must not double anything
-        store.write_summaries("crane-1", t, chans, v)
+        for a in range(0, 12000, 700):  # 7-s windows, not minute-aligned
+            store.write_summaries("crane-1", t[a:a + 700], chans, v[a:a + 700])
+    fine = store.summaries("crane-1", chans, t[0], t[-1] + 0.01, max_points=120)
+    assert fine.bucket_s == 1 and np.all(fine.count == 100)
+    np.testing.assert_allclose(fine.min[:, 0], v[:, 0].reshape(120, 100).min(axis=1))
     s = store.summaries("crane-1", chans, t[0], t[-1] + 0.01, max_points=2)
     assert s.bucket_s == 60 and s.count.tolist() == [[6000, 6000], [6000, 6000]]
     np.testing.assert_allclose(s.max[0], v[:6000].max(axis=0))

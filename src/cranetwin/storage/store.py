@@ -309,7 +309,7 @@ class Store:
             values: Shape (n, c) [channel units]; NaN = missing.
 
         Returns:
-            Number of bucket rows written.
+            Number of 1-s bucket rows written.
         """
         t = np.asarray(t_s, dtype=np.float64)
         v = np.asarray(values, dtype=np.float64)

@@ -10,8 +10,9 @@ Load-history queries read these instead of raw samples (a 24-hour chart of one c
   per-second aggregates of the minute by :func:`rollup`. Every transaction that stores a new block
   marks its minutes in ``summary_dirty``; a query computes dirty minutes on the fly from the
   blocks, so results are exact before and after the rollup runs.
-* **derived channels** (``force:lift``, ...): rows written by the twin with :func:`replace`,
-  which overwrites the buckets it covers, so re-running a replay is idempotent.
+* **derived channels** (``force:lift``, ...): 1-s rows written by the twin with :func:`replace`,
+  which overwrites the seconds it covers and recomputes their minutes from the 1-s rows, so
+  consecutive windows add up and re-running a replay is idempotent.
 """
 
 from __future__ import annotations
@@ -22,7 +23,18 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import BigInteger, Float, ForeignKey, Integer, String, delete, insert, select
+from sqlalchemy import (
+    BigInteger,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    delete,
+    func,
+    insert,
+    literal,
+    select,
+)
 from sqlalchemy.orm import Mapped, Session, mapped_column
 
 from cranetwin.errors import StorageError
@@ -206,27 +218,41 @@ def accumulate(acc: dict[Key, Agg], channels: Sequence[str], t_ns: npt.NDArray[n
 
 def replace(session: Session, machine_pk: int, channels: Sequence[str],
             t_ns: npt.NDArray[np.int64], values: F64) -> int:
-    """Overwrite the buckets covered by ``t_ns`` with aggregates of ``values`` (derived channels).
-
-    Buckets at both ends of the span are overwritten with what this call sees, so callers write
-    whole minutes to keep the 1-min level exact.
+    """Store aggregates of derived channels: the 1-s buckets that ``t_ns`` touches are
+    overwritten, then every 1-min bucket those seconds fall in is recomputed from all its 1-s
+    buckets (so consecutive windows build up whole minutes, and re-running a window changes
+    nothing). Windows should start and end on whole seconds: a partly covered second at either
+    end holds only what this call saw.
 
     Returns:
-        Number of bucket rows written.
+        Number of 1-s bucket rows written.
     """
     acc: dict[Key, Agg] = {}
     accumulate(acc, channels, t_ns, values)
-    for level in LEVELS_S:
-        lo = int(t_ns[0] // (level * SEC)) * level
-        hi = int(t_ns[-1] // (level * SEC)) * level
-        session.execute(delete(SummaryRow).where(
-            SummaryRow.machine_pk == machine_pk, SummaryRow.channel.in_(list(channels)),
-            SummaryRow.level_s == level, SummaryRow.bucket_s.between(lo, hi)))
-    if acc:
-        session.execute(insert(SummaryRow), [
-            {"machine_pk": machine_pk, "channel": k[0], "level_s": k[1], "bucket_s": k[2],
-             "n": int(a[0]), "vmin": a[1], "vmax": a[2], "vsum": a[3]} for k, a in acc.items()])
-    return len(acc)
+    rows = {k: a for k, a in acc.items() if k[1] == 1}
+    lo = int(t_ns[0] // SEC)
+    hi = int(t_ns[-1] // SEC)
+    chans = list(channels)
+    t = SummaryRow
+    session.execute(delete(t).where(t.machine_pk == machine_pk, t.channel.in_(chans),
+                                    t.level_s == 1, t.bucket_s.between(lo, hi)))
+    if rows:
+        session.execute(insert(t), [
+            {"machine_pk": machine_pk, "channel": k[0], "level_s": 1, "bucket_s": k[2],
+             "n": int(a[0]), "vmin": a[1], "vmax": a[2], "vsum": a[3]} for k, a in rows.items()])
+    m_lo, m_hi = (lo // MINUTE) * MINUTE, (hi // MINUTE) * MINUTE + MINUTE
+    session.execute(delete(t).where(t.machine_pk == machine_pk, t.channel.in_(chans),
+                                    t.level_s == MINUTE, t.bucket_s >= m_lo,
+                                    t.bucket_s < m_hi))
+    minute = ((t.bucket_s // MINUTE) * MINUTE).label("minute")
+    agg = (select(t.machine_pk, t.channel, literal(MINUTE), minute, func.sum(t.n),
+                  func.min(t.vmin), func.max(t.vmax), func.sum(t.vsum))
+           .where(t.machine_pk == machine_pk, t.channel.in_(chans), t.level_s == 1,
+                  t.bucket_s >= m_lo, t.bucket_s < m_hi)
+           .group_by(t.machine_pk, t.channel, minute))
+    session.execute(insert(t).from_select(
+        ["machine_pk", "channel", "level_s", "bucket_s", "n", "vmin", "vmax", "vsum"], agg))
+    return len(rows)
 
 
 @dataclass(frozen=True)
