@@ -34,6 +34,7 @@ from cranetwin.physics.actuators import (
 )
 from cranetwin.physics.chain import ChainParams, compile_chain
 from cranetwin.physics.dynamics import (
+    acceleration_correction,
     bias_forces,
     forward_dynamics,
     gravity_torques,
@@ -64,6 +65,7 @@ from cranetwin.physics.kinematics import (
 )
 
 __all__ = [
+    "acceleration_correction",
     "ChainParams",
     "CylinderPins",
     "actuator_torques",

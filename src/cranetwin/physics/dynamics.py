@@ -23,7 +23,7 @@ from cranetwin.errors import PhysicsError
 from cranetwin.model import Machine
 from cranetwin.physics import kernels as K
 from cranetwin.physics.chain import ChainParams, compile_chain
-from cranetwin.physics.kinematics import as_joint_array
+from cranetwin.physics.kinematics import as_columns, as_joint_array
 
 F64 = npt.NDArray[np.float64]
 RneaKernels = tuple[Callable[..., None], Callable[..., None]]
@@ -191,3 +191,37 @@ def forward_dynamics(
     m = mass_matrix(machine, qa, payload_kg)
     b = bias_forces(machine, qa, qda, payload_kg)
     return np.asarray(np.linalg.solve(m, (ta - b)[..., None])[..., 0], dtype=np.float64)
+
+
+def acceleration_correction(
+    machine: Machine,
+    q: npt.ArrayLike,
+    residual: npt.ArrayLike,
+    payload_kg: npt.ArrayLike = 0.0,
+    joints: npt.ArrayLike | None = None,
+) -> F64:
+    """Δqdd that makes a motion agree with the actuator loads (forward dynamics, Eq. 3/4).
+
+    For a motion (q, qd, qdd) and actuator loads tau with residual r = tau − ID(q, qd, qdd),
+    qdd + Δqdd with M_DD(q)·Δqdd_D = r_D is the forward-dynamics acceleration
+    M⁻¹(tau − C·qd − g) on the joints D whose loads are known (the others keep their qdd:
+    Δ = 0 there). Samples with a non-finite residual on a D joint get Δ = 0.
+
+    Args:
+        machine: Machine description.
+        q: Joint positions, shape (n, n_joints) [rad or m].
+        residual: tau − ID torques, shape (n, n_joints) [N·m or N].
+        payload_kg: Payload at the load point, scalar or (n,) [kg] (tool mass added).
+        joints: Booleans (n_joints,): the joints D; all when None.
+
+    Returns:
+        Δqdd, shape (n, n_joints) [rad/s² or m/s²].
+    """
+    (qa,) = _states(machine, q)
+    p = compile_chain(machine)
+    ra = np.ascontiguousarray(as_columns("residual", residual, qa.shape[0], p.n_joints))
+    use = (np.ones(p.n_joints, dtype=np.bool_) if joints is None
+           else np.asarray(joints, dtype=np.bool_).reshape(p.n_joints))
+    out = np.empty_like(qa)
+    K.accel_correction_batch(p.chain, qa, as_payload(payload_kg, qa.shape[0]), ra, use, out)
+    return out

@@ -918,3 +918,72 @@ def cylinder_forces_batch(pa, pb, v, params, out):  # type: ignore[no-untyped-de
             vk = v[i, k]
             out[i, k] = (pa[i, k] * params[k, 0] - pb[i, k] * params[k, 1]
                          - (params[k, 2] * math.tanh(vk / params[k, 3]) + params[k, 4] * vk))
+
+
+@njit(cache=True)
+def accel_correction_batch(chain, q, payload_kg, resid, use, out):  # type: ignore[no-untyped-def]
+    """Δqdd solving M_DD(q)·Δqdd_D = resid_D over samples (D: joints with ``use`` true; the
+    others keep Δ = 0), by Cholesky of the symmetric positive definite M_DD.
+
+    Args:
+        chain: Chain parameters.
+        q: Joint positions (n, nj); payload_kg (n,).
+        resid: Joint load residuals (n, nj) [N·m or N]; a non-finite residual on a D joint
+            makes that sample's Δ zero.
+        use: (nj,) booleans.
+        out: Δqdd (n, nj).
+    """
+    nj = int(chain[0])
+    work = np.empty((nj, 12))
+    comp = np.empty((nj, 22))
+    mm = np.empty((nj, nj))
+    idx = np.empty(nj, dtype=np.int64)
+    nd = 0
+    for j in range(nj):
+        if use[j]:
+            idx[nd] = j
+            nd += 1
+    a = np.empty((nd, nd))
+    y = np.empty(nd)
+    for k in range(q.shape[0]):
+        for j in range(nj):
+            out[k, j] = 0.0
+        ok = True
+        for r in range(nd):
+            y[r] = resid[k, idx[r]]
+            if not np.isfinite(y[r]):
+                ok = False
+        if not ok or nd == 0:
+            continue
+        mass_matrix_into(chain, q[k], payload_kg[k], mm, work, comp)
+        for r in range(nd):
+            for c in range(nd):
+                a[r, c] = mm[idx[r], idx[c]]
+        # Cholesky a = L·Lᵀ in place (lower triangle)
+        for c in range(nd):
+            s = a[c, c]
+            for p in range(c):
+                s -= a[c, p] * a[c, p]
+            if s <= 0.0:
+                ok = False
+                break
+            a[c, c] = math.sqrt(s)
+            for r in range(c + 1, nd):
+                t = a[r, c]
+                for p in range(c):
+                    t -= a[r, p] * a[c, p]
+                a[r, c] = t / a[c, c]
+        if not ok:
+            continue
+        for r in range(nd):  # L z = y
+            t = y[r]
+            for p in range(r):
+                t -= a[r, p] * y[p]
+            y[r] = t / a[r, r]
+        for r in range(nd - 1, -1, -1):  # Lᵀ x = z
+            t = y[r]
+            for p in range(r + 1, nd):
+                t -= a[p, r] * y[p]
+            y[r] = t / a[r, r]
+        for r in range(nd):
+            out[k, idx[r]] = y[r]
