@@ -88,13 +88,15 @@ def get_analytics(key: FleetKey, machine: MachineDep, services: ServicesDep,
 
 
 @router.get("/report", summary="Report download (fleet)",
-            responses={200: {"content": {"application/pdf": {}, "text/csv": {},
-                                         "text/html": {}},
-                             "description": "the report file"}},
+            responses={200: {"content": {"application/pdf": {}, "application/zip": {},
+                                         "text/csv": {}, "text/html": {}},
+                             "description": "the report file (csv: a zip of CSV tables; "
+                                            "a single CSV when the range holds no samples)"}},
             response_class=Response)
 def get_report(
     key: FleetKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
     format: Annotated[Literal["pdf", "csv", "html"], Query(description="file format")] = "pdf",
 ) -> Response:
-    """A maintenance report of [from, to) as PDF, CSV or HTML."""
+    """The maintenance report of [from, to) (cranetwin.reports): load spectra, damage and
+    remaining life, duty class, events, productivity — as PDF, HTML or a zip of CSV tables."""
     return services.report(machine, rng, format)

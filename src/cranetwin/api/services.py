@@ -323,10 +323,21 @@ class Services:
         return analytics_json(report, rng)
 
     def report(self, rec: MachineRecord, rng: TimeRange, fmt: str) -> Response:
-        """A report file of the range (CSV, HTML or PDF of the analytics)."""
-        from cranetwin.api.analytics_view import render
+        """The maintenance report of the range from :func:`cranetwin.reports.render` (PDF, HTML,
+        or a zip of CSV tables); a one-table stub file when the range holds no samples."""
+        from cranetwin.api.analytics_view import analytics_json, analytics_report, render
 
-        body, media, name = render(self.analytics(rec, rng), fmt, rec.machine_id)
+        rng.limit(self.settings.max_analytics_range_s, "a report")
+        machine = self.backend.model_of(rec)
+        rep = analytics_report(self.backend, self.replayer, machine, rec.machine_id, rng)
+        if rep is None:
+            body, media, name = render(analytics_json(None, rng), fmt, rec.machine_id)
+        else:
+            from cranetwin.reports import render as render_report
+
+            source = f"cranetwin API: machine {rec.machine_id}, {iso(rng.t0_s)} – {iso(rng.t1_s)}"
+            body, media, name = render_report(rep, machine, fmt, source)
+            name = f"{rec.machine_id}-{name}"
         return Response(body, media_type=media,
                         headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
