@@ -921,6 +921,77 @@ def cylinder_forces_batch(pa, pb, v, params, out):  # type: ignore[no-untyped-de
 
 
 @njit(cache=True)
+def _chol_solve(a, y, nd):  # type: ignore[no-untyped-def]
+    """Solve a[:nd, :nd]·x = y[:nd] for symmetric positive definite a (overwritten by its
+    Cholesky factor), x into y. False if a is not positive definite."""
+    for c in range(nd):
+        s = a[c, c]
+        for p in range(c):
+            s -= a[c, p] * a[c, p]
+        if s <= 0.0:
+            return False
+        a[c, c] = math.sqrt(s)
+        for r in range(c + 1, nd):
+            t = a[r, c]
+            for p in range(c):
+                t -= a[r, p] * a[c, p]
+            a[r, c] = t / a[c, c]
+    for r in range(nd):  # L z = y
+        t = y[r]
+        for p in range(r):
+            t -= a[r, p] * y[p]
+        y[r] = t / a[r, r]
+    for r in range(nd - 1, -1, -1):  # Lᵀ x = z
+        t = y[r]
+        for p in range(r + 1, nd):
+            t -= a[p, r] * y[p]
+        y[r] = t / a[r, r]
+    return True
+
+
+@njit(cache=True)
+def accel_correction_interp(mm, i0, i1, frac, resid, use, out):  # type: ignore[no-untyped-def]
+    """As :func:`accel_correction_batch` with M given at coarse instants and interpolated:
+    row k uses M = mm[i0[k]] + frac[k]·(mm[i1[k]] − mm[i0[k]]).
+
+    Args:
+        mm: Mass matrices at the coarse instants (ns, nj, nj).
+        i0, i1: Coarse rows bracketing each output row (n,); frac (n,) in [0, 1).
+        resid: Residuals (n, nj); use (nj,) booleans; out: Δqdd (n, nj).
+    """
+    nj = mm.shape[1]
+    idx = np.empty(nj, dtype=np.int64)
+    nd = 0
+    for j in range(nj):
+        if use[j]:
+            idx[nd] = j
+            nd += 1
+    a = np.empty((nd, nd))
+    y = np.empty(nd)
+    for k in range(resid.shape[0]):
+        for j in range(nj):
+            out[k, j] = 0.0
+        ok = True
+        for r in range(nd):
+            y[r] = resid[k, idx[r]]
+            if not np.isfinite(y[r]):
+                ok = False
+        if not ok or nd == 0:
+            continue
+        f = frac[k]
+        p0 = i0[k]
+        p1 = i1[k]
+        for r in range(nd):
+            for c in range(nd):
+                m0 = mm[p0, idx[r], idx[c]]
+                a[r, c] = m0 + f * (mm[p1, idx[r], idx[c]] - m0)
+        if not _chol_solve(a, y, nd):
+            continue
+        for r in range(nd):
+            out[k, idx[r]] = y[r]
+
+
+@njit(cache=True)
 def accel_correction_batch(chain, q, payload_kg, resid, use, out):  # type: ignore[no-untyped-def]
     """Δqdd solving M_DD(q)·Δqdd_D = resid_D over samples (D: joints with ``use`` true; the
     others keep Δ = 0), by Cholesky of the symmetric positive definite M_DD.
@@ -959,31 +1030,7 @@ def accel_correction_batch(chain, q, payload_kg, resid, use, out):  # type: igno
         for r in range(nd):
             for c in range(nd):
                 a[r, c] = mm[idx[r], idx[c]]
-        # Cholesky a = L·Lᵀ in place (lower triangle)
-        for c in range(nd):
-            s = a[c, c]
-            for p in range(c):
-                s -= a[c, p] * a[c, p]
-            if s <= 0.0:
-                ok = False
-                break
-            a[c, c] = math.sqrt(s)
-            for r in range(c + 1, nd):
-                t = a[r, c]
-                for p in range(c):
-                    t -= a[r, p] * a[c, p]
-                a[r, c] = t / a[c, c]
-        if not ok:
+        if not _chol_solve(a, y, nd):
             continue
-        for r in range(nd):  # L z = y
-            t = y[r]
-            for p in range(r):
-                t -= a[r, p] * y[p]
-            y[r] = t / a[r, r]
-        for r in range(nd - 1, -1, -1):  # Lᵀ x = z
-            t = y[r]
-            for p in range(r + 1, nd):
-                t -= a[p, r] * y[p]
-            y[r] = t / a[r, r]
         for r in range(nd):
             out[k, idx[r]] = y[r]
