@@ -43,11 +43,39 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+def load_history(machine: Machine, res: Any, keep: np.ndarray) -> Any:
+    """:class:`cranetwin.analytics.LoadHistory` of the kept instants of a replay result."""
+    from cranetwin.analytics import LoadHistory
+    from cranetwin.physics import horizontal_reach
+
+    q = res.q[keep]
+    return LoadHistory.from_arrays(
+        machine, t_s=res.t_s[keep], cyl_force=res.cyl_force[keep], q=q, qd=res.qd[keep],
+        payload_kg=np.maximum(res.payload_kg[keep], 0.0), reach_m=horizontal_reach(machine, q),
+        joint_wrench=res.joint_wrench[keep], rod_s=res.rod_s[keep], rod_v=res.rod_v[keep],
+        p_a=res.p_a[keep], p_b=res.p_b[keep])
+
+
+def stored_events(machine_id: str, events: list[Any]) -> list[Any]:
+    """Analytics events as storage events (message and details in the evidence)."""
+    from cranetwin.storage import Event as StoredEvent
+
+    out = []
+    for e in events:
+        msg = (f"{e.kind.replace('_', ' ')} on {e.component}: {e.value:.4g} {e.unit} "
+               f"(limit {e.limit:.4g} {e.unit})")
+        evidence = {"message": msg, "component": e.component, "value": float(e.value),
+                    "limit": float(e.limit), "unit": e.unit, "t_end": float(e.t_end),
+                    **{k: float(v) for k, v in e.evidence.items()}}
+        out.append(StoredEvent(machine_id, float(e.t_start), e.kind, e.severity,
+                               _jsonable(evidence)))
+    return out
+
+
 def analytics_report(backend: Any, replayer: Replayer, machine: Machine, machine_id: str,
                      rng: TimeRange) -> Any:
     """The :class:`cranetwin.analytics.AnalyticsReport` of [from, to), or None without data."""
-    from cranetwin.analytics import AnalyticsState, LoadHistory
-    from cranetwin.physics import horizontal_reach
+    from cranetwin.analytics import AnalyticsState
 
     state = AnalyticsState(machine)
     a = rng.t0_s
@@ -66,13 +94,7 @@ def analytics_report(backend: Any, replayer: Replayer, machine: Machine, machine
             if res is not None:
                 k = (res.t_s >= a) & (res.t_s < b)
                 if int(k.sum()) >= 2:
-                    q = res.q[k]
-                    h = LoadHistory.from_arrays(
-                        machine, t_s=res.t_s[k], cyl_force=res.cyl_force[k], q=q,
-                        qd=res.qd[k], payload_kg=np.maximum(res.payload_kg[k], 0.0),
-                        reach_m=horizontal_reach(machine, q), joint_wrench=res.joint_wrench[k],
-                        rod_s=res.rod_s[k], rod_v=res.rod_v[k], p_a=res.p_a[k], p_b=res.p_b[k])
-                    state.update(h)
+                    state.update(load_history(machine, res, k))
                     folded = True
         a = b
     return state.report() if folded else None

@@ -212,6 +212,26 @@ class TwinWorker:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
 
+    def _store_events(self, rec: MachineRecord, machine: Machine, res: object,
+                      keep: npt.NDArray[np.bool_]) -> None:
+        """Detect events in the window (cranetwin.analytics) and store them before the window's
+        commit: a redone window stores the same events, which storage ignores (unique on
+        machine, time, kind). Runs spanning a window edge are reported once per window."""
+        from cranetwin.analytics import EventDetector
+        from cranetwin.api.analytics_view import load_history, stored_events
+
+        if int(np.count_nonzero(keep)) < 2:
+            return
+        try:
+            det = EventDetector(machine)
+            det.update(load_history(machine, res, keep))
+            events = stored_events(rec.machine_id, det.all_events())
+        except CraneTwinError as exc:
+            log.warning("machine %s: event detection failed: %s", rec.machine_id, exc)
+            return
+        if events:
+            self.backend.store.add_events(events)
+
     def process_window(self, rec: MachineRecord, prog: Progress) -> Progress:
         """Replay [watermark, watermark + window), commit its summaries and progress together."""
         from cranetwin.physics import horizontal_reach
@@ -245,6 +265,7 @@ class TwinWorker:
                               1.0 / grid_hz, s.payload_lift_threshold_kg)
         if t.size:
             new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
+            self._store_events(rec, machine, res, keep)
         self.backend.commit_window(new, names, t, values)
         if self.metrics is not None:
             self.metrics.worker_windows.labels(rec.machine_id).inc()
