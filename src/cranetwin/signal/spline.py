@@ -16,13 +16,50 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 from numba import njit
-from scipy.linalg import solve_banded
 
 from cranetwin.errors import SignalError
 
 F64 = npt.NDArray[np.float64]
 
 _UNIFORM_RTOL = 1e-9
+
+
+@njit(cache=True)
+def _natural_coefficients(x, y, coef):  # type: ignore[no-untyped-def]
+    """Knot second derivatives M by the Thomas algorithm on the (diagonally dominant)
+    tridiagonal system of the module docstring, natural ends M_0 = M_{n-1} = 0; then the
+    pieces coef[i] = (y_i, b_i, c_i, d_i) per channel, shape (n−1, 4, k)."""
+    n = x.shape[0]
+    k = y.shape[1]
+    m = np.zeros((n, k))
+    if n > 2:
+        cp = np.empty(n)  # modified super-diagonal
+        dp = np.empty((n, k))
+        for i in range(1, n - 1):
+            h0 = x[i] - x[i - 1]
+            h1 = x[i + 1] - x[i]
+            diag = 2.0 * (h0 + h1)
+            if i > 1:
+                diag -= h0 * cp[i - 1]
+            cp[i] = h1 / diag
+            for j in range(k):
+                rhs = 6.0 * ((y[i + 1, j] - y[i, j]) / h1 - (y[i, j] - y[i - 1, j]) / h0)
+                if i > 1:
+                    rhs -= h0 * dp[i - 1, j]
+                dp[i, j] = rhs / diag
+        for j in range(k):
+            m[n - 2, j] = dp[n - 2, j]
+        for i in range(n - 3, 0, -1):
+            for j in range(k):
+                m[i, j] = dp[i, j] - cp[i] * m[i + 1, j]
+    for i in range(n - 1):
+        h = x[i + 1] - x[i]
+        for j in range(k):
+            delta = (y[i + 1, j] - y[i, j]) / h
+            coef[i, 0, j] = y[i, j]
+            coef[i, 1, j] = delta - h * (2.0 * m[i, j] + m[i + 1, j]) / 6.0
+            coef[i, 2, j] = m[i, j] / 2.0
+            coef[i, 3, j] = (m[i + 1, j] - m[i, j]) / (6.0 * h)
 
 
 @njit(cache=True)
@@ -79,21 +116,8 @@ class NaturalCubicSpline:
         if not (np.all(np.isfinite(xa)) and np.all(np.isfinite(y2))):
             raise SignalError("spline knots and values must be finite (drop NaN samples first)")
         n, k = y2.shape
-        m = np.zeros((n, k))
-        delta = np.diff(y2, axis=0) / h[:, None]
-        if n > 2:
-            ab = np.zeros((3, n - 2))
-            ab[0, 1:] = h[1:-1]
-            ab[1, :] = 2.0 * (h[:-1] + h[1:])
-            ab[2, :-1] = h[1:-1]
-            rhs = 6.0 * (delta[1:] - delta[:-1])
-            m[1:-1] = solve_banded((1, 1), ab, rhs, check_finite=False)
-        hh = h[:, None]
         coef = np.empty((n - 1, 4, k))
-        coef[:, 0] = y2[:-1]
-        coef[:, 1] = delta - hh * (2.0 * m[:-1] + m[1:]) / 6.0
-        coef[:, 2] = m[:-1] / 2.0
-        coef[:, 3] = (m[1:] - m[:-1]) / (6.0 * hh)
+        _natural_coefficients(xa, np.ascontiguousarray(y2), coef)
         self.x: F64 = xa
         self.k = k
         self._coef = coef.reshape(n - 1, 4 * k)
