@@ -167,6 +167,35 @@ def test_summaries_agree_with_raw_samples_and_never_double_count(
     np.testing.assert_allclose(summ.mean, mean, rtol=1e-12)
 
 
+def test_data_range_and_next_block_start_follow_the_stored_blocks(store: Store) -> None:
+    assert store.data_range("crane-1") is None
+    assert store.next_block_start("crane-1", 0.0) is None
+    blocks = [make_block("crane-1", s, n=100) for s in (3, 0, 7)]  # 1 s each, gaps between
+    store.write_blocks(blocks)
+    store.write_blocks([make_block("crane-2", 20)])  # another machine's data is not counted
+    lo, hi = store.data_range("crane-1") or (0.0, 0.0)
+    assert lo == pytest.approx(min(b.t0_ns for b in blocks) / 1e9, abs=1e-6)
+    assert hi == pytest.approx(max(b.t_end_ns for b in blocks) / 1e9, abs=1e-6)
+    b3 = blocks[0]
+    after = (b3.t_end_ns + 1_000_000) / 1e9  # just past block 3: block 7 is next
+    assert store.next_block_start("crane-1", after) == pytest.approx(blocks[2].t0_ns / 1e9,
+                                                                     abs=1e-6)
+    assert store.next_block_start("crane-1", hi + 1.0) is None
+    with pytest.raises(UnknownMachineError):
+        store.data_range("nope")
+
+
+def test_summaries_repeated_channel_counted_once(store: Store) -> None:
+    store.write_blocks([make_block("crane-1", s, n=250) for s in range(30)])
+    store.rollup()
+    raw = store.read_samples("crane-1", 0, 2e9)
+    t0, t1 = raw.t_s[0], raw.t_s[-1] + 1
+    once = store.summaries("crane-1", ["lift_s"], t0, t1, max_points=3)
+    twice = store.summaries("crane-1", ["lift_s", "lift_s"], t0, t1, max_points=3)
+    assert np.array_equal(twice.count[:, 1], once.count[:, 0])
+    assert int(once.count.sum()) == raw.t_s.size
+
+
 def test_summaries_reject_bad_range(store: Store) -> None:
     with pytest.raises(StorageError):
         store.summaries("crane-1", ["lift_s"], 10.0, 10.0, 100)

@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from cranetwin.api.errors import ApiError
@@ -28,7 +27,6 @@ from cranetwin.samples import SampleArrays
 from cranetwin.storage import Store
 from cranetwin.storage import apikeys as keyrepo
 from cranetwin.storage import summaries as summ
-from cranetwin.storage.blocks import BlockRow
 from cranetwin.storage.machines import get_row
 
 F64 = npt.NDArray[np.float64]
@@ -212,12 +210,7 @@ class Backend:
 
     def data_range(self, machine_id: str) -> tuple[float, float] | None:
         """(first, last) stored sample time [s], or None when nothing is stored."""
-        b = BlockRow
-        with self.session() as s:
-            pk = self._pk(s, machine_id)
-            lo, hi = s.execute(select(func.min(b.t_start_ns), func.max(b.t_end_ns))
-                               .where(b.machine_pk == pk)).one()
-        return None if lo is None else (lo / 1e9, hi / 1e9)
+        return self.store.data_range(machine_id)
 
     def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
         """Samples with t in [t0_s, t1_s]."""
@@ -241,12 +234,8 @@ class Backend:
 
     def next_sample_time(self, machine_id: str, after_s: float) -> float | None:
         """Start of the first stored block ending at or after ``after_s`` [s], or None."""
-        b = BlockRow
-        with self.session() as s:
-            pk = self._pk(s, machine_id)
-            r = s.execute(select(func.min(b.t_start_ns)).where(
-                b.machine_pk == pk, b.t_end_ns >= int(round(after_s * 1e9)))).scalar()
-        return None if r is None else max(r / 1e9, after_s)
+        r = self.store.next_block_start(machine_id, after_s)
+        return None if r is None else max(r, after_s)
 
     # -- summaries ----------------------------------------------------------------------------
     def finest_interval_s(self) -> float:

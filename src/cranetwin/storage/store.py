@@ -259,6 +259,36 @@ class Store:
         t_u, first = np.unique(t_all, return_index=True)  # sorted, first occurrence kept
         return SampleArrays(machine_id, t_u.astype(np.float64) / 1e9, tuple(chans), vals[first])
 
+    def data_range(self, machine_id: str) -> tuple[float, float] | None:
+        """Time span of the stored samples of one machine (one index probe).
+
+        Returns:
+            ``(first, last)``: start of the oldest block and end of the newest block [s since
+            the epoch], or None when nothing is stored.
+
+        Raises:
+            UnknownMachineError: No such machine.
+        """
+        b = blocks_mod.BlockRow
+        with self._session() as s:
+            pk = self._machine_pk(s, machine_id)
+            lo, hi = s.execute(select(func.min(b.t_start_ns), func.max(b.t_end_ns))
+                               .where(b.machine_pk == pk)).one()
+        return None if lo is None else (int(lo) / 1e9, int(hi) / 1e9)
+
+    def next_block_start(self, machine_id: str, after_s: float) -> float | None:
+        """Start of the oldest stored block that ends at or after ``after_s`` [s], or None.
+
+        Raises:
+            UnknownMachineError: No such machine.
+        """
+        b = blocks_mod.BlockRow
+        with self._session() as s:
+            pk = self._machine_pk(s, machine_id)
+            r = s.execute(select(func.min(b.t_start_ns)).where(
+                b.machine_pk == pk, b.t_end_ns >= _ns(after_s))).scalar()
+        return None if r is None else int(r) / 1e9
+
     def stats(self, machine_id: str | None = None) -> StorageStats:
         """Number of blocks and samples and compressed bytes stored (one machine or all)."""
         b = blocks_mod.BlockRow

@@ -302,6 +302,36 @@ def choose_width(t0_s: float, t1_s: float, max_points: int) -> tuple[int, int, i
         width += level
 
 
+
+def _stored_rows(session: Session, machine_pk: int, level: int, chans: tuple[str, ...],
+                 col: dict[str, int], origin: int, end: int, stale: dict[int, set[str]],
+                 recs: _Records) -> None:
+    """Add the stored ``level`` rows of ``chans`` in [origin, end) to ``recs``, one channel per
+    query, fetched as plain column tuples (Core, no ORM rows) straight into numpy arrays.
+
+    Rows of a minute in ``stale`` whose channel was recomputed from the blocks are skipped.
+    """
+    t = SummaryRow.__table__.c
+    conn = session.connection()
+    for ch in dict.fromkeys(chans):  # each channel once (a repeated name fills its last column)
+        stmt = (select(t.bucket_s, t.n, t.vmin, t.vmax, t.vsum)
+                .where(t.machine_pk == machine_pk, t.level_s == level, t.channel == ch,
+                       t.bucket_s >= origin, t.bucket_s < end))
+        rows = conn.execute(stmt).fetchall()
+        if not rows:
+            continue
+        b, n, lo, hi, sm = zip(*rows, strict=True)
+        sec = np.fromiter(b, dtype=np.int64, count=len(rows))
+        cnt = np.fromiter(n, dtype=np.int64, count=len(rows))
+        vlo = np.fromiter(lo, dtype=np.float64, count=len(rows))
+        vhi = np.fromiter(hi, dtype=np.float64, count=len(rows))
+        vsm = np.fromiter(sm, dtype=np.float64, count=len(rows))
+        skip = [m for m, names in stale.items() if ch in names]
+        if skip:  # superseded by the on-the-fly recomputation from the blocks
+            keep = ~np.isin(sec, np.asarray(skip, dtype=np.int64))
+            sec, cnt, vlo, vhi, vsm = sec[keep], cnt[keep], vlo[keep], vhi[keep], vsm[keep]
+        recs.add(sec, col[ch], cnt, vlo, vhi, vsm)
+
 def query(session: Session, machine_pk: int, machine_id: str, channels: Iterable[str],
           t0_s: float, t1_s: float, max_points: int) -> Summaries:
     """Bucketed aggregates over the bucket grid covering [t0_s, t1_s) (whole buckets)."""
@@ -326,17 +356,7 @@ def query(session: Session, machine_pk: int, machine_id: str, channels: Iterable
                     recs.add(np.array([minute], dtype=np.int64), col[ch],
                              np.array([a[0]], dtype=np.int64), np.array([a[1]]),
                              np.array([a[2]]), np.array([a[3]]))
-    rows = session.execute(
-        select(SummaryRow.channel, SummaryRow.bucket_s, SummaryRow.n, SummaryRow.vmin,
-               SummaryRow.vmax, SummaryRow.vsum)
-        .where(SummaryRow.machine_pk == machine_pk, SummaryRow.level_s == level,
-               SummaryRow.channel.in_(chans), SummaryRow.bucket_s >= origin,
-               SummaryRow.bucket_s < end)).all()
-    for ch, b, n, lo, hi, sm in rows:
-        if ch in stale.get(int(b), ()):
-            continue  # superseded by the on-the-fly recomputation above
-        recs.add(np.array([b], dtype=np.int64), col[ch], np.array([n], dtype=np.int64),
-                 np.array([lo]), np.array([hi]), np.array([sm]))
+    _stored_rows(session, machine_pk, level, chans, col, origin, end, stale, recs)
     shape = (m, len(chans))
     vmin, vmax = np.full(shape, np.inf), np.full(shape, -np.inf)
     vsum, count = np.zeros(shape), np.zeros(shape, dtype=np.int64)
