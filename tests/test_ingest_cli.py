@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from typer.testing import CliRunner
 
 from cranetwin.cli import app
+from cranetwin.errors import CraneTwinError
 from cranetwin.storage import Store
 
 
@@ -40,3 +42,32 @@ def test_machines_add_rejects_bad_input(sqlite_url: str) -> None:
                     ).exit_code == 0
     dup = r.invoke(app, ["machines", "add", "y", "--wire-id", "1", "--db", sqlite_url])
     assert dup.exit_code != 0
+
+
+def test_send_reports_the_given_position_in_its_status(sqlite_url: str) -> None:
+    """`cranetwin send --position LAT,LON` puts that GPS position in its status datagrams (the
+    demo passes each crane's registered location, so status reports keep it)."""
+    from conftest import running_daemon
+
+    secret = "00112233445566778899aabbccddeeff"
+    store = Store.open(sqlite_url)
+    store.add_machine("crane-5", 5, bytes.fromhex(secret))
+    with running_daemon(store) as d:
+        host = f"{d.address[0]}:{d.address[1]}"
+        out = CliRunner().invoke(app, [
+            "send", "--machine", "crane-5", "--wire-id", "5", "--key", secret,
+            "--scenario", "synthetic", "--duration", "0.3", "--batch", "10", "--host", host,
+            "--speed", "4", "--position", "62.61,29.78", "--json"])
+        assert out.exit_code == 0, out.output
+    m = store.get_machine("crane-5")
+    assert m.latitude_deg == pytest.approx(62.61, abs=1e-6)
+    assert m.longitude_deg == pytest.approx(29.78, abs=1e-6)
+
+
+@pytest.mark.parametrize("bad", ["62.6", "62.6,29.7,1", "north,east", "95,20", "60,nan"])
+def test_send_rejects_a_bad_position(bad: str) -> None:
+    from cranetwin.cli.send import parse_position
+
+    with pytest.raises(CraneTwinError, match="--position"):
+        parse_position(bad)
+    assert parse_position("-33.9,151.2") == (-33.9, 151.2)

@@ -99,6 +99,12 @@ def cranetwin_command() -> list[str]:
     return [sys.executable, "-c", "from cranetwin.cli import main; main()"]
 
 
+def demo_location(i: int) -> tuple[float, float]:
+    """GPS position of the demo's ``i``-th crane (0-based): latitude, longitude [deg], a few
+    km apart near Joensuu. The crane is registered there and its sender reports it."""
+    return 62.60 + 0.01 * i, 29.76 + 0.02 * i
+
+
 class FleetDemo:
     """Start, watch and stop the demo's processes. Use :meth:`run` or start/stop yourself."""
 
@@ -200,10 +206,11 @@ class FleetDemo:
                 k += 1
             mid = f"crane-{k}"
             payload = float(c.payloads_kg[i % len(c.payloads_kg)])
+            lat, lon = demo_location(i)
             created = self._request("POST", "/api/v1/machines", admin, {
                 "machine_id": mid, "model": c.model,
                 "name": f"Crane {k} ({payload:.0f} kg logs)",
-                "location": {"lat": 62.60 + 0.01 * i, "lon": 29.76 + 0.02 * i}})
+                "location": {"lat": lat, "lon": lon}})
             scenario = self._scenario_file(mid, payload, seed=i + 1)
             self._spawn(f"send-{mid}", ["send", "--machine", mid,
                                         "--wire-id", str(created["wire_id"]),
@@ -211,7 +218,9 @@ class FleetDemo:
                                         "--scenario", str(scenario), "--host", c.ingest,
                                         "--speed", f"{c.speed}", "--seed", str(i + 1),
                                         "--sim-seconds", f"{c.scenario_s}",
-                                        "--batch", str(c.batch)])
+                                        "--batch", str(c.batch),
+                                        # status datagrams report where it was registered
+                                        "--position", f"{lat!r},{lon!r}"])
             self.machine_ids.append(mid)
         public = c.public_url or c.api
         url = f"{public}/?key={self.viewer_key}"

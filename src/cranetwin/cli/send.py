@@ -33,6 +33,24 @@ def parse_key(text: str) -> bytes:
     return key
 
 
+def parse_position(text: str) -> tuple[float, float]:
+    """``"LAT,LON"`` [deg] → (latitude, longitude).
+
+    Raises:
+        CraneTwinError: Not two numbers, or outside [-90, 90] × [-180, 180].
+    """
+    parts = text.split(",")
+    try:
+        lat, lon = (float(x) for x in parts)
+    except ValueError:
+        raise CraneTwinError(f"--position must be LAT,LON in degrees (e.g. 62.6,29.76), got "
+                             f"{text!r}") from None
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+        raise CraneTwinError(f"--position {text!r} is outside latitude [-90, 90] and longitude "
+                             "[-180, 180] degrees")
+    return lat, lon
+
+
 def send(
     machine: str = typer.Option(..., "--machine", help="Machine id (with --machines N: prefix "
                                 "of <ID>-<i>)."),
@@ -54,6 +72,9 @@ def send(
                                           "in memory)."),
     sim_seconds: float = typer.Option(120.0, help="Simulated seconds, replayed cyclically."),
     seed: int = typer.Option(0, help="Seed of the simulated sensors."),
+    position: str = typer.Option("61.0,25.0", help="GPS position reported in the status "
+                                 "datagrams, LAT,LON [deg] (the location the machine was "
+                                 "registered with)."),
     as_json: bool = typer.Option(False, "--json", help="Print the counters as JSON at the end."),
     log_level: str = typer.Option("INFO", help="Logging level."),
 ) -> None:
@@ -78,6 +99,7 @@ def send(
         raise CraneTwinError(f"no machine key: give --key, --key-file or set ${KEY_ENV}")
     secret = parse_key(key)
     server = parse_host(host)
+    position_deg = parse_position(position)
     m = load_machine(model)
     layout = Layout.from_channels(m.channels)
     ids = [machine] if machines == 1 else [f"{machine}-{i}" for i in range(machines)]
@@ -99,7 +121,7 @@ def send(
             loop.add_signal_handler(sig, stop.set)
         stats = await run_fleet(keys, server, sources, period_ns=int(round(period_s * 1e9)),
                                 speed=speed, duration_s=duration, batch_samples=batch,
-                                spill_path=spill_dir, stop=stop)
+                                spill_path=spill_dir, stop=stop, position_deg=position_deg)
         return [dict(s.__dict__, bytes_per_sample=s.bytes_per_sample) for s in stats]
 
     result = asyncio.run(main())
