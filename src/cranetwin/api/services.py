@@ -23,6 +23,7 @@ from cranetwin.api.backend import Backend, MachineRecord, Progress
 from cranetwin.api.cache import LruCache
 from cranetwin.api.errors import ApiError
 from cranetwin.api.live import Follower, LiveHub
+from cranetwin.api.live_payload import LivePayload, public_kg
 from cranetwin.api.metrics import Metrics
 from cranetwin.api.params import TimeRange, iso, parse_time
 from cranetwin.api.replayer import Replayer
@@ -69,6 +70,8 @@ class Services:
         self.live = LiveHub(bus)
         self.replayer = Replayer()
         self.worker: TwinWorker | None = None
+        self.live_payload: dict[str, LivePayload] = {}
+        """Live payload estimators of the machines watched live (created by their follower)."""
         self._worker_task: asyncio.Task[None] | None = None
 
     @classmethod
@@ -123,10 +126,11 @@ class Services:
         now = time.time()
         alarms = self.backend.count_events(rec.machine_id, now - 86400.0, now, "alarm")
         loc = Location(lat=rec.location[0], lon=rec.location[1]) if rec.location else None
-        payload = None
-        if prog is not None and prog.last_payload_kg is not None and math.isfinite(
-                prog.last_payload_kg):
-            payload = round(prog.last_payload_kg, 1)
+        payload = public_kg(prog.last_payload_kg if prog is not None else None)
+        lp = self.live_payload.get(rec.machine_id)
+        if lp is not None and lp.kg is not None and lp.t_s is not None and (
+                prog is None or lp.t_s > prog.watermark_s):  # watched live: fresher
+            payload = public_kg(lp.kg)
         return MachinePublic(machine_id=rec.machine_id, name=rec.name, model=rec.model,
                              status=self._status(last), last_seen=iso(last), payload_kg=payload,
                              alarms=alarms, location=loc)
@@ -145,9 +149,11 @@ class Services:
         rng = self.backend.data_range(rec.machine_id)
 
         def extra() -> dict[str, Any]:
-            prog = self.backend.cached_progress(rec.machine_id)
-            kg = prog.last_payload_kg if prog is not None else None
-            return {"payload_kg": None if kg is None or not math.isfinite(kg) else round(kg, 1)}
+            lp = self.live_payload.get(rec.machine_id)
+            if lp is None:
+                lp = self.live_payload[rec.machine_id] = LivePayload(
+                    rec.machine_id, machine, self.backend, self.replayer)
+            return {"payload_kg": public_kg(lp.value())}
 
         def on_frame(n_clients: int) -> None:
             self.metrics.live_frames.inc(n_clients)

@@ -1,0 +1,65 @@
+"""Live payload estimate: a replay of the newest stored samples gives the payload being held now
+(synthetic samples with a known payload schedule), falls back to the twin worker's estimate, and
+is shown as a non-negative number or null."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from cranetwin.api.backend import Backend, Progress
+from cranetwin.api.live_payload import LivePayload, public_kg
+from cranetwin.api.replayer import Replayer
+from cranetwin.api.synthetic import PAYLOAD_KG, kinematic_samples, tiled_blocks
+from cranetwin.model import load_machine
+
+T0 = 1795420800.0  # a whole minute; the payload is PAYLOAD_KG in [T0+30, T0+60), 0 after
+MID = "crane-lp"
+MACHINE = load_machine("patu655")
+
+
+def _write(b: Backend, start: float, seconds: float, seq0: int) -> None:
+    base = kinematic_samples(MACHINE, 120.0)
+    b.store.write_blocks(list(tiled_blocks(MID, MACHINE, start, seconds, 1.0, base=base,
+                                           seq0=seq0, origin_s=T0)))
+
+
+def test_live_estimate_follows_the_held_payload(sqlite_url: str) -> None:
+    b = Backend.open(sqlite_url)
+    b.store.add_machine(MID, wire_id=8, secret=b"k" * 32)
+    now = [0.0]
+    lp = LivePayload(MID, MACHINE, b, Replayer(), clock=lambda: now[0])
+    assert lp.value() is None  # nothing stored, no worker estimate
+    lp.join()
+    assert lp.kg is None
+    _write(b, T0, 52.0, 0)  # newest sample at T0+52: holding PAYLOAD_KG
+    now[0] = 1.0  # not due yet (every_s = 2 s since the first call at 0)
+    assert lp.value() is None and lp.kg is None
+    now[0] = 2.0  # due
+    assert lp.value() is None
+    lp.join()
+    now[0] = 10.0
+    assert lp.value() == pytest.approx(PAYLOAD_KG, rel=0.02)
+    assert lp.t_s == pytest.approx(T0 + 50.0, abs=0.02)
+    _write(b, T0 + 52.0, 28.0, 52)  # newest sample at T0+80: released at T0+60
+    assert lp.refresh() == pytest.approx(0.0, abs=0.02 * PAYLOAD_KG)
+    b.close()
+
+
+def test_falls_back_to_the_worker_estimate(sqlite_url: str) -> None:
+    b = Backend.open(sqlite_url)
+    b.store.add_machine(MID, wire_id=8, secret=b"k" * 32)
+    b.save_progress(Progress.empty(MID, T0))
+    b.save_progress(Progress(**{**Progress.empty(MID, T0).__dict__, "last_payload_kg": 321.0}))
+    lp = LivePayload(MID, MACHINE, b, Replayer())
+    assert lp.refresh() is None  # no samples: no live estimate
+    assert lp.value() == 321.0
+    lp.join()
+    b.close()
+
+
+@pytest.mark.parametrize(("kg", "shown"), [(None, None), (math.nan, None), (-0.31, 0.0),
+                                           (412.349, 412.3), (0.0, 0.0)])
+def test_public_kg(kg: float | None, shown: float | None) -> None:
+    assert public_kg(kg) == shown
