@@ -59,3 +59,27 @@ def test_joint_moments_match_simulator_truth(rec: Recording, e: float, bound: fl
         osc_t = np.std(sosfiltfilt(sos, truth[:, j, 1]))
         osc_d = np.std(sosfiltfilt(sos, dyn[:, j, 1]))
         assert abs(osc_d / osc_t - 1.0) < (0.02 if e == 0 else 0.35)
+
+
+def test_rod_in_end_stop_keeps_kinematic_acceleration(rec: Recording) -> None:
+    """A rod held in its end stop carries a force the pressures do not show: pushing it
+    harder against the stop (20 bar more, ≈ 4 kN) must not change the dynamic wrenches,
+    i.e. the unbalanced pressure force must not become a fake acceleration."""
+    from cranetwin.samples import SampleArrays
+
+    m = load_machine("patu655")
+    ch = rec.samples.channels
+    out = []
+    for extra in (0.0, 20e5):
+        vals = rec.samples.values.copy()
+        vals[:, ch.index("ext_s")] = 0.0  # bottomed out for the whole run
+        vals[:, ch.index("ext_pA")] += extra
+        s = SampleArrays(rec.samples.machine_id, rec.samples.t_s, ch, vals)
+        out.append(replay(s, m, 1000.0, payload=0.0,
+                          options=ReplayOptions(wrench_acceleration="dynamic")))
+    ext = m.joint_index(m.cylinders[2].joint)
+    jump = np.abs(out[1].actuator_torque[:, ext] - out[0].actuator_torque[:, ext]).min()
+    assert jump > 3000.0  # the pressures say: 4 kN more on the extension
+    scale = np.abs(out[0].joint_wrench).max()
+    np.testing.assert_allclose(out[1].joint_wrench, out[0].joint_wrench, rtol=0,
+                               atol=1e-9 * scale)

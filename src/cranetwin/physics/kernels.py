@@ -952,7 +952,9 @@ def _chol_solve(a, y, nd):  # type: ignore[no-untyped-def]
 @njit(cache=True)
 def accel_correction_interp(mm, i0, i1, frac, resid, use, out):  # type: ignore[no-untyped-def]
     """As :func:`accel_correction_batch` with M given at coarse instants and interpolated:
-    row k uses M = mm[i0[k]] + frac[k]·(mm[i1[k]] − mm[i0[k]]).
+    row k uses M = mm[i0[k]] + frac[k]·(mm[i1[k]] − mm[i0[k]]); the joints D of row k are
+    those with ``use`` true *and* a finite residual there (a NaN residual leaves that joint
+    kinematic at that instant, e.g. a cylinder in its end stop).
 
     Args:
         mm: Mass matrices at the coarse instants (ns, nj, nj).
@@ -961,22 +963,17 @@ def accel_correction_interp(mm, i0, i1, frac, resid, use, out):  # type: ignore[
     """
     nj = mm.shape[1]
     idx = np.empty(nj, dtype=np.int64)
-    nd = 0
-    for j in range(nj):
-        if use[j]:
-            idx[nd] = j
-            nd += 1
-    a = np.empty((nd, nd))
-    y = np.empty(nd)
+    a = np.empty((nj, nj))
+    y = np.empty(nj)
     for k in range(resid.shape[0]):
+        nd = 0
         for j in range(nj):
             out[k, j] = 0.0
-        ok = True
-        for r in range(nd):
-            y[r] = resid[k, idx[r]]
-            if not np.isfinite(y[r]):
-                ok = False
-        if not ok or nd == 0:
+            if use[j] and np.isfinite(resid[k, j]):
+                idx[nd] = j
+                y[nd] = resid[k, j]
+                nd += 1
+        if nd == 0:
             continue
         f = frac[k]
         p0 = i0[k]

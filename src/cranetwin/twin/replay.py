@@ -51,6 +51,10 @@ from cranetwin.twin.slew import SlewState, integrate_slew
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
 
+END_STOP_MARGIN_M = 0.002
+"""Rod positions this close to either end of the stroke [m] count as in the end stop: the
+wrench accelerations stay kinematic for that joint there (``wrench_acceleration``)."""
+
 
 
 class HasSamples(Protocol):
@@ -87,7 +91,9 @@ class ReplayOptions:
             moment NRMSE 4–30× lower on fig3/log-loading at e = 0 and 2 %, fatigue damage of
             the bending moments 0.66–1.04× the truth's instead of 0.00–0.6×); ``"kinematic"``
             = the twice-differentiated positions (``qdd``). ``qdd``, ``id_torque`` and
-            ``residual`` stay kinematic either way.
+            ``residual`` stay kinematic either way, and so does a cylinder joint while its
+            rod is within ``END_STOP_MARGIN_M`` of an end of the stroke (the end stop takes
+            a force the pressures do not show) and during bridged dropouts.
     """
 
     grid_hz: float = 1000.0
@@ -178,6 +184,7 @@ class TwinStream:
         self._drive = machine.torque_drives[0] if machine.torque_drives else None
         self._slew_joint = machine.joint_index(self._drive.joint) if self._drive else None
         self._cyl_joint = [machine.joint_index(c.joint) for c in machine.cylinders]
+        self._stroke = np.array([c.stroke_m for c in machine.cylinders])
         self._finished = False
 
     # -- geometry of the margins -------------------------------------------------------------
@@ -606,8 +613,14 @@ class TwinStream:
         if self.opt.wrench_acceleration == "dynamic":
             tau_id = physics.joint_torques(m, qo, qdo, qddo, id_mass)
             residual = tau_act[sl] - tau_id
+            # a rod at (or past) an end of its stroke is held by the end stop, a force the
+            # pressures do not show: that joint keeps its kinematic acceleration there
+            raw_s = pos[sl, :nc]
+            stop = (raw_s <= END_STOP_MARGIN_M) | (raw_s >= self._stroke - END_STOP_MARGIN_M)
+            r_use = residual.copy()
+            r_use[:, self._cyl_joint] = np.where(stop, np.nan, residual[:, self._cyl_joint])
             dqdd = self._dynamic_correction(q[idx][ks], np.nan_to_num(np.maximum(mk, 0.0)),
-                                            residual, drive is not None, i0, i1, frac)
+                                            r_use, drive is not None, i0, i1, frac)
             dqdd[gap_g] = 0.0  # bridged gaps keep the kinematic estimate
             _, wrench = physics.inverse_dynamics(m, qo, qdo, qddo + dqdd, id_mass)
         else:
