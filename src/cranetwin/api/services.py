@@ -26,7 +26,7 @@ from cranetwin.api.live import Follower, LiveHub
 from cranetwin.api.live_payload import LivePayload, public_kg
 from cranetwin.api.metrics import Metrics
 from cranetwin.api.params import TimeRange, iso, parse_time
-from cranetwin.api.replayer import Replayer
+from cranetwin.api.replayer import Replayer, nominal_period
 from cranetwin.api.schemas import (
     DataRange,
     EventOut,
@@ -39,7 +39,7 @@ from cranetwin.api.schemas import (
 from cranetwin.api.settings import Settings
 from cranetwin.api.views import twin_json
 from cranetwin.api.worker import TwinWorker, derived_channels
-from cranetwin.errors import TwinError
+from cranetwin.errors import CraneTwinError, TwinError
 from cranetwin.model import Machine
 
 log = logging.getLogger(__name__)
@@ -90,11 +90,43 @@ class Services:
         return cls(settings, Backend.open(settings.database_url), bus)
 
     async def start(self) -> None:
-        """Start background tasks (the twin worker, if enabled)."""
+        """Start background tasks: the warm-up (:mod:`cranetwin.api.warmup`) and the twin
+        worker, each if enabled."""
+        if self.settings.warm_up:
+            from cranetwin.api.warmup import start_warm_up
+
+            start_warm_up(then=self.warm_machines)
         if self.settings.worker_enabled:
             self.worker = TwinWorker(self.backend, self.settings, self.metrics, self.replayer)
             self._worker_task = asyncio.get_running_loop().create_task(
                 self.worker.run_forever(), name="twin-worker")
+
+    def warm_machines(self, limit: int = 16, span_s: float = 30.0) -> int:
+        """Replay the newest ``span_s`` of the ``limit`` most recently seen machines once, so
+        that their smoothing choice is cached before the first page asks for a short window.
+
+        Returns:
+            Machines replayed.
+        """
+        seen = []
+        for rec in self.backend.list_machines():
+            dr = self.backend.data_range(rec.machine_id)
+            if dr is not None:
+                seen.append((dr[1], rec))
+        done = 0
+        for end, rec in sorted(seen, key=lambda x: -x[0])[:limit]:
+            samples = self.backend.read_samples(rec.machine_id, end - span_s, end + 1.0)
+            period = nominal_period(samples.t_s)
+            if period is None or samples.t_s.shape[0] < 8:
+                continue
+            try:
+                self.replayer.replay(rec.machine_id, self.backend.model_of(rec), samples,
+                                     max(1.0, float(round(1.0 / period))))
+            except CraneTwinError as exc:
+                log.info("warm-up of %s skipped: %s", rec.machine_id, exc)
+                continue
+            done += 1
+        return done
 
     async def close(self) -> None:
         """Stop background tasks and close the store."""

@@ -40,6 +40,9 @@ class Settings(BaseSettings):
     live_idle_s: float = Field(
         5.0, gt=0, description="a machine not seen for this long is 'idle' [s]")
     worker_enabled: bool = Field(True, description="run the background twin worker")
+    warm_up: bool = Field(
+        True, description="load the twin's compiled kernels and the 3D scene code in a background "
+                          "thread at start (fast first machine page)")
     worker_window_s: float = Field(60.0, gt=0, description="twin worker window [s]")
     worker_interval_s: float = Field(1.0, gt=0, description="twin worker poll period [s]")
     worker_settle_s: float = Field(
