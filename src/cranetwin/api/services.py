@@ -90,18 +90,19 @@ class Services:
         return cls(settings, Backend.open(settings.database_url), bus)
 
     async def start(self) -> None:
-        """Start background tasks: the warm-up (:mod:`cranetwin.api.warmup`) and the twin
-        worker, each if enabled."""
+        """Warm up (:mod:`cranetwin.api.warmup`, before serving: ~0.5 s, and done in the
+        background it slowed the first seconds of requests), then start the twin worker; each
+        if enabled."""
         if self.settings.warm_up:
-            from cranetwin.api.warmup import start_warm_up
+            from cranetwin.api.warmup import run_warm_up
 
-            start_warm_up(then=self.warm_machines)
+            await asyncio.to_thread(run_warm_up, then=self.warm_machines)
         if self.settings.worker_enabled:
             self.worker = TwinWorker(self.backend, self.settings, self.metrics, self.replayer)
             self._worker_task = asyncio.get_running_loop().create_task(
                 self.worker.run_forever(), name="twin-worker")
 
-    def warm_machines(self, limit: int = 16, span_s: float = 30.0) -> int:
+    def warm_machines(self, limit: int = 4, span_s: float = 30.0) -> int:
         """Replay the newest ``span_s`` of the ``limit`` most recently seen machines once, so
         that their smoothing choice is cached before the first page asks for a short window.
 

@@ -5,14 +5,15 @@ The first replay in a fresh process loads the twin's compiled (numba) kernels an
 physics, signal and view modules; the first scene imports trimesh and meshes the crane. Done on
 the first request, that made the cold first paint of a machine page ~3 s against ~1.25 s warm.
 :func:`warm_up` does it once on a few seconds of synthetic samples of the built-in crane
-(:mod:`cranetwin.api.synthetic`); :func:`start_warm_up` runs it in a daemon thread, so the
-service accepts requests at once (a request that arrives meanwhile waits only for what is still
-loading) and shutdown never waits for it.
+(:mod:`cranetwin.api.synthetic`). The service runs it before it starts serving (about 0.5 s
+after the imports): run in a background thread instead, it competed with the first requests for
+the interpreter and doubled their p95 latency for the first seconds; :func:`start_warm_up` is
+the background variant.
 
 The first replay of a machine with at least 20 s of samples also chooses its smoothing (about
 two thirds of the cost of a replay, :mod:`cranetwin.api.replayer`), which short windows such as
-the page's first 1-s frame then reuse; the service therefore replays the newest 30 s of its most
-recently seen machines after the generic warm-up (``then``).
+the page's first 1-s frame then reuse; the service therefore replays the newest 30 s of its four
+most recently seen machines after the generic warm-up (``then``).
 """
 
 from __future__ import annotations
@@ -51,21 +52,22 @@ def warm_up(model: str = "patu655") -> float:
     return time.perf_counter() - t
 
 
+def run_warm_up(model: str = "patu655", then: Callable[[], object] | None = None) -> None:
+    """Run :func:`warm_up` and then ``then`` (e.g. per-machine warm-up); failures are logged,
+    never raised."""
+    try:
+        log.info("warm-up done in %.2f s", warm_up(model))
+        if then is not None:
+            t = time.perf_counter()
+            then()
+            log.info("machine warm-up done in %.2f s", time.perf_counter() - t)
+    except (CraneTwinError, ImportError, ValueError, RuntimeError) as exc:
+        log.warning("warm-up failed (the first requests will be slower): %s", exc)
+
+
 def start_warm_up(model: str = "patu655",
                   then: Callable[[], object] | None = None) -> threading.Thread:
-    """Run :func:`warm_up` and then ``then`` (e.g. per-machine warm-up) in a daemon thread;
-    failures are logged, never raised."""
-
-    def run() -> None:
-        try:
-            log.info("warm-up done in %.1f s", warm_up(model))
-            if then is not None:
-                t = time.perf_counter()
-                then()
-                log.info("machine warm-up done in %.1f s", time.perf_counter() - t)
-        except (CraneTwinError, ImportError, ValueError, RuntimeError) as exc:
-            log.warning("warm-up failed (the first requests will be slower): %s", exc)
-
-    th = threading.Thread(target=run, name="warm-up", daemon=True)
+    """:func:`run_warm_up` in a daemon thread."""
+    th = threading.Thread(target=run_warm_up, args=(model, then), name="warm-up", daemon=True)
     th.start()
     return th
