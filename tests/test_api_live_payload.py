@@ -63,3 +63,23 @@ def test_falls_back_to_the_worker_estimate(sqlite_url: str) -> None:
                                            (412.349, 412.3), (0.0, 0.0)])
 def test_public_kg(kg: float | None, shown: float | None) -> None:
     assert public_kg(kg) == shown
+
+
+def test_no_replay_when_nothing_new_is_stored(sqlite_url: str) -> None:
+    b = Backend.open(sqlite_url)
+    b.store.add_machine(MID, wire_id=8, secret=b"k" * 32)
+    _write(b, T0, 52.0, 0)
+    calls: list[int] = []
+
+    class Counting(Replayer):
+        def replay(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+            calls.append(1)
+            return super().replay(*args, **kwargs)
+
+    lp = LivePayload(MID, MACHINE, b, Counting())
+    first = lp.refresh()
+    assert first == pytest.approx(PAYLOAD_KG, rel=0.02)
+    assert lp.refresh() == first and len(calls) == 1
+    _write(b, T0 + 52.0, 28.0, 52)
+    assert lp.refresh() == pytest.approx(0.0, abs=0.02 * PAYLOAD_KG) and len(calls) == 2
+    b.close()

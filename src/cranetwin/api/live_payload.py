@@ -68,6 +68,7 @@ class LivePayload:
         self.t_s: float | None = None
         """Sample time of that estimate [s since the epoch]."""
         self._last = -math.inf
+        self._end: float | None = None  # newest stored time [s] the estimate was made from
         self._busy = threading.Lock()
         self._thread: threading.Thread | None = None
 
@@ -101,8 +102,8 @@ class LivePayload:
         """Replay the newest ``span_s`` of samples now and update :attr:`kg` (blocking).
 
         Returns:
-            The new estimate [kg], or None when there is too little data or the replay failed
-            (the previous estimate is kept).
+            The new estimate [kg] (the previous one when nothing new is stored), or None when
+            there is too little data or the replay failed (the previous estimate is kept).
         """
         from cranetwin.api.replayer import nominal_period
 
@@ -111,6 +112,8 @@ class LivePayload:
             dr = self.backend.data_range(self.machine_id)
             if dr is None or dr[1] - dr[0] < 2.0 * self.margin_s + 1.0:
                 return None
+            if dr[1] == self._end:  # nothing new stored since the last estimate
+                return self.kg
             samples = self.backend.read_samples(self.machine_id, dr[1] - self.span_s,
                                                 dr[1] + 1.0)
             period = nominal_period(samples.t_s)
@@ -127,4 +130,5 @@ class LivePayload:
             return None
         self.kg = float(np.median(res.payload_kg[sel]))
         self.t_s = t_end
+        self._end = dr[1]
         return self.kg
