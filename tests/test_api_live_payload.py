@@ -83,3 +83,24 @@ def test_no_replay_when_nothing_new_is_stored(sqlite_url: str) -> None:
     _write(b, T0 + 52.0, 28.0, 52)
     assert lp.refresh() == pytest.approx(0.0, abs=0.02 * PAYLOAD_KG) and len(calls) == 2
     b.close()
+
+
+def test_machines_list_starts_a_live_estimate_before_the_worker_has_one(sqlite_url: str) -> None:
+    import time
+
+    from cranetwin.api import Settings
+    from cranetwin.api.services import Services
+
+    services = Services.open(Settings(database_url=sqlite_url, worker_enabled=False,
+                                      warm_up=False))
+    b = services.backend
+    b.store.add_machine(MID, wire_id=8, secret=b"k" * 32)
+    start = float(int(time.time()) - 52)  # streaming now: holding PAYLOAD_KG since start+30
+    base = kinematic_samples(MACHINE, 120.0)
+    b.store.write_blocks(list(tiled_blocks(MID, MACHINE, start, 52.0, 1.0, base=base)))
+    rec = b.machine_or_404(MID)
+    first = services.machine_public(rec)
+    assert first.status == "live" and first.payload_kg is None  # no worker estimate yet
+    services.live_payload[MID].join()
+    assert services.machine_public(rec).payload_kg == pytest.approx(PAYLOAD_KG, rel=0.02)
+    b.close()

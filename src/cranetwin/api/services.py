@@ -45,6 +45,8 @@ from cranetwin.model import Machine
 log = logging.getLogger(__name__)
 
 MAX_HISTORY_CHANNELS = 32
+MAX_LIST_LIVE_PAYLOADS = 32
+"""Live payload estimators the machines list may start (machines without a worker estimate)."""
 
 
 class JsonBytes(Response):
@@ -161,6 +163,13 @@ class Services:
         loc = Location(lat=rec.location[0], lon=rec.location[1]) if rec.location else None
         payload = public_kg(prog.last_payload_kg if prog is not None else None)
         lp = self.live_payload.get(rec.machine_id)
+        if (lp is None and payload is None and self._status(last) == "live"
+                and len(self.live_payload) < MAX_LIST_LIVE_PAYLOADS):
+            # streaming, but the worker has no estimate yet (its first window ends 1–2 min
+            # after the first sample): start a live estimate, shown from the next listing
+            lp = self.live_payload[rec.machine_id] = LivePayload(
+                rec.machine_id, self.backend.model_of(rec), self.backend, self.replayer)
+            lp.value()
         if lp is not None and lp.kg is not None and lp.t_s is not None and (
                 prog is None or lp.t_s > prog.watermark_s):  # watched live: fresher
             payload = public_kg(lp.kg)
