@@ -97,10 +97,16 @@ def test_machines_list_starts_a_live_estimate_before_the_worker_has_one(sqlite_u
     b.store.add_machine(MID, wire_id=8, secret=b"k" * 32)
     start = float(int(time.time()) - 52)  # streaming now: holding PAYLOAD_KG since start+30
     base = kinematic_samples(MACHINE, 120.0)
-    b.store.write_blocks(list(tiled_blocks(MID, MACHINE, start, 52.0, 1.0, base=base)))
+    blocks = list(tiled_blocks(MID, MACHINE, start, 52.0, 1.0, base=base))
+    b.store.write_blocks(blocks[-3:])  # the newest 3 s ("live"): too little for an estimate
     rec = b.machine_or_404(MID)
     first = services.machine_public(rec)
-    assert first.status == "live" and first.payload_kg is None  # no worker estimate yet
+    assert first.payload_kg is None  # no worker estimate yet, no live one either
+    services.live_payload[MID].join()
+    services.live_payload[MID].every_s = 0.0  # (2 s between refreshes in service)
+    b.store.write_blocks(blocks[:-3])  # the 49 s before them arrive (retransmitted)
+    second = services.machine_public(rec)  # a later listing refreshes the estimate
+    assert second.status == "live" and second.payload_kg is None
     services.live_payload[MID].join()
     assert services.machine_public(rec).payload_kg == pytest.approx(PAYLOAD_KG, rel=0.02)
     b.close()

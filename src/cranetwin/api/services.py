@@ -163,13 +163,14 @@ class Services:
         loc = Location(lat=rec.location[0], lon=rec.location[1]) if rec.location else None
         payload = public_kg(prog.last_payload_kg if prog is not None else None)
         lp = self.live_payload.get(rec.machine_id)
-        if (lp is None and payload is None and self._status(last) == "live"
-                and len(self.live_payload) < MAX_LIST_LIVE_PAYLOADS):
+        if payload is None and self._status(last) == "live":
             # streaming, but the worker has no estimate yet (its first window ends 1–2 min
-            # after the first sample): start a live estimate, shown from the next listing
-            lp = self.live_payload[rec.machine_id] = LivePayload(
-                rec.machine_id, self.backend.model_of(rec), self.backend, self.replayer)
-            lp.value()
+            # after the first sample): keep a live estimate going, shown from the next listing
+            if lp is None and len(self.live_payload) < MAX_LIST_LIVE_PAYLOADS:
+                lp = self.live_payload[rec.machine_id] = LivePayload(
+                    rec.machine_id, self.backend.model_of(rec), self.backend, self.replayer)
+            if lp is not None:
+                lp.value()  # starts a refresh when one is due
         if lp is not None and lp.kg is not None and lp.t_s is not None and (
                 prog is None or lp.t_s > prog.watermark_s):  # watched live: fresher
             payload = public_kg(lp.kg)
