@@ -38,8 +38,8 @@ Image = pytest.importorskip("PIL.Image", reason="Pillow needed for pixel checks"
 class Service:
     """The running app, its keys and a way to reach its store."""
 
-    def __init__(self, srv: Any, app: Any, viewer: str) -> None:
-        self.srv, self.app, self.viewer = srv, app, viewer
+    def __init__(self, srv: Any, app: Any, viewer: str, fleet: str) -> None:
+        self.srv, self.app, self.viewer, self.fleet = srv, app, viewer, fleet
 
     @property
     def url(self) -> str:
@@ -61,6 +61,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
         services = app.state.services
         viewer = services.backend.create_key("viewer", "web tests")[1]
         admin = services.backend.create_key("admin", "web tests")[1]
+        fleet = services.backend.create_key("fleet", "web tests")[1]
         for i in (1, 2, 3):
             r = httpx.post(f"{srv.url}/api/v1/machines", headers={"X-API-Key": admin},
                            json={"machine_id": f"crane-{i}", "model": "patu655",
@@ -71,7 +72,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
                                                               SPAN, 1.0, base=base)))
         TwinWorker(services.backend, services.settings, services.metrics,
                    services.replayer).catch_up(services.backend.machine_or_404("crane-2"))
-        yield Service(srv, app, viewer)
+        yield Service(srv, app, viewer, fleet)
 
 
 @pytest.fixture(scope="module")
@@ -139,8 +140,8 @@ def test_missing_key_asks_for_one(browser: Any, server: Service) -> None:
     ctx.close()
 
 
-def _replay(page: Any, server: Service, t: float) -> None:
-    page.goto(f"{server.url}/machines/crane-2?key={server.viewer}&mode=replay"
+def _replay(page: Any, server: Service, t: float, key: str | None = None) -> None:
+    page.goto(f"{server.url}/machines/crane-2?key={key or server.viewer}&mode=replay"
               f"&from={END - 600}&to={END}&t={t}")
     _wait_ready(page)
     page.wait_for_function(f"Math.abs(window.cranetwin.drawnT - {t}) < 0.01")
@@ -293,4 +294,28 @@ def test_export_button_downloads_the_window(page: Any, server: Service, tmp_path
     assert 'id="ct-data"' in html and 'id="ct-meshcat"' in html
     assert 1_000_000 < len(html) < 5_000_000
     page.wait_for_function("document.getElementById('banner').textContent.includes('Exported')")
+    assert not page.errors
+
+
+def test_report_button_downloads_the_maintenance_report(page: Any, server: Service,
+                                                       tmp_path: Path) -> None:
+    pypdf = pytest.importorskip("pypdf", reason="pypdf needed to read the report")
+    _replay(page, server, END - 300, key=server.fleet)
+    with page.expect_download(timeout=120000) as info:
+        page.click("#report")
+    path = tmp_path / "report.pdf"
+    info.value.save_as(str(path))
+    text = "".join(p.extract_text() or "" for p in pypdf.PdfReader(str(path)).pages)
+    assert "Load spectrum" in text
+    page.wait_for_function(
+        "document.getElementById('banner').textContent.includes('Report downloaded')")
+    assert not page.errors
+
+
+def test_report_button_with_a_viewer_key_explains_the_role(page: Any, server: Service) -> None:
+    _replay(page, server, END - 300)
+    page.click("#report")
+    page.wait_for_function(
+        "document.getElementById('banner').textContent.includes('fleet or admin key')",
+        timeout=60000)
     assert not page.errors

@@ -116,7 +116,7 @@ async function start() {
   window.__crane = state.crane;
   metrics.sceneMs = performance.now() - t0;
   buildForceRows();
-  if (embed) { $("mode-live").disabled = true; $("share").hidden = true; $("export").hidden = true; $("back-link").hidden = true; }
+  if (embed) { $("mode-live").disabled = true; $("share").hidden = true; $("export").hidden = true; $("report").hidden = true; $("report-fmt").hidden = true; $("back-link").hidden = true; }
   wireControls();
   requestAnimationFrame(loop);
   // plotly (4.6 MB to parse) is loaded once the crane is drawn, so it never delays that paint
@@ -535,6 +535,24 @@ function wireControls() {
       banner(`Exported (${(size / 1e6).toFixed(1)} MB): one HTML file that replays offline.`, "info");
     } catch (err) {
       banner(`Export failed: ${err.message}`, "error");
+    }
+  };
+  $("report").onclick = async (ev) => {
+    ev.preventDefault();
+    if (state.mode !== "replay" || state.from === null) { banner("A report needs a replay range: switch to Replay (R) and choose one.", "warn"); return; }
+    // the service replays the range for a report: at most one hour, ending at the replay range's end
+    const b = state.to;
+    const a = Math.max(state.from, b - 3600);
+    const fmt = $("report-fmt").value;
+    const ext = fmt === "csv" ? "zip" : fmt;
+    banner(`Building the ${fmt.toUpperCase()} report of ${fmtTime(a)} – ${fmtTime(b).slice(11)} …`, "info");
+    try {
+      const size = await download(`/api/v1/machines/${encodeURIComponent(machineId)}/report?from=${a}&to=${b}&format=${fmt}`,
+        `cranetwin-report-${machineId}-${isoSeconds(a).replace(/[:]/g, "")}.${ext}`);
+      banner(`Report downloaded (${(size / 1e3).toFixed(0)} kB).`, "info");
+    } catch (err) {
+      const hint = err.status === 403 ? " Reports need a fleet or admin key (cranetwin keys create --role fleet)." : "";
+      banner(`Report failed: ${err.message}.${hint}`, "error");
     }
   };
   document.addEventListener("keydown", (ev) => {
