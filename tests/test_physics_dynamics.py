@@ -18,33 +18,13 @@ from cranetwin.physics import (
 
 pin = pytest.importorskip("pinocchio")
 
+# the same independent Pinocchio chain the benchmark compares against
+from cranetwin.bench.dynamics import pinocchio_model  # noqa: E402
+
 
 @pytest.fixture(scope="module")
 def machine() -> Machine:
     return load_machine("patu655")
-
-
-def pinocchio_model(machine: Machine, payload_kg: float) -> object:
-    """The machine's chain built independently in Pinocchio (tool + payload on the load body)."""
-    model = pin.Model()
-    model.gravity.linear = np.asarray(machine.machine.gravity_mps2)
-    parent = 0
-    for joint, body in zip(machine.joints, machine.chain_bodies(), strict=True):
-        axis = np.asarray(joint.axis, dtype=float)
-        jm = (pin.JointModelRevoluteUnaligned(axis) if joint.kind == "revolute"
-              else pin.JointModelPrismaticUnaligned(axis))
-        placement = pin.SE3(pin.rpy.rpyToMatrix(*joint.origin_rpy_rad), np.asarray(joint.origin_m))
-        jid = model.addJoint(parent, jm, placement, joint.name)
-        model.appendBodyToJoint(
-            jid, pin.Inertia(body.mass_kg, np.asarray(body.com_m),
-                             np.asarray(body.inertia_kgm2)), pin.SE3.Identity())
-        if body.name == machine.load_point.body:
-            mass = machine.load_point.tool_mass_kg + payload_kg
-            model.appendBodyToJoint(
-                jid, pin.Inertia(mass, np.asarray(machine.load_point.point_m), np.zeros((3, 3))),
-                pin.SE3.Identity())
-        parent = jid
-    return model
 
 
 def random_states(machine: Machine, n: int, seed: int) -> tuple[np.ndarray, ...]:
