@@ -319,3 +319,17 @@ def test_report_button_with_a_viewer_key_explains_the_role(page: Any, server: Se
         "document.getElementById('banner').textContent.includes('fleet or admin key')",
         timeout=60000)
     assert not page.errors
+
+
+def test_no_data_message_survives_a_slow_scene(page: Any, server: Service) -> None:
+    """The empty replay chunk answers before the 3D scene has loaded: the message still shows."""
+    def slow_scene(route: Any) -> None:
+        time.sleep(2.0)
+        route.continue_()
+
+    page.route("**/scene*", slow_scene)
+    a, b = END - 7200, END - 6600
+    page.goto(f"{server.url}/machines/crane-2?key={server.viewer}&mode=replay&from={a}&to={b}")
+    page.wait_for_function("document.getElementById('banner').textContent.includes('No data')",
+                           timeout=20000)
+    assert not page.errors

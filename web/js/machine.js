@@ -225,6 +225,11 @@ function startReplay(from, to, t) {
   };
   const t0 = t !== null && t !== undefined && t >= from && t <= to ? t : from;
   seek(t0, false);
+  // the cursor's chunk may have been fetched with the scene and settled before this handler
+  // existed (a fast "no data" answer): report it now instead of never
+  const i0 = state.store.chunkIndex(t0);
+  const settled = state.store.chunks.get(i0);
+  if (settled && settled.state !== "loading") state.store.onLoaded(i0, settled);
   source.events(from, to).then((events) => { state.events = events || []; renderEvents(); })
     .catch(() => { state.events = []; renderEvents(); });
   state.chartsReady.then(() => loadHistory(from, to));
