@@ -27,11 +27,10 @@ from cranetwin.protocol.wire import (
     VERSION,
     MachineKey,
     get_varint,
-    peek_header,
+    open_datagram,
     put_varint,
     tag,
     unzigzag,
-    verify,
     zigzag,
 )
 from cranetwin.samples import SampleBlock
@@ -177,16 +176,8 @@ def decode_data(datagram: bytes, key: MachineKey) -> SampleBlock:
     Raises:
         DatagramError: any subclass, for any malformed, truncated, forged or mismatched input.
     """
-    head = peek_header(datagram)
-    wid = head.wire_id
-    if head.type != TYPE_DATA:
-        raise GarbageError(f"expected a data datagram (type 0x01), got {head.type:#04x}", wid)
-    if wid != key.wire_id:
-        raise GarbageError(f"datagram for wire id {wid}, key is for {key.wire_id}", wid)
-    body = verify(key.secret, datagram, wid)
+    wid, body = open_datagram(datagram, key, TYPE_DATA, "data", DATA_FIXED_END)
     end = len(body)
-    if end < DATA_FIXED_END:
-        raise TruncatedError("data datagram shorter than its fixed fields", wid)
     seq, t0_ns, period_ns, n, layout_id, mask = DATA_FIXED.unpack_from(body, HEADER_BYTES)
     layout = key.layout
     c = len(layout.channels)

@@ -23,11 +23,10 @@ from cranetwin.protocol.wire import (
     VERSION,
     MachineKey,
     get_varint,
-    peek_header,
+    open_datagram,
     put_varint,
     tag,
     unzigzag,
-    verify,
     zigzag,
 )
 
@@ -114,16 +113,8 @@ def decode_status(datagram: bytes, key: MachineKey) -> StatusReport:
     Raises:
         DatagramError: any subclass, for any malformed, truncated, forged or mismatched input.
     """
-    head = peek_header(datagram)
-    wid = head.wire_id
-    if head.type != TYPE_STATUS:
-        raise GarbageError(f"expected a status datagram (type 0x02), got {head.type:#04x}", wid)
-    if wid != key.wire_id:
-        raise GarbageError(f"datagram for wire id {wid}, key is for {key.wire_id}", wid)
-    body = verify(key.secret, datagram, wid)
+    wid, body = open_datagram(datagram, key, TYPE_STATUS, "status", STATUS_FIXED_END)
     end = len(body)
-    if end < STATUS_FIXED_END:
-        raise TruncatedError("status datagram shorter than its fixed fields", wid)
     seq, t_ns, layout_id, flags, lat, lon, alt, hours_s = STATUS_FIXED.unpack_from(
         body, HEADER_BYTES)
     layout = key.layout

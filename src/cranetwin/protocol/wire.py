@@ -260,3 +260,27 @@ def verify(secret: bytes, datagram: bytes, wire_id: int) -> memoryview:
     if not hmac.compare_digest(tag(secret, body), bytes(view[-TAG_BYTES:])):
         raise BadHmacError("HMAC tag does not verify under the machine's key", wire_id)
     return body
+
+
+def open_datagram(
+    datagram: bytes, key: MachineKey, expected_type: int, kind: str, fixed_end: int
+) -> tuple[int, memoryview]:
+    """Check type, wire id and HMAC of a data or status datagram; return (wire id, body).
+
+    ``body`` is the authenticated part (header included, tag excluded), at least ``fixed_end``
+    bytes long.
+
+    Raises:
+        DatagramError: any subclass, for a wrong type or wire id, a bad tag or a short body.
+    """
+    head = peek_header(datagram)
+    wid = head.wire_id
+    if head.type != expected_type:
+        raise GarbageError(
+            f"expected a {kind} datagram (type {expected_type:#04x}), got {head.type:#04x}", wid)
+    if wid != key.wire_id:
+        raise GarbageError(f"datagram for wire id {wid}, key is for {key.wire_id}", wid)
+    body = verify(key.secret, datagram, wid)
+    if len(body) < fixed_end:
+        raise TruncatedError(f"{kind} datagram shorter than its fixed fields", wid)
+    return wid, body
