@@ -168,6 +168,12 @@ class NaturalCubicSpline:
             return [o[:, 0] for o in out]
         return out
 
+    def pieces(self) -> F64:
+        """The cubic pieces, shape (n−1, 4, k): on interval i the spline is
+        ``c[i, 0] + c[i, 1]·dx + c[i, 2]·dx² + c[i, 3]·dx³`` per channel (module docstring)."""
+        out: F64 = self._coef.reshape(-1, 4, self.k)
+        return out
+
     def evaluate_subdivided(self, r: int, derivatives: int = 0) -> list[F64]:
         """Value and derivatives at every knot interval split into ``r`` equal steps.
 
