@@ -18,6 +18,7 @@ from cranetwin.signal import (
     newton_derivative,
     nrmse,
     regularize,
+    savgol_bank,
     savgol_smooth,
     uniform_grid,
 )
@@ -250,3 +251,56 @@ def test_ici_smooth_pair_equals_stacked_ici() -> None:
     want = np.column_stack([ea[k, np.arange(n)], eb[k, np.arange(n)]])
     got = ici_smooth_pair(pa, pb, a1, a2, sigma, tuple(ICI_WINDOWS), 3)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("n", [221, 222, 260, 6220])
+def test_savgol_bank_equals_scipy_interp_mode_values_and_derivatives(n: int) -> None:
+    """Long windows (FFT path) and short ones (direct), values and derivatives, one column and
+    several, data as short as the longest window: each output is scipy's mode="interp"."""
+    from scipy.ndimage import correlate1d
+    from scipy.signal import savgol_filter
+
+    from cranetwin.signal import sg_filter
+
+    rng = np.random.default_rng(12)
+    t = np.arange(n) * 0.01
+    # a rod-position-like signal: offset, slow motion, uniform noise; a second column unlike it
+    base = 0.4 + 0.2 * np.sin(2 * np.pi * 0.05 * t) + 0.03 * np.sin(2 * np.pi * 1.1 * t)
+    y = np.column_stack([base + rng.uniform(-0.005, 0.005, n),
+                         rng.normal(size=n).cumsum() * 1e3 + 8e6])
+    filters = [(221, 5, 0), (171, 5, 0), (131, 3, 1), (131, 3, 2), (101, 3, 2), (41, 3, 0),
+               (21, 3, 1), (7, 5, 0), (1, 0, 0)]
+    for y_in in (y, y[:, 0]):
+        outs = savgol_bank(y_in, filters, delta=0.01)
+        assert len(outs) == len(filters)
+        for (w, p, d), got in zip(filters, outs, strict=True):
+            assert got.shape == y_in.shape
+            if w == 1:
+                np.testing.assert_array_equal(got, y_in)
+                continue
+            ref = savgol_filter(y_in, w, p, deriv=d, delta=0.01, axis=0, mode="interp")
+            scale = np.abs(ref).max(axis=0)
+            # per column, of its largest output; 3e-9: scipy's own 221/5 and 171/5 filters are
+            # that ill-conditioned (their coefficients sum to 1 + 3e-9; its edge fits ~7e-10)
+            err = np.abs(got - ref).max(axis=0) / scale
+            assert np.all(err <= (3e-9 if p == 5 else 1e-9)), (w, p, d, err)
+            # interior against direct correlation with the same coefficients (the FFT's rounding)
+            half = w // 2
+            direct = correlate1d(y_in, sg_filter(w, p, d), axis=0) / 0.01**d
+            err = np.abs(got - direct)[half : n - half].max(axis=0, initial=0.0) / scale
+            assert np.all(err <= 1e-11), (w, p, d, err)
+            np.testing.assert_array_equal(got, savgol_smooth(y_in, w, p, d, 0.01))
+
+
+def test_savgol_bank_rejects_bad_windows() -> None:
+    y = np.zeros(100)
+    with pytest.raises(SignalError):
+        savgol_bank(y, [(101, 3, 0)])
+    with pytest.raises(SignalError):
+        savgol_bank(y, [(20, 3, 0)])
+    with pytest.raises(SignalError):
+        savgol_bank(y, [(5, 5, 0)])
+    with pytest.raises(SignalError):
+        savgol_bank(y, [(1, 0, 1)])
+    with pytest.raises(SignalError):
+        savgol_bank(np.zeros((100, 2, 2)), [(5, 3, 0)])

@@ -18,6 +18,7 @@ from cranetwin.signal.smoothing import (
     ici_select,
     ici_smooth,
     ici_smooth_pair,
+    savgol_bank,
     savgol_smooth,
     sg_filter,
 )
@@ -41,6 +42,7 @@ __all__ = [
     "nominal_period",
     "nrmse",
     "regularize",
+    "savgol_bank",
     "savgol_smooth",
     "sg_filter",
     "uniform_grid",
