@@ -30,7 +30,8 @@ import numpy.typing as npt
 from cranetwin import physics
 from cranetwin.errors import PhysicsError, TwinError
 from cranetwin.model import Machine
-from cranetwin.physics import kernels as K
+from cranetwin.physics import gridpass
+from cranetwin.physics.chain import compile_chain
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import (
     ICI_WINDOWS,
@@ -44,7 +45,7 @@ from cranetwin.signal import (
     savgol_smooth,
 )
 from cranetwin.twin.channels import ChannelMap, choose_smoothing
-from cranetwin.twin.payload import moving_sum, sliding_payload
+from cranetwin.twin.payload import windowed_payload
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.slew import SlewState, integrate_slew
 
@@ -184,8 +185,22 @@ class TwinStream:
         self._drive = machine.torque_drives[0] if machine.torque_drives else None
         self._slew_joint = machine.joint_index(self._drive.joint) if self._drive else None
         self._cyl_joint = [machine.joint_index(c.joint) for c in machine.cylinders]
+        self._free = [j for j in range(machine.n_joints) if j not in self._cyl_joint]
         self._stroke = np.array([c.stroke_m for c in machine.cylinders])
         self._finished = False
+        params = compile_chain(machine)
+        self._chain = params.chain
+        self._cyl = params.cyl
+        self._fpar = np.array([[c.area_a_m2, c.area_b_m2, c.friction.coulomb,
+                                c.friction.coulomb_velocity, c.friction.viscous]
+                               for c in machine.cylinders], dtype=np.float64)
+        fr = self._drive.friction if self._drive is not None else None
+        self._drive_fric = np.array([fr.coulomb, fr.coulomb_velocity, fr.viscous]
+                                    if fr is not None else [0.0, 1.0, 0.0])
+        self._grid = gridpass.kernel_for(params)
+        self._table = np.empty((len(machine.cylinders), gridpass.KIN_TABLE_NODES - 1, 6))
+        self._table_ok = gridpass.kinematics_table(params.cyl, self._stroke,
+                                                   gridpass.KIN_TABLE_NODES, self._table)
 
     # -- geometry of the margins -------------------------------------------------------------
     @property
@@ -360,8 +375,10 @@ class TwinStream:
         ws = tuple(w for w in ICI_WINDOWS if w <= ch.window)
         return ici_smooth_pair(pa, pb, a1, a2, ch.sigma, ws, ch.polyorder)
 
-    def _sample_state(self, k0: int, k1: int, theta0: F64 | None) -> tuple[F64, F64, F64, F64]:
-        """q, qd, qdd and actuator loads at samples [k0, k1) from the smoothed channels."""
+    def _sample_state(self, k0: int, k1: int,
+                      theta0: F64 | None) -> tuple[F64, F64, F64, F64, F64]:
+        """q, qd, qdd, actuator loads and moment arms at samples [k0, k1) from the smoothed
+        channels."""
         assert self._period is not None
         m = self.machine
         sm = self._sm.get(k0, k1)
@@ -376,7 +393,7 @@ class TwinStream:
             q_other[:, 0] = theta0
         q, qd, qdd, arm = self._joint_motion(s, v, a, q_other)
         f = self._forces(sm, v)
-        return q, qd, qdd, self._actuator_loads(q, f, arm, None)
+        return q, qd, qdd, self._actuator_loads(q, f, arm, None), arm
 
     def _stage_slew(self, final: bool) -> None:
         assert self._period is not None and self._drive is not None
@@ -389,19 +406,26 @@ class TwinStream:
             return
         lo = max(self._sm.base, k0 - wh - edge)
         hi = avail if final else min(avail, k_hi + wh + edge)
-        q, qd, qdd, tau = self._sample_state(lo, hi, None)
+        q, qd, qdd, tau, arm = self._sample_state(lo, hi, None)
         if self.payload is not None:
             mass = np.full(q.shape[0], float(self.payload))
         else:
-            mass, _ = self._estimate_payload(q, qd, qdd, tau, wh, None)
+            mass, _ = self._estimate_payload(q, qd, qdd, tau, wh, arm)
             mass = np.nan_to_num(np.maximum(mass, 0.0))
         sl = slice(k0 - lo, k_hi - lo)
-        mm = physics.mass_matrix(self.machine, q[sl], mass[sl])
         j0 = self._slew_joint
         assert j0 is not None
-        m00 = mm[:, j0, j0]
+        # row j0 of M (= column j0, M symmetric) as M·e_j0 = tau(q, 0, e_j0) − tau(q, 0, 0):
+        # two inverse-dynamics passes instead of the whole mass matrix
+        qs = q[sl]
+        zero = np.zeros_like(qs)
+        unit = np.zeros_like(qs)
+        unit[:, j0] = 1.0
+        row = (physics.joint_torques(self.machine, qs, zero, unit, mass[sl])
+               - physics.joint_torques(self.machine, qs, zero, zero, mass[sl]))
+        m00 = row[:, j0]
         others = [j for j in range(self.machine.n_joints) if j != j0]
-        coupling = np.einsum("nj,nj->n", mm[:, j0, others], qd[sl][:, others])
+        coupling = np.einsum("nj,nj->n", row[:, others], qd[sl][:, others])
         if self.cmap.torque is None:
             torque = np.zeros(m00.shape[0])
         else:
@@ -441,12 +465,28 @@ class TwinStream:
 
     def _joint_motion(self, s: F64, v: F64, a: F64,
                       q_other: F64) -> tuple[F64, F64, F64, F64]:
-        """q, qd, qdd (n, n_joints) and moment arms ds/dq (n, n_cylinders), one fused pass."""
-        try:
-            return physics.joint_motion_and_arms(
-                self.machine, s, v, a, q_other if q_other.shape[1] else None)
-        except PhysicsError as exc:
-            raise TwinError(f"rod positions do not fit the machine geometry: {exc}") from exc
+        """q, qd, qdd (n, n_joints) and moment arms ds/dq (n, n_cylinders), one fused pass
+        through the kinematics tables (:func:`cranetwin.physics.gridpass.kinematics_table`;
+        s within the strokes)."""
+        n = s.shape[0]
+        nj = self.machine.n_joints
+        q = np.zeros((n, nj))
+        qd = np.zeros((n, nj))
+        qdd = np.zeros((n, nj))
+        if q_other.shape[1]:
+            q[:, self._free] = q_other
+        arm = np.empty((n, len(self.machine.cylinders)))
+        gridpass.table_motion_batch(self._table, self._table_ok, self._cyl,
+                                    np.ascontiguousarray(s), np.ascontiguousarray(v),
+                                    np.ascontiguousarray(a), q, qd, qdd, arm)
+        if not np.all(np.isfinite(q[:, self._cyl_joint])):
+            try:  # the descriptive error
+                physics.joint_motion_and_arms(self.machine, s, v, a,
+                                              q_other if q_other.shape[1] else None)
+            except PhysicsError as exc:
+                raise TwinError(f"rod positions do not fit the machine geometry: {exc}") from exc
+            raise TwinError("rod positions do not fit the machine geometry")
+        return q, qd, qdd, arm
 
     def _forces(self, vals: F64, v: F64) -> F64:
         return physics.cylinder_forces(self.machine, vals[:, list(self.cmap.p_a)],
@@ -473,10 +513,6 @@ class TwinStream:
         g = (t1 - t0)[:, cj] / arm  # force per kg at each cylinder
         res = (tau_act - t0)[:, cj] / arm
         pf = self._prefilter // 2
-        if pf > 0:
-            count = moving_sum(np.ones(g.shape[0]), pf)[:, None]
-            g = moving_sum(g, pf) / count
-            res = moving_sum(res, pf) / count
         half = self._payload_half
         weights = np.empty(len(cj))
         frac = np.empty(len(cj))
@@ -485,156 +521,160 @@ class TwinStream:
             weights[c] = 1.0 / (max(ch.risk, 0.0) + cyl.friction.coulomb ** 2)
             # independent errors per sample ≈ the smoother's variance gain, risk/σ²
             frac[c] = float(np.clip(ch.risk / ch.sigma**2, 1e-3, 1.0)) if ch.sigma > 0 else 1.0
-        return sliding_payload(g, res, weights, half, frac)
-
-    def _dynamic_correction(self, q_s: F64, mass_s: F64, residual: F64, slew_known: bool,
-                            i0: npt.NDArray[np.intp], i1: npt.NDArray[np.intp],
-                            frac: F64) -> F64:
-        """Δqdd = M_DD⁻¹·residual_D on the grid (Eq. 3/4: qdd_kin + Δ is the forward-dynamics
-        acceleration M⁻¹(tau_act − C·qd − g) on the joints D with measured loads).
-
-        M is evaluated at the sample instants q_s (ns, n_joints) with the payload there and
-        interpolated linearly onto the grid (rows i0/i1, weight frac) like the payload, then
-        M_DD solved per grid point (Cholesky, one compiled pass): M changes by < 1 % over a
-        10 ms sample interval, so the interpolation error is ~1e-5 of the correction, and the
-        grid pays no mass matrix per point.
-        """
-        m = self.machine
-        known = np.zeros(m.n_joints, dtype=bool)
-        known[self._cyl_joint] = True
-        if self._slew_joint is not None and slew_known:
-            known[self._slew_joint] = True
-        mm = np.ascontiguousarray(physics.mass_matrix(m, q_s, mass_s))
-        out = np.empty_like(residual)
-        K.accel_correction_interp(mm, i0, i1, np.ascontiguousarray(frac),
-                                  np.ascontiguousarray(residual), known, out)
-        return out
+        return windowed_payload(g, res, weights, pf, half, frac)
 
     # -- one chunk ------------------------------------------------------------------------------
+    def _splines(self, knots_t: F64, sm: F64) -> tuple[F64, npt.NDArray[np.int64],
+                                                       npt.NDArray[np.int64]]:
+        """One natural spline over every column the grid needs and the quantity table
+        (:mod:`cranetwin.physics.gridpass`) saying which column (and derivative) is what.
+
+        Rates and accelerations are the Savitzky–Golay derivative filters at the samples,
+        splined (``velocity="spline"``); or Newton's divided differences of the smoothed
+        positions, splined, and that spline's derivative (``"newton"``, the paper's way). An
+        integrated slew angle takes its rate and acceleration from its own spline.
+        """
+        nc = len(self.machine.cylinders)
+        nd = self._nd
+        cm = self.cmap
+        ang = cm.angle
+        theta_col = self._nch if self._integrate else ang
+        pos_cols = list(cm.s) + ([theta_col] if theta_col is not None else [])
+        cols: list[int] = list(pos_cols)
+        src = np.full(gridpass.n_quantities(nc), -1, dtype=np.int64)
+        der = np.zeros_like(src)
+        src[:nc] = np.arange(nc)
+        extra: F64 | None = None
+        if self.opt.velocity == "newton":
+            extra = newton_derivative(knots_t, sm[:, pos_cols], 2 if sm.shape[0] >= 5 else 1)
+            base = len(cols) + len(cm.p_a) + len(cm.p_b) + (cm.torque is not None)
+            src[nc : 2 * nc] = base + np.arange(nc)
+            src[2 * nc : 3 * nc] = base + np.arange(nc)
+            der[2 * nc : 3 * nc] = 1
+            if theta_col is not None:
+                src[3 * nc] = nc
+                src[3 * nc + 1 : 3 * nc + 3] = base + nc
+                der[3 * nc + 2] = 1
+        else:
+            rates = [self._nch + 1 + i for i in range(nd)]
+            accs = [self._nch + 1 + nd + i for i in range(nd)]
+            src[nc : 2 * nc] = len(cols) + np.arange(nc)
+            src[2 * nc : 3 * nc] = len(cols) + nd + np.arange(nc)
+            cols += rates + accs
+            if theta_col is not None:
+                src[3 * nc] = nc
+                if ang is not None and not self._integrate:
+                    src[3 * nc + 1] = len(cols) - 2 * nd + nd - 1  # the angle's rate
+                    src[3 * nc + 2] = len(cols) - 1  # its acceleration
+                else:
+                    src[3 * nc + 1 : 3 * nc + 3] = nc
+                    der[3 * nc + 1] = 1
+                    der[3 * nc + 2] = 2
+        src[3 * nc + 3 : 4 * nc + 3] = len(cols) + np.arange(nc)
+        cols += list(cm.p_a)
+        src[4 * nc + 3 : 5 * nc + 3] = len(cols) + np.arange(nc)
+        cols += list(cm.p_b)
+        if cm.torque is not None:
+            src[5 * nc + 3] = len(cols)
+            cols.append(cm.torque)
+        data = sm[:, cols]
+        if extra is not None:
+            data = np.concatenate([data, extra], axis=1)
+        spline = NaturalCubicSpline(knots_t, data)
+        return spline.pieces(), src, der
+
     def _chunk(self, ka: int, kb: int, last: bool, ready: int) -> TwinResult:
+        """Outputs at samples [ka, kb) (through kb − 1 … the end on the ``last`` chunk).
+
+        Payload, its regression and the mass matrices run at the sample instants of an
+        extended range (the payload window reaches ``_wh`` samples on each side); every grid
+        quantity is then computed in one compiled pass (:mod:`cranetwin.physics.gridpass`).
+        """
         assert self._period is not None and self._origin is not None and self._choices is not None
         m = self.machine
         r = self._r
         p = self._period
         wh = self._wh
+        nc = len(m.cylinders)
+        nj = m.n_joints
         n_total = self._sm_valid if last else ready  # rows with every column final
         e0 = max(0, ka - wh)
         e1 = min(n_total - 1, kb + wh)  # inclusive
         f0 = max(self._sm.base, e0 - self.opt.settle_samples)
         f1 = min(n_total - 1, e1 + self.opt.settle_samples)  # inclusive
-        knots_t = np.arange(f0, f1 + 1) * p
-        sm = self._sm.get(f0, f1 + 1)
-        nc = len(m.cylinders)
-        nd = self._nd
-        pos_cols = list(self.cmap.s)
-        ang = self.cmap.angle
-        if self._integrate:
-            pos_cols.append(self._nch)
-        elif ang is not None:
-            pos_cols.append(ang)
-        val_cols = [j for j in range(self._nch) if j not in pos_cols]
-        npos = len(pos_cols)
-        if self.opt.velocity == "newton":
-            pos_val = NaturalCubicSpline(knots_t, sm[:, pos_cols]).evaluate_subdivided(r, 0)[0]
-            # the paper's way: Newton's formula on the (smoothed) positions, then splined
-            vel = newton_derivative(knots_t, sm[:, pos_cols], 2 if sm.shape[0] >= 5 else 1)
-            vg, ag = NaturalCubicSpline(knots_t, vel).evaluate_subdivided(r, 1)
-            valg = NaturalCubicSpline(knots_t, sm[:, val_cols]).evaluate_subdivided(r, 0)[0]
-        else:
-            # Savitzky–Golay derivative filters at the samples (window by Lepski's rule), splined;
-            # positions, rates, accelerations and the other channels share the knots: one spline
-            rates = self._nch + 1 + np.arange(nd)
-            rate_cols = list(rates[:npos]) + list(rates[npos:]) if ang is not None else list(
-                rates[:nc])
-            acc_cols = [c + nd for c in rate_cols]
-            nr = len(rate_cols)
-            every = NaturalCubicSpline(knots_t, sm[:, pos_cols + rate_cols + acc_cols + val_cols])
-            allg = every.evaluate_subdivided(r, 0)[0]
-            pos_val = allg[:, :npos]
-            vg = np.empty((allg.shape[0], npos))
-            ag = np.empty((allg.shape[0], npos))
-            vg[:, :nr] = allg[:, npos : npos + nr]
-            ag[:, :nr] = allg[:, npos + nr : npos + 2 * nr]
-            valg = allg[:, npos + 2 * nr :]
-            if self._integrate and npos > nc:
-                _, tv, ta = NaturalCubicSpline(knots_t, sm[:, self._nch]).evaluate_subdivided(r, 2)
-                vg[:, nc] = tv
-                ag[:, nc] = ta
-        posg = [pos_val, vg, ag]
-        # grid index j = k·r + i; crop to the extended range [e0·r, e1·r]
-        a0 = (e0 - f0) * r
-        a1 = (e1 - f0) * r + 1
-        pos, vel_g, acc = (x[a0:a1] for x in posg)
-        vals = np.empty((a1 - a0, self._nch))
-        vals[:, val_cols] = valg[a0:a1]
-        s = self._clip_s(pos[:, :nc])
-        v = vel_g[:, :nc]
-        acc_s = acc[:, :nc]
-        q_other = np.zeros((s.shape[0], m.n_joints - nc))
-        th = thd = thdd = None
-        if q_other.shape[1] and len(pos_cols) > nc:
-            th, thd, thdd = pos[:, nc], vel_g[:, nc], acc[:, nc]
-            q_other[:, 0] = th
-        q, qd, qdd, arm = self._joint_motion(s, v, acc_s, q_other)
-        if th is not None and self._slew_joint is not None:
-            qd[:, self._slew_joint] = thd
-            qdd[:, self._slew_joint] = thdd
-        f = self._forces(vals, v)
-        drive = None
-        if self._drive is not None and self.cmap.torque is not None:
-            drive = vals[:, self.cmap.torque] - physics.friction_force(
-                qd[:, self._slew_joint], self._drive.friction)
-        tau_act = self._actuator_loads(q, f, arm, drive)
-        # payload at the sample instants of the extended range, then onto the grid
-        o0 = (ka - e0) * r
-        o1 = (kb - 1 - e0) * r + 1 if last else (kb - e0) * r  # last: up to the last sample
-        idx = np.arange(0, q.shape[0], r)
-        ks = slice(ka - e0, min(kb - e0 + 1, idx.shape[0]))  # samples ka … kb (if there)
-        frac = (np.arange(o1 - o0) % r) / r
-        i0 = np.arange(o1 - o0) // r
-        i1 = np.minimum(i0 + 1, idx[ks].shape[0] - 1)
+        knots_t: F64 = np.arange(f0, f1 + 1, dtype=np.float64) * p
+        coef, src, der = self._splines(knots_t, self._sm.get(f0, f1 + 1))
+        h0 = float(knots_t[1] - knots_t[0])
+        h_last = float(knots_t[-1] - knots_t[-2])
+        # -- the sample instants e0 … e1: state, actuator loads, payload ----------------------
+        ne = e1 - e0 + 1
+        smp = np.empty((ne, src.shape[0]))
+        gridpass.spline_points(coef, e0 - f0, ne, 1, h0, h_last, src, der, smp)
+        s_s = self._clip_s(smp[:, :nc])
+        has_theta = bool(src[3 * nc] >= 0 and nj > nc)
+        q_other = np.zeros((ne, nj - nc))
+        if has_theta:
+            q_other[:, 0] = smp[:, 3 * nc]
+        q_s, qd_s, qdd_s, arm_s = self._joint_motion(s_s, smp[:, nc : 2 * nc],
+                                                     smp[:, 2 * nc : 3 * nc], q_other)
+        sj = self._slew_joint
+        has_drive = self._drive is not None and self.cmap.torque is not None
+        if has_theta and sj is not None:
+            qd_s[:, sj] = smp[:, 3 * nc + 1]
+            qdd_s[:, sj] = smp[:, 3 * nc + 2]
+        ks = slice(ka - e0, min(kb - e0 + 1, ne))  # samples ka … kb (if there)
+        n_ks = ks.stop - ks.start
         if self.payload is not None:
-            mk = np.full(idx[ks].shape[0], float(self.payload))
-            mass_g = np.full(o1 - o0, float(self.payload))
-            std_g = np.zeros(o1 - o0)
+            mk = np.full(n_ks, float(self.payload))
+            sk = np.zeros(n_ks)
         else:
-            mk, sk = self._estimate_payload(q[idx], qd[idx], qdd[idx], tau_act[idx], wh,
-                                            arm[idx])
-            mk, sk = mk[ks], sk[ks]
-            mass_g = mk[i0] + frac * (mk[i1] - mk[i0])
-            std_g = sk[i0] + frac * (sk[i1] - sk[i0])
-        sl = slice(o0, o1)
-        qo, qdo, qddo = q[sl], qd[sl], qdd[sl]
-        id_mass = np.nan_to_num(np.maximum(mass_g, 0.0))
+            f_s = physics.cylinder_forces(m, smp[:, 3 * nc + 3 : 4 * nc + 3],
+                                          smp[:, 4 * nc + 3 : 5 * nc + 3],
+                                          smp[:, nc : 2 * nc])
+            tau_s = self._actuator_loads(q_s, f_s, arm_s, None)
+            mk, sk = self._estimate_payload(q_s, qd_s, qdd_s, tau_s, wh, arm_s)
+            mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
+        dynamic = self.opt.wrench_acceleration == "dynamic"
+        if dynamic:
+            mm = np.ascontiguousarray(physics.mass_matrix(
+                m, q_s[ks], np.nan_to_num(np.maximum(mk, 0.0))))
+        else:
+            mm = np.zeros((1, nj, nj))
+        # -- the grid -------------------------------------------------------------------------
+        n = (kb - 1 - ka) * r + 1 if last else (kb - ka) * r
         gap = self._gap.get(ka, kb)[:, 0] > 0
-        gap_g = np.repeat(gap, r)[: o1 - o0] if r > 1 else gap
-        if gap_g.shape[0] < o1 - o0:
-            gap_g = np.concatenate([gap_g, np.zeros(o1 - o0 - gap_g.shape[0], dtype=bool)])
-        if self.opt.wrench_acceleration == "dynamic":
-            tau_id = physics.joint_torques(m, qo, qdo, qddo, id_mass)
-            residual = tau_act[sl] - tau_id
-            # a rod at (or past) an end of its stroke is held by the end stop, a force the
-            # pressures do not show: that joint keeps its kinematic acceleration there
-            raw_s = pos[sl, :nc]
-            stop = (raw_s <= END_STOP_MARGIN_M) | (raw_s >= self._stroke - END_STOP_MARGIN_M)
-            r_use = residual.copy()
-            r_use[:, self._cyl_joint] = np.where(stop, np.nan, residual[:, self._cyl_joint])
-            dqdd = self._dynamic_correction(q[idx][ks], np.nan_to_num(np.maximum(mk, 0.0)),
-                                            r_use, drive is not None, i0, i1, frac)
-            dqdd[gap_g] = 0.0  # bridged gaps keep the kinematic estimate
-            _, wrench = physics.inverse_dynamics(m, qo, qdo, qddo + dqdd, id_mass)
-        else:
-            tau_id, wrench = physics.inverse_dynamics(m, qo, qdo, qddo, id_mass)
-            residual = tau_act[sl] - tau_id
-        t = self._origin + (ka + np.arange(o1 - o0) / r) * p
-        cols = self.cmap
+        gap_g = np.repeat(gap, r)[:n] if r > 1 else gap[:n]
+        if gap_g.shape[0] < n:
+            gap_g = np.concatenate([gap_g, np.zeros(n - gap_g.shape[0], dtype=bool)])
+        out = {name: np.empty((n, w)) for name, w in (
+            ("q", nj), ("qd", nj), ("qdd", nj), ("rod_s", nc), ("rod_v", nc), ("p_a", nc),
+            ("p_b", nc), ("cyl_force", nc), ("actuator_torque", nj), ("id_torque", nj),
+            ("residual", nj))}
+        wrench = np.empty((n, nj, 6))
+        mass_g = np.empty(n)
+        std_g = np.empty(n)
+        bad = self._grid(
+            self._chain, coef, ka - f0, r, h0, h_last, src, der,
+            self._cyl, self._table, self._table_ok, self._fpar, self._stroke, END_STOP_MARGIN_M,
+            -1 if sj is None else sj, self._drive_fric, has_drive, has_theta,
+            mk, sk, mm, dynamic, np.ascontiguousarray(gap_g),
+            out["q"], out["qd"], out["qdd"], out["rod_s"], out["rod_v"], out["p_a"],
+            out["p_b"], out["cyl_force"], out["actuator_torque"], out["id_torque"],
+            out["residual"], wrench, mass_g, std_g, np.empty((n, nj)), np.empty((n, nj)),
+            np.empty((nj, 12)))
+        if bad:
+            rows = ~np.all(np.isfinite(out["q"]), axis=1)
+            self._joint_motion(out["rod_s"][rows], out["rod_v"][rows], out["rod_v"][rows],
+                               np.zeros((int(rows.sum()), nj - nc)))
+            raise TwinError(f"rod positions do not fit the machine geometry at {bad} instants")
+        t = self._origin + (ka + np.arange(n) / r) * p
         return TwinResult(
-            t_s=t, q=qo, qd=qdo, qdd=qddo, rod_s=s[sl], rod_v=v[sl],
-            p_a=vals[sl][:, list(cols.p_a)], p_b=vals[sl][:, list(cols.p_b)],
-            cyl_force=f[sl], actuator_torque=tau_act[sl], id_torque=tau_id,
-            residual=residual, joint_wrench=wrench, payload_kg=mass_g,
+            t_s=t, q=out["q"], qd=out["qd"], qdd=out["qdd"], rod_s=out["rod_s"],
+            rod_v=out["rod_v"], p_a=out["p_a"], p_b=out["p_b"], cyl_force=out["cyl_force"],
+            actuator_torque=out["actuator_torque"], id_torque=out["id_torque"],
+            residual=out["residual"], joint_wrench=wrench, payload_kg=mass_g,
             payload_std_kg=std_g, gap=gap_g,
-            smoothing=dict(zip(cols.choice_names, self._choices, strict=True)),
+            smoothing=dict(zip(self.cmap.choice_names, self._choices, strict=True)),
         )
 
 

@@ -1,0 +1,435 @@
+"""The replay's model-step stage fused into one compiled loop (paper Sect. 2, Eq. 1–4).
+
+At every grid instant (1 kHz for 100 Hz samples) the twin evaluates the natural splines of the
+smoothed channels, solves the inverse kinematics of the cylinders (rod position → joint angle,
+moment arm ds/dq and d²s/dq²; the chain rule gives qd and qdd), the cylinder forces of Eq. 1–2,
+the actuator joint loads F·ds/dq, the inverse dynamics (RNEA) with the payload, the
+forward-dynamics acceleration correction of Eq. 3/4 (M_DD·Δqdd_D = residual_D) and the joint
+reaction wrenches. Done as separate vectorised calls this costs a dozen temporaries of
+n × (up to 24) doubles per chunk and a pass over memory for each; here each instant is computed
+start to finish in registers and written once to the output arrays.
+
+:func:`grid_pass` is written once, as plain Python, and compiled twice:
+
+* here, with the generic RNEA (:func:`cranetwin.physics.kernels.rnea_into`), as
+  :data:`grid_pass_generic` — the fallback;
+* into the machine's generated module (:mod:`cranetwin.physics.codegen`), where
+  ``rnea_row``/``rnea_tau_row`` are the RNEA specialised to that machine (≈ 3× faster). Its
+  source is copied there (:func:`template_source`) so that numba's on-disk cache is keyed by the
+  generated file and never mixes machines.
+
+The inputs are prepared by :class:`cranetwin.twin.replay.TwinStream`; every quantity has the
+meaning it has there (the tests compare the two paths).
+"""
+
+from __future__ import annotations
+
+import inspect
+import logging
+import math
+import textwrap
+from collections.abc import Callable
+
+import numpy as np
+from numba import njit
+
+from cranetwin.physics.chain import CYL_BLOCK, ChainParams
+from cranetwin.physics.kernels import _chol_solve, cylinder_motion, rnea_into
+
+IMPORTS = ("import numpy as np\n"
+           "from cranetwin.physics.chain import CYL_BLOCK\n"
+           "from cranetwin.physics.kernels import _chol_solve, cylinder_motion\n"
+           "from cranetwin.physics.gridpass import chol_solve_inline, fast_tanh, table_motion")
+"""Imports the copied :func:`grid_pass` needs in the generated module (besides ``math`` and
+``njit``, which it has)."""
+
+_log = logging.getLogger(__name__)
+
+# Layout of the quantity table ``src``/``der`` (nc cylinders):
+#   [0, nc) rod positions s [m]; [nc, 2nc) rod velocities [m/s]; [2nc, 3nc) rod accelerations
+#   [m/s²]; 3nc slew angle θ0 [rad]; 3nc+1 its rate; 3nc+2 its acceleration;
+#   [3nc+3, 4nc+3) pA [Pa]; [4nc+3, 5nc+3) pB [Pa]; 5nc+3 net slewing torque [N·m].
+# src[i] is the spline column a quantity comes from (−1: absent, 0), der[i] the derivative
+# order of that column's spline (0, 1 or 2).
+
+
+def n_quantities(n_cylinders: int) -> int:
+    """Length of the ``src``/``der`` table for ``n_cylinders`` cylinders."""
+    return 5 * n_cylinders + 4
+
+
+@njit(cache=True)
+def rnea_row(chain, q, qd, qdd, pl_kg, k, tau, wrench, work):  # type: ignore[no-untyped-def]
+    """Generic RNEA of row k (tau and wrench); signature of the generated ``rnea_row``."""
+    rnea_into(chain, q[k], qd[k], qdd[k], pl_kg, 1.0, tau[k], wrench[k], work)
+
+
+@njit(cache=True)
+def rnea_tau_row(chain, q, qd, qdd, pl_kg, k, tau, wrench, work):  # type: ignore[no-untyped-def]
+    """Generic RNEA of row k (``wrench[k]`` is scratch here)."""
+    rnea_into(chain, q[k], qd[k], qdd[k], pl_kg, 1.0, tau[k], wrench[k], work)
+
+
+@njit(cache=True)
+def spline_points(coef, i_first, n_out, r, h0, h_last, src, der, out):  # type: ignore[no-untyped-def]
+    """Spline quantities at rows g = 0 … n_out−1: knot interval i_first + g // r at offset
+    h0·(g % r)/r; a row past the last interval is the end knot (last interval at h_last).
+
+    Args:
+        coef: Spline pieces (n_int, 4, k): y_i, b_i, c_i, d_i per column.
+        src, der: Column and derivative order per quantity (module comment); src < 0 gives 0.
+        out: (n_out, len(src)).
+    """
+    n_int = coef.shape[0]
+    nq = src.shape[0]
+    for g in range(n_out):
+        i = i_first + g // r
+        dx = h0 * (g % r) / r
+        if i >= n_int:
+            i = n_int - 1
+            dx = h_last
+        for m in range(nq):
+            c = src[m]
+            if c < 0:
+                out[g, m] = 0.0
+                continue
+            a0 = coef[i, 0, c]
+            b = coef[i, 1, c]
+            c2 = coef[i, 2, c]
+            d = coef[i, 3, c]
+            nu = der[m]
+            if nu == 0:
+                out[g, m] = a0 + dx * (b + dx * (c2 + dx * d))
+            elif nu == 1:
+                out[g, m] = b + dx * (2.0 * c2 + 3.0 * d * dx)
+            else:
+                out[g, m] = 2.0 * c2 + 6.0 * d * dx
+
+
+@njit(cache=True, inline="always")
+def fast_tanh(x):  # type: ignore[no-untyped-def]
+    """tanh through one expm1 (libm's tanh costs several times more in the fused loop);
+    within 2 ulp of :func:`math.tanh` (tested)."""
+    ax = abs(x)
+    if ax > 19.1:  # tanh = 1 to double precision
+        t = 1.0
+    else:
+        e = math.expm1(2.0 * ax)
+        t = e / (e + 2.0)
+    return t if x >= 0.0 else -t
+
+
+chol_solve_inline = njit(cache=True, inline="always")(_chol_solve.py_func)
+""":func:`cranetwin.physics.kernels._chol_solve`, inlined where it is called (no call, no
+reference counting of its array arguments in the per-instant loop)."""
+
+
+KIN_TABLE_NODES = 2049
+"""Nodes of the rod-position tables (:func:`kinematics_table`) over each cylinder's stroke:
+cells of stroke/2048 (≈ 0.3 mm on the PATU 655)."""
+
+
+@njit(cache=True, error_model="numpy")
+def kinematics_table(cyl, stroke, n_nodes, table):  # type: ignore[no-untyped-def]
+    """Quintic pieces of each cylinder's inverse kinematics q(s) over its stroke.
+
+    At ``n_nodes`` equally spaced rod positions the exact inverse (:func:`cylinder_motion`)
+    gives q, dq/ds = 1/s′ and d²q/ds² = −s″/s′³; on each cell the quintic Hermite polynomial
+    through those six numbers is stored as coefficients of u = (s − s_i)/h, so that
+    ``table[k, i] @ (1, u, …, u⁵)`` is q. Its error is of order h⁶·q⁽⁶⁾ for q and h⁴·q⁽⁶⁾ for
+    d²q/ds²: with 2048 cells, below 1e-12 relative on the PATU 655 (tested against the exact
+    inverse), at a seventh of its cost per instant.
+
+    Args:
+        cyl: Flat cylinder parameters; stroke (nc,) [m]; table: output (nc, n_nodes − 1, 6).
+
+    Returns:
+        (nc,) booleans: the table of that cylinder is usable (the geometry produces every node,
+        and q has no jump); where False, the grid pass uses the exact inverse.
+    """
+    nc = stroke.shape[0]
+    ok = np.ones(nc, dtype=np.bool_)
+    q = np.empty(n_nodes)
+    q1 = np.empty(n_nodes)
+    q2 = np.empty(n_nodes)
+    for k in range(nc):
+        h = stroke[k] / (n_nodes - 1)
+        for i in range(n_nodes):
+            qi, d1, d2 = cylinder_motion(cyl, k, min(i * h, stroke[k]))
+            q[i] = qi
+            q1[i] = 1.0 / d1
+            q2[i] = -d2 / (d1 * d1 * d1)
+            if not (math.isfinite(qi) and math.isfinite(q1[i]) and math.isfinite(q2[i])):
+                ok[k] = False
+        for i in range(n_nodes - 1):
+            p0 = q[i]
+            dp = q[i + 1] - p0
+            if abs(dp) > 0.1:  # a wrap or a branch change inside the stroke
+                ok[k] = False
+            m0 = q1[i] * h
+            m1 = q1[i + 1] * h
+            c0 = q2[i] * h * h
+            c1 = q2[i + 1] * h * h
+            table[k, i, 0] = p0
+            table[k, i, 1] = m0
+            table[k, i, 2] = 0.5 * c0
+            table[k, i, 3] = 10.0 * dp - 6.0 * m0 - 4.0 * m1 - 1.5 * c0 + 0.5 * c1
+            table[k, i, 4] = -15.0 * dp + 8.0 * m0 + 7.0 * m1 + 1.5 * c0 - c1
+            table[k, i, 5] = 6.0 * dp - 3.0 * m0 - 3.0 * m1 - 0.5 * c0 + 0.5 * c1
+    return ok
+
+
+@njit(cache=True, inline="always")
+def table_motion(table, k, stroke_k, s):  # type: ignore[no-untyped-def]
+    """(q, ds/dq, d²s/dq²) of cylinder k at rod position s in [0, stroke] from its table,
+    as :func:`cylinder_motion` returns them."""
+    n_cells = table.shape[1]
+    h = stroke_k / n_cells
+    x = s * (n_cells / stroke_k)
+    i = int(x)
+    if i >= n_cells:
+        i = n_cells - 1
+    u = x - i
+    c0 = table[k, i, 0]
+    c1 = table[k, i, 1]
+    c2 = table[k, i, 2]
+    c3 = table[k, i, 3]
+    c4 = table[k, i, 4]
+    c5 = table[k, i, 5]
+    qv = c0 + u * (c1 + u * (c2 + u * (c3 + u * (c4 + u * c5))))
+    g1 = (c1 + u * (2.0 * c2 + u * (3.0 * c3 + u * (4.0 * c4 + u * 5.0 * c5)))) / h
+    g2 = (2.0 * c2 + u * (6.0 * c3 + u * (12.0 * c4 + u * 20.0 * c5))) / (h * h)
+    d1 = 1.0 / g1
+    return qv, d1, -g2 * d1 * d1 * d1
+
+
+@njit(cache=True, error_model="numpy")
+def table_motion_batch(table, table_ok, cyl, s, v, a, q, qd, qdd, arm):  # type: ignore[no-untyped-def]
+    """:func:`cranetwin.physics.kernels.cylinder_motion_batch` through the tables (the exact
+    inverse for a cylinder whose table is not usable); s must lie within the strokes."""
+    nc = table_ok.shape[0]
+    for i in range(s.shape[0]):
+        for k in range(nc):
+            ji = int(cyl[1 + k * CYL_BLOCK + 1])
+            if table_ok[k]:
+                qj, d1, d2 = table_motion(table, k, cyl[1 + k * CYL_BLOCK + 3], s[i, k])
+            else:
+                qj, d1, d2 = cylinder_motion(cyl, k, s[i, k])
+            w = v[i, k] / d1
+            q[i, ji] = qj
+            qd[i, ji] = w
+            qdd[i, ji] = (a[i, k] - d2 * w * w) / d1
+            arm[i, k] = d1
+
+
+def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-untyped-def]
+              cyl, table, table_ok, fpar, stroke, stop_margin, slew_joint, drive, has_drive,
+              has_theta,
+              mk, sk, mm, dynamic, gap,
+              q, qd, qdd, rod_s, rod_v, pa, pb, force, tau_act, tau_id, resid, wrench,
+              mass, std, qdd2, tau2, work):
+    """Every model-step quantity of the replay at rows g = 0 … n−1 (n = q.shape[0]).
+
+    Args:
+        chain: Flat chain parameters (the generic RNEA reads them; the generated one ignores).
+        coef, i_first, r, h0, h_last, src, der: Splines and the quantity table, as
+            :func:`spline_points`.
+        cyl: Flat cylinder parameters; table, table_ok: :func:`kinematics_table` and its
+            result (the exact inverse where not ok); fpar (nc, 5): A1 [m²], A2 [m²], Fc [N],
+            vc [m/s], b [N·s/m] of Eq. 2; stroke (nc,) [m]; stop_margin [m]: a rod this close
+            to an end of its stroke is in the end stop (its joint keeps the kinematic
+            acceleration).
+        slew_joint: Index of the torque-driven slew joint, −1 if none. drive: (Fc, vc, b) of
+            its friction. has_drive: the net slewing torque is measured. has_theta: the slew
+            angle (θ0 quantities) is known.
+        mk, sk: Payload estimate and its standard error at samples 0, 1, … (sample j at row
+            j·r) [kg]; mm: mass matrices there (ns, nj, nj), with the payload max(mk, 0).
+        dynamic: wrench accelerations from forward dynamics (True) or kinematic (False).
+        gap: (n,) rows inside a bridged dropout (no dynamic correction there).
+        q … std: outputs, (n, nj) / (n, nc) / (n, nj, 6) / (n,).
+        qdd2, tau2: scratch (n, nj); work: scratch (nj, 12) for the generic RNEA.
+
+    Returns:
+        Number of rows where a rod position has no joint angle (the geometry cannot produce
+        it); their q is NaN.
+    """
+    n = q.shape[0]
+    nj = q.shape[1]
+    nc = stroke.shape[0]
+    n_int = coef.shape[0]
+    nq = src.shape[0]
+    ns = mk.shape[0]
+    val = np.zeros(nq)
+    # quantities grouped by derivative order (no branch per quantity and instant)
+    n0 = 0
+    n1 = 0
+    n2 = 0
+    for m in range(nq):
+        if src[m] >= 0:
+            if der[m] == 0:
+                n0 += 1
+            elif der[m] == 1:
+                n1 += 1
+            else:
+                n2 += 1
+    g0 = np.empty((n0, 2), dtype=np.int64)
+    g1 = np.empty((n1, 2), dtype=np.int64)
+    g2 = np.empty((n2, 2), dtype=np.int64)
+    n0 = 0
+    n1 = 0
+    n2 = 0
+    for m in range(nq):
+        if src[m] >= 0:
+            if der[m] == 0:
+                g0[n0, 0] = m
+                g0[n0, 1] = src[m]
+                n0 += 1
+            elif der[m] == 1:
+                g1[n1, 0] = m
+                g1[n1, 1] = src[m]
+                n1 += 1
+            else:
+                g2[n2, 0] = m
+                g2[n2, 1] = src[m]
+                n2 += 1
+    idx = np.empty(nj, dtype=np.int64)
+    amat = np.empty((nj, nj))
+    y = np.empty(nj)
+    known = np.zeros(nj, dtype=np.bool_)
+    inv_r = 1.0 / r
+    bad = 0
+    for g in range(n):
+        # -- splines ------------------------------------------------------------------------
+        s0 = g // r  # sample index (payload, mass matrices) and knot interval
+        jr = g - s0 * r
+        fr = jr * inv_r
+        i = i_first + s0
+        dx = h0 * fr
+        if i >= n_int:
+            i = n_int - 1
+            dx = h_last
+        for m in range(n0):
+            c = g0[m, 1]
+            val[g0[m, 0]] = coef[i, 0, c] + dx * (coef[i, 1, c] + dx * (
+                coef[i, 2, c] + dx * coef[i, 3, c]))
+        for m in range(n1):
+            c = g1[m, 1]
+            val[g1[m, 0]] = coef[i, 1, c] + dx * (2.0 * coef[i, 2, c] + 3.0 * dx * coef[i, 3, c])
+        for m in range(n2):
+            c = g2[m, 1]
+            val[g2[m, 0]] = 2.0 * coef[i, 2, c] + 6.0 * dx * coef[i, 3, c]
+        # -- kinematics, Eq. 1–2, actuator loads --------------------------------------------
+        for j in range(nj):
+            q[g, j] = 0.0
+            qd[g, j] = 0.0
+            qdd[g, j] = 0.0
+            tau_act[g, j] = 0.0
+            known[j] = False
+        if slew_joint >= 0 and has_theta:
+            q[g, slew_joint] = val[3 * nc]
+            qd[g, slew_joint] = val[3 * nc + 1]
+            qdd[g, slew_joint] = val[3 * nc + 2]
+        row_bad = False
+        for k in range(nc):
+            raw = val[k]
+            s = min(max(raw, 0.0), stroke[k])
+            v = val[nc + k]
+            a = val[2 * nc + k]
+            ji = int(cyl[1 + k * CYL_BLOCK + 1])
+            if table_ok[k]:
+                qj, d1, d2 = table_motion(table, k, stroke[k], s)
+            else:
+                qj, d1, d2 = cylinder_motion(cyl, k, s)
+            if not math.isfinite(qj):
+                row_bad = True
+            w = v / d1
+            q[g, ji] = qj
+            qd[g, ji] = w
+            qdd[g, ji] = (a - d2 * w * w) / d1
+            rod_s[g, k] = s
+            rod_v[g, k] = v
+            pak = val[3 * nc + 3 + k]
+            pbk = val[4 * nc + 3 + k]
+            pa[g, k] = pak
+            pb[g, k] = pbk
+            f = (pak * fpar[k, 0] - pbk * fpar[k, 1]
+                 - (fpar[k, 2] * fast_tanh(v / fpar[k, 3]) + fpar[k, 4] * v))
+            force[g, k] = f
+            tau_act[g, ji] = f * d1
+            # a rod at (or past) an end of its stroke is held by the end stop, a force the
+            # pressures do not show: its joint keeps the kinematic acceleration there
+            known[ji] = not (raw <= stop_margin or raw >= stroke[k] - stop_margin)
+        if row_bad:
+            bad += 1
+        if slew_joint >= 0:
+            if has_drive:
+                wd = qd[g, slew_joint]
+                tau_act[g, slew_joint] = val[5 * nc + 3] - (
+                    drive[0] * fast_tanh(wd / drive[1]) + drive[2] * wd)
+                known[slew_joint] = True
+            else:
+                tau_act[g, slew_joint] = math.nan
+        # -- payload, interpolated from the samples -------------------------------------------
+        s1 = min(s0 + 1, ns - 1)
+        mg = mk[s0] + fr * (mk[s1] - mk[s0])
+        mass[g] = mg
+        std[g] = sk[s0] + fr * (sk[s1] - sk[s0])
+        pl = mg if mg > 0.0 else 0.0  # NaN and negative estimates: no payload
+        # -- inverse dynamics, residual, Eq. 3/4 correction, wrenches -------------------------
+        pass  # @RNEA_HEAD@
+        if not dynamic:
+            rnea_row(chain, q, qd, qdd, pl, g, tau_id, wrench, work)  # @RNEA qdd tau_id wrench@
+            for j in range(nj):
+                resid[g, j] = tau_act[g, j] - tau_id[g, j]
+            continue
+        rnea_tau_row(chain, q, qd, qdd, pl, g, tau_id, wrench, work)  # @RNEA qdd tau_id -@
+        nd = 0
+        for j in range(nj):
+            rj = tau_act[g, j] - tau_id[g, j]
+            resid[g, j] = rj
+            qdd2[g, j] = qdd[g, j]
+            if known[j] and math.isfinite(rj):
+                idx[nd] = j
+                y[nd] = rj
+                nd += 1
+        if nd > 0 and not gap[g]:
+            for a_ in range(nd):
+                for b_ in range(nd):
+                    m0 = mm[s0, idx[a_], idx[b_]]
+                    amat[a_, b_] = m0 + fr * (mm[s1, idx[a_], idx[b_]] - m0)
+            if chol_solve_inline(amat, y, nd):
+                for a_ in range(nd):
+                    qdd2[g, idx[a_]] += y[a_]
+        rnea_row(chain, q, qd, qdd2, pl, g, tau2, wrench, work)  # @RNEA qdd2 tau2 wrench@
+    return bad
+
+
+def template_source() -> str:
+    """Source of :func:`grid_pass` (undecorated) for the generated module."""
+    return textwrap.dedent(inspect.getsource(grid_pass))
+
+
+grid_pass_generic: Callable[..., int] = njit(cache=True, error_model="numpy")(grid_pass)
+
+
+_KERNELS: dict[int, tuple[ChainParams, Callable[..., int]]] = {}
+
+
+def kernel_for(params: ChainParams, specialised: bool = True) -> Callable[..., int]:
+    """The grid pass for a compiled machine: the one in its generated module (RNEA
+    specialised to it), or :data:`grid_pass_generic` if ``specialised`` is off or generation
+    fails (generation is an optimisation: it never fails the replay)."""
+    if not specialised:
+        return grid_pass_generic
+    hit = _KERNELS.get(id(params))
+    if hit is not None and hit[0] is params:
+        return hit[1]
+    try:
+        from cranetwin.physics.codegen import specialised_module
+
+        fn: Callable[..., int] = specialised_module(params).grid_pass
+    except Exception as exc:
+        _log.warning("specialised grid pass unavailable (%s); using the generic one", exc)
+        fn = grid_pass_generic
+    _KERNELS[id(params)] = (params, fn)
+    return fn
