@@ -529,6 +529,172 @@ def _ici_operators(ws: tuple[int, ...], polyorder: int) -> tuple[F64, F64, F64, 
     return hs, lefts, rights, even
 
 
+@njit(cache=True, fastmath=True)
+def _centred_prefix(y, c, start, length, mid, p0, p1, p2):  # type: ignore[no-untyped-def]
+    """p_r[t] = Σ_{k=start}^{start+t−1} (k − mid)^r·(y[k] − c), r = 0, 1, 2, t = 0 … length."""
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    p0[0] = 0.0
+    p1[0] = 0.0
+    p2[0] = 0.0
+    for t in range(length):
+        k = start + t
+        z = y[k] - c
+        u = float(k - mid)
+        s0 += z
+        s1 += u * z
+        s2 += u * u * z
+        p0[t + 1] = s0
+        p1[t + 1] = s1
+        p2[t + 1] = s2
+
+
+@njit(cache=True, fastmath=True)
+def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gamma, block,  # type: ignore[no-untyped-def]
+                            ring_max, out):
+    """:func:`_ici_pair_kernel` for polyorder <= 3 at O(1) per sample and window.
+
+    Interior centre filters are h_j = e0 + e1·j², so an estimate is e0·Σy + e1·Σj²y over
+    |j| <= half. Windows up to ``ring_max`` half-width grow these sums ring by ring (as the
+    old kernel); longer ones read them off prefix sums: with z = y − c (c the block's mean,
+    added back as c·Σh), Σj²z[i+j] = S2 − 2x·S1 + x²·S0, S_r = Σ u^r z over the window.
+    Rounding stays at the data's level because the prefix sums restart every ``block``
+    samples with u, x measured from the block's middle (|x| <= block/2, |u| <= block/2 +
+    half) and serve only windows long enough that x²/half² stays small. At the ends (i < half or
+    i >= n − half) the estimate is the polynomial fitted to the first/last w samples
+    (``fits``: (p+1, w) per window, in x = offset/half), evaluated at the sample. Every sample
+    goes through the windows in increasing order until its intervals stop intersecting;
+    ``out`` keeps the last accepted window's pA, pB."""
+    n = pa.shape[0]
+    nw = halves.shape[0]
+    hmax = halves[nw - 1]
+    np1 = fits.shape[1]
+    cla = np.zeros((nw, np1))
+    clb = np.zeros((nw, np1))
+    cra = np.zeros((nw, np1))
+    crb = np.zeros((nw, np1))
+    for k in range(nw):
+        w = 2 * halves[k] + 1
+        if w == 1:
+            continue
+        for m in range(np1):
+            for j in range(w):
+                f = fits[k, m, j]
+                cla[k, m] += f * pa[j]
+                clb[k, m] += f * pb[j]
+                cra[k, m] += f * pa[n - w + j]
+                crb[k, m] += f * pb[n - w + j]
+    size = block + 2 * hmax + 1
+    fa0 = np.empty(size)
+    fa1 = np.empty(size)
+    fa2 = np.empty(size)
+    fb0 = np.empty(size)
+    fb1 = np.empty(size)
+    fb2 = np.empty(size)
+    for b0 in range(0, n, block):
+        nb = min(block, n - b0)
+        mid = b0 + nb // 2
+        start = max(0, b0 - hmax)
+        end = min(n, b0 + nb + hmax)
+        ca = 0.0
+        cb = 0.0
+        for t in range(start, end):
+            ca += pa[t]
+            cb += pb[t]
+        ca /= end - start
+        cb /= end - start
+        _centred_prefix(pa, ca, start, end - start, mid, fa0, fa1, fa2)
+        _centred_prefix(pb, cb, start, end - start, mid, fb0, fb1, fb2)
+        for i in range(b0, b0 + nb):
+            lo = 0.0
+            hi = 0.0
+            sa0 = pa[i]  # ring sums: offsets 0 … ring
+            sb0 = pb[i]
+            sa2 = 0.0
+            sb2 = 0.0
+            ring = 0
+            x = float(i - mid)
+            for k in range(nw):
+                h = halves[k]
+                if i < h or i >= n - h:  # the polynomial fitted to the first/last w samples
+                    if i < h:
+                        u = (i - h) / h
+                        ea = cla[k, np1 - 1]
+                        eb = clb[k, np1 - 1]
+                        for m in range(np1 - 2, -1, -1):
+                            ea = ea * u + cla[k, m]
+                            eb = eb * u + clb[k, m]
+                    else:
+                        u = (i - (n - 1 - h)) / h
+                        ea = cra[k, np1 - 1]
+                        eb = crb[k, np1 - 1]
+                        for m in range(np1 - 2, -1, -1):
+                            ea = ea * u + cra[k, m]
+                            eb = eb * u + crb[k, m]
+                elif h <= ring_max:  # short windows: grow the ring sums
+                    for jj in range(ring + 1, h + 1):
+                        ya = pa[i - jj] + pa[i + jj]
+                        yb = pb[i - jj] + pb[i + jj]
+                        j2 = float(jj * jj)
+                        sa0 += ya
+                        sa2 += j2 * ya
+                        sb0 += yb
+                        sb2 += j2 * yb
+                    ring = h
+                    ea = e0[k] * sa0 + e1[k] * sa2
+                    eb = e0[k] * sb0 + e1[k] * sb2
+                else:  # long windows: centred prefix sums
+                    r = i + h + 1 - start
+                    q = i - h - start
+                    za0 = fa0[r] - fa0[q]
+                    zb0 = fb0[r] - fb0[q]
+                    ea = (e0[k] * za0 + e1[k] * (fa2[r] - fa2[q] - 2.0 * x * (fa1[r] - fa1[q])
+                                                 + x * x * za0) + hsum[k] * ca)
+                    eb = (e0[k] * zb0 + e1[k] * (fb2[r] - fb2[q] - 2.0 * x * (fb1[r] - fb1[q])
+                                                 + x * x * zb0) + hsum[k] * cb)
+                e = a1 * ea - a2 * eb
+                g = gamma * sds[k]
+                if k == 0:
+                    lo = e - g
+                    hi = e + g
+                else:
+                    lo = max(lo, e - g)
+                    hi = min(hi, e + g)
+                    if lo > hi:
+                        break
+                out[i, 0] = ea
+                out[i, 1] = eb
+
+
+@lru_cache(maxsize=64)
+def _ici_prefix_operators(ws: tuple[int, ...],
+                          polyorder: int) -> tuple[npt.NDArray[np.int64], F64, F64, F64, F64]:
+    """Half-widths, the centre filters' coefficients e0, e1 (h_j = e0 + e1·j²), their sums,
+    and per window the least-squares fit (p+1, wmax) of a polynomial in offset/half to w
+    samples (for the ends), for :func:`_ici_pair_prefix_kernel` (polyorder <= 3)."""
+    hs, _, _, even = _ici_operators(ws, polyorder)
+    wmax = max(ws)
+    halves = np.array([w // 2 for w in ws], dtype=np.int64)
+    e0 = np.ascontiguousarray(even[:, 0])
+    e1 = np.ascontiguousarray(even[:, 1]) if even.shape[1] > 1 else np.zeros(len(ws))
+    hsum = hs.sum(axis=1)
+    fits = np.zeros((len(ws), polyorder + 1, wmax))
+    for k, w in enumerate(ws):
+        if w > 1:
+            half = w // 2
+            x = (np.arange(w) - half) / half
+            fits[k, :, :w] = np.linalg.pinv(np.vander(x, polyorder + 1, increasing=True))
+    return halves, e0, e1, hsum, fits
+
+
+ICI_BLOCK = 64
+"""Samples per block of the prefix sums in the LPA-ICI pass (bounds their rounding)."""
+ICI_RING_MAX = 10
+"""Half-widths up to this are summed ring by ring in the LPA-ICI pass, longer ones by prefix
+sums (whose rounding grows as (ICI_BLOCK / 2 / half)²)."""
+
+
 def ici_smooth_pair(pa: npt.ArrayLike, pb: npt.ArrayLike, a1: float, a2: float, sigma: float,
                     windows: tuple[int, ...] = ICI_WINDOWS, polyorder: int = 3,
                     gamma: float = ICI_GAMMA) -> F64:
@@ -555,9 +721,14 @@ def ici_smooth_pair(pa: npt.ArrayLike, pb: npt.ArrayLike, a1: float, a2: float, 
     ws = [w for w in windows if (w == 1 or w > polyorder + 1) and w <= n]
     if not ws:
         raise SignalError(f"no ICI window fits {n} samples")
-    hs, lefts, rights, even = _ici_operators(tuple(ws), polyorder)
     sds = np.array([sigma * np.sqrt(centre_weight(w, polyorder)) for w in ws])
     out = np.empty((n, 2))
+    if polyorder <= 3:
+        halves, e0, e1, hsum, fits = _ici_prefix_operators(tuple(ws), polyorder)
+        _ici_pair_prefix_kernel(xa, xb, float(a1), float(a2), halves, e0, e1, hsum, fits, sds,
+                                float(gamma), ICI_BLOCK, ICI_RING_MAX, out)
+        return out
+    hs, lefts, rights, even = _ici_operators(tuple(ws), polyorder)
     _ici_pair_kernel(xa, xb, float(a1), float(a2), np.array(ws, dtype=np.int64), hs, lefts,
                      rights, even, sds, float(gamma), out)
     return out
