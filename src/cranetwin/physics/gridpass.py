@@ -225,7 +225,7 @@ def table_motion_batch(table, table_ok, cyl, s, v, a, q, qd, qdd, arm):  # type:
 def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-untyped-def]
               cyl, table, table_ok, fpar, stroke, stop_margin, slew_joint, drive, has_drive,
               has_theta,
-              mk, sk, mm, dynamic, gap,
+              mk, sk, mm, minv, minv_ok, n_full, dynamic, gap,
               q, qd, qdd, rod_s, rod_v, pa, pb, force, tau_act, tau_id, resid, wrench,
               mass, std, qdd2, tau2, work):
     """Every model-step quantity of the replay at rows g = 0 … n−1 (n = q.shape[0]).
@@ -243,7 +243,13 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             its friction. has_drive: the net slewing torque is measured. has_theta: the slew
             angle (θ0 quantities) is known.
         mk, sk: Payload estimate and its standard error at samples 0, 1, … (sample j at row
-            j·r) [kg]; mm: mass matrices there (ns, nj, nj), with the payload max(mk, 0).
+            j·r) [kg]; mm: mass matrices there (ns, nj, nj), with the payload max(mk, 0);
+            minv (ns, n_full, n_full): inverses of M_DD there for D the n_full joints whose
+            loads are measured (cylinder joints, the slew if its torque is sent), in joint
+            order; minv_ok (ns,): that inverse exists. An instant with all of D usable uses
+            the inverse interpolated between samples (as accurate as interpolating M, an
+            O(h²) approximation of M(q(t)) either way, and a fifth of the work); one with
+            fewer (a rod in its end stop) solves with the interpolated M by Cholesky.
         dynamic: wrench accelerations from forward dynamics (True) or kinematic (False).
         gap: (n,) rows inside a bridged dropout (no dynamic correction there).
         q … std: outputs, (n, nj) / (n, nc) / (n, nj, 6) / (n,).
@@ -393,13 +399,22 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
                 y[nd] = rj
                 nd += 1
         if nd > 0 and not gap[g]:
-            for a_ in range(nd):
-                for b_ in range(nd):
-                    m0 = mm[s0, idx[a_], idx[b_]]
-                    amat[a_, b_] = m0 + fr * (mm[s1, idx[a_], idx[b_]] - m0)
-            if chol_solve_inline(amat, y, nd):
+            if nd == n_full and minv_ok[s0] and minv_ok[s1]:
+                # the usual case, every measured joint in D: M_DD⁻¹ interpolated like M
                 for a_ in range(nd):
-                    qdd2[g, idx[a_]] += y[a_]
+                    acc = 0.0
+                    for b_ in range(nd):
+                        m0 = minv[s0, a_, b_]
+                        acc += (m0 + fr * (minv[s1, a_, b_] - m0)) * y[b_]
+                    qdd2[g, idx[a_]] += acc
+            else:
+                for a_ in range(nd):
+                    for b_ in range(nd):
+                        m0 = mm[s0, idx[a_], idx[b_]]
+                        amat[a_, b_] = m0 + fr * (mm[s1, idx[a_], idx[b_]] - m0)
+                if chol_solve_inline(amat, y, nd):
+                    for a_ in range(nd):
+                        qdd2[g, idx[a_]] += y[a_]
         rnea_row(chain, q, qd, qdd2, pl, g, tau2, wrench, work)  # @RNEA qdd2 tau2 wrench@
     return bad
 

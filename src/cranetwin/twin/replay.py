@@ -635,11 +635,20 @@ class TwinStream:
             mk, sk = self._estimate_payload(q_s, qd_s, qdd_s, tau_s, wh, arm_s)
             mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
         dynamic = self.opt.wrench_acceleration == "dynamic"
+        full = list(self._cyl_joint) + ([sj] if has_drive and sj is not None else [])
+        full.sort()
         if dynamic:
             mm = np.ascontiguousarray(physics.mass_matrix(
                 m, q_s[ks], np.nan_to_num(np.maximum(mk, 0.0))))
+            mdd = mm[:, full][:, :, full]
+            minv_ok = np.all(np.isfinite(mdd), axis=(1, 2))
+            minv_ok &= np.linalg.det(np.where(minv_ok[:, None, None], mdd, 1.0)) > 0.0
+            minv = np.ascontiguousarray(np.linalg.inv(
+                np.where(minv_ok[:, None, None], mdd, np.eye(len(full)))))
         else:
             mm = np.zeros((1, nj, nj))
+            minv = np.zeros((1, len(full), len(full)))
+            minv_ok = np.zeros(1, dtype=bool)
         # -- the grid -------------------------------------------------------------------------
         n = (kb - 1 - ka) * r + 1 if last else (kb - ka) * r
         gap = self._gap.get(ka, kb)[:, 0] > 0
@@ -657,7 +666,7 @@ class TwinStream:
             self._chain, coef, ka - f0, r, h0, h_last, src, der,
             self._cyl, self._table, self._table_ok, self._fpar, self._stroke, END_STOP_MARGIN_M,
             -1 if sj is None else sj, self._drive_fric, has_drive, has_theta,
-            mk, sk, mm, dynamic, np.ascontiguousarray(gap_g),
+            mk, sk, mm, minv, minv_ok, len(full), dynamic, np.ascontiguousarray(gap_g),
             out["q"], out["qd"], out["qdd"], out["rod_s"], out["rod_v"], out["p_a"],
             out["p_b"], out["cyl_force"], out["actuator_torque"], out["id_torque"],
             out["residual"], wrench, mass_g, std_g, np.empty((n, nj)), np.empty((n, nj)),
