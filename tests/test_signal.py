@@ -331,3 +331,65 @@ def test_ici_smooth_pair_equals_stacked_ici_on_random_data(n: int, polyorder: in
     want = np.column_stack([ea[k, np.arange(n)], eb[k, np.arange(n)]])
     got = ici_smooth_pair(pa, pb, a1, a2, sigma, ICI_WINDOWS, polyorder, gamma)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+
+
+def _old_noise_std(y: np.ndarray, resolution: float = 0.0, order: int = 4) -> float:
+    """The numpy formulation of estimate_noise_std (reference for the compiled one)."""
+    from math import comb
+
+    d = np.diff(y, n=order)
+    centre = float(np.median(d))
+    robust = 1.4826 * float(np.median(np.abs(d - centre)))
+    kept = d[np.abs(d - centre) <= 4.0 * robust] if robust > 0 else d
+    spread = float(np.sqrt(np.mean((kept - centre) ** 2))) if kept.size else 0.0
+    return max(spread / np.sqrt(comb(2 * order, order)), resolution / np.sqrt(12.0))
+
+
+def _old_choose_window(y: np.ndarray, sigma: float) -> tuple[int, int, float]:
+    """choose_window by direct convolution per candidate (reference for the FFT version)."""
+    from cranetwin.signal import sg_filter
+    from cranetwin.signal.smoothing import DEFAULT_POLYORDERS, DEFAULT_WINDOWS
+
+    n = y.shape[0]
+    wmax = max((w for w in DEFAULT_WINDOWS if w <= n // 2), default=1)
+    seg = max(8 * wmax, 2000)
+    starts = [0] if n <= 8000 else np.linspace(0, n - seg, 8000 // seg).astype(int).tolist()
+    segs = [y[s : s + seg] if n > 8000 else y for s in starts]
+    edge = wmax // 2
+    best = (1, 0, sigma * sigma)
+    for w in DEFAULT_WINDOWS:
+        for p in DEFAULT_POLYORDERS:
+            if w <= 1 or w > wmax or p >= w - 1:
+                continue
+            h = sg_filter(w, p)
+            sq = 0.0
+            cnt = 0
+            for s in segs:
+                core = np.convolve(s, h[::-1], mode="valid")[edge - w // 2 :]
+                core = core[: s.shape[0] - 2 * edge]
+                r = s[edge : s.shape[0] - edge] - core
+                sq += float(r @ r)
+                cnt += r.shape[0]
+            risk = sq / cnt - sigma**2 + 2 * sigma**2 * float(h[w // 2])
+            if risk < best[2]:
+                best = (w, p, risk)
+    return best
+
+
+@pytest.mark.parametrize("n", [300, 5000, 60000])
+def test_noise_estimate_and_window_choice_equal_direct_formulation(n: int) -> None:
+    """Compiled noise estimate (histogram medians) and FFT risk evaluation give the numpy
+    formulation's sigma and window (risk to rounding), long data (segments) and short."""
+    rng = np.random.default_rng(n)
+    t = np.arange(n) * 0.01
+    clean = 0.4 + 0.2 * np.sin(2 * np.pi * 0.07 * t) + 0.02 * np.sin(2 * np.pi * 1.7 * t)
+    for noise in (0.002, 0.01):
+        y = clean + rng.uniform(-noise, noise, n)
+        sigma = estimate_noise_std(y)
+        assert sigma == pytest.approx(_old_noise_std(y), rel=1e-12)
+        ch = choose_window(y)
+        w, p, risk = _old_choose_window(y, sigma)
+        assert (ch.window, ch.polyorder) == (w, p)
+        assert ch.risk == pytest.approx(risk, rel=1e-9)
+    q = np.round(rng.normal(size=n) * 3.0) / 3.0  # few distinct values: ties in the medians
+    assert estimate_noise_std(q) == pytest.approx(_old_noise_std(q), rel=1e-12)

@@ -70,17 +70,83 @@ def estimate_noise_std(y: npt.ArrayLike, resolution: float = 0.0, order: int = 4
     Returns:
         σ̂ [unit of y].
     """
-    ya = np.asarray(y, dtype=np.float64)
+    ya = np.ascontiguousarray(y, dtype=np.float64)
     if ya.ndim != 1 or ya.shape[0] < order + 2:
         raise SignalError(f"noise estimate needs a 1-D array of > {order + 1} samples")
-    d = np.diff(ya, n=order)
-    centre = float(np.median(d))
-    mad = float(np.median(np.abs(d - centre)))
-    robust = 1.4826 * mad
-    kept = d[np.abs(d - centre) <= 4.0 * robust] if robust > 0 else d
-    spread = float(np.sqrt(np.mean((kept - centre) ** 2))) if kept.size else 0.0
+    sumsq, count = _robust_spread(_diff_n(ya, order))
+    spread = float(np.sqrt(sumsq / count)) if count else 0.0
     sigma = spread / np.sqrt(comb(2 * order, order))
     return float(max(sigma, resolution / np.sqrt(12.0)))
+
+
+@njit(cache=True)
+def _diff_n(y, order):  # type: ignore[no-untyped-def]
+    """``np.diff(y, n=order)`` (the same iterated differences, so the same rounding), in place
+    on one copy."""
+    d = y.copy()
+    m = d.shape[0]
+    for _ in range(order):
+        for i in range(m - 1):
+            d[i] = d[i + 1] - d[i]
+        m -= 1
+    return d[:m]
+
+
+@njit(cache=True)
+def _rank_value(a, r):  # type: ignore[no-untyped-def]
+    """Exact r-th smallest element of ``a`` (0-based): a monotone histogram finds the bucket
+    holding rank r in two passes, then only that bucket's elements are partitioned."""
+    lo = a.min()
+    hi = a.max()
+    if lo == hi:
+        return lo
+    nbins = 4096
+    scale = nbins / (hi - lo)
+    counts = np.zeros(nbins + 1, dtype=np.int64)
+    for x in a:
+        counts[min(int((x - lo) * scale), nbins - 1)] += 1
+    below = 0
+    b = 0
+    while below + counts[b] <= r:
+        below += counts[b]
+        b += 1
+    sel = np.empty(counts[b])
+    j = 0
+    for x in a:
+        if min(int((x - lo) * scale), nbins - 1) == b:
+            sel[j] = x
+            j += 1
+    return np.partition(sel, r - below)[r - below]
+
+
+@njit(cache=True)
+def _median(a):  # type: ignore[no-untyped-def]
+    """``np.median`` of a 1-D array (the same value: order statistics are exact)."""
+    n = a.shape[0]
+    if n % 2:
+        return _rank_value(a, n // 2)
+    return (_rank_value(a, n // 2 - 1) + _rank_value(a, n // 2)) / 2.0
+
+
+@njit(cache=True)
+def _robust_spread(d):  # type: ignore[no-untyped-def]
+    """(Σ (d − m)², count) over the d within 4 robust standard deviations (1.4826·MAD) of
+    their median m (all d if the MAD is 0); sums in blocks of 256 to keep the rounding low."""
+    centre = _median(d)
+    dev = np.abs(d - centre)
+    limit = 4.0 * 1.4826 * _median(dev)
+    keep_all = not limit > 0.0
+    total = 0.0
+    count = 0
+    n = d.shape[0]
+    for b0 in range(0, n, 256):
+        part = 0.0
+        for i in range(b0, min(n, b0 + 256)):
+            if keep_all or dev[i] <= limit:
+                part += dev[i] * dev[i]
+                count += 1
+        total += part
+    return total, count
 
 
 @lru_cache(maxsize=512)
@@ -228,11 +294,34 @@ def savgol_smooth(y: npt.ArrayLike, window: int, polyorder: int, deriv: int = 0,
     return savgol_bank(y, ((window, polyorder, deriv),), delta)[0]
 
 
-def _core(y: F64, h: F64, edge: int) -> F64:
-    """Filter output ``Σ h[j]·y[i − w//2 + j]`` at samples edge … n−edge−1 (needs edge >= w//2)."""
-    half = h.shape[0] // 2
-    full: F64 = np.convolve(y, h[::-1], mode="valid")  # outputs at samples half … n−half−1
-    return full[edge - half : full.shape[0] - (edge - half)]
+@lru_cache(maxsize=64)
+def _centred_spectra(filters: tuple[tuple[int, int, int], ...],
+                     nfft: int) -> tuple[npt.NDArray[np.complex128], F64]:
+    """Real FFTs (len(filters), nfft//2+1) of the centre filters laid out circularly so that
+    output i of the circular correlation is ``Σ_j h[j]·y[i − w//2 + j]``, and the filters'
+    coefficient sums (cached)."""
+    taps = np.zeros((len(filters), nfft))
+    sums = np.empty(len(filters))
+    for k, (w, p, d) in enumerate(filters):
+        h = _sg_operators(w, p, d)[0]
+        idx = (np.arange(w) - w // 2) % nfft
+        taps[k, idx] = h[::-1]  # correlation = convolution with the reversed filter
+        sums[k] = float(h.sum())
+    spec: npt.NDArray[np.complex128] = sp_fft.rfft(taps, axis=1)
+    return spec, sums
+
+
+def _cores(y: F64, filters: tuple[tuple[int, int, int], ...], edge: int) -> F64:
+    """Outputs ``Σ h[j]·y[i − w//2 + j]`` of several centre filters at samples
+    edge … n−edge−1 (needs edge >= every w//2), shape (len(filters), n − 2·edge): one FFT of
+    y minus its mean c (added back as c·Σh), one batched inverse FFT."""
+    n = y.shape[0]
+    nfft = _fft_len(n)
+    spec, sums = _centred_spectra(filters, nfft)
+    c = float(y.mean())
+    full = sp_fft.irfft(sp_fft.rfft(y - c, nfft)[None, :] * spec, nfft, axis=1)
+    out: F64 = full[:, edge : n - edge] + sums[:, None] * c
+    return out
 
 
 def _segments(n: int, seg: int, max_samples: int) -> list[slice]:
@@ -273,25 +362,22 @@ def choose_window(
     seg_len = max(8 * wmax, 2000)
     segs = _segments(n, seg_len, max_samples)
     edge = wmax // 2
+    cands = tuple((w, p, 0) for w in windows if 1 < w <= wmax for p in polyorders if p < w - 1)
     best = SmoothingChoice(1, 0, s, s * s)  # w = 1: residual 0, h0 = 1 -> risk σ²
-    for w in windows:
-        if w <= 1 or w > wmax:
-            continue
-        for p in polyorders:
-            if p >= w - 1:
-                continue
-            h = _sg_operators(w, p, 0)[0]
-            h0 = float(h[w // 2])
-            sq = 0.0
-            cnt = 0
-            for sl in segs:
-                core = _core(ya[sl], h, edge)
-                r = ya[sl][edge : ya[sl].shape[0] - edge] - core
-                sq += float(np.dot(r, r))
-                cnt += r.shape[0]
-            risk = sq / cnt - s * s + 2.0 * s * s * h0
-            if risk < best.risk:
-                best = SmoothingChoice(w, p, s, risk)
+    if not cands:
+        return best
+    sq = np.zeros(len(cands))
+    cnt = 0
+    for sl in segs:
+        seg = ya[sl]
+        r = seg[edge : seg.shape[0] - edge][None, :] - _cores(seg, cands, edge)
+        sq += np.einsum("ij,ij->i", r, r)
+        cnt += r.shape[1]
+    for k, (w, p, _) in enumerate(cands):
+        h0 = float(_sg_operators(w, p, 0)[0][w // 2])
+        risk = float(sq[k]) / cnt - s * s + 2.0 * s * s * h0
+        if risk < best.risk:
+            best = SmoothingChoice(w, p, s, risk)
     return best
 
 
@@ -338,9 +424,12 @@ def choose_derivative_window(
     segs = _segments(n, max(8 * wmax, 2000), max_samples)
     edge = wmax // 2
 
+    filters = tuple((w, polyorder, deriv) for w in cands)
+    allest: F64 = np.concatenate([_cores(ya[sl], filters, edge) for sl in segs], axis=1)
+
     def est(w: int) -> F64:
-        h = _sg_operators(w, polyorder, deriv)[0]
-        return np.concatenate([_core(ya[sl], h, edge) for sl in segs])
+        row: F64 = allest[cands.index(w)]
+        return row
 
     def coeffs(w: int) -> F64:
         h = np.zeros(wmax)

@@ -14,6 +14,7 @@ from cranetwin.signal import (
     SmoothingChoice,
     choose_derivative_window,
     choose_window,
+    estimate_noise_std,
 )
 
 F64 = npt.NDArray[np.float64]
@@ -115,9 +116,10 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
     out = [none] * len(cmap.choice_names)
     if not enabled:
         return tuple(out)
+    sigma: dict[int, float] = {}  # noise of each derivative channel, estimated once
     for i, j in enumerate(cmap.derivative_channels):
-        out[len(cmap.names) + i] = choose_derivative_window(values[:, j],
-                                                            resolution=cmap.resolution[j])
+        sigma[j] = estimate_noise_std(values[:, j], cmap.resolution[j])
+        out[len(cmap.names) + i] = choose_derivative_window(values[:, j], sigma=sigma[j])
     for c, cyl in enumerate(machine.cylinders):
         ia, ib = cmap.p_a[c], cmap.p_b[c]
         force = cyl.area_a_m2 * values[:, ia] - cyl.area_b_m2 * values[:, ib]
@@ -129,8 +131,10 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         out[ia] = out[ib] = (SmoothingChoice(max(ICI_WINDOWS), 3, ch.sigma, ch.risk,
                                              adaptive=True) if adaptive else ch)
         js = cmap.s[c]
-        out[js] = choose_window(values[:, js], resolution=cmap.resolution[js])
+        out[js] = choose_window(values[:, js], sigma=sigma.get(js),
+                                resolution=cmap.resolution[js])
     for opt in (cmap.torque, cmap.angle):
         if opt is not None:
-            out[opt] = choose_window(values[:, opt], resolution=cmap.resolution[opt])
+            out[opt] = choose_window(values[:, opt], sigma=sigma.get(opt),
+                                     resolution=cmap.resolution[opt])
     return tuple(out)
