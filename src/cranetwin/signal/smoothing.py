@@ -83,21 +83,44 @@ def estimate_noise_std(y: npt.ArrayLike, resolution: float = 0.0, order: int = 4
 def _diff_n(y, order):  # type: ignore[no-untyped-def]
     """``np.diff(y, n=order)`` (the same iterated differences, so the same rounding), in place
     on one copy."""
-    d = y.copy()
-    m = d.shape[0]
+    m = y.shape[0] - order
+    d = np.empty(max(m, 0))
+    if order == 4 and m > 0:  # one pass, same operations: levels 1-4 from sliding registers
+        a1 = y[1] - y[0]
+        a2 = y[2] - y[1]
+        a3 = y[3] - y[2]
+        b1 = a2 - a1
+        b2 = a3 - a2
+        c1 = b2 - b1
+        for i in range(m):
+            a4 = y[i + 4] - y[i + 3]
+            b3 = a4 - a3
+            c2 = b3 - b2
+            d[i] = c2 - c1
+            a3 = a4
+            b2 = b3
+            c1 = c2
+        return d
+    t = y.copy()
+    m = t.shape[0]
     for _ in range(order):
         for i in range(m - 1):
-            d[i] = d[i + 1] - d[i]
+            t[i] = t[i + 1] - t[i]
         m -= 1
-    return d[:m]
+    return t[:m]
 
 
 @njit(cache=True)
 def _rank_value(a, r):  # type: ignore[no-untyped-def]
     """Exact r-th smallest element of ``a`` (0-based): a monotone histogram finds the bucket
     holding rank r in two passes, then only that bucket's elements are partitioned."""
-    lo = a.min()
-    hi = a.max()
+    lo = a[0]
+    hi = a[0]
+    for x in a:
+        if x < lo:
+            lo = x
+        elif x > hi:
+            hi = x
     if lo == hi:
         return lo
     nbins = 4096

@@ -116,13 +116,14 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
     out = [none] * len(cmap.choice_names)
     if not enabled:
         return tuple(out)
+    cols = np.ascontiguousarray(np.asarray(values, dtype=np.float64).T)  # one pass, not ten
     sigma: dict[int, float] = {}  # noise of each derivative channel, estimated once
     for i, j in enumerate(cmap.derivative_channels):
-        sigma[j] = estimate_noise_std(values[:, j], cmap.resolution[j])
-        out[len(cmap.names) + i] = choose_derivative_window(values[:, j], sigma=sigma[j])
+        sigma[j] = estimate_noise_std(cols[j], cmap.resolution[j])
+        out[len(cmap.names) + i] = choose_derivative_window(cols[j], sigma=sigma[j])
     for c, cyl in enumerate(machine.cylinders):
         ia, ib = cmap.p_a[c], cmap.p_b[c]
-        force = cyl.area_a_m2 * values[:, ia] - cyl.area_b_m2 * values[:, ib]
+        force = cyl.area_a_m2 * cols[ia] - cyl.area_b_m2 * cols[ib]
         res = float(np.hypot(cyl.area_a_m2 * cmap.resolution[ia],
                              cyl.area_b_m2 * cmap.resolution[ib]))
         ch = choose_window(force, resolution=res)
@@ -131,10 +132,10 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         out[ia] = out[ib] = (SmoothingChoice(max(ICI_WINDOWS), 3, ch.sigma, ch.risk,
                                              adaptive=True) if adaptive else ch)
         js = cmap.s[c]
-        out[js] = choose_window(values[:, js], sigma=sigma.get(js),
+        out[js] = choose_window(cols[js], sigma=sigma.get(js),
                                 resolution=cmap.resolution[js])
     for opt in (cmap.torque, cmap.angle):
         if opt is not None:
-            out[opt] = choose_window(values[:, opt], sigma=sigma.get(opt),
+            out[opt] = choose_window(cols[opt], sigma=sigma.get(opt),
                                      resolution=cmap.resolution[opt])
     return tuple(out)
