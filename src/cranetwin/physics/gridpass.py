@@ -203,6 +203,52 @@ def table_motion(table, k, stroke_k, s):  # type: ignore[no-untyped-def]
     return qv, d1, -g2 * d1 * d1 * d1
 
 
+@njit(cache=True)
+def dd_inverse_batch(mm, full, minv, ok):  # type: ignore[no-untyped-def]
+    """Inverses of the submatrices M_DD (rows and columns ``full``) of mass matrices mm
+    (ns, nj, nj) into minv (ns, nd, nd), by Cholesky (M is symmetric positive definite);
+    ok[k] False (minv[k] = 0) where M_DD is not finite or not positive definite."""
+    nd = full.shape[0]
+    a = np.empty((nd, nd))
+    for k in range(mm.shape[0]):
+        good = True
+        for r in range(nd):
+            for c in range(nd):
+                a[r, c] = mm[k, full[r], full[c]]
+                if not math.isfinite(a[r, c]):
+                    good = False
+        if good:  # a = L·Lᵀ, L in the lower triangle
+            for c in range(nd):
+                t = a[c, c]
+                for p in range(c):
+                    t -= a[c, p] * a[c, p]
+                if not t > 0.0:
+                    good = False
+                    break
+                a[c, c] = math.sqrt(t)
+                for r in range(c + 1, nd):
+                    t = a[r, c]
+                    for p in range(c):
+                        t -= a[r, p] * a[c, p]
+                    a[r, c] = t / a[c, c]
+        ok[k] = good
+        for e in range(nd):  # column e of the inverse: L·Lᵀ·x = unit e
+            if not good:
+                for r in range(nd):
+                    minv[k, r, e] = 0.0
+                continue
+            for r in range(nd):
+                t = 1.0 if r == e else 0.0
+                for p in range(r):
+                    t -= a[r, p] * minv[k, p, e]
+                minv[k, r, e] = t / a[r, r]
+            for r in range(nd - 1, -1, -1):
+                t = minv[k, r, e]
+                for p in range(r + 1, nd):
+                    t -= a[p, r] * minv[k, p, e]
+                minv[k, r, e] = t / a[r, r]
+
+
 @njit(cache=True, error_model="numpy")
 def table_motion_batch(table, table_ok, cyl, s, v, a, q, qd, qdd, arm):  # type: ignore[no-untyped-def]
     """:func:`cranetwin.physics.kernels.cylinder_motion_batch` through the tables (the exact

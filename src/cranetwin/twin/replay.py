@@ -31,7 +31,9 @@ from cranetwin import physics
 from cranetwin.errors import PhysicsError, TwinError
 from cranetwin.model import Machine
 from cranetwin.physics import gridpass
+from cranetwin.physics import kernels as K
 from cranetwin.physics.chain import compile_chain
+from cranetwin.physics.dynamics import rnea_kernels
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import (
     ICI_WINDOWS,
@@ -198,6 +200,7 @@ class TwinStream:
         self._drive_fric = np.array([fr.coulomb, fr.coulomb_velocity, fr.viscous]
                                     if fr is not None else [0.0, 1.0, 0.0])
         self._grid = gridpass.kernel_for(params)
+        self._rnea_tau = rnea_kernels(params)[1]
         self._table = np.empty((len(machine.cylinders), gridpass.KIN_TABLE_NODES - 1, 6))
         self._table_ok = gridpass.kinematics_table(params.cyl, self._stroke,
                                                    gridpass.KIN_TABLE_NODES, self._table)
@@ -421,8 +424,8 @@ class TwinStream:
         zero = np.zeros_like(qs)
         unit = np.zeros_like(qs)
         unit[:, j0] = 1.0
-        row = (physics.joint_torques(self.machine, qs, zero, unit, mass[sl])
-               - physics.joint_torques(self.machine, qs, zero, zero, mass[sl]))
+        row = (self._tau(qs, zero, unit, mass[sl])
+               - self._tau(qs, zero, zero, mass[sl]))
         m00 = row[:, j0]
         others = [j for j in range(self.machine.n_joints) if j != j0]
         coupling = np.einsum("nj,nj->n", row[:, others], qd[sl][:, others])
@@ -489,8 +492,23 @@ class TwinStream:
         return q, qd, qdd, arm
 
     def _forces(self, vals: F64, v: F64) -> F64:
-        return physics.cylinder_forces(self.machine, vals[:, list(self.cmap.p_a)],
-                                       vals[:, list(self.cmap.p_b)], v)
+        return self._eq12(vals[:, list(self.cmap.p_a)], vals[:, list(self.cmap.p_b)], v)
+
+    def _eq12(self, pa: F64, pb: F64, v: F64) -> F64:
+        """Eq. 1–2 for every cylinder, (n, n_cylinders) [N] (as physics.cylinder_forces)."""
+        out = np.empty(v.shape)
+        K.cylinder_forces_batch(pa, pb, v, self._fpar, out)
+        return out
+
+    def _tau(self, q: F64, qd: F64, qdd: F64, payload_kg: float | F64) -> F64:
+        """Inverse-dynamics joint loads (n, n_joints) through the machine's compiled kernel
+        (as physics.joint_torques, without its argument checks: the arrays are ours)."""
+        n = q.shape[0]
+        pl = np.broadcast_to(np.asarray(payload_kg, dtype=np.float64), (n,))
+        out = np.empty((n, self.machine.n_joints))
+        self._rnea_tau(np.ascontiguousarray(q), np.ascontiguousarray(qd),
+                       np.ascontiguousarray(qdd), np.ascontiguousarray(pl), out)
+        return out
 
     def _actuator_loads(self, q: F64, f: F64, arm: F64, drive: F64 | None) -> F64:
         """Joint loads of the actuators: F·ds/dq (virtual work, as physics.actuator_torques,
@@ -506,8 +524,8 @@ class TwinStream:
         assert self._choices is not None
         m = self.machine
         cj = self._cyl_joint
-        t0 = physics.joint_torques(m, q, qd, qdd, 0.0)
-        t1 = physics.joint_torques(m, q, qd, qdd, 1.0)
+        t0 = self._tau(q, qd, qdd, 0.0)
+        t1 = self._tau(q, qd, qdd, 1.0)
         if arm is None:
             _, arm = physics.cylinder_kinematics(m, q)
         g = (t1 - t0)[:, cj] / arm  # force per kg at each cylinder
@@ -628,9 +646,8 @@ class TwinStream:
             mk = np.full(n_ks, float(self.payload))
             sk = np.zeros(n_ks)
         else:
-            f_s = physics.cylinder_forces(m, smp[:, 3 * nc + 3 : 4 * nc + 3],
-                                          smp[:, 4 * nc + 3 : 5 * nc + 3],
-                                          smp[:, nc : 2 * nc])
+            f_s = self._eq12(smp[:, 3 * nc + 3 : 4 * nc + 3], smp[:, 4 * nc + 3 : 5 * nc + 3],
+                             smp[:, nc : 2 * nc])
             tau_s = self._actuator_loads(q_s, f_s, arm_s, None)
             mk, sk = self._estimate_payload(q_s, qd_s, qdd_s, tau_s, wh, arm_s)
             mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
@@ -638,13 +655,12 @@ class TwinStream:
         full = list(self._cyl_joint) + ([sj] if has_drive and sj is not None else [])
         full.sort()
         if dynamic:
-            mm = np.ascontiguousarray(physics.mass_matrix(
-                m, q_s[ks], np.nan_to_num(np.maximum(mk, 0.0))))
-            mdd = mm[:, full][:, :, full]
-            minv_ok = np.all(np.isfinite(mdd), axis=(1, 2))
-            minv_ok &= np.linalg.det(np.where(minv_ok[:, None, None], mdd, 1.0)) > 0.0
-            minv = np.ascontiguousarray(np.linalg.inv(
-                np.where(minv_ok[:, None, None], mdd, np.eye(len(full)))))
+            mm = np.empty((n_ks, nj, nj))
+            K.mass_matrix_batch(self._chain, np.ascontiguousarray(q_s[ks]),
+                                np.nan_to_num(np.maximum(mk, 0.0)), mm)
+            minv = np.empty((mm.shape[0], len(full), len(full)))
+            minv_ok = np.empty(mm.shape[0], dtype=bool)
+            gridpass.dd_inverse_batch(mm, np.array(full, dtype=np.int64), minv, minv_ok)
         else:
             mm = np.zeros((1, nj, nj))
             minv = np.zeros((1, len(full), len(full)))
