@@ -689,6 +689,7 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
     nw = halves.shape[0]
     hmax = halves[nw - 1]
     np1 = fits.shape[1]
+    gs = gamma * sds
     cla = np.zeros((nw, np1))
     clb = np.zeros((nw, np1))
     cra = np.zeros((nw, np1))
@@ -726,64 +727,104 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
         _centred_prefix(pa, ca, start, end - start, mid, fa0, fa1, fa2)
         _centred_prefix(pb, cb, start, end - start, mid, fb0, fb1, fb2)
         for i in range(b0, b0 + nb):
-            lo = 0.0
-            hi = 0.0
-            sa0 = pa[i]  # ring sums: offsets 0 … ring
+            x = float(i - mid)
+            # windows [0, kin) hold sample i whole: rings then prefix sums; the rest are ends
+            lim = min(i, n - 1 - i)
+            kin = 0
+            while kin < nw and halves[kin] <= lim:
+                kin += 1
+            sa0 = pa[i]
             sb0 = pb[i]
             sa2 = 0.0
             sb2 = 0.0
             ring = 0
-            x = float(i - mid)
-            for k in range(nw):
+            lo = -1.0
+            hi = 1.0
+            k = 0
+            stopped = False
+            ea = pa[i]
+            eb = pb[i]
+            while k < kin and halves[k] <= ring_max:
                 h = halves[k]
-                if i < h or i >= n - h:  # the polynomial fitted to the first/last w samples
-                    if i < h:
-                        u = (i - h) / h
-                        ea = cla[k, np1 - 1]
-                        eb = clb[k, np1 - 1]
-                        for m in range(np1 - 2, -1, -1):
-                            ea = ea * u + cla[k, m]
-                            eb = eb * u + clb[k, m]
-                    else:
-                        u = (i - (n - 1 - h)) / h
-                        ea = cra[k, np1 - 1]
-                        eb = crb[k, np1 - 1]
-                        for m in range(np1 - 2, -1, -1):
-                            ea = ea * u + cra[k, m]
-                            eb = eb * u + crb[k, m]
-                elif h <= ring_max:  # short windows: grow the ring sums
-                    for jj in range(ring + 1, h + 1):
-                        ya = pa[i - jj] + pa[i + jj]
-                        yb = pb[i - jj] + pb[i + jj]
-                        j2 = float(jj * jj)
-                        sa0 += ya
-                        sa2 += j2 * ya
-                        sb0 += yb
-                        sb2 += j2 * yb
-                    ring = h
-                    ea = e0[k] * sa0 + e1[k] * sa2
-                    eb = e0[k] * sb0 + e1[k] * sb2
-                else:  # long windows: centred prefix sums
+                for jj in range(ring + 1, h + 1):
+                    ya = pa[i - jj] + pa[i + jj]
+                    yb = pb[i - jj] + pb[i + jj]
+                    j2 = float(jj * jj)
+                    sa0 += ya
+                    sa2 += j2 * ya
+                    sb0 += yb
+                    sb2 += j2 * yb
+                ring = h
+                na = e0[k] * sa0 + e1[k] * sa2
+                nbb = e0[k] * sb0 + e1[k] * sb2
+                e = a1 * na - a2 * nbb
+                if k == 0:
+                    lo = e - gs[k]
+                    hi = e + gs[k]
+                else:
+                    lo = max(lo, e - gs[k])
+                    hi = min(hi, e + gs[k])
+                    if lo > hi:
+                        stopped = True
+                        break
+                ea = na
+                eb = nbb
+                k += 1
+            if not stopped:
+                while k < kin:
+                    h = halves[k]
                     r = i + h + 1 - start
                     q = i - h - start
                     za0 = fa0[r] - fa0[q]
                     zb0 = fb0[r] - fb0[q]
-                    ea = (e0[k] * za0 + e1[k] * (fa2[r] - fa2[q] - 2.0 * x * (fa1[r] - fa1[q])
+                    na = (e0[k] * za0 + e1[k] * (fa2[r] - fa2[q] - 2.0 * x * (fa1[r] - fa1[q])
                                                  + x * x * za0) + hsum[k] * ca)
-                    eb = (e0[k] * zb0 + e1[k] * (fb2[r] - fb2[q] - 2.0 * x * (fb1[r] - fb1[q])
-                                                 + x * x * zb0) + hsum[k] * cb)
-                e = a1 * ea - a2 * eb
-                g = gamma * sds[k]
-                if k == 0:
-                    lo = e - g
-                    hi = e + g
-                else:
-                    lo = max(lo, e - g)
-                    hi = min(hi, e + g)
-                    if lo > hi:
-                        break
-                out[i, 0] = ea
-                out[i, 1] = eb
+                    nbb = (e0[k] * zb0 + e1[k] * (fb2[r] - fb2[q] - 2.0 * x * (fb1[r] - fb1[q])
+                                                  + x * x * zb0) + hsum[k] * cb)
+                    e = a1 * na - a2 * nbb
+                    if k == 0:
+                        lo = e - gs[k]
+                        hi = e + gs[k]
+                    else:
+                        lo = max(lo, e - gs[k])
+                        hi = min(hi, e + gs[k])
+                        if lo > hi:
+                            stopped = True
+                            break
+                    ea = na
+                    eb = nbb
+                    k += 1
+            if not stopped:
+                while k < nw:
+                    h = halves[k]
+                    if i < h:
+                        u = (i - h) / h
+                        na = cla[k, np1 - 1]
+                        nbb = clb[k, np1 - 1]
+                        for m in range(np1 - 2, -1, -1):
+                            na = na * u + cla[k, m]
+                            nbb = nbb * u + clb[k, m]
+                    else:
+                        u = (i - (n - 1 - h)) / h
+                        na = cra[k, np1 - 1]
+                        nbb = crb[k, np1 - 1]
+                        for m in range(np1 - 2, -1, -1):
+                            na = na * u + cra[k, m]
+                            nbb = nbb * u + crb[k, m]
+                    e = a1 * na - a2 * nbb
+                    if k == 0:
+                        lo = e - gs[k]
+                        hi = e + gs[k]
+                    else:
+                        lo = max(lo, e - gs[k])
+                        hi = min(hi, e + gs[k])
+                        if lo > hi:
+                            break
+                    ea = na
+                    eb = nbb
+                    k += 1
+            out[i, 0] = ea
+            out[i, 1] = eb
 
 
 @lru_cache(maxsize=64)
