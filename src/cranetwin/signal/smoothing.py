@@ -674,37 +674,45 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
                             ring_max, out):
     """:func:`_ici_pair_kernel` for polyorder <= 3 at O(1) per sample and window.
 
-    Interior centre filters are h_j = e0 + e1·j², so an estimate is e0·Σy + e1·Σj²y over
-    |j| <= half. Windows up to ``ring_max`` half-width grow these sums ring by ring (as the
-    old kernel); longer ones read them off prefix sums: with z = y − c (c the block's mean,
-    added back as c·Σh), Σj²z[i+j] = S2 − 2x·S1 + x²·S0, S_r = Σ u^r z over the window.
-    Rounding stays at the data's level because the prefix sums restart every ``block``
-    samples with u, x measured from the block's middle (|x| <= block/2, |u| <= block/2 +
-    half) and serve only windows long enough that x²/half² stays small. At the ends (i < half or
-    i >= n − half) the estimate is the polynomial fitted to the first/last w samples
-    (``fits``: (p+1, w) per window, in x = offset/half), evaluated at the sample. Every sample
-    goes through the windows in increasing order until its intervals stop intersecting;
-    ``out`` keeps the last accepted window's pA, pB."""
+    The windows are decided on the force f = a1·pA − a2·pB (Savitzky–Golay is linear, so its
+    estimates are a1·pA − a2·pB of the pressures', to rounding); pA and pB are estimated
+    once, at the chosen window. Interior centre filters are h_j = e0 + e1·j², so an estimate
+    is e0·Σy + e1·Σj²y over |j| <= half. Windows up to ``ring_max`` half-width grow these
+    sums ring by ring (as the old kernel); longer ones read them off prefix sums: with
+    z = y − c (c the block's mean, added back as c·Σh), Σj²z[i+j] = S2 − 2x·S1 + x²·S0,
+    S_r = Σ u^r z over the window. Rounding stays at the data's level because the prefix sums
+    restart every ``block`` samples with u, x measured from the block's middle
+    (|x| <= block/2, |u| <= block/2 + half) and serve only windows long enough that
+    x²/half² stays small. At the ends (i < half or i >= n − half) the estimate is the
+    polynomial fitted to the first/last w samples (``fits``: (p+1, w) per window, in
+    offset/half), evaluated at the sample. Every sample goes through the windows in
+    increasing order until its intervals stop intersecting; ``out`` gets the last accepted
+    window's pA, pB."""
     n = pa.shape[0]
     nw = halves.shape[0]
     hmax = halves[nw - 1]
     np1 = fits.shape[1]
     gs = gamma * sds
+    f = a1 * pa - a2 * pb
     cla = np.zeros((nw, np1))
     clb = np.zeros((nw, np1))
     cra = np.zeros((nw, np1))
     crb = np.zeros((nw, np1))
+    clf = np.zeros((nw, np1))
+    crf = np.zeros((nw, np1))
     for k in range(nw):
         w = 2 * halves[k] + 1
         if w == 1:
             continue
         for m in range(np1):
             for j in range(w):
-                f = fits[k, m, j]
-                cla[k, m] += f * pa[j]
-                clb[k, m] += f * pb[j]
-                cra[k, m] += f * pa[n - w + j]
-                crb[k, m] += f * pb[n - w + j]
+                fw = fits[k, m, j]
+                cla[k, m] += fw * pa[j]
+                clb[k, m] += fw * pb[j]
+                cra[k, m] += fw * pa[n - w + j]
+                crb[k, m] += fw * pb[n - w + j]
+                clf[k, m] += fw * f[j]
+                crf[k, m] += fw * f[n - w + j]
     size = block + 2 * hmax + 1
     fa0 = np.empty(size)
     fa1 = np.empty(size)
@@ -712,6 +720,9 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
     fb0 = np.empty(size)
     fb1 = np.empty(size)
     fb2 = np.empty(size)
+    ff0 = np.empty(size)
+    ff1 = np.empty(size)
+    ff2 = np.empty(size)
     for b0 in range(0, n, block):
         nb = min(block, n - b0)
         mid = b0 + nb // 2
@@ -726,38 +737,30 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
         cb /= end - start
         _centred_prefix(pa, ca, start, end - start, mid, fa0, fa1, fa2)
         _centred_prefix(pb, cb, start, end - start, mid, fb0, fb1, fb2)
+        cf = a1 * ca - a2 * cb
+        _centred_prefix(f, cf, start, end - start, mid, ff0, ff1, ff2)
         for i in range(b0, b0 + nb):
             x = float(i - mid)
-            # windows [0, kin) hold sample i whole: rings then prefix sums; the rest are ends
             lim = min(i, n - 1 - i)
             kin = 0
             while kin < nw and halves[kin] <= lim:
                 kin += 1
-            sa0 = pa[i]
-            sb0 = pb[i]
-            sa2 = 0.0
-            sb2 = 0.0
+            s0 = f[i]
+            s2 = 0.0
             ring = 0
             lo = -1.0
             hi = 1.0
             k = 0
+            kk = 0
             stopped = False
-            ea = pa[i]
-            eb = pb[i]
             while k < kin and halves[k] <= ring_max:
                 h = halves[k]
                 for jj in range(ring + 1, h + 1):
-                    ya = pa[i - jj] + pa[i + jj]
-                    yb = pb[i - jj] + pb[i + jj]
-                    j2 = float(jj * jj)
-                    sa0 += ya
-                    sa2 += j2 * ya
-                    sb0 += yb
-                    sb2 += j2 * yb
+                    yy = f[i - jj] + f[i + jj]
+                    s0 += yy
+                    s2 += float(jj * jj) * yy
                 ring = h
-                na = e0[k] * sa0 + e1[k] * sa2
-                nbb = e0[k] * sb0 + e1[k] * sb2
-                e = a1 * na - a2 * nbb
+                e = e0[k] * s0 + e1[k] * s2
                 if k == 0:
                     lo = e - gs[k]
                     hi = e + gs[k]
@@ -767,21 +770,16 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
                     if lo > hi:
                         stopped = True
                         break
-                ea = na
-                eb = nbb
+                kk = k
                 k += 1
             if not stopped:
                 while k < kin:
                     h = halves[k]
                     r = i + h + 1 - start
                     q = i - h - start
-                    za0 = fa0[r] - fa0[q]
-                    zb0 = fb0[r] - fb0[q]
-                    na = (e0[k] * za0 + e1[k] * (fa2[r] - fa2[q] - 2.0 * x * (fa1[r] - fa1[q])
-                                                 + x * x * za0) + hsum[k] * ca)
-                    nbb = (e0[k] * zb0 + e1[k] * (fb2[r] - fb2[q] - 2.0 * x * (fb1[r] - fb1[q])
-                                                  + x * x * zb0) + hsum[k] * cb)
-                    e = a1 * na - a2 * nbb
+                    z0 = ff0[r] - ff0[q]
+                    e = (e0[k] * z0 + e1[k] * (ff2[r] - ff2[q] - 2.0 * x * (ff1[r] - ff1[q])
+                                               + x * x * z0) + hsum[k] * cf)
                     if k == 0:
                         lo = e - gs[k]
                         hi = e + gs[k]
@@ -791,27 +789,21 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
                         if lo > hi:
                             stopped = True
                             break
-                    ea = na
-                    eb = nbb
+                    kk = k
                     k += 1
             if not stopped:
                 while k < nw:
                     h = halves[k]
                     if i < h:
                         u = (i - h) / h
-                        na = cla[k, np1 - 1]
-                        nbb = clb[k, np1 - 1]
+                        e = clf[k, np1 - 1]
                         for m in range(np1 - 2, -1, -1):
-                            na = na * u + cla[k, m]
-                            nbb = nbb * u + clb[k, m]
+                            e = e * u + clf[k, m]
                     else:
                         u = (i - (n - 1 - h)) / h
-                        na = cra[k, np1 - 1]
-                        nbb = crb[k, np1 - 1]
+                        e = crf[k, np1 - 1]
                         for m in range(np1 - 2, -1, -1):
-                            na = na * u + cra[k, m]
-                            nbb = nbb * u + crb[k, m]
-                    e = a1 * na - a2 * nbb
+                            e = e * u + crf[k, m]
                     if k == 0:
                         lo = e - gs[k]
                         hi = e + gs[k]
@@ -820,9 +812,49 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
                         hi = min(hi, e + gs[k])
                         if lo > hi:
                             break
-                    ea = na
-                    eb = nbb
+                    kk = k
                     k += 1
+            # pA, pB at the chosen window kk
+            h = halves[kk]
+            if kk >= kin:  # an end polynomial
+                if i < h:
+                    u = (i - h) / h
+                    ea = cla[kk, np1 - 1]
+                    eb = clb[kk, np1 - 1]
+                    for m in range(np1 - 2, -1, -1):
+                        ea = ea * u + cla[kk, m]
+                        eb = eb * u + clb[kk, m]
+                else:
+                    u = (i - (n - 1 - h)) / h
+                    ea = cra[kk, np1 - 1]
+                    eb = crb[kk, np1 - 1]
+                    for m in range(np1 - 2, -1, -1):
+                        ea = ea * u + cra[kk, m]
+                        eb = eb * u + crb[kk, m]
+            elif h <= ring_max:
+                sa0 = pa[i]
+                sb0 = pb[i]
+                sa2 = 0.0
+                sb2 = 0.0
+                for jj in range(1, h + 1):
+                    ya = pa[i - jj] + pa[i + jj]
+                    yb = pb[i - jj] + pb[i + jj]
+                    j2 = float(jj * jj)
+                    sa0 += ya
+                    sa2 += j2 * ya
+                    sb0 += yb
+                    sb2 += j2 * yb
+                ea = e0[kk] * sa0 + e1[kk] * sa2
+                eb = e0[kk] * sb0 + e1[kk] * sb2
+            else:
+                r = i + h + 1 - start
+                q = i - h - start
+                za0 = fa0[r] - fa0[q]
+                zb0 = fb0[r] - fb0[q]
+                ea = (e0[kk] * za0 + e1[kk] * (fa2[r] - fa2[q] - 2.0 * x * (fa1[r] - fa1[q])
+                                               + x * x * za0) + hsum[kk] * ca)
+                eb = (e0[kk] * zb0 + e1[kk] * (fb2[r] - fb2[q] - 2.0 * x * (fb1[r] - fb1[q])
+                                               + x * x * zb0) + hsum[kk] * cb)
             out[i, 0] = ea
             out[i, 1] = eb
 
