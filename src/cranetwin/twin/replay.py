@@ -44,6 +44,7 @@ from cranetwin.signal import (
     newton_derivative,
     nominal_period,
     regularize,
+    savgol_bank,
     savgol_smooth,
 )
 from cranetwin.twin.channels import ChannelMap, choose_smoothing
@@ -343,8 +344,12 @@ class TwinStream:
         nd = self._nd
         out = np.full((raw.shape[0], self._nch + 1 + 2 * nd), np.nan)
         groups: dict[tuple[int, int], list[int]] = {}
+        in_bank = set(self._dcols)  # position channels: value and rates from one filter bank
         for j, choice in enumerate(self._choices[: self._nch]):
-            if not choice.adaptive:
+            if choice.window > 1 and raw.shape[0] < choice.window:
+                raise TwinError(f"{raw.shape[0]} samples are fewer than the smoothing window "
+                                f"{choice.window}")
+            if not choice.adaptive and j not in in_bank:
                 groups.setdefault((choice.window, choice.polyorder), []).append(j)
         for ci, cyl in enumerate(self.machine.cylinders):
             ia, ib = self.cmap.p_a[ci], self.cmap.p_b[ci]
@@ -353,8 +358,6 @@ class TwinStream:
                 out[:, [ia, ib]] = self._ici_pressures(raw[:, ia], raw[:, ib], cyl.area_a_m2,
                                                        cyl.area_b_m2, ch)
         for (w, p), cols in groups.items():
-            if w > 1 and raw.shape[0] < w:
-                raise TwinError(f"{raw.shape[0]} samples are fewer than the smoothing window {w}")
             out[:, cols] = savgol_smooth(raw[:, cols], w, p)
         dt = self._period
         assert dt is not None
@@ -363,9 +366,12 @@ class TwinStream:
             w = c.window if c.window > 1 else 5
             w = min(w, raw.shape[0] - (1 - raw.shape[0] % 2))
             p = min(max(c.polyorder, 3), w - 1)
-            col = raw[:, j]
-            out[:, self._nch + 1 + i] = savgol_smooth(col, w, p, deriv=1, delta=dt)
-            out[:, self._nch + 1 + nd + i] = savgol_smooth(col, w, p, deriv=2, delta=dt)
+            cv = self._choices[j]
+            val, rate, acc = savgol_bank(raw[:, j], [(cv.window, cv.polyorder, 0), (w, p, 1),
+                                                     (w, p, 2)], delta=dt)
+            out[:, j] = val
+            out[:, self._nch + 1 + i] = rate
+            out[:, self._nch + 1 + nd + i] = acc
         block = out[k0 - lo : k_hi - lo]
         if self._sm.end != k0:
             raise TwinError("internal: smoothing does not continue the stream")
