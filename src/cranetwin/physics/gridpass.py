@@ -210,43 +210,46 @@ def dd_inverse_batch(mm, full, minv, ok):  # type: ignore[no-untyped-def]
     ok[k] False (minv[k] = 0) where M_DD is not finite or not positive definite."""
     nd = full.shape[0]
     a = np.empty((nd, nd))
+    rd = np.empty(nd)  # 1 / L[c, c]
+    inv = np.empty((nd, nd))
     for k in range(mm.shape[0]):
         good = True
         for r in range(nd):
             for c in range(nd):
                 a[r, c] = mm[k, full[r], full[c]]
-                if not math.isfinite(a[r, c]):
-                    good = False
-        if good:  # a = L·Lᵀ, L in the lower triangle
-            for c in range(nd):
-                t = a[c, c]
+        for c in range(nd):  # a = L·Lᵀ, L in the lower triangle
+            t = a[c, c]
+            for p in range(c):
+                t -= a[c, p] * a[c, p]
+            if not t > 0.0 or not math.isfinite(t):
+                good = False
+                break
+            rd[c] = 1.0 / math.sqrt(t)
+            for r in range(c + 1, nd):
+                t = a[r, c]
                 for p in range(c):
-                    t -= a[c, p] * a[c, p]
-                if not t > 0.0:
-                    good = False
-                    break
-                a[c, c] = math.sqrt(t)
-                for r in range(c + 1, nd):
-                    t = a[r, c]
-                    for p in range(c):
-                        t -= a[r, p] * a[c, p]
-                    a[r, c] = t / a[c, c]
+                    t -= a[r, p] * a[c, p]
+                a[r, c] = t * rd[c]
         ok[k] = good
+        if not good:
+            for r in range(nd):
+                for c in range(nd):
+                    minv[k, r, c] = 0.0
+            continue
         for e in range(nd):  # column e of the inverse: L·Lᵀ·x = unit e
-            if not good:
-                for r in range(nd):
-                    minv[k, r, e] = 0.0
-                continue
             for r in range(nd):
                 t = 1.0 if r == e else 0.0
                 for p in range(r):
-                    t -= a[r, p] * minv[k, p, e]
-                minv[k, r, e] = t / a[r, r]
+                    t -= a[r, p] * inv[p, e]
+                inv[r, e] = t * rd[r]
             for r in range(nd - 1, -1, -1):
-                t = minv[k, r, e]
+                t = inv[r, e]
                 for p in range(r + 1, nd):
-                    t -= a[p, r] * minv[k, p, e]
-                minv[k, r, e] = t / a[r, r]
+                    t -= a[p, r] * inv[p, e]
+                inv[r, e] = t * rd[r]
+        for r in range(nd):
+            for c in range(nd):
+                minv[k, r, c] = inv[r, c]
 
 
 @njit(cache=True, error_model="numpy")

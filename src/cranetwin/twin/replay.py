@@ -106,7 +106,7 @@ class ReplayOptions:
     smoothing: tuple[SmoothingChoice, ...] | None = None
     velocity: Literal["spline", "newton"] = "spline"
     payload_window_s: float = 2.0
-    chunk_samples: int = 2000
+    chunk_samples: int = 4000
     settle_samples: int = 40
     sample_period_s: float | None = None
     choose_after_s: float = 10.0
