@@ -258,6 +258,10 @@ def generate_source(chain: np.ndarray) -> str:
         *["    " + x for x in row_body + out_tau],
         "",
         "",
+        "@njit(cache=True)",
+        inline_rnea(PAIR_TEMPLATE, nj, rev, lines, taus, wrenches),
+        "",
+        "",
         gridpass.IMPORTS,
         "",
         "",
@@ -266,6 +270,18 @@ def generate_source(chain: np.ndarray) -> str:
     ]
     return "\n".join(src)
 
+
+PAIR_TEMPLATE = """def rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, tau_b):
+    for g in range(q.shape[0]):
+        pass  # @RNEA_HEAD@
+        pl = pl_a[g]
+        x  # @RNEA qdd tau_a -@
+        pl = pl_b[g]
+        x  # @RNEA qdd2 tau_b -@
+"""
+"""Two inverse-dynamics passes per sample that share q and qd — (qdd, pl_a) into tau_a,
+(qdd2, pl_b) into tau_b — in one loop, so that the compiler computes what they share once
+(the payload regression's tau at 0 and 1 kg; a column of M as tau(q, 0, e_j) − tau(q, 0, 0))."""
 
 _NAME = re.compile(r"\b(t|qdd|qd|q|c|s)(\d+)\b|\bpl\b")
 

@@ -29,6 +29,7 @@ import logging
 import math
 import textwrap
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -497,3 +498,24 @@ def kernel_for(params: ChainParams, specialised: bool = True) -> Callable[..., i
         fn = grid_pass_generic
     _KERNELS[id(params)] = (params, fn)
     return fn
+
+
+def pair_kernel_for(params: ChainParams,
+                    rnea_tau: Callable[..., None]) -> Callable[..., None]:
+    """``rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, tau_b)`` of the machine's
+    generated module (:data:`cranetwin.physics.codegen.PAIR_TEMPLATE`), or the same from two
+    calls of ``rnea_tau`` when there is no generated module."""
+    try:
+        from cranetwin.physics.codegen import specialised_module
+
+        fn: Callable[..., None] = specialised_module(params).rnea_tau_pair_batch
+        return fn
+    except Exception as exc:
+        _log.warning("specialised RNEA pair unavailable (%s); using two passes", exc)
+
+    def two(q: Any, qd: Any, qdd: Any, qdd2: Any, pl_a: Any, pl_b: Any, tau_a: Any,
+            tau_b: Any) -> None:
+        rnea_tau(q, qd, qdd, pl_a, tau_a)
+        rnea_tau(q, qd, qdd2, pl_b, tau_b)
+
+    return two

@@ -202,6 +202,7 @@ class TwinStream:
                                     if fr is not None else [0.0, 1.0, 0.0])
         self._grid = gridpass.kernel_for(params)
         self._rnea_tau = rnea_kernels(params)[1]
+        self._pair = gridpass.pair_kernel_for(params, self._rnea_tau)
         self._table = np.empty((len(machine.cylinders), gridpass.KIN_TABLE_NODES - 1, 6))
         self._table_ok = gridpass.kinematics_table(params.cyl, self._stroke,
                                                    gridpass.KIN_TABLE_NODES, self._table)
@@ -430,8 +431,8 @@ class TwinStream:
         zero = np.zeros_like(qs)
         unit = np.zeros_like(qs)
         unit[:, j0] = 1.0
-        row = (self._tau(qs, zero, unit, mass[sl])
-               - self._tau(qs, zero, zero, mass[sl]))
+        ta, tb = self._tau_pair(qs, zero, unit, zero, mass[sl], mass[sl])
+        row = ta - tb
         m00 = row[:, j0]
         others = [j for j in range(self.machine.n_joints) if j != j0]
         coupling = np.einsum("nj,nj->n", row[:, others], qd[sl][:, others])
@@ -506,15 +507,18 @@ class TwinStream:
         K.cylinder_forces_batch(pa, pb, v, self._fpar, out)
         return out
 
-    def _tau(self, q: F64, qd: F64, qdd: F64, payload_kg: float | F64) -> F64:
-        """Inverse-dynamics joint loads (n, n_joints) through the machine's compiled kernel
-        (as physics.joint_torques, without its argument checks: the arrays are ours)."""
+    def _tau_pair(self, q: F64, qd: F64, qdd: F64, qdd2: F64, pl_a: F64,
+                  pl_b: F64) -> tuple[F64, F64]:
+        """Inverse-dynamics joint loads (n, n_joints) at (q, qd, qdd, pl_a) and at
+        (q, qd, qdd2, pl_b), in one compiled pass (as physics.joint_torques twice, without
+        its argument checks: the arrays are ours)."""
         n = q.shape[0]
-        pl = np.broadcast_to(np.asarray(payload_kg, dtype=np.float64), (n,))
-        out = np.empty((n, self.machine.n_joints))
-        self._rnea_tau(np.ascontiguousarray(q), np.ascontiguousarray(qd),
-                       np.ascontiguousarray(qdd), np.ascontiguousarray(pl), out)
-        return out
+        ta = np.empty((n, self.machine.n_joints))
+        tb = np.empty((n, self.machine.n_joints))
+        c = np.ascontiguousarray
+        self._pair(c(q), c(qd), c(qdd), c(qdd2), c(pl_a, dtype=np.float64),
+                   c(pl_b, dtype=np.float64), ta, tb)
+        return ta, tb
 
     def _actuator_loads(self, q: F64, f: F64, arm: F64, drive: F64 | None) -> F64:
         """Joint loads of the actuators: F·ds/dq (virtual work, as physics.actuator_torques,
@@ -530,8 +534,8 @@ class TwinStream:
         assert self._choices is not None
         m = self.machine
         cj = self._cyl_joint
-        t0 = self._tau(q, qd, qdd, 0.0)
-        t1 = self._tau(q, qd, qdd, 1.0)
+        n = q.shape[0]
+        t0, t1 = self._tau_pair(q, qd, qdd, qdd, np.zeros(n), np.ones(n))
         if arm is None:
             _, arm = physics.cylinder_kinematics(m, q)
         g = (t1 - t0)[:, cj] / arm  # force per kg at each cylinder
