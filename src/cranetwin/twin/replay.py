@@ -16,6 +16,16 @@ natural spline's dependence on far knots decays by ≈ 0.27 per knot (``settle_s
 margin leave < 1e-20 of it), and the payload window is centred. So the streaming form
 (:class:`TwinStream`, fed block by block as datagrams arrive) equals the batch form
 (:func:`replay`), which is the stream fed everything at once — seams included.
+
+Where the work is done: the sample-rate stages (smoothing, the payload regression, the slew
+integration, mass matrices) run at the 100 Hz instants; every grid-rate quantity is computed
+in one compiled pass per chunk (:mod:`cranetwin.physics.gridpass`: splines, table-driven
+inverse kinematics, Eq. 1–2, the machine-specific RNEA inlined, the Eq. 3/4 correction, the
+wrenches), writing the output arrays once. The kinematics tables (quintic Hermite pieces of
+the exact inverse, 2048 cells per stroke) agree with the exact inverse to 1e-11 in q and ds/dq
+and 1e-8 of the largest d²s/dq²; M_DD⁻¹ is interpolated between samples (agreement with the
+exact M(q) at every instant: 1.5e-5 of the wrench range). ``tests/test_twin_gridpass.py``
+recomputes every output through the separate physics functions.
 """
 
 from __future__ import annotations
