@@ -118,3 +118,25 @@ def test_kinematic_option_skips_the_correction(machine: Machine) -> None:
                  options=ReplayOptions(wrench_acceleration="kinematic"))
     _, w = physics.inverse_dynamics(machine, res.q, res.qd, res.qdd, 200.0)
     np.testing.assert_allclose(res.joint_wrench, w, rtol=1e-9, atol=1e-6)
+
+
+def test_generated_mass_matrix_and_pair_agree_with_generic(machine: Machine) -> None:
+    p = compile_chain(machine)
+    rng = np.random.default_rng(7)
+    n = 500
+    q = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(0.0, 1.2, n),
+                         rng.uniform(-2.5, 0.0, n), rng.uniform(0.0, 1.5, n)])
+    qd = rng.normal(0, 0.5, (n, 4))
+    qdd = rng.normal(0, 2.0, (n, 4))
+    pl = rng.uniform(0, 500, n)
+    mm = np.empty((n, 4, 4))
+    gridpass.mass_matrix_kernel_for(p)(q, pl, mm)
+    np.testing.assert_allclose(mm, physics.mass_matrix(machine, q, pl), rtol=1e-12, atol=1e-9)
+    ta = np.empty((n, 4))
+    tb = np.empty((n, 4))
+    gridpass.pair_kernel_for(p, physics.dynamics.rnea_kernels(p)[1])(
+        q, qd, qdd, np.zeros((n, 4)), np.zeros(n), pl, ta, tb)
+    np.testing.assert_allclose(ta, physics.joint_torques(machine, q, qd, qdd, 0.0),
+                               rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(tb, physics.joint_torques(machine, q, qd, 0.0 * qdd, pl),
+                               rtol=1e-12, atol=1e-9)

@@ -124,11 +124,15 @@ def _consts(values: np.ndarray) -> list[Ex]:
     return [float(v) for v in values]
 
 
-def trace_rnea(chain: np.ndarray) -> tuple[list[str], list[Ex], list[list[Ex]]]:
+def trace_rnea(chain: np.ndarray, qd: list[Ex] | None = None, qdd: list[Ex] | None = None,
+               gravity: bool = True) -> tuple[list[str], list[Ex], list[list[Ex]]]:
     """Trace the RNEA of :func:`kernels.rnea_into` for one sample on symbols.
 
     Inputs are the names ``q{i}``, ``qd{i}``, ``qdd{i}``, ``c{i}``/``s{i}`` (cos/sin of q{i})
-    and ``pl`` (payload [kg]). Returns (code lines, tau expressions, wrench expressions).
+    and ``pl`` (payload [kg]); ``qd``/``qdd`` replace the velocity/acceleration names by
+    values (numbers fold away) and ``gravity=False`` leaves gravity out, e.g. a column of the
+    mass matrix is the trace with qd = 0, qdd = e_j and no gravity. Returns (code lines, tau
+    expressions, wrench expressions).
     """
     tr = _Tracer()
     nj = int(chain[0])
@@ -136,7 +140,7 @@ def trace_rnea(chain: np.ndarray) -> tuple[list[str], list[Ex], list[list[Ex]]]:
     lp = _consts(chain[5:8])
     w: Vec = [0.0, 0.0, 0.0]
     dw: Vec = [0.0, 0.0, 0.0]
-    acc: Vec = [-float(g) for g in chain[1:4]]
+    acc: Vec = [-float(g) if gravity else 0.0 for g in chain[1:4]]
     rots: list[list[Ex]] = []
     origins: list[Vec] = []
     wrenches: list[list[Ex]] = []
@@ -148,7 +152,9 @@ def trace_rnea(chain: np.ndarray) -> tuple[list[str], list[Ex], list[list[Ex]]]:
         k = _consts(chain[o + 1:o + 4])
         r0 = _consts(chain[o + 4:o + 13])
         p: Vec = _consts(chain[o + 13:o + 16])
-        qi, vd, ad = f"q{i}", f"qd{i}", f"qdd{i}"
+        qi = f"q{i}"
+        vd: Ex = f"qd{i}" if qd is None else qd[i]
+        ad: Ex = f"qdd{i}" if qdd is None else qdd[i]
         if prismatic:
             rot = r0
             p = tr.vadd(p, tr.vscale(tr.matvec(r0, k), qi))
@@ -262,6 +268,10 @@ def generate_source(chain: np.ndarray) -> str:
         inline_rnea(PAIR_TEMPLATE, nj, rev, lines, taus, wrenches),
         "",
         "",
+        "@njit(cache=True)",
+        mass_matrix_source(chain, rev),
+        "",
+        "",
         gridpass.IMPORTS,
         "",
         "",
@@ -269,6 +279,32 @@ def generate_source(chain: np.ndarray) -> str:
         inline_rnea(gridpass.template_source(), nj, rev, lines, taus, wrenches),
     ]
     return "\n".join(src)
+
+
+def mass_matrix_source(chain: np.ndarray, revolute: list[int]) -> str:
+    """Source of ``mass_matrix_batch(q, payload, mm)``: M(q) with the payload, column j as the
+    RNEA traced with qd = 0, qdd = e_j and no gravity (numbers folded, so each column keeps
+    only what its unit acceleration reaches), all columns in one loop sharing cos/sin."""
+    nj = int(chain[0])
+    body = [f"rq{i} = q[g, {i}]" for i in range(nj)]
+    for i in revolute:
+        body += [f"rc{i} = math.cos(rq{i})", f"rs{i} = math.sin(rq{i})"]
+    body.append("pl = payload[g]")
+    for j in range(nj):
+        unit: list[Ex] = [1.0 if i == j else 0.0 for i in range(nj)]
+        lines, taus, _ = trace_rnea(chain, qd=[0.0] * nj, qdd=unit, gravity=False)
+        pre = f"m{j}_"
+
+        def ren(m: re.Match[str], pre: str = pre) -> str:
+            if m.group(0) == "pl":
+                return "pl"
+            kind, i = m.group(1), m.group(2)
+            return f"{pre}{kind}{i}" if kind in ("t", "qdd") else f"r{kind}{i}"
+
+        body += [_NAME.sub(ren, x) for x in lines]
+        body += [f"mm[g, {i}, {j}] = {_NAME.sub(ren, _ex(t))}" for i, t in enumerate(taus)]
+    return "\n".join(["def mass_matrix_batch(q, payload, mm):",
+                      "    for g in range(q.shape[0]):", *["        " + x for x in body]])
 
 
 PAIR_TEMPLATE = """def rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, tau_b):

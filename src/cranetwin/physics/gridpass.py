@@ -36,6 +36,7 @@ from numba import njit
 
 from cranetwin.physics.chain import CYL_BLOCK, ChainParams
 from cranetwin.physics.kernels import _chol_solve, cylinder_motion, rnea_into
+from cranetwin.physics.kernels import mass_matrix_batch as K_mass_matrix_batch
 
 IMPORTS = ("import numpy as np\n"
            "from cranetwin.physics.chain import CYL_BLOCK\n"
@@ -519,3 +520,22 @@ def pair_kernel_for(params: ChainParams,
         rnea_tau(q, qd, qdd2, pl_b, tau_b)
 
     return two
+
+
+def mass_matrix_kernel_for(params: ChainParams) -> Callable[..., None]:
+    """``mass_matrix_batch(q, payload, mm)`` of the machine's generated module (M from traced
+    unit-acceleration RNEA columns, ≈ 5× the generic CRBA's speed, equal to 1e-15), or the
+    generic :func:`cranetwin.physics.kernels.mass_matrix_batch` bound to the chain."""
+    try:
+        from cranetwin.physics.codegen import specialised_module
+
+        fn: Callable[..., None] = specialised_module(params).mass_matrix_batch
+        return fn
+    except Exception as exc:
+        _log.warning("specialised mass matrix unavailable (%s); using the CRBA", exc)
+    chain = params.chain
+
+    def generic(q: Any, payload: Any, mm: Any) -> None:
+        K_mass_matrix_batch(chain, q, payload, mm)
+
+    return generic

@@ -213,6 +213,7 @@ class TwinStream:
         self._grid = gridpass.kernel_for(params)
         self._rnea_tau = rnea_kernels(params)[1]
         self._pair = gridpass.pair_kernel_for(params, self._rnea_tau)
+        self._mass_matrix = gridpass.mass_matrix_kernel_for(params)
         self._table = np.empty((len(machine.cylinders), gridpass.KIN_TABLE_NODES - 1, 6))
         self._table_ok = gridpass.kinematics_table(params.cyl, self._stroke,
                                                    gridpass.KIN_TABLE_NODES, self._table)
@@ -676,8 +677,8 @@ class TwinStream:
         full.sort()
         if dynamic:
             mm = np.empty((n_ks, nj, nj))
-            K.mass_matrix_batch(self._chain, np.ascontiguousarray(q_s[ks]),
-                                np.nan_to_num(np.maximum(mk, 0.0)), mm)
+            self._mass_matrix(np.ascontiguousarray(q_s[ks]), np.nan_to_num(np.maximum(mk, 0.0)),
+                              mm)
             minv = np.empty((mm.shape[0], len(full), len(full)))
             minv_ok = np.empty(mm.shape[0], dtype=bool)
             gridpass.dd_inverse_batch(mm, np.array(full, dtype=np.int64), minv, minv_ok)
