@@ -393,3 +393,15 @@ def test_noise_estimate_and_window_choice_equal_direct_formulation(n: int) -> No
         assert ch.risk == pytest.approx(risk, rel=1e-9)
     q = np.round(rng.normal(size=n) * 3.0) / 3.0  # few distinct values: ties in the medians
     assert estimate_noise_std(q) == pytest.approx(_old_noise_std(q), rel=1e-12)
+
+
+def test_natural_pieces_equal_the_spline_class_and_reject_nan() -> None:
+    from cranetwin.signal import NaturalCubicSpline, natural_pieces
+
+    rng = np.random.default_rng(11)
+    x = np.arange(50) * 0.01
+    y = rng.normal(size=(50, 3))
+    np.testing.assert_array_equal(natural_pieces(x, y), NaturalCubicSpline(x, y).pieces())
+    y[7, 1] = np.nan
+    with pytest.raises(SignalError):
+        natural_pieces(x, y)

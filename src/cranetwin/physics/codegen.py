@@ -328,8 +328,8 @@ def inline_rnea(template: str, nj: int, revolute: list[int], lines: list[str], t
 
     ``pass  # @RNEA_HEAD@`` becomes the loads of q, qd at row ``g`` and the cos/sin of the
     revolute angles (shared by the passes that follow); ``<call>  # @RNEA qdd tau wrench@``
-    becomes one RNEA reading accelerations from array ``qdd`` (row g) and writing ``tau`` (and
-    ``wrench`` unless it is ``-``). Names are prefixed per pass so the passes do not collide
+    becomes one RNEA reading accelerations from array ``qdd`` (row g) and writing ``tau`` and
+    ``wrench``, each unless it is ``-``. Names are prefixed per pass so the passes do not collide
     with each other or the template; no call, no array arguments, nothing to reference-count.
     """
     out: list[str] = []
@@ -359,7 +359,9 @@ def inline_rnea(template: str, nj: int, revolute: list[int], lines: list[str], t
 
             body = [f"{pre}qdd{i} = {acc}[g, {i}]" for i in range(nj)]
             body += [_NAME.sub(ren, x) for x in lines]
-            body += [f"{tau}[g, {i}] = {_NAME.sub(ren, _ex(t))}" for i, t in enumerate(taus)]
+            if tau != "-":
+                body += [f"{tau}[g, {i}] = {_NAME.sub(ren, _ex(t))}"
+                         for i, t in enumerate(taus)]
             if wrench != "-":
                 body += [f"{wrench}[g, {i}, {j}] = {_NAME.sub(ren, _ex(x))}"
                          for i, wr in enumerate(wrenches) for j, x in enumerate(wr)]

@@ -354,6 +354,9 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     y = np.empty(nj)
     known = np.zeros(nj, dtype=np.bool_)
     inv_r = 1.0 / r
+    cj = np.empty(nc, dtype=np.int64)
+    for k in range(nc):
+        cj[k] = int(cyl[1 + k * CYL_BLOCK + 1])
     bad = 0
     for g in range(n):
         # -- splines ------------------------------------------------------------------------
@@ -392,7 +395,7 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             s = min(max(raw, 0.0), stroke[k])
             v = val[nc + k]
             a = val[2 * nc + k]
-            ji = int(cyl[1 + k * CYL_BLOCK + 1])
+            ji = cj[k]
             if table_ok[k]:
                 qj, d1, d2 = table_motion(table, k, stroke[k], s)
             else:
@@ -466,7 +469,7 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
                 if chol_solve_inline(amat, y, nd):
                     for a_ in range(nd):
                         qdd2[g, idx[a_]] += y[a_]
-        rnea_row(chain, q, qd, qdd2, pl, g, tau2, wrench, work)  # @RNEA qdd2 tau2 wrench@
+        rnea_row(chain, q, qd, qdd2, pl, g, tau2, wrench, work)  # @RNEA qdd2 - wrench@
     return bad
 
 

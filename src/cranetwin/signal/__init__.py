@@ -22,12 +22,13 @@ from cranetwin.signal.smoothing import (
     savgol_smooth,
     sg_filter,
 )
-from cranetwin.signal.spline import NaturalCubicSpline
+from cranetwin.signal.spline import NaturalCubicSpline, natural_pieces
 
 __all__ = [
     "ICI_WINDOWS",
     "NOISY_QUANTITIES",
     "NaturalCubicSpline",
+    "natural_pieces",
     "Regular",
     "SmoothingChoice",
     "centre_weight",

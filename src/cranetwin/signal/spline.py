@@ -86,6 +86,21 @@ def _subdivide(c, h, h0, uniform, r, v0, v1, v2):  # type: ignore[no-untyped-def
                     v2[row, m] = 2.0 * c2 + 6.0 * d * dx
 
 
+def natural_pieces(x: F64, y: F64) -> F64:
+    """The pieces (n−1, 4, k) of the natural spline through knots x (n,) strictly increasing
+    and values y (n, k), as :meth:`NaturalCubicSpline.pieces`, for callers whose knots are
+    known good (the replay's regular grid): only the values are checked.
+
+    Raises:
+        SignalError: non-finite values.
+    """
+    if not np.isfinite(y).all():
+        raise SignalError("spline knots and values must be finite (drop NaN samples first)")
+    coef = np.empty((x.shape[0] - 1, 4, y.shape[1]))
+    _natural_coefficients(np.ascontiguousarray(x), np.ascontiguousarray(y), coef)
+    return coef
+
+
 class NaturalCubicSpline:
     """Natural cubic spline through knots (x, y), y of one or many channels.
 

@@ -47,10 +47,10 @@ from cranetwin.physics.dynamics import rnea_kernels
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import (
     ICI_WINDOWS,
-    NaturalCubicSpline,
     SmoothingChoice,
     centre_weight,
     ici_smooth_pair,
+    natural_pieces,
     newton_derivative,
     nominal_period,
     regularize,
@@ -619,8 +619,7 @@ class TwinStream:
         data = sm[:, cols]
         if extra is not None:
             data = np.concatenate([data, extra], axis=1)
-        spline = NaturalCubicSpline(knots_t, data)
-        return spline.pieces(), src, der
+        return natural_pieces(knots_t, data), src, der
 
     def _chunk(self, ka: int, kb: int, last: bool, ready: int) -> TwinResult:
         """Outputs at samples [ka, kb) (through kb − 1 … the end on the ``last`` chunk).
