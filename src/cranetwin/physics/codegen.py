@@ -413,8 +413,7 @@ def specialised_kernels(params: ChainParams) -> tuple[Callable[..., None], Calla
     from numba's on-disk cache) here, before they are returned; a cache that cannot be loaded
     is deleted and the kernels compiled afresh.
     """
-    src = generate_source(params.chain)
-    digest = hashlib.sha256(src.encode()).hexdigest()[:16]
+    src, digest = _source(params.chain)
     mod = _MODULES.get(digest)
     if mod is None:
         folder = _cache_dir()
@@ -440,4 +439,19 @@ def specialised_module(params: ChainParams) -> Any:
     """The generated module of ``params.chain`` (loaded as :func:`specialised_kernels`); it
     also holds ``grid_pass``, compiled on its first call (then cached on disk)."""
     specialised_kernels(params)
-    return _MODULES[hashlib.sha256(generate_source(params.chain).encode()).hexdigest()[:16]]
+    return _MODULES[_source(params.chain)[1]]
+
+
+_SOURCES: dict[bytes, tuple[str, str]] = {}
+
+
+def _source(chain: np.ndarray) -> tuple[str, str]:
+    """(generated source, its digest) for a chain, generated once per process (the tracing
+    takes ≈ 0.1 s: a replay of a few seconds must not pay it)."""
+    key = np.ascontiguousarray(chain, dtype=np.float64).tobytes()
+    hit = _SOURCES.get(key)
+    if hit is None:
+        src = generate_source(chain)
+        hit = (src, hashlib.sha256(src.encode()).hexdigest()[:16])
+        _SOURCES[key] = hit
+    return hit

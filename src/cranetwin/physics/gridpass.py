@@ -481,27 +481,36 @@ def template_source() -> str:
 grid_pass_generic: Callable[..., int] = njit(cache=True, error_model="numpy")(grid_pass)
 
 
-_KERNELS: dict[int, tuple[ChainParams, Callable[..., int]]] = {}
-
-
 def kernel_for(params: ChainParams, specialised: bool = True) -> Callable[..., int]:
     """The grid pass for a compiled machine: the one in its generated module (RNEA
     specialised to it), or :data:`grid_pass_generic` if ``specialised`` is off or generation
     fails (generation is an optimisation: it never fails the replay)."""
     if not specialised:
         return grid_pass_generic
-    hit = _KERNELS.get(id(params))
+    fn = _module_attr(params, "grid_pass")
+    return grid_pass_generic if fn is None else fn
+
+
+def _module_attr(params: ChainParams, name: str) -> Callable[..., Any] | None:
+    """``name`` of the machine's generated module (looked up once per compiled machine), or
+    None when generation fails (logged)."""
+    key = (id(params), name)
+    hit = _ATTRS.get(key)
     if hit is not None and hit[0] is params:
         return hit[1]
+    fn: Callable[..., Any] | None
     try:
         from cranetwin.physics.codegen import specialised_module
 
-        fn: Callable[..., int] = specialised_module(params).grid_pass
+        fn = getattr(specialised_module(params), name)
     except Exception as exc:
-        _log.warning("specialised grid pass unavailable (%s); using the generic one", exc)
-        fn = grid_pass_generic
-    _KERNELS[id(params)] = (params, fn)
+        _log.warning("specialised %s unavailable (%s); using the generic code", name, exc)
+        fn = None
+    _ATTRS[key] = (params, fn)
     return fn
+
+
+_ATTRS: dict[tuple[int, str], tuple[ChainParams, Callable[..., Any] | None]] = {}
 
 
 def pair_kernel_for(params: ChainParams,
@@ -509,13 +518,9 @@ def pair_kernel_for(params: ChainParams,
     """``rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, tau_b)`` of the machine's
     generated module (:data:`cranetwin.physics.codegen.PAIR_TEMPLATE`), or the same from two
     calls of ``rnea_tau`` when there is no generated module."""
-    try:
-        from cranetwin.physics.codegen import specialised_module
-
-        fn: Callable[..., None] = specialised_module(params).rnea_tau_pair_batch
+    fn = _module_attr(params, "rnea_tau_pair_batch")
+    if fn is not None:
         return fn
-    except Exception as exc:
-        _log.warning("specialised RNEA pair unavailable (%s); using two passes", exc)
 
     def two(q: Any, qd: Any, qdd: Any, qdd2: Any, pl_a: Any, pl_b: Any, tau_a: Any,
             tau_b: Any) -> None:
@@ -529,13 +534,9 @@ def mass_matrix_kernel_for(params: ChainParams) -> Callable[..., None]:
     """``mass_matrix_batch(q, payload, mm)`` of the machine's generated module (M from traced
     unit-acceleration RNEA columns, ≈ 5× the generic CRBA's speed, equal to 1e-15), or the
     generic :func:`cranetwin.physics.kernels.mass_matrix_batch` bound to the chain."""
-    try:
-        from cranetwin.physics.codegen import specialised_module
-
-        fn: Callable[..., None] = specialised_module(params).mass_matrix_batch
+    fn = _module_attr(params, "mass_matrix_batch")
+    if fn is not None:
         return fn
-    except Exception as exc:
-        _log.warning("specialised mass matrix unavailable (%s); using the CRBA", exc)
     chain = params.chain
 
     def generic(q: Any, payload: Any, mm: Any) -> None:
