@@ -34,14 +34,17 @@ def register(app: typer.Typer) -> None:
         con = Console()
         t = Table(title=f"Friction (Eq. 2) from {recording.name}")
         for col in ("cylinder", "Fc file → fit [N]", "vc file → fit [mm/s]",
-                    "b file → fit [N·s/m]", "RMS residual before → after [N]"):
+                    "b file → fit [N·s/m]", "offset [N]", "RMS residual before → after [N]"):
             t.add_column(col)
-        for f in cal.cylinders:
+        for f, off in zip(cal.cylinders, cal.offsets_n, strict=True):
             t.add_row(f.name, f"{f.coulomb_file:.0f} → {f.coulomb:.0f}",
                       f"{f.coulomb_velocity_file * 1e3:.2f} → {f.coulomb_velocity * 1e3:.2f}",
-                      f"{f.viscous_file:.0f} → {f.viscous:.0f}",
+                      f"{f.viscous_file:.0f} → {f.viscous:.0f}", f"{off:.0f}",
                       f"{f.rms_before_n:.0f} → {f.rms_after_n:.0f}")
         con.print(t)
         con.print(f"Mass at the load point beyond the file's tool mass "
                   f"({cal.tool_mass_file_kg:g} kg): {cal.extra_mass_kg:.1f} ± "
                   f"{cal.extra_mass_std_kg:.1f} kg  ({cal.samples_used} instants)")
+        passes, width = cal.filter_passes_width
+        con.print(f"Offset: constant force per cylinder (pressure-transducer bias). Low-pass: "
+                  f"{passes} moving average(s) of {width} instants on both sides.")
