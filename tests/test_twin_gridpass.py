@@ -47,7 +47,8 @@ def test_kinematics_table_matches_exact_inverse(machine: Machine) -> None:
     for k, st in enumerate(stroke):
         s_all = np.concatenate([rng.uniform(0.0, st, 4000), [0.0, st, st / 2048.0]])
         exact = np.array([K.cylinder_motion(p.cyl, k, s) for s in s_all])
-        tab = np.array([gridpass.table_motion(table, k, st, s) for s in s_all])
+        per_m = (gridpass.KIN_TABLE_NODES - 1) / st
+        tab = np.array([gridpass.table_motion(table, k, per_m, s) for s in s_all])
         np.testing.assert_allclose(tab[:, 0], exact[:, 0], rtol=0, atol=1e-11)  # q [rad or m]
         np.testing.assert_allclose(tab[:, 1], exact[:, 1], rtol=1e-10)  # ds/dq
         d2_scale = max(float(np.max(np.abs(exact[:, 2]))), 0.1)  # [m/rad² or 1/m]

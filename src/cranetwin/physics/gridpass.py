@@ -182,12 +182,11 @@ def kinematics_table(cyl, stroke, n_nodes, table):  # type: ignore[no-untyped-de
 
 
 @njit(cache=True, inline="always")
-def table_motion(table, k, stroke_k, s):  # type: ignore[no-untyped-def]
-    """(q, ds/dq, d²s/dq²) of cylinder k at rod position s in [0, stroke] from its table,
-    as :func:`cylinder_motion` returns them."""
+def table_motion(table, k, cells_per_m, s):  # type: ignore[no-untyped-def]
+    """(q, ds/dq, d²s/dq²) of cylinder k at rod position s in [0, stroke] from its table
+    (``cells_per_m`` = cells / stroke [1/m]), as :func:`cylinder_motion` returns them."""
     n_cells = table.shape[1]
-    h = stroke_k / n_cells
-    x = s * (n_cells / stroke_k)
+    x = s * cells_per_m
     i = int(x)
     if i >= n_cells:
         i = n_cells - 1
@@ -199,8 +198,9 @@ def table_motion(table, k, stroke_k, s):  # type: ignore[no-untyped-def]
     c4 = table[k, i, 4]
     c5 = table[k, i, 5]
     qv = c0 + u * (c1 + u * (c2 + u * (c3 + u * (c4 + u * c5))))
-    g1 = (c1 + u * (2.0 * c2 + u * (3.0 * c3 + u * (4.0 * c4 + u * 5.0 * c5)))) / h
-    g2 = (2.0 * c2 + u * (6.0 * c3 + u * (12.0 * c4 + u * 20.0 * c5))) / (h * h)
+    g1 = (c1 + u * (2.0 * c2 + u * (3.0 * c3 + u * (4.0 * c4 + u * 5.0 * c5)))) * cells_per_m
+    g2 = ((2.0 * c2 + u * (6.0 * c3 + u * (12.0 * c4 + u * 20.0 * c5)))
+          * (cells_per_m * cells_per_m))
     d1 = 1.0 / g1
     return qv, d1, -g2 * d1 * d1 * d1
 
@@ -263,7 +263,8 @@ def table_motion_batch(table, table_ok, cyl, s, v, a, q, qd, qdd, arm):  # type:
         for k in range(nc):
             ji = int(cyl[1 + k * CYL_BLOCK + 1])
             if table_ok[k]:
-                qj, d1, d2 = table_motion(table, k, cyl[1 + k * CYL_BLOCK + 3], s[i, k])
+                qj, d1, d2 = table_motion(table, k,
+                                          table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s[i, k])
             else:
                 qj, d1, d2 = cylinder_motion(cyl, k, s[i, k])
             w = v[i, k] / d1
@@ -355,8 +356,10 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     known = np.zeros(nj, dtype=np.bool_)
     inv_r = 1.0 / r
     cj = np.empty(nc, dtype=np.int64)
+    cells_per_m = np.empty(nc)
     for k in range(nc):
         cj[k] = int(cyl[1 + k * CYL_BLOCK + 1])
+        cells_per_m[k] = table.shape[1] / stroke[k]
     bad = 0
     for g in range(n):
         # -- splines ------------------------------------------------------------------------
@@ -397,7 +400,7 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             a = val[2 * nc + k]
             ji = cj[k]
             if table_ok[k]:
-                qj, d1, d2 = table_motion(table, k, stroke[k], s)
+                qj, d1, d2 = table_motion(table, k, cells_per_m[k], s)
             else:
                 qj, d1, d2 = cylinder_motion(cyl, k, s)
             if not math.isfinite(qj):
