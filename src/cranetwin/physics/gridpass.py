@@ -41,7 +41,8 @@ from cranetwin.physics.kernels import mass_matrix_batch as K_mass_matrix_batch
 IMPORTS = ("import numpy as np\n"
            "from cranetwin.physics.chain import CYL_BLOCK\n"
            "from cranetwin.physics.kernels import _chol_solve, cylinder_motion\n"
-           "from cranetwin.physics.gridpass import chol_solve_inline, fast_tanh, table_motion")
+           "from cranetwin.physics.gridpass import chol_solve_inline, derivative_group\n"
+           "from cranetwin.physics.gridpass import fast_tanh, table_motion")
 """Imports the copied :func:`grid_pass` needs in the generated module (besides ``math`` and
 ``njit``, which it has)."""
 
@@ -70,6 +71,24 @@ def rnea_row(chain, q, qd, qdd, pl_kg, k, tau, wrench, work):  # type: ignore[no
 def rnea_tau_row(chain, q, qd, qdd, pl_kg, k, tau, wrench, work):  # type: ignore[no-untyped-def]
     """Generic RNEA of row k (``wrench[k]`` is scratch here)."""
     rnea_into(chain, q[k], qd[k], qdd[k], pl_kg, 1.0, tau[k], wrench[k], work)
+
+
+@njit(cache=True)
+def derivative_group(src, der, order):  # type: ignore[no-untyped-def]
+    """Rows (quantity, spline column) of the quantities taken from a spline's derivative of
+    ``order`` (module comment on the ``src``/``der`` table)."""
+    n = 0
+    for m in range(src.shape[0]):
+        if src[m] >= 0 and der[m] == order:
+            n += 1
+    out = np.empty((n, 2), dtype=np.int64)
+    n = 0
+    for m in range(src.shape[0]):
+        if src[m] >= 0 and der[m] == order:
+            out[n, 0] = m
+            out[n, 1] = src[m]
+            n += 1
+    return out
 
 
 @njit(cache=True)
@@ -319,37 +338,12 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     ns = mk.shape[0]
     val = np.zeros(nq)
     # quantities grouped by derivative order (no branch per quantity and instant)
-    n0 = 0
-    n1 = 0
-    n2 = 0
-    for m in range(nq):
-        if src[m] >= 0:
-            if der[m] == 0:
-                n0 += 1
-            elif der[m] == 1:
-                n1 += 1
-            else:
-                n2 += 1
-    g0 = np.empty((n0, 2), dtype=np.int64)
-    g1 = np.empty((n1, 2), dtype=np.int64)
-    g2 = np.empty((n2, 2), dtype=np.int64)
-    n0 = 0
-    n1 = 0
-    n2 = 0
-    for m in range(nq):
-        if src[m] >= 0:
-            if der[m] == 0:
-                g0[n0, 0] = m
-                g0[n0, 1] = src[m]
-                n0 += 1
-            elif der[m] == 1:
-                g1[n1, 0] = m
-                g1[n1, 1] = src[m]
-                n1 += 1
-            else:
-                g2[n2, 0] = m
-                g2[n2, 1] = src[m]
-                n2 += 1
+    g0 = derivative_group(src, der, 0)
+    g1 = derivative_group(src, der, 1)
+    g2 = derivative_group(src, der, 2)
+    n0 = g0.shape[0]
+    n1 = g1.shape[0]
+    n2 = g2.shape[0]
     idx = np.empty(nj, dtype=np.int64)
     amat = np.empty((nj, nj))
     y = np.empty(nj)
