@@ -53,3 +53,47 @@ def test_calibration_recovers_viscous_friction_on_a_simulated_ten_minute_run(see
         assert fit.coulomb == pytest.approx(ref.coulomb, rel=0.1), fit
         assert fit.coulomb_velocity == pytest.approx(ref.coulomb_velocity, rel=0.1), fit
         assert fit.rms_after_n < 0.02 * fit.rms_before_n
+
+
+def test_correlation_time_of_white_and_averaged_noise() -> None:
+    import numpy as np
+
+    from cranetwin.twin.calibration import correlation_time
+
+    rng = np.random.default_rng(3)
+    white = rng.normal(size=200_000)
+    assert correlation_time(white) == pytest.approx(1.0, abs=0.05)
+    # a moving average of w samples: τ = w (triangular autocorrelation)
+    w = 25
+    avg = np.convolve(white, np.ones(w) / w, mode="valid")
+    assert correlation_time(avg) == pytest.approx(w, rel=0.1)
+    assert correlation_time(np.zeros(10)) == 1.0
+
+
+def test_cli_warns_about_unphysical_friction(monkeypatch: pytest.MonkeyPatch,
+                                              tmp_path: object) -> None:
+    """A short recording can fit a negative b; the command says so instead of printing it
+    as a result."""
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    import cranetwin.twin.calibration as calmod
+    from cranetwin.cli import app
+    from cranetwin.sim import Recording
+    from cranetwin.twin.calibration import Calibration, CylinderFit
+
+    fits = tuple(CylinderFit(name=n, coulomb_file=300.0, coulomb=310.0,
+                             coulomb_velocity_file=0.005, coulomb_velocity=0.005,
+                             viscous_file=400.0, viscous=b, rms_before_n=100.0,
+                             rms_after_n=5.0)
+                 for n, b in (("lift", 420.0), ("jib", -46.0), ("extension", 390.0)))
+    fake = Calibration(fits, 0.1, 0.02, 90.0, 1000, (0.0, 0.0, 0.0), (1, 100))
+    monkeypatch.setattr(calmod, "calibrate", lambda samples, machine: fake)
+    monkeypatch.setattr(Recording, "load", staticmethod(lambda path: Recording.__new__(Recording)))
+    monkeypatch.setattr(Recording, "samples", None, raising=False)
+    out = CliRunner().invoke(app, ["calibrate", str(Path(str(tmp_path)) / "r.npz")],
+                             terminal_width=200)
+    assert out.exit_code == 0, out.output
+    assert "b of jib came out ≤ 0" in out.output
+    assert "of lift" not in out.output

@@ -43,8 +43,16 @@ def register(app: typer.Typer) -> None:
                       f"{f.rms_before_n:.0f} → {f.rms_after_n:.0f}")
         con.print(t)
         con.print(f"Mass at the load point beyond the file's tool mass "
-                  f"({cal.tool_mass_file_kg:g} kg): {cal.extra_mass_kg:.1f} ± "
-                  f"{cal.extra_mass_std_kg:.1f} kg  ({cal.samples_used} instants)")
+                  f"({cal.tool_mass_file_kg:g} kg): {cal.extra_mass_kg:.2f} ± "
+                  f"{cal.extra_mass_std_kg:.2f} kg statistical ({cal.samples_used} instants; "
+                  f"model error adds ≈ 0.1–0.3 kg on simulated runs, docs/ACCURACY.md)")
+        for f in cal.cylinders:
+            bad = [name for name, val in (("Fc", f.coulomb), ("vc", f.coulomb_velocity),
+                                          ("b", f.viscous)) if not val > 0.0]
+            if bad:
+                con.print(f"[yellow]Warning: {', '.join(bad)} of {f.name} came out ≤ 0, which is "
+                          f"not physical: the recording does not excite that friction enough "
+                          f"(10 minutes of varied motion determine b within 10 %).[/yellow]")
         passes, width = cal.filter_passes_width
         con.print(f"Offset: constant force per cylinder (pressure-transducer bias). Low-pass: "
                   f"{passes} moving average(s) of {width} instants on both sides.")
