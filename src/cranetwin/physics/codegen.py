@@ -217,9 +217,9 @@ def _ex(a: Ex) -> str:
 
 def generate_source(chain: np.ndarray) -> str:
     """Python source of ``rnea_batch(q, qd, qdd, payload, tau, wrench)`` and
-    ``rnea_tau_batch(q, qd, qdd, payload, tau)`` specialised to ``chain``, their one-row forms
-    ``rnea_row``/``rnea_tau_row`` and the fused replay grid pass
-    (:func:`cranetwin.physics.gridpass.grid_pass`) calling them."""
+    ``rnea_tau_batch(q, qd, qdd, payload, tau)`` specialised to ``chain``, the two-pass
+    ``rnea_tau_pair_batch``, ``mass_matrix_batch`` and the fused replay grid pass
+    (:func:`cranetwin.physics.gridpass.grid_pass`) with the RNEA inlined."""
     nj = int(chain[0])
     lines, taus, wrenches = trace_rnea(chain)
     rev = [i for i in range(nj) if chain[HEADER + i * JOINT_BLOCK] != PRISMATIC]
@@ -229,7 +229,6 @@ def generate_source(chain: np.ndarray) -> str:
     for i in rev:
         head += [f"c{i} = math.cos(q{i})", f"s{i} = math.sin(q{i})"]
     body = head + ["pl = payload[k]"] + lines
-    row_body = head + ["pl = pl_kg"] + lines
     ind = " " * 8
     out_tau = [f"tau[k, {i}] = {_ex(t)}" for i, t in enumerate(taus)]
     out_w = [f"wrench[k, {i}, {j}] = {_ex(x)}" for i, wr in enumerate(wrenches)
@@ -252,16 +251,6 @@ def generate_source(chain: np.ndarray) -> str:
         "def rnea_tau_batch(q, qd, qdd, payload, tau):",
         "    for k in range(q.shape[0]):",
         *[ind + x for x in body + out_tau],
-        "",
-        "",
-        "@njit(cache=True)",
-        "def rnea_row(chain, q, qd, qdd, pl_kg, k, tau, wrench, work):",
-        *["    " + x for x in row_body + out_tau + out_w],
-        "",
-        "",
-        "@njit(cache=True)",
-        "def rnea_tau_row(chain, q, qd, qdd, pl_kg, k, tau, wrench, work):",
-        *["    " + x for x in row_body + out_tau],
         "",
         "",
         "@njit(cache=True)",
@@ -293,16 +282,9 @@ def mass_matrix_source(chain: np.ndarray, revolute: list[int]) -> str:
     for j in range(nj):
         unit: list[Ex] = [1.0 if i == j else 0.0 for i in range(nj)]
         lines, taus, _ = trace_rnea(chain, qd=[0.0] * nj, qdd=unit, gravity=False)
-        pre = f"m{j}_"
-
-        def ren(m: re.Match[str], pre: str = pre) -> str:
-            if m.group(0) == "pl":
-                return "pl"
-            kind, i = m.group(1), m.group(2)
-            return f"{pre}{kind}{i}" if kind in ("t", "qdd") else f"r{kind}{i}"
-
-        body += [_NAME.sub(ren, x) for x in lines]
-        body += [f"mm[g, {i}, {j}] = {_NAME.sub(ren, _ex(t))}" for i, t in enumerate(taus)]
+        ren = _renamer(f"m{j}_")
+        body += [ren(x) for x in lines]
+        body += [f"mm[g, {i}, {j}] = {ren(_ex(t))}" for i, t in enumerate(taus)]
     return "\n".join(["def mass_matrix_batch(q, payload, mm):",
                       "    for g in range(q.shape[0]):", *["        " + x for x in body]])
 
@@ -320,6 +302,19 @@ PAIR_TEMPLATE = """def rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, 
 (the payload regression's tau at 0 and 1 kg; a column of M as tau(q, 0, e_j) − tau(q, 0, 0))."""
 
 _NAME = re.compile(r"\b(t|qdd|qd|q|c|s)(\d+)\b|\bpl\b")
+
+
+def _renamer(pre: str) -> Callable[[str], str]:
+    """Renames the traced names of one pass: temporaries and accelerations get the pass's
+    prefix, q/qd/cos/sin the shared ``r`` prefix of the head; ``pl`` stays."""
+
+    def one(m: re.Match[str]) -> str:
+        if m.group(0) == "pl":
+            return "pl"
+        kind, i = m.group(1), m.group(2)
+        return f"{pre}{kind}{i}" if kind in ("t", "qdd") else f"r{kind}{i}"
+
+    return lambda line: _NAME.sub(one, line)
 
 
 def inline_rnea(template: str, nj: int, revolute: list[int], lines: list[str], taus: list[Ex],
@@ -349,21 +344,14 @@ def inline_rnea(template: str, nj: int, revolute: list[int], lines: list[str], t
             pre = f"r{n_pass}_"
             n_pass += 1
 
-            def ren(m: re.Match[str], pre: str = pre) -> str:
-                if m.group(0) == "pl":
-                    return "pl"
-                kind, i = m.group(1), m.group(2)
-                if kind in ("t", "qdd"):
-                    return f"{pre}{kind}{i}"
-                return f"r{kind}{i}"
-
+            ren = _renamer(pre)
             body = [f"{pre}qdd{i} = {acc}[g, {i}]" for i in range(nj)]
-            body += [_NAME.sub(ren, x) for x in lines]
+            body += [ren(x) for x in lines]
             if tau != "-":
-                body += [f"{tau}[g, {i}] = {_NAME.sub(ren, _ex(t))}"
+                body += [f"{tau}[g, {i}] = {ren(_ex(t))}"
                          for i, t in enumerate(taus)]
             if wrench != "-":
-                body += [f"{wrench}[g, {i}, {j}] = {_NAME.sub(ren, _ex(x))}"
+                body += [f"{wrench}[g, {i}, {j}] = {ren(_ex(x))}"
                          for i, wr in enumerate(wrenches) for j, x in enumerate(wr)]
             out += [ind + x for x in body]
             continue

@@ -13,8 +13,9 @@ start to finish in registers and written once to the output arrays.
 
 * here, with the generic RNEA (:func:`cranetwin.physics.kernels.rnea_into`), as
   :data:`grid_pass_generic` — the fallback;
-* into the machine's generated module (:mod:`cranetwin.physics.codegen`), where
-  ``rnea_row``/``rnea_tau_row`` are the RNEA specialised to that machine (≈ 3× faster). Its
+* into the machine's generated module (:mod:`cranetwin.physics.codegen`), where the calls
+  of ``rnea_row``/``rnea_tau_row`` are replaced by the RNEA specialised to that machine,
+  inlined (``codegen.inline_rnea``). Its
   source is copied there (:func:`template_source`) so that numba's on-disk cache is keyed by the
   generated file and never mixes machines.
 
@@ -63,14 +64,14 @@ def n_quantities(n_cylinders: int) -> int:
 
 @njit(cache=True)
 def rnea_row(chain, q, qd, qdd, pl_kg, k, tau, wrench, work):  # type: ignore[no-untyped-def]
-    """Generic RNEA of row k (tau and wrench); signature of the generated ``rnea_row``."""
+    """Generic RNEA of row k (tau and wrench) for the generic build of :func:`grid_pass`; the
+    generated build has the RNEA inlined at the call's marker instead."""
     rnea_into(chain, q[k], qd[k], qdd[k], pl_kg, 1.0, tau[k], wrench[k], work)
 
 
-@njit(cache=True)
-def rnea_tau_row(chain, q, qd, qdd, pl_kg, k, tau, wrench, work):  # type: ignore[no-untyped-def]
-    """Generic RNEA of row k (``wrench[k]`` is scratch here)."""
-    rnea_into(chain, q[k], qd[k], qdd[k], pl_kg, 1.0, tau[k], wrench[k], work)
+rnea_tau_row = rnea_row
+"""The tau-only pass of the generic build: the generic RNEA has no cheaper form
+(``wrench[k]`` is scratch there)."""
 
 
 @njit(cache=True)

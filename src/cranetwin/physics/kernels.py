@@ -950,45 +950,6 @@ def _chol_solve(a, y, nd):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def accel_correction_interp(mm, i0, i1, frac, resid, use, out):  # type: ignore[no-untyped-def]
-    """As :func:`accel_correction_batch` with M given at coarse instants and interpolated:
-    row k uses M = mm[i0[k]] + frac[k]·(mm[i1[k]] − mm[i0[k]]); the joints D of row k are
-    those with ``use`` true *and* a finite residual there (a NaN residual leaves that joint
-    kinematic at that instant, e.g. a cylinder in its end stop).
-
-    Args:
-        mm: Mass matrices at the coarse instants (ns, nj, nj).
-        i0, i1: Coarse rows bracketing each output row (n,); frac (n,) in [0, 1).
-        resid: Residuals (n, nj); use (nj,) booleans; out: Δqdd (n, nj).
-    """
-    nj = mm.shape[1]
-    idx = np.empty(nj, dtype=np.int64)
-    a = np.empty((nj, nj))
-    y = np.empty(nj)
-    for k in range(resid.shape[0]):
-        nd = 0
-        for j in range(nj):
-            out[k, j] = 0.0
-            if use[j] and np.isfinite(resid[k, j]):
-                idx[nd] = j
-                y[nd] = resid[k, j]
-                nd += 1
-        if nd == 0:
-            continue
-        f = frac[k]
-        p0 = i0[k]
-        p1 = i1[k]
-        for r in range(nd):
-            for c in range(nd):
-                m0 = mm[p0, idx[r], idx[c]]
-                a[r, c] = m0 + f * (mm[p1, idx[r], idx[c]] - m0)
-        if not _chol_solve(a, y, nd):
-            continue
-        for r in range(nd):
-            out[k, idx[r]] = y[r]
-
-
-@njit(cache=True)
 def accel_correction_batch(chain, q, payload_kg, resid, use, out):  # type: ignore[no-untyped-def]
     """Δqdd solving M_DD(q)·Δqdd_D = resid_D over samples (D: joints with ``use`` true; the
     others keep Δ = 0), by Cholesky of the symmetric positive definite M_DD.

@@ -27,53 +27,10 @@ from cranetwin.errors import TwinError
 F64 = npt.NDArray[np.float64]
 
 
-def moving_sum(x: F64, half: int) -> F64:
-    """Centred moving sum over [i − half, i + half] ∩ [0, n), along axis 0."""
-    n = x.shape[0]
-    c = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)])
-    i = np.arange(n)
-    hi = np.minimum(i + half + 1, n)
-    lo = np.maximum(i - half, 0)
-    out: F64 = c[hi] - c[lo]
-    return out
-
-
-def sliding_payload(
-    g: F64, r: F64, weights: F64, half_window: int, independent_fraction: F64
-) -> tuple[F64, F64]:
-    """Sliding-window weighted least-squares payload.
-
-    Args:
-        g: Joint-load sensitivity to payload, shape (k, n_c) [N·m/kg or N/kg].
-        r: Actuator load minus no-payload inverse dynamics, shape (k, n_c) [N·m or N].
-        weights: 1/σ² per joint, shape (n_c,) [1/(N·m)²].
-        half_window: Half window [instants]; the window has 2·half + 1 instants.
-        independent_fraction: Independent errors per instant per joint, shape (n_c,), in (0, 1].
-
-    Returns:
-        (m̂, σ_m̂), each shape (k,) [kg]; NaN estimate and inf σ where g vanishes.
-    """
-    if g.shape != r.shape or g.ndim != 2:
-        raise TwinError(f"g {g.shape} and r {r.shape} must both be (k, n_c)")
-    wg = g * weights[None, :]
-    sgg = moving_sum(np.sum(wg * g, axis=1), half_window)
-    sgr = moving_sum(np.sum(wg * r, axis=1), half_window)
-    srr = moving_sum(np.sum(r * r * weights[None, :], axis=1), half_window)
-    count = moving_sum(np.ones(g.shape[0]), half_window)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        m = sgr / sgg
-        rss = np.maximum(srr - m * sgr, 0.0)
-        n_eff = count * float(np.sum(independent_fraction))
-        std = np.sqrt(rss / np.maximum(n_eff - 1.0, 1.0) / sgg)
-    bad = ~(sgg > 0)
-    m[bad] = np.nan
-    std[bad] = np.inf
-    return m, std
-
-
 @njit(cache=True)
 def _moving_sum_cols(x, half, out):  # type: ignore[no-untyped-def]
-    """:func:`moving_sum` of x (n, k) into out (n, k), by the same running sums."""
+    """Centred moving sums of x (n, k) over [i − half, i + half] ∩ [0, n), into out (n, k),
+    by running sums."""
     n, k = x.shape
     c = np.zeros((n + 1, k))
     for i in range(n):
@@ -135,9 +92,23 @@ def _windowed_payload(g, r, weights, pf, half, frac_sum, m_out, std_out):  # typ
 
 def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_window: int,
                      independent_fraction: F64) -> tuple[F64, F64]:
-    """:func:`sliding_payload` after a centred moving average of g and r over
-    ``2·prefilter_half + 1`` instants ("filter both sides", see the replay), in one compiled
-    pass. Same arguments and results as :func:`sliding_payload` otherwise."""
+    """Sliding-window weighted least-squares payload (module docstring), in one compiled pass.
+
+    g and r are first averaged over centred windows of ``2·prefilter_half + 1`` instants
+    ("filter both sides", see the replay), then the estimate at each instant uses the centred
+    window of ``2·half_window + 1`` instants (both windows cut at the ends of the data).
+
+    Args:
+        g: Joint-load sensitivity to payload, shape (k, n_c) [N·m/kg or N/kg].
+        r: Actuator load minus no-payload inverse dynamics, shape (k, n_c) [N·m or N].
+        weights: 1/σ² per joint, shape (n_c,) [1/(N·m)²].
+        prefilter_half: Half width of the moving average [instants]; 0 for none.
+        half_window: Half window of the fit [instants].
+        independent_fraction: Independent errors per instant per joint, shape (n_c,), in (0, 1].
+
+    Returns:
+        (m̂, σ_m̂), each shape (k,) [kg]; NaN estimate and inf σ where g vanishes.
+    """
     if g.shape != r.shape or g.ndim != 2:
         raise TwinError(f"g {g.shape} and r {r.shape} must both be (k, n_c)")
     m = np.empty(g.shape[0])

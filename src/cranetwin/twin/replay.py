@@ -358,10 +358,12 @@ class TwinStream:
         groups: dict[tuple[int, int], list[int]] = {}
         in_bank = set(self._dcols)  # position channels: value and rates from one filter bank
         for j, choice in enumerate(self._choices[: self._nch]):
+            if choice.adaptive:
+                continue
             if choice.window > 1 and raw.shape[0] < choice.window:
                 raise TwinError(f"{raw.shape[0]} samples are fewer than the smoothing window "
                                 f"{choice.window}")
-            if not choice.adaptive and j not in in_bank:
+            if j not in in_bank:
                 groups.setdefault((choice.window, choice.polyorder), []).append(j)
         for ci, cyl in enumerate(self.machine.cylinders):
             ia, ib = self.cmap.p_a[ci], self.cmap.p_b[ci]
@@ -541,14 +543,12 @@ class TwinStream:
         return tau
 
     def _estimate_payload(self, q: F64, qd: F64, qdd: F64, tau_act: F64,
-                          half: int, arm: F64 | None) -> tuple[F64, F64]:
+                          half: int, arm: F64) -> tuple[F64, F64]:
         assert self._choices is not None
         m = self.machine
         cj = self._cyl_joint
         n = q.shape[0]
         t0, t1 = self._tau_pair(q, qd, qdd, qdd, np.zeros(n), np.ones(n))
-        if arm is None:
-            _, arm = physics.cylinder_kinematics(m, q)
         g = (t1 - t0)[:, cj] / arm  # force per kg at each cylinder
         res = (tau_act - t0)[:, cj] / arm
         pf = self._prefilter // 2
@@ -603,8 +603,9 @@ class TwinStream:
             if theta_col is not None:
                 src[3 * nc] = nc
                 if ang is not None and not self._integrate:
-                    src[3 * nc + 1] = len(cols) - 2 * nd + nd - 1  # the angle's rate
-                    src[3 * nc + 2] = len(cols) - 1  # its acceleration
+                    # the angle is the last derivative channel: its rate and acceleration
+                    src[3 * nc + 1] = len(pos_cols) + nd - 1
+                    src[3 * nc + 2] = len(pos_cols) + 2 * nd - 1
                 else:
                     src[3 * nc + 1 : 3 * nc + 3] = nc
                     der[3 * nc + 1] = 1
