@@ -18,7 +18,6 @@ load channels alone / CPU seconds of our whole analysis.
 
 from __future__ import annotations
 
-import json
 import resource
 import sys
 import tempfile
@@ -33,6 +32,7 @@ import typer
 from cranetwin.analytics import AnalyticsState, LoadHistory, load_channels
 from cranetwin.analytics.state import default_class_widths
 from cranetwin.analytics.synthetic import SyntheticCrane
+from cranetwin.bench import emit
 from cranetwin.model import Machine, load_machine
 
 
@@ -172,11 +172,7 @@ def bench_analytics(
 ) -> None:
     """Time a 30-day load-history analysis (rainflow, damage, events, productivity)."""
     res = run(days, rate_hz, baseline_hours, pdf)
-    if as_json:
-        typer.echo(json.dumps(res))
-    else:
-        for k, v in res.items():
-            typer.echo(f"{k:48s} {v}")
+    emit(res, as_json)
 
 
 def register(bench_app: typer.Typer) -> None:

@@ -21,7 +21,6 @@ Figures (``--json`` prints one object):
 from __future__ import annotations
 
 import asyncio
-import json
 import os
 import socket
 import subprocess
@@ -34,6 +33,8 @@ from typing import Any
 
 import numpy as np
 import typer
+
+from cranetwin.bench import emit
 
 MID = "bench-crane"
 CHANNELS = "lift_pA,jib_pA,ext_pA,force:lift"
@@ -316,11 +317,7 @@ def bench_api(
         "targets": {"load_history_p95_ms": 100, "twin_60s_p95_ms": 200,
                     "live_clients": 200, "live_p95_latency_ms": 250},
     }
-    if as_json:
-        typer.echo(json.dumps(out))
-    else:
-        for k, v in out.items():
-            typer.echo(f"{k}: {v}")
+    emit(out, as_json)
 
 
 def register(bench_app: typer.Typer) -> None:

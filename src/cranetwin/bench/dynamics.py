@@ -11,7 +11,6 @@ cache load) is reported apart as ``compile_seconds``.
 
 from __future__ import annotations
 
-import json
 import resource
 import time
 from typing import Any
@@ -20,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 import typer
 
+from cranetwin.bench import emit
 from cranetwin.model import Machine, load_machine
 from cranetwin.physics import compile_chain, inverse_dynamics
 from cranetwin.physics.dynamics import rnea_kernels
@@ -185,9 +185,4 @@ def register(bench_app: typer.Typer) -> None:
     ) -> None:
         """Inverse dynamics with joint reaction wrenches over one hour of 1 kHz data."""
         r = run(samples=samples, chunk=chunk, reps=reps)
-        if as_json:
-            typer.echo(json.dumps(r))
-            return
-        for key, value in r.items():
-            typer.echo(f"{key:>30}: {value:.6g}" if isinstance(value, float)
-                       else f"{key:>30}: {value}")
+        emit(r, as_json)

@@ -35,6 +35,7 @@ import numpy as np
 import numpy.typing as npt
 import typer
 
+from cranetwin.bench import emit
 from cranetwin.protocol import (
     DatagramError,
     Layout,
@@ -435,11 +436,7 @@ def ingest(
             out["db_file_bytes_per_sample"] = round(
                 sum(f.stat().st_size for f in Path(tmp).glob("bench.db*")) / out["samples_sent"],
                 2)
-    if as_json:
-        typer.echo(json.dumps(out))
-    else:
-        for k, v in out.items():
-            typer.echo(f"{k}: {v}")
+    emit(out, as_json)
 
 
 def register(bench_app: typer.Typer) -> None:

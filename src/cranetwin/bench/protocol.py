@@ -15,11 +15,12 @@ paper's stream needs ≈ 62 bytes/sample). Ratios: ``size_ratio`` = baseline byt
 
 from __future__ import annotations
 
-import json
 import time
 from typing import Any
 
 import typer
+
+from cranetwin.bench import emit
 
 PAPER_BYTES_PER_SAMPLE = 62.0
 
@@ -124,8 +125,4 @@ def register(bench_app: typer.Typer) -> None:
     ) -> None:
         """Wire size (bytes/sample) and codec speed vs. a float32 baseline."""
         out = run(seconds, batch, synthetic, reps)
-        if as_json:
-            typer.echo(json.dumps(out))
-            return
-        for k, v in out.items():
-            typer.echo(f"{k:36s} {v}")
+        emit(out, as_json)

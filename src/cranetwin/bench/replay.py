@@ -22,7 +22,6 @@ scaled to the hour; ``speedup`` = scaled baseline / measured.
 
 from __future__ import annotations
 
-import json
 import resource
 import sys
 import time
@@ -33,6 +32,7 @@ import typer
 from scipy.interpolate import CubicSpline
 
 from cranetwin import physics
+from cranetwin.bench import emit
 from cranetwin.model import load_machine
 from cranetwin.signal import inject_uniform_noise
 from cranetwin.twin import iter_replay
@@ -132,8 +132,4 @@ def register(bench_app: typer.Typer) -> None:
     ) -> None:
         """Replay one hour of 100 Hz data onto a 1 kHz grid; time, memory, baseline ratio."""
         out = run(seconds, grid_hz)
-        if as_json:
-            typer.echo(json.dumps(out))
-        else:
-            for k, v in out.items():
-                typer.echo(f"{k}: {v}")
+        emit(out, as_json)

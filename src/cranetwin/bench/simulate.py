@@ -25,6 +25,8 @@ from typing import Any
 
 import typer
 
+from cranetwin.bench import emit
+
 _BASELINE_CODE = """
 import json, sys, time
 from cranetwin.model import load_machine
@@ -130,9 +132,4 @@ def register(bench_app: typer.Typer) -> None:
         """Simulator speed on the log-loading cycle (real-time factor) vs. the same loop
         without JIT."""
         r = run(duration_s=duration, step_s=step, reps=reps, baseline_span_s=baseline_span)
-        if as_json:
-            typer.echo(json.dumps(r))
-            return
-        for key, value in r.items():
-            typer.echo(f"{key:>28}: {value:.6g}" if isinstance(value, float)
-                       else f"{key:>28}: {value}")
+        emit(r, as_json)

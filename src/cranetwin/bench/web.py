@@ -14,12 +14,13 @@ loopback) and drives Debian's Chromium headless (software WebGL) with Playwright
 
 from __future__ import annotations
 
-import json
 import statistics
 import time
 from typing import Any
 
 import typer
+
+from cranetwin.bench import emit
 
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
@@ -197,8 +198,4 @@ def register(bench_app: typer.Typer) -> None:
     ) -> None:
         """Web UI: first paint, replay fps (10-min window), live latency in headless Chromium."""
         result = run(seconds, chromium, server)
-        if as_json:
-            typer.echo(json.dumps(result))
-        else:
-            for k, v in result.items():
-                typer.echo(f"{k:32s} {v}")
+        emit(result, as_json)
