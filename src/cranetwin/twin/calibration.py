@@ -16,16 +16,17 @@ up to 15 %). Residuals are reported before (machine-file friction, no extra mass
 and after, as RMS force [N].
 
 Both sides are low-passed by the same filter: the accelerations in tau_0 are smoothed, the
-pressures are not, and their fast hydraulic oscillations would otherwise leak into the fit. vc
-is searched with one moving average of the derivative-smoothing window (its signature is the
-sharp force step at each reversal); Fc, b, the offsets and the mass are then solved, vc fixed,
-with two passes of a moving average twice that window (on simulated 10-minute runs the lift's
-residual drops from ~110 N to ~15 N, and b moved from up to +28 % to within 9 %).
+pressures are not, and their fast hydraulic oscillations would otherwise leak into the fit. The
+fit first uses one moving average of the derivative-smoothing window (it keeps the sharp force
+step at each reversal that determines vc). If that leaves more than ``WIDE_FILTER_RATIO`` of
+the force unexplained (hydraulic oscillations the smoothed accelerations miss), the whole fit,
+vc search included, is repeated with two passes of a moving average twice that window (on
+simulated 10-minute runs the lift's residual drops from ~110 N to ~15 N, and b moved from up
+to +28 % to within 9 %).
 
 Excitation: b is the slope of force over speed. With white pressure noise (the sensor model's
 12.5 kPa) the standard error of the lift's b on a 10-minute ``random`` run is ~5 %, so 10 % is
-missed on some sensor seeds whatever the estimator; the simulator's ``calibration`` scenario
-(constant-speed passes, mostly at top speed) halves it.
+about 2σ and may be missed on some sensor seeds whatever the estimator (docs/ACCURACY.md).
 """
 
 from __future__ import annotations
