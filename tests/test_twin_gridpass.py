@@ -16,7 +16,7 @@ import pytest
 
 from cranetwin import physics
 from cranetwin.model import Machine, load_machine
-from cranetwin.physics import gridpass
+from cranetwin.physics import codegen, gridpass
 from cranetwin.physics import kernels as K
 from cranetwin.physics.chain import compile_chain
 from cranetwin.signal import inject_uniform_noise
@@ -103,6 +103,7 @@ def test_generic_pass_equals_specialised(machine: Machine, monkeypatch: pytest.M
                                          result: TwinResult) -> None:
     syn = make(machine, duration_s=6.0, fine_hz=None, scale=0.6, payload=200.0)
     noisy = inject_uniform_noise(syn.samples, machine, 0.01, seed=4)
+    assert gridpass.kernel_for(compile_chain(machine)) is not gridpass.grid_pass_generic
     spec = replay(noisy, machine, 1000.0)
     monkeypatch.setattr(gridpass, "kernel_for", lambda params: gridpass.grid_pass_generic)
     gen = replay(noisy, machine, 1000.0)
@@ -123,6 +124,8 @@ def test_kinematic_option_skips_the_correction(machine: Machine) -> None:
 
 def test_generated_mass_matrix_and_pair_agree_with_generic(machine: Machine) -> None:
     p = compile_chain(machine)
+    for name in ("mass_matrix_batch", "rnea_tau_pair_batch"):  # the generated ones, not fallbacks
+        assert gridpass._module_attr(p, name) is not None
     rng = np.random.default_rng(7)
     n = 500
     q = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(0.0, 1.2, n),
@@ -141,3 +144,39 @@ def test_generated_mass_matrix_and_pair_agree_with_generic(machine: Machine) -> 
                                rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(tb, physics.joint_torques(machine, q, qd, 0.0 * qdd, pl),
                                rtol=1e-12, atol=1e-9)
+
+
+def test_tracer_folds_axis_rotations_and_shares_common_terms(machine: Machine) -> None:
+    chain = compile_chain(machine).chain
+    lines, _, _ = codegen.trace_rnea(chain)
+    # every PATU 655 axis lies along a frame axis: no 1 − cos terms, and no x + (1 − x)
+    assert not any("(1.0) - c" in x for x in lines)
+    tr = codegen._Tracer()
+    first, taus1, w1 = codegen.trace_rnea(chain, tracer=tr)
+    again, taus2, w2 = codegen.trace_rnea(chain, tracer=tr)
+    assert first and not again  # the same pass traced twice adds nothing
+    assert taus1 == taus2 and w1 == w2
+    # a pass differing only in its accelerations shares the velocity terms
+    nj = int(chain[0])
+    acc, _, _ = codegen.trace_rnea(chain, qdd=[f"a{i}" for i in range(nj)], tracer=tr)
+    assert 0 < len(acc) < len(first)
+
+
+def test_linear_wrench_pass_adds_the_acceleration_part(machine: Machine) -> None:
+    """wrench(q, qd, qdd + Δ) = wrench(q, qd, qdd) + wrench(q, 0, Δ) without gravity: what the
+    grid pass's @RNEA_LIN marker relies on (RNEA is affine in the accelerations)."""
+    rng = np.random.default_rng(3)
+    n = 200
+    q = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(0.0, 1.2, n),
+                         rng.uniform(-2.5, 0.0, n), rng.uniform(0.0, 1.5, n)])
+    qd, qdd, dq = (rng.normal(0, 1.0, (n, 4)) for _ in range(3))
+    _, w_full = physics.inverse_dynamics(machine, q, qd, qdd + dq, 300.0)
+    _, w0 = physics.inverse_dynamics(machine, q, qd, qdd, 300.0)
+    p = compile_chain(machine)
+    wl = np.empty((n, 4, 6))
+    zero = np.zeros(4)
+    for k in range(n):
+        wl[k] = w0[k]
+        gridpass.rnea_lin_row(p.chain, q, dq, 300.0, k, wl, np.empty((4, 12)), zero,
+                              np.empty(4), np.empty((4, 6)))
+    np.testing.assert_allclose(wl, w_full, rtol=1e-12, atol=1e-8)

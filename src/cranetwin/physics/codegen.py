@@ -34,21 +34,48 @@ Vec = list[Ex]
 
 
 class _Tracer:
-    """Records straight-line code for arithmetic on numbers (folded) and variable names."""
+    """Records straight-line code for arithmetic on numbers (folded) and variable names.
+
+    Expressions are hash-consed: the same operation on the same operands (commutative ones in
+    either order) is computed once and its name reused, so passes traced into one tracer share
+    what they have in common (rotations, velocity terms). A few exact rewrites keep the code
+    short: −(−x) = x, a + (−b) = a − b, a − (−b) = a + b, c·(−x) = (−c)·x, and a product of
+    constants with a product of a constant, c1·(c2·x) = (c1·c2)·x (this one rounds the constant
+    once instead of twice: results move by an ulp or so).
+    """
 
     def __init__(self) -> None:
         self.lines: list[str] = []
         self._n = 0
+        self._memo: dict[str, str] = {}
+        self._defs: dict[str, tuple[str, Ex, Ex]] = {}
 
-    def _new(self, expr: str) -> str:
+    def _new(self, op: str, a: Ex, b: Ex = 0.0) -> str:
+        if op == "neg":
+            expr = f"-{a}"
+        else:
+            fa, fb = self._fmt(a), self._fmt(b)
+            if op in ("+", "*") and fb < fa:
+                fa, fb = fb, fa
+            expr = f"{fa} {op} {fb}"
+        hit = self._memo.get(expr)
+        if hit is not None:
+            return hit
         name = f"t{self._n}"
         self._n += 1
         self.lines.append(f"{name} = {expr}")
+        self._memo[expr] = name
+        self._defs[name] = (op, a, b)
         return name
 
     @staticmethod
     def _fmt(a: Ex) -> str:
         return a if isinstance(a, str) else f"({a!r})"
+
+    def _negated(self, a: Ex) -> Ex | None:
+        """x if ``a`` is the name of −x, else None."""
+        d = self._defs.get(a) if isinstance(a, str) else None
+        return d[1] if d is not None and d[0] == "neg" else None
 
     def add(self, a: Ex, b: Ex) -> Ex:
         if isinstance(a, float) and isinstance(b, float):
@@ -57,7 +84,13 @@ class _Tracer:
             return b
         if b == 0.0:
             return a
-        return self._new(f"{self._fmt(a)} + {self._fmt(b)}")
+        nb = self._negated(b)
+        if nb is not None:
+            return self.sub(a, nb)
+        na = self._negated(a)
+        if na is not None:
+            return self.sub(b, na)
+        return self._new("+", a, b)
 
     def sub(self, a: Ex, b: Ex) -> Ex:
         if isinstance(a, float) and isinstance(b, float):
@@ -66,16 +99,27 @@ class _Tracer:
             return a
         if a == 0.0:
             return self.neg(b)
-        return self._new(f"{self._fmt(a)} - {self._fmt(b)}")
+        nb = self._negated(b)
+        if nb is not None:
+            return self.add(a, nb)
+        return self._new("-", a, b)
 
     def neg(self, a: Ex) -> Ex:
         if isinstance(a, float):
             return -a
-        return self._new(f"-{a}")
+        na = self._negated(a)
+        if na is not None:
+            return na
+        d = self._defs.get(a)
+        if d is not None and d[0] == "*" and isinstance(d[1], float):
+            return self.mul(-d[1], d[2])
+        return self._new("neg", a)
 
     def mul(self, a: Ex, b: Ex) -> Ex:
         if isinstance(a, float) and isinstance(b, float):
             return a * b
+        if isinstance(b, float):
+            a, b = b, a
         if a == 0.0 or b == 0.0:
             return 0.0
         if a == 1.0:
@@ -84,9 +128,14 @@ class _Tracer:
             return a
         if a == -1.0:
             return self.neg(b)
-        if b == -1.0:
-            return self.neg(a)
-        return self._new(f"{self._fmt(a)} * {self._fmt(b)}")
+        if isinstance(a, float):
+            nb = self._negated(b)
+            if nb is not None:
+                return self.mul(-a, nb)
+            d = self._defs.get(b) if isinstance(b, str) else None
+            if d is not None and d[0] == "*" and isinstance(d[1], float):
+                return self.mul(a * d[1], d[2])
+        return self._new("*", a, b)
 
     def sum(self, terms: list[Ex]) -> Ex:
         acc: Ex = 0.0
@@ -124,17 +173,40 @@ def _consts(values: np.ndarray) -> list[Ex]:
     return [float(v) for v in values]
 
 
+def _axis_rotation(tr: _Tracer, k: list[float], c: str, s: str) -> list[Ex]:
+    """Rodrigues' rotation about unit axis k by the angle whose cos/sin are named c, s:
+    Rq = c·I + s·[k]x + (1 − c)·k·kᵀ, row-major, with the diagonal written as k² + (1 − k²)·c
+    so that an axis along x, y or z gives exact zeros and ones."""
+    kx, ky, kz = k
+    v: Ex = "" if kx * ky == 0.0 and kx * kz == 0.0 and ky * kz == 0.0 else tr.sub(1.0, c)
+
+    def off(kk: float, kl: float, ks: float, sign: float) -> Ex:
+        lin = 0.0 if kk * kl == 0.0 else tr.mul(kk * kl, v)
+        return tr.add(lin, tr.mul(sign * ks, s))
+
+    def diag(kk: float) -> Ex:
+        return tr.add(kk * kk, tr.mul(1.0 - kk * kk, c))
+
+    return [diag(kx), off(kx, ky, kz, -1.0), off(kx, kz, ky, 1.0),
+            off(ky, kx, kz, 1.0), diag(ky), off(ky, kz, kx, -1.0),
+            off(kz, kx, ky, -1.0), off(kz, ky, kx, 1.0), diag(kz)]
+
+
 def trace_rnea(chain: np.ndarray, qd: list[Ex] | None = None, qdd: list[Ex] | None = None,
-               gravity: bool = True) -> tuple[list[str], list[Ex], list[list[Ex]]]:
+               gravity: bool = True, tracer: _Tracer | None = None,
+               payload: str = "pl") -> tuple[list[str], list[Ex], list[list[Ex]]]:
     """Trace the RNEA of :func:`kernels.rnea_into` for one sample on symbols.
 
     Inputs are the names ``q{i}``, ``qd{i}``, ``qdd{i}``, ``c{i}``/``s{i}`` (cos/sin of q{i})
     and ``pl`` (payload [kg]); ``qd``/``qdd`` replace the velocity/acceleration names by
     values (numbers fold away) and ``gravity=False`` leaves gravity out, e.g. a column of the
-    mass matrix is the trace with qd = 0, qdd = e_j and no gravity. Returns (code lines, tau
-    expressions, wrench expressions).
+    mass matrix is the trace with qd = 0, qdd = e_j and no gravity. ``payload`` names the
+    payload variable. Passes traced into one ``tracer`` share their common subexpressions
+    (a later pass's lines may use an earlier one's names). Returns (the code lines this pass
+    added, tau expressions, wrench expressions).
     """
-    tr = _Tracer()
+    tr = _Tracer() if tracer is None else tracer
+    first_line = len(tr.lines)
     nj = int(chain[0])
     lb = int(chain[4])
     lp = _consts(chain[5:8])
@@ -159,20 +231,7 @@ def trace_rnea(chain: np.ndarray, qd: list[Ex] | None = None, qdd: list[Ex] | No
             rot = r0
             p = tr.vadd(p, tr.vscale(tr.matvec(r0, k), qi))
         else:
-            c, s = f"c{i}", f"s{i}"
-            v = tr.sub(1.0, c)
-            kx, ky, kz = (float(x) for x in chain[o + 1:o + 4])
-            rq: list[Ex] = [
-                tr.add(c, tr.mul(kx * kx, v)),
-                tr.sub(tr.mul(kx * ky, v), tr.mul(kz, s)),
-                tr.add(tr.mul(kx * kz, v), tr.mul(ky, s)),
-                tr.add(tr.mul(ky * kx, v), tr.mul(kz, s)),
-                tr.add(c, tr.mul(ky * ky, v)),
-                tr.sub(tr.mul(ky * kz, v), tr.mul(kx, s)),
-                tr.sub(tr.mul(kz * kx, v), tr.mul(ky, s)),
-                tr.add(tr.mul(kz * ky, v), tr.mul(kx, s)),
-                tr.add(c, tr.mul(kz * kz, v)),
-            ]
+            rq = _axis_rotation(tr, [float(x) for x in chain[o + 1:o + 4]], f"c{i}", f"s{i}")
             rot = tr.matmul(r0, rq)
         rots.append(rot)
         origins.append(p)
@@ -195,7 +254,7 @@ def trace_rnea(chain: np.ndarray, qd: list[Ex] | None = None, qdd: list[Ex] | No
         n = tr.vadd(tr.vadd(tr.matvec(io, dw), tr.cross(w, tr.matvec(io, w))), tr.cross(h, acc))
         if i == lb:
             fp = tr.vscale(tr.vadd(tr.vadd(acc, tr.cross(dw, lp)), tr.cross(w, tr.cross(w, lp))),
-                           "pl")
+                           payload)
             f = tr.vadd(f, fp)
             n = tr.vadd(n, tr.cross(lp, fp))
         wrenches.append(f + n)
@@ -208,7 +267,7 @@ def trace_rnea(chain: np.ndarray, qd: list[Ex] | None = None, qdd: list[Ex] | No
             rn = tr.vadd(tr.matvec(rots[i], n), tr.cross(origins[i], rf))
             pf, pn = wrenches[i - 1][:3], wrenches[i - 1][3:]
             wrenches[i - 1] = tr.vadd(pf, rf) + tr.vadd(pn, rn)
-    return tr.lines, taus, wrenches
+    return tr.lines[first_line:], taus, wrenches
 
 
 def _ex(a: Ex) -> str:
@@ -254,7 +313,7 @@ def generate_source(chain: np.ndarray) -> str:
         "",
         "",
         "@njit(cache=True)",
-        inline_rnea(PAIR_TEMPLATE, nj, rev, lines, taus, wrenches),
+        inline_rnea(PAIR_TEMPLATE, chain),
         "",
         "",
         "@njit(cache=True)",
@@ -265,7 +324,7 @@ def generate_source(chain: np.ndarray) -> str:
         "",
         "",
         "@njit(cache=True, error_model=\"numpy\")",
-        inline_rnea(gridpass.template_source(), nj, rev, lines, taus, wrenches),
+        inline_rnea(gridpass.template_source(), chain),
     ]
     return "\n".join(src)
 
@@ -273,18 +332,19 @@ def generate_source(chain: np.ndarray) -> str:
 def mass_matrix_source(chain: np.ndarray, revolute: list[int]) -> str:
     """Source of ``mass_matrix_batch(q, payload, mm)``: M(q) with the payload, column j as the
     RNEA traced with qd = 0, qdd = e_j and no gravity (numbers folded, so each column keeps
-    only what its unit acceleration reaches), all columns in one loop sharing cos/sin."""
+    only what its unit acceleration reaches), all columns traced into one tracer so that they
+    share cos/sin, the rotations and whatever else they have in common."""
     nj = int(chain[0])
     body = [f"rq{i} = q[g, {i}]" for i in range(nj)]
     for i in revolute:
         body += [f"rc{i} = math.cos(rq{i})", f"rs{i} = math.sin(rq{i})"]
     body.append("pl = payload[g]")
+    tr = _Tracer()
     for j in range(nj):
         unit: list[Ex] = [1.0 if i == j else 0.0 for i in range(nj)]
-        lines, taus, _ = trace_rnea(chain, qd=[0.0] * nj, qdd=unit, gravity=False)
-        ren = _renamer(f"m{j}_")
-        body += [ren(x) for x in lines]
-        body += [f"mm[g, {i}, {j}] = {ren(_ex(t))}" for i, t in enumerate(taus)]
+        lines, taus, _ = trace_rnea(chain, qd=[0.0] * nj, qdd=unit, gravity=False, tracer=tr)
+        body += [_rename(x) for x in lines]
+        body += [f"mm[g, {i}, {j}] = {_rename(_ex(t))}" for i, t in enumerate(taus)]
     return "\n".join(["def mass_matrix_batch(q, payload, mm):",
                       "    for g in range(q.shape[0]):", *["        " + x for x in body]])
 
@@ -292,43 +352,47 @@ def mass_matrix_source(chain: np.ndarray, revolute: list[int]) -> str:
 PAIR_TEMPLATE = """def rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, tau_b):
     for g in range(q.shape[0]):
         pass  # @RNEA_HEAD@
-        pl = pl_a[g]
-        x  # @RNEA qdd tau_a -@
-        pl = pl_b[g]
-        x  # @RNEA qdd2 tau_b -@
+        pla = pl_a[g]
+        plb = pl_b[g]
+        x  # @RNEA qdd tau_a - pla@
+        x  # @RNEA qdd2 tau_b - plb@
 """
 """Two inverse-dynamics passes per sample that share q and qd — (qdd, pl_a) into tau_a,
-(qdd2, pl_b) into tau_b — in one loop, so that the compiler computes what they share once
-(the payload regression's tau at 0 and 1 kg; a column of M as tau(q, 0, e_j) − tau(q, 0, 0))."""
+(qdd2, pl_b) into tau_b — in one loop, traced together so that what they share is computed
+once (the payload regression's tau at 0 and 1 kg; a column of M as
+tau(q, 0, e_j) − tau(q, 0, 0))."""
 
-_NAME = re.compile(r"\b(t|qdd|qd|q|c|s)(\d+)\b|\bpl\b")
-
-
-def _renamer(pre: str) -> Callable[[str], str]:
-    """Renames the traced names of one pass: temporaries and accelerations get the pass's
-    prefix, q/qd/cos/sin the shared ``r`` prefix of the head; ``pl`` stays."""
-
-    def one(m: re.Match[str]) -> str:
-        if m.group(0) == "pl":
-            return "pl"
-        kind, i = m.group(1), m.group(2)
-        return f"{pre}{kind}{i}" if kind in ("t", "qdd") else f"r{kind}{i}"
-
-    return lambda line: _NAME.sub(one, line)
+_NAME = re.compile(r"\b(t|qd|q|c|s)(\d+)\b")
 
 
-def inline_rnea(template: str, nj: int, revolute: list[int], lines: list[str], taus: list[Ex],
-                wrenches: list[list[Ex]]) -> str:
-    """``template`` with its RNEA marker lines replaced by the traced straight-line code.
+def _rename(line: str) -> str:
+    """Traced names in the generated loops: temporaries ``t<n>`` become ``rt<n>``, q/qd and
+    cos/sin the ``r``-prefixed names of the head (no clash with the template's own names)."""
+    return _NAME.sub(lambda m: f"r{m.group(1)}{m.group(2)}", line)
 
-    ``pass  # @RNEA_HEAD@`` becomes the loads of q, qd at row ``g`` and the cos/sin of the
-    revolute angles (shared by the passes that follow); ``<call>  # @RNEA qdd tau wrench@``
-    becomes one RNEA reading accelerations from array ``qdd`` (row g) and writing ``tau`` and
-    ``wrench``, each unless it is ``-``. Names are prefixed per pass so the passes do not collide
-    with each other or the template; no call, no array arguments, nothing to reference-count.
+
+def inline_rnea(template: str, chain: np.ndarray) -> str:
+    """``template`` with its RNEA marker lines replaced by straight-line code traced for
+    ``chain``; every pass of one template goes through one tracer (shared subexpressions).
+
+    * ``pass  # @RNEA_HEAD@``: the loads of q, qd at row ``g`` and cos/sin of the revolute
+      angles.
+    * ``<call>  # @RNEA acc tau wrench pl@``: inverse dynamics with the accelerations of
+      array ``acc`` (row g) and the payload variable ``pl``, writing ``tau`` and ``wrench``
+      (each unless ``-``).
+    * ``<call>  # @RNEA_LIN acc wrench pl@``: the part of the wrenches linear in the
+      accelerations (qd = 0, no gravity) at the accelerations of ``acc``, added to the
+      wrenches of the last ``@RNEA`` pass and written to ``wrench``: RNEA is affine in qdd,
+      so this is the wrench at that pass's accelerations plus ``acc``.
+
+    No call, no array arguments, nothing to reference-count in the loop.
     """
+    nj = int(chain[0])
+    revolute = [i for i in range(nj) if chain[HEADER + i * JOINT_BLOCK] != PRISMATIC]
+    tr = _Tracer()
     out: list[str] = []
     n_pass = 0
+    last_wrench: list[list[Ex]] | None = None
     for line in template.split("\n"):
         stripped = line.strip()
         ind = line[: len(line) - len(line.lstrip())]
@@ -338,24 +402,41 @@ def inline_rnea(template: str, nj: int, revolute: list[int], lines: list[str], t
             for i in revolute:
                 out += [f"{ind}rc{i} = math.cos(rq{i})", f"{ind}rs{i} = math.sin(rq{i})"]
             continue
-        marker = stripped.rsplit("# @RNEA ", 1)
-        if len(marker) == 2 and marker[1].endswith("@"):
-            acc, tau, wrench = marker[1][:-1].split()
-            pre = f"r{n_pass}_"
-            n_pass += 1
-
-            ren = _renamer(pre)
-            body = [f"{pre}qdd{i} = {acc}[g, {i}]" for i in range(nj)]
-            body += [ren(x) for x in lines]
-            if tau != "-":
-                body += [f"{tau}[g, {i}] = {ren(_ex(t))}"
-                         for i, t in enumerate(taus)]
-            if wrench != "-":
-                body += [f"{wrench}[g, {i}, {j}] = {ren(_ex(x))}"
-                         for i, wr in enumerate(wrenches) for j, x in enumerate(wr)]
-            out += [ind + x for x in body]
+        marker = stripped.rsplit("# @RNEA", 1)
+        if len(marker) != 2 or not marker[1].endswith("@"):
+            out.append(line)
             continue
-        out.append(line)
+        spec = marker[1][:-1]
+        linear = spec.startswith("_LIN ")
+        args = spec[4:].split() if linear else spec.split()
+        if len(args) != (3 if linear else 4):
+            raise ValueError(f"bad RNEA marker: {stripped}")
+        names = [f"qa{n_pass}_{i}" for i in range(nj)]
+        n_pass += 1
+        body = [f"{names[i]} = {args[0]}[g, {i}]" for i in range(nj)]
+        if linear:
+            acc, wrench, pl = args
+            if last_wrench is None:
+                raise ValueError("@RNEA_LIN needs an @RNEA pass before it")
+            n0 = len(tr.lines)
+            _, _, lin = trace_rnea(chain, qd=[0.0] * nj, qdd=list(names), gravity=False,
+                                   tracer=tr, payload=pl)
+            total = [[tr.add(a, b) for a, b in zip(w0, w1, strict=True)]
+                     for w0, w1 in zip(last_wrench, lin, strict=True)]
+            body += [_rename(x) for x in tr.lines[n0:]]
+            body += [f"{wrench}[g, {i}, {j}] = {_rename(_ex(x))}"
+                     for i, wr in enumerate(total) for j, x in enumerate(wr)]
+        else:
+            acc, tau, wrench, pl = args
+            lines, taus, wrenches = trace_rnea(chain, qdd=list(names), tracer=tr, payload=pl)
+            last_wrench = wrenches
+            body += [_rename(x) for x in lines]
+            if tau != "-":
+                body += [f"{tau}[g, {i}] = {_rename(_ex(t))}" for i, t in enumerate(taus)]
+            if wrench != "-":
+                body += [f"{wrench}[g, {i}, {j}] = {_rename(_ex(x))}"
+                         for i, wr in enumerate(wrenches) for j, x in enumerate(wr)]
+        out += [ind + x for x in body]
     return "\n".join(out)
 
 

@@ -14,7 +14,7 @@ start to finish in registers and written once to the output arrays.
 * here, with the generic RNEA (:func:`cranetwin.physics.kernels.rnea_into`), as
   :data:`grid_pass_generic` — the fallback;
 * into the machine's generated module (:mod:`cranetwin.physics.codegen`), where the calls
-  of ``rnea_row``/``rnea_tau_row`` are replaced by the RNEA specialised to that machine,
+  of ``rnea_row``/``rnea_lin_row`` are replaced by the RNEA specialised to that machine,
   inlined (``codegen.inline_rnea``). Its
   source is copied there (:func:`template_source`) so that numba's on-disk cache is keyed by the
   generated file and never mixes machines.
@@ -69,9 +69,15 @@ def rnea_row(chain, q, qd, qdd, pl_kg, k, tau, wrench, work):  # type: ignore[no
     rnea_into(chain, q[k], qd[k], qdd[k], pl_kg, 1.0, tau[k], wrench[k], work)
 
 
-rnea_tau_row = rnea_row
-"""The tau-only pass of the generic build: the generic RNEA has no cheaper form
-(``wrench[k]`` is scratch there)."""
+@njit(cache=True)
+def rnea_lin_row(chain, q, acc, pl_kg, k, wrench, work, zero, tau_tmp, w_tmp):  # type: ignore[no-untyped-def]
+    """Adds to ``wrench[k]`` the part of the RNEA wrenches linear in the accelerations (qd = 0,
+    no gravity) at accelerations ``acc[k]``: RNEA is affine in qdd, so a wrench at qdd + Δ is
+    the wrench at qdd plus this at Δ (generic build; the generated one is inlined)."""
+    rnea_into(chain, q[k], zero, acc[k], pl_kg, 0.0, tau_tmp, w_tmp, work)
+    for i in range(w_tmp.shape[0]):
+        for j in range(6):
+            wrench[k, i, j] += w_tmp[i, j]
 
 
 @njit(cache=True)
@@ -349,6 +355,9 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     amat = np.empty((nj, nj))
     y = np.empty(nj)
     known = np.zeros(nj, dtype=np.bool_)
+    zr = np.zeros(nj)  # scratch of the generic build's linear pass
+    tt = np.empty(nj)
+    wt = np.empty((nj, 6))
     inv_r = 1.0 / r
     cj = np.empty(nc, dtype=np.int64)
     cells_per_m = np.empty(nc)
@@ -435,39 +444,37 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
         pl = mg if mg > 0.0 else 0.0  # NaN and negative estimates: no payload
         # -- inverse dynamics, residual, Eq. 3/4 correction, wrenches -------------------------
         pass  # @RNEA_HEAD@
-        if not dynamic:
-            rnea_row(chain, q, qd, qdd, pl, g, tau_id, wrench, work)  # @RNEA qdd tau_id wrench@
-            for j in range(nj):
-                resid[g, j] = tau_act[g, j] - tau_id[g, j]
-            continue
-        rnea_tau_row(chain, q, qd, qdd, pl, g, tau_id, wrench, work)  # @RNEA qdd tau_id -@
+        rnea_row(chain, q, qd, qdd, pl, g, tau_id, wrench, work)  # @RNEA qdd tau_id wrench pl@
         nd = 0
         for j in range(nj):
             rj = tau_act[g, j] - tau_id[g, j]
             resid[g, j] = rj
-            qdd2[g, j] = qdd[g, j]
+            qdd2[g, j] = 0.0  # the correction Δqdd
             if known[j] and math.isfinite(rj):
                 idx[nd] = j
                 y[nd] = rj
                 nd += 1
-        if nd > 0 and not gap[g]:
-            if nd == n_full and minv_ok[s0] and minv_ok[s1]:
-                # the usual case, every measured joint in D: M_DD⁻¹ interpolated like M
-                for a_ in range(nd):
-                    acc = 0.0
-                    for b_ in range(nd):
-                        m0 = minv[s0, a_, b_]
-                        acc += (m0 + fr * (minv[s1, a_, b_] - m0)) * y[b_]
-                    qdd2[g, idx[a_]] += acc
-            else:
-                for a_ in range(nd):
-                    for b_ in range(nd):
-                        m0 = mm[s0, idx[a_], idx[b_]]
-                        amat[a_, b_] = m0 + fr * (mm[s1, idx[a_], idx[b_]] - m0)
-                if chol_solve_inline(amat, y, nd):
-                    for a_ in range(nd):
-                        qdd2[g, idx[a_]] += y[a_]
-        rnea_row(chain, q, qd, qdd2, pl, g, tau2, wrench, work)  # @RNEA qdd2 - wrench@
+        if not dynamic or nd == 0 or gap[g]:
+            continue
+        if nd == n_full and minv_ok[s0] and minv_ok[s1]:
+            # the usual case, every measured joint in D: M_DD⁻¹ interpolated like M
+            for a_ in range(nd):
+                acc = 0.0
+                for b_ in range(nd):
+                    m0 = minv[s0, a_, b_]
+                    acc += (m0 + fr * (minv[s1, a_, b_] - m0)) * y[b_]
+                qdd2[g, idx[a_]] = acc
+        else:
+            for a_ in range(nd):
+                for b_ in range(nd):
+                    m0 = mm[s0, idx[a_], idx[b_]]
+                    amat[a_, b_] = m0 + fr * (mm[s1, idx[a_], idx[b_]] - m0)
+            if not chol_solve_inline(amat, y, nd):
+                continue
+            for a_ in range(nd):
+                qdd2[g, idx[a_]] = y[a_]
+        # the wrenches at the corrected accelerations qdd + Δqdd
+        rnea_lin_row(chain, q, qdd2, pl, g, wrench, work, zr, tt, wt)  # @RNEA_LIN qdd2 wrench pl@
     return bad
 
 
