@@ -155,6 +155,28 @@ def test_missing_channel_and_bad_grid_raise(machine: Machine, syn: Synthetic) ->
         replay(syn.samples, machine, grid_hz=1234.5)
 
 
+def test_regression_payload_equals_windowed_payload_of_its_inputs() -> None:
+    """The fused pass (g, r at the cylinder joints, then the window) equals windowed_payload
+    of g = (tau1 − tau0)/arm and r = (F·arm − tau0)/arm formed with numpy."""
+    from cranetwin.twin.payload import regression_payload, windowed_payload
+
+    rng = np.random.default_rng(6)
+    n, nj = 200, 4
+    joints = np.array([1, 2, 3])
+    tau0 = rng.normal(0.0, 1e4, (n, nj))
+    tau1 = tau0 + rng.normal(50.0, 5.0, (n, nj))
+    arm = rng.uniform(0.05, 0.3, (n, 3))
+    force = rng.normal(1e5, 1e4, (n, 3))
+    w = np.array([1.0, 0.5, 2.0])
+    frac = np.array([0.5, 0.25, 1.0])
+    m, std = regression_payload(tau0, tau1, force, arm, joints, w, 4, 9, frac)
+    g = (tau1 - tau0)[:, joints] / arm
+    r = (force * arm - tau0[:, joints]) / arm
+    m_ref, std_ref = windowed_payload(g, r, w, 4, 9, frac)
+    np.testing.assert_array_equal(m, m_ref)
+    np.testing.assert_array_equal(std, std_ref)
+
+
 def test_windowed_payload_equals_direct_window_sums() -> None:
     """The compiled payload window against the definition: moving averages, then weighted
     least squares over each centred window, summed directly."""

@@ -28,38 +28,50 @@ _UNIFORM_RTOL = 1e-9
 def _natural_coefficients(x, y, coef):  # type: ignore[no-untyped-def]
     """Knot second derivatives M by the Thomas algorithm on the (diagonally dominant)
     tridiagonal system of the module docstring, natural ends M_0 = M_{n-1} = 0; then the
-    pieces coef[i] = (y_i, b_i, c_i, d_i) per channel, shape (n−1, 4, k)."""
+    pieces coef[i] = (y_i, b_i, c_i, d_i) per channel, shape (n−1, 4, k). Divisions only per
+    knot (1/h_i, 1/diag_i), multiplications per channel. Returns False if a value is not
+    finite (coef is then undefined)."""
     n = x.shape[0]
     k = y.shape[1]
+    ih = np.empty(n - 1)  # 1 / h_i
+    for i in range(n - 1):
+        ih[i] = 1.0 / (x[i + 1] - x[i])
+    slope = np.empty((n - 1, k))  # δ_i = (y_{i+1} − y_i)/h_i
+    for i in range(n - 1):
+        for j in range(k):
+            slope[i, j] = (y[i + 1, j] - y[i, j]) * ih[i]
+            if not abs(slope[i, j]) < np.inf:  # a value not finite (NaN or ±inf)
+                return False
     m = np.zeros((n, k))
     if n > 2:
         cp = np.empty(n)  # modified super-diagonal
-        dp = np.empty((n, k))
         for i in range(1, n - 1):
             h0 = x[i] - x[i - 1]
             h1 = x[i + 1] - x[i]
             diag = 2.0 * (h0 + h1)
             if i > 1:
                 diag -= h0 * cp[i - 1]
-            cp[i] = h1 / diag
+            idiag = 1.0 / diag
+            cp[i] = h1 * idiag
+            if i > 1:
+                for j in range(k):
+                    m[i, j] = (6.0 * (slope[i, j] - slope[i - 1, j]) - h0 * m[i - 1, j]) * idiag
+            else:
+                for j in range(k):
+                    m[i, j] = 6.0 * (slope[i, j] - slope[i - 1, j]) * idiag
+        for i in range(n - 3, 0, -1):  # back substitution, in place (m[n−2] = dp[n−2])
             for j in range(k):
-                rhs = 6.0 * ((y[i + 1, j] - y[i, j]) / h1 - (y[i, j] - y[i - 1, j]) / h0)
-                if i > 1:
-                    rhs -= h0 * dp[i - 1, j]
-                dp[i, j] = rhs / diag
-        for j in range(k):
-            m[n - 2, j] = dp[n - 2, j]
-        for i in range(n - 3, 0, -1):
-            for j in range(k):
-                m[i, j] = dp[i, j] - cp[i] * m[i + 1, j]
+                m[i, j] -= cp[i] * m[i + 1, j]
     for i in range(n - 1):
         h = x[i + 1] - x[i]
+        h6 = h / 6.0
+        ih6 = ih[i] / 6.0
         for j in range(k):
-            delta = (y[i + 1, j] - y[i, j]) / h
             coef[i, 0, j] = y[i, j]
-            coef[i, 1, j] = delta - h * (2.0 * m[i, j] + m[i + 1, j]) / 6.0
-            coef[i, 2, j] = m[i, j] / 2.0
-            coef[i, 3, j] = (m[i + 1, j] - m[i, j]) / (6.0 * h)
+            coef[i, 1, j] = slope[i, j] - h6 * (2.0 * m[i, j] + m[i + 1, j])
+            coef[i, 2, j] = 0.5 * m[i, j]
+            coef[i, 3, j] = (m[i + 1, j] - m[i, j]) * ih6
+    return True
 
 
 @njit(cache=True)
@@ -94,10 +106,9 @@ def natural_pieces(x: F64, y: F64) -> F64:
     Raises:
         SignalError: non-finite values.
     """
-    if not np.isfinite(y).all():
-        raise SignalError("spline knots and values must be finite (drop NaN samples first)")
     coef = np.empty((x.shape[0] - 1, 4, y.shape[1]))
-    _natural_coefficients(np.ascontiguousarray(x), np.ascontiguousarray(y), coef)
+    if not _natural_coefficients(np.ascontiguousarray(x), np.ascontiguousarray(y), coef):
+        raise SignalError("spline knots and values must be finite (drop NaN samples first)")
     return coef
 
 

@@ -90,6 +90,23 @@ def _windowed_payload(g, r, weights, pf, half, frac_sum, m_out, std_out):  # typ
         std_out[i] = np.sqrt(rss / max(n_eff - 1.0, 1.0) / sgg)
 
 
+@njit(cache=True)
+def _regression_payload(t0, t1, force, arm, joints, weights, pf, half, frac_sum,  # type: ignore[no-untyped-def]
+                        m_out, std_out):
+    """g = (t1 − t0)/arm and r = (force·arm − t0)/arm at the cylinder joints, then
+    :func:`_windowed_payload`, in one pass."""
+    n, k = arm.shape
+    g = np.empty((n, k))
+    r = np.empty((n, k))
+    for i in range(n):
+        for c in range(k):
+            j = joints[c]
+            a = arm[i, c]
+            g[i, c] = (t1[i, j] - t0[i, j]) / a
+            r[i, c] = (force[i, c] * a - t0[i, j]) / a
+    _windowed_payload(g, r, weights, pf, half, frac_sum, m_out, std_out)
+
+
 def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_window: int,
                      independent_fraction: F64) -> tuple[F64, F64]:
     """Sliding-window weighted least-squares payload (module docstring), in one compiled pass.
@@ -117,4 +134,35 @@ def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_win
                       np.ascontiguousarray(r, dtype=np.float64),
                       np.ascontiguousarray(weights, dtype=np.float64), int(prefilter_half),
                       int(half_window), float(np.sum(independent_fraction)), m, std)
+    return m, std
+
+
+def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
+                       joints: npt.NDArray[np.int64], weights: F64, prefilter_half: int,
+                       half_window: int, independent_fraction: F64) -> tuple[F64, F64]:
+    """:func:`windowed_payload` from the inverse dynamics at 0 and 1 kg and the cylinder
+    forces, in one compiled pass: g = (tau1 − tau0)/arm and r = (F·arm − tau0)/arm at the
+    cylinder joints (per unit of rod force: F·arm is the actuator load F·ds/dq).
+
+    Args:
+        tau0, tau1: Inverse-dynamics joint loads with 0 and 1 kg of payload, (k, n_joints).
+        force: Cylinder forces (Eq. 1–2), (k, n_c) [N].
+        arm: Moment arms ds/dq, (k, n_c) [m/rad or m/m].
+        joints: Joint index of each cylinder, (n_c,).
+        weights, prefilter_half, half_window, independent_fraction: as :func:`windowed_payload`.
+
+    Returns:
+        (m̂, σ_m̂), each shape (k,) [kg].
+    """
+    if tau0.shape != tau1.shape or force.shape != arm.shape or tau0.shape[0] != arm.shape[0]:
+        raise TwinError(f"shapes do not fit: tau {tau0.shape}, {tau1.shape}, "
+                        f"force {force.shape}, arm {arm.shape}")
+    m = np.empty(arm.shape[0])
+    std = np.empty(arm.shape[0])
+    c = np.ascontiguousarray
+    _regression_payload(c(tau0, dtype=np.float64), c(tau1, dtype=np.float64),
+                        c(force, dtype=np.float64), c(arm, dtype=np.float64),
+                        c(joints, dtype=np.int64), c(weights, dtype=np.float64),
+                        int(prefilter_half), int(half_window),
+                        float(np.sum(independent_fraction)), m, std)
     return m, std

@@ -58,7 +58,7 @@ from cranetwin.signal import (
     savgol_smooth,
 )
 from cranetwin.twin.channels import ChannelMap, choose_smoothing
-from cranetwin.twin.payload import windowed_payload
+from cranetwin.twin.payload import regression_payload
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.slew import SlewState, integrate_slew
 
@@ -198,6 +198,8 @@ class TwinStream:
         self._drive = machine.torque_drives[0] if machine.torque_drives else None
         self._slew_joint = machine.joint_index(self._drive.joint) if self._drive else None
         self._cyl_joint = [machine.joint_index(c.joint) for c in machine.cylinders]
+        self._cyl_joint_arr = np.array(self._cyl_joint, dtype=np.int64)
+        self._pw_cache: tuple[tuple[SmoothingChoice, ...], F64, F64] | None = None
         self._free = [j for j in range(machine.n_joints) if j not in self._cyl_joint]
         self._stroke = np.array([c.stroke_m for c in machine.cylinders])
         self._finished = False
@@ -400,7 +402,7 @@ class TwinStream:
 
     def _sample_state(self, k0: int, k1: int,
                       theta0: F64 | None) -> tuple[F64, F64, F64, F64, F64]:
-        """q, qd, qdd, actuator loads and moment arms at samples [k0, k1) from the smoothed
+        """q, qd, qdd, cylinder forces and moment arms at samples [k0, k1) from the smoothed
         channels."""
         assert self._period is not None
         m = self.machine
@@ -416,7 +418,7 @@ class TwinStream:
             q_other[:, 0] = theta0
         q, qd, qdd, arm = self._joint_motion(s, v, a, q_other)
         f = self._forces(sm, v)
-        return q, qd, qdd, self._actuator_loads(q, f, arm, None), arm
+        return q, qd, qdd, f, arm
 
     def _stage_slew(self, final: bool) -> None:
         assert self._period is not None and self._drive is not None
@@ -429,23 +431,20 @@ class TwinStream:
             return
         lo = max(self._sm.base, k0 - wh - edge)
         hi = avail if final else min(avail, k_hi + wh + edge)
-        q, qd, qdd, tau, arm = self._sample_state(lo, hi, None)
+        q, qd, qdd, f, arm = self._sample_state(lo, hi, None)
         if self.payload is not None:
             mass = np.full(q.shape[0], float(self.payload))
         else:
-            mass, _ = self._estimate_payload(q, qd, qdd, tau, wh, arm)
+            mass, _ = self._estimate_payload(q, qd, qdd, f, arm)
             mass = np.nan_to_num(np.maximum(mass, 0.0))
         sl = slice(k0 - lo, k_hi - lo)
         j0 = self._slew_joint
         assert j0 is not None
-        # row j0 of M (= column j0, M symmetric) as M·e_j0 = tau(q, 0, e_j0) − tau(q, 0, 0):
-        # two inverse-dynamics passes instead of the whole mass matrix
-        qs = q[sl]
-        zero = np.zeros_like(qs)
-        unit = np.zeros_like(qs)
-        unit[:, j0] = 1.0
-        ta, tb = self._tau_pair(qs, zero, unit, zero, mass[sl], mass[sl])
-        row = ta - tb
+        # column j0 of M (= row j0, M symmetric), from the compiled mass matrix (cheaper than
+        # the two inverse-dynamics passes of M·e_j0 = tau(q, 0, e_j0) − tau(q, 0, 0))
+        mm = np.empty((k_hi - k0, self.machine.n_joints, self.machine.n_joints))
+        self._mass_matrix(np.ascontiguousarray(q[sl]), np.ascontiguousarray(mass[sl]), mm)
+        row = mm[:, :, j0]
         m00 = row[:, j0]
         others = [j for j in range(self.machine.n_joints) if j != j0]
         coupling = np.einsum("nj,nj->n", row[:, others], qd[sl][:, others])
@@ -533,34 +532,32 @@ class TwinStream:
                    c(pl_b, dtype=np.float64), ta, tb)
         return ta, tb
 
-    def _actuator_loads(self, q: F64, f: F64, arm: F64, drive: F64 | None) -> F64:
-        """Joint loads of the actuators: F·ds/dq (virtual work, as physics.actuator_torques,
-        reusing the moment arms already computed) plus the net drive torque, (n, n_joints)."""
-        tau = np.zeros_like(q)
-        tau[:, self._cyl_joint] = f * arm
-        if self._slew_joint is not None:
-            tau[:, self._slew_joint] = np.nan if drive is None else drive
-        return tau
-
-    def _estimate_payload(self, q: F64, qd: F64, qdd: F64, tau_act: F64,
-                          half: int, arm: F64) -> tuple[F64, F64]:
+    def _payload_weights(self) -> tuple[F64, F64]:
+        """Weights 1/σ² per cylinder joint and the independent errors per sample of each,
+        from the smoothing choices (cached with them)."""
         assert self._choices is not None
+        hit = self._pw_cache
+        if hit is not None and hit[0] is self._choices:
+            return hit[1], hit[2]
         m = self.machine
-        cj = self._cyl_joint
-        n = q.shape[0]
-        t0, t1 = self._tau_pair(q, qd, qdd, qdd, np.zeros(n), np.ones(n))
-        g = (t1 - t0)[:, cj] / arm  # force per kg at each cylinder
-        res = (tau_act - t0)[:, cj] / arm
-        pf = self._prefilter // 2
-        half = self._payload_half
-        weights = np.empty(len(cj))
-        frac = np.empty(len(cj))
+        weights = np.empty(len(m.cylinders))
+        frac = np.empty(len(m.cylinders))
         for c, cyl in enumerate(m.cylinders):
             ch = self._choices[self.cmap.p_a[c]]
             weights[c] = 1.0 / (max(ch.risk, 0.0) + cyl.friction.coulomb ** 2)
             # independent errors per sample ≈ the smoother's variance gain, risk/σ²
             frac[c] = float(np.clip(ch.risk / ch.sigma**2, 1e-3, 1.0)) if ch.sigma > 0 else 1.0
-        return windowed_payload(g, res, weights, pf, half, frac)
+        self._pw_cache = (self._choices, weights, frac)
+        return weights, frac
+
+    def _estimate_payload(self, q: F64, qd: F64, qdd: F64, f: F64, arm: F64) -> tuple[F64, F64]:
+        """Payload and its standard error at every instant of q (windows cut at its ends) from
+        the cylinder forces f and moment arms (the actuator loads F·ds/dq)."""
+        n = q.shape[0]
+        t0, t1 = self._tau_pair(q, qd, qdd, qdd, np.zeros(n), np.ones(n))
+        weights, frac = self._payload_weights()
+        return regression_payload(t0, t1, f, arm, self._cyl_joint_arr, weights,
+                                  self._prefilter // 2, self._payload_half, frac)
 
     # -- one chunk ------------------------------------------------------------------------------
     def _splines(self, knots_t: F64, sm: F64) -> tuple[F64, npt.NDArray[np.int64],
@@ -669,8 +666,7 @@ class TwinStream:
         else:
             f_s = self._eq12(smp[:, 3 * nc + 3 : 4 * nc + 3], smp[:, 4 * nc + 3 : 5 * nc + 3],
                              smp[:, nc : 2 * nc])
-            tau_s = self._actuator_loads(q_s, f_s, arm_s, None)
-            mk, sk = self._estimate_payload(q_s, qd_s, qdd_s, tau_s, wh, arm_s)
+            mk, sk = self._estimate_payload(q_s, qd_s, qdd_s, f_s, arm_s)
             mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
         dynamic = self.opt.wrench_acceleration == "dynamic"
         full = list(self._cyl_joint) + ([sj] if has_drive and sj is not None else [])
