@@ -307,6 +307,75 @@ def savgol_bank(y: npt.ArrayLike, filters: Sequence[tuple[int, int, int]],
     return outs
 
 
+def savgol_columns(y: npt.ArrayLike, filters: Sequence[Sequence[tuple[int, int, int]]],
+                   delta: float = 1.0) -> list[list[F64]]:
+    """:func:`savgol_bank` with filters of its own for each column, all columns' FFTs in one
+    batched forward and one batched inverse transform: ``out[c][i]`` equals
+    ``savgol_bank(y[:, c], filters[c], delta)[i]`` (to rounding).
+
+    Args:
+        y: Uniformly spaced samples, shape (n, k).
+        filters: Per column, ``(window, polyorder, deriv)`` per output (as :func:`savgol_bank`).
+        delta: Sample spacing [s].
+
+    Returns:
+        Per column, one array (n,) per filter.
+
+    Raises:
+        SignalError: ``y`` is not 2-D, ``filters`` is not one list per column, or a window is
+            even, not above its polyorder, or longer than the data.
+    """
+    ya = np.asarray(y, dtype=np.float64)
+    if ya.ndim != 2 or ya.shape[1] != len(filters):
+        raise SignalError(f"savgol_columns needs (n, k) samples and k filter lists, got "
+                          f"{ya.shape} and {len(filters)}")
+    n = ya.shape[0]
+    for col in filters:
+        for w, p, d in col:
+            _check_sg(w, p, d, n)
+    yt = np.ascontiguousarray(ya.T)  # (k, n)
+    fft_rows = [(c, f) for c, col in enumerate(filters) for f in col if f[0] >= FFT_MIN_WINDOW]
+    full: F64 | None = None
+    centre = np.zeros((yt.shape[0], 1))
+    nfft = 0
+    if fft_rows:
+        nfft = _fft_len(n)
+        used = sorted({c for c, _ in fft_rows})
+        centre = yt.mean(axis=1, keepdims=True)
+        spec = sp_fft.rfft(yt[used] - centre[used], nfft, axis=1)
+        at = {c: i for i, c in enumerate(used)}
+        prod = np.empty((len(fft_rows), spec.shape[1]), dtype=np.complex128)
+        for r, (c, (w, p, d)) in enumerate(fft_rows):
+            np.multiply(spec[at[c]], _sg_spectrum(w, p, d, nfft), out=prod[r])
+        full = sp_fft.irfft(prod, nfft, axis=1)
+    outs: list[list[F64]] = []
+    r = 0
+    for c, col in enumerate(filters):
+        yc = yt[c]
+        res: list[F64] = []
+        for w, p, d in col:
+            if w <= 1:
+                res.append(yc.copy())
+                continue
+            h, left, right = _sg_operators(w, p, d)
+            half = w // 2
+            out = np.empty(n)
+            if w >= FFT_MIN_WINDOW:
+                assert full is not None
+                np.add(full[r, w - 1 : n], float(h.sum()) * centre[c, 0],
+                       out=out[half : n - half])
+                r += 1
+            else:
+                out[:] = correlate1d(yc, h, mode="nearest")
+            out[:half] = left @ yc[:w]
+            out[n - half :] = right @ yc[n - w :]
+            if d:
+                out /= delta**d
+            res.append(out)
+        outs.append(res)
+    return outs
+
+
 def savgol_smooth(y: npt.ArrayLike, window: int, polyorder: int, deriv: int = 0,
                   delta: float = 1.0) -> F64:
     """Savitzky–Golay smoothing (or derivative) along axis 0, edges by one polynomial fit to

@@ -54,9 +54,9 @@ from cranetwin.signal import (
     newton_derivative,
     nominal_period,
     regularize,
-    savgol_bank,
     savgol_smooth,
 )
+from cranetwin.signal.smoothing import savgol_columns
 from cranetwin.twin.channels import ChannelMap, choose_smoothing
 from cranetwin.twin.payload import regression_payload
 from cranetwin.twin.result import TwinResult
@@ -377,17 +377,18 @@ class TwinStream:
             out[:, cols] = savgol_smooth(raw[:, cols], w, p)
         dt = self._period
         assert dt is not None
+        bank: list[list[tuple[int, int, int]]] = []
         for i, j in enumerate(self._dcols):
             c = self._choices[self._nch + i]
             w = c.window if c.window > 1 else 5
             w = min(w, raw.shape[0] - (1 - raw.shape[0] % 2))
             p = min(max(c.polyorder, 3), w - 1)
             cv = self._choices[j]
-            val, rate, acc = savgol_bank(raw[:, j], [(cv.window, cv.polyorder, 0), (w, p, 1),
-                                                     (w, p, 2)], delta=dt)
-            out[:, j] = val
-            out[:, self._nch + 1 + i] = rate
-            out[:, self._nch + 1 + nd + i] = acc
+            bank.append([(cv.window, cv.polyorder, 0), (w, p, 1), (w, p, 2)])
+        if bank:  # every position channel's value, rate and acceleration: one batched FFT
+            outs = savgol_columns(raw[:, self._dcols], bank, delta=dt)
+            for i, j in enumerate(self._dcols):
+                out[:, j], out[:, self._nch + 1 + i], out[:, self._nch + 1 + nd + i] = outs[i]
         block = out[k0 - lo : k_hi - lo]
         if self._sm.end != k0:
             raise TwinError("internal: smoothing does not continue the stream")
