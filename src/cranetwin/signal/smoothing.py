@@ -42,6 +42,9 @@ from scipy.signal import savgol_coeffs
 from cranetwin.errors import SignalError
 
 F64 = npt.NDArray[np.float64]
+U = np.uint64
+"""Index cast for the compiled loops whose indices are known >= 0: numba then skips its
+negative-index wraparound (a select per access), ≈ 30 % of the LPA-ICI pass."""
 
 DEFAULT_WINDOWS: tuple[int, ...] = (1, 5, 7, 9, 11, 15, 21, 27, 35, 45, 61, 81, 101, 131, 171, 221)
 DEFAULT_POLYORDERS: tuple[int, ...] = (1, 3, 5)
@@ -728,7 +731,7 @@ def _centred_prefix(y, c, start, length, mid, p0, p1, p2):  # type: ignore[no-un
     p2[0] = 0.0
     for t in range(length):
         k = start + t
-        z = y[k] - c
+        z = y[U(k)] - c
         u = float(k - mid)
         s0 += z
         s1 += u * z
@@ -811,9 +814,11 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
         for i in range(b0, b0 + nb):
             x = float(i - mid)
             lim = min(i, n - 1 - i)
-            kin = 0
-            while kin < nw and halves[kin] <= lim:
-                kin += 1
+            kin = nw  # windows 0 … kin−1 fit around sample i
+            if lim < hmax:
+                kin = 0
+                while kin < nw and halves[kin] <= lim:
+                    kin += 1
             s0 = f[i]
             s2 = 0.0
             ring = 0
@@ -825,7 +830,7 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
             while k < kin and halves[k] <= ring_max:
                 h = halves[k]
                 for jj in range(ring + 1, h + 1):
-                    yy = f[i - jj] + f[i + jj]
+                    yy = f[U(i - jj)] + f[U(i + jj)]
                     s0 += yy
                     s2 += float(jj * jj) * yy
                 ring = h
@@ -844,8 +849,8 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
             if not stopped:
                 while k < kin:
                     h = halves[k]
-                    r = i + h + 1 - start
-                    q = i - h - start
+                    r = U(i + h + 1 - start)
+                    q = U(i - h - start)
                     z0 = ff0[r] - ff0[q]
                     e = (e0[k] * z0 + e1[k] * (ff2[r] - ff2[q] - 2.0 * x * (ff1[r] - ff1[q])
                                                + x * x * z0) + hsum[k] * cf)
@@ -906,8 +911,8 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
                 sa2 = 0.0
                 sb2 = 0.0
                 for jj in range(1, h + 1):
-                    ya = pa[i - jj] + pa[i + jj]
-                    yb = pb[i - jj] + pb[i + jj]
+                    ya = pa[U(i - jj)] + pa[U(i + jj)]
+                    yb = pb[U(i - jj)] + pb[U(i + jj)]
                     j2 = float(jj * jj)
                     sa0 += ya
                     sa2 += j2 * ya
@@ -916,8 +921,8 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
                 ea = e0[kk] * sa0 + e1[kk] * sa2
                 eb = e0[kk] * sb0 + e1[kk] * sb2
             else:
-                r = i + h + 1 - start
-                q = i - h - start
+                r = U(i + h + 1 - start)
+                q = U(i - h - start)
                 za0 = fa0[r] - fa0[q]
                 zb0 = fb0[r] - fb0[q]
                 ea = (e0[kk] * za0 + e1[kk] * (fa2[r] - fa2[q] - 2.0 * x * (fa1[r] - fa1[q])
