@@ -46,13 +46,20 @@ def test_kinematics_table_matches_exact_inverse(machine: Machine) -> None:
     rng = np.random.default_rng(0)
     for k, st in enumerate(stroke):
         s_all = np.concatenate([rng.uniform(0.0, st, 4000), [0.0, st, st / 2048.0]])
-        exact = np.array([K.cylinder_motion(p.cyl, k, s) for s in s_all])
+        exact = np.array([K.cylinder_motion(p.cyl, k, s) for s in s_all])  # q, s′, s″
         per_m = (gridpass.KIN_TABLE_NODES - 1) / st
-        tab = np.array([gridpass.table_motion(table, k, per_m, s) for s in s_all])
+        tab = np.array([gridpass.table_motion(table, k, per_m, s) for s in s_all])  # q, q′, q″
         np.testing.assert_allclose(tab[:, 0], exact[:, 0], rtol=0, atol=1e-11)  # q [rad or m]
-        np.testing.assert_allclose(tab[:, 1], exact[:, 1], rtol=1e-10)  # ds/dq
-        d2_scale = max(float(np.max(np.abs(exact[:, 2]))), 0.1)  # [m/rad² or 1/m]
-        np.testing.assert_allclose(tab[:, 2], exact[:, 2], rtol=0, atol=1e-7 * d2_scale)
+        # the inverse map's derivatives: q′ = 1/s′, q″ = −s″/s′³
+        np.testing.assert_allclose(1.0 / tab[:, 1], exact[:, 1], rtol=1e-10)  # ds/dq
+        q2 = -exact[:, 2] / exact[:, 1] ** 3
+        q2_scale = max(float(np.max(np.abs(q2))), 0.1)  # [rad/m² or 1/m]
+        np.testing.assert_allclose(tab[:, 2], q2, rtol=0, atol=1e-7 * q2_scale)
+        # the fallback gives the same numbers from the exact inverse
+        no = np.zeros(len(stroke), dtype=bool)
+        fb = np.array([gridpass.inverse_motion(table, no, p.cyl, k, per_m, s) for s in s_all])
+        np.testing.assert_allclose(fb[:, 1], 1.0 / exact[:, 1], rtol=1e-14)
+        np.testing.assert_allclose(fb[:, 2], q2, rtol=1e-13, atol=1e-15 * q2_scale)
 
 
 def test_fast_tanh_agrees_with_libm() -> None:

@@ -43,7 +43,7 @@ IMPORTS = ("import numpy as np\n"
            "from cranetwin.physics.chain import CYL_BLOCK\n"
            "from cranetwin.physics.kernels import _chol_solve, cylinder_motion\n"
            "from cranetwin.physics.gridpass import chol_solve_inline, derivative_group\n"
-           "from cranetwin.physics.gridpass import fast_tanh, table_motion")
+           "from cranetwin.physics.gridpass import fast_tanh, inverse_motion")
 """Imports the copied :func:`grid_pass` needs in the generated module (besides ``math`` and
 ``njit``, which it has)."""
 
@@ -209,8 +209,10 @@ def kinematics_table(cyl, stroke, n_nodes, table):  # type: ignore[no-untyped-de
 
 @njit(cache=True, inline="always")
 def table_motion(table, k, cells_per_m, s):  # type: ignore[no-untyped-def]
-    """(q, ds/dq, d²s/dq²) of cylinder k at rod position s in [0, stroke] from its table
-    (``cells_per_m`` = cells / stroke [1/m]), as :func:`cylinder_motion` returns them."""
+    """(q, dq/ds, d²q/ds²) of cylinder k at rod position s in [0, stroke] from its table
+    (``cells_per_m`` = cells / stroke [1/m]): the inverse map and its derivatives, so that the
+    chain rule needs no division (qd = q′·v, qdd = q′·a + q″·v²; the moment arm ds/dq is 1/q′).
+    :func:`cylinder_motion` returns the forward derivatives instead: q′ = 1/s′, q″ = −s″/s′³."""
     n_cells = table.shape[1]
     x = s * cells_per_m
     i = int(x)
@@ -223,12 +225,26 @@ def table_motion(table, k, cells_per_m, s):  # type: ignore[no-untyped-def]
     c3 = table[k, i, 3]
     c4 = table[k, i, 4]
     c5 = table[k, i, 5]
-    qv = c0 + u * (c1 + u * (c2 + u * (c3 + u * (c4 + u * c5))))
-    g1 = (c1 + u * (2.0 * c2 + u * (3.0 * c3 + u * (4.0 * c4 + u * 5.0 * c5)))) * cells_per_m
-    g2 = ((2.0 * c2 + u * (6.0 * c3 + u * (12.0 * c4 + u * 20.0 * c5)))
-          * (cells_per_m * cells_per_m))
-    d1 = 1.0 / g1
-    return qv, d1, -g2 * d1 * d1 * d1
+    # Estrin's scheme (u², u⁴ and the pairs in parallel): a third of Horner's dependency
+    # chain, which sits on the per-instant critical path (rod position → angle → dynamics)
+    u2 = u * u
+    u4 = u2 * u2
+    qv = (c0 + u * c1) + u2 * (c2 + u * c3) + u4 * (c4 + u * c5)
+    g1 = ((c1 + u * (2.0 * c2)) + u2 * (3.0 * c3 + u * (4.0 * c4)) + u4 * (5.0 * c5)) * cells_per_m
+    g2 = (((2.0 * c2) + u * (6.0 * c3)) + u2 * ((12.0 * c4) + u * (20.0 * c5))) * (
+        cells_per_m * cells_per_m)
+    return qv, g1, g2
+
+
+@njit(cache=True, inline="always")
+def inverse_motion(table, table_ok, cyl, k, cells_per_m, s):  # type: ignore[no-untyped-def]
+    """(q, dq/ds, d²q/ds²) of cylinder k at rod position s: from its table where usable
+    (:func:`table_motion`), else from the exact inverse (:func:`cylinder_motion`)."""
+    if table_ok[k]:
+        return table_motion(table, k, cells_per_m, s)
+    qj, d1, d2 = cylinder_motion(cyl, k, s)
+    g1 = 1.0 / d1
+    return qj, g1, -d2 * g1 * g1 * g1
 
 
 @njit(cache=True)
@@ -288,16 +304,13 @@ def table_motion_batch(table, table_ok, cyl, s, v, a, q, qd, qdd, arm):  # type:
     for i in range(s.shape[0]):
         for k in range(nc):
             ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            if table_ok[k]:
-                qj, d1, d2 = table_motion(table, k,
-                                          table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s[i, k])
-            else:
-                qj, d1, d2 = cylinder_motion(cyl, k, s[i, k])
-            w = v[i, k] / d1
+            qj, g1, g2 = inverse_motion(table, table_ok, cyl, k,
+                                        table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s[i, k])
+            vk = v[i, k]
             q[i, ji] = qj
-            qd[i, ji] = w
-            qdd[i, ji] = (a[i, k] - d2 * w * w) / d1
-            arm[i, k] = d1
+            qd[i, ji] = g1 * vk
+            qdd[i, ji] = g1 * a[i, k] + g2 * vk * vk
+            arm[i, k] = 1.0 / g1
 
 
 def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-untyped-def]
@@ -354,6 +367,7 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     idx = np.empty(nj, dtype=np.int64)
     amat = np.empty((nj, nj))
     y = np.empty(nj)
+    dacc = np.empty(nj)
     known = np.zeros(nj, dtype=np.bool_)
     zr = np.zeros(nj)  # scratch of the generic build's linear pass
     tt = np.empty(nj)
@@ -361,9 +375,12 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     inv_r = 1.0 / r
     cj = np.empty(nc, dtype=np.int64)
     cells_per_m = np.empty(nc)
+    inv_vc = np.empty(nc)  # 1 / vc of Eq. 2 [s/m]
     for k in range(nc):
         cj[k] = int(cyl[1 + k * CYL_BLOCK + 1])
         cells_per_m[k] = table.shape[1] / stroke[k]
+        inv_vc[k] = 1.0 / fpar[k, 3]
+    inv_dvc = 1.0 / drive[1] if slew_joint >= 0 and has_drive else 0.0
     bad = 0
     for g in range(n):
         # -- splines ------------------------------------------------------------------------
@@ -403,16 +420,13 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             v = val[nc + k]
             a = val[2 * nc + k]
             ji = cj[k]
-            if table_ok[k]:
-                qj, d1, d2 = table_motion(table, k, cells_per_m[k], s)
-            else:
-                qj, d1, d2 = cylinder_motion(cyl, k, s)
+            qj, dq1, dq2 = inverse_motion(table, table_ok, cyl, k, cells_per_m[k], s)
             if not math.isfinite(qj):
                 row_bad = True
-            w = v / d1
+            d1 = 1.0 / dq1  # ds/dq
             q[g, ji] = qj
-            qd[g, ji] = w
-            qdd[g, ji] = (a - d2 * w * w) / d1
+            qd[g, ji] = dq1 * v
+            qdd[g, ji] = dq1 * a + dq2 * v * v
             rod_s[g, k] = s
             rod_v[g, k] = v
             pak = val[3 * nc + 3 + k]
@@ -420,7 +434,7 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             pa[g, k] = pak
             pb[g, k] = pbk
             f = (pak * fpar[k, 0] - pbk * fpar[k, 1]
-                 - (fpar[k, 2] * fast_tanh(v / fpar[k, 3]) + fpar[k, 4] * v))
+                 - (fpar[k, 2] * fast_tanh(v * inv_vc[k]) + fpar[k, 4] * v))
             force[g, k] = f
             tau_act[g, ji] = f * d1
             # a rod at (or past) an end of its stroke is held by the end stop, a force the
@@ -432,7 +446,7 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             if has_drive:
                 wd = qd[g, slew_joint]
                 tau_act[g, slew_joint] = val[5 * nc + 3] - (
-                    drive[0] * fast_tanh(wd / drive[1]) + drive[2] * wd)
+                    drive[0] * fast_tanh(wd * inv_dvc) + drive[2] * wd)
                 known[slew_joint] = True
             else:
                 tau_act[g, slew_joint] = math.nan
@@ -457,13 +471,18 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
         if not dynamic or nd == 0 or gap[g]:
             continue
         if nd == n_full and minv_ok[s0] and minv_ok[s1]:
-            # the usual case, every measured joint in D: M_DD⁻¹ interpolated like M
+            # the usual case, every measured joint in D: M_DD⁻¹ interpolated like M. Column
+            # by column (M⁻¹ is symmetric, so minv[s, b, :] is column b): nd independent sums
+            # instead of nd chains of nd dependent additions on the critical path
             for a_ in range(nd):
-                acc = 0.0
-                for b_ in range(nd):
-                    m0 = minv[s0, a_, b_]
-                    acc += (m0 + fr * (minv[s1, a_, b_] - m0)) * y[b_]
-                qdd2[g, idx[a_]] = acc
+                dacc[a_] = 0.0
+            for b_ in range(nd):
+                yb = y[b_]
+                for a_ in range(nd):
+                    m0 = minv[s0, b_, a_]
+                    dacc[a_] += (m0 + fr * (minv[s1, b_, a_] - m0)) * yb
+            for a_ in range(nd):
+                qdd2[g, idx[a_]] = dacc[a_]
         else:
             for a_ in range(nd):
                 for b_ in range(nd):
