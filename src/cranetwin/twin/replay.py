@@ -127,28 +127,43 @@ class ReplayOptions:
 
 
 class _Buf:
-    """Rows indexed by a global sample index k: rows [base, base + len)."""
+    """Rows indexed by a global sample index k: rows [base, base + len), stored with spare
+    capacity so that appending does not copy the whole buffer each time."""
 
     def __init__(self, width: int) -> None:
         self.base = 0
-        self.arr = np.empty((0, width))
+        self._data = np.empty((0, width))
+        self._n = 0
+
+    @property
+    def arr(self) -> F64:
+        return self._data[: self._n]
 
     @property
     def end(self) -> int:
-        return self.base + self.arr.shape[0]
+        return self.base + self._n
 
     def append(self, rows: F64) -> None:
-        self.arr = np.concatenate([self.arr, rows.reshape(rows.shape[0], -1)], axis=0)
+        rows = rows.reshape(rows.shape[0], -1)
+        need = self._n + rows.shape[0]
+        if need > self._data.shape[0]:
+            grown = np.empty((max(need, 2 * self._data.shape[0]), self._data.shape[1]))
+            grown[: self._n] = self._data[: self._n]
+            self._data = grown
+        self._data[self._n : need] = rows
+        self._n = need
 
     def get(self, k0: int, k1: int) -> F64:
         if k0 < self.base or k1 > self.end:
             raise TwinError(f"internal: rows {k0}..{k1} outside buffer {self.base}..{self.end}")
-        return self.arr[k0 - self.base : k1 - self.base]
+        return self._data[k0 - self.base : k1 - self.base]
 
     def trim(self, keep_from: int) -> None:
         cut = keep_from - self.base
         if cut > 0:
-            self.arr = self.arr[cut:].copy()
+            rest = self._n - cut
+            self._data[:rest] = self._data[cut : self._n].copy()
+            self._n = rest
             self.base = keep_from
 
 
@@ -481,9 +496,9 @@ class TwinStream:
 
     # -- physics helpers -----------------------------------------------------------------------
     def _clip_s(self, s: F64) -> F64:
-        lo = np.zeros(len(self.machine.cylinders))
-        hi = np.array([c.stroke_m for c in self.machine.cylinders])
-        out: F64 = np.clip(s, lo, hi)
+        """Rod positions clipped to [0, stroke], as a new C-contiguous array."""
+        out: F64 = np.maximum(s, 0.0)
+        np.minimum(out, self._stroke, out=out)
         return out
 
     def _joint_motion(self, s: F64, v: F64, a: F64,
@@ -710,7 +725,11 @@ class TwinStream:
             self._joint_motion(out["rod_s"][rows], out["rod_v"][rows], out["rod_v"][rows],
                                np.zeros((int(rows.sum()), nj - nc)))
             raise TwinError(f"rod positions do not fit the machine geometry at {bad} instants")
-        t = self._origin + (ka + np.arange(n) / r) * p
+        t = np.arange(n, dtype=np.float64)  # origin + (ka + g/r)·p, in place
+        t /= r
+        t += ka
+        t *= p
+        t += self._origin
         return TwinResult(
             t_s=t, q=out["q"], qd=out["qd"], qdd=out["qdd"], rod_s=out["rod_s"],
             rod_v=out["rod_v"], p_a=out["p_a"], p_b=out["p_b"], cyl_force=out["cyl_force"],
