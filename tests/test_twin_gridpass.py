@@ -187,3 +187,23 @@ def test_linear_wrench_pass_adds_the_acceleration_part(machine: Machine) -> None
         gridpass.rnea_lin_row(p.chain, q, dq, 300.0, k, wl, np.empty((4, 12)), zero,
                               np.empty(4), np.empty((4, 6)))
     np.testing.assert_allclose(wl, w_full, rtol=1e-12, atol=1e-8)
+
+
+def test_dd_inverse_batch_inverts_the_measured_block() -> None:
+    rng = np.random.default_rng(11)
+    n = 300
+    a = rng.normal(size=(n, 4, 4))
+    mm = a @ a.transpose(0, 2, 1) + 0.5 * np.eye(4)
+    mm[7, 1, 1] = -1.0  # not positive definite in the block
+    mm[9, 2, 0] = mm[9, 0, 2] = np.nan
+    full = np.array([0, 1, 2])  # joint 3 not measured
+    minv = np.empty((n, 3, 3))
+    ok = np.empty(n, dtype=bool)
+    gridpass.dd_inverse_batch(mm, full, minv, ok)
+    good = np.ones(n, dtype=bool)
+    good[[7, 9]] = False
+    np.testing.assert_array_equal(ok, good)
+    block = mm[good][:, :3, :3]
+    np.testing.assert_allclose(minv[good], np.linalg.inv(block), rtol=1e-10,
+                               atol=1e-12 * float(np.abs(np.linalg.inv(block)).max()))
+    assert np.all(minv[~good] == 0.0)

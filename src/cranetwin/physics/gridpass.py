@@ -250,50 +250,51 @@ def inverse_motion(table, table_ok, cyl, k, cells_per_m, s):  # type: ignore[no-
 @njit(cache=True)
 def dd_inverse_batch(mm, full, minv, ok):  # type: ignore[no-untyped-def]
     """Inverses of the submatrices M_DD (rows and columns ``full``) of mass matrices mm
-    (ns, nj, nj) into minv (ns, nd, nd), by Cholesky (M is symmetric positive definite);
-    ok[k] False (minv[k] = 0) where M_DD is not finite or not positive definite."""
+    (ns, nj, nj) into minv (ns, nd, nd), by Cholesky (M is symmetric positive definite):
+    M_DD = L·Lᵀ, then L⁻¹ by forward substitution and M_DD⁻¹ = L⁻ᵀ·L⁻¹ (symmetric, each
+    entry computed once). ok[k] False (minv[k] = 0) where M_DD is not finite or not positive
+    definite."""
     nd = full.shape[0]
-    a = np.empty((nd, nd))
-    rd = np.empty(nd)  # 1 / L[c, c]
-    inv = np.empty((nd, nd))
+    lo = np.zeros((nd, nd))  # L
+    li = np.zeros((nd, nd))  # L⁻¹
     for k in range(mm.shape[0]):
         good = True
-        for r in range(nd):
-            for c in range(nd):
-                a[r, c] = mm[k, full[r], full[c]]
-        for c in range(nd):  # a = L·Lᵀ, L in the lower triangle
-            t = a[c, c]
+        for c in range(nd):
+            fc = full[c]
+            t = mm[k, fc, fc]
             for p in range(c):
-                t -= a[c, p] * a[c, p]
+                t -= lo[c, p] * lo[c, p]
             if not t > 0.0 or not math.isfinite(t):
                 good = False
                 break
-            rd[c] = 1.0 / math.sqrt(t)
+            lcc = math.sqrt(t)
+            lo[c, c] = lcc
+            rc = 1.0 / lcc
+            li[c, c] = rc
             for r in range(c + 1, nd):
-                t = a[r, c]
+                t = mm[k, full[r], fc]
                 for p in range(c):
-                    t -= a[r, p] * a[c, p]
-                a[r, c] = t * rd[c]
+                    t -= lo[r, p] * lo[c, p]
+                lo[r, c] = t * rc
         ok[k] = good
         if not good:
             for r in range(nd):
                 for c in range(nd):
                     minv[k, r, c] = 0.0
             continue
-        for e in range(nd):  # column e of the inverse: L·Lᵀ·x = unit e
-            for r in range(nd):
-                t = 1.0 if r == e else 0.0
-                for p in range(r):
-                    t -= a[r, p] * inv[p, e]
-                inv[r, e] = t * rd[r]
-            for r in range(nd - 1, -1, -1):
-                t = inv[r, e]
-                for p in range(r + 1, nd):
-                    t -= a[p, r] * inv[p, e]
-                inv[r, e] = t * rd[r]
-        for r in range(nd):
-            for c in range(nd):
-                minv[k, r, c] = inv[r, c]
+        for i in range(1, nd):
+            for j in range(i):
+                t = 0.0
+                for p in range(j, i):
+                    t += lo[i, p] * li[p, j]
+                li[i, j] = -t * li[i, i]
+        for i in range(nd):
+            for j in range(i + 1):
+                t = 0.0
+                for p in range(i, nd):
+                    t += li[p, i] * li[p, j]
+                minv[k, i, j] = t
+                minv[k, j, i] = t
 
 
 @njit(cache=True, error_model="numpy")
