@@ -207,9 +207,15 @@ class TwinStream:
         self._sm = _Buf(self._nch + 1 + 2 * self._nd)
         self._sm_valid = 0  # smoothed rows [.., _sm_valid) have final values
         self._theta_done = 0
+        # cylinder states at the samples (q, qd, qdd of the cylinder joints, moment arms,
+        # forces; 5 blocks of n_cylinders) as the slew stage computed them, reused by the
+        # chunks: the same rows from the same smoothed samples (only with the rates taken from
+        # the smoothed samples, velocity="spline"; the Newton rates differ)
+        self._cs = _Buf(5 * len(machine.cylinders))
         self._out_done = 0
         self._slew = SlewState(theta0=self.opt.theta0_initial)
         self._integrate = self.cmap.angle is None
+        self._use_cs = self._integrate and self.opt.velocity == "spline"
         self._drive = machine.torque_drives[0] if machine.torque_drives else None
         self._slew_joint = machine.joint_index(self._drive.joint) if self._drive else None
         self._cyl_joint = [machine.joint_index(c.joint) for c in machine.cylinders]
@@ -448,6 +454,13 @@ class TwinStream:
         lo = max(self._sm.base, k0 - wh - edge)
         hi = avail if final else min(avail, k_hi + wh + edge)
         q, qd, qdd, f, arm = self._sample_state(lo, hi, None)
+        if self._use_cs and hi > self._cs.end:
+            a = self._cs.end - lo
+            if a < 0:
+                raise TwinError("internal: cylinder states do not continue the stream")
+            cj = self._cyl_joint
+            self._cs.append(np.concatenate([q[a:, cj], qd[a:, cj], qdd[a:, cj], arm[a:], f[a:]],
+                                           axis=1))
         if self.payload is not None:
             mass = np.full(q.shape[0], float(self.payload))
         else:
@@ -493,6 +506,7 @@ class TwinStream:
             self._sm.trim(min(need, self._sm.end))
             self._reg.trim(min(need, self._reg.end))
             self._gap.trim(min(need, self._gap.end))
+            self._cs.trim(min(need, self._cs.end))
 
     # -- physics helpers -----------------------------------------------------------------------
     def _clip_s(self, s: F64) -> F64:
@@ -662,13 +676,30 @@ class TwinStream:
         ne = e1 - e0 + 1
         smp = np.empty((ne, src.shape[0]))
         gridpass.spline_points(coef, e0 - f0, ne, 1, h0, h_last, src, der, smp)
-        s_s = self._clip_s(smp[:, :nc])
         has_theta = bool(src[3 * nc] >= 0 and nj > nc)
-        q_other = np.zeros((ne, nj - nc))
-        if has_theta:
-            q_other[:, 0] = smp[:, 3 * nc]
-        q_s, qd_s, qdd_s, arm_s = self._joint_motion(s_s, smp[:, nc : 2 * nc],
-                                                     smp[:, 2 * nc : 3 * nc], q_other)
+        # the spline at a knot is the knot's value, except the end knot (last piece at h_last)
+        cached = self._use_cs and e1 < f1 and self._cs.base <= e0 and e1 < self._cs.end
+        f_s: F64 | None = None
+        if cached:  # cylinder joints' motion, arms and forces as the slew stage found them
+            st = self._cs.get(e0, e1 + 1)
+            cj = self._cyl_joint
+            q_s = np.zeros((ne, nj))
+            qd_s = np.zeros((ne, nj))
+            qdd_s = np.zeros((ne, nj))
+            if has_theta:
+                q_s[:, self._free[0]] = smp[:, 3 * nc]
+            q_s[:, cj] = st[:, :nc]
+            qd_s[:, cj] = st[:, nc : 2 * nc]
+            qdd_s[:, cj] = st[:, 2 * nc : 3 * nc]
+            arm_s = st[:, 3 * nc : 4 * nc]
+            f_s = st[:, 4 * nc :]
+        else:
+            s_s = self._clip_s(smp[:, :nc])
+            q_other = np.zeros((ne, nj - nc))
+            if has_theta:
+                q_other[:, 0] = smp[:, 3 * nc]
+            q_s, qd_s, qdd_s, arm_s = self._joint_motion(s_s, smp[:, nc : 2 * nc],
+                                                         smp[:, 2 * nc : 3 * nc], q_other)
         sj = self._slew_joint
         has_drive = self._drive is not None and self.cmap.torque is not None
         if has_theta and sj is not None:
@@ -680,8 +711,9 @@ class TwinStream:
             mk = np.full(n_ks, float(self.payload))
             sk = np.zeros(n_ks)
         else:
-            f_s = self._eq12(smp[:, 3 * nc + 3 : 4 * nc + 3], smp[:, 4 * nc + 3 : 5 * nc + 3],
-                             smp[:, nc : 2 * nc])
+            if f_s is None:
+                f_s = self._eq12(smp[:, 3 * nc + 3 : 4 * nc + 3],
+                                 smp[:, 4 * nc + 3 : 5 * nc + 3], smp[:, nc : 2 * nc])
             mk, sk = self._estimate_payload(q_s, qd_s, qdd_s, f_s, arm_s)
             mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
         dynamic = self.opt.wrench_acceleration == "dynamic"
