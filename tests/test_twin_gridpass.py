@@ -66,7 +66,7 @@ def test_fast_tanh_agrees_with_libm() -> None:
     xs = np.concatenate([np.linspace(-25, 25, 20001), [0.0, -0.0, 1e-300, -1e-12, 19.09, 19.2],
                          np.geomspace(1e-10, 1.0, 500)])
     for x in xs:
-        assert gridpass.fast_tanh(x) == pytest.approx(math.tanh(x), rel=4e-16, abs=1e-300)
+        assert gridpass.fast_tanh(x) == pytest.approx(math.tanh(x), rel=7e-16, abs=1e-300)
 
 
 def test_fused_pass_agrees_with_separate_physics(machine: Machine, result: TwinResult) -> None:
