@@ -742,6 +742,120 @@ def _centred_prefix(y, c, start, length, mid, p0, p1, p2):  # type: ignore[no-un
 
 
 @njit(cache=True, fastmath=True)
+def _ici_interior(pa, pb, f, i0, m, x0, start, halves, e0, e1, hsum, gs, ring_max,  # type: ignore[no-untyped-def]
+                  fa0, fa1, fa2, fb0, fb1, fb2, ff0, ff1, ff2, ca, cb, cf, work, out):
+    """The window choice of :func:`_ici_pair_prefix_kernel` for samples i0 … i0+m−1 of one
+    prefix block, all interior (every window fits), vectorised across the samples: each
+    window's force estimate is formed for every sample, the intervals' running intersection
+    updated, and the windows counted while it is non-empty (it only shrinks, so the count is
+    the early-stopping scan's last accepted window); pA, pB are then estimated at it per
+    sample. x0 = i0 − (block middle); work: scratch (8, block), row 7 = 0, 1, 2, …."""
+    nw = halves.shape[0]
+    s0 = work[0, :m]
+    s2 = work[1, :m]
+    lo_a = work[2, :m]
+    hi_a = work[3, :m]
+    lo_b = work[4, :m]
+    hi_b = work[5, :m]
+    cnt = work[6, :m]
+    xo = work[7, :m]  # 0, 1, 2, …
+    fc = f[U(i0) : U(i0 + m)]
+    for t in range(m):
+        s0[t] = fc[t]
+        s2[t] = 0.0
+    ring = 0
+    k = 0
+    while k < nw and halves[k] <= ring_max:
+        h = halves[k]
+        for jj in range(ring + 1, h + 1):
+            j2 = float(jj * jj)
+            fl = f[U(i0 - jj) : U(i0 - jj + m)]
+            fr = f[U(i0 + jj) : U(i0 + jj + m)]
+            for t in range(m):
+                yy = fl[t] + fr[t]
+                s0[t] += yy
+                s2[t] += j2 * yy
+        ring = h
+        a = e0[k]
+        b = e1[k]
+        g = gs[k]
+        if k == 0:
+            for t in range(m):
+                e = a * s0[t] + b * s2[t]
+                lo_b[t] = e - g
+                hi_b[t] = e + g
+                cnt[t] = 0.0
+        else:
+            for t in range(m):
+                e = a * s0[t] + b * s2[t]
+                lo = max(lo_a[t], e - g)
+                hi = min(hi_a[t], e + g)
+                lo_b[t] = lo
+                hi_b[t] = hi
+                cnt[t] += np.float64(lo <= hi)
+        lo_a, lo_b = lo_b, lo_a
+        hi_a, hi_b = hi_b, hi_a
+        k += 1
+    while k < nw:
+        h = halves[k]
+        a = e0[k]
+        b = e1[k]
+        g = gs[k]
+        c = hsum[k] * cf
+        r0 = U(i0 + h + 1 - start)
+        q0 = U(i0 - h - start)
+        p0r = ff0[r0 : r0 + U(m)]
+        p0q = ff0[q0 : q0 + U(m)]
+        p1r = ff1[r0 : r0 + U(m)]
+        p1q = ff1[q0 : q0 + U(m)]
+        p2r = ff2[r0 : r0 + U(m)]
+        p2q = ff2[q0 : q0 + U(m)]
+        for t in range(m):
+            x = x0 + xo[t]
+            z0 = p0r[t] - p0q[t]
+            e = a * z0 + b * (p2r[t] - p2q[t] - 2.0 * x * (p1r[t] - p1q[t]) + x * x * z0) + c
+            lo = max(lo_a[t], e - g)
+            hi = min(hi_a[t], e + g)
+            lo_b[t] = lo
+            hi_b[t] = hi
+            cnt[t] += np.float64(lo <= hi)
+        lo_a, lo_b = lo_b, lo_a
+        hi_a, hi_b = hi_b, hi_a
+        k += 1
+    for t in range(m):
+        i = i0 + t
+        kk = int(cnt[t])
+        h = halves[kk]
+        if h <= ring_max:
+            sa0 = pa[U(i)]
+            sb0 = pb[U(i)]
+            sa2 = 0.0
+            sb2 = 0.0
+            for jj in range(1, h + 1):
+                ya = pa[U(i - jj)] + pa[U(i + jj)]
+                yb = pb[U(i - jj)] + pb[U(i + jj)]
+                j2 = float(jj * jj)
+                sa0 += ya
+                sa2 += j2 * ya
+                sb0 += yb
+                sb2 += j2 * yb
+            ea = e0[kk] * sa0 + e1[kk] * sa2
+            eb = e0[kk] * sb0 + e1[kk] * sb2
+        else:
+            x = x0 + t
+            r = U(i + h + 1 - start)
+            q = U(i - h - start)
+            za0 = fa0[r] - fa0[q]
+            zb0 = fb0[r] - fb0[q]
+            ea = (e0[kk] * za0 + e1[kk] * (fa2[r] - fa2[q] - 2.0 * x * (fa1[r] - fa1[q])
+                                           + x * x * za0) + hsum[kk] * ca)
+            eb = (e0[kk] * zb0 + e1[kk] * (fb2[r] - fb2[q] - 2.0 * x * (fb1[r] - fb1[q])
+                                           + x * x * zb0) + hsum[kk] * cb)
+        out[U(i), 0] = ea
+        out[U(i), 1] = eb
+
+
+@njit(cache=True, fastmath=True)
 def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gamma, block,  # type: ignore[no-untyped-def]
                             ring_max, out):
     """:func:`_ici_pair_kernel` for polyorder <= 3 at O(1) per sample and window.
@@ -795,6 +909,9 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
     ff0 = np.empty(size)
     ff1 = np.empty(size)
     ff2 = np.empty(size)
+    work = np.empty((8, block))
+    for t in range(block):
+        work[7, t] = float(t)
     for b0 in range(0, n, block):
         nb = min(block, n - b0)
         mid = b0 + nb // 2
@@ -811,7 +928,15 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
         _centred_prefix(pb, cb, start, end - start, mid, fb0, fb1, fb2)
         cf = a1 * ca - a2 * cb
         _centred_prefix(f, cf, start, end - start, mid, ff0, ff1, ff2)
+        i0 = max(b0, hmax)  # samples i0 … i1−1 of the block are interior for every window
+        i1 = min(b0 + nb, n - hmax)
+        if i1 > i0:
+            _ici_interior(pa, pb, f, i0, i1 - i0, float(i0 - mid), start, halves, e0, e1, hsum,
+                          gs, ring_max, fa0, fa1, fa2, fb0, fb1, fb2, ff0, ff1, ff2, ca, cb, cf,
+                          work, out)
         for i in range(b0, b0 + nb):
+            if i0 <= i < i1:
+                continue
             x = float(i - mid)
             lim = min(i, n - 1 - i)
             kin = nw  # windows 0 … kin−1 fit around sample i
