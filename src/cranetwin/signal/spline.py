@@ -28,47 +28,61 @@ _UNIFORM_RTOL = 1e-9
 def _natural_coefficients(x, y, coef):  # type: ignore[no-untyped-def]
     """Knot second derivatives M by the Thomas algorithm on the (diagonally dominant)
     tridiagonal system of the module docstring, natural ends M_0 = M_{n-1} = 0; then the
-    pieces coef[i] = (y_i, b_i, c_i, d_i) per channel, shape (n−1, 4, k). Divisions only per
-    knot (1/h_i, 1/diag_i), multiplications per channel. Returns False if a value is not
-    finite (coef is then undefined)."""
+    pieces coef[i] = (y_i, b_i, c_i, d_i) per channel, shape (n−1, 4, k). Two passes: the
+    forward sweep (slopes δ formed on the fly), then the back substitution writing each
+    piece as soon as its two end values of M are final. Divisions only per knot (1/h_i,
+    1/diag_i), multiplications per channel. Returns False if a value is not finite (coef is
+    then undefined)."""
     n = x.shape[0]
     k = y.shape[1]
+    if n < 2:  # no piece
+        for i in range(n):
+            for j in range(k):
+                if not abs(y[i, j]) < np.inf:
+                    return False
+        return True
     ih = np.empty(n - 1)  # 1 / h_i
     for i in range(n - 1):
         ih[i] = 1.0 / (x[i + 1] - x[i])
-    slope = np.empty((n - 1, k))  # δ_i = (y_{i+1} − y_i)/h_i
-    for i in range(n - 1):
+    m = np.empty((n, k))
+    cp = np.zeros(n)  # modified super-diagonal
+    prev = np.empty(k)  # δ_{i−1}
+    for j in range(k):
+        m[0, j] = 0.0
+        m[n - 1, j] = 0.0
+        prev[j] = (y[1, j] - y[0, j]) * ih[0]
+        if not abs(prev[j]) < np.inf:  # a value not finite (NaN or ±inf)
+            return False
+    for i in range(1, n - 1):
+        h0 = x[i] - x[i - 1]
+        h1 = x[i + 1] - x[i]
+        diag = 2.0 * (h0 + h1)
+        if i > 1:
+            diag -= h0 * cp[i - 1]
+        idiag = 1.0 / diag
+        cp[i] = h1 * idiag
+        ok = True
         for j in range(k):
-            slope[i, j] = (y[i + 1, j] - y[i, j]) * ih[i]
-            if not abs(slope[i, j]) < np.inf:  # a value not finite (NaN or ±inf)
-                return False
-    m = np.zeros((n, k))
-    if n > 2:
-        cp = np.empty(n)  # modified super-diagonal
-        for i in range(1, n - 1):
-            h0 = x[i] - x[i - 1]
-            h1 = x[i + 1] - x[i]
-            diag = 2.0 * (h0 + h1)
+            d = (y[i + 1, j] - y[i, j]) * ih[i]
+            ok &= abs(d) < np.inf
             if i > 1:
-                diag -= h0 * cp[i - 1]
-            idiag = 1.0 / diag
-            cp[i] = h1 * idiag
-            if i > 1:
-                for j in range(k):
-                    m[i, j] = (6.0 * (slope[i, j] - slope[i - 1, j]) - h0 * m[i - 1, j]) * idiag
+                m[i, j] = (6.0 * (d - prev[j]) - h0 * m[i - 1, j]) * idiag
             else:
-                for j in range(k):
-                    m[i, j] = 6.0 * (slope[i, j] - slope[i - 1, j]) * idiag
-        for i in range(n - 3, 0, -1):  # back substitution, in place (m[n−2] = dp[n−2])
+                m[i, j] = 6.0 * (d - prev[j]) * idiag
+            prev[j] = d
+        if not ok:
+            return False
+    for i in range(n - 2, -1, -1):  # back substitution (m[n−2] is final), then piece i
+        if 0 < i < n - 2:
             for j in range(k):
                 m[i, j] -= cp[i] * m[i + 1, j]
-    for i in range(n - 1):
         h = x[i + 1] - x[i]
         h6 = h / 6.0
         ih6 = ih[i] / 6.0
         for j in range(k):
+            d = (y[i + 1, j] - y[i, j]) * ih[i]
             coef[i, 0, j] = y[i, j]
-            coef[i, 1, j] = slope[i, j] - h6 * (2.0 * m[i, j] + m[i + 1, j])
+            coef[i, 1, j] = d - h6 * (2.0 * m[i, j] + m[i + 1, j])
             coef[i, 2, j] = 0.5 * m[i, j]
             coef[i, 3, j] = (m[i + 1, j] - m[i, j]) * ih6
     return True
