@@ -390,6 +390,23 @@ def test_ici_smooth_pair_equals_stacked_ici_on_random_data(n: int, polyorder: in
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
 
 
+@pytest.mark.parametrize("n", [2, 3, 10, 1001, 20000])
+def test_compiled_median_and_rank_pair_are_exact_order_statistics(n: int) -> None:
+    """The histogram selections against sorting: continuous values, heavy ties, far
+    outliers (nearly every value in one bucket), adjacent ranks in different buckets."""
+    from cranetwin.signal.smoothing import _median, _rank_pair
+
+    rng = np.random.default_rng(n)
+    cases = [rng.normal(size=n), rng.integers(0, 4, n).astype(float),
+             np.concatenate([rng.normal(size=n - 1), [1e12]]), np.round(rng.normal(size=n), 1),
+             np.concatenate([np.zeros(n // 2), np.ones(n - n // 2)])]
+    for a in cases:
+        srt = np.sort(a)
+        assert _median(a) == np.median(a)
+        for r in sorted({0, max(n // 2 - 1, 0), n - 2}):
+            assert _rank_pair(a, r) == (srt[r], srt[r + 1])
+
+
 def _old_noise_std(y: np.ndarray, resolution: float = 0.0, order: int = 4) -> float:
     """The numpy formulation of estimate_noise_std (reference for the compiled one)."""
     from math import comb

@@ -153,12 +153,59 @@ def _rank_value(a, r):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def _rank_pair(a, r):  # type: ignore[no-untyped-def]
+    """Exact r-th and (r+1)-th smallest elements of ``a`` (0-based, r + 1 < len(a)) from one
+    histogram (as :func:`_rank_value`): the bucket holding rank r is partitioned; rank r+1 is
+    the least element above position r there, or the least element of the next non-empty
+    bucket."""
+    lo = a[0]
+    hi = a[0]
+    for x in a:
+        if x < lo:
+            lo = x
+        elif x > hi:
+            hi = x
+    if lo == hi:
+        return lo, lo
+    nbins = 4096
+    scale = nbins / (hi - lo)
+    counts = np.zeros(nbins + 1, dtype=np.int64)
+    for x in a:
+        counts[min(int((x - lo) * scale), nbins - 1)] += 1
+    below = 0
+    b = 0
+    while below + counts[b] <= r:
+        below += counts[b]
+        b += 1
+    b2 = b + 1  # the next non-empty bucket, if rank r+1 lies beyond bucket b
+    while b2 < nbins and counts[b2] == 0:
+        b2 += 1
+    sel = np.empty(counts[b])
+    nxt = np.inf
+    j = 0
+    for x in a:
+        c = min(int((x - lo) * scale), nbins - 1)
+        if c == b:
+            sel[j] = x
+            j += 1
+        elif c == b2 and x < nxt:
+            nxt = x
+    kth = r - below
+    part = np.partition(sel, kth)
+    first = part[kth]
+    if kth + 1 < part.shape[0]:
+        return first, np.min(part[kth + 1 :])
+    return first, nxt
+
+
+@njit(cache=True)
 def _median(a):  # type: ignore[no-untyped-def]
     """``np.median`` of a 1-D array (the same value: order statistics are exact)."""
     n = a.shape[0]
     if n % 2:
         return _rank_value(a, n // 2)
-    return (_rank_value(a, n // 2 - 1) + _rank_value(a, n // 2)) / 2.0
+    x1, x2 = _rank_pair(a, n // 2 - 1)
+    return (x1 + x2) / 2.0
 
 
 @njit(cache=True)
