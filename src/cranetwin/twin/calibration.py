@@ -15,6 +15,18 @@ search, the other parameters re-solved at each point; a grid-step resolution of 
 up to 15 %). Residuals are reported before (machine-file friction, no extra mass, no offset)
 and after, as RMS force [N].
 
+Velocity noise and vc: the rod velocity is the Savitzky–Golay derivative of noisy positions,
+v = v_true + e with e of standard deviation σ_v = σ_s·‖h'‖/Δt (σ_s the position noise the
+replay estimated, h' the derivative filter). The low-pass below averages e out of every column,
+so a column tanh(v/vc) tends to E_e[tanh((v_true + e)/vc)]: tanh blurred by the noise, wider
+than tanh(v_true/vc), and the fit narrowed vc to compensate (the extension, vc = 3 mm/s with
+σ_v ≈ 1.1 mm/s: −8 … −16 % on simulated 10-minute runs; with the true velocity +0.5 %). The
+Coulomb column is therefore the deconvolved ψ(v) = tanh(u) + r²·tanh(u)·sech²(u), u = v/vc,
+r = σ_v/vc, whose noise average is tanh(v_true/vc) to O(r⁴) (first term of the inverse heat
+operator, ψ = f − (σ_v²/2)·f''); r is capped at ``MAX_NOISE_RATIO`` (ψ monotone for r < 1/√2;
+the series is not valid beyond). The smoothing itself (the filter's lag on the velocity) is not
+corrected: on those runs it moves vc by about −3 %.
+
 Both sides are low-passed by the same filter: the accelerations in tau_0 are smoothed, the
 pressures are not, and their fast hydraulic oscillations would otherwise leak into the fit. The
 fit first uses one moving average of the derivative-smoothing window (it keeps the sharp force
@@ -41,6 +53,8 @@ from cranetwin import physics
 from cranetwin.errors import TwinError
 from cranetwin.model import Cylinder, Machine
 from cranetwin.samples import SampleArrays
+from cranetwin.signal.smoothing import sg_filter
+from cranetwin.twin.channels import ChannelMap
 from cranetwin.twin.replay import ReplayOptions, replay
 from cranetwin.twin.result import TwinResult
 
@@ -56,6 +70,8 @@ VC_GRID = np.geomspace(5e-4, 0.05, 25)
 NARROW_FILTER = (1, 1.0)
 WIDE_FILTER = (2, 2.0)
 WIDE_FILTER_RATIO = 0.01
+# largest velocity-noise / vc ratio the Coulomb column is corrected for (module docstring)
+MAX_NOISE_RATIO = 0.5
 
 
 @dataclass(frozen=True)
@@ -88,6 +104,8 @@ class Calibration:
         offsets_n: Constant force offset per cylinder (pressure-transducer bias), in
             ``machine.cylinders`` order [N].
         filter_passes_width: The low-pass used: moving-average passes and width [instants].
+        velocity_noise_mps: Standard deviation of each cylinder's velocity noise that the
+            Coulomb column was corrected for, in ``machine.cylinders`` order [m/s].
     """
 
     cylinders: tuple[CylinderFit, ...]
@@ -97,6 +115,7 @@ class Calibration:
     samples_used: int
     offsets_n: tuple[float, ...] = ()
     filter_passes_width: tuple[int, int] = (1, 1)
+    velocity_noise_mps: tuple[float, ...] = ()
 
 
 def _lowpass(x: F64, width: int, passes: int) -> F64:
@@ -115,16 +134,55 @@ def _moving_average(x: F64, width: int) -> F64:
     return out
 
 
-def _design(vc: F64, v: F64, g: F64, width: int, passes: int) -> F64:
+def coulomb_column(v: F64, vc: float, sigma_v: float) -> F64:
+    """Coulomb regressor of Eq. 2 at a noisy velocity: ψ(v) = tanh(u) + r²·tanh(u)·sech²(u),
+    u = v/vc, r = min(σ_v/vc, ``MAX_NOISE_RATIO``), whose average over Gaussian velocity noise
+    of standard deviation σ_v is tanh(v_true/vc) to O(r⁴) (module docstring).
+
+    Args:
+        v: Measured velocities [m/s].
+        vc: Coulomb velocity [m/s].
+        sigma_v: Velocity noise standard deviation [m/s]; 0 gives tanh(v/vc).
+    """
+    t = np.tanh(v / vc)
+    r2 = min(sigma_v / vc, MAX_NOISE_RATIO) ** 2
+    out: F64 = t + r2 * t * (1.0 - t * t) if r2 > 0.0 else t
+    return out
+
+
+def velocity_noise_std(res: TwinResult, samples: SampleArrays, machine: Machine) -> F64:
+    """Standard deviation of each cylinder's rod-velocity noise in a replay [m/s]:
+    σ_s·‖h'‖/Δt, with σ_s the position noise the replay estimated and h' the Savitzky–Golay
+    derivative filter it used (window and order as ``TwinStream._stage_smooth`` picks them: a
+    window of 1 means 5, order at least 3). The spline onto the grid is not counted (the fit's
+    instants fall 1 ms after the samples; on simulated runs this matched the measured velocity
+    error of the sensor noise to 1 %)."""
+    cmap = ChannelMap.build(machine, samples.channels)
+    dt = 1.0 / sample_rate(samples)
+    out = np.zeros(len(machine.cylinders))
+    for c, j in enumerate(cmap.s):
+        name = cmap.names[j]
+        pos, der = res.smoothing.get(name), res.smoothing.get(name + "'")
+        if pos is None or der is None or not pos.sigma > 0.0:
+            continue
+        w = der.window if der.window > 1 else 5
+        p = min(max(der.polyorder, 3), w - 1)
+        out[c] = pos.sigma * float(np.linalg.norm(sg_filter(w, p, 1))) / dt
+    return out
+
+
+def _design(vc: F64, v: F64, g: F64, width: int, passes: int, sigma_v: F64) -> F64:
     """Columns [m, Fc_0, b_0, off_0, Fc_1, b_1, off_1, …] stacked over cylinders, each
-    low-passed by :func:`_lowpass`: shape (n'·nc, 1 + 3nc)."""
+    low-passed by :func:`_lowpass`: shape (n'·nc, 1 + 3nc). The Coulomb columns are
+    :func:`coulomb_column` with the velocity noise ``sigma_v`` [m/s] per cylinder."""
     n, nc = v.shape
     m = n - passes * (max(width, 1) - 1)
     a = np.zeros((m * nc, 1 + 3 * nc))
     for c in range(nc):
         rows = slice(c * m, (c + 1) * m)
         a[rows, 0] = _lowpass(g[:, c], width, passes)
-        a[rows, 1 + 3 * c] = _lowpass(np.tanh(v[:, c] / vc[c]), width, passes)
+        a[rows, 1 + 3 * c] = _lowpass(coulomb_column(v[:, c], float(vc[c]), float(sigma_v[c])),
+                                      width, passes)
         a[rows, 2 + 3 * c] = _lowpass(v[:, c], width, passes)
         a[rows, 3 + 3 * c] = 1.0
     return a
@@ -147,7 +205,8 @@ def _before(y: F64, v: F64, cyls: list[Cylinder], c: int, width: int, passes: in
                     - fr.viscous * v[:, c], width, passes)
 
 
-def _fit(y: F64, g: F64, v: F64, vc0: F64, width: int, passes: int) -> tuple[F64, F64, F64]:
+def _fit(y: F64, g: F64, v: F64, vc0: F64, width: int, passes: int,
+         sigma_v: F64) -> tuple[F64, F64, F64]:
     """Least squares for fixed vc inside a coordinate search over each cylinder's vc (coarse
     logarithmic grid, then a bounded 1-D minimisation; a second sweep refines locally).
 
@@ -158,7 +217,7 @@ def _fit(y: F64, g: F64, v: F64, vc0: F64, width: int, passes: int) -> tuple[F64
     yv = _lowpass(y, width, passes).T.reshape(-1)
 
     def solve(vc: F64) -> tuple[F64, F64]:
-        a = _design(vc, v, g, width, passes)
+        a = _design(vc, v, g, width, passes, sigma_v)
         x = np.asarray(np.linalg.solve(a.T @ a, a.T @ yv), dtype=np.float64)
         return x, yv - a @ x
 
@@ -235,15 +294,16 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
                         f"filters of {filters})")
     vc0 = np.array([c.friction.coulomb_velocity for c in cyls])
     passes, width = filters[0]
-    x, r, vc = _fit(y, g, v, vc0, width, passes)
+    sigma_v = velocity_noise_std(res, samples, machine)
+    x, r, vc = _fit(y, g, v, vc0, width, passes, sigma_v)
     n = v.shape[0] - passes * (width - 1)
     before = np.column_stack([_before(y, v, cyls, c, width, passes) for c in range(nc)])
     ratio = max(float(np.sqrt(np.mean(r[c * n:(c + 1) * n] ** 2) / np.mean(before[:, c] ** 2)))
                 for c in range(nc))
     if ratio > WIDE_FILTER_RATIO:   # hydraulic oscillations left: refit with the wide filter
         passes, width = filters[1]
-        x, r, vc = _fit(y, g, v, vc, width, passes)
-    a = _design(vc, v, g, width, passes)
+        x, r, vc = _fit(y, g, v, vc, width, passes, sigma_v)
+    a = _design(vc, v, g, width, passes, sigma_v)
     n = v.shape[0] - passes * (width - 1)
     dof = max(a.shape[0] - a.shape[1], 1)
     sigma2 = float(np.dot(r, r)) / dof
@@ -272,7 +332,8 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
             rms_before_n=float(np.sqrt(np.mean(before**2))),
             rms_after_n=float(np.sqrt(np.mean(after**2)))))
     return Calibration(tuple(fits), float(x[0]), mass_std, machine.load_point.tool_mass_kg, n,
-                       tuple(float(x[3 + 3 * c]) for c in range(nc)), (passes, width))
+                       tuple(float(x[3 + 3 * c]) for c in range(nc)), (passes, width),
+                       tuple(float(sv) for sv in sigma_v))
 
 
 def correlation_time(x: F64, max_lag_fraction: float = 0.1) -> float:
