@@ -156,8 +156,9 @@ def test_missing_channel_and_bad_grid_raise(machine: Machine, syn: Synthetic) ->
 
 
 def test_regression_payload_equals_windowed_payload_of_its_inputs() -> None:
-    """The fused pass (g, r at the cylinder joints, then the window) equals windowed_payload
-    of g = (tau1 − tau0)/arm and r = (F·arm − tau0)/arm formed with numpy."""
+    """The fused pass (g, r at the cylinder joints, then the window, two passes over the
+    data) equals windowed_payload of g = (tau1 − tau0)/arm and r = (F·arm − tau0)/arm formed
+    with numpy, bit for bit, with and without the prefilter."""
     from cranetwin.twin.payload import regression_payload, windowed_payload
 
     rng = np.random.default_rng(6)
@@ -169,12 +170,13 @@ def test_regression_payload_equals_windowed_payload_of_its_inputs() -> None:
     force = rng.normal(1e5, 1e4, (n, 3))
     w = np.array([1.0, 0.5, 2.0])
     frac = np.array([0.5, 0.25, 1.0])
-    m, std = regression_payload(tau0, tau1, force, arm, joints, w, 4, 9, frac)
     g = (tau1 - tau0)[:, joints] / arm
     r = (force * arm - tau0[:, joints]) / arm
-    m_ref, std_ref = windowed_payload(g, r, w, 4, 9, frac)
-    np.testing.assert_array_equal(m, m_ref)
-    np.testing.assert_array_equal(std, std_ref)
+    for pf in (0, 4):
+        m, std = regression_payload(tau0, tau1, force, arm, joints, w, pf, 9, frac)
+        m_ref, std_ref = windowed_payload(g, r, w, pf, 9, frac)
+        np.testing.assert_array_equal(m, m_ref)
+        np.testing.assert_array_equal(std, std_ref)
 
 
 def test_windowed_payload_equals_direct_window_sums() -> None:

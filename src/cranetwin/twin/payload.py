@@ -94,17 +94,67 @@ def _windowed_payload(g, r, weights, pf, half, frac_sum, m_out, std_out):  # typ
 def _regression_payload(t0, t1, force, arm, joints, weights, pf, half, frac_sum,  # type: ignore[no-untyped-def]
                         m_out, std_out):
     """g = (t1 − t0)/arm and r = (force·arm − t0)/arm at the cylinder joints, then
-    :func:`_windowed_payload`, in one pass."""
+    :func:`_windowed_payload` (the same operations in the same order, so the same result):
+    the running sums of g and r are formed with them, the per-instant window sums with the
+    running sums of those, so the data are passed over twice."""
     n, k = arm.shape
     g = np.empty((n, k))
     r = np.empty((n, k))
+    cg = np.empty((n + 1, k))
+    cr = np.empty((n + 1, k))
+    for c in range(k):
+        cg[0, c] = 0.0
+        cr[0, c] = 0.0
     for i in range(n):
         for c in range(k):
             j = joints[c]
             a = arm[i, c]
-            g[i, c] = (t1[i, j] - t0[i, j]) / a
-            r[i, c] = (force[i, c] * a - t0[i, j]) / a
-    _windowed_payload(g, r, weights, pf, half, frac_sum, m_out, std_out)
+            gi = (t1[i, j] - t0[i, j]) / a
+            ri = (force[i, c] * a - t0[i, j]) / a
+            g[i, c] = gi
+            r[i, c] = ri
+            cg[i + 1, c] = cg[i, c] + gi
+            cr[i + 1, c] = cr[i, c] + ri
+    cp = np.empty((n + 1, 3))  # running sums of Σ w·g², Σ w·g·r, Σ w·r²
+    cp[0, 0] = 0.0
+    cp[0, 1] = 0.0
+    cp[0, 2] = 0.0
+    for i in range(n):
+        hi = min(i + pf + 1, n)
+        lo = max(i - pf, 0)
+        cnt = float(hi - lo)
+        sa = 0.0
+        sb = 0.0
+        sc = 0.0
+        for c in range(k):
+            if pf > 0:
+                gs = (cg[hi, c] - cg[lo, c]) / cnt
+                rs = (cr[hi, c] - cr[lo, c]) / cnt
+            else:
+                gs = g[i, c]
+                rs = r[i, c]
+            wg = gs * weights[c]
+            sa += wg * gs
+            sb += wg * rs
+            sc += rs * rs * weights[c]
+        cp[i + 1, 0] = cp[i, 0] + sa
+        cp[i + 1, 1] = cp[i, 1] + sb
+        cp[i + 1, 2] = cp[i, 2] + sc
+    for i in range(n):
+        hi = min(i + half + 1, n)
+        lo = max(i - half, 0)
+        sgg = cp[hi, 0] - cp[lo, 0]
+        sgr = cp[hi, 1] - cp[lo, 1]
+        srr = cp[hi, 2] - cp[lo, 2]
+        if not sgg > 0.0:
+            m_out[i] = np.nan
+            std_out[i] = np.inf
+            continue
+        m = sgr / sgg
+        rss = max(srr - m * sgr, 0.0)
+        n_eff = float(hi - lo) * frac_sum
+        m_out[i] = m
+        std_out[i] = np.sqrt(rss / max(n_eff - 1.0, 1.0) / sgg)
 
 
 def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_window: int,
