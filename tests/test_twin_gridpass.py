@@ -131,7 +131,7 @@ def test_kinematic_option_skips_the_correction(machine: Machine) -> None:
 
 def test_generated_mass_matrix_and_pair_agree_with_generic(machine: Machine) -> None:
     p = compile_chain(machine)
-    for name in ("mass_matrix_batch", "rnea_tau_pair_batch"):  # the generated ones, not fallbacks
+    for name in ("mass_matrix_batch", "rnea_tau_pair_batch", "rnea_payload_batch"):  # generated
         assert gridpass._module_attr(p, name) is not None
     rng = np.random.default_rng(7)
     n = 500
@@ -150,6 +150,13 @@ def test_generated_mass_matrix_and_pair_agree_with_generic(machine: Machine) -> 
     np.testing.assert_allclose(ta, physics.joint_torques(machine, q, qd, qdd, 0.0),
                                rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(tb, physics.joint_torques(machine, q, qd, 0.0 * qdd, pl),
+                               rtol=1e-12, atol=1e-9)
+    t0 = np.empty((n, 4))
+    t1 = np.empty((n, 4))
+    gridpass.payload_kernel_for(p, physics.dynamics.rnea_kernels(p)[1])(q, qd, qdd, t0, t1)
+    np.testing.assert_allclose(t0, physics.joint_torques(machine, q, qd, qdd, 0.0),
+                               rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(t1, physics.joint_torques(machine, q, qd, qdd, 1.0),
                                rtol=1e-12, atol=1e-9)
 
 

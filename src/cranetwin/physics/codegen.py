@@ -194,16 +194,16 @@ def _axis_rotation(tr: _Tracer, k: list[float], c: str, s: str) -> list[Ex]:
 
 def trace_rnea(chain: np.ndarray, qd: list[Ex] | None = None, qdd: list[Ex] | None = None,
                gravity: bool = True, tracer: _Tracer | None = None,
-               payload: str = "pl") -> tuple[list[str], list[Ex], list[list[Ex]]]:
+               payload: Ex = "pl") -> tuple[list[str], list[Ex], list[list[Ex]]]:
     """Trace the RNEA of :func:`kernels.rnea_into` for one sample on symbols.
 
     Inputs are the names ``q{i}``, ``qd{i}``, ``qdd{i}``, ``c{i}``/``s{i}`` (cos/sin of q{i})
     and ``pl`` (payload [kg]); ``qd``/``qdd`` replace the velocity/acceleration names by
     values (numbers fold away) and ``gravity=False`` leaves gravity out, e.g. a column of the
     mass matrix is the trace with qd = 0, qdd = e_j and no gravity. ``payload`` names the
-    payload variable. Passes traced into one ``tracer`` share their common subexpressions
-    (a later pass's lines may use an earlier one's names). Returns (the code lines this pass
-    added, tau expressions, wrench expressions).
+    payload variable or gives its value [kg]. Passes traced into one ``tracer`` share their
+    common subexpressions (a later pass's lines may use an earlier one's names). Returns
+    (the code lines this pass added, tau expressions, wrench expressions).
     """
     tr = _Tracer() if tracer is None else tracer
     first_line = len(tr.lines)
@@ -317,6 +317,10 @@ def generate_source(chain: np.ndarray) -> str:
         "",
         "",
         "@njit(cache=True)",
+        inline_rnea(PAYLOAD_TEMPLATE, chain),
+        "",
+        "",
+        "@njit(cache=True)",
         mass_matrix_source(chain, rev),
         "",
         "",
@@ -364,6 +368,24 @@ PAIR_TEMPLATE = """def rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, 
 once (the payload regression's tau at 0 and 1 kg; a column of M as
 tau(q, 0, e_j) − tau(q, 0, 0))."""
 
+PAYLOAD_TEMPLATE = """def rnea_payload_batch(q, qd, qdd, tau0, tau1):
+    for g in range(q.shape[0]):
+        pass  # @RNEA_HEAD@
+        x  # @RNEA qdd tau0 - 0.0@
+        x  # @RNEA qdd tau1 - 1.0@
+"""
+"""The payload regression's two passes, inverse dynamics without and with 1 kg at the load
+point (tau0, tau1 (n, nj)) at the same motion: traced together, they share everything but the
+payload's own terms."""
+
+
+def _number_or_name(a: str) -> Ex:
+    try:
+        return float(a)
+    except ValueError:
+        return a
+
+
 _NAME = re.compile(r"\b(t|qd|q|c|s)(\d+)\b")
 
 
@@ -393,7 +415,7 @@ def inline_rnea(template: str, chain: np.ndarray) -> str:
     revolute = [i for i in range(nj) if chain[HEADER + i * JOINT_BLOCK] != PRISMATIC]
     tr = _Tracer()
     out: list[str] = []
-    n_pass = 0
+    acc_names: dict[str, list[str]] = {}
     last_wrench: list[list[Ex]] | None = None
     for line in template.split("\n"):
         stripped = line.strip()
@@ -413,11 +435,17 @@ def inline_rnea(template: str, chain: np.ndarray) -> str:
         args = spec[4:].split() if linear else spec.split()
         if len(args) != (3 if linear else 4):
             raise ValueError(f"bad RNEA marker: {stripped}")
-        names = [f"qa{n_pass}_{i}" for i in range(nj)]
-        n_pass += 1
-        body = [f"{names[i]} = {args[0]}[g, {i}]" for i in range(nj)]
+        # accelerations of one array are loaded once per row: passes reading the same array
+        # share their names, hence everything but what differs (e.g. the payload)
+        if args[0] not in acc_names:
+            acc_names[args[0]] = [f"qa{len(acc_names)}_{i}" for i in range(nj)]
+            body = [f"qa{len(acc_names) - 1}_{i} = {args[0]}[g, {i}]" for i in range(nj)]
+        else:
+            body = []
+        names = acc_names[args[0]]
+        pl: Ex = _number_or_name(args[-1])
         if linear:
-            acc, wrench, pl = args
+            wrench = args[1]
             if last_wrench is None:
                 raise ValueError("@RNEA_LIN needs an @RNEA pass before it")
             n0 = len(tr.lines)
@@ -429,7 +457,7 @@ def inline_rnea(template: str, chain: np.ndarray) -> str:
             body += [f"{wrench}[g, {i}, {j}] = {_rename(_ex(x))}"
                      for i, wr in enumerate(total) for j, x in enumerate(wr)]
         else:
-            acc, tau, wrench, pl = args
+            tau, wrench = args[1], args[2]
             lines, taus, wrenches = trace_rnea(chain, qdd=list(names), tracer=tr, payload=pl)
             last_wrench = wrenches
             body += [_rename(x) for x in lines]

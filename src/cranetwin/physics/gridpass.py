@@ -576,6 +576,24 @@ def pair_kernel_for(params: ChainParams,
     return two
 
 
+def payload_kernel_for(params: ChainParams,
+                       rnea_tau: Callable[..., None]) -> Callable[..., None]:
+    """``rnea_payload_batch(q, qd, qdd, tau0, tau1)``: joint loads (n, nj) without payload and
+    with 1 kg at the load point, at the same motion (the payload regression: tau1 − tau0 is
+    the load per kg). The machine's generated one traces both passes together, sharing all but
+    the payload's terms; without a generated module, two calls of ``rnea_tau``."""
+    fn = _module_attr(params, "rnea_payload_batch")
+    if fn is not None:
+        return fn
+
+    def two(q: Any, qd: Any, qdd: Any, tau0: Any, tau1: Any) -> None:
+        n = q.shape[0]
+        rnea_tau(q, qd, qdd, np.zeros(n), tau0)
+        rnea_tau(q, qd, qdd, np.ones(n), tau1)
+
+    return two
+
+
 def mass_matrix_kernel_for(params: ChainParams) -> Callable[..., None]:
     """``mass_matrix_batch(q, payload, mm)`` of the machine's generated module (M from traced
     unit-acceleration RNEA columns, ≈ 5× the generic CRBA's speed, equal to 1e-15), or the
