@@ -30,19 +30,21 @@ recomputes every output through the separate physics functions.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 
 from cranetwin import physics
 from cranetwin.errors import PhysicsError, TwinError
 from cranetwin.model import Machine
 from cranetwin.physics import gridpass
 from cranetwin.physics import kernels as K
-from cranetwin.physics.chain import compile_chain
+from cranetwin.physics.chain import CYL_BLOCK, compile_chain
 from cranetwin.physics.dynamics import rnea_kernels
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import (
@@ -69,6 +71,51 @@ END_STOP_MARGIN_M = 0.002
 """Rod positions this close to either end of the stroke [m] count as in the end stop: the
 wrench accelerations stay kinematic for that joint there (``wrench_acceleration``)."""
 
+
+
+@njit(cache=True, error_model="numpy")
+def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, table_ok, cyl,  # type: ignore[no-untyped-def]
+                     fpar, q, qd, qdd, cs):
+    """Per sample row of the smoothed channels ``sm``: rod positions clipped to [0, stroke],
+    the cylinder joints' q, qd, qdd through the kinematics tables (as
+    :func:`cranetwin.physics.gridpass.table_motion_batch`) into q, qd, qdd (n, n_joints), and
+    the states row cs (n, 5·n_c) = [q, qd, qdd of the cylinder joints, moment arms ds/dq,
+    forces (Eq. 1–2, as :func:`cranetwin.physics.kernels.cylinder_forces_batch`)]; the rates
+    and accelerations are columns v_col + k, a_col + k. Returns the number of samples whose
+    position does not fit the geometry (q not finite)."""
+    nc = s_cols.shape[0]
+    bad = 0
+    for i in range(sm.shape[0]):
+        row_bad = False
+        for k in range(nc):
+            s = sm[i, s_cols[k]]
+            if s < 0.0:
+                s = 0.0
+            elif s > stroke[k]:
+                s = stroke[k]
+            ji = int(cyl[1 + k * CYL_BLOCK + 1])
+            if table_ok[k]:
+                qj, d1, d2 = gridpass.table_motion(table, k,
+                                                   table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s)
+            else:
+                qj, d1, d2 = K.cylinder_motion(cyl, k, s)
+            vk = sm[i, v_col + k]
+            w = vk / d1
+            acc = (sm[i, a_col + k] - d2 * w * w) / d1
+            q[i, ji] = qj
+            qd[i, ji] = w
+            qdd[i, ji] = acc
+            cs[i, k] = qj
+            cs[i, nc + k] = w
+            cs[i, 2 * nc + k] = acc
+            cs[i, 3 * nc + k] = d1
+            cs[i, 4 * nc + k] = (sm[i, pa_cols[k]] * fpar[k, 0] - sm[i, pb_cols[k]] * fpar[k, 1]
+                                 - (fpar[k, 2] * math.tanh(vk / fpar[k, 3]) + fpar[k, 4] * vk))
+            if not math.isfinite(qj):
+                row_bad = True
+        if row_bad:
+            bad += 1
+    return bad
 
 
 class HasSamples(Protocol):
@@ -220,6 +267,9 @@ class TwinStream:
         self._slew_joint = machine.joint_index(self._drive.joint) if self._drive else None
         self._cyl_joint = [machine.joint_index(c.joint) for c in machine.cylinders]
         self._cyl_joint_arr = np.array(self._cyl_joint, dtype=np.int64)
+        self._s_cols = np.array(self.cmap.s, dtype=np.int64)
+        self._pa_cols = np.array(self.cmap.p_a, dtype=np.int64)
+        self._pb_cols = np.array(self.cmap.p_b, dtype=np.int64)
         self._pw_cache: tuple[tuple[SmoothingChoice, ...], F64, F64] | None = None
         self._free = [j for j in range(machine.n_joints) if j not in self._cyl_joint]
         self._stroke = np.array([c.stroke_m for c in machine.cylinders])
@@ -422,25 +472,28 @@ class TwinStream:
         ws = tuple(w for w in ICI_WINDOWS if w <= ch.window)
         return ici_smooth_pair(pa, pb, a1, a2, ch.sigma, ws, ch.polyorder)
 
-    def _sample_state(self, k0: int, k1: int,
-                      theta0: F64 | None) -> tuple[F64, F64, F64, F64, F64]:
-        """q, qd, qdd, cylinder forces and moment arms at samples [k0, k1) from the smoothed
-        channels."""
-        assert self._period is not None
-        m = self.machine
+    def _sample_state(self, k0: int, k1: int) -> tuple[F64, F64, F64, F64, F64, F64]:
+        """q, qd, qdd (the slew joint at 0), cylinder forces, moment arms and the cylinder
+        states rows (:func:`_cylinder_states`) at samples [k0, k1) from the smoothed
+        channels, in one compiled pass."""
         sm = self._sm.get(k0, k1)
-        t = np.arange(k0, k1) * self._period
-        s = self._clip_s(sm[:, list(self.cmap.s)])
-        nc = len(self.cmap.s)
-        v = sm[:, self._nch + 1 : self._nch + 1 + nc]
-        a = sm[:, self._nch + 1 + self._nd : self._nch + 1 + self._nd + nc]
-        del t
-        q_other = np.zeros((s.shape[0], m.n_joints - len(m.cylinders)))
-        if theta0 is not None and q_other.shape[1]:
-            q_other[:, 0] = theta0
-        q, qd, qdd, arm = self._joint_motion(s, v, a, q_other)
-        f = self._forces(sm, v)
-        return q, qd, qdd, f, arm
+        n = sm.shape[0]
+        nj = self.machine.n_joints
+        nc = len(self.machine.cylinders)
+        q = np.zeros((n, nj))
+        qd = np.zeros((n, nj))
+        qdd = np.zeros((n, nj))
+        cs = np.empty((n, 5 * nc))
+        bad = _cylinder_states(sm, self._s_cols, self._nch + 1, self._nch + 1 + self._nd,
+                               self._pa_cols, self._pb_cols, self._stroke, self._table,
+                               self._table_ok, self._cyl, self._fpar, q, qd, qdd, cs)
+        if bad:  # the descriptive error
+            self._joint_motion(self._clip_s(sm[:, self._s_cols]),
+                               sm[:, self._nch + 1 : self._nch + 1 + nc],
+                               sm[:, self._nch + 1 + self._nd : self._nch + 1 + self._nd + nc],
+                               np.zeros((n, nj - nc)))
+            raise TwinError("rod positions do not fit the machine geometry")
+        return q, qd, qdd, cs[:, 4 * nc :], cs[:, 3 * nc : 4 * nc], cs
 
     def _stage_slew(self, final: bool) -> None:
         assert self._period is not None and self._drive is not None
@@ -453,14 +506,12 @@ class TwinStream:
             return
         lo = max(self._sm.base, k0 - wh - edge)
         hi = avail if final else min(avail, k_hi + wh + edge)
-        q, qd, qdd, f, arm = self._sample_state(lo, hi, None)
+        q, qd, qdd, f, arm, cs = self._sample_state(lo, hi)
         if self._use_cs and hi > self._cs.end:
             a = self._cs.end - lo
             if a < 0:
                 raise TwinError("internal: cylinder states do not continue the stream")
-            cj = self._cyl_joint
-            self._cs.append(np.concatenate([q[a:, cj], qd[a:, cj], qdd[a:, cj], arm[a:], f[a:]],
-                                           axis=1))
+            self._cs.append(cs[a:])
         if self.payload is not None:
             mass = np.full(q.shape[0], float(self.payload))
         else:
@@ -539,9 +590,6 @@ class TwinStream:
                 raise TwinError(f"rod positions do not fit the machine geometry: {exc}") from exc
             raise TwinError("rod positions do not fit the machine geometry")
         return q, qd, qdd, arm
-
-    def _forces(self, vals: F64, v: F64) -> F64:
-        return self._eq12(vals[:, list(self.cmap.p_a)], vals[:, list(self.cmap.p_b)], v)
 
     def _eq12(self, pa: F64, pb: F64, v: F64) -> F64:
         """Eq. 1–2 for every cylinder, (n, n_cylinders) [N] (as physics.cylinder_forces)."""
