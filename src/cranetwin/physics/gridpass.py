@@ -88,7 +88,7 @@ def derivative_group(src, der, order):  # type: ignore[no-untyped-def]
     for m in range(src.shape[0]):
         if src[m] >= 0 and der[m] == order:
             n += 1
-    out = np.empty((n, 2), dtype=np.int64)
+    out = np.empty((n, 2), dtype=np.uint64)  # unsigned: no negative-index wraparound code
     n = 0
     for m in range(src.shape[0]):
         if src[m] >= 0 and der[m] == order:
@@ -240,12 +240,13 @@ def table_motion(table, k, cells_per_m, s):  # type: ignore[no-untyped-def]
     if i >= n_cells:
         i = n_cells - 1
     u = x - i
-    c0 = table[k, i, 0]
-    c1 = table[k, i, 1]
-    c2 = table[k, i, 2]
-    c3 = table[k, i, 3]
-    c4 = table[k, i, 4]
-    c5 = table[k, i, 5]
+    iu = np.uint64(i)  # s ≥ 0: as an unsigned index, no negative-index wraparound code
+    c0 = table[k, iu, 0]
+    c1 = table[k, iu, 1]
+    c2 = table[k, iu, 2]
+    c3 = table[k, iu, 3]
+    c4 = table[k, iu, 4]
+    c5 = table[k, iu, 5]
     # Estrin's scheme (u², u⁴ and the pairs in parallel): a third of Horner's dependency
     # chain, which sits on the per-instant critical path (rod position → angle → dynamics)
     u2 = u * u
@@ -386,7 +387,9 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     n0 = g0.shape[0]
     n1 = g1.shape[0]
     n2 = g2.shape[0]
-    idx = np.empty(nj, dtype=np.int64)
+    # indices that are never negative are unsigned: numba emits negative-index wraparound
+    # code for every signed array index, ≈ 40 % of the instructions of the spline loops
+    idx = np.empty(nj, dtype=np.uint64)
     amat = np.empty((nj, nj))
     y = np.empty(nj)
     dacc = np.empty(nj)
@@ -395,7 +398,8 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     tt = np.empty(nj)
     wt = np.empty((nj, 6))
     inv_r = 1.0 / r
-    cj = np.empty(nc, dtype=np.int64)
+    cj = np.empty(nc, dtype=np.uint64)
+    sj = np.uint64(slew_joint if slew_joint >= 0 else 0)
     cells_per_m = np.empty(nc)
     inv_vc = np.empty(nc)  # 1 / vc of Eq. 2 [s/m]
     for k in range(nc):
@@ -414,16 +418,18 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
         if i >= n_int:
             i = n_int - 1
             dx = h_last
+        iu = np.uint64(i)
         for m in range(n0):
             c = g0[m, 1]
-            val[g0[m, 0]] = coef[i, 0, c] + dx * (coef[i, 1, c] + dx * (
-                coef[i, 2, c] + dx * coef[i, 3, c]))
+            val[g0[m, 0]] = coef[iu, 0, c] + dx * (coef[iu, 1, c] + dx * (
+                coef[iu, 2, c] + dx * coef[iu, 3, c]))
         for m in range(n1):
             c = g1[m, 1]
-            val[g1[m, 0]] = coef[i, 1, c] + dx * (2.0 * coef[i, 2, c] + 3.0 * dx * coef[i, 3, c])
+            val[g1[m, 0]] = coef[iu, 1, c] + dx * (2.0 * coef[iu, 2, c]
+                                                   + 3.0 * dx * coef[iu, 3, c])
         for m in range(n2):
             c = g2[m, 1]
-            val[g2[m, 0]] = 2.0 * coef[i, 2, c] + 6.0 * dx * coef[i, 3, c]
+            val[g2[m, 0]] = 2.0 * coef[iu, 2, c] + 6.0 * dx * coef[iu, 3, c]
         # -- kinematics, Eq. 1–2, actuator loads --------------------------------------------
         for j in range(nj):
             q[g, j] = 0.0
@@ -432,9 +438,9 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             tau_act[g, j] = 0.0
             known[j] = False
         if slew_joint >= 0 and has_theta:
-            q[g, slew_joint] = val[3 * nc]
-            qd[g, slew_joint] = val[3 * nc + 1]
-            qdd[g, slew_joint] = val[3 * nc + 2]
+            q[g, sj] = val[3 * nc]
+            qd[g, sj] = val[3 * nc + 1]
+            qdd[g, sj] = val[3 * nc + 2]
         row_bad = False
         for k in range(nc):
             raw = val[k]
@@ -466,17 +472,18 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             bad += 1
         if slew_joint >= 0:
             if has_drive:
-                wd = qd[g, slew_joint]
-                tau_act[g, slew_joint] = val[5 * nc + 3] - (
+                wd = qd[g, sj]
+                tau_act[g, sj] = val[5 * nc + 3] - (
                     drive[0] * fast_tanh(wd * inv_dvc) + drive[2] * wd)
-                known[slew_joint] = True
+                known[sj] = True
             else:
-                tau_act[g, slew_joint] = math.nan
+                tau_act[g, sj] = math.nan
         # -- payload, interpolated from the samples -------------------------------------------
-        s1 = min(s0 + 1, ns - 1)
-        mg = mk[s0] + fr * (mk[s1] - mk[s0])
+        u0 = np.uint64(s0)
+        u1 = np.uint64(min(s0 + 1, ns - 1))
+        mg = mk[u0] + fr * (mk[u1] - mk[u0])
         mass[g] = mg
-        std[g] = sk[s0] + fr * (sk[s1] - sk[s0])
+        std[g] = sk[u0] + fr * (sk[u1] - sk[u0])
         pl = mg if mg > 0.0 else 0.0  # NaN and negative estimates: no payload
         # -- inverse dynamics, residual, Eq. 3/4 correction, wrenches -------------------------
         pass  # @RNEA_HEAD@
@@ -492,7 +499,7 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
                 nd += 1
         if not dynamic or nd == 0 or gap[g]:
             continue
-        if nd == n_full and minv_ok[s0] and minv_ok[s1]:
+        if nd == n_full and minv_ok[u0] and minv_ok[u1]:
             # the usual case, every measured joint in D: M_DD⁻¹ interpolated like M. Column
             # by column (M⁻¹ is symmetric, so minv[s, b, :] is column b): nd independent sums
             # instead of nd chains of nd dependent additions on the critical path
@@ -501,15 +508,15 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             for b_ in range(nd):
                 yb = y[b_]
                 for a_ in range(nd):
-                    m0 = minv[s0, b_, a_]
-                    dacc[a_] += (m0 + fr * (minv[s1, b_, a_] - m0)) * yb
+                    m0 = minv[u0, b_, a_]
+                    dacc[a_] += (m0 + fr * (minv[u1, b_, a_] - m0)) * yb
             for a_ in range(nd):
                 qdd2[g, idx[a_]] = dacc[a_]
         else:
             for a_ in range(nd):
                 for b_ in range(nd):
-                    m0 = mm[s0, idx[a_], idx[b_]]
-                    amat[a_, b_] = m0 + fr * (mm[s1, idx[a_], idx[b_]] - m0)
+                    m0 = mm[u0, idx[a_], idx[b_]]
+                    amat[a_, b_] = m0 + fr * (mm[u1, idx[a_], idx[b_]] - m0)
             if not chol_solve_inline(amat, y, nd):
                 continue
             for a_ in range(nd):
