@@ -94,14 +94,13 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
             elif s > stroke[k]:
                 s = stroke[k]
             ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            if table_ok[k]:
-                qj, d1, d2 = gridpass.table_motion(table, k,
-                                                   table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s)
-            else:
-                qj, d1, d2 = K.cylinder_motion(cyl, k, s)
+            # q, dq/ds, d²q/ds² (table, or the exact inverse where the table is not usable)
+            qj, g1, g2 = gridpass.inverse_motion(table, table_ok, cyl, k,
+                                                 table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s)
             vk = sm[i, v_col + k]
-            w = vk / d1
-            acc = (sm[i, a_col + k] - d2 * w * w) / d1
+            d1 = 1.0 / g1  # moment arm ds/dq
+            w = g1 * vk
+            acc = g1 * sm[i, a_col + k] + g2 * vk * vk
             q[i, ji] = qj
             qd[i, ji] = w
             qdd[i, ji] = acc
