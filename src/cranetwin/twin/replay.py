@@ -94,13 +94,14 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
             elif s > stroke[k]:
                 s = stroke[k]
             ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            # q, dq/ds, d²q/ds² (table, or the exact inverse where the table is not usable)
-            qj, g1, g2 = gridpass.inverse_motion(table, table_ok, cyl, k,
-                                                 table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s)
+            if table_ok[k]:
+                qj, d1, d2 = gridpass.table_motion(table, k,
+                                                   table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s)
+            else:
+                qj, d1, d2 = K.cylinder_motion(cyl, k, s)
             vk = sm[i, v_col + k]
-            d1 = 1.0 / g1  # moment arm ds/dq
-            w = g1 * vk
-            acc = g1 * sm[i, a_col + k] + g2 * vk * vk
+            w = vk / d1
+            acc = (sm[i, a_col + k] - d2 * w * w) / d1
             q[i, ji] = qj
             qd[i, ji] = w
             qdd[i, ji] = acc
@@ -273,6 +274,8 @@ class TwinStream:
         self._pa_cols = np.array(self.cmap.p_a, dtype=np.int64)
         self._pb_cols = np.array(self.cmap.p_b, dtype=np.int64)
         self._pw_cache: tuple[tuple[SmoothingChoice, ...], F64, F64] | None = None
+        self._layout: tuple[list[int], list[int], npt.NDArray[np.int64],
+                            npt.NDArray[np.int64]] | None = None
         self._free = [j for j in range(machine.n_joints) if j not in self._cyl_joint]
         self._stroke = np.array([c.stroke_m for c in machine.cylinders])
         self._finished = False
@@ -429,7 +432,8 @@ class TwinStream:
         hi = n_reg if final else min(n_reg, k_hi + hw)
         raw = self._reg.get(lo, hi)
         nd = self._nd
-        out = np.full((raw.shape[0], self._nch + 1 + 2 * nd), np.nan)
+        out = np.empty((raw.shape[0], self._nch + 1 + 2 * nd))
+        written: set[int] = set()  # the rest is NaN (the integrated slew angle's column)
         groups: dict[tuple[int, int], list[int]] = {}
         in_bank = set(self._dcols)  # position channels: value and rates from one filter bank
         for j, choice in enumerate(self._choices[: self._nch]):
@@ -446,8 +450,10 @@ class TwinStream:
             if ch.adaptive:
                 out[:, [ia, ib]] = self._ici_pressures(raw[:, ia], raw[:, ib], cyl.area_a_m2,
                                                        cyl.area_b_m2, ch)
+                written.update((ia, ib))
         for (w, p), cols in groups.items():
             out[:, cols] = savgol_smooth(raw[:, cols], w, p)
+            written.update(cols)
         dt = self._period
         assert dt is not None
         bank: list[list[tuple[int, int, int]]] = []
@@ -462,6 +468,10 @@ class TwinStream:
             outs = savgol_columns(raw[:, self._dcols], bank, delta=dt)
             for i, j in enumerate(self._dcols):
                 out[:, j], out[:, self._nch + 1 + i], out[:, self._nch + 1 + nd + i] = outs[i]
+                written.update((j, self._nch + 1 + i, self._nch + 1 + nd + i))
+        unset = [c for c in range(out.shape[1]) if c not in written]
+        if unset:
+            out[:, unset] = np.nan
         block = out[k0 - lo : k_hi - lo]
         if self._sm.end != k0:
             raise TwinError("internal: smoothing does not continue the stream")
@@ -650,6 +660,20 @@ class TwinStream:
         positions, splined, and that spline's derivative (``"newton"``, the paper's way). An
         integrated slew angle takes its rate and acceleration from its own spline.
         """
+        if self._layout is None:
+            self._layout = self._spline_layout()
+        pos_cols, cols, src, der = self._layout
+        data = sm[:, cols]
+        if self.opt.velocity == "newton":
+            extra = newton_derivative(knots_t, sm[:, pos_cols], 2 if sm.shape[0] >= 5 else 1)
+            data = np.concatenate([data, extra], axis=1)
+        return natural_pieces(knots_t, data), src, der
+
+    def _spline_layout(self) -> tuple[list[int], list[int], npt.NDArray[np.int64],
+                                      npt.NDArray[np.int64]]:
+        """(position columns, spline columns of the smoothed samples, src, der) of
+        :meth:`_splines` (fixed for a stream; with ``"newton"`` the Newton rates of the
+        position columns follow the listed columns)."""
         nc = len(self.machine.cylinders)
         nd = self._nd
         cm = self.cmap
@@ -660,9 +684,7 @@ class TwinStream:
         src = np.full(gridpass.n_quantities(nc), -1, dtype=np.int64)
         der = np.zeros_like(src)
         src[:nc] = np.arange(nc)
-        extra: F64 | None = None
         if self.opt.velocity == "newton":
-            extra = newton_derivative(knots_t, sm[:, pos_cols], 2 if sm.shape[0] >= 5 else 1)
             base = len(cols) + len(cm.p_a) + len(cm.p_b) + (cm.torque is not None)
             src[nc : 2 * nc] = base + np.arange(nc)
             src[2 * nc : 3 * nc] = base + np.arange(nc)
@@ -694,10 +716,7 @@ class TwinStream:
         if cm.torque is not None:
             src[5 * nc + 3] = len(cols)
             cols.append(cm.torque)
-        data = sm[:, cols]
-        if extra is not None:
-            data = np.concatenate([data, extra], axis=1)
-        return natural_pieces(knots_t, data), src, der
+        return pos_cols, cols, src, der
 
     def _chunk(self, ka: int, kb: int, last: bool, ready: int) -> TwinResult:
         """Outputs at samples [ka, kb) (through kb − 1 … the end on the ``last`` chunk).
