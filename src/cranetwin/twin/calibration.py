@@ -20,12 +20,12 @@ v = v_true + e with e of standard deviation σ_v = σ_s·‖h'‖/Δt (σ_s the 
 replay estimated, h' the derivative filter). The low-pass below averages e out of every column,
 so a column tanh(v/vc) tends to E_e[tanh((v_true + e)/vc)]: tanh blurred by the noise, wider
 than tanh(v_true/vc), and the fit narrowed vc to compensate (the extension, vc = 3 mm/s with
-σ_v ≈ 1.1 mm/s: −8 … −16 % on simulated 10-minute runs; with the true velocity +0.5 %). The
+σ_v ≈ 1.1 mm/s: −6 … −16 % on simulated 10-minute runs; with the true velocity +0.5 %). The
 Coulomb column is therefore the deconvolved ψ(v) = tanh(u) + r²·tanh(u)·sech²(u), u = v/vc,
 r = σ_v/vc, whose noise average is tanh(v_true/vc) to O(r⁴) (first term of the inverse heat
-operator, ψ = f − (σ_v²/2)·f''); r is capped at ``MAX_NOISE_RATIO`` (ψ monotone for r < 1/√2;
-the series is not valid beyond). The smoothing itself (the filter's lag on the velocity) is not
-corrected: on those runs it moves vc by about −3 %.
+operator, ψ = f − (σ_v²/2)·f''); r is capped at ``MAX_NOISE_RATIO`` (ψ is monotone only for
+r < 1/√2, and the series soon diverges). The smoothing error of the velocity itself (the
+filter's bias at reversals, no noise) is not corrected: on those runs it moves vc by ≈ −3 %.
 
 Both sides are low-passed by the same filter: the accelerations in tau_0 are smoothed, the
 pressures are not, and their fast hydraulic oscillations would otherwise leak into the fit. The
