@@ -48,7 +48,7 @@ def test_kinematics_table_matches_exact_inverse(machine: Machine) -> None:
         s_all = np.concatenate([rng.uniform(0.0, st, 4000), [0.0, st, st / 2048.0]])
         exact = np.array([K.cylinder_motion(p.cyl, k, s) for s in s_all])  # q, s′, s″
         per_m = (gridpass.KIN_TABLE_NODES - 1) / st
-        tab = np.array([gridpass.table_motion(table, k, per_m, s) for s in s_all])  # q, q′, q″
+        tab = np.array([gridpass.table_inverse(table, k, per_m, s) for s in s_all])  # q, q′, q″
         np.testing.assert_allclose(tab[:, 0], exact[:, 0], rtol=0, atol=1e-11)  # q [rad or m]
         # the inverse map's derivatives: q′ = 1/s′, q″ = −s″/s′³
         np.testing.assert_allclose(1.0 / tab[:, 1], exact[:, 1], rtol=1e-10)  # ds/dq
@@ -129,9 +129,9 @@ def test_kinematic_option_skips_the_correction(machine: Machine) -> None:
     np.testing.assert_allclose(res.joint_wrench, w, rtol=1e-9, atol=1e-6)
 
 
-def test_generated_mass_matrix_and_pair_agree_with_generic(machine: Machine) -> None:
+def test_generated_mass_matrix_and_payload_pass_agree_with_generic(machine: Machine) -> None:
     p = compile_chain(machine)
-    for name in ("mass_matrix_batch", "rnea_tau_pair_batch", "rnea_payload_batch"):  # generated
+    for name in ("mass_matrix_batch", "rnea_payload_batch"):  # the generated ones
         assert gridpass._module_attr(p, name) is not None
     rng = np.random.default_rng(7)
     n = 500
@@ -143,21 +143,22 @@ def test_generated_mass_matrix_and_pair_agree_with_generic(machine: Machine) -> 
     mm = np.empty((n, 4, 4))
     gridpass.mass_matrix_kernel_for(p)(q, pl, mm)
     np.testing.assert_allclose(mm, physics.mass_matrix(machine, q, pl), rtol=1e-12, atol=1e-9)
-    ta = np.empty((n, 4))
-    tb = np.empty((n, 4))
-    gridpass.pair_kernel_for(p, physics.dynamics.rnea_kernels(p)[1])(
-        q, qd, qdd, np.zeros((n, 4)), np.zeros(n), pl, ta, tb)
-    np.testing.assert_allclose(ta, physics.joint_torques(machine, q, qd, qdd, 0.0),
-                               rtol=1e-12, atol=1e-9)
-    np.testing.assert_allclose(tb, physics.joint_torques(machine, q, qd, 0.0 * qdd, pl),
-                               rtol=1e-12, atol=1e-9)
-    t0 = np.empty((n, 4))
-    t1 = np.empty((n, 4))
-    gridpass.payload_kernel_for(p, physics.dynamics.rnea_kernels(p)[1])(q, qd, qdd, t0, t1)
-    np.testing.assert_allclose(t0, physics.joint_torques(machine, q, qd, qdd, 0.0),
-                               rtol=1e-12, atol=1e-9)
-    np.testing.assert_allclose(t1, physics.joint_torques(machine, q, qd, qdd, 1.0),
-                               rtol=1e-12, atol=1e-9)
+    rnea_tau = physics.dynamics.rnea_kernels(p)[1]
+    kernels = [gridpass.payload_kernel_for(p, rnea_tau)]
+    with pytest.MonkeyPatch.context() as mp:  # the fallback without a generated module
+        mp.setattr(gridpass, "_module_attr", lambda params, name: None)
+        kernels.append(gridpass.payload_kernel_for(p, rnea_tau))
+    assert kernels[0] is not kernels[1]
+    for fn in kernels:
+        t0 = np.empty((n, 4))
+        t1 = np.empty((n, 4))
+        fn(q, qd, qdd, t0, t1)
+        np.testing.assert_allclose(t0, physics.joint_torques(machine, q, qd, qdd, 0.0),
+                                   rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(t1, physics.joint_torques(machine, q, qd, qdd, 1.0),
+                                   rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(t1, physics.joint_torques(machine, q, qd, qdd, 1.0),
+                                   rtol=1e-12, atol=1e-9)
 
 
 def test_tracer_folds_axis_rotations_and_shares_common_terms(machine: Machine) -> None:

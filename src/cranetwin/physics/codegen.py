@@ -277,7 +277,7 @@ def _ex(a: Ex) -> str:
 def generate_source(chain: np.ndarray) -> str:
     """Python source of ``rnea_batch(q, qd, qdd, payload, tau, wrench)`` and
     ``rnea_tau_batch(q, qd, qdd, payload, tau)`` specialised to ``chain``, the two-pass
-    ``rnea_tau_pair_batch``, ``mass_matrix_batch`` and the fused replay grid pass
+    ``rnea_payload_batch``, ``mass_matrix_batch`` and the fused replay grid pass
     (:func:`cranetwin.physics.gridpass.grid_pass`) with the RNEA inlined."""
     nj = int(chain[0])
     lines, taus, wrenches = trace_rnea(chain)
@@ -310,10 +310,6 @@ def generate_source(chain: np.ndarray) -> str:
         "def rnea_tau_batch(q, qd, qdd, payload, tau):",
         "    for k in range(q.shape[0]):",
         *[ind + x for x in body + out_tau],
-        "",
-        "",
-        "@njit(cache=True)",
-        inline_rnea(PAIR_TEMPLATE, chain),
         "",
         "",
         "@njit(cache=True)",
@@ -354,19 +350,6 @@ def mass_matrix_source(chain: np.ndarray, revolute: list[int]) -> str:
     return "\n".join(["def mass_matrix_batch(q, payload, mm):",
                       "    for g in range(q.shape[0]):", *["        " + x for x in body]])
 
-
-PAIR_TEMPLATE = """def rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, tau_b):
-    for g in range(q.shape[0]):
-        pass  # @RNEA_HEAD@
-        pla = pl_a[g]
-        plb = pl_b[g]
-        x  # @RNEA qdd tau_a - pla@
-        x  # @RNEA qdd2 tau_b - plb@
-"""
-"""Two inverse-dynamics passes per sample that share q and qd — (qdd, pl_a) into tau_a,
-(qdd2, pl_b) into tau_b — in one loop, traced together so that what they share is computed
-once (the payload regression's tau at 0 and 1 kg; a column of M as
-tau(q, 0, e_j) − tau(q, 0, 0))."""
 
 PAYLOAD_TEMPLATE = """def rnea_payload_batch(q, qd, qdd, tau0, tau1):
     for g in range(q.shape[0]):

@@ -229,7 +229,7 @@ def kinematics_table(cyl, stroke, n_nodes, table):  # type: ignore[no-untyped-de
 
 
 @njit(cache=True, inline="always")
-def table_motion(table, k, cells_per_m, s):  # type: ignore[no-untyped-def]
+def table_inverse(table, k, cells_per_m, s):  # type: ignore[no-untyped-def]
     """(q, dq/ds, d²q/ds²) of cylinder k at rod position s in [0, stroke] from its table
     (``cells_per_m`` = cells / stroke [1/m]): the inverse map and its derivatives, so that the
     chain rule needs no division (qd = q′·v, qdd = q′·a + q″·v²; the moment arm ds/dq is 1/q′).
@@ -261,9 +261,9 @@ def table_motion(table, k, cells_per_m, s):  # type: ignore[no-untyped-def]
 @njit(cache=True, inline="always")
 def inverse_motion(table, table_ok, cyl, k, cells_per_m, s):  # type: ignore[no-untyped-def]
     """(q, dq/ds, d²q/ds²) of cylinder k at rod position s: from its table where usable
-    (:func:`table_motion`), else from the exact inverse (:func:`cylinder_motion`)."""
+    (:func:`table_inverse`), else from the exact inverse (:func:`cylinder_motion`)."""
     if table_ok[k]:
-        return table_motion(table, k, cells_per_m, s)
+        return table_inverse(table, k, cells_per_m, s)
     qj, d1, d2 = cylinder_motion(cyl, k, s)
     g1 = 1.0 / d1
     return qj, g1, -d2 * g1 * g1 * g1
@@ -564,23 +564,6 @@ def _module_attr(params: ChainParams, name: str) -> Callable[..., Any] | None:
 
 
 _ATTRS: dict[tuple[int, str], tuple[ChainParams, Callable[..., Any] | None]] = {}
-
-
-def pair_kernel_for(params: ChainParams,
-                    rnea_tau: Callable[..., None]) -> Callable[..., None]:
-    """``rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, tau_b)`` of the machine's
-    generated module (:data:`cranetwin.physics.codegen.PAIR_TEMPLATE`), or the same from two
-    calls of ``rnea_tau`` when there is no generated module."""
-    fn = _module_attr(params, "rnea_tau_pair_batch")
-    if fn is not None:
-        return fn
-
-    def two(q: Any, qd: Any, qdd: Any, qdd2: Any, pl_a: Any, pl_b: Any, tau_a: Any,
-            tau_b: Any) -> None:
-        rnea_tau(q, qd, qdd, pl_a, tau_a)
-        rnea_tau(q, qd, qdd2, pl_b, tau_b)
-
-    return two
 
 
 def payload_kernel_for(params: ChainParams,
