@@ -94,13 +94,14 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
             elif s > stroke[k]:
                 s = stroke[k]
             ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            # q, dq/ds, d²q/ds² (table, or the exact inverse where the table is not usable)
-            qj, g1, g2 = gridpass.inverse_motion(table, table_ok, cyl, k,
-                                                 table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s)
+            if table_ok[k]:
+                qj, d1, d2 = gridpass.table_motion(table, k,
+                                                   table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s)
+            else:
+                qj, d1, d2 = K.cylinder_motion(cyl, k, s)
             vk = sm[i, v_col + k]
-            d1 = 1.0 / g1  # moment arm ds/dq
-            w = g1 * vk
-            acc = g1 * sm[i, a_col + k] + g2 * vk * vk
+            w = vk / d1
+            acc = (sm[i, a_col + k] - d2 * w * w) / d1
             q[i, ji] = qj
             qd[i, ji] = w
             qdd[i, ji] = acc
@@ -115,6 +116,29 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
         if row_bad:
             bad += 1
     return bad
+
+
+@njit(cache=True)
+def _unpack_states(st, joints, theta, theta_joint, q, qd, qdd, arm, force):  # type: ignore[no-untyped-def]
+    """Rows of :func:`_cylinder_states` back into q, qd, qdd (n, n_joints; zero but the
+    cylinder joints and, if theta_joint >= 0, q of that joint = theta), arm and force
+    (n, n_c)."""
+    nc = joints.shape[0]
+    nj = q.shape[1]
+    for i in range(st.shape[0]):
+        for j in range(nj):
+            q[i, j] = 0.0
+            qd[i, j] = 0.0
+            qdd[i, j] = 0.0
+        for k in range(nc):
+            j = joints[k]
+            q[i, j] = st[i, k]
+            qd[i, j] = st[i, nc + k]
+            qdd[i, j] = st[i, 2 * nc + k]
+            arm[i, k] = st[i, 3 * nc + k]
+            force[i, k] = st[i, 4 * nc + k]
+        if theta_joint >= 0:
+            q[i, theta_joint] = theta[i]
 
 
 class HasSamples(Protocol):
@@ -289,7 +313,7 @@ class TwinStream:
                                     if fr is not None else [0.0, 1.0, 0.0])
         self._grid = gridpass.kernel_for(params)
         self._rnea_tau = rnea_kernels(params)[1]
-        self._payload_tau = gridpass.payload_kernel_for(params, self._rnea_tau)
+        self._pair = gridpass.pair_kernel_for(params, self._rnea_tau)
         self._mass_matrix = gridpass.mass_matrix_kernel_for(params)
         self._table = np.empty((len(machine.cylinders), gridpass.KIN_TABLE_NODES - 1, 6))
         self._table_ok = gridpass.kinematics_table(params.cyl, self._stroke,
@@ -608,6 +632,19 @@ class TwinStream:
         K.cylinder_forces_batch(pa, pb, v, self._fpar, out)
         return out
 
+    def _tau_pair(self, q: F64, qd: F64, qdd: F64, qdd2: F64, pl_a: F64,
+                  pl_b: F64) -> tuple[F64, F64]:
+        """Inverse-dynamics joint loads (n, n_joints) at (q, qd, qdd, pl_a) and at
+        (q, qd, qdd2, pl_b), in one compiled pass (as physics.joint_torques twice, without
+        its argument checks: the arrays are ours)."""
+        n = q.shape[0]
+        ta = np.empty((n, self.machine.n_joints))
+        tb = np.empty((n, self.machine.n_joints))
+        c = np.ascontiguousarray
+        self._pair(c(q), c(qd), c(qdd), c(qdd2), c(pl_a, dtype=np.float64),
+                   c(pl_b, dtype=np.float64), ta, tb)
+        return ta, tb
+
     def _payload_weights(self) -> tuple[F64, F64]:
         """Weights 1/σ² per cylinder joint and the independent errors per sample of each,
         from the smoothing choices (cached with them)."""
@@ -629,11 +666,8 @@ class TwinStream:
     def _estimate_payload(self, q: F64, qd: F64, qdd: F64, f: F64, arm: F64) -> tuple[F64, F64]:
         """Payload and its standard error at every instant of q (windows cut at its ends) from
         the cylinder forces f and moment arms (the actuator loads F·ds/dq)."""
-        nj = self.machine.n_joints
-        t0 = np.empty((q.shape[0], nj))  # joint loads without payload
-        t1 = np.empty((q.shape[0], nj))  # and with 1 kg at the load point
-        c = np.ascontiguousarray
-        self._payload_tau(c(q), c(qd), c(qdd), t0, t1)
+        n = q.shape[0]
+        t0, t1 = self._tau_pair(q, qd, qdd, qdd, np.zeros(n), np.ones(n))
         weights, frac = self._payload_weights()
         return regression_payload(t0, t1, f, arm, self._cyl_joint_arr, weights,
                                   self._prefilter // 2, self._payload_half, frac)
@@ -739,18 +773,13 @@ class TwinStream:
         cached = self._use_cs and e1 < f1 and self._cs.base <= e0 and e1 < self._cs.end
         f_s: F64 | None = None
         if cached:  # cylinder joints' motion, arms and forces as the slew stage found them
-            st = self._cs.get(e0, e1 + 1)
-            cj = self._cyl_joint
-            q_s = np.zeros((ne, nj))
-            qd_s = np.zeros((ne, nj))
-            qdd_s = np.zeros((ne, nj))
-            if has_theta:
-                q_s[:, self._free[0]] = smp[:, 3 * nc]
-            q_s[:, cj] = st[:, :nc]
-            qd_s[:, cj] = st[:, nc : 2 * nc]
-            qdd_s[:, cj] = st[:, 2 * nc : 3 * nc]
-            arm_s = st[:, 3 * nc : 4 * nc]
-            f_s = st[:, 4 * nc :]
+            q_s = np.empty((ne, nj))
+            qd_s = np.empty((ne, nj))
+            qdd_s = np.empty((ne, nj))
+            arm_s = np.empty((ne, nc))
+            f_s = np.empty((ne, nc))
+            _unpack_states(self._cs.get(e0, e1 + 1), self._cyl_joint_arr, smp[:, 3 * nc],
+                           self._free[0] if has_theta else -1, q_s, qd_s, qdd_s, arm_s, f_s)
         else:
             s_s = self._clip_s(smp[:, :nc])
             q_other = np.zeros((ne, nj - nc))
