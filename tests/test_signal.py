@@ -343,6 +343,12 @@ def test_savgol_columns_equal_savgol_bank_per_column() -> None:
         want = savgol_bank(y[:, c], col, delta=0.01)
         for g, w in zip(got[c], want, strict=True):
             np.testing.assert_allclose(g, w, rtol=0, atol=1e-13 * np.abs(w).max())
+    inner = savgol_columns(y, filters, delta=0.01, edges=(False, False))
+    for c, col in enumerate(filters):
+        for (w, _, _), g, full in zip(col, inner[c], got[c], strict=True):
+            half = w // 2
+            np.testing.assert_array_equal(g[half : n - half], full[half : n - half])
+            assert np.isnan(g[:half]).all() and np.isnan(g[n - half :]).all()
     with pytest.raises(SignalError):
         savgol_columns(y, filters[:2])
     with pytest.raises(SignalError):

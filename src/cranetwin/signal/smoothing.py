@@ -358,7 +358,8 @@ def savgol_bank(y: npt.ArrayLike, filters: Sequence[tuple[int, int, int]],
 
 
 def savgol_columns(y: npt.ArrayLike, filters: Sequence[Sequence[tuple[int, int, int]]],
-                   delta: float = 1.0) -> list[list[F64]]:
+                   delta: float = 1.0,
+                   edges: tuple[bool, bool] = (True, True)) -> list[list[F64]]:
     """:func:`savgol_bank` with filters of its own for each column, all columns' FFTs in one
     batched forward and one batched inverse transform: ``out[c][i]`` equals
     ``savgol_bank(y[:, c], filters[c], delta)[i]`` (to rounding).
@@ -367,6 +368,8 @@ def savgol_columns(y: npt.ArrayLike, filters: Sequence[Sequence[tuple[int, int, 
         y: Uniformly spaced samples, shape (n, k).
         filters: Per column, ``(window, polyorder, deriv)`` per output (as :func:`savgol_bank`).
         delta: Sample spacing [s].
+        edges: Whether the ``window//2`` samples at the (start, end) are wanted; False leaves
+            them NaN (a caller that discards them saves the end fits).
 
     Returns:
         Per column, one array (n,) per filter.
@@ -417,8 +420,8 @@ def savgol_columns(y: npt.ArrayLike, filters: Sequence[Sequence[tuple[int, int, 
                 r += 1
             else:
                 out[:] = correlate1d(yc, h, mode="nearest")
-            out[:half] = left @ yc[:w]
-            out[n - half :] = right @ yc[n - w :]
+            out[:half] = left @ yc[:w] if edges[0] else np.nan
+            out[n - half :] = right @ yc[n - w :] if edges[1] else np.nan
             if d:
                 out /= delta**d
             res.append(out)

@@ -488,7 +488,9 @@ class TwinStream:
             cv = self._choices[j]
             bank.append([(cv.window, cv.polyorder, 0), (w, p, 1), (w, p, 2)])
         if bank:  # every position channel's value, rate and acceleration: one batched FFT
-            outs = savgol_columns(raw[:, self._dcols], bank, delta=dt)
+            # the end fits only where the kept block reaches within a window of the data's ends
+            outs = savgol_columns(raw[:, self._dcols], bank, delta=dt,
+                                  edges=(k0 - lo < hw, hi - k_hi < hw))
             for i, j in enumerate(self._dcols):
                 out[:, j], out[:, self._nch + 1 + i], out[:, self._nch + 1 + nd + i] = outs[i]
                 written.update((j, self._nch + 1 + i, self._nch + 1 + nd + i))
