@@ -400,6 +400,16 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     inv_r = 1.0 / r
     cj = np.empty(nc, dtype=np.uint64)
     sj = np.uint64(slew_joint if slew_joint >= 0 else 0)
+    free = np.empty(nj, dtype=np.uint64)  # joints no cylinder drives
+    n_free = 0
+    for j in range(nj):
+        driven = False
+        for k in range(nc):
+            if int(cyl[1 + k * CYL_BLOCK + 1]) == j:
+                driven = True
+        if not driven:
+            free[n_free] = j
+            n_free += 1
     cells_per_m = np.empty(nc)
     inv_vc = np.empty(nc)  # 1 / vc of Eq. 2 [s/m]
     for k in range(nc):
@@ -431,7 +441,8 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             c = g2[m, 1]
             val[g2[m, 0]] = 2.0 * coef[iu, 2, c] + 6.0 * dx * coef[iu, 3, c]
         # -- kinematics, Eq. 1–2, actuator loads --------------------------------------------
-        for j in range(nj):
+        for m in range(n_free):  # the cylinder joints are all written below
+            j = free[m]
             q[g, j] = 0.0
             qd[g, j] = 0.0
             qdd[g, j] = 0.0
