@@ -374,7 +374,9 @@ class TwinStream:
             return
         if self._raw_t.shape[0] and not t[0] > self._raw_t[-1]:
             raise TwinError("pushed samples must come after the samples pushed before")
-        vals = np.asarray(samples.values, dtype=np.float64)[:, self._cols]
+        vals = np.asarray(samples.values, dtype=np.float64)
+        if self._cols != list(range(vals.shape[1])):
+            vals = vals[:, self._cols]
         self._raw_t = np.concatenate([self._raw_t, t])
         self._raw_v = np.concatenate([self._raw_v, vals])
         yield from self._advance(final=False)
@@ -884,7 +886,10 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
     stream = TwinStream(machine, samples.channels, opt, payload)
     if opt.smoothing is None and n >= 4 and opt.sample_period_s is not None:
         cols = [samples.channels.index(c) for c in stream.cmap.names]
-        reg = regularize(samples.t_s, samples.values[:, cols], period=opt.sample_period_s,
+        vals = samples.values
+        if cols != list(range(vals.shape[1])):  # (no copy of the hour when nothing moves)
+            vals = vals[:, cols]
+        reg = regularize(samples.t_s, vals, period=opt.sample_period_s,
                          max_gap_s=opt.max_gap_s)
         stream.set_smoothing(choose_smoothing(machine, stream.cmap, reg.values, opt.smooth,
                                               opt.adaptive_pressures))
