@@ -1136,6 +1136,12 @@ ICI_RING_MAX = 10
 sums (whose rounding grows as (ICI_BLOCK / 2 / half)²)."""
 
 
+@lru_cache(maxsize=64)
+def _sqrt_centre_weights(ws: tuple[int, ...], polyorder: int) -> F64:
+    """sqrt(h0) of each window (the noise gain's square root), cached."""
+    return np.array([np.sqrt(centre_weight(w, polyorder)) for w in ws])
+
+
 def ici_smooth_pair(pa: npt.ArrayLike, pb: npt.ArrayLike, a1: float, a2: float, sigma: float,
                     windows: tuple[int, ...] = ICI_WINDOWS, polyorder: int = 3,
                     gamma: float = ICI_GAMMA) -> F64:
@@ -1162,7 +1168,7 @@ def ici_smooth_pair(pa: npt.ArrayLike, pb: npt.ArrayLike, a1: float, a2: float, 
     ws = [w for w in windows if (w == 1 or w > polyorder + 1) and w <= n]
     if not ws:
         raise SignalError(f"no ICI window fits {n} samples")
-    sds = np.array([sigma * np.sqrt(centre_weight(w, polyorder)) for w in ws])
+    sds = sigma * _sqrt_centre_weights(tuple(ws), polyorder)
     out = np.empty((n, 2))
     if polyorder <= 3:
         halves, e0, e1, hsum, fits = _ici_prefix_operators(tuple(ws), polyorder)
