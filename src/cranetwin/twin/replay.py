@@ -94,14 +94,13 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
             elif s > stroke[k]:
                 s = stroke[k]
             ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            if table_ok[k]:
-                qj, d1, d2 = gridpass.table_motion(table, k,
-                                                   table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s)
-            else:
-                qj, d1, d2 = K.cylinder_motion(cyl, k, s)
+            # q, dq/ds, d²q/ds² (table, or the exact inverse where the table is not usable)
+            qj, g1, g2 = gridpass.inverse_motion(table, table_ok, cyl, k,
+                                                 table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s)
             vk = sm[i, v_col + k]
-            w = vk / d1
-            acc = (sm[i, a_col + k] - d2 * w * w) / d1
+            d1 = 1.0 / g1  # moment arm ds/dq
+            w = g1 * vk
+            acc = g1 * sm[i, a_col + k] + g2 * vk * vk
             q[i, ji] = qj
             qd[i, ji] = w
             qdd[i, ji] = acc
@@ -313,7 +312,7 @@ class TwinStream:
                                     if fr is not None else [0.0, 1.0, 0.0])
         self._grid = gridpass.kernel_for(params)
         self._rnea_tau = rnea_kernels(params)[1]
-        self._pair = gridpass.pair_kernel_for(params, self._rnea_tau)
+        self._payload_tau = gridpass.payload_kernel_for(params, self._rnea_tau)
         self._mass_matrix = gridpass.mass_matrix_kernel_for(params)
         self._table = np.empty((len(machine.cylinders), gridpass.KIN_TABLE_NODES - 1, 6))
         self._table_ok = gridpass.kinematics_table(params.cyl, self._stroke,
@@ -636,19 +635,6 @@ class TwinStream:
         K.cylinder_forces_batch(pa, pb, v, self._fpar, out)
         return out
 
-    def _tau_pair(self, q: F64, qd: F64, qdd: F64, qdd2: F64, pl_a: F64,
-                  pl_b: F64) -> tuple[F64, F64]:
-        """Inverse-dynamics joint loads (n, n_joints) at (q, qd, qdd, pl_a) and at
-        (q, qd, qdd2, pl_b), in one compiled pass (as physics.joint_torques twice, without
-        its argument checks: the arrays are ours)."""
-        n = q.shape[0]
-        ta = np.empty((n, self.machine.n_joints))
-        tb = np.empty((n, self.machine.n_joints))
-        c = np.ascontiguousarray
-        self._pair(c(q), c(qd), c(qdd), c(qdd2), c(pl_a, dtype=np.float64),
-                   c(pl_b, dtype=np.float64), ta, tb)
-        return ta, tb
-
     def _payload_weights(self) -> tuple[F64, F64]:
         """Weights 1/σ² per cylinder joint and the independent errors per sample of each,
         from the smoothing choices (cached with them)."""
@@ -670,8 +656,11 @@ class TwinStream:
     def _estimate_payload(self, q: F64, qd: F64, qdd: F64, f: F64, arm: F64) -> tuple[F64, F64]:
         """Payload and its standard error at every instant of q (windows cut at its ends) from
         the cylinder forces f and moment arms (the actuator loads F·ds/dq)."""
-        n = q.shape[0]
-        t0, t1 = self._tau_pair(q, qd, qdd, qdd, np.zeros(n), np.ones(n))
+        nj = self.machine.n_joints
+        t0 = np.empty((q.shape[0], nj))  # joint loads without payload
+        t1 = np.empty((q.shape[0], nj))  # and with 1 kg at the load point
+        c = np.ascontiguousarray
+        self._payload_tau(c(q), c(qd), c(qdd), t0, t1)
         weights, frac = self._payload_weights()
         return regression_payload(t0, t1, f, arm, self._cyl_joint_arr, weights,
                                   self._prefilter // 2, self._payload_half, frac)
