@@ -875,10 +875,9 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
     stream = TwinStream(machine, samples.channels, opt, payload)
     if opt.smoothing is None and n >= 4 and opt.sample_period_s is not None:
         cols = [samples.channels.index(c) for c in stream.cmap.names]
-        vals = samples.values
-        if cols != list(range(vals.shape[1])):  # (no copy of the hour when nothing moves)
-            vals = vals[:, cols]
-        reg = regularize(samples.t_s, vals, period=opt.sample_period_s,
+        # (the gathered copy even when nothing moves: the window choice's transposing copy
+        # of a fresh array is measured 20 ms faster than of the caller's)
+        reg = regularize(samples.t_s, samples.values[:, cols], period=opt.sample_period_s,
                          max_gap_s=opt.max_gap_s)
         stream.set_smoothing(choose_smoothing(machine, stream.cmap, reg.values, opt.smooth,
                                               opt.adaptive_pressures))
