@@ -759,11 +759,18 @@ class TwinStream:
         h_last = float(knots_t[-1] - knots_t[-2])
         # -- the sample instants e0 … e1: state, actuator loads, payload ----------------------
         ne = e1 - e0 + 1
-        smp = np.empty((ne, src.shape[0]))
-        gridpass.spline_points(coef, e0 - f0, ne, 1, h0, h_last, src, der, smp)
         has_theta = bool(src[3 * nc] >= 0 and nj > nc)
         # the spline at a knot is the knot's value, except the end knot (last piece at h_last)
         cached = self._use_cs and e1 < f1 and self._cs.base <= e0 and e1 < self._cs.end
+        if cached:  # only the slew angle, its rate and acceleration are needed from the spline
+            smp = np.empty((ne, 3))
+            gridpass.spline_points(coef, e0 - f0, ne, 1, h0, h_last, src[3 * nc : 3 * nc + 3],
+                                   der[3 * nc : 3 * nc + 3], smp)
+            th = smp
+        else:
+            smp = np.empty((ne, src.shape[0]))
+            gridpass.spline_points(coef, e0 - f0, ne, 1, h0, h_last, src, der, smp)
+            th = smp[:, 3 * nc : 3 * nc + 3]
         f_s: F64 | None = None
         if cached:  # cylinder joints' motion, arms and forces as the slew stage found them
             q_s = np.empty((ne, nj))
@@ -771,20 +778,20 @@ class TwinStream:
             qdd_s = np.empty((ne, nj))
             arm_s = np.empty((ne, nc))
             f_s = np.empty((ne, nc))
-            _unpack_states(self._cs.get(e0, e1 + 1), self._cyl_joint_arr, smp[:, 3 * nc],
+            _unpack_states(self._cs.get(e0, e1 + 1), self._cyl_joint_arr, th[:, 0],
                            self._free[0] if has_theta else -1, q_s, qd_s, qdd_s, arm_s, f_s)
         else:
             s_s = self._clip_s(smp[:, :nc])
             q_other = np.zeros((ne, nj - nc))
             if has_theta:
-                q_other[:, 0] = smp[:, 3 * nc]
+                q_other[:, 0] = th[:, 0]
             q_s, qd_s, qdd_s, arm_s = self._joint_motion(s_s, smp[:, nc : 2 * nc],
                                                          smp[:, 2 * nc : 3 * nc], q_other)
         sj = self._slew_joint
         has_drive = self._drive is not None and self.cmap.torque is not None
         if has_theta and sj is not None:
-            qd_s[:, sj] = smp[:, 3 * nc + 1]
-            qdd_s[:, sj] = smp[:, 3 * nc + 2]
+            qd_s[:, sj] = th[:, 1]
+            qdd_s[:, sj] = th[:, 2]
         ks = slice(ka - e0, min(kb - e0 + 1, ne))  # samples ka … kb (if there)
         n_ks = ks.stop - ks.start
         if self.payload is not None:
