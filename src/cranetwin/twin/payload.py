@@ -98,8 +98,9 @@ def _regression_payload(t0, t1, force, arm, joints, weights, pf, half, frac_sum,
     the running sums of g and r are formed with them, the per-instant window sums with the
     running sums of those, so the data are passed over twice."""
     n, k = arm.shape
-    g = np.empty((n, k))
-    r = np.empty((n, k))
+    keep = n if pf == 0 else 0  # g, r themselves only without the prefilter
+    g = np.empty((keep, k))
+    r = np.empty((keep, k))
     cg = np.empty((n + 1, k))
     cr = np.empty((n + 1, k))
     for c in range(k):
@@ -111,8 +112,9 @@ def _regression_payload(t0, t1, force, arm, joints, weights, pf, half, frac_sum,
             a = arm[i, c]
             gi = (t1[i, j] - t0[i, j]) / a
             ri = (force[i, c] * a - t0[i, j]) / a
-            g[i, c] = gi
-            r[i, c] = ri
+            if keep:
+                g[i, c] = gi
+                r[i, c] = ri
             cg[i + 1, c] = cg[i, c] + gi
             cr[i + 1, c] = cr[i, c] + ri
     cp = np.empty((n + 1, 3))  # running sums of Σ w·g², Σ w·g·r, Σ w·r²
