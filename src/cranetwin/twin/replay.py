@@ -80,7 +80,8 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
     the cylinder joints' q, qd, qdd through the kinematics tables (as
     :func:`cranetwin.physics.gridpass.table_motion_batch`) into q, qd, qdd (n, n_joints), and
     the states row cs (n, 5·n_c) = [q, qd, qdd of the cylinder joints, moment arms ds/dq,
-    forces (Eq. 1–2, as :func:`cranetwin.physics.kernels.cylinder_forces_batch`)]; the rates
+    forces (Eq. 1–2, as :func:`cranetwin.physics.kernels.cylinder_forces_batch` but with
+    the grid pass's :func:`~cranetwin.physics.gridpass.fast_tanh`)]; the rates
     and accelerations are columns v_col + k, a_col + k. Returns the number of samples whose
     position does not fit the geometry (q not finite)."""
     nc = s_cols.shape[0]
@@ -108,8 +109,9 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
             cs[i, nc + k] = w
             cs[i, 2 * nc + k] = acc
             cs[i, 3 * nc + k] = d1
+            fr = fpar[k, 2] * gridpass.fast_tanh(vk / fpar[k, 3]) + fpar[k, 4] * vk
             cs[i, 4 * nc + k] = (sm[i, pa_cols[k]] * fpar[k, 0] - sm[i, pb_cols[k]] * fpar[k, 1]
-                                 - (fpar[k, 2] * math.tanh(vk / fpar[k, 3]) + fpar[k, 4] * vk))
+                                 - fr)
             if not math.isfinite(qj):
                 row_bad = True
         if row_bad:
