@@ -313,10 +313,6 @@ def generate_source(chain: np.ndarray) -> str:
         "",
         "",
         "@njit(cache=True)",
-        inline_rnea(PAIR_TEMPLATE, chain),
-        "",
-        "",
-        "@njit(cache=True)",
         inline_rnea(PAYLOAD_TEMPLATE, chain),
         "",
         "",
@@ -353,20 +349,6 @@ def mass_matrix_source(chain: np.ndarray, revolute: list[int]) -> str:
         body += [f"mm[g, {i}, {j}] = {_rename(_ex(t))}" for i, t in enumerate(taus)]
     return "\n".join(["def mass_matrix_batch(q, payload, mm):",
                       "    for g in range(q.shape[0]):", *["        " + x for x in body]])
-
-
-PAIR_TEMPLATE = """def rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, tau_b):
-    for g in range(q.shape[0]):
-        pass  # @RNEA_HEAD@
-        pla = pl_a[g]
-        plb = pl_b[g]
-        x  # @RNEA qdd tau_a - pla@
-        x  # @RNEA qdd2 tau_b - plb@
-"""
-"""Two inverse-dynamics passes per sample that share q and qd — (qdd, pl_a) into tau_a,
-(qdd2, pl_b) into tau_b — in one loop, traced together so that what they share is computed
-once (the payload regression's tau at 0 and 1 kg; a column of M as
-tau(q, 0, e_j) − tau(q, 0, 0))."""
 
 
 PAYLOAD_TEMPLATE = """def rnea_payload_batch(q, qd, qdd, tau0, tau1):

@@ -259,16 +259,6 @@ def table_inverse(table, k, cells_per_m, s):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def table_motion(table, k, cells_per_m, s):  # type: ignore[no-untyped-def]
-    """(q, ds/dq, d²s/dq²) of cylinder k at rod position s from its table: the forward
-    derivatives, as :func:`cylinder_motion` returns them (s′ = 1/q′, s″ = −q″/q′³ from
-    :func:`table_inverse`)."""
-    qv, g1, g2 = table_inverse(table, k, cells_per_m, s)
-    d1 = 1.0 / g1
-    return qv, d1, -g2 * d1 * d1 * d1
-
-
-@njit(cache=True, inline="always")
 def inverse_motion(table, table_ok, cyl, k, cells_per_m, s):  # type: ignore[no-untyped-def]
     """(q, dq/ds, d²q/ds²) of cylinder k at rod position s: from its table where usable
     (:func:`table_inverse`), else from the exact inverse (:func:`cylinder_motion`)."""
@@ -585,23 +575,6 @@ def _module_attr(params: ChainParams, name: str) -> Callable[..., Any] | None:
 
 
 _ATTRS: dict[tuple[int, str], tuple[ChainParams, Callable[..., Any] | None]] = {}
-
-
-def pair_kernel_for(params: ChainParams,
-                    rnea_tau: Callable[..., None]) -> Callable[..., None]:
-    """``rnea_tau_pair_batch(q, qd, qdd, qdd2, pl_a, pl_b, tau_a, tau_b)`` of the machine's
-    generated module (:data:`cranetwin.physics.codegen.PAIR_TEMPLATE`), or the same from two
-    calls of ``rnea_tau`` when there is no generated module."""
-    fn = _module_attr(params, "rnea_tau_pair_batch")
-    if fn is not None:
-        return fn
-
-    def two(q: Any, qd: Any, qdd: Any, qdd2: Any, pl_a: Any, pl_b: Any, tau_a: Any,
-            tau_b: Any) -> None:
-        rnea_tau(q, qd, qdd, pl_a, tau_a)
-        rnea_tau(q, qd, qdd2, pl_b, tau_b)
-
-    return two
 
 
 def payload_kernel_for(params: ChainParams,
