@@ -43,6 +43,18 @@ def _moving_sum_cols(x, half, out):  # type: ignore[no-untyped-def]
             out[i, j] = c[hi, j] - c[lo, j]
 
 
+@njit(cache=True, inline="always")
+def _window_estimate(sgg, sgr, srr, n_eff):  # type: ignore[no-untyped-def]
+    """Payload [kg] and its standard error from one window's weighted sums Σg², Σg·r, Σr² and
+    its effective number of independent samples (NaN and inf when the window has no
+    excitation, Σg² = 0)."""
+    if not sgg > 0.0:
+        return np.nan, np.inf
+    m = sgr / sgg
+    rss = max(srr - m * sgr, 0.0)
+    return m, np.sqrt(rss / max(n_eff - 1.0, 1.0) / sgg)
+
+
 @njit(cache=True)
 def _windowed_payload(g, r, weights, pf, half, frac_sum, m_out, std_out):  # type: ignore[no-untyped-def]
     n, k = g.shape
@@ -75,19 +87,9 @@ def _windowed_payload(g, r, weights, pf, half, frac_sum, m_out, std_out):  # typ
     sums = np.empty((n, 3))
     _moving_sum_cols(per, half, sums)
     for i in range(n):
-        sgg = sums[i, 0]
-        sgr = sums[i, 1]
-        srr = sums[i, 2]
-        if not sgg > 0.0:
-            m_out[i] = np.nan
-            std_out[i] = np.inf
-            continue
-        m = sgr / sgg
-        rss = max(srr - m * sgr, 0.0)
         cnt = float(min(i + half + 1, n) - max(i - half, 0))
-        n_eff = cnt * frac_sum
-        m_out[i] = m
-        std_out[i] = np.sqrt(rss / max(n_eff - 1.0, 1.0) / sgg)
+        m_out[i], std_out[i] = _window_estimate(sums[i, 0], sums[i, 1], sums[i, 2],
+                                                cnt * frac_sum)
 
 
 @njit(cache=True)
@@ -145,18 +147,8 @@ def _regression_payload(t0, t1, force, arm, joints, weights, pf, half, frac_sum,
     for i in range(n):
         hi = min(i + half + 1, n)
         lo = max(i - half, 0)
-        sgg = cp[hi, 0] - cp[lo, 0]
-        sgr = cp[hi, 1] - cp[lo, 1]
-        srr = cp[hi, 2] - cp[lo, 2]
-        if not sgg > 0.0:
-            m_out[i] = np.nan
-            std_out[i] = np.inf
-            continue
-        m = sgr / sgg
-        rss = max(srr - m * sgr, 0.0)
-        n_eff = float(hi - lo) * frac_sum
-        m_out[i] = m
-        std_out[i] = np.sqrt(rss / max(n_eff - 1.0, 1.0) / sgg)
+        m_out[i], std_out[i] = _window_estimate(cp[hi, 0] - cp[lo, 0], cp[hi, 1] - cp[lo, 1],
+                                                cp[hi, 2] - cp[lo, 2], float(hi - lo) * frac_sum)
 
 
 def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_window: int,
