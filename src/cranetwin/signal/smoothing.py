@@ -791,6 +791,38 @@ def _centred_prefix(y, c, start, length, mid, p0, p1, p2):  # type: ignore[no-un
         p2[t + 1] = s2
 
 
+@njit(cache=True, fastmath=True, inline="always")
+def _pair_at_window(pa, pb, i, h, e0k, e1k, hk, x, ring_max, start,  # type: ignore[no-untyped-def]
+                    fa0, fa1, fa2, fb0, fb1, fb2, ca, cb):
+    """(pA, pB) at interior sample i by the centre filter of half-width h (e0k + e1k·j²):
+    directly from the ring of samples up to ``ring_max``, else from the centred prefix sums
+    fa*/fb* of the block starting at ``start`` (x = i − block middle; hk·ca, hk·cb the
+    centring constants' share)."""
+    if h <= ring_max:
+        sa0 = pa[U(i)]
+        sb0 = pb[U(i)]
+        sa2 = 0.0
+        sb2 = 0.0
+        for jj in range(1, h + 1):
+            ya = pa[U(i - jj)] + pa[U(i + jj)]
+            yb = pb[U(i - jj)] + pb[U(i + jj)]
+            j2 = float(jj * jj)
+            sa0 += ya
+            sa2 += j2 * ya
+            sb0 += yb
+            sb2 += j2 * yb
+        return e0k * sa0 + e1k * sa2, e0k * sb0 + e1k * sb2
+    r = U(i + h + 1 - start)
+    q = U(i - h - start)
+    za0 = fa0[r] - fa0[q]
+    zb0 = fb0[r] - fb0[q]
+    ea = (e0k * za0 + e1k * (fa2[r] - fa2[q] - 2.0 * x * (fa1[r] - fa1[q]) + x * x * za0)
+          + hk * ca)
+    eb = (e0k * zb0 + e1k * (fb2[r] - fb2[q] - 2.0 * x * (fb1[r] - fb1[q]) + x * x * zb0)
+          + hk * cb)
+    return ea, eb
+
+
 @njit(cache=True, fastmath=True)
 def _ici_interior(pa, pb, f, i0, m, x0, start, halves, e0, e1, hsum, gs, ring_max,  # type: ignore[no-untyped-def]
                   fa0, fa1, fa2, fb0, fb1, fb2, ff0, ff1, ff2, ca, cb, cf, work, out):
@@ -875,32 +907,8 @@ def _ici_interior(pa, pb, f, i0, m, x0, start, halves, e0, e1, hsum, gs, ring_ma
     for t in range(m):
         i = i0 + t
         kk = int(cnt[t])
-        h = halves[kk]
-        if h <= ring_max:
-            sa0 = pa[U(i)]
-            sb0 = pb[U(i)]
-            sa2 = 0.0
-            sb2 = 0.0
-            for jj in range(1, h + 1):
-                ya = pa[U(i - jj)] + pa[U(i + jj)]
-                yb = pb[U(i - jj)] + pb[U(i + jj)]
-                j2 = float(jj * jj)
-                sa0 += ya
-                sa2 += j2 * ya
-                sb0 += yb
-                sb2 += j2 * yb
-            ea = e0[kk] * sa0 + e1[kk] * sa2
-            eb = e0[kk] * sb0 + e1[kk] * sb2
-        else:
-            x = x0 + t
-            r = U(i + h + 1 - start)
-            q = U(i - h - start)
-            za0 = fa0[r] - fa0[q]
-            zb0 = fb0[r] - fb0[q]
-            ea = (e0[kk] * za0 + e1[kk] * (fa2[r] - fa2[q] - 2.0 * x * (fa1[r] - fa1[q])
-                                           + x * x * za0) + hsum[kk] * ca)
-            eb = (e0[kk] * zb0 + e1[kk] * (fb2[r] - fb2[q] - 2.0 * x * (fb1[r] - fb1[q])
-                                           + x * x * zb0) + hsum[kk] * cb)
+        ea, eb = _pair_at_window(pa, pb, i, halves[kk], e0[kk], e1[kk], hsum[kk], x0 + t,
+                                 ring_max, start, fa0, fa1, fa2, fb0, fb1, fb2, ca, cb)
         out[U(i), 0] = ea
         out[U(i), 1] = eb
 
@@ -1080,30 +1088,9 @@ def _ici_pair_prefix_kernel(pa, pb, a1, a2, halves, e0, e1, hsum, fits, sds, gam
                     for m in range(np1 - 2, -1, -1):
                         ea = ea * u + cra[kk, m]
                         eb = eb * u + crb[kk, m]
-            elif h <= ring_max:
-                sa0 = pa[i]
-                sb0 = pb[i]
-                sa2 = 0.0
-                sb2 = 0.0
-                for jj in range(1, h + 1):
-                    ya = pa[U(i - jj)] + pa[U(i + jj)]
-                    yb = pb[U(i - jj)] + pb[U(i + jj)]
-                    j2 = float(jj * jj)
-                    sa0 += ya
-                    sa2 += j2 * ya
-                    sb0 += yb
-                    sb2 += j2 * yb
-                ea = e0[kk] * sa0 + e1[kk] * sa2
-                eb = e0[kk] * sb0 + e1[kk] * sb2
             else:
-                r = U(i + h + 1 - start)
-                q = U(i - h - start)
-                za0 = fa0[r] - fa0[q]
-                zb0 = fb0[r] - fb0[q]
-                ea = (e0[kk] * za0 + e1[kk] * (fa2[r] - fa2[q] - 2.0 * x * (fa1[r] - fa1[q])
-                                               + x * x * za0) + hsum[kk] * ca)
-                eb = (e0[kk] * zb0 + e1[kk] * (fb2[r] - fb2[q] - 2.0 * x * (fb1[r] - fb1[q])
-                                               + x * x * zb0) + hsum[kk] * cb)
+                ea, eb = _pair_at_window(pa, pb, i, h, e0[kk], e1[kk], hsum[kk], x, ring_max,
+                                         start, fa0, fa1, fa2, fb0, fb1, fb2, ca, cb)
             out[i, 0] = ea
             out[i, 1] = eb
 
