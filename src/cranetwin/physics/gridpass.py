@@ -41,9 +41,8 @@ from cranetwin.physics.kernels import mass_matrix_batch as K_mass_matrix_batch
 
 IMPORTS = ("import numpy as np\n"
            "from cranetwin.physics.chain import CYL_BLOCK\n"
-           "from cranetwin.physics.kernels import _chol_solve, cylinder_motion\n"
            "from cranetwin.physics.gridpass import chol_solve_inline, derivative_group\n"
-           "from cranetwin.physics.gridpass import fast_tanh, inverse_motion")
+           "from cranetwin.physics.gridpass import fast_tanh, joint_motion")
 """Imports the copied :func:`grid_pass` needs in the generated module (besides ``math`` and
 ``njit``, which it has)."""
 
@@ -269,6 +268,15 @@ def inverse_motion(table, table_ok, cyl, k, cells_per_m, s):  # type: ignore[no-
     return qj, g1, -d2 * g1 * g1 * g1
 
 
+@njit(cache=True, inline="always")
+def joint_motion(table, table_ok, cyl, k, cells_per_m, s, v, a):  # type: ignore[no-untyped-def]
+    """Cylinder k's joint at rod position s [m], velocity v [m/s], acceleration a [m/s²]:
+    (q, qd, qdd, moment arm ds/dq) by the chain rule through :func:`inverse_motion`
+    (qd = q′·v, qdd = q′·a + q″·v², ds/dq = 1/q′)."""
+    qj, g1, g2 = inverse_motion(table, table_ok, cyl, k, cells_per_m, s)
+    return qj, g1 * v, g1 * a + g2 * v * v, 1.0 / g1
+
+
 @njit(cache=True)
 def dd_inverse_batch(mm, full, minv, ok):  # type: ignore[no-untyped-def]
     """Inverses of the submatrices M_DD (rows and columns ``full``) of mass matrices mm
@@ -327,13 +335,9 @@ def table_motion_batch(table, table_ok, cyl, s, v, a, q, qd, qdd, arm):  # type:
     for i in range(s.shape[0]):
         for k in range(nc):
             ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            qj, g1, g2 = inverse_motion(table, table_ok, cyl, k,
-                                        table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s[i, k])
-            vk = v[i, k]
-            q[i, ji] = qj
-            qd[i, ji] = g1 * vk
-            qdd[i, ji] = g1 * a[i, k] + g2 * vk * vk
-            arm[i, k] = 1.0 / g1
+            q[i, ji], qd[i, ji], qdd[i, ji], arm[i, k] = joint_motion(
+                table, table_ok, cyl, k, table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s[i, k],
+                v[i, k], a[i, k])
 
 
 def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-untyped-def]
@@ -341,7 +345,7 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
               has_theta,
               mk, sk, mm, minv, minv_ok, n_full, dynamic, gap,
               q, qd, qdd, rod_s, rod_v, pa, pb, force, tau_act, tau_id, resid, wrench,
-              mass, std, qdd2, tau2, work):
+              mass, std, qdd2, work):
     """Every model-step quantity of the replay at rows g = 0 … n−1 (n = q.shape[0]).
 
     Args:
@@ -367,7 +371,8 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
         dynamic: wrench accelerations from forward dynamics (True) or kinematic (False).
         gap: (n,) rows inside a bridged dropout (no dynamic correction there).
         q … std: outputs, (n, nj) / (n, nc) / (n, nj, 6) / (n,).
-        qdd2, tau2: scratch (n, nj); work: scratch (nj, 12) for the generic RNEA.
+        qdd2: scratch (n, nj), the correction Δqdd; work: scratch (nj, 12) for the generic
+            RNEA.
 
     Returns:
         Number of rows where a rod position has no joint angle (the geometry cannot produce
@@ -400,22 +405,20 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     inv_r = 1.0 / r
     cj = np.empty(nc, dtype=np.uint64)
     sj = np.uint64(slew_joint if slew_joint >= 0 else 0)
+    cells_per_m = np.empty(nc)
+    inv_vc = np.empty(nc)  # 1 / vc of Eq. 2 [s/m]
+    driven = np.zeros(nj, dtype=np.bool_)
+    for k in range(nc):
+        cj[k] = int(cyl[1 + k * CYL_BLOCK + 1])
+        driven[cj[k]] = True
+        cells_per_m[k] = table.shape[1] / stroke[k]
+        inv_vc[k] = 1.0 / fpar[k, 3]
     free = np.empty(nj, dtype=np.uint64)  # joints no cylinder drives
     n_free = 0
     for j in range(nj):
-        driven = False
-        for k in range(nc):
-            if int(cyl[1 + k * CYL_BLOCK + 1]) == j:
-                driven = True
-        if not driven:
+        if not driven[j]:
             free[n_free] = j
             n_free += 1
-    cells_per_m = np.empty(nc)
-    inv_vc = np.empty(nc)  # 1 / vc of Eq. 2 [s/m]
-    for k in range(nc):
-        cj[k] = int(cyl[1 + k * CYL_BLOCK + 1])
-        cells_per_m[k] = table.shape[1] / stroke[k]
-        inv_vc[k] = 1.0 / fpar[k, 3]
     inv_dvc = 1.0 / drive[1] if slew_joint >= 0 and has_drive else 0.0
     bad = 0
     for g in range(n):
@@ -459,13 +462,12 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             v = val[nc + k]
             a = val[2 * nc + k]
             ji = cj[k]
-            qj, dq1, dq2 = inverse_motion(table, table_ok, cyl, k, cells_per_m[k], s)
+            qj, qdj, qddj, d1 = joint_motion(table, table_ok, cyl, k, cells_per_m[k], s, v, a)
             if not math.isfinite(qj):
                 row_bad = True
-            d1 = 1.0 / dq1  # ds/dq
             q[g, ji] = qj
-            qd[g, ji] = dq1 * v
-            qdd[g, ji] = dq1 * a + dq2 * v * v
+            qd[g, ji] = qdj
+            qdd[g, ji] = qddj
             rod_s[g, k] = s
             rod_v[g, k] = v
             pak = val[3 * nc + 3 + k]

@@ -95,13 +95,10 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
             elif s > stroke[k]:
                 s = stroke[k]
             ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            # q, dq/ds, d²q/ds² (table, or the exact inverse where the table is not usable)
-            qj, g1, g2 = gridpass.inverse_motion(table, table_ok, cyl, k,
-                                                 table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s)
             vk = sm[i, v_col + k]
-            d1 = 1.0 / g1  # moment arm ds/dq
-            w = g1 * vk
-            acc = g1 * sm[i, a_col + k] + g2 * vk * vk
+            qj, w, acc, d1 = gridpass.joint_motion(
+                table, table_ok, cyl, k, table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s, vk,
+                sm[i, a_col + k])
             q[i, ji] = qj
             qd[i, ji] = w
             qdd[i, ji] = acc
@@ -839,8 +836,7 @@ class TwinStream:
             mk, sk, mm, minv, minv_ok, len(full), dynamic, np.ascontiguousarray(gap_g),
             out["q"], out["qd"], out["qdd"], out["rod_s"], out["rod_v"], out["p_a"],
             out["p_b"], out["cyl_force"], out["actuator_torque"], out["id_torque"],
-            out["residual"], wrench, mass_g, std_g, np.empty((n, nj)), np.empty((n, nj)),
-            np.empty((nj, 12)))
+            out["residual"], wrench, mass_g, std_g, np.empty((n, nj)), np.empty((nj, 12)))
         if bad:
             rows = ~np.all(np.isfinite(out["q"]), axis=1)
             self._joint_motion(out["rod_s"][rows], out["rod_v"][rows], out["rod_v"][rows],
