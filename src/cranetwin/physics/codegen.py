@@ -337,10 +337,7 @@ def mass_matrix_source(chain: np.ndarray, revolute: list[int]) -> str:
     only what its unit acceleration reaches), all columns traced into one tracer so that they
     share cos/sin, the rotations and whatever else they have in common."""
     nj = int(chain[0])
-    body = [f"rq{i} = q[g, {i}]" for i in range(nj)]
-    for i in revolute:
-        body += [f"rc{i} = math.cos(rq{i})", f"rs{i} = math.sin(rq{i})"]
-    body.append("pl = payload[g]")
+    body = _head(nj, revolute, velocities=False) + ["pl = payload[g]"]
     tr = _Tracer()
     for j in range(nj):
         unit: list[Ex] = [1.0 if i == j else 0.0 for i in range(nj)]
@@ -367,6 +364,17 @@ def _number_or_name(a: str) -> Ex:
         return float(a)
     except ValueError:
         return a
+
+
+def _head(nj: int, revolute: list[int], velocities: bool) -> list[str]:
+    """The loads of row ``g`` of q (and qd) and cos/sin of the revolute angles, under the
+    names the renamed traces read (:func:`_rename`)."""
+    out = [f"rq{i} = q[g, {i}]" for i in range(nj)]
+    if velocities:
+        out += [f"rqd{i} = qd[g, {i}]" for i in range(nj)]
+    for i in revolute:
+        out += [f"rc{i} = math.cos(rq{i})", f"rs{i} = math.sin(rq{i})"]
+    return out
 
 
 _NAME = re.compile(r"\b(t|qd|q|c|s)(\d+)\b")
@@ -404,10 +412,7 @@ def inline_rnea(template: str, chain: np.ndarray) -> str:
         stripped = line.strip()
         ind = line[: len(line) - len(line.lstrip())]
         if stripped.endswith("# @RNEA_HEAD@"):
-            for i in range(nj):
-                out += [f"{ind}rq{i} = q[g, {i}]", f"{ind}rqd{i} = qd[g, {i}]"]
-            for i in revolute:
-                out += [f"{ind}rc{i} = math.cos(rq{i})", f"{ind}rs{i} = math.sin(rq{i})"]
+            out += [ind + x for x in _head(nj, revolute, velocities=True)]
             continue
         marker = stripped.rsplit("# @RNEA", 1)
         if len(marker) != 2 or not marker[1].endswith("@"):
