@@ -55,7 +55,7 @@ from cranetwin.model import Cylinder, Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal.smoothing import sg_filter
 from cranetwin.twin.channels import ChannelMap
-from cranetwin.twin.replay import ReplayOptions, replay
+from cranetwin.twin.replay import ReplayOptions, derivative_filter, replay
 from cranetwin.twin.result import TwinResult
 
 F64 = npt.NDArray[np.float64]
@@ -153,10 +153,9 @@ def coulomb_column(v: F64, vc: float, sigma_v: float) -> F64:
 def velocity_noise_std(res: TwinResult, samples: SampleArrays, machine: Machine) -> F64:
     """Standard deviation of each cylinder's rod-velocity noise in a replay [m/s]:
     σ_s·‖h'‖/Δt, with σ_s the position noise the replay estimated and h' the Savitzky–Golay
-    derivative filter it used (window and order as ``TwinStream._stage_smooth`` picks them: a
-    window of 1 means 5, order at least 3). The spline onto the grid is not counted (the fit's
-    instants fall 1 ms after the samples; on simulated runs this matched the measured velocity
-    error of the sensor noise to 1 %)."""
+    derivative filter it used (:func:`cranetwin.twin.replay.derivative_filter`). The spline
+    onto the grid is not counted (the fit's instants fall 1 ms after the samples; on simulated
+    runs this matched the measured velocity error of the sensor noise to 1 %)."""
     cmap = ChannelMap.build(machine, samples.channels)
     dt = 1.0 / sample_rate(samples)
     out = np.zeros(len(machine.cylinders))
@@ -165,8 +164,7 @@ def velocity_noise_std(res: TwinResult, samples: SampleArrays, machine: Machine)
         pos, der = res.smoothing.get(name), res.smoothing.get(name + "'")
         if pos is None or der is None or not pos.sigma > 0.0:
             continue
-        w = der.window if der.window > 1 else 5
-        p = min(max(der.polyorder, 3), w - 1)
+        w, p = derivative_filter(der)
         out[c] = pos.sigma * float(np.linalg.norm(sg_filter(w, p, 1))) / dt
     return out
 

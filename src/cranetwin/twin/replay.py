@@ -139,6 +139,17 @@ def _unpack_states(st, joints, theta, theta_joint, q, qd, qdd, arm, force):  # t
             q[i, theta_joint] = theta[i]
 
 
+def derivative_filter(choice: SmoothingChoice, n_samples: int | None = None) -> tuple[int, int]:
+    """(window, polynomial order) of the Savitzky–Golay filters that give a position channel's
+    rate and acceleration from its derivative channel's smoothing choice: a window of 1 (no
+    smoothing chosen) means 5, the order is at least 3 (an acceleration needs it) and below
+    the window, and the window is cut to the largest odd length within ``n_samples``."""
+    w = choice.window if choice.window > 1 else 5
+    if n_samples is not None:
+        w = min(w, n_samples - (1 - n_samples % 2))
+    return w, min(max(choice.polyorder, 3), w - 1)
+
+
 class HasSamples(Protocol):
     """Anything carrying sensor samples, e.g. :class:`cranetwin.sim.Recording`."""
 
@@ -482,9 +493,7 @@ class TwinStream:
         bank: list[list[tuple[int, int, int]]] = []
         for i, j in enumerate(self._dcols):
             c = self._choices[self._nch + i]
-            w = c.window if c.window > 1 else 5
-            w = min(w, raw.shape[0] - (1 - raw.shape[0] % 2))
-            p = min(max(c.polyorder, 3), w - 1)
+            w, p = derivative_filter(c, raw.shape[0])
             cv = self._choices[j]
             bank.append([(cv.window, cv.polyorder, 0), (w, p, 1), (w, p, 2)])
         if bank:  # every position channel's value, rate and acceleration: one batched FFT
