@@ -23,14 +23,17 @@ class SampleBlock:
 
     Attributes:
         machine_id: Machine identifier (as registered in storage).
-        seq: Datagram sequence number, unique and increasing per machine; storage writes are
-            idempotent on (machine_id, seq).
+        seq: Datagram sequence number, unique and increasing within the sender's epoch;
+            storage writes are idempotent on (machine_id, epoch, seq).
         t0_ns: Timestamp of the first sample [ns since the Unix epoch, machine clock].
         period_ns: Sample period [ns] (10_000_000 at 100 Hz).
         channels: Channel names, in column order (names from the machine description).
         resolution: Quantisation step per channel, in the channel's unit.
         values: Samples, shape (n, len(channels)) [channel units]; NaN = missing (dropout,
             or optional channel not sent). Values are multiples of ``resolution``.
+        epoch: The sender's epoch (boot id, 1 … 2**63 − 1; 0 for protocol version 1): a
+            sender that lost its durable log starts a new epoch, so its sequence numbers never
+            collide with an earlier run's.
     """
 
     machine_id: str
@@ -40,6 +43,7 @@ class SampleBlock:
     channels: tuple[str, ...]
     resolution: tuple[float, ...]
     values: F64
+    epoch: int = 0
 
     @property
     def n(self) -> int:

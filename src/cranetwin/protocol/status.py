@@ -51,6 +51,7 @@ class StatusReport:
         altitude_m: Altitude above the WGS-84 ellipsoid [m] (resolution 1 mm), NaN if no fix.
         operating_hours: Operating-hours counter [h] (resolution 1 s), NaN if not reported.
         channels: Low-rate channel readings by name [channel units], on the resolution grid.
+        epoch: The sender's epoch (see :class:`cranetwin.samples.SampleBlock`).
     """
 
     machine_id: str
@@ -61,6 +62,7 @@ class StatusReport:
     altitude_m: float = math.nan
     operating_hours: float = math.nan
     channels: Mapping[str, float] = field(default_factory=dict)
+    epoch: int = 0
 
 
 def encode_status(key: MachineKey, report: StatusReport, *,
