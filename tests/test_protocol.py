@@ -71,7 +71,7 @@ def batches(draw: st.DrawFn) -> tuple[MachineKey, int, int, int, int, np.ndarray
     secret = draw(st.binary(min_size=16, max_size=64))
     key = MachineKey(draw(st.integers(0, 2**32 - 1)), "m", secret, layout)
     n = draw(st.integers(1, 70))
-    seq = draw(st.integers(0, 2**64 - 1))
+    seq = draw(st.integers(0, 2**63 - 1))
     low = draw(st.integers(0, seq))
     t0 = draw(st.integers(-(2**63), 2**63 - 1))
     period = draw(st.integers(1, 2**32 - 1))
@@ -79,13 +79,15 @@ def batches(draw: st.DrawFn) -> tuple[MachineKey, int, int, int, int, np.ndarray
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(batches())
+@given(batches(), st.integers(0, 2**63 - 1))
 def test_data_round_trip_is_exact_on_the_resolution_grid(
-        case: tuple[MachineKey, int, int, int, int, np.ndarray]) -> None:
+        case: tuple[MachineKey, int, int, int, int, np.ndarray], epoch: int) -> None:
     key, seq, low, t0, period, v = case
-    dg = encode_data(key, seq, t0, period, v, oldest_unacked=low)
+    version = 1 if epoch == 0 else 2  # version 1 (no epoch) still decodes, as epoch 0
+    dg = encode_data(key, seq, t0, period, v, oldest_unacked=low, epoch=epoch, version=version)
     block = decode_data(dg, key)
     assert block.seq == seq and block.t0_ns == t0 and block.period_ns == period
+    assert block.epoch == epoch
     assert block.machine_id == key.machine_id and block.channels == key.layout.names
     assert block.values.shape == v.shape
     assert np.array_equal(block.values, v, equal_nan=True)  # bit-exact, NaN where NaN
@@ -134,15 +136,17 @@ def test_varint_and_zigzag_laws() -> None:
 def test_ack_round_trip(cum: int, data: st.DataObject) -> None:
     sel = data.draw(st.sets(st.integers(cum + 1, min(cum + 1024, 2**64 - 1)), max_size=40))
     t = data.draw(st.integers(-(2**63), 2**63 - 1))
-    ack = decode_ack(encode_ack(KEY, cum, sel, server_time_ns=t), KEY)
-    assert ack == Ack(cum, tuple(sorted(sel)), t)
+    epoch = data.draw(st.integers(0, 2**63 - 1))
+    ack = decode_ack(encode_ack(KEY, cum, sel, server_time_ns=t, epoch=epoch,
+                                version=1 if epoch == 0 else 2), KEY)
+    assert ack == Ack(cum, tuple(sorted(sel)), t, epoch)
     assert all(ack.covers(s) for s in sel)
     assert cum == 0 or ack.covers(cum - 1)
     assert not ack.covers(cum)
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.integers(0, 2**64 - 1), st.integers(-(2**63), 2**63 - 1),
+@given(st.integers(0, 2**63 - 1), st.integers(-(2**63), 2**63 - 1),
        st.floats(-90, 90), st.floats(-180, 180), st.floats(-1e5, 1e5),
        st.floats(0, 1e6), st.booleans(), st.integers(-35000, 35000))
 def test_status_round_trip(seq: int, t: int, lat: float, lon: float, alt: float, hours: float,
@@ -196,7 +200,7 @@ def test_specific_reasons() -> None:
     with pytest.raises(GarbageError):
         decode_data(b"GET / HTTP/1.1\r\n\r\n" + bytes(40), KEY)
     with pytest.raises(WrongVersionError):
-        decode_data(dg[:2] + b"\x02" + dg[3:], KEY)
+        decode_data(dg[:2] + b"\x03" + dg[3:], KEY)
     with pytest.raises(BadHmacError):
         decode_data(dg[:-1] + bytes([dg[-1] ^ 1]), KEY)
     other = MachineKey(42, "crane-042", b"t" * 32, KEY.layout)

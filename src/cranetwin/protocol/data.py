@@ -19,15 +19,16 @@ import numpy.typing as npt
 
 from cranetwin.protocol.errors import GarbageError, LayoutError, TruncatedError
 from cranetwin.protocol.wire import (
-    HEADER,
-    HEADER_BYTES,
-    MAGIC,
+    SEQ_LIMIT,
     TAG_BYTES,
     TYPE_DATA,
     VERSION,
+    Header,
     MachineKey,
     get_varint,
     open_datagram,
+    pack_header,
+    peek_header,
     put_varint,
     tag,
     unzigzag,
@@ -40,7 +41,7 @@ I64 = npt.NDArray[np.int64]
 U64 = npt.NDArray[np.uint64]
 
 DATA_FIXED = struct.Struct(">QqIHII")  # seq, t0_ns, period_ns, n, layout_id, channel mask
-DATA_FIXED_END = HEADER_BYTES + DATA_FIXED.size  # 38
+"""Fixed fields after the header (30 bytes); the lag varint follows them."""
 MAX_SAMPLES = 4096
 FLAG_DROPOUTS = 0x01
 _K_LIMIT = 2.0**53  # |k| beyond which float64 ↔ int64 is no longer exact
@@ -83,19 +84,22 @@ def _bit_width(span: int) -> int:
 
 
 def encode_data(key: MachineKey, seq: int, t0_ns: int, period_ns: int, values: F64, *,
-                oldest_unacked: int | None = None) -> bytes:
+                oldest_unacked: int | None = None, epoch: int = 1,
+                version: int = VERSION) -> bytes:
     """Encode one batch as an authenticated data datagram.
 
     Args:
         key: Machine identity, secret and layout.
-        seq: Sequence number (0 ≤ seq < 2**64), unique per machine and never reused.
+        seq: Sequence number (0 ≤ seq < 2**63), unique within the epoch and never reused.
         t0_ns: Time of the first sample [ns since the Unix epoch, machine clock].
         period_ns: Sample period [ns], 1 ≤ period_ns < 2**32.
         values: Samples, shape (n, c) with c = len(key.layout.channels), 1 ≤ n ≤ 4096, in layout
             column order [channel units]; NaN = missing. Values are quantised to the channel
             resolution (lossless for values on the grid k · resolution).
         oldest_unacked: Lowest sequence number the sender still holds unacknowledged (≤ seq;
-            default seq). Lets the receiver advance its replay window past abandoned numbers.
+            default seq). Lets the receiver forget what the sender no longer holds.
+        epoch: The sender's epoch, 1 … 2**63 − 1 (version 2; the sender's journal keeps it).
+        version: 2, or 1 for the legacy format without epoch (pass ``epoch=0``).
 
     Returns:
         The datagram (UDP payload).
@@ -116,15 +120,15 @@ def encode_data(key: MachineKey, seq: int, t0_ns: int, period_ns: int, values: F
     if not -(2**63) <= t0_ns < 2**63:
         raise ValueError("t0_ns outside the signed 64-bit range")
     low = seq if oldest_unacked is None else oldest_unacked
-    if not 0 <= low <= seq < 2**64:
-        raise ValueError(f"need 0 ≤ oldest_unacked ≤ seq < 2**64, got {low}, {seq}")
+    if not 0 <= low <= seq < (SEQ_LIMIT if version >= 2 else 2**64):
+        raise ValueError(f"need 0 ≤ oldest_unacked ≤ seq < 2**63, got {low}, {seq}")
     k, missing = quantise(v, layout.resolutions)
     present = ~missing.all(axis=0)
     cols = np.flatnonzero(present)
     mask = 0
     for j in cols:
         mask |= 1 << int(j)
-    out = bytearray(HEADER.pack(MAGIC, VERSION, TYPE_DATA, key.wire_id))
+    out = pack_header(version, TYPE_DATA, key.wire_id, 0 if version == 1 else epoch)
     out += DATA_FIXED.pack(seq, t0_ns, period_ns, n, layout.layout_id, mask)
     put_varint(out, seq - low)
     k = k[:, cols]
@@ -176,9 +180,23 @@ def decode_data(datagram: bytes, key: MachineKey) -> SampleBlock:
     Raises:
         DatagramError: any subclass, for any malformed, truncated, forged or mismatched input.
     """
-    wid, body = open_datagram(datagram, key, TYPE_DATA, "data", DATA_FIXED_END)
+    head, body = open_datagram(datagram, key, TYPE_DATA, "data", DATA_FIXED.size)
+    return parse_data(head, body, key)
+
+
+def parse_data(head: Header, body: memoryview, key: MachineKey) -> SampleBlock:
+    """Decode the authenticated ``body`` (header included, tag excluded) of a data datagram whose
+    HMAC the caller has verified (:func:`decode_data` does both).
+
+    Raises:
+        DatagramError: any subclass, for malformed or mismatched fields.
+    """
+    wid = head.wire_id
     end = len(body)
-    seq, t0_ns, period_ns, n, layout_id, mask = DATA_FIXED.unpack_from(body, HEADER_BYTES)
+    fixed_end = head.size + DATA_FIXED.size
+    if end < fixed_end:
+        raise TruncatedError("data datagram shorter than its fixed fields", wid)
+    seq, t0_ns, period_ns, n, layout_id, mask = DATA_FIXED.unpack_from(body, head.size)
     layout = key.layout
     c = len(layout.channels)
     if layout_id != layout.layout_id:
@@ -190,7 +208,7 @@ def decode_data(datagram: bytes, key: MachineKey) -> SampleBlock:
     if not 1 <= n <= MAX_SAMPLES or period_ns == 0:
         raise GarbageError(f"n = {n} samples, period {period_ns} ns: outside 1..{MAX_SAMPLES}, > 0",
                            wid)
-    lag, pos = get_varint(body, DATA_FIXED_END, end)
+    lag, pos = get_varint(body, fixed_end, end)
     if lag > seq:
         raise GarbageError("oldest-unacknowledged lag exceeds the sequence number", wid)
     cols = [j for j in range(c) if mask >> j & 1]
@@ -243,7 +261,8 @@ def decode_data(datagram: bytes, key: MachineKey) -> SampleBlock:
     if not ncol:
         return SampleBlock(machine_id=key.machine_id, seq=seq, t0_ns=t0_ns,
                            period_ns=period_ns, channels=layout.names,
-                           resolution=layout.resolutions, values=np.full((n, c), np.nan))
+                           resolution=layout.resolutions, values=np.full((n, c), np.nan),
+                           epoch=head.epoch)
     k = np.empty((n, ncol), dtype=np.int64)
     k[0] = [_wrap(f) for f in firsts]
     if n > 1:
@@ -273,7 +292,8 @@ def decode_data(datagram: bytes, key: MachineKey) -> SampleBlock:
         values = np.full((n, c), np.nan)
         values[:, cols] = vals
     return SampleBlock(machine_id=key.machine_id, seq=seq, t0_ns=t0_ns, period_ns=period_ns,
-                       channels=layout.names, resolution=layout.resolutions, values=values)
+                       channels=layout.names, resolution=layout.resolutions, values=values,
+                       epoch=head.epoch)
 
 
 _PLAN_CACHE_BITS = 16384  # plans of larger (rare, > 2 KB) bit streams are not cached
@@ -318,7 +338,8 @@ def _wrap(v: int) -> int:
     return v - 2**64 if v >= 2**63 else v
 
 
-def data_lag(datagram: bytes) -> int:
-    """``seq − oldest_unacked`` of an (already authenticated) data datagram."""
-    lag, _ = get_varint(datagram, DATA_FIXED_END, len(datagram) - TAG_BYTES)
+def data_lag(datagram: bytes | memoryview) -> int:
+    """``seq − oldest_unacked`` of a data datagram (not authenticated here)."""
+    head = peek_header(datagram)
+    lag, _ = get_varint(datagram, head.size + DATA_FIXED.size, len(datagram) - TAG_BYTES)
     return lag

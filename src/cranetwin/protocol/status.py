@@ -15,15 +15,16 @@ from dataclasses import dataclass, field
 
 from cranetwin.protocol.errors import GarbageError, LayoutError, TruncatedError
 from cranetwin.protocol.wire import (
-    HEADER,
-    HEADER_BYTES,
-    MAGIC,
+    SEQ_LIMIT,
     TAG_BYTES,
     TYPE_STATUS,
     VERSION,
+    Header,
     MachineKey,
     get_varint,
     open_datagram,
+    pack_header,
+    peek_header,
     put_varint,
     tag,
     unzigzag,
@@ -31,7 +32,6 @@ from cranetwin.protocol.wire import (
 )
 
 STATUS_FIXED = struct.Struct(">QqIBiiiI")  # seq, t, layout, flags, lat, lon, alt, op seconds
-STATUS_FIXED_END = HEADER_BYTES + STATUS_FIXED.size  # 45
 FLAG_GPS = 0x01
 FLAG_HOURS = 0x02
 DEG_SCALE = 1e7  # latitude/longitude in 1e-7 degree (≈ 1.1 cm)
@@ -66,17 +66,18 @@ class StatusReport:
 
 
 def encode_status(key: MachineKey, report: StatusReport, *,
-                  oldest_unacked: int | None = None) -> bytes:
+                  oldest_unacked: int | None = None, version: int = VERSION) -> bytes:
     """Encode ``report`` as an authenticated status datagram (``report.machine_id`` is ignored;
-    the key's wire id is sent).
+    the key's wire id is sent; ``report.epoch`` is the sender's epoch: 0 with ``version=1``,
+    and 0 means epoch 1 in version 2, like :func:`~cranetwin.protocol.encode_data`'s default).
 
     Raises:
         ValueError: a field outside its wire range or an unknown channel name.
     """
     seq = report.seq
     low = seq if oldest_unacked is None else oldest_unacked
-    if not 0 <= low <= seq < 2**64:
-        raise ValueError(f"need 0 ≤ oldest_unacked ≤ seq < 2**64, got {low}, {seq}")
+    if not 0 <= low <= seq < (SEQ_LIMIT if version >= 2 else 2**64):
+        raise ValueError(f"need 0 ≤ oldest_unacked ≤ seq < 2**63, got {low}, {seq}")
     flags = 0
     lat = lon = alt = 0
     if not (math.isnan(report.latitude_deg) or math.isnan(report.longitude_deg)):
@@ -95,7 +96,8 @@ def encode_status(key: MachineKey, report: StatusReport, *,
             raise ValueError("operating hours outside [0, 2**32 s)")
         flags |= FLAG_HOURS
     layout = key.layout
-    out = bytearray(HEADER.pack(MAGIC, VERSION, TYPE_STATUS, key.wire_id))
+    epoch = 0 if version == 1 else (report.epoch or 1)
+    out = pack_header(version, TYPE_STATUS, key.wire_id, epoch)
     out += STATUS_FIXED.pack(seq, report.t_ns, layout.layout_id, flags, lat, lon, alt, hours_s)
     put_varint(out, seq - low)
     items = [(layout.index(name), v) for name, v in report.channels.items() if not math.isnan(v)]
@@ -115,17 +117,31 @@ def decode_status(datagram: bytes, key: MachineKey) -> StatusReport:
     Raises:
         DatagramError: any subclass, for any malformed, truncated, forged or mismatched input.
     """
-    wid, body = open_datagram(datagram, key, TYPE_STATUS, "status", STATUS_FIXED_END)
+    head, body = open_datagram(datagram, key, TYPE_STATUS, "status", STATUS_FIXED.size)
+    return parse_status(head, body, key)
+
+
+def parse_status(head: Header, body: memoryview, key: MachineKey) -> StatusReport:
+    """Decode the authenticated ``body`` (header included, tag excluded) of a status datagram
+    whose HMAC the caller has verified (:func:`decode_status` does both).
+
+    Raises:
+        DatagramError: any subclass, for malformed or mismatched fields.
+    """
+    wid = head.wire_id
     end = len(body)
+    fixed_end = head.size + STATUS_FIXED.size
+    if end < fixed_end:
+        raise TruncatedError("status datagram shorter than its fixed fields", wid)
     seq, t_ns, layout_id, flags, lat, lon, alt, hours_s = STATUS_FIXED.unpack_from(
-        body, HEADER_BYTES)
+        body, head.size)
     layout = key.layout
     if layout_id != layout.layout_id:
         raise LayoutError(f"layout id {layout_id:#010x}, machine has {layout.layout_id:#010x}",
                           wid)
     if flags & ~(FLAG_GPS | FLAG_HOURS):
         raise GarbageError(f"reserved status flag bits set ({flags:#04x})", wid)
-    lag, pos = get_varint(body, STATUS_FIXED_END, end)
+    lag, pos = get_varint(body, fixed_end, end)
     if lag > seq:
         raise GarbageError("oldest-unacknowledged lag exceeds the sequence number", wid)
     if pos >= end:
@@ -156,10 +172,11 @@ def decode_status(datagram: bytes, key: MachineKey) -> StatusReport:
         longitude_deg=lon / DEG_SCALE if gps else math.nan,
         altitude_m=alt / ALT_SCALE if gps else math.nan,
         operating_hours=hours_s / 3600.0 if flags & FLAG_HOURS else math.nan,
-        channels=channels)
+        channels=channels, epoch=head.epoch)
 
 
-def status_lag(datagram: bytes) -> int:
-    """``seq − oldest_unacked`` of an (already authenticated) status datagram."""
-    lag, _ = get_varint(datagram, STATUS_FIXED_END, len(datagram) - TAG_BYTES)
+def status_lag(datagram: bytes | memoryview) -> int:
+    """``seq − oldest_unacked`` of a status datagram (not authenticated here)."""
+    head = peek_header(datagram)
+    lag, _ = get_varint(datagram, head.size + STATUS_FIXED.size, len(datagram) - TAG_BYTES)
     return lag

@@ -24,16 +24,24 @@ from cranetwin.protocol.errors import (
 )
 
 MAGIC = b"CT"
-VERSION = 1
+VERSION = 2
+"""The version this code sends. Version 1 (no epoch) is still decoded, as epoch 0, and answered
+in version 1, so that a fleet can be upgraded server first (docs/PROTOCOL.md, "Versions")."""
+VERSIONS = (1, 2)
 TYPE_DATA = 0x01
 TYPE_STATUS = 0x02
 TYPE_ACK = 0x03
-TYPES = (TYPE_DATA, TYPE_STATUS, TYPE_ACK)
+TYPE_REFUSAL = 0x04
+TYPES = (TYPE_DATA, TYPE_STATUS, TYPE_ACK, TYPE_REFUSAL)
 TAG_BYTES = 16
 """HMAC-SHA256 truncated to 128 bits: forging one datagram takes ~2**127 tries on average
 (NIST SP 800-107 allows truncation to ≥ 64 bits for HMAC), and saves 16 bytes per datagram."""
-HEADER = struct.Struct(">2sBBI")  # magic, version, type, wire id
-HEADER_BYTES = HEADER.size  # 8
+HEADER_V1 = struct.Struct(">2sBBI")  # magic, version, type, wire id
+HEADER = struct.Struct(">2sBBIQ")  # magic, version, type, wire id, epoch (version 2)
+HEADER_BYTES = HEADER.size  # 16
+EPOCH_MAX = 2**63 - 1
+"""Largest epoch (and exclusive bound of sequence numbers): both fit a signed 64-bit column."""
+SEQ_LIMIT = 2**63
 MAX_DATAGRAM = 1200
 """Largest datagram the sender produces [bytes of UDP payload]: fits the MTU of 4G and VPN links
 (1280-byte IPv6 minimum MTU minus 48 bytes of IPv6+UDP headers, with margin)."""
@@ -207,41 +215,74 @@ class MachineKey:
 # --- header and tag ----------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Header:
-    """The 8 bytes every datagram starts with.
+    """The header every datagram starts with (8 bytes in version 1, 16 in version 2).
 
     Attributes:
-        version: Protocol version (1).
-        type: ``TYPE_DATA``, ``TYPE_STATUS`` or ``TYPE_ACK``.
+        version: Protocol version (1 or 2).
+        type: ``TYPE_DATA``, ``TYPE_STATUS``, ``TYPE_ACK`` or ``TYPE_REFUSAL``.
         wire_id: Machine wire id.
+        epoch: The sender's epoch (1 … 2**63 − 1 in version 2; 0 in version 1).
     """
 
     version: int
     type: int
     wire_id: int
+    epoch: int = 0
+
+    @property
+    def size(self) -> int:
+        """Bytes of the header on the wire."""
+        return HEADER.size if self.version >= 2 else HEADER_V1.size
 
 
-def peek_header(datagram: bytes) -> Header:
+def pack_header(version: int, typ: int, wire_id: int, epoch: int) -> bytearray:
+    """The header bytes of a datagram (version 1 carries no epoch; ``epoch`` must then be 0).
+
+    Raises:
+        ValueError: unknown version, or an epoch outside 1 … 2**63 − 1 (version 2) / not 0 (1).
+    """
+    if version == 1:
+        if epoch != 0:
+            raise ValueError("version 1 datagrams have no epoch (pass epoch=0)")
+        return bytearray(HEADER_V1.pack(MAGIC, 1, typ, wire_id))
+    if version != 2:
+        raise ValueError(f"unknown protocol version {version}")
+    if not 1 <= epoch <= EPOCH_MAX:
+        raise ValueError(f"epoch must be in [1, 2**63), got {epoch}")
+    return bytearray(HEADER.pack(MAGIC, 2, typ, wire_id, epoch))
+
+
+def peek_header(datagram: bytes | memoryview) -> Header:
     """Read and check the common header, without authenticating anything.
 
     Raises:
-        GarbageError: wrong magic or unknown type.
+        GarbageError: wrong magic, unknown type, or a version-2 epoch of 0 or ≥ 2**63.
         TruncatedError: shorter than header + tag.
-        WrongVersionError: version ≠ 1.
+        WrongVersionError: a version this code does not speak.
     """
-    if len(datagram) < HEADER_BYTES:
+    if len(datagram) < HEADER_V1.size:
         if not MAGIC.startswith(bytes(datagram[:2])):
             raise GarbageError("not a cranetwin datagram (bad magic)")
-        raise TruncatedError(f"{len(datagram)} bytes: shorter than the {HEADER_BYTES}-byte header")
-    magic, version, typ, wire_id = HEADER.unpack_from(datagram, 0)
+        raise TruncatedError(f"{len(datagram)} bytes: shorter than the "
+                             f"{HEADER_V1.size}-byte header")
+    magic, version, typ, wire_id = HEADER_V1.unpack_from(datagram, 0)
     if magic != MAGIC:
         raise GarbageError("not a cranetwin datagram (bad magic)")
-    if version != VERSION:
-        raise WrongVersionError(f"protocol version {version}, this code speaks {VERSION}", wire_id)
-    if typ not in TYPES:
+    if version not in VERSIONS:
+        raise WrongVersionError(f"protocol version {version}, this code speaks {VERSIONS}",
+                                wire_id)
+    if typ not in TYPES or (version == 1 and typ == TYPE_REFUSAL):
         raise GarbageError(f"unknown datagram type {typ:#04x}", wire_id)
-    if len(datagram) < HEADER_BYTES + TAG_BYTES:
+    epoch = 0
+    if version >= 2:
+        if len(datagram) < HEADER.size + TAG_BYTES:
+            raise TruncatedError("datagram shorter than header + HMAC tag", wire_id)
+        epoch = int(HEADER.unpack_from(datagram, 0)[4])
+        if not 1 <= epoch <= EPOCH_MAX:
+            raise GarbageError(f"epoch {epoch} outside [1, 2**63)", wire_id)
+    elif len(datagram) < HEADER_V1.size + TAG_BYTES:
         raise TruncatedError("datagram shorter than header + HMAC tag", wire_id)
-    return Header(version, typ, wire_id)
+    return Header(version, typ, wire_id, epoch)
 
 
 def tag(secret: bytes, body: bytes | bytearray | memoryview) -> bytes:
@@ -263,12 +304,12 @@ def verify(secret: bytes, datagram: bytes, wire_id: int) -> memoryview:
 
 
 def open_datagram(
-    datagram: bytes, key: MachineKey, expected_type: int, kind: str, fixed_end: int
-) -> tuple[int, memoryview]:
-    """Check type, wire id and HMAC of a data or status datagram; return (wire id, body).
+    datagram: bytes, key: MachineKey, expected_type: int, kind: str, fixed_size: int
+) -> tuple[Header, memoryview]:
+    """Check type, wire id and HMAC of a data or status datagram; return (header, body).
 
-    ``body`` is the authenticated part (header included, tag excluded), at least ``fixed_end``
-    bytes long.
+    ``body`` is the authenticated part (header included, tag excluded), at least
+    ``header.size + fixed_size`` bytes long.
 
     Raises:
         DatagramError: any subclass, for a wrong type or wire id, a bad tag or a short body.
@@ -281,6 +322,6 @@ def open_datagram(
     if wid != key.wire_id:
         raise GarbageError(f"datagram for wire id {wid}, key is for {key.wire_id}", wid)
     body = verify(key.secret, datagram, wid)
-    if len(body) < fixed_end:
+    if len(body) < head.size + fixed_size:
         raise TruncatedError(f"{kind} datagram shorter than its fixed fields", wid)
-    return wid, body
+    return head, body
