@@ -71,6 +71,12 @@ class StorageError(CraneTwinError):
     """A database operation failed."""
 
 
+class StorageUnavailableError(StorageError):
+    """The database cannot be reached or used right now (server down, connection lost, locked
+    for longer than the busy timeout); nothing of the failed call was committed. Retry later,
+    with backoff: the same call succeeds once the database is back."""
+
+
 class AnalyticsError(CraneTwinError):
     """Analytics input unusable."""
 
