@@ -1,0 +1,729 @@
+"""The sender's durable journal: every datagram is on disk before it is sent.
+
+:class:`FileJournal` implements the sans-IO sender's ``Journal`` protocol
+(:class:`cranetwin.protocol.Journal`) with a directory of append-only segment files, the way
+write-ahead logs do it (Kafka's segments named by their first offset, SQLite's WAL recovery that
+keeps the longest valid prefix)::
+
+    DIR/                       0700
+      lock                     flock held while a sender uses the journal (its pid inside)
+      state                    {"epoch": …, "released": …}: written atomically (temp file,
+                               fsync, rename, directory fsync)
+      seg-<first seq:020d>.log records  u32 length ‖ u32 crc32 ‖ u64 seq ‖ datagram  (big endian)
+      rejected.log             datagrams the server refused, one JSON line each (dead letters)
+
+* :meth:`~FileJournal.append` only buffers; :meth:`~FileJournal.sync` writes the buffer and
+  fsyncs the active segment (plus the directory once after a new segment was created). The
+  sender calls it once per batch, before the new datagrams leave, so a datagram that was ever
+  sent is durable and a crash can only lose datagrams that were never sent.
+* A segment is rolled at ``segment_bytes`` (4 MiB) or ``segment_records`` (4096) and sealed with
+  an fsync first, so only the newest segment can have a torn tail. On open a torn or corrupt
+  tail of the newest segment (short record, bad crc, wrong seq) is cut away; damage anywhere
+  else is an error, never silently dropped.
+* :meth:`~FileJournal.release` moves the watermark and deletes whole segments below it (the
+  newest one is always kept, so the next seq is known after everything was released). The
+  watermark is persisted at most every ``state_interval_s`` (0.5 s) and on close: losing it
+  only means datagrams that were acked already are sent again, which the server deduplicates.
+* The epoch (the sender's boot id in protocol version 2) is drawn with
+  :func:`secrets.randbits` when the directory is new and kept for the journal's life. A
+  directory whose state cannot be read is an error; a new epoch is only ever chosen for an
+  empty directory, so data that could not be read is never overwritten under a new identity.
+
+Files are created 0600 and directories 0700. One process at a time: a second
+:class:`FileJournal` on the same directory raises :class:`SenderError` (two senders sharing an
+epoch would reuse sequence numbers).
+"""
+
+from __future__ import annotations
+
+import bisect
+import contextlib
+import errno
+import fcntl
+import json
+import logging
+import os
+import re
+import secrets
+import struct
+import time
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from types import TracebackType
+
+from cranetwin.errors import ProtocolError
+
+log = logging.getLogger(__name__)
+
+_REC = struct.Struct(">IIQ")  # length of the datagram, crc32 of (seq ‖ datagram), seq
+MAX_RECORD = 65_507  # largest UDP payload [bytes]
+MAX_SEQ = 2**63  # sequence numbers are < 2**63
+SEGMENT_BYTES = 4 << 20
+SEGMENT_RECORDS = 4096
+STATE_INTERVAL_S = 0.5
+STATE_FORMAT = "cranetwin-send-journal"
+_SEG_RE = re.compile(r"seg-(\d{20})\.log")
+_SPARSE = 64  # a file offset is kept for every 64th record of a segment
+_WRITE_OUT = 1 << 20  # buffered bytes written to the OS (not synced) beyond this
+_READ_BLOCK = 256 << 10
+_FILE_MODE = 0o600
+_DIR_MODE = 0o700
+
+
+class SenderError(ProtocolError):
+    """The sender could not start or continue: bad address, bad key, or an unusable journal."""
+
+
+def _seg_name(first: int) -> str:
+    return f"seg-{first:020d}.log"
+
+
+def _crc(seq_bytes: bytes | memoryview, datagram: bytes | memoryview) -> int:
+    return zlib.crc32(datagram, zlib.crc32(seq_bytes)) & 0xFFFFFFFF
+
+
+def encode_record(seq: int, datagram: bytes) -> bytes:
+    """One journal record: ``u32 length ‖ u32 crc32(seq ‖ datagram) ‖ u64 seq ‖ datagram``."""
+    seq_bytes = seq.to_bytes(8, "big")
+    return _REC.pack(len(datagram), _crc(seq_bytes, datagram), seq) + datagram
+
+
+@dataclass
+class _Segment:
+    """One segment file: records ``first`` … ``end − 1`` in ``size`` bytes."""
+
+    first: int
+    path: Path
+    end: int = 0
+    size: int = 0
+    marks: list[int] = field(default_factory=list)  # offset of record first + k·_SPARSE
+
+    def add(self, record_bytes: int) -> None:
+        if (self.end - self.first) % _SPARSE == 0:
+            self.marks.append(self.size)
+        self.end += 1
+        self.size += record_bytes
+
+
+class FileJournal:
+    """Durable, crash-safe log of a sender's datagrams in ``directory`` (see the module doc).
+
+    Args:
+        directory: The journal directory (created 0700 with its missing parents).
+        fsync: Sync to disk in :meth:`sync` (False: only hand the data to the OS, which survives
+            a crash of the process but not of the machine; for tests).
+        owner: Identity of the sender (e.g. machine id, wire id and a key fingerprint), stored
+            when the journal is created; reopening with a different one raises
+            :class:`SenderError` (its datagrams were signed with another key).
+        segment_bytes: A segment is rolled when it reaches this size [bytes].
+        segment_records: … or this many records.
+        state_interval_s: Least time between two writes of the release watermark [s].
+        clock: Monotonic clock [s] (injectable for tests).
+
+    Raises:
+        SenderError: the directory or its state cannot be read or created, a segment other than
+            the newest is damaged, another process uses the journal, or ``owner`` differs.
+
+    Attributes:
+        fsyncs: ``os.fsync`` calls made (segments, directory, state, rejected.log).
+        syncs: :meth:`sync` calls that had something to make durable.
+        truncated_bytes: Bytes of a torn tail cut away when the journal was opened.
+    """
+
+    def __init__(self, directory: str | os.PathLike[str], *, fsync: bool = True,
+                 owner: str | None = None, segment_bytes: int = SEGMENT_BYTES,
+                 segment_records: int = SEGMENT_RECORDS,
+                 state_interval_s: float = STATE_INTERVAL_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if segment_bytes < 1 or segment_records < 1:
+            raise ValueError("segment_bytes and segment_records must be ≥ 1")
+        self.directory = Path(directory)
+        self.fsync = fsync
+        self.segment_bytes = segment_bytes
+        self.segment_records = segment_records
+        self.state_interval_s = state_interval_s
+        self._clock = clock
+        self.fsyncs = 0
+        self.syncs = 0
+        self.truncated_bytes = 0
+        self._epoch = 0
+        self._start = self._end = self._synced_end = self._released = 0
+        self._owner: str | None = None
+        self._last_state = 0.0
+        self._segments: list[_Segment] = []
+        self._firsts: list[int] = []
+        self._fd: int | None = None  # active (newest) segment, open for appending
+        self._buf = bytearray()  # appended, not yet written to the OS
+        self._dir_dirty = False
+        self._rfd: tuple[int, int] | None = None  # (segment first, fd) of the last read
+        self._cursor: tuple[int, int, int] = (-1, -1, 0)  # (segment, next seq, its offset)
+        self._rejected: set[int] = set()
+        self._state_dirty = False
+        self._closed = False
+        self._lock_fd = -1
+        self._dir_fd = -1
+        try:
+            self._open(owner)
+        except BaseException:
+            self._release_fds()
+            raise
+
+    # --- Journal protocol ----------------------------------------------------------------------
+    @property
+    def epoch(self) -> int:
+        """The sender's boot id, 1 … 2**63 − 1, fixed for the journal's life."""
+        return self._epoch
+
+    @property
+    def start(self) -> int:
+        """Oldest seq not yet released (== :attr:`end` when nothing is pending)."""
+        return self._start
+
+    @property
+    def end(self) -> int:
+        """Next seq to append."""
+        return self._end
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def append(self, seq: int, datagram: bytes) -> None:
+        """Add ``datagram`` as ``seq`` (== :attr:`end`); durable after the next :meth:`sync`.
+
+        Raises:
+            ValueError: ``seq`` is not :attr:`end`, or the datagram is empty or too long.
+            SenderError: the disk write failed.
+        """
+        self._check_open()
+        if seq != self._end:
+            raise ValueError(f"append of seq {seq}, the journal's next seq is {self._end}")
+        if not 0 < len(datagram) <= MAX_RECORD:
+            raise ValueError(f"a datagram of {len(datagram)} bytes cannot be journaled "
+                             f"(1 … {MAX_RECORD})")
+        if seq >= MAX_SEQ:
+            raise ValueError("sequence numbers are < 2**63")
+        rec = encode_record(seq, bytes(datagram))
+        seg = self._segments[-1] if self._segments else None
+        if (seg is None or seg.end != seq or seg.end - seg.first >= self.segment_records
+                or (seg.size >= self.segment_bytes and seg.end > seg.first)):
+            seg = self._roll(seq)
+        self._buf += rec
+        seg.add(len(rec))
+        self._end = seq + 1
+        if len(self._buf) >= _WRITE_OUT:
+            self._write_out()
+
+    def sync(self) -> None:
+        """Make every appended datagram durable: write the buffer and fsync the active segment
+        (and the directory once after a new segment was created). A no-op when nothing was
+        appended since the last call.
+
+        Raises:
+            SenderError: the write or fsync failed (the data may not be durable).
+        """
+        self._check_open()
+        if self._synced_end == self._end and not self._dir_dirty:
+            return
+        self._write_out()
+        try:
+            if self.fsync and self._fd is not None:
+                os.fsync(self._fd)
+                self.fsyncs += 1
+            if self._dir_dirty:
+                self._fsync_dir()
+                self._dir_dirty = False
+        except OSError as exc:
+            raise SenderError(f"cannot sync the journal in {self.directory}: {exc}") from exc
+        self._synced_end = self._end
+        self.syncs += 1
+
+    def read(self, seq: int, limit: int) -> list[bytes]:
+        """Datagrams ``seq``, ``seq + 1``, … (below :attr:`end`), at most ``limit`` of them.
+
+        Reading on from where the previous read stopped continues in the file without a lookup.
+
+        Raises:
+            ValueError: ``seq`` is below :attr:`start` or above :attr:`end`.
+            SenderError: a record on disk no longer matches its checksum.
+        """
+        self._check_open()
+        if not self._start <= seq <= self._end:
+            raise ValueError(f"read of seq {seq} outside the journal's {self._start} … "
+                             f"{self._end}")
+        n = min(limit, self._end - seq)
+        if n <= 0:
+            return []
+        if self._buf:
+            self._write_out()
+        out: list[bytes] = []
+        i = bisect.bisect_right(self._firsts, seq) - 1
+        while len(out) < n:
+            seg = self._segments[i]
+            if seq < seg.end:
+                k = min(n - len(out), seg.end - seq)
+                out += self._read_segment(seg, seq, k)
+                seq += k
+            i += 1
+        return out
+
+    def release(self, below: int) -> None:
+        """Every seq below ``below`` was acknowledged: move :attr:`start` and delete the segments
+        that hold only released datagrams. The watermark reaches the disk at most every
+        ``state_interval_s`` and on :meth:`close`.
+
+        Raises:
+            ValueError: ``below`` is above :attr:`end`.
+        """
+        self._check_open()
+        if below > self._end:
+            raise ValueError(f"release below {below}, beyond the journal's end {self._end}")
+        if below <= self._start:
+            return
+        if below > self._synced_end:
+            self.sync()  # the watermark never passes data that is not durable
+        self._advance(below)
+
+    def reject(self, seq: int, datagram: bytes, reason: str) -> None:
+        """The server refused ``seq`` for good: keep it for the operator in ``rejected.log`` (a
+        JSON line with time, epoch, seq, reason and the datagram in hex, synced) and count it as
+        released.
+
+        Raises:
+            ValueError: ``seq`` is not below :attr:`end`.
+            SenderError: rejected.log cannot be written.
+        """
+        self._check_open()
+        if not 0 <= seq < self._end:
+            raise ValueError(f"reject of seq {seq}, the journal ends at {self._end}")
+        if seq >= self._synced_end:
+            self.sync()  # a refused seq is durable: a crash can never hand it out again
+        line = json.dumps({
+            "time": datetime.now(UTC).isoformat(timespec="milliseconds"),
+            "epoch": self._epoch, "seq": seq, "reason": str(reason),
+            "bytes": len(datagram), "datagram": bytes(datagram).hex()}) + "\n"
+        path = self.directory / "rejected.log"
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, _FILE_MODE)
+            try:
+                _write_all(fd, line.encode())
+                if self.fsync:
+                    os.fsync(fd)
+                    self.fsyncs += 1
+            finally:
+                os.close(fd)
+        except OSError as exc:
+            raise SenderError(f"cannot write {path}: {exc}") from exc
+        log.warning("journal %s: seq %d (epoch %d) refused by the server (%s), kept in %s",
+                    self.directory, seq, self._epoch, reason, path)
+        if seq >= self._start:
+            self._rejected.add(seq)
+            if seq == self._start:
+                self._advance(seq + 1)
+
+    # --- lifecycle -----------------------------------------------------------------------------
+    @property
+    def rejected_path(self) -> Path:
+        """The dead-letter file of refused datagrams (exists once one was refused)."""
+        return self.directory / "rejected.log"
+
+    @property
+    def closed(self) -> bool:
+        """True after :meth:`close`."""
+        return self._closed
+
+    def flush_state(self) -> None:
+        """Write the release watermark now if it moved since it was last written."""
+        self._check_open()
+        if self._state_dirty:
+            self._write_state()
+
+    def close(self) -> None:
+        """Sync, write the watermark and release the directory (idempotent)."""
+        if self._closed:
+            return
+        try:
+            self.sync()
+            if self._state_dirty:
+                self._write_state()
+        finally:
+            self._closed = True
+            self._release_fds()
+
+    def __enter__(self) -> FileJournal:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return (f"FileJournal({str(self.directory)!r}, epoch={self._epoch}, start={self._start}, "
+                f"end={self._end})")
+
+    # --- opening -------------------------------------------------------------------------------
+    def _open(self, owner: str | None) -> None:
+        d = self.directory
+        try:
+            _make_dirs(d)
+            self._dir_fd = os.open(d, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError as exc:
+            raise SenderError(f"cannot use {d} as the send journal: {exc}") from exc
+        self._lock()
+        try:
+            names = set(os.listdir(d))
+        except OSError as exc:
+            raise SenderError(f"cannot list the send journal {d}: {exc}") from exc
+        names.discard("lock")
+        if "state.tmp" in names:  # a state write interrupted before its rename
+            names.discard("state.tmp")
+            with contextlib.suppress(OSError):
+                os.unlink(d / "state.tmp")
+        segs = sorted((int(m.group(1)), n) for n in names if (m := _SEG_RE.fullmatch(n)))
+        if "state" not in names:
+            if segs or "rejected.log" in names:
+                raise SenderError(
+                    f"the send journal {d} holds data but no state file (its epoch is unknown); "
+                    "restore the state file or move the directory away to start a new journal")
+            self._epoch = _new_epoch()
+            self._released = 0
+            self._owner = owner
+            self._write_state()
+            log.info("journal %s: new, epoch %d", d, self._epoch)
+        else:
+            self._epoch, self._released, self._owner = self._read_state()
+            if owner is not None and self._owner is not None and owner != self._owner:
+                raise SenderError(
+                    f"the send journal {d} belongs to {self._owner!r}, not {owner!r}: its "
+                    "datagrams were signed with another key; use another --journal directory "
+                    "(or move this one away once its data is no longer needed)")
+            if owner is not None and self._owner is None:
+                self._owner = owner
+                self._state_dirty = True
+        self._load_segments(segs)
+        self._load_rejected()
+        self._last_state = self._clock()
+        self._advance(self._start)
+        if self._segments:
+            log.info("journal %s: epoch %d, %d datagram(s) pending (seq %d … %d)", d,
+                     self._epoch, len(self), self._start, self._end - 1)
+
+    def _lock(self) -> None:
+        path = self.directory / "lock"
+        try:
+            self._lock_fd = os.open(path, os.O_RDWR | os.O_CREAT, _FILE_MODE)
+        except OSError as exc:
+            raise SenderError(f"cannot create {path}: {exc}") from exc
+        try:
+            fcntl.flock(self._lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise SenderError(f"cannot lock {path}: {exc}") from exc
+            try:
+                other = os.pread(self._lock_fd, 32, 0).decode(errors="replace").strip()
+            except OSError:
+                other = "?"
+            raise SenderError(f"the send journal {self.directory} is in use by another sender "
+                              f"(pid {other or '?'})") from None
+        with contextlib.suppress(OSError):
+            os.ftruncate(self._lock_fd, 0)
+            os.pwrite(self._lock_fd, f"{os.getpid()}\n".encode(), 0)
+
+    def _read_state(self) -> tuple[int, int, str | None]:
+        path = self.directory / "state"
+        try:
+            with open(path, "rb") as f:
+                raw = f.read(1 << 16)
+        except OSError as exc:
+            raise SenderError(f"cannot read the journal state {path}: {exc}") from exc
+        try:
+            st = json.loads(raw)
+            ok = (isinstance(st, dict) and st.get("format") == STATE_FORMAT
+                  and st.get("version") == 1)
+            epoch, released, owner = st["epoch"], st["released"], st.get("owner")
+            ok = ok and type(epoch) is int and 0 < epoch < MAX_SEQ
+            ok = ok and type(released) is int and 0 <= released < MAX_SEQ
+            ok = ok and (owner is None or isinstance(owner, str))
+        except (ValueError, TypeError, KeyError, AttributeError):
+            ok = False
+        if not ok:
+            raise SenderError(
+                f"the journal state {path} is corrupt ({raw[:80]!r}); the datagrams in "
+                f"{self.directory} cannot be sent without it. Repair it or move the directory "
+                "away to start a new journal")
+        return epoch, released, owner
+
+    def _write_state(self) -> None:
+        """Persist epoch and watermark atomically: temp file, fsync, rename, directory fsync."""
+        d = self.directory
+        tmp, path = d / "state.tmp", d / "state"
+        body = json.dumps({"format": STATE_FORMAT, "version": 1, "epoch": self._epoch,
+                           "released": self._released, "owner": self._owner}) + "\n"
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, _FILE_MODE)
+            try:
+                _write_all(fd, body.encode())
+                if self.fsync:
+                    os.fsync(fd)
+                    self.fsyncs += 1
+            finally:
+                os.close(fd)
+            os.replace(tmp, path)
+            self._fsync_dir()
+        except OSError as exc:
+            raise SenderError(f"cannot write the journal state {path}: {exc}") from exc
+        self._state_dirty = False
+        self._last_state = self._clock()
+
+    def _load_segments(self, segs: list[tuple[int, str]]) -> None:
+        d = self.directory
+        watermark = self._released
+        # segments followed by one that starts at or below the watermark hold released data only
+        while len(segs) > 1 and segs[1][0] <= watermark:
+            self._unlink(d / segs.pop(0)[1])
+        loaded: list[_Segment] = []
+        for k, (first, name) in enumerate(segs):
+            seg = self._scan(_Segment(first, d / name, end=first), last=k == len(segs) - 1)
+            if loaded and seg.first != loaded[-1].end and seg.first > max(watermark,
+                                                                          loaded[0].first):
+                raise SenderError(
+                    f"the send journal {d} lacks datagrams {loaded[-1].end} … {seg.first - 1} "
+                    f"(between {loaded[-1].path.name} and {name}); was a segment removed?")
+            loaded.append(seg)
+        self._segments = loaded
+        self._firsts = [s.first for s in loaded]
+        last_end = loaded[-1].end if loaded else 0
+        first = loaded[0].first if loaded else watermark
+        if watermark > last_end:
+            log.warning("journal %s: release watermark %d beyond the last record %d; "
+                        "continuing at the watermark", d, watermark, last_end)
+        self._end = max(last_end, watermark)
+        self._start = min(max(watermark, first), self._end)
+        self._synced_end = self._end
+        if loaded:
+            try:
+                self._fd = os.open(loaded[-1].path, os.O_WRONLY | os.O_APPEND)
+            except OSError as exc:
+                raise SenderError(f"cannot open {loaded[-1].path}: {exc}") from exc
+
+    def _scan(self, seg: _Segment, *, last: bool) -> _Segment:
+        """Index the records of ``seg``; cut a torn or corrupt tail if it is the newest."""
+        try:
+            with open(seg.path, "rb") as f:
+                data = f.read()
+        except OSError as exc:
+            raise SenderError(f"cannot read {seg.path}: {exc}") from exc
+        mv = memoryview(data)
+        pos, size = 0, len(data)
+        while pos < size:
+            if pos + _REC.size > size:
+                break
+            length, crc, seq = _REC.unpack_from(mv, pos)
+            end = pos + _REC.size + length
+            if (length == 0 or length > MAX_RECORD or end > size or seq != seg.end
+                    or _crc(mv[pos + 8:pos + 16], mv[pos + 16:end]) != crc):
+                break
+            seg.add(end - pos)
+            pos = end
+        if pos < size:
+            if not last:
+                raise SenderError(
+                    f"{seg.path} is damaged at byte {pos} (record seq {seg.end}); it was sealed "
+                    "and synced, so this is not a torn write. Move the file away to continue "
+                    "without its datagrams")
+            log.warning("journal %s: cutting %d byte(s) of a torn or corrupt tail after seq %d "
+                        "(never synced, never sent)", seg.path, size - pos, seg.end - 1)
+            try:
+                fd = os.open(seg.path, os.O_WRONLY)
+                try:
+                    os.ftruncate(fd, pos)
+                    if self.fsync:
+                        os.fsync(fd)
+                        self.fsyncs += 1
+                finally:
+                    os.close(fd)
+            except OSError as exc:
+                raise SenderError(f"cannot truncate {seg.path}: {exc}") from exc
+            self.truncated_bytes += size - pos
+        return seg
+
+    def _load_rejected(self) -> None:
+        """Seqs of this epoch at or above the watermark that the server refused before."""
+        path = self.directory / "rejected.log"
+        try:
+            with open(path, "rb") as f:
+                lines = f.read().splitlines()
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            raise SenderError(f"cannot read {path}: {exc}") from exc
+        for line in lines:
+            try:
+                rec = json.loads(line)
+                if rec["epoch"] == self._epoch and isinstance(rec["seq"], int):
+                    if self._start <= rec["seq"] < self._end:
+                        self._rejected.add(rec["seq"])
+            except (ValueError, TypeError, KeyError):
+                continue  # a torn last line, or edited by the operator
+
+    # --- internals -----------------------------------------------------------------------------
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ValueError(f"the journal {self.directory} is closed")
+
+    def _advance(self, below: int) -> None:
+        """Set start to ``below`` (then past refused seqs) and delete released segments."""
+        start = below
+        while start in self._rejected:
+            start += 1
+        if start != self._start or below > self._released:
+            self._start = start
+            self._released = max(self._released, start)
+            self._state_dirty = True
+        self._rejected = {s for s in self._rejected if s >= start}
+        while len(self._segments) > 1 and self._segments[1].first <= start:
+            seg = self._segments.pop(0)
+            self._firsts.pop(0)
+            if self._rfd is not None and self._rfd[0] == seg.first:
+                os.close(self._rfd[1])
+                self._rfd = None
+            self._unlink(seg.path)
+        if self._state_dirty and self._clock() - self._last_state >= self.state_interval_s:
+            self._write_state()
+
+    def _roll(self, seq: int) -> _Segment:
+        """Seal the active segment (write + fsync) and start ``seg-<seq>.log``."""
+        if self._fd is not None:
+            self._write_out()
+            try:
+                if self.fsync and self._synced_end < self._segments[-1].end:
+                    os.fsync(self._fd)
+                    self.fsyncs += 1
+                os.close(self._fd)
+            except OSError as exc:
+                raise SenderError(f"cannot seal {self._segments[-1].path}: {exc}") from exc
+            self._fd = None
+            self._synced_end = max(self._synced_end, self._segments[-1].end)
+        path = self.directory / _seg_name(seq)
+        try:
+            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND,
+                               _FILE_MODE)
+        except OSError as exc:
+            raise SenderError(f"cannot create {path}: {exc}") from exc
+        seg = _Segment(seq, path, end=seq)
+        self._segments.append(seg)
+        self._firsts.append(seq)
+        self._dir_dirty = True
+        return seg
+
+    def _write_out(self) -> None:
+        if not self._buf:
+            return
+        assert self._fd is not None
+        try:
+            _write_all(self._fd, self._buf)
+        except OSError as exc:
+            raise SenderError(f"cannot write to {self._segments[-1].path}: {exc}") from exc
+        self._buf.clear()
+
+    def _read_segment(self, seg: _Segment, seq: int, n: int) -> list[bytes]:
+        """``n`` datagrams from ``seq`` in ``seg`` (all of them on disk, not in the buffer)."""
+        if self._rfd is None or self._rfd[0] != seg.first:
+            if self._rfd is not None:
+                os.close(self._rfd[1])
+                self._rfd = None
+            try:
+                self._rfd = (seg.first, os.open(seg.path, os.O_RDONLY))
+            except OSError as exc:
+                raise SenderError(f"cannot open {seg.path}: {exc}") from exc
+        fd = self._rfd[1]
+        if self._cursor[:2] == (seg.first, seq):
+            pos, at = self._cursor[2], seq
+        else:
+            k = (seq - seg.first) // _SPARSE
+            pos, at = seg.marks[k], seg.first + k * _SPARSE
+        out: list[bytes] = []
+        block, bpos = b"", pos  # file bytes [bpos, bpos + len(block))
+        while len(out) < n:
+            need = pos + _REC.size - bpos
+            if need > len(block):
+                block, bpos = self._pread(fd, seg, pos, _REC.size), pos
+            length, crc, rseq = _REC.unpack_from(block, pos - bpos)
+            end = pos + _REC.size + length
+            if end - bpos > len(block):
+                block, bpos = self._pread(fd, seg, pos, _REC.size + length), pos
+            body = block[pos - bpos + _REC.size:end - bpos]
+            if rseq != at or _crc(block[pos - bpos + 8:pos - bpos + 16], body) != crc:
+                raise SenderError(f"{seg.path}: record seq {at} at byte {pos} no longer matches "
+                                  "its checksum (disk damage?)")
+            if at >= seq:
+                out.append(bytes(body))
+            at += 1
+            pos = end
+        self._cursor = (seg.first, at, pos)
+        return out
+
+    def _pread(self, fd: int, seg: _Segment, pos: int, need: int) -> bytes:
+        want = max(need, min(_READ_BLOCK, seg.size - pos))
+        try:
+            data = os.pread(fd, want, pos)
+        except OSError as exc:
+            raise SenderError(f"cannot read {seg.path}: {exc}") from exc
+        if len(data) < need:
+            raise SenderError(f"{seg.path} is shorter than its index ({pos + len(data)} < "
+                              f"{pos + need} bytes): changed behind the sender's back?")
+        return data
+
+    def _fsync_dir(self) -> None:
+        if self.fsync:
+            os.fsync(self._dir_fd)
+            self.fsyncs += 1
+
+    def _unlink(self, path: Path) -> None:
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            log.warning("journal: cannot delete %s: %s", path, exc)
+
+    def _release_fds(self) -> None:
+        for fd in (self._fd, None if self._rfd is None else self._rfd[1], self._dir_fd,
+                   self._lock_fd):
+            if fd is not None and fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._fd, self._rfd, self._dir_fd, self._lock_fd = None, None, -1, -1
+
+
+def _new_epoch() -> int:
+    """A random epoch in 1 … 2**63 − 1."""
+    while True:
+        e = secrets.randbits(63)
+        if e:
+            return e
+
+
+def _make_dirs(d: Path) -> None:
+    """Create ``d`` and its missing parents with mode 0700."""
+    missing: list[Path] = []
+    p = d
+    while not p.exists():
+        missing.append(p)
+        if p.parent == p:
+            break
+        p = p.parent
+    for q in reversed(missing):
+        with contextlib.suppress(FileExistsError):
+            os.mkdir(q, _DIR_MODE)
+    if not d.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, "not a directory", str(d))
+
+
+def _write_all(fd: int, data: bytes | bytearray) -> None:
+    mv = memoryview(data)
+    while mv:
+        n = os.write(fd, mv)
+        mv = mv[n:]
