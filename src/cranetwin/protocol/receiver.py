@@ -18,8 +18,10 @@ Sequence rules (per machine and sender epoch; docs/PROTOCOL.md §7):
   forgotten entry or a duplicate of a datagram still being written costs a redundant write,
   never a lost sample. Acked ⇒ stored holds by construction: an ack names only seqs marked
   durable after a commit, or seqs below the sender's own ``oldest unacknowledged`` claim.
-* ``released`` = the highest ``seq − lag`` claimed by the sender: it no longer holds anything
-  below, so the durable set forgets it (bounded memory) and the cumulative ack starts there.
+* ``released`` = ``seq − lag`` of the newest datagram: the sender no longer holds anything
+  below, so the durable set forgets it (bounded memory) and the cumulative ack starts there. A
+  lower claim than before (reordering, or a sender that went backwards) lowers it again: the
+  ack then covers less, never something that is not stored.
 
 Validation at the edge, after the HMAC: datagram size, sequence range, timestamps within a
 window around the server clock, and every value within its sensor's declared range plus a
@@ -130,8 +132,13 @@ class _Epoch:
             if len(self.starts) > MAX_INTERVALS:
                 del self.starts[0], self.ends[0]
 
-    def release(self, below: int) -> None:
-        if below <= self.released:
+    def claim(self, below: int) -> None:
+        """The newest datagram says the sender holds nothing below ``below``. A claim lower
+        than an earlier one (a reordered or duplicated old datagram, or a sender that broke the
+        rules) is believed too: the cumulative ack then covers less for a while, which costs at
+        most a redundant retransmission, never an ack of something not stored."""
+        if below < self.released:
+            self.released = below  # forgotten intervals below stay forgotten (rewrite is safe)
             return
         self.released = below
         k = bisect.bisect_right(self.ends, below)  # intervals entirely below
@@ -257,7 +264,7 @@ class Receiver:
             raise GarbageError("oldest-unacknowledged lag exceeds the sequence number",
                                head.wire_id)
         ep = st.epoch(head.epoch, head.version)
-        ep.release(seq - lag)
+        ep.claim(seq - lag)
         if ep.contains(seq):
             raise who.error(ReplayedError, f"seq {seq} of {key.machine_id!r} epoch {head.epoch} "
                                            "is already durable")
