@@ -38,8 +38,10 @@ import typer
 from cranetwin.bench import emit
 from cranetwin.protocol import (
     DatagramError,
+    Journal,
     Layout,
     MachineKey,
+    MemoryJournal,
     Sender,
     datagram_seq,
     peek_header,
@@ -242,11 +244,17 @@ def patu_layout() -> Layout:
 
 
 def make_sender(key: MachineKey, values: F64, *, first_seq: int = 1, rto_s: float = 0.2,
-                max_unacked: int = 16, max_burst: int = 16, batch_samples: int = 50) -> Sender:
-    """A sender with ``values`` (100 Hz from :data:`T0_NS`) already batched into datagrams."""
-    s = Sender(key, PERIOD_NS, first_seq=first_seq, max_unacked=max_unacked, max_burst=max_burst,
-               rto_ns=int(rto_s * 1e9), max_rto_ns=int(max(4 * rto_s, 1.0) * 1e9),
-               batch_samples=batch_samples)
+                max_unacked: int = 16, max_burst: int = 16, batch_samples: int = 50,
+                journal: Journal | None = None) -> Sender:
+    """A sender with ``values`` (100 Hz from :data:`T0_NS`) already batched into datagrams.
+
+    Args:
+        rto_s: Lower bound (and initial value) of the retransmission timeout [s].
+        journal: Where the datagrams are journaled (default: in memory, from ``first_seq``).
+    """
+    s = Sender(key, PERIOD_NS, journal=journal or MemoryJournal(first_seq=first_seq),
+               max_unacked=max_unacked, max_burst=max_burst, min_rto_ns=int(rto_s * 1e9),
+               max_rto_ns=int(max(4 * rto_s, 1.0) * 1e9), batch_samples=batch_samples)
     s.push(T0_NS, values)
     s.flush()
     return s
@@ -265,13 +273,17 @@ def start_daemon(db_url: str, port: int, metrics: Path, *extra: str) -> subproce
     cmd = [sys.executable, "-c", "from cranetwin.cli import main; main()", "ingest",
            "--bind", f"127.0.0.1:{port}", "--db", db_url, "--metrics-file", str(metrics),
            "--metrics-interval", "0.2", "--log-level", "WARNING", *extra]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # stderr goes to a file, never a pipe: nobody reads a pipe while the daemon runs, and a full
+    # pipe (or reading one of a process that is still alive) would block for ever
+    log = metrics.with_name(metrics.name + ".stderr")
+    with open(log, "wb") as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
     end = time.monotonic() + 60
     while not metrics.exists():
         if proc.poll() is not None or time.monotonic() > end:
-            err = proc.stderr.read().decode() if proc.stderr else ""
             proc.kill()
-            raise RuntimeError(f"ingest daemon did not start: {err[-2000:]}")
+            proc.wait(10)
+            raise RuntimeError(f"ingest daemon did not start: {log.read_text()[-2000:]}")
         time.sleep(0.05)
     return proc
 
@@ -280,9 +292,10 @@ def start_daemon(db_url: str, port: int, metrics: Path, *extra: str) -> subproce
 def _sender_proc(wire_ids: list[int], secret: bytes, samples: int, server: tuple[str, int],
                  speed: float, batch_samples: int, start: Any, result: Any) -> None:
     layout = patu_layout()
-    senders = [Sender(MachineKey(w, f"bench-{w}", secret, layout), PERIOD_NS, first_seq=1,
-                      batch_samples=batch_samples, max_unacked=64, max_burst=16,
-                      rto_ns=5_000_000_000, max_rto_ns=20_000_000_000)
+    senders = [Sender(MachineKey(w, f"bench-{w}", secret, layout), PERIOD_NS,
+                      journal=MemoryJournal(first_seq=1), batch_samples=batch_samples,
+                      max_unacked=64, max_burst=16, min_rto_ns=1_000_000_000,
+                      max_rto_ns=20_000_000_000)
                for w in wire_ids]
     fleet = Fleet(senders, server, sources={w: grid_values(layout, samples, w)
                                             for w in wire_ids}, speed=speed)
