@@ -1,21 +1,24 @@
-"""Service settings, read from the environment (prefix ``CRANETWIN_``) when the app is built."""
+"""Service settings, read from the environment (prefix ``CRANETWIN_``) when the app is built.
+
+:class:`Settings` extends the settings every command shares (:class:`cranetwin.settings.Settings`:
+``database_url``, ``live_bus_url`` and the ingest daemon's fields) with the HTTP service's.
+"""
 
 from __future__ import annotations
 
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from cranetwin.settings import Settings as CommonSettings
 
 
-class Settings(BaseSettings):
-    """Configuration of the HTTP service.
+class Settings(CommonSettings):
+    """Configuration of the HTTP service (and everything :class:`cranetwin.settings.Settings`
+    holds).
 
     Built by :func:`cranetwin.api.create_app` (or the caller), never at import time. Every field can
     be set by an environment variable ``CRANETWIN_<FIELD>`` (e.g. ``CRANETWIN_DATABASE_URL``).
     """
 
-    model_config = SettingsConfigDict(env_prefix="CRANETWIN_", extra="ignore")
-
-    database_url: str = Field("sqlite:///cranetwin.db", description="SQLAlchemy database URL")
     host: str = Field("127.0.0.1", description="bind address of `cranetwin serve`")
     port: int = Field(8000, ge=0, le=65535, description="TCP port of `cranetwin serve`")
     max_history_range_s: float = Field(
@@ -32,9 +35,6 @@ class Settings(BaseSettings):
     nominal_rate_hz: float = Field(100.0, gt=0, description="expected sensor sample rate [Hz]")
     twin_cache_entries: int = Field(64, ge=0, description="replay results kept in the LRU cache")
     live_rate_hz: float = Field(25.0, ge=1, le=50, description="live websocket frames per second")
-    live_bus_url: str | None = Field(
-        None, description="ingest daemon's live fan-out (memory://, postgresql://…, "
-                          "redis://host:port); unset: the live view polls the store")
     live_offline_s: float = Field(
         300.0, gt=0, description="a machine not seen for this long is 'offline' [s]")
     live_idle_s: float = Field(
