@@ -60,6 +60,7 @@ def crash(j: FileJournal) -> None:
     """What a kill -9 leaves: what was written to the OS stays, the user-space buffer is gone,
     the lock is released, nothing is synced or persisted on the way out."""
     j._buf.clear()
+    j._tail.clear()
     j._release_fds()
     j._closed = True
 

@@ -157,6 +157,8 @@ class FileJournal:
         self._firsts: list[int] = []
         self._fd: int | None = None  # active (newest) segment, open for appending
         self._buf = bytearray()  # appended, not yet written to the OS
+        self._tail: list[bytes] = []  # the datagrams in _buf, read from memory
+        self._tail_first = 0  # seq of _tail[0]
         self._dir_dirty = False
         self._rfd: tuple[int, int] | None = None  # (segment first, fd) of the last read
         self._cursor: tuple[int, int, int] = (-1, -1, 0)  # (segment, next seq, its offset)
@@ -210,7 +212,10 @@ class FileJournal:
         if (seg is None or seg.end != seq or seg.end - seg.first >= self.segment_records
                 or (seg.size >= self.segment_bytes and seg.end > seg.first)):
             seg = self._roll(seq)
+        if not self._tail:
+            self._tail_first = seq
         self._buf += rec
+        self._tail.append(rec[_REC.size:])
         seg.add(len(rec))
         self._end = seq + 1
         if len(self._buf) >= _WRITE_OUT:
@@ -256,10 +261,11 @@ class FileJournal:
         n = min(limit, self._end - seq)
         if n <= 0:
             return []
-        if self._buf:
-            self._write_out()
+        stop = seq + n
+        disk_stop = min(stop, self._tail_first) if self._tail else stop
         out: list[bytes] = []
         i = bisect.bisect_right(self._firsts, seq) - 1
+        n = max(0, disk_stop - seq)
         while len(out) < n:
             seg = self._segments[i]
             if seq < seg.end:
@@ -267,6 +273,9 @@ class FileJournal:
                 out += self._read_segment(seg, seq, k)
                 seq += k
             i += 1
+        if stop > disk_stop:  # appended since the buffer was last written: from memory
+            lo = max(seq, self._tail_first) - self._tail_first
+            out += self._tail[lo:stop - self._tail_first]
         return out
 
     def release(self, below: int) -> None:
@@ -627,6 +636,7 @@ class FileJournal:
         except OSError as exc:
             raise SenderError(f"cannot write to {self._segments[-1].path}: {exc}") from exc
         self._buf.clear()
+        self._tail.clear()
 
     def _read_segment(self, seg: _Segment, seq: int, n: int) -> list[bytes]:
         """``n`` datagrams from ``seq`` in ``seg`` (all of them on disk, not in the buffer)."""

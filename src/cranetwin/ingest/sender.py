@@ -1,13 +1,17 @@
 """Machine-side sender: the asyncio/socket shell around :class:`cranetwin.protocol.Sender`.
 
 The protocol core decides what to send and when; this module owns the UDP socket, the clock, the
-spill file and the sample sources:
+journal and the sample sources:
 
-* :class:`FileSpill`: the on-disk FIFO where datagrams wait while the link is down for long.
+* The journal (:class:`~cranetwin.ingest.journal.FileJournal`): every datagram is on disk, synced,
+  before it is sent, and stays there until the server acknowledges (or refuses) it. A sender
+  killed at any moment loses nothing it sent; the next start with the same journal directory
+  sends what was not acknowledged first, with the same epoch and the following sequence numbers.
 * Sample sources (pluggable, :class:`SampleSource`): :class:`SyntheticSource` (smooth motion +
   sensor noise, stateless, no simulator needed) and :class:`RecordingSource` (a simulator
   :class:`~cranetwin.sim.Recording`, replayed cyclically; :func:`simulator_source` runs the
-  simulator for a scenario).
+  simulator for a scenario). Row ``r`` of a source is the sample taken at ``r × period`` since
+  the Unix epoch, so what a sender produced can be recomputed from the stored timestamps.
 * :func:`run_sender` streams one machine in real time (or ``speed`` × real time);
   :func:`run_fleet` runs many over one event loop.
 
@@ -18,10 +22,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
+import hmac
 import logging
 import math
 import os
-import struct
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -31,106 +36,16 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from cranetwin.errors import ProtocolError
-from cranetwin.protocol import DatagramError, MachineKey, Sender, StatusReport
+from cranetwin.ingest.journal import FileJournal, SenderError
+from cranetwin.protocol import DatagramError, Journal, MachineKey, Sender, StatusReport
 
 log = logging.getLogger(__name__)
 F64 = npt.NDArray[np.float64]
-_LEN = struct.Struct(">I")
-_OFF = struct.Struct(">Q")
 
-
-class SenderError(ProtocolError):
-    """The sender could not start (bad address, unusable spill file, bad key)."""
-
-
-# --- spill file --------------------------------------------------------------------------------
-class FileSpill:
-    """FIFO of datagrams in a file: ``u64 read offset`` then records ``u32 length ‖ datagram``.
-
-    Appends go to the end; :meth:`popleft` reads at the stored offset and advances it; when the
-    reader reaches the end the file is truncated to its header. Reopening a file continues where
-    it stopped, so datagrams spilled before a restart of the sender are still sent (their
-    sequence numbers stay valid). Writes are flushed to the OS on every call (survive a crash of
-    the process); ``fsync=True`` also survives power loss at the cost of a disk sync per call.
-
-    Args:
-        path: File to use (created if missing).
-        fsync: Sync to disk after every change.
-    """
-
-    def __init__(self, path: str | os.PathLike[str], fsync: bool = False) -> None:
-        self.path = Path(path)
-        self.fsync = fsync
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            exists = self.path.exists() and self.path.stat().st_size >= _OFF.size
-            self._f = open(self.path, "r+b" if exists else "w+b")  # noqa: SIM115
-        except OSError as exc:
-            raise SenderError(f"cannot open spill file {self.path}: {exc}") from exc
-        if exists:
-            self._read = _OFF.unpack(self._f.read(_OFF.size))[0]
-            self._count = self._scan()
-        else:
-            self._read = _OFF.size
-            self._f.write(_OFF.pack(self._read))
-            self._count = 0
-            self._sync()
-
-    def _scan(self) -> int:
-        """Count complete records from the read offset; cut a torn last record."""
-        size = os.fstat(self._f.fileno()).st_size
-        pos, n = self._read, 0
-        while pos + _LEN.size <= size:
-            self._f.seek(pos)
-            length = _LEN.unpack(self._f.read(_LEN.size))[0]
-            if pos + _LEN.size + length > size:
-                break
-            pos += _LEN.size + length
-            n += 1
-        if pos < size:
-            self._f.truncate(pos)
-        return n
-
-    def _sync(self) -> None:
-        self._f.flush()
-        if self.fsync:
-            os.fsync(self._f.fileno())
-
-    def append(self, datagram: bytes) -> None:
-        """Store ``datagram`` after all others."""
-        self._f.seek(0, os.SEEK_END)
-        self._f.write(_LEN.pack(len(datagram)) + datagram)
-        self._count += 1
-        self._sync()
-
-    def popleft(self) -> bytes:
-        """Remove and return the oldest datagram.
-
-        Raises:
-            IndexError: the spill is empty.
-        """
-        if not self._count:
-            raise IndexError("spill file is empty")
-        self._f.seek(self._read)
-        length = _LEN.unpack(self._f.read(_LEN.size))[0]
-        dg = self._f.read(length)
-        self._count -= 1
-        self._read += _LEN.size + length
-        if not self._count:
-            self._f.truncate(_OFF.size)
-            self._read = _OFF.size
-        self._f.seek(0)
-        self._f.write(_OFF.pack(self._read))
-        self._sync()
-        return dg
-
-    def __len__(self) -> int:
-        return self._count
-
-    def close(self) -> None:
-        """Close the file (the content stays for the next run)."""
-        self._f.close()
+__all__ = [
+    "RecordingSource", "SampleSource", "SenderError", "SenderStats", "SyntheticSource",
+    "journal_owner", "parse_host", "run_fleet", "run_sender", "simulator_source",
+]
 
 
 # --- sample sources ----------------------------------------------------------------------------
@@ -249,27 +164,44 @@ def simulator_source(key: MachineKey, model: Any, scenario: str, *, duration_s: 
 # --- the asyncio shell -------------------------------------------------------------------------
 @dataclass
 class SenderStats:
-    """What one machine's sender did.
+    """What one machine's sender did (this run).
 
     Attributes:
         machine_id: Machine identifier.
-        samples: Samples pushed into the protocol.
-        acked_samples: Samples acknowledged by the server (durable).
+        epoch: Sender epoch (the journal's).
+        journal: Journal directory ("" for an in-memory journal).
+        resumed: Datagrams left unacknowledged by an earlier run, sent first by this one.
+        samples: Samples pushed into the protocol by this run.
+        acked_samples: Samples acknowledged by the server (durable), earlier runs' included.
         datagrams: Datagrams sent (including retransmissions).
         retransmissions: Retransmitted datagrams.
+        timeouts: Retransmission timer expiries (each resends only the oldest datagram).
         bytes_sent: UDP payload bytes sent.
-        bad_acks: Ack datagrams rejected (forged, corrupted, foreign).
-        unacked: Datagrams still unacknowledged at the end (0 after a full drain).
-        max_spilled: Largest number of datagrams waiting in the spill at once.
+        bad_acks: Server datagrams rejected (forged, corrupted, foreign).
+        refused: Datagrams the server refused for good (refusals received for a datagram still
+            pending); each one is kept in the journal's ``rejected.log``.
+        refused_samples: Samples in those datagrams.
+        fsyncs: Disk syncs of the journal (one per batch of new datagrams, plus segment rolls,
+            watermark writes and refusals).
+        unacked: Datagrams still unacknowledged at the end, kept in the journal for the next
+            start (0 after a full drain).
+        max_spilled: Largest number of datagrams waiting in the journal, not in memory.
     """
 
     machine_id: str
+    epoch: int = 0
+    journal: str = ""
+    resumed: int = 0
     samples: int = 0
     acked_samples: int = 0
     datagrams: int = 0
     retransmissions: int = 0
+    timeouts: int = 0
     bytes_sent: int = 0
     bad_acks: int = 0
+    refused: int = 0
+    refused_samples: int = 0
+    fsyncs: int = 0
     unacked: int = 0
     max_spilled: int = 0
 
@@ -304,122 +236,206 @@ def parse_host(host: str) -> tuple[str, int]:
     return h.strip("[]"), int(p)
 
 
-async def run_sender(key: MachineKey, server: tuple[str, int], source: SampleSource, *,
+def journal_owner(key: MachineKey) -> str:
+    """The identity a journal is bound to: machine id, wire id and a fingerprint of the secret
+    (HMAC of a fixed text: the secret cannot be recovered from it). A journal written under
+    another key holds datagrams the server would never accept."""
+    fp = hmac.new(key.secret, b"cranetwin send journal owner", hashlib.sha256).hexdigest()[:16]
+    return f"{key.machine_id} wire {key.wire_id} key {fp}"
+
+
+async def run_sender(key: MachineKey, server: tuple[str, int], source: SampleSource | None, *,
+                     journal_dir: str | os.PathLike[str] | None = None,
+                     journal: Journal | None = None, fsync: bool = True,
                      period_ns: int = 10_000_000, speed: float = 1.0,
                      duration_s: float | None = None, batch_samples: int = 50,
-                     spill_path: str | os.PathLike[str] | None = None, max_unacked: int = 512,
-                     first_seq: int | None = None, status_every_s: float = 60.0,
+                     max_unacked: int = 512, status_every_s: float = 60.0,
                      position_deg: tuple[float, float] = (61.0, 25.0),
                      stop: asyncio.Event | None = None, drain_timeout_s: float = 30.0,
-                     rto_s: float = 1.0, tick_s: float = 0.05,
+                     min_rto_s: float = 1.0, max_rto_s: float = 30.0, tick_s: float = 0.05,
                      clock_ns: Callable[[], int] = time.time_ns) -> SenderStats:
-    """Stream ``source`` as one machine to ``server`` until ``duration_s`` or ``stop``, then drain.
+    """Stream ``source`` as one machine to ``server`` until ``duration_s`` or ``stop``.
+
+    The datagrams left unacknowledged in the journal by an earlier run go out first. When
+    streaming ends (``duration_s`` reached, or ``source`` None: nothing new is produced) the
+    sender waits up to ``drain_timeout_s`` for the last acks; when ``stop`` is set (SIGINT,
+    SIGTERM) it stops at once. Either way the batch in progress is journaled and synced, and
+    whatever is not acknowledged stays in the journal (``unacked``) for the next start: nothing
+    is ever discarded.
 
     Args:
         key: Machine identity, secret and layout.
         server: (host, port) of the ingest daemon.
-        source: Where samples come from (layout column order).
+        source: Where samples come from (layout column order); row ``r`` is sent with time
+            ``r × period_ns`` [ns since the Unix epoch]. None: only send what the journal holds.
+        journal_dir: Directory of the durable journal (:class:`FileJournal`, created if
+            missing; bound to this key, see :func:`journal_owner`).
+        journal: A journal to use instead (e.g. :class:`cranetwin.protocol.MemoryJournal` in
+            tests; the caller closes it). One of ``journal_dir`` and ``journal`` is required.
+        fsync: Sync the journal to disk (False only for tests: survives a crash of the process,
+            not of the machine).
         period_ns: Sample period [ns].
         speed: Samples produced per wall-clock second, × 1/period (2 = twice real time).
         duration_s: Data time to stream [s] (None: until ``stop`` is set).
         batch_samples: Samples per data datagram.
-        spill_path: Spill file (default: an in-memory spill, unbounded).
-        max_unacked: Datagrams kept in memory.
-        first_seq: First sequence number (default: Unix time in ms, ahead of any earlier run).
+        max_unacked: Datagrams held in memory; the rest wait in the journal.
         status_every_s: Status datagram interval [s of data time]; 0 = none. A status carries
             GPS, the operating-hours counter and the latest values of the layout's optional
             channels (declared ``optional`` in the machine description).
         position_deg: GPS latitude, longitude reported in status [deg].
-        stop: Set to stop streaming (then the sender drains).
-        drain_timeout_s: How long to wait for the last acks after streaming ends [s].
-        rto_s: Initial retransmission timeout [s].
+        stop: Set to stop streaming and return (after a journal sync, without waiting for acks).
+        drain_timeout_s: How long to wait for the last acks after streaming ended [s].
+        min_rto_s: Lower bound and initial value of the retransmission timeout [s].
+        max_rto_s: Upper bound of the backed-off retransmission timeout [s].
         tick_s: Wall-clock interval between pushes [s].
         clock_ns: Wall clock [ns since the Unix epoch] (injectable for tests).
 
     Returns:
-        Counters; ``unacked`` is 0 when everything sent was acknowledged.
+        Counters; ``unacked`` is 0 when everything was acknowledged.
+
+    Raises:
+        SenderError: no journal, the journal cannot be opened or synced, or no UDP socket.
     """
     loop = asyncio.get_running_loop()
     stop = stop or asyncio.Event()
-    spill = FileSpill(spill_path) if spill_path is not None else None
-    seq0 = first_seq if first_seq is not None else clock_ns() // 1_000_000
-    core = Sender(key, period_ns, first_seq=seq0, batch_samples=batch_samples,
-                  max_unacked=max_unacked, spill=spill, rto_ns=int(rto_s * 1e9),
-                  max_rto_ns=max(int(rto_s * 1e9), 30_000_000_000))
-    stats = SenderStats(key.machine_id)
+    owned: FileJournal | None = None
+    if journal is not None:
+        jr: Journal = journal
+    elif journal_dir is not None:
+        jr = owned = FileJournal(journal_dir, fsync=fsync, owner=journal_owner(key))
+    else:
+        raise SenderError("run_sender needs a journal directory (journal_dir) or a journal")
+    stats = SenderStats(key.machine_id, epoch=jr.epoch,
+                        journal="" if journal_dir is None else str(journal_dir))
+    fs0 = _fsyncs(jr)
+    try:
+        await _stream(key, server, source, jr, stats, loop, stop, period_ns=period_ns,
+                      speed=speed, duration_s=duration_s, batch_samples=batch_samples,
+                      max_unacked=max_unacked, status_every_s=status_every_s,
+                      position_deg=position_deg, drain_timeout_s=drain_timeout_s,
+                      min_rto_s=min_rto_s, max_rto_s=max_rto_s, tick_s=tick_s,
+                      clock_ns=clock_ns)
+    except BaseException:
+        if owned is not None:
+            with contextlib.suppress(SenderError):
+                owned.close()
+        raise
+    if owned is not None:
+        owned.close()
+    stats.fsyncs = _fsyncs(jr) - fs0
+    log.info("%s: %d samples, %d acked, %d datagrams (%d retransmitted), %.2f bytes/sample, "
+             "%d refused, %d fsyncs, %d unacked (kept in the journal)", key.machine_id,
+             stats.samples, stats.acked_samples, stats.datagrams, stats.retransmissions,
+             stats.bytes_per_sample, stats.refused, stats.fsyncs, stats.unacked)
+    return stats
+
+
+def _fsyncs(j: Journal) -> int:
+    return int(getattr(j, "fsyncs", getattr(j, "syncs", 0)))
+
+
+async def _stream(key: MachineKey, server: tuple[str, int], source: SampleSource | None,
+                  jr: Journal, stats: SenderStats, loop: asyncio.AbstractEventLoop,
+                  stop: asyncio.Event, *, period_ns: int, speed: float, duration_s: float | None,
+                  batch_samples: int, max_unacked: int, status_every_s: float,
+                  position_deg: tuple[float, float], drain_timeout_s: float, min_rto_s: float,
+                  max_rto_s: float, tick_s: float, clock_ns: Callable[[], int]) -> None:
+    core = Sender(key, period_ns, journal=jr, batch_samples=batch_samples,
+                  max_unacked=max_unacked, min_rto_ns=max(1, int(min_rto_s * 1e9)),
+                  max_rto_ns=max(int(min_rto_s * 1e9), int(max_rto_s * 1e9), 1))
+    stats.resumed = core.unacked
+    failed: list[SenderError] = []
 
     def on_ack(data: bytes) -> None:
         try:
             core.receive(data, clock_ns())
         except DatagramError as err:
             stats.bad_acks += 1
-            log.debug("%s: ack dropped (%s)", key.machine_id, err.reason)
+            log.debug("%s: server datagram dropped (%s)", key.machine_id, err.reason)
+        except SenderError as exc:  # the journal failed (disk): stop, raise below
+            failed.append(exc)
+            stop.set()
 
     try:
         transport, proto = await loop.create_datagram_endpoint(
             lambda: _AckProtocol(on_ack), remote_addr=server)
     except OSError as exc:
         raise SenderError(f"cannot open a UDP socket to {server[0]}:{server[1]}: {exc}") from exc
-    start_wall = clock_ns()
-    t0 = start_wall
-    n_total = None if duration_s is None else int(round(duration_s * 1e9 / period_ns))
-    pushed = 0
-    next_status = 0.0
-    hours0 = 1000.0 + (key.wire_id % 997)
-    log.info("%s: streaming to %s:%d (wire id %d, seq from %d)", key.machine_id, server[0],
-             server[1], key.wire_id, seq0)
+    log.info("%s: streaming to %s:%d (wire id %d, epoch %d, seq from %d, %d unacknowledged "
+             "from an earlier run)", key.machine_id, server[0], server[1], key.wire_id,
+             core.epoch, core.next_seq, stats.resumed)
 
     def send_due(now: int) -> None:
-        for dg in core.datagrams_to_send(now):
-            transport.sendto(dg)
-        stats.max_spilled = max(stats.max_spilled, core.spilled)
+        while True:  # the core hands out at most max_burst at a time
+            out = core.datagrams_to_send(now)
+            for dg in out:
+                transport.sendto(dg)
+            stats.max_spilled = max(stats.max_spilled, core.spilled)
+            if len(out) < core.max_burst:
+                return
+
+    def wait_s(now: int, cap: float) -> float:
+        nxt = core.next_timer_ns()
+        return cap if nxt is None else min(max((nxt - now) / 1e9, 0.001), cap)
 
     try:
+        start_wall = clock_ns()
+        row0 = -(-start_wall // period_ns)  # the first sample on the period grid after now
+        n_total = None if duration_s is None else int(round(duration_s * 1e9 / period_ns))
+        if source is None:
+            n_total = 0
+        pushed = 0
+        next_status = 0.0
+        hours0 = 1000.0 + (key.wire_id % 997)
         while not stop.is_set() and (n_total is None or pushed < n_total):
+            assert source is not None
             now = clock_ns()
             due = int((now - start_wall) * speed / period_ns) + 1
             if n_total is not None:
                 due = min(due, n_total)
             if due > pushed:
-                core.push(t0 + pushed * period_ns, source.read(pushed, due - pushed))
+                core.push((row0 + pushed) * period_ns, source.read(row0 + pushed, due - pushed))
                 stats.samples += due - pushed
                 pushed = due
             data_s = pushed * period_ns / 1e9
             if status_every_s > 0 and data_s >= next_status and pushed:
                 next_status += status_every_s
-                last = source.read(pushed - 1, 1)[0]
+                last = source.read(row0 + pushed - 1, 1)[0]
                 low_rate = {c.name: float(last[j]) for j, c in enumerate(key.layout.channels)
                             if c.optional and not math.isnan(last[j])}
                 core.push_status(StatusReport(
-                    key.machine_id, 0, t0 + (pushed - 1) * period_ns, position_deg[0],
+                    key.machine_id, 0, (row0 + pushed - 1) * period_ns, position_deg[0],
                     position_deg[1], 120.0, hours0 + data_s / 3600.0, low_rate))
             send_due(now)
             proto.wake.clear()
             with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(_wait_any(stop, proto.wake), tick_s)
+                await asyncio.wait_for(_wait_any(stop, proto.wake), wait_s(now, tick_s))
+        if failed:
+            raise failed[0]
         core.flush()
-        deadline = clock_ns() + int(drain_timeout_s * 1e9)
-        while not core.idle and clock_ns() < deadline:
-            now = clock_ns()
-            send_due(now)
-            nxt = core.next_timer_ns()
-            wait = 0.05 if nxt is None else min(max((nxt - now) / 1e9, 0.001), 0.25)
-            proto.wake.clear()
-            with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(proto.wake.wait(), wait)
+        if stop.is_set():
+            jr.sync()  # stopped by a signal: the last batch is journaled, no waiting for acks
+        else:
+            deadline = clock_ns() + int(drain_timeout_s * 1e9)
+            while not core.idle and clock_ns() < deadline and not stop.is_set():
+                now = clock_ns()
+                send_due(now)
+                proto.wake.clear()
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(_wait_any(stop, proto.wake), wait_s(now, 0.25))
+            if failed:
+                raise failed[0]
+            jr.sync()
     finally:
         transport.close()
-        if spill is not None:
-            spill.close()
-    stats.acked_samples = core.acked_samples
-    stats.datagrams = core.sent_datagrams
-    stats.retransmissions = core.retransmissions
-    stats.bytes_sent = core.sent_bytes
-    stats.unacked = core.in_memory + core.spilled
-    log.info("%s: %d samples, %d acked, %d datagrams (%d retransmitted), %.2f bytes/sample, "
-             "%d unacked", key.machine_id, stats.samples, stats.acked_samples, stats.datagrams,
-             stats.retransmissions, stats.bytes_per_sample, stats.unacked)
-    return stats
+        stats.acked_samples = core.acked_samples
+        stats.datagrams = core.sent_datagrams
+        stats.retransmissions = core.retransmissions
+        stats.timeouts = core.timeouts
+        stats.bytes_sent = core.sent_bytes
+        stats.refused = core.refused
+        stats.refused_samples = core.refused_samples
+        stats.unacked = core.unacked
 
 
 async def _wait_any(a: asyncio.Event, b: asyncio.Event) -> None:
@@ -432,15 +448,21 @@ async def _wait_any(a: asyncio.Event, b: asyncio.Event) -> None:
 
 
 async def run_fleet(keys: Sequence[MachineKey], server: tuple[str, int],
-                    sources: Sequence[SampleSource], **kwargs: Any) -> list[SenderStats]:
+                    sources: Sequence[SampleSource | None], *,
+                    journal_dir: str | os.PathLike[str] | None = None,
+                    **kwargs: Any) -> list[SenderStats]:
     """:func:`run_sender` for several machines at once (one socket each, one event loop).
 
-    ``spill_path`` in ``kwargs``, if given, is a directory: machine ``m`` spills to
-    ``<dir>/<m>.spill``.
+    ``journal_dir`` is a directory holding one journal per machine: ``<journal_dir>/<machine
+    id>``. Without it each machine gets a :class:`~cranetwin.protocol.MemoryJournal` (tests).
     """
-    spill_dir = kwargs.pop("spill_path", None)
+    from cranetwin.protocol import MemoryJournal
+
     jobs = []
     for key, src in zip(keys, sources, strict=True):
-        sp = None if spill_dir is None else Path(spill_dir) / f"{key.machine_id}.spill"
-        jobs.append(run_sender(key, server, src, spill_path=sp, **kwargs))
+        if journal_dir is None:
+            jobs.append(run_sender(key, server, src, journal=MemoryJournal(), **kwargs))
+        else:
+            jobs.append(run_sender(key, server, src, journal_dir=Path(journal_dir) /
+                                   key.machine_id, **kwargs))
     return list(await asyncio.gather(*jobs))
