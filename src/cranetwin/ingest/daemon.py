@@ -1,4 +1,4 @@
-"""The UDP ingest daemon: datagrams in, durable blocks out, acks after commit.
+"""The UDP ingest daemon: datagrams in, durable blocks out, acks after commit; it never stops.
 
 Shape (after uvicorn's ``serve()`` and the sans-IO split of h11/aioquic)::
 
@@ -8,28 +8,48 @@ Shape (after uvicorn's ``serve()`` and the sans-IO split of h11/aioquic)::
           bounded queue.Queue ── full → dropped["queue_full"] (the sender retransmits)
                  │
                  ▼  decoder thread, batches of ≤ batch_max datagrams or batch_wait_s:
-          Receiver.receive (HMAC, replay window, decode) ── bad → dropped[reason] += 1
+          Receiver.receive (HMAC first, then replay check, validation, decode)
+                 │   replayed → ack;  refused → refusal;  anything else bad → counted, silent
                  ▼  queue of 2 decoded batches (back-pressure)
-          writer thread: Store.store_blocks (one transaction, durable on return)
+          writer thread: per-block outcomes of one batch write (stored / duplicate / refused)
+                 │   storage unavailable → the batch is retried with backoff, nothing acked
                  ▼
-          Receiver.mark_durable, one ack per (machine, address) ─► socket;  LiveBus.publish
+          Receiver.mark_durable, one ack per (machine, epoch, address) ─► socket; LiveBus.publish
 
 The event loop only moves bytes into the queue, so the socket is drained even while a batch is
 being decoded and written (a slow loop overflows the kernel buffer and turns into loss).
 Decoding the next batch overlaps the database round trip of the current one. The protocol
 state (:class:`~cranetwin.protocol.Receiver`) is shared by the two threads under one lock.
 
-Nothing is acknowledged before it is committed, and storage ignores a (machine, seq) it already
-holds, so a sender that retransmits until acknowledged gets every sample stored exactly once,
-whatever the link loses, duplicates or reorders, and across a crash of the daemon.
+Nothing is acknowledged before it is committed, and storage ignores a block it already holds, so
+a sender that retransmits until acknowledged gets every sample stored exactly once, whatever the
+link loses, duplicates or reorders, and across a crash of the daemon.
+
+Faults never stop the daemon:
+
+* every exception in the decoder and writer loops (storage, protocol, rollup, live fan-out, a
+  bug) is caught, counted and logged once per kind, and the loop goes on; a thread that dies
+  anyway is restarted by a supervisor (``writer_restarts``, ``decoder_restarts``);
+* a block that storage refuses fails alone: its machine gets a refusal, the rest of the batch is
+  acknowledged (isolation between machines);
+* while storage is unavailable the batch is retried with exponential backoff (``retry_min_s``
+  … ``retry_max_s``) and nothing is acknowledged; ingest resumes when the database is back;
+* a machine registered with a model that does not load is logged once and its datagrams are
+  dropped as ``bad_model``; the other machines are served.
+
 ``serve()`` owns the lifecycle: SIGTERM/SIGINT stop the socket, the queue is drained and
-written, the last acks go out, the 1-min rollup runs, and the metrics file is written last.
+written, the last acks go out and the 1-min rollup runs, in bounded time: during a database
+outage (or a database call stuck longer than ``stall_timeout_s``) the unwritten batches are
+given up — they were never acknowledged, so their senders retransmit them to the next run. A
+second signal gives up at once. Counters are served as Prometheus text on HTTP ``/metrics``
+(``metrics_host``/``metrics_port``) and by :meth:`IngestDaemon.snapshot`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import json
 import logging
 import os
@@ -40,35 +60,87 @@ import threading
 import time
 import tomllib
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-from cranetwin.errors import CraneTwinError
+from prometheus_client import CollectorRegistry, Histogram, start_http_server
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+from sqlalchemy.exc import DataError, DBAPIError, InterfaceError, OperationalError
+
+from cranetwin.errors import CraneTwinError, MachineFileError, StorageUnavailableError
 from cranetwin.model import builtin_machines, load_machine, machine_from_dict
+from cranetwin.model.schema import Machine
 from cranetwin.protocol import (
-    TYPE_ACK,
+    REFUSAL_CODES,
+    TYPE_REFUSAL,
     DatagramError,
     Layout,
+    Limits,
     MachineKey,
     Receiver,
+    RefusedError,
     ReplayedError,
-    datagram_seq,
-    peek_header,
 )
 from cranetwin.protocol.status import StatusReport
 from cranetwin.samples import SampleBlock
 from cranetwin.storage import Store
+from cranetwin.storage import UnknownMachineError as StorageUnknownMachineError
 from cranetwin.storage.live import LiveBus
 
 log = logging.getLogger(__name__)
 
 Addr = tuple[Any, ...]
 Item = SampleBlock | StatusReport
-_STOP = object()
 
 
+class IngestConfigError(CraneTwinError):
+    """The daemon cannot start as configured (address in use, unresolvable host, …)."""
+
+
+# --- machine models -----------------------------------------------------------------------------
+def check_model(model: str, source: str = "machine model") -> tuple[Machine, Layout]:
+    """Load and validate a machine model as registered: a built-in name or description TOML text.
+
+    The one check used when a machine is registered (CLI and API) and when the daemon loads its
+    keys, so that what registration accepts the daemon can serve.
+
+    Returns:
+        The machine description and its wire channel layout.
+
+    Raises:
+        MachineFileError: The model does not load; ``problems`` lists ``"field.path: message"``.
+    """
+    if model in builtin_machines():
+        machine = load_machine(model)
+    else:
+        try:
+            data = tomllib.loads(model)
+        except tomllib.TOMLDecodeError as exc:
+            known = ", ".join(builtin_machines())
+            hint = "" if "\n" in model or "=" in model else f" (and not a built-in: {known})"
+            raise MachineFileError(source, [f"(file): TOML syntax error: {exc}{hint}"]) from None
+        machine = machine_from_dict(data, source)
+    try:
+        layout = Layout.from_channels(machine.channels)
+    except (CraneTwinError, ValueError, TypeError) as exc:
+        raise MachineFileError(source, [f"channels: {exc}"]) from exc
+    return machine, layout
+
+
+def layout_of(model: str) -> Layout:
+    """Channel layout of a machine model: a built-in name or machine-description TOML text.
+
+    Raises:
+        MachineFileError: The model does not load.
+    """
+    return check_model(model, "<stored model>")[1]
+
+
+# --- settings -----------------------------------------------------------------------------------
 @dataclass
 class DaemonConfig:
     """Settings of one daemon.
@@ -79,11 +151,23 @@ class DaemonConfig:
             (counted as ``queue_full``) and the sender retransmits.
         batch_max: Blocks written per transaction at most.
         batch_wait_s: How long the writer gathers a batch after its first item [s].
-        rcvbuf_bytes: Requested SO_RCVBUF (the kernel caps it at net.core.rmem_max).
-        metrics_path: JSON file rewritten every ``metrics_interval_s`` (None: not written).
-        metrics_interval_s: Period of the metrics log line and file [s].
+        rcvbuf_bytes: Requested SO_RCVBUF [bytes] (the kernel caps it at net.core.rmem_max).
+        metrics_host, metrics_port: HTTP address of the Prometheus ``/metrics`` endpoint
+            (``metrics_host`` None: not served; port 0 picks a free one, see
+            ``IngestDaemon.metrics_address``).
+        metrics_path: Deprecated: JSON file of :meth:`IngestDaemon.snapshot` rewritten every
+            ``metrics_interval_s`` (None: not written). Use ``/metrics``.
+        metrics_interval_s: Period of the metrics log line (and file) [s].
         rollup_interval_s: Period of the 1-min summary rollup [s].
         key_refresh_s: Least time between reloads of machine keys after an unknown wire id [s].
+        retry_min_s, retry_max_s: First and longest wait between retries of a batch while
+            storage is unavailable [s] (doubling in between).
+        shutdown_timeout_s: Longest flush of the queue after SIGTERM while storage is writable [s].
+        stall_timeout_s: At shutdown, a database call that has not returned for this long is
+            given up (its batch was never acknowledged) [s].
+        supervise_interval_s: Period of the check that restarts a dead decoder/writer thread [s].
+        limits: What is accepted from authenticated machines: datagram size, time window
+            around the server clock [s], sensor range margin (:class:`~cranetwin.protocol.Limits`).
     """
 
     host: str = "127.0.0.1"
@@ -92,15 +176,45 @@ class DaemonConfig:
     batch_max: int = 1000
     batch_wait_s: float = 0.05
     rcvbuf_bytes: int = 8 * 1024 * 1024
+    metrics_host: str | None = None
+    metrics_port: int = 9105
     metrics_path: Path | None = None
     metrics_interval_s: float = 10.0
     rollup_interval_s: float = 30.0
     key_refresh_s: float = 2.0
+    retry_min_s: float = 0.05
+    retry_max_s: float = 5.0
+    shutdown_timeout_s: float = 60.0
+    stall_timeout_s: float = 5.0
+    supervise_interval_s: float = 0.2
+    limits: Limits = field(default_factory=Limits)
+
+
+# --- counters -----------------------------------------------------------------------------------
+COUNTERS: dict[str, str] = {
+    "received": "datagrams received on the UDP socket",
+    "received_bytes": "bytes of UDP payload received",
+    "accepted": "datagrams authenticated, valid and handed to the writer",
+    "stored_blocks": "sample blocks newly stored",
+    "stored_samples": "samples newly stored",
+    "duplicates": "blocks already stored (retransmissions), acknowledged again",
+    "status_reports": "status reports stored",
+    "acks_sent": "ack datagrams sent",
+    "refusals_sent": "refusal datagrams sent (authenticated datagrams never to be stored)",
+    "batches": "write batches committed",
+    "write_errors": "failed write attempts (storage unavailable or an unexpected error)",
+    "rollup_errors": "failed summary rollups (queries stay exact; retried)",
+    "writer_restarts": "writer threads restarted after dying",
+    "decoder_restarts": "decoder threads restarted after dying",
+}
+"""Counter name → help text; each is a key of :meth:`IngestDaemon.snapshot` and, with the prefix
+``cranetwin_ingest_`` and the suffix ``_total``, a Prometheus counter."""
 
 
 @dataclass
 class Metrics:
-    """Counters of one daemon run (written by the loop and the writer thread; ints only)."""
+    """Counters of one daemon run (ints; those touched by several threads go through
+    :meth:`add` / :meth:`drop`)."""
 
     received: int = 0
     received_bytes: int = 0
@@ -110,15 +224,32 @@ class Metrics:
     duplicates: int = 0
     status_reports: int = 0
     acks_sent: int = 0
+    refusals_sent: int = 0
     batches: int = 0
     write_errors: int = 0
+    rollup_errors: int = 0
+    writer_restarts: int = 0
+    decoder_restarts: int = 0
     write_seconds: float = 0.0
     dropped: Counter[str] = field(default_factory=Counter)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def add(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to counter ``name`` (thread-safe)."""
+        with self._lock:
+            setattr(self, name, getattr(self, name) + n)
+
+    def drop(self, reason: str, n: int = 1) -> None:
+        """Count ``n`` datagrams dropped for ``reason`` (thread-safe)."""
+        with self._lock:
+            self.dropped[reason] += n
 
     def snapshot(self, queue_depth: int, queue_max: int, started: float) -> dict[str, Any]:
-        d = {k: v for k, v in self.__dict__.items() if k != "dropped"}
-        d["dropped"] = dict(self.dropped)
-        d["dropped_total"] = sum(self.dropped.values())
+        with self._lock:
+            d: dict[str, Any] = {k: v for k, v in self.__dict__.items()
+                                 if k not in ("dropped", "_lock")}
+            d["dropped"] = dict(self.dropped)
+        d["dropped_total"] = sum(d["dropped"].values())
         d["queue_depth"] = queue_depth
         d["queue_max"] = queue_max
         d["uptime_s"] = round(time.monotonic() - started, 3)
@@ -126,19 +257,128 @@ class Metrics:
         return d
 
 
-def layout_of(model: str) -> Layout:
-    """Channel layout of a machine model: a built-in name or machine-description TOML text.
+class _SnapshotCollector(Collector):
+    """Prometheus view of :meth:`IngestDaemon.snapshot`, read at scrape time (the hot path only
+    increments ints)."""
+
+    def __init__(self, daemon: IngestDaemon) -> None:
+        self.daemon = daemon
+
+    def describe(self) -> Iterable[Metric]:
+        return []  # names are not known before the first scrape (drop reasons); no clash check
+
+    def collect(self) -> Iterable[Metric]:
+        s = self.daemon.snapshot()
+        for name, doc in COUNTERS.items():
+            yield CounterMetricFamily(f"cranetwin_ingest_{name}", doc, value=s[name])
+        dropped = CounterMetricFamily("cranetwin_ingest_dropped",
+                                      "datagrams dropped, by reason", labels=["reason"])
+        for reason, n in sorted(s["dropped"].items()):
+            dropped.add_metric([reason], n)
+        yield dropped
+        yield GaugeMetricFamily("cranetwin_ingest_queue_depth",
+                                "datagrams waiting for the writer", value=s["queue_depth"])
+        yield GaugeMetricFamily("cranetwin_ingest_queue_max",
+                                "capacity of the datagram queue", value=s["queue_max"])
+        yield GaugeMetricFamily("cranetwin_ingest_storage_available",
+                                "1 while the last write attempt succeeded, 0 during an outage",
+                                value=0.0 if self.daemon.storage_outage else 1.0)
+        yield GaugeMetricFamily("cranetwin_ingest_uptime_seconds", "seconds since start [s]",
+                                value=s["uptime_s"])
+
+
+# --- storage outcomes ---------------------------------------------------------------------------
+Outcome = tuple[Literal["stored", "duplicate", "refused", "error"], str]
+"""Per-block result of a write: stored (new), duplicate (already held), refused (never storable,
+with the refusal reason) or error (an unexpected failure of that block alone: neither acked nor
+refused, so its sender retransmits)."""
+
+
+def is_unavailable(exc: BaseException) -> bool:
+    """Whether ``exc`` is an operational database failure (connection lost, server down,
+    database locked, disk I/O): the write should be retried, not refused."""
+    if isinstance(exc, StorageUnavailableError):
+        return True
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if isinstance(cur, OperationalError | InterfaceError):
+            return True
+        if isinstance(cur, DBAPIError) and cur.connection_invalidated:
+            return True
+        cur = cur.__cause__ or cur.__context__
+    return False
+
+
+def is_unstorable(exc: BaseException) -> bool:
+    """Whether ``exc`` says the data itself cannot be stored (a value the database rejects, an
+    integer out of its range, a machine no longer registered): refusing it is right, retrying
+    it would fail the same way."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if isinstance(cur, DataError | OverflowError | StorageUnknownMachineError):
+            return True
+        cur = cur.__cause__ or cur.__context__
+    return False
+
+
+def _store_blocks_isolated(store: Store, blocks: Sequence[SampleBlock],
+                           on_error: Callable[[SampleBlock, Exception], None]) -> list[Outcome]:
+    """Per-block outcomes from :meth:`Store.store_blocks` (one transaction): a batch that fails
+    for another reason than unavailability is split in halves until the failing blocks stand
+    alone; such a block is refused as ``unstorable`` when the error is about its data
+    (:func:`is_unstorable`), else it is left unacknowledged (``error``), so its sender
+    retransmits it — an unexplained failure never loses data.
 
     Raises:
-        ModelError: The model does not load.
+        Exception: an operational failure (:func:`is_unavailable`), for the caller to retry.
     """
-    if model in builtin_machines():
-        machine = load_machine(model)
-    else:
-        machine = machine_from_dict(tomllib.loads(model), source="<stored model>")
-    return Layout.from_channels(machine.channels)
+    if not blocks:
+        return []
+    try:
+        new = store.store_blocks(blocks)
+    except Exception as exc:
+        if is_unavailable(exc):
+            raise
+        if len(blocks) == 1:
+            on_error(blocks[0], exc)
+            return [("refused", "unstorable") if is_unstorable(exc) else ("error", "write_error")]
+        mid = len(blocks) // 2
+        return (_store_blocks_isolated(store, blocks[:mid], on_error)
+                + _store_blocks_isolated(store, blocks[mid:], on_error))
+    ids = {id(b) for b in new}
+    return [("stored", "") if id(b) in ids else ("duplicate", "") for b in blocks]
 
 
+def write_outcomes(store: Store, blocks: Sequence[SampleBlock],
+                   on_error: Callable[[SampleBlock, Exception], None]) -> list[Outcome]:
+    """Per-block outcomes of one batch write: :meth:`Store.write_batch` where the store has it,
+    else :meth:`Store.store_blocks` with bisection (:func:`_store_blocks_isolated`).
+
+    Raises:
+        Exception: the whole write failed (nothing stored); :func:`is_unavailable` tells
+            whether to retry it.
+    """
+    write_batch = getattr(store, "write_batch", None)
+    if write_batch is None:
+        return _store_blocks_isolated(store, blocks, on_error)
+    result = write_batch(blocks)
+    return [(o.status, o.reason or "") for o in result.outcomes]
+
+
+def _is_refusal(datagram: bytes) -> bool:
+    """Whether a datagram the daemon sends is a refusal (else an ack): its type byte."""
+    return len(datagram) > 3 and datagram[3] == TYPE_REFUSAL
+
+
+class _Abandoned(Exception):
+    """Shutdown gave up retrying (storage unavailable)."""
+
+
+# --- the daemon ---------------------------------------------------------------------------------
 class _IngestProtocol(asyncio.DatagramProtocol):
     def __init__(self, daemon: IngestDaemon) -> None:
         self.daemon = daemon
@@ -147,7 +387,7 @@ class _IngestProtocol(asyncio.DatagramProtocol):
         self.daemon._on_datagram(data, addr)
 
     def error_received(self, exc: Exception) -> None:  # ICMP errors of sent acks
-        self.daemon.metrics.dropped["socket_error"] += 1
+        self.daemon.metrics.drop("socket_error")
 
 
 class IngestDaemon:
@@ -167,235 +407,423 @@ class IngestDaemon:
         self.bus = bus
         self.metrics = Metrics()
         self.address: tuple[str, int] | None = None
+        self.metrics_address: tuple[str, int] | None = None
         self.ready = threading.Event()
+        self.storage_outage = False
+        self.registry = CollectorRegistry()
+        self.registry.register(_SnapshotCollector(self))
+        self.write_latency = Histogram(
+            "cranetwin_ingest_write_seconds", "duration of one committed batch write [s]",
+            registry=self.registry,
+            buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 10))
         self._clock = clock_ns
         self._keys: dict[int, MachineKey] = {}
+        self._bad_models: dict[int, str] = {}  # wire id → machine id whose model does not load
         self._layouts: dict[str, Layout] = {}
         self._keys_loaded = 0.0
-        self._receiver = Receiver(self._lookup)
-        self._queue: queue.Queue[Any] = queue.Queue(self.config.queue_max)
-        self._decoded: queue.Queue[Any] = queue.Queue(2)
+        self._reloading = threading.Lock()
+        self._receiver = Receiver(self._lookup, limits=self.config.limits)
+        self._queue: queue.Queue[tuple[bytes, Addr, int]] = queue.Queue(self.config.queue_max)
+        self._decoded: queue.Queue[list[tuple[Item, Addr]]] = queue.Queue(2)
         self._rx_lock = threading.Lock()  # the Receiver is shared by decoder and writer
         self._stopping = False
+        self._draining = threading.Event()   # shutdown: finish what is queued, then return
+        self._abandon = threading.Event()    # shutdown: give up unwritten batches now
+        self._decoder_done = threading.Event()
+        self._threads: dict[str, threading.Thread] = {}
+        self._finished: set[str] = set()
+        self._progress = time.monotonic()    # last time the writer was not inside a DB call
+        self._outage_since: float | None = None
+        self._logged: set[str] = set()
+        self._log_lock = threading.Lock()
         self._transport: asyncio.DatagramTransport | None = None
         self._sock: socket.socket | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
+        self._signals = 0
+        self._http: Any = None
         self._started = time.monotonic()
         self._last_rollup = time.monotonic()
 
-    # -- keys -----------------------------------------------------------------------------
+    # -- logging ------------------------------------------------------------------------------
+    def _log_once(self, kind: str, exc: BaseException | None, msg: str, *args: Any) -> None:
+        """Log ``msg`` the first time ``kind`` (plus the exception's type) happens; afterwards
+        the counters say how often it recurs."""
+        key = f"{kind}:{type(exc).__name__}" if exc is not None else kind
+        with self._log_lock:
+            if key in self._logged:
+                return
+            self._logged.add(key)
+        expected = exc is None or isinstance(exc, CraneTwinError) or is_unavailable(exc)
+        log.error(msg + " (logged once; see the counters for repeats)", *args,
+                  exc_info=None if expected else exc)
+
+    # -- keys ---------------------------------------------------------------------------------
     def reload_keys(self) -> None:
-        """Read machine keys from storage (new registrations become valid)."""
+        """Read machine keys from storage (new registrations become valid). A machine whose
+        model does not load is logged once; its datagrams are dropped as ``bad_model``.
+
+        Raises:
+            Exception: storage could not be read (the previous keys stay in use).
+        """
         keys: dict[int, MachineKey] = {}
+        bad: dict[int, str] = {}
         models = {m.machine_id: m.model for m in self.store.machines()}
         for wire_id, (machine_id, secret) in self.store.machine_keys().items():
-            model = models[machine_id]
-            try:
-                layout = self._layouts.get(model) or layout_of(model)
-            except CraneTwinError as exc:
-                log.error("machine %s: model does not load, its datagrams are dropped: %s",
-                          machine_id, exc)
-                continue
-            self._layouts[model] = layout
+            model = models.get(machine_id, "")
+            layout = self._layouts.get(model)
+            if layout is None:
+                try:
+                    layout = layout_of(model)
+                except MachineFileError as exc:
+                    bad[wire_id] = machine_id
+                    self._log_once(f"bad_model:{machine_id}", None,
+                                   "machine %s: its model does not load, its datagrams are "
+                                   "dropped as bad_model until it is fixed: %s",
+                                   machine_id, " ".join(str(exc).split()))
+                    continue
+                self._layouts[model] = layout
             keys[wire_id] = MachineKey(wire_id, machine_id, secret, layout)
         self._keys = keys
+        self._bad_models = bad
         self._keys_loaded = time.monotonic()
+
+    def _reload_in_background(self) -> None:
+        """Reload keys in a thread of its own (the decoder never waits for the database)."""
+        if time.monotonic() - self._keys_loaded < self.config.key_refresh_s:
+            return
+        if not self._reloading.acquire(blocking=False):
+            return
+        self._keys_loaded = time.monotonic()  # rate limit even if the reload fails
+
+        def run() -> None:
+            try:
+                self.reload_keys()
+            except Exception as exc:
+                self._log_once("reload_keys", exc, "could not reload machine keys: %s", exc)
+            finally:
+                self._reloading.release()
+
+        threading.Thread(target=run, name="ingest-keys", daemon=True).start()
 
     def _lookup(self, wire_id: int) -> MachineKey | None:
         key = self._keys.get(wire_id)
-        if key is None and time.monotonic() - self._keys_loaded > self.config.key_refresh_s:
-            self._keys_loaded = time.monotonic()  # rate limit even if the reload fails
-            try:
-                self.reload_keys()
-            except CraneTwinError as exc:
-                log.error("could not reload machine keys: %s", exc)
-            key = self._keys.get(wire_id)
+        if key is None:
+            self._reload_in_background()
         return key
 
-    # -- event loop side ------------------------------------------------------------------
+    # -- event loop side ------------------------------------------------------------------------
     def _on_datagram(self, data: bytes, addr: Addr) -> None:
         m = self.metrics
         m.received += 1
         m.received_bytes += len(data)
         if self._stopping:  # arrived after shutdown began: not acked, so the sender retries
-            m.dropped["shutdown"] += 1
+            m.drop("shutdown")
             return
         try:
             self._queue.put_nowait((data, addr, self._clock()))
         except queue.Full:
-            m.dropped["queue_full"] += 1
+            m.drop("queue_full")
+
+    # -- protocol (the only place that knows the Receiver's API) --------------------------------
+    def _rx_receive(self, data: bytes, now: int) -> Item:
+        with self._rx_lock:
+            return self._receiver.receive(data, now)
+
+    def _rx_mark_durable(self, item: Item) -> None:
+        self._receiver.mark_durable(item.machine_id, item.epoch, item.seq)
+
+    def _rx_ack(self, machine_id: str, epoch: int, now: int) -> bytes:
+        return self._receiver.ack(machine_id, epoch, now)
+
+    def _rx_refusal(self, machine_id: str, epoch: int, seq: int, reason: str, now: int) -> bytes:
+        return self._receiver.refuse(machine_id, epoch, seq, reason, now)
 
     def _decode(self, raw: list[tuple[bytes, Addr, int]]) -> list[tuple[Item, Addr]]:
-        """Writer thread: authenticate and decode; bad datagrams are counted and dropped.
+        """Decoder thread: authenticate and decode; bad datagrams are counted and dropped.
 
-        Retransmissions are recognised before the (costly) decode from the header's wire id and
-        seq: a copy of a datagram already in this batch, or below the machine's durable floor,
-        is counted as ``replayed`` and answered with one ack per address and batch. Under
-        overload this keeps retransmissions from eating the capacity that would clear them.
+        Only an authenticated datagram is ever answered, and only in two ways: a replay of a
+        durable one with an ack for its epoch (one per machine, epoch and address and batch: its
+        earlier ack was probably lost), a refused one (out of range, bad time, oversize, bad
+        seq) with its refusal. Anything else — forged, unknown machine, garbage, bad layout —
+        gets nothing, whatever its header claims.
         """
         m = self.metrics
         items: list[tuple[Item, Addr]] = []
-        seen: set[tuple[int, int]] = set()
-        reack: dict[tuple[str, Addr], None] = {}
+        reack: dict[tuple[str, int, Addr], None] = {}
+        replies: list[tuple[bytes, Addr]] = []
         for data, addr, now in raw:
             try:
-                head = peek_header(data)
-                key = self._keys.get(head.wire_id)
-                ws = (head.wire_id, -1)
-                if key is not None and head.type != TYPE_ACK:
-                    ws = (head.wire_id, datagram_seq(data))
-                    if ws in seen:  # a copy of one accepted (authentic) earlier in this batch
-                        m.dropped["replayed"] += 1
-                        continue
-                    with self._rx_lock:
-                        floor = self._receiver.floor(key.machine_id)
-                    if ws[1] < floor:
-                        m.dropped["replayed"] += 1
-                        reack[(key.machine_id, addr)] = None
-                        continue
-                with self._rx_lock:
-                    item = self._receiver.receive(data, now)
-                items.append((item, addr))
-                seen.add(ws)
+                items.append((self._rx_receive(data, now), addr))
             except ReplayedError as exc:
-                m.dropped[exc.reason] += 1
-                rk = self._keys.get(exc.wire_id) if exc.wire_id is not None else None
-                if rk is not None:
-                    reack[(rk.machine_id, addr)] = None  # its ack was probably lost
+                m.drop(exc.reason)
+                if exc.authenticated and exc.machine_id is not None:
+                    reack[(exc.machine_id, exc.epoch, addr)] = None
+            except RefusedError as exc:
+                m.drop(exc.reason)
+                if exc.authenticated:
+                    with contextlib.suppress(KeyError, ValueError), self._rx_lock:
+                        replies.append((self._receiver.refusal(exc, now), addr))
             except DatagramError as exc:
-                m.dropped[exc.reason] += 1
-            except Exception:  # a bug must not stop ingest: count, log once, go on
-                m.dropped["internal_error"] += 1
-                if m.dropped["internal_error"] == 1:
-                    log.exception("unexpected error decoding a datagram (counted, dropped)")
+                reason = exc.reason
+                if reason == "unknown_machine" and exc.wire_id in self._bad_models:
+                    reason = "bad_model"
+                m.drop(reason)
+            except Exception as exc:  # a bug must not stop ingest: count, log once, go on
+                m.drop("internal_error")
+                self._log_once("decode", exc, "unexpected error decoding a datagram "
+                               "(counted as internal_error, dropped): %s", exc)
         now_ns = self._clock()
-        for machine_id, addr in reack:
+        for machine_id, epoch, addr in reack:
             with contextlib.suppress(KeyError), self._rx_lock:
-                ack = self._receiver.ack(machine_id, now_ns)
-            self._sendto(ack, addr)
-        m.accepted += len(items)
+                replies.append((self._rx_ack(machine_id, epoch, now_ns), addr))
+        for data, addr in replies:
+            self._sendto(data, addr, "refusals_sent" if _is_refusal(data) else "acks_sent")
+        m.add("accepted", len(items))
         return items
 
-    def _sendto(self, data: bytes, addr: Addr) -> None:
+    def _sendto(self, data: bytes, addr: Addr, counter: str) -> None:
         if self._sock is None:
             return
         try:
             self._sock.sendto(data, addr)
-            self.metrics.acks_sent += 1
+            self.metrics.add(counter)
         except OSError:  # full buffer or unreachable: the sender retransmits and is acked then
-            self.metrics.dropped["ack_send_error"] += 1
+            self.metrics.drop("ack_send_error")
 
-    def _after_commit(self, items: list[tuple[Item, Addr]]) -> None:
-        """Writer thread, after commit: mark durable, then one ack per (machine, address)."""
-        dest: dict[tuple[str, Addr], None] = {}
-        acks: list[tuple[bytes, Addr]] = []
-        with self._rx_lock:
-            for item, addr in items:
-                self._receiver.mark_durable(item.machine_id, item.seq)
-                dest[(item.machine_id, addr)] = None
-            now = self._clock()
-            for machine_id, addr in dest:
-                acks.append((self._receiver.ack(machine_id, now), addr))
-        for ack, addr in acks:
-            self._sendto(ack, addr)
-
-    # -- writer thread --------------------------------------------------------------------
+    # -- decoder thread -------------------------------------------------------------------------
     def _decoder(self) -> None:
         """Decoder thread: raw datagrams → decoded batches (overlaps the writer's database
-        round trips, which release the GIL)."""
+        round trips, which release the GIL). Returns once draining and the queue is empty."""
         cfg = self.config
-        done = False
-        while not done:
-            try:
-                first = self._queue.get(timeout=0.5)
-            except queue.Empty:
-                continue
-            if first is _STOP:
-                break
-            items = [first]
-            deadline = time.monotonic() + cfg.batch_wait_s
-            while len(items) < cfg.batch_max:
-                try:
-                    nxt = self._queue.get(timeout=max(0.0, deadline - time.monotonic()))
-                except queue.Empty:
-                    break
-                if nxt is _STOP:
-                    done = True
-                    # drain whatever is left: shutdown flushes everything accepted
-                    while True:
-                        try:
-                            rest = self._queue.get_nowait()
-                        except queue.Empty:
-                            break
-                        if rest is not _STOP:
-                            items.append(rest)
-                    break
-                items.append(nxt)
-            batch = self._decode(items)
-            if batch:
-                self._decoded.put(batch)  # blocks when the writer is behind: back-pressure
-        self._decoded.put(_STOP)
-
-    def _writer(self) -> None:
-        """Writer thread: decoded batches → one transaction each (merging any that queued up
-        meanwhile) → acks."""
         while True:
             try:
-                first = self._decoded.get(timeout=0.5)
+                first = self._queue.get(timeout=0.1)
             except queue.Empty:
-                self._maybe_rollup()
+                if self._draining.is_set():
+                    self._decoder_done.set()
+                    return
                 continue
-            if first is _STOP:
+            try:
+                items = [first]
+                deadline = time.monotonic() + (0.0 if self._draining.is_set()
+                                               else cfg.batch_wait_s)
+                while len(items) < cfg.batch_max:
+                    try:
+                        items.append(self._queue.get(
+                            timeout=max(0.0, deadline - time.monotonic())))
+                    except queue.Empty:
+                        break
+                batch = self._decode(items)
+                while batch:  # blocks while the writer is behind: back-pressure
+                    if self._abandon.is_set():
+                        self.metrics.drop("unwritten_at_shutdown", len(batch))
+                        break
+                    try:
+                        self._decoded.put(batch, timeout=0.2)
+                        break
+                    except queue.Full:
+                        continue
+            except Exception as exc:
+                self.metrics.drop("internal_error")
+                self._log_once("decoder", exc, "unexpected error in the decoder loop "
+                               "(the loop goes on): %s", exc)
+
+    # -- writer thread --------------------------------------------------------------------------
+    def _writer(self) -> None:
+        """Writer thread: decoded batches → one batch write each (merging any that queued up
+        meanwhile) → acks. Returns once draining and everything decoded is written (or
+        abandoned)."""
+        while True:
+            self._progress = time.monotonic()
+            if self._abandon.is_set():
+                self._discard_decoded()
                 return
+            try:
+                first = self._decoded.get(timeout=0.1)
+            except queue.Empty:
+                if self._draining.is_set() and self._decoder_done.is_set():
+                    return
+                if not self._draining.is_set():
+                    self._maybe_rollup()
+                continue
             items = list(first)
-            stop = False
             while len(items) < self.config.batch_max:
                 try:
-                    more = self._decoded.get_nowait()
+                    items.extend(self._decoded.get_nowait())
                 except queue.Empty:
                     break
-                if more is _STOP:
-                    stop = True
-                    break
-                items.extend(more)
-            self._write(items)
-            self._maybe_rollup()
-            if stop:
+            try:
+                self._write(items)
+            except _Abandoned:
+                self.metrics.drop("unwritten_at_shutdown", len(items))
+            except Exception as exc:  # a bug must not kill the writer: nothing acked, retried
+                self.metrics.add("write_errors")
+                self._log_once("write", exc, "unexpected error writing %d item(s); not "
+                               "acknowledged (senders retransmit): %s", len(items), exc)
+            if not self._draining.is_set():
+                self._maybe_rollup()
+
+    def _discard_decoded(self) -> None:
+        while True:
+            try:
+                batch = self._decoded.get_nowait()
+            except queue.Empty:
                 return
+            self.metrics.drop("unwritten_at_shutdown", len(batch))
+
+    def _retry(self, what: str, fn: Callable[[], Any]) -> Any:
+        """``fn()``, retried with exponential backoff while storage is unavailable.
+
+        Raises:
+            _Abandoned: shutdown gave up while storage was unavailable.
+            Exception: whatever ``fn`` raised that is not unavailability.
+        """
+        cfg = self.config
+        delay = cfg.retry_min_s
+        while True:
+            try:
+                result = fn()
+            except Exception as exc:
+                self._progress = time.monotonic()
+                if not is_unavailable(exc):
+                    raise
+                self.metrics.add("write_errors")
+                if self._outage_since is None:
+                    self._outage_since = time.monotonic()
+                    self.storage_outage = True
+                    log.error("storage unavailable (%s): retrying with backoff up to %.1f s, "
+                              "nothing is acknowledged meanwhile: %s", what, cfg.retry_max_s,
+                              " ".join(str(exc).split())[:500])
+                if self._abandon.wait(delay):
+                    raise _Abandoned() from exc
+                delay = min(2 * delay, cfg.retry_max_s)
+                continue
+            self._progress = time.monotonic()
+            if self._outage_since is not None:
+                log.warning("storage available again after %.1f s; ingest resumes",
+                            time.monotonic() - self._outage_since)
+                self._outage_since = None
+                self.storage_outage = False
+            return result
+
+    def _block_failed(self, block: SampleBlock, exc: Exception) -> None:
+        self.metrics.add("write_errors")
+        self._log_once("block", exc, "a block of %s (epoch %d, seq %d) failed to store alone, "
+                       "%s: %s", block.machine_id, block.epoch, block.seq,
+                       "refused as unstorable" if is_unstorable(exc) else
+                       "left unacknowledged (its sender retransmits)", exc)
+
+    def _write_blocks(self, blocks: Sequence[SampleBlock]) -> list[Outcome]:
+        """Per-block outcomes of one batch write, retried while storage is unavailable; an
+        unexpected failure of the whole batch falls back to writing block by block, so it can
+        only ever fail the blocks that cause it."""
+        if not blocks:
+            return []
+        try:
+            out: list[Outcome] = self._retry("batch", partial(
+                write_outcomes, self.store, blocks, self._block_failed))
+            return out
+        except _Abandoned:
+            raise
+        except Exception as exc:
+            self.metrics.add("write_errors")
+            self._log_once("write_batch", exc, "batch write failed unexpectedly, writing its "
+                           "%d block(s) one by one: %s", len(blocks), exc)
+        outcomes: list[Outcome] = []
+        for b in blocks:
+            try:
+                outcomes.extend(self._retry("block", partial(
+                    write_outcomes, self.store, [b], self._block_failed)))
+            except _Abandoned:
+                raise
+            except Exception as exc:
+                self.metrics.add("write_errors")
+                self._log_once("write_block", exc, "block %s/%d could not be written (not "
+                               "acknowledged; its sender retransmits): %s", b.machine_id, b.seq,
+                               exc)
+                outcomes.append(("error", "write_error"))
+        return outcomes
 
     def _write(self, items: list[tuple[Item, Addr]]) -> None:
+        """Write one batch; ack what is durable, refuse what storage refused.
+
+        Raises:
+            _Abandoned: shutdown gave up while storage was unavailable (nothing acked).
+        """
         if not items:
             return
         m = self.metrics
         t = time.perf_counter()
-        blocks = [i for i, _ in items if isinstance(i, SampleBlock)]
-        try:
-            new = self.store.store_blocks(blocks)
-            for item, _ in items:
-                if isinstance(item, StatusReport):
-                    self._write_status(item)
-        except CraneTwinError as exc:
-            m.write_errors += 1
-            log.error("write of %d item(s) failed, not acknowledged (senders retransmit): %s",
-                      len(items), exc)
-            return
-        except Exception:  # a bug must not kill the writer: nothing is acked, senders retry
-            m.write_errors += 1
-            log.exception("unexpected error writing %d item(s); not acknowledged", len(items))
-            return
-        m.write_seconds += time.perf_counter() - t
-        m.batches += 1
-        m.stored_blocks += len(new)
-        m.stored_samples += sum(b.n for b in new)
-        m.duplicates += len(blocks) - len(new)
-        self._after_commit(items)
+        block_items = [(i, a) for i, a in items if isinstance(i, SampleBlock)]
+        blocks = [i for i, _ in block_items]
+        outcomes = self._write_blocks(blocks)
+        durable: list[tuple[Item, Addr]] = []
+        refused: list[tuple[Item, Addr, str]] = []
+        new: list[SampleBlock] = []
+        for (b, addr), (kind, reason) in zip(block_items, outcomes, strict=True):
+            if kind == "stored":
+                new.append(b)
+                durable.append((b, addr))
+            elif kind == "duplicate":
+                m.add("duplicates")
+                durable.append((b, addr))
+            elif kind == "refused":
+                refused.append((b, addr, reason))
+            else:
+                m.drop(reason)
+        for item, addr in items:
+            if isinstance(item, StatusReport):
+                try:
+                    self._retry("status", partial(self._write_status, item))
+                except _Abandoned:
+                    raise
+                except Exception as exc:
+                    m.drop("write_error")
+                    self._log_once("write_status", exc, "status report of %s could not be "
+                                   "written (not acknowledged): %s", item.machine_id, exc)
+                    continue
+                durable.append((item, addr))
+        dt = time.perf_counter() - t
+        m.write_seconds += dt
+        self.write_latency.observe(dt)
+        m.add("batches")
+        m.add("stored_blocks", len(new))
+        m.add("stored_samples", sum(b.n for b in new))
+        self._after_commit(durable, refused)
         if self.bus is not None and new:
             try:
                 self.bus.publish(new)
             except Exception as exc:  # fan-out is best effort; storage is the truth
-                m.dropped["publish_error"] += 1
-                log.warning("live fan-out failed: %s", exc)
+                m.drop("publish_error")
+                self._log_once("publish", exc, "live fan-out failed: %s", exc)
+
+    def _after_commit(self, durable: list[tuple[Item, Addr]],
+                      refused: list[tuple[Item, Addr, str]]) -> None:
+        """Writer thread, after commit: mark durable, then one ack per (machine, epoch,
+        address); one refusal per refused block."""
+        dest: dict[tuple[str, int, Addr], None] = {}
+        out: list[tuple[bytes, Addr, str]] = []
+        now = self._clock()
+        with self._rx_lock:
+            for item, addr in durable:
+                self._rx_mark_durable(item)
+                dest[(item.machine_id, item.epoch, addr)] = None
+            for machine_id, epoch, addr in dest:
+                with contextlib.suppress(KeyError):
+                    out.append((self._rx_ack(machine_id, epoch, now), addr, "acks_sent"))
+            for item, addr, reason in refused:
+                self.metrics.drop(reason)
+                reply: bytes | None = None
+                wire_reason = reason if reason in REFUSAL_CODES else "unstorable"
+                with contextlib.suppress(KeyError, ValueError):
+                    reply = self._rx_refusal(item.machine_id, item.epoch, item.seq, wire_reason,
+                                             now)
+                if reply is not None:  # (a version-1 sender gets an ack: it has no refusals)
+                    out.append((reply, addr,
+                                "refusals_sent" if _is_refusal(reply) else "acks_sent"))
+        for data, addr, counter in out:
+            self._sendto(data, addr, counter)
 
     def _write_status(self, r: StatusReport) -> None:
         def val(x: float) -> float | None:
@@ -405,7 +833,7 @@ class IngestDaemon:
                                  longitude_deg=val(r.longitude_deg),
                                  altitude_m=val(r.altitude_m),
                                  operating_hours=val(r.operating_hours))
-        self.metrics.status_reports += 1
+        self.metrics.add("status_reports")
 
     def _maybe_rollup(self, force: bool = False) -> None:
         now = time.monotonic()
@@ -415,16 +843,63 @@ class IngestDaemon:
         try:
             # minutes that ended a while ago (machine clocks may lag), or everything at shutdown
             self.store.rollup(None if force else time.time() - 120)
-        except CraneTwinError as exc:
-            log.warning("summary rollup failed (queries stay exact): %s", exc)
+        except Exception as exc:  # never fatal: dirty minutes stay exact, retried next time
+            self.metrics.add("rollup_errors")
+            self._log_once("rollup", exc, "summary rollup failed (queries stay exact; retried "
+                           "every %.0f s): %s", self.config.rollup_interval_s, exc)
+        finally:
+            self._progress = time.monotonic()
 
-    # -- metrics --------------------------------------------------------------------------
+    # -- threads and supervision ----------------------------------------------------------------
+    def _run_thread(self, name: str, target: Callable[[], None]) -> None:
+        try:
+            target()
+        except BaseException as exc:  # noqa: BLE001 - reported; the supervisor restarts it
+            log.critical("ingest %s thread died (restarted by the supervisor): %r", name, exc,
+                         exc_info=exc)
+            return
+        self._finished.add(name)
+
+    def _start_thread(self, name: str) -> None:
+        target = {"decoder": self._decoder, "writer": self._writer}[name]
+        t = threading.Thread(target=self._run_thread, args=(name, target),
+                             name=f"ingest-{name}", daemon=True)
+        self._threads[name] = t
+        t.start()
+
+    def _supervise_once(self) -> None:
+        """Restart a decoder or writer thread that died (counted)."""
+        if self._abandon.is_set():
+            return
+        for name, t in list(self._threads.items()):
+            if not t.is_alive() and name not in self._finished:
+                self.metrics.add(f"{name}_restarts")
+                log.error("restarting the ingest %s thread", name)
+                self._start_thread(name)
+
+    async def _supervise(self) -> None:
+        while True:
+            await asyncio.sleep(self.config.supervise_interval_s)
+            try:
+                self._supervise_once()
+            except Exception as exc:  # pragma: no cover - thread start failing
+                self._log_once("supervise", exc, "supervisor failed: %s", exc)
+
+    # -- metrics --------------------------------------------------------------------------------
+    @property
+    def metrics_url(self) -> str | None:
+        """``http://HOST:PORT/metrics`` of the Prometheus endpoint once serving, else None."""
+        if self.metrics_address is None:
+            return None
+        host, port = self.metrics_address
+        return f"http://{host if ':' not in host else f'[{host}]'}:{port}/metrics"
+
     def snapshot(self) -> dict[str, Any]:
         """Counters, queue depth and uptime as a JSON-ready dict."""
         return self.metrics.snapshot(self._queue.qsize(), self.config.queue_max, self._started)
 
     def write_metrics(self) -> None:
-        """Write the snapshot to ``config.metrics_path`` atomically (rename)."""
+        """Deprecated: write the snapshot to ``config.metrics_path`` atomically (rename)."""
         path = self.config.metrics_path
         if path is None:
             return
@@ -441,38 +916,78 @@ class IngestDaemon:
             rate = (s["stored_samples"] - last_samples) / max(now - last_t, 1e-9)
             last_samples, last_t = s["stored_samples"], now
             log.info("ingest: received %d, stored %d blocks / %d samples (%.0f samples/s), "
-                     "duplicates %d, dropped %s, queue %d/%d", s["received"], s["stored_blocks"],
-                     s["stored_samples"], rate, s["duplicates"], s["dropped"], s["queue_depth"],
-                     s["queue_max"])
+                     "duplicates %d, dropped %s, queue %d/%d, write errors %d%s",
+                     s["received"], s["stored_blocks"], s["stored_samples"], rate,
+                     s["duplicates"], s["dropped"], s["queue_depth"], s["queue_max"],
+                     s["write_errors"], ", STORAGE UNAVAILABLE" if self.storage_outage else "")
             try:
                 self.write_metrics()
             except OSError as exc:
                 log.warning("could not write metrics file: %s", exc)
 
-    # -- lifecycle ------------------------------------------------------------------------
+    # -- lifecycle ------------------------------------------------------------------------------
     def _socket(self) -> socket.socket:
+        """The bound UDP socket.
+
+        Raises:
+            IngestConfigError: the host does not resolve, the address is not local, the port is
+                in use or needs privileges.
+        """
         cfg = self.config
-        fam = socket.AF_INET6 if ":" in cfg.host else socket.AF_INET
-        sock = socket.socket(fam, socket.SOCK_DGRAM)
+        sock = _bind(cfg.host, cfg.port, socket.SOCK_DGRAM, "UDP", "--bind")
         with contextlib.suppress(OSError):
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, cfg.rcvbuf_bytes)
-        sock.bind((cfg.host, cfg.port))
         sock.setblocking(False)
         return sock
+
+    def _start_metrics_server(self) -> None:
+        cfg = self.config
+        if cfg.metrics_host is None:
+            return
+        # resolve and check first: start_http_server's own errors are less clear
+        _bind(cfg.metrics_host, cfg.metrics_port, socket.SOCK_STREAM, "TCP",
+              "--metrics-bind").close()
+        try:
+            server, _ = start_http_server(cfg.metrics_port, cfg.metrics_host,
+                                          registry=self.registry)
+        except OSError as exc:
+            raise IngestConfigError(_bind_message(exc, cfg.metrics_host, cfg.metrics_port, "TCP",
+                                                  "--metrics-bind")) from None
+        self._http = server
+        host, port = server.server_address[:2]
+        self.metrics_address = (str(host), int(port))
 
     def stop(self) -> None:
         """Ask a running :meth:`serve` to shut down gracefully (thread-safe)."""
         if self._loop is not None and self._stop is not None:
             with contextlib.suppress(RuntimeError):
-                self._loop.call_soon_threadsafe(self._stop.set)
+                self._loop.call_soon_threadsafe(self._on_signal)
+
+    def _on_signal(self) -> None:
+        self._signals += 1
+        if self._stop is not None:
+            self._stop.set()
+        if self._signals > 1:
+            log.warning("second stop request: giving up unwritten batches now")
+            self._abandon.set()
 
     async def serve(self, install_signal_handlers: bool = True) -> None:
         """Run until :meth:`stop`, SIGTERM or SIGINT; then stop receiving, write everything
-        accepted, send the last acks, roll up summaries and write the metrics file."""
+        accepted, send the last acks and roll up summaries — in bounded time.
+
+        Raises:
+            IngestConfigError: the UDP or metrics address cannot be bound.
+            Exception: the machine keys could not be read from storage at start.
+        """
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         self.reload_keys()
         sock = self._socket()
+        try:
+            self._start_metrics_server()
+        except BaseException:
+            sock.close()
+            raise
         self._sock = sock
         transport, _ = await self._loop.create_datagram_endpoint(
             lambda: _IngestProtocol(self), sock=sock)
@@ -482,34 +997,141 @@ class IngestDaemon:
         if install_signal_handlers:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
-                    self._loop.add_signal_handler(sig, self._stop.set)
-        decoder = threading.Thread(target=self._decoder, name="ingest-decoder", daemon=True)
-        writer = threading.Thread(target=self._writer, name="ingest-writer", daemon=True)
-        decoder.start()
-        writer.start()
-        reporter = asyncio.create_task(self._report())
-        log.info("ingest listening on udp %s:%d, %d machine(s), rcvbuf %d bytes", host, port,
-                 len(self._keys), sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+                    self._loop.add_signal_handler(sig, self._on_signal)
+        self._start_thread("decoder")
+        self._start_thread("writer")
+        tasks = [asyncio.create_task(self._report()), asyncio.create_task(self._supervise())]
+        if self.config.metrics_path is not None:
+            log.warning("--metrics-file is deprecated and will be removed: scrape /metrics")
+        log.info("ingest listening on udp %s:%d, %d machine(s), rcvbuf %d bytes, metrics %s",
+                 host, port, len(self._keys), sock.getsockopt(socket.SOL_SOCKET,
+                                                             socket.SO_RCVBUF),
+                 self.metrics_url or "not served")
         self.ready.set()
         try:
             await self._stop.wait()
         finally:
-            log.info("ingest shutting down: flushing %d queued datagram(s)", self._queue.qsize())
-            self._stopping = True
-            sock_stop = getattr(transport, "pause_reading", None)  # not every loop has it
-            if sock_stop is not None:
-                sock_stop()
-            self._queue.put(_STOP)
-            await asyncio.to_thread(decoder.join)
-            await asyncio.to_thread(writer.join)  # last batch written and acknowledged
-            reporter.cancel()
+            await self._shutdown(transport, tasks)
+
+    async def _shutdown(self, transport: asyncio.DatagramTransport,
+                        tasks: list[asyncio.Task[None]]) -> None:
+        cfg = self.config
+        t0 = time.monotonic()
+        log.info("ingest shutting down: flushing %d queued datagram(s)", self._queue.qsize())
+        self._stopping = True
+        pause = getattr(transport, "pause_reading", None)  # not every loop has it
+        if pause is not None:
+            pause()
+        self._draining.set()
+        writer = self._threads.get("writer")
+        while writer is not None and not self._abandon.is_set():
+            writer = self._threads.get("writer")  # the supervisor may have replaced it
+            if writer is None or (not writer.is_alive() and "writer" in self._finished):
+                break
+            now = time.monotonic()
+            if self.storage_outage:
+                log.warning("storage unavailable at shutdown: giving up %d queued datagram(s) "
+                            "and the batch in hand (never acknowledged: their senders "
+                            "retransmit)", self._queue.qsize())
+                self._abandon.set()
+            elif now - self._progress > cfg.stall_timeout_s:
+                log.warning("a database call has not returned for %.1f s: giving up the "
+                            "unwritten batches (never acknowledged)", now - self._progress)
+                self._abandon.set()
+            elif now - t0 > cfg.shutdown_timeout_s:
+                log.warning("flush not done after %.0f s: giving up the rest (never "
+                            "acknowledged)", cfg.shutdown_timeout_s)
+                self._abandon.set()
+            await asyncio.sleep(0.02)
+        clean = not self._abandon.is_set()
+        if not clean:  # the writer leaves its backoff at once; a call stuck in C is not waited
+            await self._wait_threads(1.0)
+            dropped = self._queue.qsize()
+            if dropped:
+                self.metrics.drop("unwritten_at_shutdown", dropped)
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
-                await reporter
-            transport.close()
-            await asyncio.to_thread(self._maybe_rollup, True)
-            with contextlib.suppress(OSError):
-                self.write_metrics()
-            log.info("ingest stopped: %s", json.dumps(self.snapshot()))
+                await task
+        transport.close()
+        if clean:
+            await self._bounded(lambda: self._maybe_rollup(True), cfg.stall_timeout_s,
+                                "final summary rollup")
+        if self._http is not None:
+            self._http.shutdown()
+            self._http.server_close()
+        with contextlib.suppress(OSError):
+            self.write_metrics()
+        log.info("ingest stopped in %.2f s: %s", time.monotonic() - t0,
+                 json.dumps(self.snapshot()))
+
+    async def _wait_threads(self, timeout_s: float) -> None:
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and any(t.is_alive() for t in self._threads.values()):
+            await asyncio.sleep(0.02)
+
+    @staticmethod
+    async def _bounded(fn: Callable[[], None], timeout_s: float, what: str) -> None:
+        """Run ``fn`` in a daemon thread and wait for it at most ``timeout_s`` (a database call
+        stuck in C cannot be interrupted; never use the loop's executor for it, whose threads
+        are joined at exit)."""
+        done = threading.Event()
+
+        def run() -> None:
+            try:
+                fn()
+            finally:
+                done.set()
+
+        threading.Thread(target=run, name="ingest-final", daemon=True).start()
+        end = time.monotonic() + timeout_s
+        while not done.is_set():
+            if time.monotonic() > end:
+                log.warning("%s did not finish in %.1f s: not waited for", what, timeout_s)
+                return
+            await asyncio.sleep(0.02)
+
+
+def _bind_message(exc: OSError, host: str, port: int, proto: str, option: str) -> str:
+    where = f"{host}:{port}" if ":" not in host else f"[{host}]:{port}"
+    if isinstance(exc, socket.gaierror):
+        return f"{option} {where}: cannot resolve host {host!r} ({exc.strerror})"
+    if exc.errno == errno.EADDRINUSE:
+        return (f"{option} {where}: {proto} port {port} is already in use (another daemon "
+                f"running?); stop it or choose another port")
+    if exc.errno == errno.EADDRNOTAVAIL:
+        return f"{option} {where}: {host} is not an address of this machine"
+    if exc.errno == errno.EACCES:
+        return f"{option} {where}: permission denied (ports below 1024 need privileges)"
+    return f"{option} {where}: cannot bind {proto} socket: {exc.strerror or exc}"
+
+
+def _bind(host: str, port: int, kind: socket.SocketKind, proto: str,
+          option: str) -> socket.socket:
+    """A socket of ``kind`` bound to (host, port), resolving ``host`` (IPv4 or IPv6).
+
+    Raises:
+        IngestConfigError: unresolvable host, non-local address, port in use, no permission.
+    """
+    if not 0 <= port <= 65535:
+        raise IngestConfigError(f"{option}: port {port} outside 0..65535")
+    try:
+        infos = socket.getaddrinfo(host, port, type=kind, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError) as exc:
+        if isinstance(exc, socket.gaierror):
+            raise IngestConfigError(_bind_message(exc, host, port, proto, option)) from None
+        raise IngestConfigError(f"{option}: bad host name {host!r}") from None
+    family, socktype, sproto, _, addr = infos[0]
+    sock = socket.socket(family, socktype, sproto)
+    try:
+        if kind == socket.SOCK_STREAM:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(addr)
+    except OSError as exc:
+        sock.close()
+        raise IngestConfigError(_bind_message(exc, host, port, proto, option)) from None
+    return sock
 
 
 def new_event_loop() -> asyncio.AbstractEventLoop:
@@ -522,13 +1144,35 @@ def new_event_loop() -> asyncio.AbstractEventLoop:
     return loop
 
 
-def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None = None) -> None:
-    """Open the store at ``db_url`` and run the daemon until SIGTERM/SIGINT (blocking)."""
+def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None = None,
+          on_ready: Callable[[IngestDaemon], None] | None = None) -> None:
+    """Open the store at ``db_url`` and run the daemon until SIGTERM/SIGINT (blocking).
+
+    Args:
+        on_ready: Called (in a helper thread) once the daemon listens.
+
+    Raises:
+        IngestConfigError: an address cannot be bound.
+        StorageError: the database cannot be opened.
+    """
     store = Store.open(db_url)
     try:
         daemon = IngestDaemon(store, config, bus)
-        with asyncio.Runner(loop_factory=new_event_loop) as runner:
-            runner.run(daemon.serve())
+        if on_ready is not None:
+            def notify() -> None:
+                while not daemon.ready.wait(0.5):
+                    if done.is_set():
+                        return
+                on_ready(daemon)
+
+            done = threading.Event()
+            threading.Thread(target=notify, name="ingest-ready", daemon=True).start()
+        try:
+            with asyncio.Runner(loop_factory=new_event_loop) as runner:
+                runner.run(daemon.serve())
+        finally:
+            if on_ready is not None:
+                done.set()
     finally:
         if bus is not None:
             bus.close()
