@@ -265,6 +265,8 @@ class Sender:
         self.acked_samples = 0
         self.refused = 0
         self.refused_samples = 0
+        self.last_acked: list[tuple[int, bytes]] = []
+        """(seq, datagram) of what the last :meth:`receive` call found acknowledged."""
         self._refill()
 
     # --- input ---------------------------------------------------------------------------------
@@ -322,6 +324,7 @@ class Sender:
             DatagramError: forged, corrupted or foreign (the caller counts and ignores it).
         """
         head = peek_header(datagram)
+        self.last_acked = []
         if head.type == TYPE_REFUSAL:
             ref = decode_refusal(datagram, self.key)
             if ref.epoch == self.epoch:
@@ -338,6 +341,7 @@ class Sender:
         newest_xmit = -1
         for s in done:
             p = self._pending.pop(s)
+            self.last_acked.append((s, p.datagram))
             self.acked_samples += datagram_samples(p.datagram)
             if p.last_sent_ns > newest_xmit:
                 newest_xmit = p.last_sent_ns
