@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, status
+from fastapi.exceptions import RequestValidationError
 
 from cranetwin.api.deps import AdminKey, CurrentKey, MachineDep, MachineIdPath, ServicesDep
 from cranetwin.api.errors import PROBLEM_RESPONSES
@@ -17,6 +18,36 @@ from cranetwin.api.schemas import (
 )
 
 router = APIRouter(prefix="/api/v1/machines", tags=["machines"], responses=PROBLEM_RESPONSES)
+
+
+def check_registered_model(model: str) -> None:
+    """Refuse a model the ingest daemon could not serve, the way the request schema refuses a
+    bad field: 422 problem JSON with one ``errors`` entry per problem, located at
+    ``body.model`` (and the path inside the machine description, when it loads but is invalid).
+
+    The same check as ``cranetwin machines add`` (:func:`cranetwin.ingest.daemon.check_model`).
+
+    Raises:
+        RequestValidationError: the model is unknown or does not load.
+    """
+    from cranetwin.errors import MachineFileError
+    from cranetwin.ingest.daemon import check_model
+    from cranetwin.model import builtin_machines
+
+    known = builtin_machines()
+    if model not in known:
+        raise RequestValidationError([{
+            "loc": ("body", "model"), "type": "unknown_model",
+            "msg": f"unknown model {model!r}: expected one of {', '.join(known)}"}])
+    try:
+        check_model(model, model)
+    except MachineFileError as exc:
+        errors = []
+        for p in exc.problems:
+            path, _, msg = p.partition(": ")
+            loc = ("body", "model", *(x for x in path.split(".") if x and x != "(file)"))
+            errors.append({"loc": loc, "msg": msg or p, "type": "machine_description"})
+        raise RequestValidationError(errors) from exc
 
 
 @router.get("", response_model=list[MachinePublic], summary="All machines with their status")
@@ -33,7 +64,9 @@ def create_machine(key: AdminKey, services: ServicesDep,
                        "machine_id": "crane-2", "model": "patu655", "name": "Crane 2"}}})],
                    ) -> MachineCreated:
     """Register a machine of a built-in model. The HMAC secret its sender needs is returned
-    in this response only (409 if the id is taken, 422 for an unknown model)."""
+    in this response only (409 if the id is taken, 422 for an unknown or invalid model, with
+    the field path in ``errors``)."""
+    check_registered_model(body.model)
     rec, secret = services.backend.create_machine(body)
     detail = services.machine_detail(rec)
     return MachineCreated(**detail.model_dump(by_alias=True), wire_id=rec.wire_id, secret=secret)

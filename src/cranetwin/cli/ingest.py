@@ -1,90 +1,265 @@
-"""``cranetwin ingest`` (the UDP daemon) and ``cranetwin machines add|list`` (registration)."""
+"""``cranetwin ingest`` (the UDP daemon) and ``cranetwin machines add|list`` (registration).
+
+Every option left out falls back to the shared settings (:class:`cranetwin.settings.Settings`,
+environment ``CRANETWIN_…``): ``--db`` to ``CRANETWIN_DATABASE_URL``, ``--bind`` to
+``CRANETWIN_INGEST_BIND``, ``--metrics-bind`` to ``CRANETWIN_INGEST_METRICS_BIND``, ``--live`` to
+``CRANETWIN_LIVE_BUS_URL`` and so on, then to the defaults shown by ``--help``.
+"""
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import secrets
+import stat
+import sys
 from pathlib import Path
 
 import typer
 
-from cranetwin.errors import StorageError
-from cranetwin.storage.engine import DEFAULT_URL
+from cranetwin.errors import CraneTwinError
+from cranetwin.settings import Settings, load_settings
 
 machines_app = typer.Typer(help="Register machines (wire id and HMAC secret) and list them.",
                            no_args_is_help=True)
 
+SECRET_ENV = "CRANETWIN_MACHINE_SECRET"
+_DB_HELP = "sqlite:///… or postgresql://… (default: $CRANETWIN_DATABASE_URL, else " \
+           "sqlite:///cranetwin.db)."
 
-def _parse_bind(bind: str) -> tuple[str, int]:
-    host, sep, port = bind.rpartition(":")
-    if not sep or not port.isdigit() or not host:
-        raise StorageError(f"--bind must be HOST:PORT (e.g. 127.0.0.1:5005), got {bind!r}")
-    return host.strip("[]"), int(port)
+
+class CliError(CraneTwinError):
+    """A command-line option is unusable (printed as one line, exit status 2)."""
+
+
+def parse_bind(bind: str, option: str = "--bind") -> tuple[str, int]:
+    """``HOST:PORT`` (IPv6 as ``[::1]:5005``) → (host, port).
+
+    Raises:
+        CliError: not HOST:PORT, or the port outside 0..65535.
+    """
+    host, sep, port = bind.strip().rpartition(":")
+    host = host.strip()
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not sep or not host or not port.isdigit():
+        raise CliError(f"{option} must be HOST:PORT (e.g. 127.0.0.1:5005), got {bind!r}")
+    if int(port) > 65535:
+        raise CliError(f"{option} {bind!r}: port {port} outside 0..65535")
+    return host, int(port)
+
+
+def _fail(message: str) -> typer.Exit:
+    typer.echo(f"error: {message}", err=True)
+    return typer.Exit(2)
 
 
 def ingest(
-    bind: str = typer.Option("127.0.0.1:5005", help="UDP address to listen on, HOST:PORT."),
-    db: str = typer.Option(DEFAULT_URL, "--db", help="sqlite:///… or postgresql://…"),
-    metrics_file: Path | None = typer.Option(None, help="JSON metrics file (rewritten)."),
-    metrics_interval: float = typer.Option(10.0, help="Seconds between metrics log lines/files."),
-    live: str | None = typer.Option(None, help="Fan-out bus: postgresql://… or redis://H:P."),
-    queue_max: int = typer.Option(50_000, help="Datagrams waiting for the writer at most."),
-    batch_wait: float = typer.Option(0.05, help="Seconds the writer gathers a batch."),
+    bind: str | None = typer.Option(
+        None, help="UDP address to listen on, HOST:PORT (default: $CRANETWIN_INGEST_BIND, else "
+                   "127.0.0.1:5005)."),
+    db: str | None = typer.Option(None, "--db", help=_DB_HELP),
+    metrics_bind: str | None = typer.Option(
+        None, help="HTTP address of the Prometheus /metrics endpoint, HOST:PORT (port 0: any "
+                   "free port), or 0 to serve none (default: $CRANETWIN_INGEST_METRICS_BIND, "
+                   "else 127.0.0.1:9105)."),
+    metrics_file: Path | None = typer.Option(
+        None, help="Deprecated (scrape /metrics): JSON counters file, rewritten every "
+                   "--metrics-interval s."),
+    metrics_interval: float = typer.Option(10.0, min=0.01,
+                                           help="Seconds between metrics log lines [s]."),
+    live: str | None = typer.Option(
+        None, help="Fan-out bus: postgresql://… or redis://H:P (default: "
+                   "$CRANETWIN_LIVE_BUS_URL, else none)."),
+    queue_max: int | None = typer.Option(None, min=1,
+                                         help="Datagrams waiting for the writer at most "
+                                              "(default 50000)."),
+    batch_max: int | None = typer.Option(None, min=1,
+                                         help="Blocks written per transaction at most "
+                                              "(default 1000)."),
+    batch_wait: float | None = typer.Option(None, min=0.0,
+                                            help="Seconds the writer gathers a batch [s] "
+                                                 "(default 0.05)."),
+    max_past: float | None = typer.Option(
+        None, help="Oldest sample time accepted, before the server clock [s] (default 400 "
+                   "days); older datagrams are refused (bad_time)."),
+    max_future: float | None = typer.Option(
+        None, help="Newest sample time accepted, after the server clock [s] (default 300)."),
+    range_margin: float | None = typer.Option(
+        None, help="Share of each sensor's [min, max] span a value may lie beyond it (default "
+                   "0.1); beyond, the datagram is refused (out_of_range)."),
+    shutdown_timeout: float | None = typer.Option(
+        None, help="Longest flush of queued datagrams on SIGTERM while the database is "
+                   "writable [s] (default 60); during an outage the daemon exits in ~5 s."),
     log_level: str = typer.Option("INFO", help="Logging level."),
 ) -> None:
-    """Receive machine datagrams over UDP and store them (ack after commit; SIGTERM flushes)."""
-    from cranetwin.ingest.daemon import DaemonConfig, serve
+    """Receive machine datagrams over UDP and store them (ack after commit; SIGTERM flushes).
+
+    Prints one JSON line on stdout once listening: {"event": "ready", "udp": "HOST:PORT",
+    "metrics": "http://HOST:PORT/metrics" or null, "pid": N}. Logs go to stderr.
+    """
+    from cranetwin.ingest.daemon import DaemonConfig, IngestDaemon, serve
+    from cranetwin.protocol import Limits
     from cranetwin.storage.live import open_bus
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: "
                         "%(message)s")
-    host, port = _parse_bind(bind)
-    cfg = DaemonConfig(host=host, port=port, metrics_path=metrics_file,
-                       metrics_interval_s=metrics_interval, queue_max=queue_max,
-                       batch_wait_s=batch_wait)
-    serve(db, cfg, open_bus(live) if live else None)
+    st = load_settings(Settings, database_url=db, ingest_bind=bind,
+                       ingest_metrics_bind=metrics_bind, live_bus_url=live,
+                       ingest_queue_max=queue_max, ingest_batch_max=batch_max,
+                       ingest_batch_wait_s=batch_wait, ingest_max_past_s=max_past,
+                       ingest_max_future_s=max_future, ingest_range_margin=range_margin,
+                       ingest_shutdown_timeout_s=shutdown_timeout)
+    host, port = parse_bind(st.ingest_bind)
+    mhost: str | None = None
+    mport = 0
+    if st.ingest_metrics_bind.strip() not in ("0", "", "off"):
+        mhost, mport = parse_bind(st.ingest_metrics_bind, "--metrics-bind")
+    cfg = DaemonConfig(host=host, port=port, metrics_host=mhost, metrics_port=mport,
+                       metrics_path=metrics_file, metrics_interval_s=metrics_interval,
+                       queue_max=st.ingest_queue_max, batch_max=st.ingest_batch_max,
+                       batch_wait_s=st.ingest_batch_wait_s,
+                       shutdown_timeout_s=st.ingest_shutdown_timeout_s,
+                       limits=Limits(max_past_s=st.ingest_max_past_s,
+                                     max_future_s=st.ingest_max_future_s,
+                                     range_margin=st.ingest_range_margin))
+
+    def ready(d: IngestDaemon) -> None:
+        h, p = d.address or (host, port)
+        udp = f"{h}:{p}" if ":" not in h else f"[{h}]:{p}"
+        sys.stdout.write(json.dumps({"event": "ready", "udp": udp, "metrics": d.metrics_url,
+                                     "pid": os.getpid()}) + "\n")
+        sys.stdout.flush()
+
+    serve(st.database_url, cfg, open_bus(st.live_bus_url) if st.live_bus_url else None,
+          on_ready=ready)
+
+
+# --- machines ----------------------------------------------------------------------------------
+def _read_secret_file(path: Path) -> str:
+    try:
+        mode = path.stat().st_mode
+        text = path.read_text()
+    except OSError as exc:
+        raise CliError(f"--secret-file {path}: cannot read: {exc.strerror or exc}") from None
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        typer.echo(f"warning: {path} is readable by other users (chmod 600 it)", err=True)
+    return text
+
+
+def _parse_secret(text: str, where: str) -> bytes:
+    t = text.strip()
+    try:
+        key = bytes.fromhex(t)
+    except ValueError:
+        raise CliError(f"{where}: the secret must be hex digits (≥ 32 of them)") from None
+    if len(key) < 16:
+        raise CliError(f"{where}: the secret must be at least 16 bytes (32 hex digits), "
+                       f"got {len(key)}")
+    return key
+
+
+def _model_text(model: str) -> tuple[str, str]:
+    """(text to store, source name): a built-in name as is, else the file's TOML text."""
+    from cranetwin.model import builtin_machines
+
+    if model in builtin_machines():
+        return model, model
+    path = Path(model)
+    try:
+        return path.read_text("utf-8"), str(path)
+    except FileNotFoundError:
+        raise CliError(f"--model {model!r}: no such file, and not a built-in machine "
+                       f"({', '.join(builtin_machines())})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CliError(f"--model {model}: cannot read: {exc}") from None
+
+
+def _open_secret_out(path: Path) -> int:
+    try:
+        return os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        raise CliError(f"--secret-out {path}: exists; not overwritten") from None
+    except OSError as exc:
+        raise CliError(f"--secret-out {path}: cannot create: {exc.strerror or exc}") from None
 
 
 @machines_app.command("add")
 def add(
     machine_id: str = typer.Argument(..., help="Machine identifier, e.g. crane-17."),
     wire_id: int = typer.Option(..., help="32-bit id the machine sends in its datagrams."),
-    secret: str | None = typer.Option(None, help="HMAC key as hex (≥ 32 hex digits); "
-                                      "omitted: a random 32-byte key is generated and printed."),
-    model: str = typer.Option("patu655", help="Built-in machine name or a machine TOML file."),
+    secret_file: Path | None = typer.Option(
+        None, help="File holding the HMAC key as hex (≥ 32 hex digits). Else "
+                   f"${SECRET_ENV}; neither: a random 32-byte key is generated."),
+    secret_out: Path | None = typer.Option(
+        None, help="Write a generated secret to this new file (mode 0600) instead of printing "
+                   "it."),
+    secret: str | None = typer.Option(None, hidden=True,
+                                      help="Refused: secrets on the command line are visible "
+                                           "to every user."),
+    model: str = typer.Option("patu655", help="Built-in machine name or a machine TOML file "
+                                              "(validated before it is registered)."),
     metadata: str = typer.Option("{}", help="JSON object of free-form metadata."),
-    db: str = typer.Option(DEFAULT_URL, "--db", help="Database URL."),
+    db: str | None = typer.Option(None, "--db", help=_DB_HELP),
 ) -> None:
-    """Register a machine. Prints the secret once when it was generated here."""
+    """Register a machine. A generated secret is printed once (or written to --secret-out)."""
+    from cranetwin.ingest.daemon import check_model
     from cranetwin.storage import Store
 
-    try:
-        key = bytes.fromhex(secret) if secret else secrets.token_bytes(32)
-    except ValueError as exc:
-        raise StorageError(f"--secret must be hex digits: {exc}") from exc
+    if secret is not None:
+        raise _fail("--secret is refused: a secret on the command line is visible to every user "
+                    f"(/proc/PID/cmdline); use --secret-file PATH or ${SECRET_ENV}")
+    env_secret = os.environ.get(SECRET_ENV)
+    if secret_file is not None and env_secret:
+        raise CliError(f"give the secret once: --secret-file or ${SECRET_ENV}, not both")
+    key: bytes | None = None
+    if secret_file is not None:
+        key = _parse_secret(_read_secret_file(secret_file), f"--secret-file {secret_file}")
+    elif env_secret:
+        key = _parse_secret(env_secret, f"${SECRET_ENV}")
+    if key is not None and secret_out is not None:
+        raise CliError("--secret-out is for a generated secret; this one was given")
     try:
         meta = json.loads(metadata)
     except json.JSONDecodeError as exc:
-        raise StorageError(f"--metadata must be a JSON object: {exc}") from exc
-    path = Path(model)
-    model_text = path.read_text() if path.suffix == ".toml" and path.exists() else model
-    with Store.open(db) as store:
-        info = store.add_machine(machine_id, wire_id, key, model=model_text, metadata=meta)
+        raise CliError(f"--metadata must be a JSON object: {exc}") from None
+    if not isinstance(meta, dict):
+        raise CliError("--metadata must be a JSON object")
+    model_text, source = _model_text(model)
+    check_model(model_text, source)  # MachineFileError lists every "field.path: problem"
+    generated = key is None
+    if key is None:
+        key = secrets.token_bytes(32)
+    st = load_settings(Settings, database_url=db)
+    fd = _open_secret_out(secret_out) if secret_out is not None else None
+    try:
+        with Store.open(st.database_url) as store:
+            info = store.add_machine(machine_id, wire_id, key, model=model_text, metadata=meta)
+    except BaseException:
+        if fd is not None and secret_out is not None:
+            os.close(fd)
+            secret_out.unlink(missing_ok=True)
+        raise
     typer.echo(f"registered {info.machine_id} (wire id {info.wire_id})")
-    if not secret:
+    if fd is not None:
+        with os.fdopen(fd, "w") as f:
+            f.write(key.hex() + "\n")
+        typer.echo(f"secret written to {secret_out} (mode 0600)")
+    elif generated:
         typer.echo(f"secret (hex, shown once): {key.hex()}")
 
 
 @machines_app.command("list")
 def list_(
-    db: str = typer.Option(DEFAULT_URL, "--db", help="Database URL."),
+    db: str | None = typer.Option(None, "--db", help=_DB_HELP),
     as_json: bool = typer.Option(False, "--json", help="Print JSON."),
 ) -> None:
     """List registered machines (never their secrets)."""
     from cranetwin.storage import Store
 
-    with Store.open(db) as store:
+    st = load_settings(Settings, database_url=db)
+    with Store.open(st.database_url) as store:
         ms = store.machines()
     if as_json:
         typer.echo(json.dumps([m.__dict__ for m in ms], indent=1))
