@@ -1,5 +1,6 @@
 """Sender core against the Receiver over a simulated lossy link (drops, duplicates, reordering
-both ways): retransmission until acked, nothing lost or doubled, bounded memory with the journal, RFC 6298 timers, RACK, restarts, refusals."""
+both ways): retransmission until acked, nothing lost or doubled, bounded memory with the
+journal, RFC 6298 timers, RACK, restarts and refusals."""
 
 from __future__ import annotations
 
