@@ -958,17 +958,18 @@ class IngestDaemon:
         self.metrics_address = (str(host), int(port))
 
     def stop(self) -> None:
-        """Ask a running :meth:`serve` to shut down gracefully (thread-safe)."""
+        """Ask a running :meth:`serve` to shut down gracefully (thread-safe, idempotent)."""
         if self._loop is not None and self._stop is not None:
             with contextlib.suppress(RuntimeError):
-                self._loop.call_soon_threadsafe(self._on_signal)
+                self._loop.call_soon_threadsafe(self._stop.set)
 
     def _on_signal(self) -> None:
+        """SIGTERM/SIGINT: the first stops gracefully, a second gives up unwritten batches."""
         self._signals += 1
         if self._stop is not None:
             self._stop.set()
         if self._signals > 1:
-            log.warning("second stop request: giving up unwritten batches now")
+            log.warning("second stop signal: giving up unwritten batches now")
             self._abandon.set()
 
     async def serve(self, install_signal_handlers: bool = True) -> None:
