@@ -275,6 +275,24 @@ def test_release_deletes_whole_segments_and_keeps_the_next_seq(tmp_path: Path) -
 
 
 @pytest.mark.timeout(20)
+def test_last_is_the_newest_datagram_even_when_released(tmp_path: Path) -> None:
+    d = tmp_path / "j"
+    j = FileJournal(d, segment_records=10)
+    assert j.last() is None
+    fill(j, 25)
+    assert j.last() == dg(24)  # still in the append buffer
+    j.sync()
+    j.release(25)
+    assert j.last() == dg(24) and len(j) == 0
+    j.close()
+    j = FileJournal(d, segment_records=10)
+    assert j.last() == dg(24)  # from disk
+    fill(j, 1)
+    assert j.last() == dg(25)
+    j.close()
+
+
+@pytest.mark.timeout(20)
 def test_the_watermark_is_written_at_most_every_interval(tmp_path: Path) -> None:
     now = [0.0]
     d = tmp_path / "j"

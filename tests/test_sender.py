@@ -314,6 +314,29 @@ def test_unacked_datagrams_stay_in_the_journal_and_go_first_on_the_next_start(
 
 
 @pytest.mark.timeout(30)
+def test_a_restart_continues_the_sample_clock_of_a_run_ahead_of_real_time(tmp_path: Path) -> None:
+    """At --speed 50 the data runs ahead of the wall clock; the next run starts after the
+    journal's newest sample time, so nothing is produced twice for the same time (which the
+    server would refuse as an overlap)."""
+    key = MachineKey(21, "crane-21", SECRET, LAYOUT)
+    src = SyntheticSource(key, seed=21)
+
+    async def main() -> None:
+        srv, port, task = await _serve({21: key})
+        runs = [await run_sender(key, ("127.0.0.1", port), src, journal_dir=tmp_path / "j",
+                                 speed=50.0, duration_s=3.0, status_every_s=1.0, min_rto_s=0.2)
+                for _ in range(2)]
+        task.cancel()
+        assert [r.unacked for r in runs] == [0, 0] and [r.refused for r in runs] == [0, 0]
+        blocks = srv.blocks("crane-21")
+        assert len(blocks) == 12  # 6 per run
+        assert blocks[6].t0_ns == blocks[5].t0_ns + 50 * PERIOD  # run 2 goes on after run 1
+        _check_all_stored(srv, "crane-21", src, 600)
+
+    asyncio.run(main())
+
+
+@pytest.mark.timeout(30)
 def test_stop_syncs_and_returns_at_once_and_the_rest_is_sent_later(tmp_path: Path) -> None:
     key = MachineKey(17, "crane-17", SECRET, LAYOUT)
     src = SyntheticSource(key, seed=17)
@@ -576,3 +599,104 @@ def test_send_cli_exits_2_with_the_data_kept_and_sends_it_on_the_next_start(
     r = CliRunner().invoke(app, [*base[:-4], "--journal", str(tmp_path / "none"), "--host",
                                  f"127.0.0.1:{port}", "--from-journal-only"])
     assert isinstance(r.exception, CraneTwinError) and "no journal" in str(r.exception)
+
+
+# --- kill -9 of a real `cranetwin send` against a real daemon, restarted on its journal ---------
+def _journal_records(d: Path) -> list[tuple[int, bytes]]:
+    """Every (seq, datagram) in the journal's segment files, released ones included."""
+    out: list[tuple[int, bytes]] = []
+    for seg in sorted(d.glob("seg-*.log")):
+        data, pos = seg.read_bytes(), 0
+        while pos < len(data):
+            n = int.from_bytes(data[pos:pos + 4], "big")
+            out.append((int.from_bytes(data[pos + 8:pos + 16], "big"),
+                        data[pos + 16:pos + 16 + n]))
+            pos += 16 + n
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_kill_9_of_cranetwin_send_and_restart_store_every_sample_exactly_once(
+        tmp_path: Path) -> None:
+    """`cranetwin send` killed with SIGKILL twice mid-stream, restarted on the same journal each
+    time: everything it journaled (the journal is synced before anything is sent) ends up stored
+    exactly once, equal to what the deterministic source produced for those times."""
+    import os
+    import random
+    import signal
+    import sqlite3
+    import subprocess
+    import sys
+
+    from conftest import running_daemon
+    from cranetwin.protocol import TYPE_DATA, decode_data, peek_header
+    from cranetwin.storage import Store
+
+    mid, wire = "crane-k9", 4242
+    key = MachineKey(wire, mid, SECRET, LAYOUT)
+    db = tmp_path / "ct.db"
+    store = Store.open(f"sqlite:///{db}")
+    store.add_machine(mid, wire, SECRET)
+    jroot = tmp_path / "journal"
+    jdir = jroot / mid
+    rng = random.Random(9)
+    env = {**os.environ, "CRANETWIN_MACHINE_KEY": SECRET.hex()}
+
+    with running_daemon(store) as daemon:
+        host = f"{daemon.address[0]}:{daemon.address[1]}"
+        cmd = [sys.executable, "-c", "from cranetwin.cli import main; main()", "send",
+               "--machine", mid, "--wire-id", str(wire), "--journal", str(jroot),
+               "--host", host, "--scenario", "synthetic", "--batch", "50", "--speed", "20",
+               "--log-level", "WARNING"]
+        for run in range(2):
+            with open(tmp_path / f"send-{run}.log", "wb") as err:
+                p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, env=env)
+                try:
+                    deadline = time.monotonic() + 60
+                    seg0 = jdir / "seg-00000000000000000000.log"
+                    while not (seg0.exists() and seg0.stat().st_size) and p.poll() is None:
+                        assert time.monotonic() < deadline, "the sender never journaled"
+                        time.sleep(0.02)
+                    time.sleep(rng.uniform(0.3, 1.5))  # mid-stream, anywhere in the cycle
+                    assert p.poll() is None, (tmp_path / f"send-{run}.log").read_text()
+                finally:
+                    p.send_signal(signal.SIGKILL)
+                    p.wait(10)
+        last = subprocess.run([*cmd, "--duration", "1", "--drain-timeout", "60", "--json"],
+                              capture_output=True, text=True, env=env, timeout=120)
+        assert last.returncode == 0, last.stderr[-2000:]
+        out = json.loads(last.stdout.strip().splitlines()[-1])
+        assert out["resumed"] > 0  # the killed runs' unacknowledged datagrams went out first
+        assert out["unacked"] == 0
+    assert not (jdir / "rejected.log").exists()  # nothing refused (e.g. as an overlap)
+    j = FileJournal(jdir)
+    epoch, end = j.epoch, j.end
+    assert len(j) == 0
+    j.close()
+    records = _journal_records(jdir)
+    assert [s for s, _ in records] == list(range(end))  # nothing released was deleted yet
+    blocks = [decode_data(dg, key) for _, dg in records if peek_header(dg).type == TYPE_DATA]
+    assert all(b.epoch == epoch for b in blocks)
+    src = SyntheticSource(key, 0.01, seed=0)
+    for b in blocks:  # the journal holds exactly what the source produced for those rows
+        assert np.array_equal(b.values, expected(src, b), equal_nan=True)
+    with sqlite3.connect(db) as con:
+        rows = con.execute("SELECT b.epoch, b.seq, b.t_start_ns, b.n FROM sample_blocks b "
+                           "JOIN machines m ON m.id = b.machine_pk WHERE m.machine_id = ? "
+                           "ORDER BY b.t_start_ns", (mid,)).fetchall()
+    assert sorted((e, s) for e, s, _, _ in rows) == sorted((b.epoch, b.seq) for b in blocks)
+    assert sum(n for *_, n in rows) == sum(b.n for b in blocks)
+    for (_, _, t0, n), (_, _, t1, _) in zip(rows, rows[1:], strict=False):
+        assert t1 >= t0 + n * PERIOD  # no sample stored twice
+    by_time = sorted(blocks, key=lambda b: b.t0_ns)
+    t_exp = np.concatenate([b.t0_ns + np.arange(b.n) * PERIOD for b in by_time])
+    v_exp = np.concatenate([b.values for b in by_time])
+    got = store.read_samples(mid, t_exp[0] / 1e9, t_exp[-1] / 1e9 + 1)
+    assert np.array_equal(np.round(got.t_s * 1e3).astype(np.int64), t_exp // 1_000_000)
+    cols = [got.channels.index(n) for n in LAYOUT.names]
+    assert np.array_equal(got.values[:, cols], v_exp, equal_nan=True)
+    gaps = sum(1 for a, b in zip(by_time, by_time[1:], strict=False)
+               if b.t0_ns != a.t0_ns + a.n * PERIOD)
+    assert gaps <= 2  # contiguous within each of the three runs
+    store.close()

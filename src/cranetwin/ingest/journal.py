@@ -332,6 +332,24 @@ class FileJournal:
             if seq == self._start:
                 self._advance(seq + 1)
 
+    def last(self) -> bytes | None:
+        """The newest datagram (seq :attr:`end` − 1), even if it was released: the newest
+        segment is never deleted. None when the journal never held one (or it is gone after the
+        end was moved up to the watermark). The sender continues its sample clock after it.
+
+        Raises:
+            SenderError: the record on disk no longer matches its checksum.
+        """
+        self._check_open()
+        if not self._segments or self._segments[-1].end != self._end or self._end == 0:
+            return None
+        seg = self._segments[-1]
+        if seg.end == seg.first:
+            return None
+        if self._tail:
+            return self._tail[-1]
+        return self._read_segment(seg, seg.end - 1, 1)[0]
+
     # --- lifecycle -----------------------------------------------------------------------------
     @property
     def rejected_path(self) -> Path:

@@ -37,14 +37,25 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.ingest.journal import FileJournal, SenderError
-from cranetwin.protocol import DatagramError, Journal, MachineKey, Sender, StatusReport
+from cranetwin.protocol import (
+    TYPE_DATA,
+    TYPE_STATUS,
+    DatagramError,
+    Journal,
+    MachineKey,
+    Sender,
+    StatusReport,
+    decode_data,
+    decode_status,
+    peek_header,
+)
 
 log = logging.getLogger(__name__)
 F64 = npt.NDArray[np.float64]
 
 __all__ = [
     "RecordingSource", "SampleSource", "SenderError", "SenderStats", "SyntheticSource",
-    "journal_owner", "parse_host", "run_fleet", "run_sender", "simulator_source",
+    "journal_owner", "parse_host", "resume_row", "run_fleet", "run_sender", "simulator_source",
 ]
 
 
@@ -330,6 +341,32 @@ async def run_sender(key: MachineKey, server: tuple[str, int], source: SampleSou
     return stats
 
 
+def resume_row(journal: Journal, key: MachineKey, period_ns: int) -> int | None:
+    """The row after the newest sample time in ``journal`` (data or status datagram), or None.
+
+    A restarted sender continues its sample clock there when that is ahead of the wall clock
+    (``speed`` > 1 runs ahead of real time), so a new run never produces samples for times an
+    earlier run already journaled.
+    """
+    last = getattr(journal, "last", None)
+    if callable(last):
+        dg = last()
+    else:
+        dg = journal.read(journal.end - 1, 1)[0] if len(journal) else None
+    if not isinstance(dg, bytes):
+        return None
+    try:
+        kind = peek_header(dg).type
+        if kind == TYPE_DATA:
+            return decode_data(dg, key).t_end_ns // period_ns + 1
+        if kind == TYPE_STATUS:
+            return decode_status(dg, key).t_ns // period_ns + 1
+    except DatagramError:
+        log.warning("%s: the journal's newest datagram does not decode with this key",
+                    key.machine_id)
+    return None
+
+
 def _fsyncs(j: Journal) -> int:
     return int(getattr(j, "fsyncs", getattr(j, "syncs", 0)))
 
@@ -381,6 +418,9 @@ async def _stream(key: MachineKey, server: tuple[str, int], source: SampleSource
     try:
         start_wall = clock_ns()
         row0 = -(-start_wall // period_ns)  # the first sample on the period grid after now
+        after = resume_row(jr, key, period_ns)
+        if after is not None and after > row0:  # an earlier run got ahead of the wall clock
+            row0 = after
         n_total = None if duration_s is None else int(round(duration_s * 1e9 / period_ns))
         if source is None:
             n_total = 0
