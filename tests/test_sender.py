@@ -700,3 +700,38 @@ def test_kill_9_of_cranetwin_send_and_restart_store_every_sample_exactly_once(
                if b.t0_ns != a.t0_ns + a.n * PERIOD)
     assert gaps <= 2  # contiguous within each of the three runs
     store.close()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(60)
+def test_sigterm_stops_cranetwin_send_at_once_with_the_data_kept(tmp_path: Path) -> None:
+    """SIGTERM (or Ctrl-C) while the server does not answer: the sender stops streaming, syncs
+    its journal and exits 2 at once (no drain), saying how many datagrams it kept and where."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    jroot = tmp_path / "journal"
+    seg0 = jroot / "crane-t" / "seg-00000000000000000000.log"
+    env = {**os.environ, "CRANETWIN_MACHINE_KEY": SECRET.hex()}
+    cmd = [sys.executable, "-c", "from cranetwin.cli import main; main()", "send",
+           "--machine", "crane-t", "--wire-id", "7", "--journal", str(jroot),
+           "--host", f"127.0.0.1:{_free_port()}", "--scenario", "synthetic", "--speed", "10",
+           "--log-level", "WARNING"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 40
+    while not (seg0.exists() and seg0.stat().st_size > 1000) and p.poll() is None:
+        assert time.monotonic() < deadline, "the sender never journaled"
+        time.sleep(0.02)
+    p.send_signal(signal.SIGTERM)
+    t0 = time.monotonic()
+    _, err = p.communicate(timeout=20)
+    assert time.monotonic() - t0 < 3
+    assert p.returncode == 2, err
+    msg = err.strip().splitlines()[-1]
+    j = FileJournal(jroot / "crane-t")
+    assert msg == (f"{len(j)} datagrams not yet acknowledged, kept in {jroot / 'crane-t'}; "
+                   "they are sent on the next start")
+    assert len(j) >= 3 and j.start == 0
+    j.close()
