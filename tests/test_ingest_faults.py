@@ -268,6 +268,10 @@ def test_sigterm_while_the_sqlite_database_is_locked_exits_within_10_s(
         s.close()
     assert rc == 0, log_path.read_text()[-2000:]
     assert stopped_in < 10
+    assert proc.stdout is not None
+    final = json.loads(proc.stdout.read().decode().splitlines()[-1])  # the process has exited
+    assert final["event"] == "stopped" and final["stored_blocks"] == 1
+    assert final["dropped"] == {"unwritten_at_shutdown": 1} and final["acks_sent"] == 1
     with Store.open(url) as st:
         assert st.stats().blocks == 1  # the unacknowledged block was given up, not half-stored
     text = log_path.read_text()
@@ -541,8 +545,10 @@ def test_ingest_honours_the_environment(monkeypatch: pytest.MonkeyPatch, tmp_pat
 
     seen: dict[str, Any] = {}
 
-    def fake_serve(db_url: str, config: Any, bus: Any = None, on_ready: Any = None) -> None:
+    def fake_serve(db_url: str, config: Any, bus: Any = None,
+                   on_ready: Any = None) -> dict[str, Any]:
         seen.update(db=db_url, config=config)
+        return {"stored_samples": 0}
 
     monkeypatch.setattr(daemon_mod, "serve", fake_serve)
     url = f"sqlite:///{tmp_path / 'from-env.db'}"
@@ -552,6 +558,7 @@ def test_ingest_honours_the_environment(monkeypatch: pytest.MonkeyPatch, tmp_pat
     out = CliRunner().invoke(app, ["ingest", "--bind", "0.0.0.0:6000", "--range-margin", "0.2",
                                    "--max-past", "3600"])
     assert out.exit_code == 0, out.output
+    assert json.loads(out.output.splitlines()[-1]) == {"event": "stopped", "stored_samples": 0}
     cfg = seen["config"]
     assert seen["db"] == url
     assert (cfg.host, cfg.port, cfg.metrics_host) == ("0.0.0.0", 6000, None)

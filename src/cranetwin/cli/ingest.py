@@ -97,7 +97,8 @@ def ingest(
     """Receive machine datagrams over UDP and store them (ack after commit; SIGTERM flushes).
 
     Prints one JSON line on stdout once listening: {"event": "ready", "udp": "HOST:PORT",
-    "metrics": "http://HOST:PORT/metrics" or null, "pid": N}. Logs go to stderr.
+    "metrics": "http://HOST:PORT/metrics" or null, "pid": N}, and one after a graceful stop:
+    {"event": "stopped", <final counters>}. Logs go to stderr.
     """
     from cranetwin.ingest.daemon import DaemonConfig, IngestDaemon, serve
     from cranetwin.protocol import Limits
@@ -132,8 +133,10 @@ def ingest(
                                      "pid": os.getpid()}) + "\n")
         sys.stdout.flush()
 
-    serve(st.database_url, cfg, open_bus(st.live_bus_url) if st.live_bus_url else None,
-          on_ready=ready)
+    final = serve(st.database_url, cfg, open_bus(st.live_bus_url) if st.live_bus_url else None,
+                  on_ready=ready)
+    sys.stdout.write(json.dumps({"event": "stopped", **final}) + "\n")
+    sys.stdout.flush()
 
 
 # --- machines ----------------------------------------------------------------------------------

@@ -433,6 +433,7 @@ class IngestDaemon:
         self._threads: dict[str, threading.Thread] = {}
         self._finished: set[str] = set()
         self._progress = time.monotonic()    # last time the writer was not inside a DB call
+        self._in_hand = 0                    # items of the batch the writer is writing
         self._outage_since: float | None = None
         self._logged: set[str] = set()
         self._log_lock = threading.Lock()
@@ -653,6 +654,7 @@ class IngestDaemon:
                     items.extend(self._decoded.get_nowait())
                 except queue.Empty:
                     break
+            self._in_hand = len(items)
             try:
                 self._write(items)
             except _Abandoned:
@@ -661,6 +663,7 @@ class IngestDaemon:
                 self.metrics.add("write_errors")
                 self._log_once("write", exc, "unexpected error writing %d item(s); not "
                                "acknowledged (senders retransmit): %s", len(items), exc)
+            self._in_hand = 0
             if not self._draining.is_set():
                 self._maybe_rollup()
 
@@ -972,9 +975,14 @@ class IngestDaemon:
             log.warning("second stop signal: giving up unwritten batches now")
             self._abandon.set()
 
-    async def serve(self, install_signal_handlers: bool = True) -> None:
+    async def serve(self, install_signal_handlers: bool = True,
+                    on_ready: Callable[[IngestDaemon], None] | None = None) -> None:
         """Run until :meth:`stop`, SIGTERM or SIGINT; then stop receiving, write everything
         accepted, send the last acks and roll up summaries — in bounded time.
+
+        Args:
+            install_signal_handlers: Handle SIGTERM/SIGINT (main thread only).
+            on_ready: Called once listening (``address`` and ``metrics_url`` are set).
 
         Raises:
             IngestConfigError: the UDP or metrics address cannot be bound.
@@ -1010,6 +1018,8 @@ class IngestDaemon:
                  self.metrics_url or "not served")
         self.ready.set()
         try:
+            if on_ready is not None:
+                on_ready(self)
             await self._stop.wait()
         finally:
             await self._shutdown(transport, tasks)
@@ -1047,7 +1057,10 @@ class IngestDaemon:
         clean = not self._abandon.is_set()
         if not clean:  # the writer leaves its backoff at once; a call stuck in C is not waited
             await self._wait_threads(1.0)
-            dropped = self._queue.qsize()
+            dropped = self._queue.qsize() + sum(len(b) for b in _drain(self._decoded))
+            writer = self._threads.get("writer")
+            if writer is not None and writer.is_alive():  # stuck in a database call
+                dropped += self._in_hand
             if dropped:
                 self.metrics.drop("unwritten_at_shutdown", dropped)
         for task in tasks:
@@ -1092,6 +1105,15 @@ class IngestDaemon:
                 log.warning("%s did not finish in %.1f s: not waited for", what, timeout_s)
                 return
             await asyncio.sleep(0.02)
+
+
+def _drain(q: queue.Queue[list[tuple[Item, Addr]]]) -> list[list[tuple[Item, Addr]]]:
+    out = []
+    while True:
+        try:
+            out.append(q.get_nowait())
+        except queue.Empty:
+            return out
 
 
 def _bind_message(exc: OSError, host: str, port: int, proto: str, option: str) -> str:
@@ -1146,11 +1168,14 @@ def new_event_loop() -> asyncio.AbstractEventLoop:
 
 
 def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None = None,
-          on_ready: Callable[[IngestDaemon], None] | None = None) -> None:
+          on_ready: Callable[[IngestDaemon], None] | None = None) -> dict[str, Any]:
     """Open the store at ``db_url`` and run the daemon until SIGTERM/SIGINT (blocking).
 
     Args:
-        on_ready: Called (in a helper thread) once the daemon listens.
+        on_ready: Called once the daemon listens (``address``, ``metrics_url`` set).
+
+    Returns:
+        The final :meth:`IngestDaemon.snapshot` (counters after the shutdown flush).
 
     Raises:
         IngestConfigError: an address cannot be bound.
@@ -1159,21 +1184,9 @@ def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None =
     store = Store.open(db_url)
     try:
         daemon = IngestDaemon(store, config, bus)
-        if on_ready is not None:
-            def notify() -> None:
-                while not daemon.ready.wait(0.5):
-                    if done.is_set():
-                        return
-                on_ready(daemon)
-
-            done = threading.Event()
-            threading.Thread(target=notify, name="ingest-ready", daemon=True).start()
-        try:
-            with asyncio.Runner(loop_factory=new_event_loop) as runner:
-                runner.run(daemon.serve())
-        finally:
-            if on_ready is not None:
-                done.set()
+        with asyncio.Runner(loop_factory=new_event_loop) as runner:
+            runner.run(daemon.serve(on_ready=on_ready))
+        return daemon.snapshot()
     finally:
         if bus is not None:
             bus.close()
