@@ -569,3 +569,38 @@ TestJournalModel = JournalModel.TestCase
 TestJournalModel.settings = settings(max_examples=150, stateful_step_count=40, deadline=None,
                                      suppress_health_check=[HealthCheck.too_slow])
 TestJournalModel = pytest.mark.timeout(240)(TestJournalModel)
+
+
+@pytest.mark.timeout(20)
+def test_a_failed_write_makes_the_journal_unusable_until_reopened(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After ENOSPC (or a failed fsync) nothing more is accepted (a retried fsync can report
+    success for data it lost); reopening recovers everything synced before."""
+    import errno
+
+    d = tmp_path / "j"
+    j = FileJournal(d)
+    fill(j, 10)
+    j.sync()
+    fill(j, 5)
+    real_write = os.write
+
+    def full(fd: int, data: bytes | memoryview) -> int:
+        n = real_write(fd, bytes(data)[:7])  # part of it reaches the file
+        if n:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return n
+
+    monkeypatch.setattr(os, "write", full)
+    with pytest.raises(SenderError, match="No space left"):
+        j.sync()
+    monkeypatch.setattr(os, "write", real_write)
+    with pytest.raises(SenderError, match="unusable"):
+        j.append(j.end, b"x")
+    with pytest.raises(SenderError, match="unusable"):
+        j.sync()
+    j.close()  # only lets go
+    j = FileJournal(d)
+    assert j.end == 10 and j.truncated_bytes == 7
+    assert j.read(0, 100) == [dg(s) for s in range(10)]
+    j.close()

@@ -165,6 +165,7 @@ class FileJournal:
         self._rejected: set[int] = set()
         self._state_dirty = False
         self._closed = False
+        self._broken = ""  # why the journal became unusable (a failed write or sync)
         self._lock_fd = -1
         self._dir_fd = -1
         try:
@@ -241,7 +242,7 @@ class FileJournal:
                 self._fsync_dir()
                 self._dir_dirty = False
         except OSError as exc:
-            raise SenderError(f"cannot sync the journal in {self.directory}: {exc}") from exc
+            raise self._fail(f"cannot sync the journal in {self.directory}: {exc}") from exc
         self._synced_end = self._end
         self.syncs += 1
 
@@ -324,7 +325,7 @@ class FileJournal:
             finally:
                 os.close(fd)
         except OSError as exc:
-            raise SenderError(f"cannot write {path}: {exc}") from exc
+            raise self._fail(f"cannot write {path}: {exc}") from exc
         log.warning("journal %s: seq %d (epoch %d) refused by the server (%s), kept in %s",
                     self.directory, seq, self._epoch, reason, path)
         if seq >= self._start:
@@ -368,8 +369,13 @@ class FileJournal:
             self._write_state()
 
     def close(self) -> None:
-        """Sync, write the watermark and release the directory (idempotent)."""
+        """Sync, write the watermark and release the directory (idempotent). After a failed
+        write or sync it only releases the files."""
         if self._closed:
+            return
+        if self._broken:
+            self._closed = True
+            self._release_fds()
             return
         try:
             self.sync()
@@ -500,7 +506,7 @@ class FileJournal:
             os.replace(tmp, path)
             self._fsync_dir()
         except OSError as exc:
-            raise SenderError(f"cannot write the journal state {path}: {exc}") from exc
+            raise self._fail(f"cannot write the journal state {path}: {exc}") from exc
         self._state_dirty = False
         self._last_state = self._clock()
 
@@ -599,6 +605,17 @@ class FileJournal:
     def _check_open(self) -> None:
         if self._closed:
             raise ValueError(f"the journal {self.directory} is closed")
+        if self._broken:
+            raise SenderError(f"the journal {self.directory} is unusable after an earlier error "
+                              f"({self._broken}); restart the sender: it resumes from what is "
+                              "on disk")
+
+    def _fail(self, message: str) -> SenderError:
+        """A write or sync failed: what reached the disk is unknown (and a retried fsync may
+        report success for data it lost), so every further call fails and :meth:`close`
+        only lets go of the files. Reopening recovers the synced prefix."""
+        self._broken = message
+        return SenderError(message)
 
     def _advance(self, below: int) -> None:
         """Set start to ``below`` (then past refused seqs) and delete released segments."""
@@ -630,7 +647,7 @@ class FileJournal:
                     self.fsyncs += 1
                 os.close(self._fd)
             except OSError as exc:
-                raise SenderError(f"cannot seal {self._segments[-1].path}: {exc}") from exc
+                raise self._fail(f"cannot seal {self._segments[-1].path}: {exc}") from exc
             self._fd = None
             self._synced_end = max(self._synced_end, self._segments[-1].end)
         path = self.directory / _seg_name(seq)
@@ -638,7 +655,7 @@ class FileJournal:
             self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND,
                                _FILE_MODE)
         except OSError as exc:
-            raise SenderError(f"cannot create {path}: {exc}") from exc
+            raise self._fail(f"cannot create {path}: {exc}") from exc
         seg = _Segment(seq, path, end=seq)
         self._segments.append(seg)
         self._firsts.append(seq)
@@ -652,7 +669,7 @@ class FileJournal:
         try:
             _write_all(self._fd, self._buf)
         except OSError as exc:
-            raise SenderError(f"cannot write to {self._segments[-1].path}: {exc}") from exc
+            raise self._fail(f"cannot write to {self._segments[-1].path}: {exc}") from exc
         self._buf.clear()
         self._tail.clear()
 
