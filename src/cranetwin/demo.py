@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -212,7 +213,8 @@ class FleetDemo:
                 "name": f"Crane {k} ({payload:.0f} kg logs)",
                 "location": {"lat": lat, "lon": lon}})
             scenario = self._scenario_file(mid, payload, seed=i + 1)
-            self._spawn(f"send-{mid}", ["send", "--machine", mid,
+            journals = self._fresh_journal(mid)
+            self._spawn(f"send-{mid}", ["send", "--machine", mid, "--journal", str(journals),
                                         "--wire-id", str(created["wire_id"]),
                                         "--key-file", str(self._secret_file(mid, created)),
                                         "--scenario", str(scenario), "--host", c.ingest,
@@ -240,6 +242,18 @@ class FleetDemo:
         self.logdir.mkdir(mode=0o700, parents=True, exist_ok=True)
         path.write_text(scenario.model_dump_json(), "utf-8")
         return path
+
+    def _fresh_journal(self, mid: str) -> Path:
+        """The demo's send-journal directory, without a journal of an earlier demo's ``mid``:
+        the machine was just registered with a new secret, so what an old journal holds could
+        never be acknowledged (its tags are under the old secret)."""
+        root = self.logdir / "journal"
+        root.mkdir(mode=0o700, parents=True, exist_ok=True)
+        old = root / mid
+        if old.exists():
+            log.info("removing the send journal of an earlier demo's %s", mid)
+            shutil.rmtree(old)
+        return root
 
     def _secret_file(self, mid: str, created: dict[str, Any]) -> Path:
         """The machine's HMAC secret in a private file (never on a command line)."""
