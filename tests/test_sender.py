@@ -556,7 +556,7 @@ def test_send_cli_streams_a_small_fleet(monkeypatch: pytest.MonkeyPatch, tmp_pat
     finally:
         done.set()
     assert r.exit_code == 0, r.output
-    out = json.loads(r.output.strip().splitlines()[-1])
+    out = json.loads(r.stdout.strip().splitlines()[-1])
     assert [o["unacked"] for o in out] == [0, 0] and [o["samples"] for o in out] == [100, 100]
     assert all(o["fsyncs"] >= 1 for o in out)
     assert SECRET.hex() not in r.output
@@ -583,14 +583,14 @@ def test_send_cli_exits_2_with_the_data_kept_and_sends_it_on_the_next_start(
         r = CliRunner().invoke(app, [*base, "--scenario", "synthetic", "--speed", "50",
                                      "--duration", "1", "--drain-timeout", "0.3"])
         assert r.exit_code == 2, r.output
-        msg = r.output.strip().splitlines()[-1]
+        msg = r.stderr.strip().splitlines()[-1]
         assert msg == (f"3 datagrams not yet acknowledged, kept in {tmp_path / 'jr' / 'cli-x'}; "
                        "they are sent on the next start")
         assert not stored
         mute[0] = False
         r = CliRunner().invoke(app, [*base, "--from-journal-only", "--json"])
         assert r.exit_code == 0, r.output
-        out = json.loads(r.output.strip().splitlines()[-1])
+        out = json.loads(r.stdout.strip().splitlines()[-1])
         assert out["resumed"] == 3  # 2 data, 1 status
         assert out["unacked"] == 0 and out["samples"] == 0
     finally:
