@@ -3,15 +3,26 @@
 A row holds one :class:`~cranetwin.samples.SampleBlock` (``n`` regularly spaced samples of one
 machine) compressed by :mod:`cranetwin.storage.codec`, plus its per-second summary (count, min,
 max, sum of the quantised values per channel for every whole second the block touches), so that
-1-s load history never decodes raw samples. Rows are unique on (machine, seq), and inserted with
-``ON CONFLICT DO NOTHING`` on both dialects, so writing a block twice (a retransmission, a
-replayed batch after a crash) stores it once.
+1-s load history never decodes raw samples. Rows are unique on (machine, epoch, seq), and
+inserted with ``ON CONFLICT DO NOTHING`` on both dialects, so writing a block twice (a
+retransmission, a replayed batch after a crash) stores it once.
+
+What a row may hold (:func:`check_block`, :func:`block_rows`; anything else is refused before it
+reaches the database): sample times 0 ≤ t0 ≤ t_end < :data:`T_LIMIT_NS` (2262-04-10, one day
+below the signed 64-bit ns limit, so every second and minute bucket around a block and every
+query bound next to it is representable), a span t_end − t0 of at most :data:`MAX_SPAN_NS`
+(6 h; a datagram spans at most 4096 × (2**32 − 1) ns ≈ 4.9 h, and the per-second summary
+grows with the span), period ≥ 1 ns, 1 ≤ n < 2**31, seq and epoch in [0, 2**63 − 1], 1..64
+distinct channel names of at most 64 characters, finite resolutions > 0, and finite values
+(NaN = missing) within 2**52 resolution steps of zero.
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import logging
+import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
@@ -26,15 +37,30 @@ from sqlalchemy import (
     Text,
     UniqueConstraint,
     select,
+    text,
+    tuple_,
 )
+from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Mapped, Session, mapped_column
 
 from cranetwin.samples import F64, SampleBlock
 from cranetwin.storage import bulk, codec
 from cranetwin.storage.base import Base
 
+log = logging.getLogger(__name__)
+
 I64 = npt.NDArray[np.int64]
 SEC = 1_000_000_000
+INT63 = 2**63 - 1
+"""Largest signed 64-bit integer (BIGINT)."""
+T_LIMIT_NS = 2**63 - 86_400 * SEC
+"""Sample times must be below this [ns since the Unix epoch] (2262-04-10)."""
+MAX_SPAN_NS = 6 * 3600 * SEC
+"""Longest block, t_end − t0 [ns]."""
+MAX_N = 2**31 - 1
+MAX_CHANNELS = 64
+MAX_CHANNEL_NAME = 64
+_VALUE_LIMIT = 2.0**52
 
 
 class BlockRow(Base):
@@ -42,7 +68,7 @@ class BlockRow(Base):
 
     __tablename__ = "sample_blocks"
     __table_args__ = (
-        UniqueConstraint("machine_pk", "seq"),
+        UniqueConstraint("machine_pk", "epoch", "seq"),
         Index("ix_sample_blocks_machine_t_start", "machine_pk", "t_start_ns"),
         Index("ix_sample_blocks_machine_t_end", "machine_pk", "t_end_ns"),
     )
@@ -50,6 +76,7 @@ class BlockRow(Base):
     id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"),
                                     primary_key=True, autoincrement=True)
     machine_pk: Mapped[int] = mapped_column(ForeignKey("machines.id", ondelete="CASCADE"))
+    epoch: Mapped[int] = mapped_column(BigInteger, server_default=text("0"))
     seq: Mapped[int] = mapped_column(BigInteger)
     t_start_ns: Mapped[int] = mapped_column(BigInteger)
     t_end_ns: Mapped[int] = mapped_column(BigInteger)
@@ -61,7 +88,7 @@ class BlockRow(Base):
     data: Mapped[bytes] = mapped_column(LargeBinary)
 
 
-COLUMNS = ("machine_pk", "seq", "t_start_ns", "t_end_ns", "period_ns", "n", "channels",
+COLUMNS = ("machine_pk", "epoch", "seq", "t_start_ns", "t_end_ns", "period_ns", "n", "channels",
            "resolution", "summary", "data")
 
 
@@ -106,43 +133,225 @@ def _layout(channels: tuple[str, ...], resolution: tuple[float, ...]) -> tuple[s
             json.dumps(list(resolution), separators=(",", ":")))
 
 
-def block_rows(items: Sequence[tuple[int, SampleBlock]]) -> list[tuple[object, ...]]:
+@functools.lru_cache(maxsize=1024)
+def _layout_problem(channels: tuple[object, ...], resolution: tuple[object, ...]) -> str | None:
+    """What is wrong with a channel layout, or None (cached: a fleet has a few layouts)."""
+    c = len(channels)
+    if not 1 <= c <= MAX_CHANNELS or len(resolution) != c:
+        return (f"{c} channel names, {len(resolution)} resolutions; expected equal counts in "
+                f"1..{MAX_CHANNELS}")
+    if (len(set(channels)) != c
+            or not all(isinstance(ch, str) and 1 <= len(ch) <= MAX_CHANNEL_NAME
+                       for ch in channels)):
+        return f"channel names must be distinct strings of 1..{MAX_CHANNEL_NAME} characters"
+    for r in resolution:
+        if (isinstance(r, bool) or not isinstance(r, int | float | np.floating | np.integer)
+                or not (math.isfinite(float(r)) and float(r) > 0)):
+            return f"resolutions must be finite and > 0, got {list(resolution)}"
+    return None
+
+
+def _int(v: object) -> int | None:
+    if isinstance(v, int) and not isinstance(v, bool):
+        return v
+    return int(v) if isinstance(v, np.integer) else None
+
+
+def check_block(b: SampleBlock) -> str | None:
+    """Why ``b`` cannot be stored (one line for logs), or None if it may be.
+
+    Checks everything but the sample values (see the module docstring for the limits); cheap, no
+    pass over the samples: :func:`block_rows` checks those, vectorised over many blocks.
+    """
+    epoch, seq, t0, period = (_int(b.epoch), _int(b.seq), _int(b.t0_ns), _int(b.period_ns))
+    if epoch is None or seq is None or t0 is None or period is None:
+        return (f"epoch, seq, t0_ns and period_ns must be integers, got {type(b.epoch).__name__}, "
+                f"{type(b.seq).__name__}, {type(b.t0_ns).__name__}, "
+                f"{type(b.period_ns).__name__}")
+    if not 0 <= epoch <= INT63:
+        return f"epoch {epoch} outside [0, 2**63 - 1]"
+    if not 0 <= seq <= INT63:
+        return f"seq {seq} outside [0, 2**63 - 1]"
+    values = b.values
+    if (not isinstance(values, np.ndarray) or values.ndim != 2
+            or values.dtype.kind not in "fiu"):
+        return "values must be a real 2-D array (samples × channels)"
+    n, c = values.shape
+    if not 1 <= n <= MAX_N:
+        return f"{n} samples; expected 1..{MAX_N}"
+    if period < 1:
+        return f"period {period} ns; expected ≥ 1 ns"
+    try:
+        layout = _layout_problem(tuple(b.channels), tuple(b.resolution))
+    except TypeError:  # unhashable names or resolutions
+        return "channel names must be strings and resolutions numbers"
+    if layout is not None:
+        return layout
+    if len(b.channels) != c:
+        return f"{c} value columns for {len(b.channels)} channels"
+    t_end = t0 + (n - 1) * period
+    if t0 < 0 or t_end >= T_LIMIT_NS:
+        return f"sample times [{t0}, {t_end}] ns outside [0, {T_LIMIT_NS}) ns"
+    if t_end - t0 > MAX_SPAN_NS:
+        return f"block spans {(t_end - t0) / SEC:.0f} s; at most {MAX_SPAN_NS // SEC} s"
+    return None
+
+
+def block_rows(items: Sequence[tuple[int, SampleBlock]]) -> list[tuple[object, ...] | str]:
     """Column values (in :data:`COLUMNS` order) for (machine_pk, block) pairs: compresses the
-    samples and their per-second summaries, vectorised over blocks of equal shape."""
-    groups: dict[tuple[int, int], list[int]] = {}
+    samples and their per-second summaries, vectorised over blocks of equal shape.
+
+    The blocks must have passed :func:`check_block`.
+
+    Returns:
+        Per item, its row, or why its values cannot be stored (an infinite value, or one more
+        than 2**52 resolution steps from zero); one such block does not affect the others.
+    """
+    groups: dict[tuple[int, ...], list[int]] = {}
     for i, (_, b) in enumerate(items):
         groups.setdefault(b.values.shape, []).append(i)
-    out: list[tuple[object, ...]] = [()] * len(items)
+    out: list[tuple[object, ...] | str] = [""] * len(items)
     for idxs in groups.values():
-        bl = [items[i][1] for i in idxs]
-        values = np.stack([b.values for b in bl])
-        res = np.stack([np.asarray(b.resolution, dtype=np.float64) for b in bl])[:, None, :]
+        values = np.stack([items[i][1].values for i in idxs]).astype(np.float64, copy=False)
+        res = np.stack([np.asarray(items[i][1].resolution, dtype=np.float64)
+                        for i in idxs])[:, None, :]
         mask = np.isnan(values)
-        if not np.all(res > 0):
-            raise codec.CodecError("resolutions must be > 0")
         scaled = np.rint(np.where(mask, 0.0, values) / res)
-        if not np.all(np.abs(scaled) < 2.0**52):
-            raise codec.CodecError("values are infinite or too large for their resolution")
-        k = scaled.astype(np.int64)
+        ok = np.all(np.abs(scaled) < _VALUE_LIMIT, axis=(1, 2))
+        if ok.all():
+            good = idxs
+            k = scaled.astype(np.int64)
+        else:
+            for bad in np.flatnonzero(~ok).tolist():
+                out[idxs[bad]] = "values are infinite or too large for their resolution"
+            if not ok.any():
+                continue
+            good = [i for i, g in zip(idxs, ok.tolist(), strict=True) if g]
+            k = scaled[ok].astype(np.int64)
+            mask = mask[ok]
         data = codec.encode_many(k, mask)
-        summ = per_second(k, mask, np.array([b.t0_ns for b in bl], dtype=np.int64),
-                          np.array([b.period_ns for b in bl], dtype=np.int64))
-        for j, i in enumerate(idxs):
+        t0s = [int(items[i][1].t0_ns) for i in good]
+        periods = [int(items[i][1].period_ns) for i in good]
+        t0 = np.array(t0s, dtype=np.int64)
+        period = np.array(periods, dtype=np.int64)
+        n = k.shape[1]
+        secs = (t0 + (n - 1) * period) // SEC - t0 // SEC + 1
+        spans = np.unique(secs)
+        if spans.size == 1:
+            summ = per_second(k, mask, t0, period)
+        else:  # equal spans together: a long block pads no short one
+            summ = [np.zeros((0, 0), dtype=np.int64)] * len(good)
+            for m in spans:
+                sel = np.flatnonzero(secs == m)
+                for jj, agg in zip(sel.tolist(),
+                                   per_second(k[sel], mask[sel], t0[sel], period[sel]),
+                                   strict=True):
+                    summ[jj] = agg
+        for j, i in enumerate(good):
             pk, b = items[i]
-            out[i] = (pk, b.seq, b.t0_ns, b.t_end_ns, b.period_ns, b.n,
-                      *_layout(b.channels, b.resolution), codec.encode_plain(summ[j]), data[j])
+            ch, r = b.channels, b.resolution
+            chans, resj = _layout(ch if type(ch) is tuple else tuple(ch),
+                                  r if type(r) is tuple else tuple(float(x) for x in r))
+            t0j, pj = t0s[j], periods[j]
+            out[i] = (pk, int(b.epoch), int(b.seq), t0j, t0j + (n - 1) * pj, pj, n, chans, resj,
+                      codec.encode_plain(summ[j]), data[j])
     return out
 
 
-def insert_new(session: Session, rows: Sequence[tuple[object, ...]]) -> set[tuple[int, int]]:
-    """Insert block rows, ignoring (machine, seq) already stored.
+Key = tuple[int, int, int]
+"""Identity of a stored block: (machine_pk, epoch, seq)."""
+
+
+def insert_new(session: Session, rows: Sequence[tuple[object, ...]]) -> set[Key]:
+    """Insert block rows, ignoring those whose (machine, epoch, seq) is already stored.
 
     Returns:
-        The (machine_pk, seq) keys that were newly inserted.
+        The (machine_pk, epoch, seq) keys that were newly inserted.
     """
     got = bulk.insert_rows(session.connection(), BlockRow.__tablename__, COLUMNS, rows,
-                           "ON CONFLICT (machine_pk, seq) DO NOTHING RETURNING machine_pk, seq")
-    return {(int(a), int(b)) for a, b in got}
+                           "ON CONFLICT (machine_pk, epoch, seq) DO NOTHING "
+                           "RETURNING machine_pk, epoch, seq")
+    return {(int(a), int(b), int(c)) for a, b, c in got}
+
+
+def stored_shapes(session: Session, keys: Sequence[Key]) -> dict[Key, tuple[int, int, int]]:
+    """(t_start_ns, n, period_ns) of those of ``keys`` that are stored (one query per 5000)."""
+    out: dict[Key, tuple[int, int, int]] = {}
+    b = BlockRow
+    for i in range(0, len(keys), 5000):
+        chunk = list(keys[i:i + 5000])
+        stmt = (select(b.machine_pk, b.epoch, b.seq, b.t_start_ns, b.n, b.period_ns)
+                .where(tuple_(b.machine_pk, b.epoch, b.seq).in_(chunk)))
+        for pk, ep, sq, t0, n, per in session.execute(stmt):
+            out[(int(pk), int(ep), int(sq))] = (int(t0), int(n), int(per))
+    return out
+
+
+@dataclass(frozen=True)
+class ProbeHit:
+    """What is stored where a new block would go.
+
+    Attributes:
+        same_key: (t_start_ns, n, period_ns) of the stored block with the new block's
+            (machine, epoch, seq), or None.
+        overlap: (epoch, seq) of a stored block of the machine whose time range [t_start, t_end]
+            intersects the new block's, or None (exact while stored blocks do not overlap each
+            other, which :meth:`cranetwin.storage.Store.write_batch` maintains).
+    """
+
+    same_key: tuple[int, int, int] | None
+    overlap: tuple[int, int] | None
+
+
+_PROBE_PG = (
+    "SELECT v.i, k.t_start_ns, k.n, k.period_ns, o.epoch, o.seq "
+    "FROM (VALUES {rows}) AS v(i, pk, epoch, seq, t0, t1) "
+    "LEFT JOIN sample_blocks k ON k.machine_pk = v.pk AND k.epoch = v.epoch AND k.seq = v.seq "
+    "LEFT JOIN LATERAL (SELECT b.epoch, b.seq, b.t_start_ns FROM sample_blocks b "
+    "WHERE b.machine_pk = v.pk AND b.t_end_ns >= v.t0 ORDER BY b.t_end_ns LIMIT 1) o "
+    "ON o.t_start_ns <= v.t1 "
+    "WHERE k.id IS NOT NULL OR o.seq IS NOT NULL")
+_PROBE_SQLITE = (
+    "WITH v(i, pk, epoch, seq, t0, t1) AS (VALUES {rows}) "
+    "SELECT v.i, k.t_start_ns, k.n, k.period_ns, o.epoch, o.seq FROM v "
+    "LEFT JOIN sample_blocks k ON k.machine_pk = v.pk AND k.epoch = v.epoch AND k.seq = v.seq "
+    "LEFT JOIN sample_blocks o ON o.id = (SELECT b.id FROM sample_blocks b "
+    "WHERE b.machine_pk = v.pk AND b.t_end_ns >= v.t0 ORDER BY b.t_end_ns LIMIT 1) "
+    "AND o.t_start_ns <= v.t1 "
+    "WHERE k.id IS NOT NULL OR o.id IS NOT NULL")
+_PROBE_ROWS = 5000
+
+
+def probe(conn: Connection, items: Sequence[tuple[int, int, int, int, int, int]]
+          ) -> dict[int, ProbeHit]:
+    """For many new blocks at once: the stored block with the same key, and a stored block that
+    overlaps in time (two index probes per block, one statement per 5000 blocks).
+
+    The overlap probe takes, per new block [t0, t1], the stored block of the machine with the
+    smallest t_end ≥ t0 (index (machine, t_end)) and reports it if it starts at or before t1.
+
+    Args:
+        conn: Connection inside the caller's transaction.
+        items: (i, machine_pk, epoch, seq, t0_ns, t_end_ns) per new block; ``i`` is the
+            caller's label, returned as the key.
+
+    Returns:
+        Label → hit, for the blocks with at least one hit only (none in the usual case).
+    """
+    pg = conn.dialect.name == "postgresql"
+    one = ("(%s::int,%s::int,%s::bigint,%s::bigint,%s::bigint,%s::bigint)" if pg
+           else "(?,?,?,?,?,?)")
+    template = _PROBE_PG if pg else _PROBE_SQLITE
+    out: dict[int, ProbeHit] = {}
+    for a in range(0, len(items), _PROBE_ROWS):
+        chunk = items[a:a + _PROBE_ROWS]
+        sql = template.format(rows=",".join([one] * len(chunk)))
+        params = tuple(v for r in chunk for v in r)
+        for i, k_t0, k_n, k_per, o_ep, o_seq in conn.exec_driver_sql(sql, params).all():
+            out[int(i)] = ProbeHit(
+                None if k_t0 is None else (int(k_t0), int(k_n), int(k_per)),
+                None if o_seq is None else (int(o_ep), int(o_seq)))
+    return out
 
 
 @dataclass(frozen=True)
@@ -168,13 +377,24 @@ class StoredBlock:
         return self.t0_ns + np.arange(self.values.shape[0], dtype=np.int64) * self.period_ns
 
 
+def clamp_ns(t_ns: int | float) -> int:
+    """``t_ns`` limited to the signed 64-bit range (a query bound far outside any stored time
+    selects the same rows, and a database never sees an integer it cannot hold)."""
+    if isinstance(t_ns, float):
+        if math.isnan(t_ns):
+            raise ValueError("a time bound is NaN")
+        if not math.isfinite(t_ns):
+            return INT63 if t_ns > 0 else -INT63 - 1
+    return max(-INT63 - 1, min(INT63, int(t_ns)))
+
+
 def read_range(session: Session, machine_pk: int, t0_ns: int, t1_ns: int) -> list[StoredBlock]:
     """Blocks of a machine that overlap [t0_ns, t1_ns], ordered by start time."""
     stmt = (select(BlockRow.seq, BlockRow.t_start_ns, BlockRow.period_ns, BlockRow.channels,
                    BlockRow.resolution, BlockRow.data)
-            .where(BlockRow.machine_pk == machine_pk, BlockRow.t_start_ns <= t1_ns,
-                   BlockRow.t_end_ns >= t0_ns)
-            .order_by(BlockRow.t_start_ns, BlockRow.seq))
+            .where(BlockRow.machine_pk == machine_pk, BlockRow.t_start_ns <= clamp_ns(t1_ns),
+                   BlockRow.t_end_ns >= clamp_ns(t0_ns))
+            .order_by(BlockRow.t_start_ns, BlockRow.epoch, BlockRow.seq))
     out = []
     for seq, t0, period, chans, res, data in session.execute(stmt):
         resolution = tuple(float(r) for r in json.loads(res))
@@ -201,17 +421,35 @@ class SecondAggregates:
     sum: F64
 
 
-def read_second_aggregates(session: Session, machine_pk: int, t0_s: int,
-                           t1_s: int) -> Iterator[SecondAggregates]:
+def read_second_aggregates(session: Session, machine_pk: int, t0_s: int, t1_s: int,
+                           corrupt: list[int] | None = None) -> Iterator[SecondAggregates]:
     """Per-second aggregates of the blocks overlapping seconds [t0_s, t1_s) (whole blocks; the
-    caller drops seconds outside). Reads the summary column only, never the samples."""
-    stmt = (select(BlockRow.t_start_ns, BlockRow.channels, BlockRow.resolution, BlockRow.summary)
-            .where(BlockRow.machine_pk == machine_pk, BlockRow.t_start_ns < t1_s * SEC,
-                   BlockRow.t_end_ns >= t0_s * SEC))
-    for t0, chans, res, blob in session.execute(stmt):
-        k = codec.decode_plain(blob)
-        m = k.shape[0] // 4
-        r = np.asarray(json.loads(res), dtype=np.float64)
+    caller drops seconds outside). Reads the summary column only, never the samples.
+
+    A row whose summary, channel list or resolutions cannot be decoded (or disagree in shape) is
+    skipped with a warning, and its row id appended to ``corrupt`` when given: one damaged row
+    never makes a range unreadable.
+    """
+    stmt = (select(BlockRow.id, BlockRow.t_start_ns, BlockRow.channels, BlockRow.resolution,
+                   BlockRow.summary)
+            .where(BlockRow.machine_pk == machine_pk, BlockRow.t_start_ns < clamp_ns(t1_s * SEC),
+                   BlockRow.t_end_ns >= clamp_ns(t0_s * SEC)))
+    for row_id, t0, chans, res, blob in session.execute(stmt):
+        try:
+            k = codec.decode_plain(blob)
+            names = tuple(json.loads(chans))
+            r = np.asarray(json.loads(res), dtype=np.float64)
+            m = k.shape[0] // 4
+            if k.ndim != 2 or k.shape[0] != 4 * m or k.shape[1] != len(names):
+                raise ValueError(f"summary shape {k.shape} does not fit {len(names)} channels")
+            if r.shape != (len(names),):
+                raise ValueError(f"{r.shape} resolutions for {len(names)} channels")
+        except (codec.CodecError, ValueError, TypeError) as exc:  # JSONDecodeError is a ValueError
+            log.warning("sample block row %s (machine pk %s): summary unreadable, skipped: %s",
+                        row_id, machine_pk, exc)
+            if corrupt is not None:
+                corrupt.append(int(row_id))
+            continue
         sec = int(t0) // SEC + np.arange(m, dtype=np.int64)
-        yield SecondAggregates(sec, tuple(json.loads(chans)), k[:m], k[m:2 * m] * r,
-                               k[2 * m:3 * m] * r, k[3 * m:] * r)
+        yield SecondAggregates(sec, names, k[:m], k[m:2 * m] * r, k[2 * m:3 * m] * r,
+                               k[3 * m:] * r)

@@ -23,10 +23,13 @@ from cranetwin.storage import blocks as blocks_mod
 from cranetwin.storage import events as events_mod
 from cranetwin.storage import machines as machines_mod
 from cranetwin.storage import summaries as summaries_mod
-from cranetwin.storage.engine import DEFAULT_URL, make_engine, migrate
+from cranetwin.storage import writes as writes_mod
+from cranetwin.storage.dberrors import is_unavailable, unavailable
+from cranetwin.storage.engine import BUSY_TIMEOUT_S, DEFAULT_URL, make_engine, migrate
 from cranetwin.storage.events import Event, EventRow
 from cranetwin.storage.machines import MachineInfo, MachineRow, UnknownMachineError
 from cranetwin.storage.summaries import Summaries
+from cranetwin.storage.writes import WriteResult
 
 
 @dataclass(frozen=True)
@@ -48,7 +51,9 @@ _EPS_NS = 1000
 
 
 def _ns(t_s: float) -> int:
-    return int(round(t_s * 1e9))
+    """Seconds → ns, rounded, limited to the signed 64-bit range."""
+    x = float(t_s) * 1e9
+    return blocks_mod.clamp_ns(round(x) if abs(x) < 2.0**63 else x)
 
 
 class Store:
@@ -61,15 +66,27 @@ class Store:
     def __init__(self, engine: Engine) -> None:
         self.engine = engine
         self._pk: dict[str, int] = {}
+        self.rollup_skipped = 0
+        """Machine-minutes :meth:`rollup` could not roll up and dropped (since open)."""
+        self.corrupt_summaries = 0
+        """Block rows whose per-second summary :meth:`rollup` could not decode (since open)."""
 
     @classmethod
-    def open(cls, url: str = DEFAULT_URL, *, echo: bool = False) -> Store:
+    def open(cls, url: str = DEFAULT_URL, *, echo: bool = False,
+             busy_timeout_s: float = BUSY_TIMEOUT_S) -> Store:
         """Connect to ``url`` and migrate its schema to the newest revision.
 
+        Args:
+            url: SQLite or PostgreSQL URL (see :func:`cranetwin.storage.engine.make_engine`).
+            echo: Log every SQL statement.
+            busy_timeout_s: SQLite only: how long a write waits for another connection's lock
+                before it fails (then :class:`StorageUnavailableError`) [s].
+
         Raises:
-            StorageError: Bad URL, unreachable server or failed migration.
+            StorageUnavailableError: The server is unreachable.
+            StorageError: Bad URL or failed migration.
         """
-        store = cls(make_engine(url, echo=echo))
+        store = cls(make_engine(url, echo=echo, busy_timeout_s=busy_timeout_s))
         migrate(store.engine)
         return store
 
@@ -183,48 +200,76 @@ class Store:
                     setattr(row, name, float(v))
 
     # -- raw samples ----------------------------------------------------------------------
-    def write_blocks(self, blocks: Sequence[SampleBlock]) -> int:
-        """Store sample blocks in one transaction, durable when this returns.
+    def write_batch(self, blocks: Sequence[SampleBlock]) -> WriteResult:
+        """Store sample blocks of any machines in one transaction, durable when this returns; one
+        block that cannot be stored never fails the others.
 
-        Blocks whose (machine_id, seq) is already stored are ignored (idempotent); summaries
-        are updated from the newly stored blocks only.
+        Per block the result says: ``stored`` (new), ``duplicate`` (the same (machine, epoch,
+        seq) with the same t_start, n and period is stored: durable, may be acknowledged) or
+        ``refused`` with a reason, ``seq_reused``, ``overlap``, ``unstorable`` or
+        ``unknown_machine`` (see :mod:`cranetwin.storage.writes`), which a retry never changes.
+        Summaries are updated from the newly stored blocks only.
 
         Returns:
-            Number of blocks newly stored.
+            :class:`~cranetwin.storage.writes.WriteResult`, one outcome per input block.
 
         Raises:
-            UnknownMachineError: A block names an unregistered machine.
-            StorageError: The database rejected the write.
+            StorageUnavailableError: The database is unreachable, the connection was lost, or it
+                stayed locked beyond the busy timeout; nothing was stored: retry with backoff.
+            StorageError: Any other database failure; nothing was stored.
         """
+        if not blocks:
+            return WriteResult((), ())
+        pks = self._machine_pks({b.machine_id for b in blocks if isinstance(b.machine_id, str)})
+        return writes_mod.write(self._session, blocks, pks)
+
+    def write_blocks(self, blocks: Sequence[SampleBlock]) -> int:
+        """Like :meth:`store_blocks`, returning the number of blocks newly stored."""
         return len(self.store_blocks(blocks))
 
     def store_blocks(self, blocks: Sequence[SampleBlock]) -> list[SampleBlock]:
-        """Like :meth:`write_blocks`, but returns the blocks that were newly stored (for live
-        fan-out), in input order.
+        """:meth:`write_batch` for callers that treat any refusal as an error: returns the blocks
+        newly stored, in input order (duplicates are ignored).
 
         Raises:
-            UnknownMachineError: A block names an unregistered machine.
-            StorageError: The database rejected the write.
+            UnknownMachineError: A block names an unregistered machine (nothing stored).
+            StorageError: A block was refused (the others are stored), or the database failed
+                (nothing stored; :class:`StorageUnavailableError` when it is unavailable).
         """
         if not blocks:
             return []
-        try:
-            with self._session() as s, s.begin():
-                unique: dict[tuple[int, int], SampleBlock] = {}
-                for b in blocks:
-                    unique.setdefault((self._machine_pk(s, b.machine_id), b.seq), b)
-                rows = blocks_mod.block_rows([(pk, b) for (pk, _), b in unique.items()])
-                new = blocks_mod.insert_new(s, rows)
-                minutes: set[tuple[int, int]] = set()
-                for key in new:
-                    b = unique[key]
-                    minutes.update(summaries_mod.block_minutes(key[0], b.t0_ns, b.t_end_ns))
-                summaries_mod.mark_dirty(s, minutes)
-                return [b for key, b in unique.items() if key in new]
-        except UnknownMachineError:
-            raise
-        except SQLAlchemyError as exc:
-            raise StorageError(f"could not store {len(blocks)} block(s): {exc}") from exc
+        ids = {b.machine_id for b in blocks}
+        pks = self._machine_pks({i for i in ids if isinstance(i, str)})
+        unknown = sorted(str(i) for i in ids if i not in pks)
+        if unknown:
+            raise UnknownMachineError(f"no machine {unknown[0]!r} is registered; add it first "
+                                      "(cranetwin machines add)")
+        res = writes_mod.write(self._session, blocks, pks)
+        bad = res.refused
+        if bad:
+            b, o = bad[0]
+            raise StorageError(f"{len(bad)} of {len(blocks)} block(s) refused (the others are "
+                               f"stored); first: {b.machine_id} epoch {b.epoch} seq {b.seq}: "
+                               f"{o.reason}: {o.detail}")
+        return res.new
+
+    def _machine_pks(self, machine_ids: set[str]) -> dict[str, int]:
+        """Primary keys of the registered machines among ``machine_ids`` (cached; one query
+        for all machines when one is not cached yet).
+
+        Raises:
+            StorageUnavailableError: The database is unavailable.
+        """
+        if not machine_ids <= self._pk.keys():
+            try:
+                with self._session() as s:
+                    rows = s.execute(select(MachineRow.machine_id, MachineRow.id)).all()
+            except SQLAlchemyError as exc:
+                if is_unavailable(exc):
+                    raise unavailable("machine lookup", exc) from exc
+                raise StorageError(f"could not look up machines: {exc}") from exc
+            self._pk.update({m: int(i) for m, i in rows})
+        return {m: self._pk[m] for m in machine_ids if m in self._pk}
 
     def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
         """Samples of one machine with t0_s ≤ t < t1_s, oldest first.
@@ -238,7 +283,8 @@ class Store:
         Returns:
             ``SampleArrays`` with t_s shape (n,) [s] strictly increasing, values (n, c).
         """
-        t0, t1 = _ns(t0_s) - _EPS_NS, _ns(t1_s) - _EPS_NS
+        t0 = blocks_mod.clamp_ns(_ns(t0_s) - _EPS_NS)
+        t1 = blocks_mod.clamp_ns(_ns(t1_s) - _EPS_NS)
         with self._session() as s:
             stored = blocks_mod.read_range(s, self._machine_pk(s, machine_id), t0, t1 - 1)
         chans: dict[str, int] = {}
@@ -316,14 +362,24 @@ class Store:
         """Recompute stale 1-min summaries of raw channels (an optimisation: queries are exact
         without it). The ingest daemon calls it periodically and on shutdown.
 
+        One bad row never stops it: a block whose per-second summary cannot be decoded is left
+        out (counted in :attr:`corrupt_summaries`), a minute that cannot be rolled up is logged,
+        dropped from ``summary_dirty`` and counted in :attr:`rollup_skipped`; the others roll up.
+
         Args:
             before_s: Only minutes ending at or before this time [s since the epoch]; None = all.
 
         Returns:
             Number of machine-minutes rolled up.
+
+        Raises:
+            StorageUnavailableError: The database is unavailable (nothing written; retry later).
+            StorageError: Another database failure.
         """
-        with self._session() as s, s.begin():
-            return summaries_mod.rollup(s, before_s)
+        got = summaries_mod.rollup(self._session, before_s)
+        self.rollup_skipped += got.skipped
+        self.corrupt_summaries += got.corrupt
+        return got.rolled
 
     def write_summaries(self, machine_id: str, t_s: F64, channels: Sequence[str],
                         values: F64) -> int:

@@ -17,8 +17,9 @@ Load-history queries read these instead of raw samples (a 24-hour chart of one c
 
 from __future__ import annotations
 
+import logging
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +36,7 @@ from sqlalchemy import (
     literal,
     select,
 )
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Mapped, Session, mapped_column
 
 from cranetwin.errors import StorageError
@@ -42,6 +44,9 @@ from cranetwin.samples import F64
 from cranetwin.storage import bulk
 from cranetwin.storage.base import Base
 from cranetwin.storage.blocks import SEC, read_second_aggregates
+from cranetwin.storage.dberrors import is_unavailable, unavailable
+
+log = logging.getLogger(__name__)
 
 LEVELS_S: tuple[int, ...] = (1, 60)
 """Stored bucket widths [s]."""
@@ -140,11 +145,13 @@ def _raw_seconds(session: Session, machine_pk: int, t0_s: int, t1_s: int,
     return seen
 
 
-def _minute_from_seconds(session: Session, machine_pk: int, minute_s: int) -> dict[str, Agg]:
-    """Exact 1-min aggregates of the raw channels, computed from the blocks' per-second ones."""
+def _minute_from_seconds(session: Session, machine_pk: int, minute_s: int,
+                         corrupt: list[int] | None = None) -> dict[str, Agg]:
+    """Exact 1-min aggregates of the raw channels, computed from the blocks' per-second ones
+    (rows whose summary cannot be decoded are skipped, their ids appended to ``corrupt``)."""
     recs = _Records.empty()
     names: dict[str, int] = {}
-    for agg in read_second_aggregates(session, machine_pk, minute_s, minute_s + MINUTE):
+    for agg in read_second_aggregates(session, machine_pk, minute_s, minute_s + MINUTE, corrupt):
         for ch in agg.channels:
             names.setdefault(ch, len(names))
     _raw_seconds(session, machine_pk, minute_s, minute_s + MINUTE, names, recs)
@@ -161,30 +168,111 @@ def _minute_from_seconds(session: Session, machine_pk: int, minute_s: int) -> di
     return out
 
 
-def rollup(session: Session, before_s: float | None = None) -> int:
+@dataclass(frozen=True)
+class RollupCounts:
+    """What one :func:`rollup` did.
+
+    Attributes:
+        rolled: Machine-minutes whose 1-min raw summaries were recomputed.
+        skipped: Machine-minutes that could not be rolled up: logged and dropped from
+            ``summary_dirty`` (their stored 1-min rows stay as they were).
+        corrupt: Block rows whose per-second summary could not be decoded (left out of their
+            minute, logged).
+    """
+
+    rolled: int
+    skipped: int
+    corrupt: int
+
+
+_UPSERT = ("ON CONFLICT (machine_pk, channel, level_s, bucket_s) DO UPDATE SET "
+           "n = excluded.n, vmin = excluded.vmin, vmax = excluded.vmax, vsum = excluded.vsum")
+_SUMMARY_COLUMNS = ("machine_pk", "channel", "level_s", "bucket_s", "n", "vmin", "vmax", "vsum")
+
+Dirty = tuple[int, int, int]  # machine_pk, minute_s, version
+
+
+def _write_minutes(factory: Callable[[], Session], done: Sequence[tuple[Dirty, dict[str, Agg]]],
+                   dropped: Sequence[Dirty]) -> None:
+    """One transaction: upsert the recomputed minutes, delete their marks and those of
+    ``dropped`` (each only if its version is unchanged: a block that arrived meanwhile keeps
+    its minute dirty)."""
+    with factory() as s, s.begin():
+        rows = [(pk, ch, MINUTE, minute, a[0], a[1], a[2], a[3])
+                for (pk, minute, _), aggs in done for ch, a in aggs.items()]
+        bulk.insert_rows(s.connection(), SummaryRow.__tablename__, _SUMMARY_COLUMNS, rows,
+                         _UPSERT)
+        for pk, minute, version in [d for d, _ in done] + list(dropped):
+            s.execute(delete(DirtyMinute).where(
+                DirtyMinute.machine_pk == pk, DirtyMinute.minute_s == minute,
+                DirtyMinute.version == version))
+
+
+def rollup(factory: Callable[[], Session], before_s: float | None = None) -> RollupCounts:
     """Recompute stale 1-min raw summaries (minutes ending at or before ``before_s``, or all).
 
-    Returns:
-        Number of machine-minutes rolled up.
+    Never stops at one bad row: a block row whose summary cannot be decoded is left out of its
+    minute (logged, counted); a minute that cannot be computed or whose write the database
+    rejects is logged, counted and dropped from ``summary_dirty`` while the others roll up.
+    Reads in one transaction, writes in another (per minute only if the batch write is
+    rejected).
+
+    Raises:
+        StorageUnavailableError: The database is unavailable; nothing was written.
+        StorageError: Another database failure.
     """
     stmt = select(DirtyMinute.machine_pk, DirtyMinute.minute_s, DirtyMinute.version)
     if before_s is not None:
         stmt = stmt.where(DirtyMinute.minute_s + MINUTE <= before_s)
-    done = 0
-    conn = session.connection()
-    upsert = ("ON CONFLICT (machine_pk, channel, level_s, bucket_s) DO UPDATE SET "
-              "n = excluded.n, vmin = excluded.vmin, vmax = excluded.vmax, vsum = excluded.vsum")
-    for pk, minute, version in session.execute(stmt).all():
-        aggs = _minute_from_seconds(session, pk, minute)
-        rows = [(pk, ch, MINUTE, minute, a[0], a[1], a[2], a[3]) for ch, a in aggs.items()]
-        bulk.insert_rows(conn, SummaryRow.__tablename__,
-                         ("machine_pk", "channel", "level_s", "bucket_s", "n", "vmin", "vmax",
-                          "vsum"), rows, upsert)
-        session.execute(delete(DirtyMinute).where(
-            DirtyMinute.machine_pk == pk, DirtyMinute.minute_s == minute,
-            DirtyMinute.version == version))
-        done += 1
-    return done
+    done: list[tuple[Dirty, dict[str, Agg]]] = []
+    dropped: list[Dirty] = []
+    corrupt: list[int] = []
+    try:
+        with factory() as s:
+            dirty = [(int(a), int(b), int(c)) for a, b, c in s.execute(stmt).all()]
+            for d in dirty:
+                pk, minute, _ = d
+                try:
+                    done.append((d, _minute_from_seconds(s, pk, minute, corrupt)))
+                except SQLAlchemyError as exc:
+                    if is_unavailable(exc):
+                        raise
+                    s.rollback()  # PostgreSQL: the failed statement aborted the transaction
+                    log.warning("rollup: machine pk %d minute %d s cannot be rolled up, dropped "
+                                "from summary_dirty: %s", pk, minute, exc)
+                    dropped.append(d)
+                except Exception as exc:  # one bad minute must not stop the others
+                    log.warning("rollup: machine pk %d minute %d s cannot be rolled up, dropped "
+                                "from summary_dirty: %r", pk, minute, exc)
+                    dropped.append(d)
+        if not done and not dropped:
+            return RollupCounts(0, 0, len(corrupt))
+        try:
+            _write_minutes(factory, done, dropped)
+        except (SQLAlchemyError, OverflowError) as exc:
+            if is_unavailable(exc):
+                raise
+            log.warning("rollup: batch write of %d minute(s) rejected (%s); writing them one by "
+                        "one", len(done), str(exc).splitlines()[0])
+            kept = []
+            for d, aggs in done:
+                try:
+                    _write_minutes(factory, [(d, aggs)], [])
+                    kept.append(d)
+                except (SQLAlchemyError, OverflowError) as one:
+                    if is_unavailable(one):
+                        raise
+                    log.warning("rollup: machine pk %d minute %d s rejected by the database, "
+                                "dropped from summary_dirty: %s", d[0], d[1],
+                                str(one).splitlines()[0])
+                    dropped.append(d)
+            done = [(d, a) for d, a in done if d in kept]
+            _write_minutes(factory, [], dropped)
+    except SQLAlchemyError as exc:
+        if is_unavailable(exc):
+            raise unavailable("summary rollup", exc) from exc
+        raise StorageError(f"summary rollup failed: {exc}") from exc
+    return RollupCounts(len(done), len(dropped), len(corrupt))
 
 
 def accumulate(acc: dict[Key, Agg], channels: Sequence[str], t_ns: npt.NDArray[np.int64],
