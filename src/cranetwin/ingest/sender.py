@@ -263,7 +263,7 @@ async def run_sender(key: MachineKey, server: tuple[str, int], source: SampleSou
                      max_unacked: int = 512, status_every_s: float = 60.0,
                      position_deg: tuple[float, float] = (61.0, 25.0),
                      stop: asyncio.Event | None = None, drain_timeout_s: float = 30.0,
-                     min_rto_s: float = 1.0, max_rto_s: float = 30.0, tick_s: float = 0.05,
+                     min_rto_s: float = 1.0, max_rto_s: float = 10.0, tick_s: float = 0.05,
                      clock_ns: Callable[[], int] = time.time_ns) -> SenderStats:
     """Stream ``source`` as one machine to ``server`` until ``duration_s`` or ``stop``.
 

@@ -224,7 +224,7 @@ class Sender:
 
     def __init__(self, key: MachineKey, period_ns: int, *, journal: Journal | None = None,
                  batch_samples: int = 50, max_unacked: int = 512,
-                 min_rto_ns: int = 1_000_000_000, max_rto_ns: int = 30_000_000_000,
+                 min_rto_ns: int = 1_000_000_000, max_rto_ns: int = 10_000_000_000,
                  max_burst: int = 64, max_datagram: int = MAX_DATAGRAM) -> None:
         if not 1 <= batch_samples <= MAX_SAMPLES:
             raise ValueError(f"batch_samples must be in 1..{MAX_SAMPLES}, got {batch_samples}")
@@ -253,6 +253,8 @@ class Sender:
         self.rttvar_ns = 0
         self.rto_ns = min_rto_ns
         self._rto_deadline: int | None = None
+        self._backoffs = 0  # consecutive timer expiries without forward progress
+        self._last_timeout_ns = -1
         # RACK state (RFC 8985)
         self._rack_xmit_ns = -1
         self._rack_rtt_ns = 0
@@ -345,9 +347,16 @@ class Sender:
             self.acked_samples += datagram_samples(p.datagram)
             if p.last_sent_ns > newest_xmit:
                 newest_xmit = p.last_sent_ns
-                # Karn: only a datagram sent once gives an unambiguous round trip
-                sample = now_ns - p.last_sent_ns if p.sends == 1 else None
+                # Karn: only a datagram sent once gives an unambiguous round trip, and only one
+                # sent since the last timeout (one sent into an outage measures the outage)
+                sample = (now_ns - p.last_sent_ns
+                          if p.sends == 1 and p.last_sent_ns >= self._last_timeout_ns else None)
         if done:
+            # forward progress clears the backoff, as Linux does (RFC 6298 (5.7) would keep it
+            # until a valid sample: after an outage the tail of the queue then drains at one
+            # retransmission per max_rto_ns)
+            self._backoffs = 0
+            self.rto_ns = self._base_rto()
             if sample is not None:
                 self._rtt_sample(sample)
             if newest_xmit > self._rack_xmit_ns:
@@ -372,7 +381,11 @@ class Sender:
             if oldest is not None:
                 out.append((oldest, self._pending[oldest]))
                 self.timeouts += 1
+                self._backoffs += 1
+                self._last_timeout_ns = now_ns
                 self.rto_ns = min(2 * self.rto_ns, self.max_rto_ns)  # RFC 6298 (5.5)
+                if self._backoffs >= 3:  # RFC 6298 §5 note: SRTT and RTTVAR are likely bogus
+                    self.srtt_ns = None
             self._rto_deadline = None
         reo = self._reorder_window()
         for seq, p in self._pending.items():
@@ -465,8 +478,14 @@ class Sender:
             self.rttvar_ns = (3 * self.rttvar_ns + abs(self.srtt_ns - r)) // 4
             self.srtt_ns = (7 * self.srtt_ns + r) // 8
         self._min_rtt_ns = r if self._min_rtt_ns is None else min(self._min_rtt_ns, r)
-        rto = self.srtt_ns + max(1_000_000, 4 * self.rttvar_ns)  # clock granularity G = 1 ms
-        self.rto_ns = min(max(rto, self.min_rto_ns), self.max_rto_ns)
+        self.rto_ns = self._base_rto()
+
+    def _base_rto(self) -> int:
+        """RTO = SRTT + max(G, 4·RTTVAR) with G = 1 ms, clamped; the minimum before a sample."""
+        if self.srtt_ns is None:
+            return self.min_rto_ns
+        rto = self.srtt_ns + max(1_000_000, 4 * self.rttvar_ns)
+        return min(max(rto, self.min_rto_ns), self.max_rto_ns)
 
     def _reorder_window(self) -> int:
         """RACK's reordering window: min RTT / 4 (RFC 8985 §6.2), at least 1 ms."""
