@@ -34,7 +34,7 @@ from cranetwin.protocol import (
     peek_header,
 )
 from cranetwin.samples import SampleBlock
-from cranetwin.storage import Store
+from cranetwin.storage import Store, WriteResult
 from cranetwin.storage.live import InProcessBus
 
 LAYOUT = Layout.from_channels(load_machine("patu655").channels)
@@ -127,18 +127,13 @@ def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0) -> None:
 
 class HookStore(Store):
     """A store that calls ``hook(blocks)`` before every batch write (to gate, slow down or fail
-    writes), whichever write method the daemon uses."""
+    writes)."""
 
     hook: Callable[[Sequence[SampleBlock]], None] = staticmethod(lambda blocks: None)
 
-    def store_blocks(self, blocks: Sequence[SampleBlock]) -> list[SampleBlock]:
+    def write_batch(self, blocks: Sequence[SampleBlock]) -> WriteResult:
         self.hook(blocks)
-        return super().store_blocks(blocks)
-
-    if hasattr(Store, "write_batch"):
-        def write_batch(self, blocks: Sequence[SampleBlock]) -> Any:
-            self.hook(blocks)
-            return super().write_batch(blocks)  # type: ignore[misc]
+        return super().write_batch(blocks)
 
 
 def hook_store(db_url: str, wire_ids: Sequence[int] = (1, 2)) -> HookStore:

@@ -178,6 +178,31 @@ def _acks(reply: bytes, wire_id: int) -> bool:
 
 
 @pytest.mark.timeout(60)
+def test_a_locked_sqlite_database_is_an_outage_and_ingest_resumes_after_it(tmp_path: Path) -> None:
+    """A real outage: another process holds the SQLite write lock for 2 s."""
+    db = tmp_path / "locked.db"
+    st = Store.open(f"sqlite:///{db}", busy_timeout_s=0.2)
+    st.add_machine("crane-1", 1, SECRET)
+    with running_daemon(st) as d:
+        s = udp()
+        s.sendto(datagram(1, 0), d.address)
+        assert decode_ack(s.recv(2048), key(1)).covers(0)
+        lock = sqlite3.connect(db, timeout=1, isolation_level=None)
+        lock.execute("BEGIN EXCLUSIVE")
+        try:
+            s.sendto(datagram(1, 1, seed=1), d.address)
+            assert recv_or_none(s, 2.0) is None  # locked: not durable, not acknowledged
+            assert d.storage_outage and d.snapshot()["write_errors"] >= 2
+        finally:
+            lock.execute("ROLLBACK")
+            lock.close()
+        ack = recv_or_none(s, 10)
+        assert ack is not None and decode_ack(ack, key(1)).covers(1)
+        s.close()
+    assert st.stats().blocks == 2 and not d.storage_outage
+
+
+@pytest.mark.timeout(60)
 def test_stop_during_an_outage_gives_up_unacked_batches_within_seconds(db_url: str) -> None:
     st = hook_store(db_url, [1])
     outage = Outage()
@@ -545,9 +570,9 @@ def test_ingest_honours_the_environment(monkeypatch: pytest.MonkeyPatch, tmp_pat
 
     seen: dict[str, Any] = {}
 
-    def fake_serve(db_url: str, config: Any, bus: Any = None,
-                   on_ready: Any = None) -> dict[str, Any]:
-        seen.update(db=db_url, config=config)
+    def fake_serve(db_url: str, config: Any, bus: Any = None, on_ready: Any = None,
+                   busy_timeout_s: float = 0.0) -> dict[str, Any]:
+        seen.update(db=db_url, config=config, busy=busy_timeout_s)
         return {"stored_samples": 0}
 
     monkeypatch.setattr(daemon_mod, "serve", fake_serve)
@@ -555,12 +580,13 @@ def test_ingest_honours_the_environment(monkeypatch: pytest.MonkeyPatch, tmp_pat
     monkeypatch.setenv("CRANETWIN_DATABASE_URL", url)
     monkeypatch.setenv("CRANETWIN_INGEST_METRICS_BIND", "0")
     monkeypatch.setenv("CRANETWIN_INGEST_MAX_FUTURE_S", "5")
+    monkeypatch.setenv("CRANETWIN_INGEST_BUSY_TIMEOUT_S", "1.5")
     out = CliRunner().invoke(app, ["ingest", "--bind", "0.0.0.0:6000", "--range-margin", "0.2",
                                    "--max-past", "3600"])
     assert out.exit_code == 0, out.output
     assert json.loads(out.output.splitlines()[-1]) == {"event": "stopped", "stored_samples": 0}
     cfg = seen["config"]
-    assert seen["db"] == url
+    assert seen["db"] == url and seen["busy"] == 1.5
     assert (cfg.host, cfg.port, cfg.metrics_host) == ("0.0.0.0", 6000, None)
     assert (cfg.limits.max_past_s, cfg.limits.max_future_s, cfg.limits.range_margin) == \
         (3600.0, 5.0, 0.2)

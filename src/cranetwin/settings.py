@@ -55,6 +55,9 @@ class Settings(BaseSettings):
         300.0, ge=0, description="newest sample time accepted, after server time [s]")
     ingest_range_margin: float = Field(
         0.1, ge=0, description="share of each channel's [min, max] span a value may lie beyond it")
+    ingest_busy_timeout_s: float = Field(
+        3.0, gt=0, description="SQLite: how long the daemon's write waits for another "
+                               "process's lock before it counts as an outage (retried) [s]")
     ingest_shutdown_timeout_s: float = Field(
         60.0, gt=0, description="longest flush of queued datagrams on SIGTERM while the database "
                                 "is writable [s]")

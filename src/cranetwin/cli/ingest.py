@@ -134,7 +134,7 @@ def ingest(
         sys.stdout.flush()
 
     final = serve(st.database_url, cfg, open_bus(st.live_bus_url) if st.live_bus_url else None,
-                  on_ready=ready)
+                  on_ready=ready, busy_timeout_s=st.ingest_busy_timeout_s)
     sys.stdout.write(json.dumps({"event": "stopped", **final}) + "\n")
     sys.stdout.flush()
 

@@ -69,7 +69,7 @@ from typing import Any, Literal
 from prometheus_client import CollectorRegistry, Histogram, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
-from sqlalchemy.exc import DataError, DBAPIError, InterfaceError, OperationalError
+from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 
 from cranetwin.errors import CraneTwinError, MachineFileError, StorageUnavailableError
 from cranetwin.model import builtin_machines, load_machine, machine_from_dict
@@ -87,8 +87,7 @@ from cranetwin.protocol import (
 )
 from cranetwin.protocol.status import StatusReport
 from cranetwin.samples import SampleBlock
-from cranetwin.storage import Store
-from cranetwin.storage import UnknownMachineError as StorageUnknownMachineError
+from cranetwin.storage import Store, WriteResult
 from cranetwin.storage.live import LiveBus
 
 log = logging.getLogger(__name__)
@@ -290,13 +289,21 @@ class _SnapshotCollector(Collector):
 # --- storage outcomes ---------------------------------------------------------------------------
 Outcome = tuple[Literal["stored", "duplicate", "refused", "error"], str]
 """Per-block result of a write: stored (new), duplicate (already held), refused (never storable,
-with the refusal reason) or error (an unexpected failure of that block alone: neither acked nor
-refused, so its sender retransmits)."""
+with storage's refusal reason) or error (the block could not be written even alone, for a reason
+storage did not explain: neither acked nor refused, so its sender retransmits; counted as
+``write_error``)."""
+
+
+def _outcomes(result: WriteResult) -> list[Outcome]:
+    return [(o.status, o.reason or "unstorable") if o.status == "refused" else (o.status, "")
+            for o in result.outcomes]
 
 
 def is_unavailable(exc: BaseException) -> bool:
     """Whether ``exc`` is an operational database failure (connection lost, server down,
-    database locked, disk I/O): the write should be retried, not refused."""
+    database locked, disk I/O): the write should be retried, not refused. Storage raises
+    :class:`~cranetwin.errors.StorageUnavailableError` for these; the SQLAlchemy errors in the
+    cause chain are recognised too, for calls that let them through."""
     if isinstance(exc, StorageUnavailableError):
         return True
     seen: set[int] = set()
@@ -309,64 +316,6 @@ def is_unavailable(exc: BaseException) -> bool:
             return True
         cur = cur.__cause__ or cur.__context__
     return False
-
-
-def is_unstorable(exc: BaseException) -> bool:
-    """Whether ``exc`` says the data itself cannot be stored (a value the database rejects, an
-    integer out of its range, a machine no longer registered): refusing it is right, retrying
-    it would fail the same way."""
-    seen: set[int] = set()
-    cur: BaseException | None = exc
-    while cur is not None and id(cur) not in seen:
-        seen.add(id(cur))
-        if isinstance(cur, DataError | OverflowError | StorageUnknownMachineError):
-            return True
-        cur = cur.__cause__ or cur.__context__
-    return False
-
-
-def _store_blocks_isolated(store: Store, blocks: Sequence[SampleBlock],
-                           on_error: Callable[[SampleBlock, Exception], None]) -> list[Outcome]:
-    """Per-block outcomes from :meth:`Store.store_blocks` (one transaction): a batch that fails
-    for another reason than unavailability is split in halves until the failing blocks stand
-    alone; such a block is refused as ``unstorable`` when the error is about its data
-    (:func:`is_unstorable`), else it is left unacknowledged (``error``), so its sender
-    retransmits it — an unexplained failure never loses data.
-
-    Raises:
-        Exception: an operational failure (:func:`is_unavailable`), for the caller to retry.
-    """
-    if not blocks:
-        return []
-    try:
-        new = store.store_blocks(blocks)
-    except Exception as exc:
-        if is_unavailable(exc):
-            raise
-        if len(blocks) == 1:
-            on_error(blocks[0], exc)
-            return [("refused", "unstorable") if is_unstorable(exc) else ("error", "write_error")]
-        mid = len(blocks) // 2
-        return (_store_blocks_isolated(store, blocks[:mid], on_error)
-                + _store_blocks_isolated(store, blocks[mid:], on_error))
-    ids = {id(b) for b in new}
-    return [("stored", "") if id(b) in ids else ("duplicate", "") for b in blocks]
-
-
-def write_outcomes(store: Store, blocks: Sequence[SampleBlock],
-                   on_error: Callable[[SampleBlock, Exception], None]) -> list[Outcome]:
-    """Per-block outcomes of one batch write: :meth:`Store.write_batch` where the store has it,
-    else :meth:`Store.store_blocks` with bisection (:func:`_store_blocks_isolated`).
-
-    Raises:
-        Exception: the whole write failed (nothing stored); :func:`is_unavailable` tells
-            whether to retry it.
-    """
-    write_batch = getattr(store, "write_batch", None)
-    if write_batch is None:
-        return _store_blocks_isolated(store, blocks, on_error)
-    result = write_batch(blocks)
-    return [(o.status, o.reason or "") for o in result.outcomes]
 
 
 def _is_refusal(datagram: bytes) -> bool:
@@ -710,23 +659,16 @@ class IngestDaemon:
                 self.storage_outage = False
             return result
 
-    def _block_failed(self, block: SampleBlock, exc: Exception) -> None:
-        self.metrics.add("write_errors")
-        self._log_once("block", exc, "a block of %s (epoch %d, seq %d) failed to store alone, "
-                       "%s: %s", block.machine_id, block.epoch, block.seq,
-                       "refused as unstorable" if is_unstorable(exc) else
-                       "left unacknowledged (its sender retransmits)", exc)
-
     def _write_blocks(self, blocks: Sequence[SampleBlock]) -> list[Outcome]:
-        """Per-block outcomes of one batch write, retried while storage is unavailable; an
-        unexpected failure of the whole batch falls back to writing block by block, so it can
-        only ever fail the blocks that cause it."""
+        """Per-block outcomes of one :meth:`Store.write_batch`, retried while storage is
+        unavailable. A batch that fails as a whole for another reason (nothing of it stored)
+        is written again block by block, so such a failure only ever holds back the blocks
+        that cause it."""
         if not blocks:
             return []
         try:
-            out: list[Outcome] = self._retry("batch", partial(
-                write_outcomes, self.store, blocks, self._block_failed))
-            return out
+            result: WriteResult = self._retry("batch", partial(self.store.write_batch, blocks))
+            return _outcomes(result)
         except _Abandoned:
             raise
         except Exception as exc:
@@ -736,15 +678,15 @@ class IngestDaemon:
         outcomes: list[Outcome] = []
         for b in blocks:
             try:
-                outcomes.extend(self._retry("block", partial(
-                    write_outcomes, self.store, [b], self._block_failed)))
+                one: WriteResult = self._retry("block", partial(self.store.write_batch, [b]))
+                outcomes.extend(_outcomes(one))
             except _Abandoned:
                 raise
             except Exception as exc:
                 self.metrics.add("write_errors")
-                self._log_once("write_block", exc, "block %s/%d could not be written (not "
-                               "acknowledged; its sender retransmits): %s", b.machine_id, b.seq,
-                               exc)
+                self._log_once("write_block", exc, "a block of %s (epoch %d, seq %d) could not "
+                               "be written alone (not acknowledged; its sender retransmits): %s",
+                               b.machine_id, b.epoch, b.seq, exc)
                 outcomes.append(("error", "write_error"))
         return outcomes
 
@@ -1168,11 +1110,16 @@ def new_event_loop() -> asyncio.AbstractEventLoop:
 
 
 def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None = None,
-          on_ready: Callable[[IngestDaemon], None] | None = None) -> dict[str, Any]:
+          on_ready: Callable[[IngestDaemon], None] | None = None,
+          busy_timeout_s: float = 3.0) -> dict[str, Any]:
     """Open the store at ``db_url`` and run the daemon until SIGTERM/SIGINT (blocking).
 
     Args:
         on_ready: Called once the daemon listens (``address``, ``metrics_url`` set).
+        busy_timeout_s: SQLite only: how long a write waits for another process's lock before
+            storage reports itself unavailable (then the batch is retried with backoff) [s];
+            shorter than ``stall_timeout_s`` so that a locked database is an outage, not a
+            stuck call.
 
     Returns:
         The final :meth:`IngestDaemon.snapshot` (counters after the shutdown flush).
@@ -1181,7 +1128,7 @@ def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None =
         IngestConfigError: an address cannot be bound.
         StorageError: the database cannot be opened.
     """
-    store = Store.open(db_url)
+    store = Store.open(db_url, busy_timeout_s=busy_timeout_s)
     try:
         daemon = IngestDaemon(store, config, bus)
         with asyncio.Runner(loop_factory=new_event_loop) as runner:
