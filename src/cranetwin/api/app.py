@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -33,6 +34,49 @@ validation). Bad input is always a 4xx.
 """
 
 
+_KEY_PARAM = re.compile(r"(?i)([?&;](?:k|%6b)(?:e|%65)(?:y|%79)=)[^&;#\s\"]*")
+
+
+def redact_keys(text: str) -> str:
+    """``text`` with the value of every ``key=`` query parameter replaced by ``***`` (also when
+    the name is percent-encoded, e.g. ``%6Bey=``)."""
+    return _KEY_PARAM.sub(r"\1***", text)
+
+
+class RedactKeysFilter(logging.Filter):
+    """Rewrites log records so that API keys passed as ``?key=...`` never reach a log line.
+
+    Installed on uvicorn's loggers (:data:`ACCESS_LOGGERS`) by :func:`install_log_redaction`;
+    it rewrites the record's string arguments (uvicorn passes the request path with its query
+    string as one) and its message, and never drops a record.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str):
+            record.msg = redact_keys(record.msg)
+        if isinstance(record.args, tuple):
+            record.args = tuple(redact_keys(a) if isinstance(a, str) else a
+                                for a in record.args)
+        elif isinstance(record.args, dict):
+            record.args = {k: redact_keys(v) if isinstance(v, str) else v
+                           for k, v in record.args.items()}
+        return True
+
+
+ACCESS_LOGGERS = ("uvicorn.access", "uvicorn.error")
+"""Loggers that see request paths with their query string: uvicorn's access log, and its error
+log, where websocket connections are logged (``"WebSocket /api/v1/live?key=..." [accepted]``)."""
+
+
+def install_log_redaction() -> None:
+    """Add :class:`RedactKeysFilter` to the access loggers, once (idempotent). Logger filters
+    survive uvicorn's logging configuration, which replaces handlers only."""
+    for name in ACCESS_LOGGERS:
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, RedactKeysFilter) for f in logger.filters):
+            logger.addFilter(RedactKeysFilter())
+
+
 def create_app(settings: Settings | None = None, *, bus: object = None) -> FastAPI:
     """Build the FastAPI app; the lifespan opens the store, starts the twin worker, and closes
     both on shutdown.
@@ -43,6 +87,7 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
             (``cranetwin.storage.live.InProcessBus``); None to use ``settings.live_bus_url``.
     """
     cfg = settings if settings is not None else Settings()
+    install_log_redaction()  # API keys in ?key= never reach the access log
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -101,9 +101,33 @@ _MEDIA = {".js": "text/javascript", ".css": "text/css", ".html": "text/html",
           ".svg": "image/svg+xml", ".png": "image/png", ".json": "application/json"}
 
 
+MAX_STATIC_PATH = 256
+"""Longest static file path served [characters]; the files of ``web/`` have short names."""
+
+
+def _static_path_problem(path: str) -> JSONResponse | None:
+    """A 400/404 answer for a path that can never name a static file, or None."""
+    if len(path) > MAX_STATIC_PATH:
+        return _problem(404, "Not found", f"no static file (path of {len(path)} characters; "
+                        f"at most {MAX_STATIC_PATH})")
+    if any(ord(ch) < 0x20 or ch in "\\\x7f" for ch in path):
+        return _problem(400, "Bad path", "static file paths contain no control characters "
+                        "(NUL, ...) or backslashes")
+    if any(part in ("", ".", "..") for part in path.split("/")):
+        return _problem(404, "Not found", f"no static file {path!r}")
+    return None
+
+
 @router.get("/static/{path:path}", include_in_schema=False)
 def static_file(path: str) -> Response:
-    """Files of ``web/`` and the vendored viewer/chart libraries under ``/static/vendor/``."""
+    """Files of ``web/`` and the vendored viewer/chart libraries under ``/static/vendor/``.
+
+    A path that cannot name one (NUL or other control characters, ``..``, empty segments,
+    longer than :data:`MAX_STATIC_PATH`) is a 400 or 404, never an error of the file system.
+    """
+    bad = _static_path_problem(path)
+    if bad is not None:
+        return bad
     if path.startswith("vendor/"):
         try:
             file = vendor_file(path.removeprefix("vendor/"))
@@ -111,9 +135,13 @@ def static_file(path: str) -> Response:
             return _problem(exc.status, exc.title, exc.detail)
         return FileResponse(file, media_type="text/javascript",
                             headers={"Cache-Control": "public, max-age=86400"})
-    root = web_dir().resolve()
-    file = (root / path).resolve()
-    if root not in file.parents or not file.is_file():
+    try:
+        root = web_dir().resolve()
+        file = (root / path).resolve()
+        found = root in file.parents and file.is_file()
+    except (OSError, ValueError):  # name too long for the file system, ...
+        found = False
+    if not found:
         return _problem(404, "Not found", f"no static file {path!r}")
     return FileResponse(file, media_type=_MEDIA.get(file.suffix, "application/octet-stream"),
                         headers={"Cache-Control": "no-cache"})

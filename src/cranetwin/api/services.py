@@ -211,7 +211,12 @@ class Services:
     # -- samples ----------------------------------------------------------------------------------
     def samples_page(self, rec: MachineRecord, rng: TimeRange, limit: int,
                      cursor: str | None) -> SamplesPage:
-        """One page of raw samples in [from, to) (≤ ``limit``; next page from ``next_cursor``)."""
+        """One page of raw samples in [from, to) (≤ ``limit``; next page from ``next_cursor``).
+
+        Gaps of any length are skipped with one index probe (the start of the next stored
+        block), so paging never stops early: ``next_cursor`` is null only when no sample is
+        left in [cursor, to).
+        """
         if limit > self.settings.max_samples_limit:
             raise ApiError(422, "Page too large", f"limit={limit}; at most "
                            f"{self.settings.max_samples_limit} samples per page")
@@ -221,13 +226,18 @@ class Services:
             if not rng.t0_s <= c <= rng.t1_s:
                 raise ApiError(422, "Invalid cursor", f"cursor {cursor!r} is outside [from, to)")
             start = c
+        mid = rec.machine_id
+        first = self.backend.next_sample_time(mid, start)  # a leading gap: skipped at once
+        if first is None or first >= rng.t1_s:
+            return SamplesPage(channels=[], t=[], values=[], next_cursor=None)
+        start = max(start, first)
         span = limit / self.settings.nominal_rate_hz * 1.1 + 1.0
         t = np.zeros(0)
         vals = np.zeros((0, 0))
         channels: tuple[str, ...] = ()
         while True:
             end = min(rng.t1_s, start + span)
-            s = self.backend.read_samples(rec.machine_id, start, end)
+            s = self.backend.read_samples(mid, start, end)
             t, vals, channels = s.t_s, s.values, s.channels
             keep = t < rng.t1_s
             t, vals = t[keep], vals[keep]
@@ -238,6 +248,10 @@ class Services:
         if t.shape[0] > limit:
             nxt = repr(float(t[limit]))
             t, vals = t[:limit], vals[:limit]
+        elif end < rng.t1_s:  # a page short of ``limit`` before a long gap: continue after it
+            more = self.backend.next_sample_time(mid, end)
+            if more is not None and more < rng.t1_s:
+                nxt = repr(float(max(more, end)))
         v = np.where(np.isfinite(vals), vals, np.nan)
         return SamplesPage(channels=list(channels), t=t.tolist(),
                            values=[[None if not math.isfinite(x) else x for x in row]
