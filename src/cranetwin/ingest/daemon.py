@@ -425,7 +425,7 @@ class IngestDaemon:
             if layout is None:
                 try:
                     layout = layout_of(model)
-                except MachineFileError as exc:
+                except Exception as exc:  # MachineFileError, or a loader bug: never fatal
                     bad[wire_id] = machine_id
                     self._log_once(f"bad_model:{machine_id}", None,
                                    "machine %s: its model does not load, its datagrams are "
