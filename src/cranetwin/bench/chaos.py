@@ -542,6 +542,12 @@ def run_chaos(kind: str, sch: Schedule, pg_url: str = PG_DEFAULT) -> dict[str, A
         p20 = UdpProxy(server, drop=0.2, seed=1)
         p30 = UdpProxy(server, drop=0.3, duplicate=0.15, reorder=0.2, seed=2)
         poison_sent = [0]
+        t_run = time.monotonic()
+        timings: dict[str, float] = {}
+
+        def mark(name: str) -> None:
+            timings[name] = round(time.monotonic() - t_run, 1)
+
         m: dict[str, Any] = {}
         m_before_kill: dict[str, Any] = {}
         drained = False
@@ -553,6 +559,7 @@ def run_chaos(kind: str, sch: Schedule, pg_url: str = PG_DEFAULT) -> dict[str, A
             for s in senders:
                 assert s.proc is not None
                 s.proc.wait(sch.ratio_s + sch.drain_s)
+            mark("ratio_phase_done")
             retrans, dgs = map(sum, zip(*(s.totals() for s in senders), strict=True))
             ratio = retrans / max(dgs - retrans, 1)
             # phase 2: bystander ack latency without and with a poisoning machine
@@ -569,6 +576,7 @@ def run_chaos(kind: str, sch: Schedule, pg_url: str = PG_DEFAULT) -> dict[str, A
             stop.set()
             pt.join()
             lat_poison = by2.latencies_ms
+            mark("probe_phases_done")
             # phase 3: chaos through the 30 % / 15 % / reordering proxy
             for s in senders:
                 s.rows = total_rows
@@ -603,17 +611,20 @@ def run_chaos(kind: str, sch: Schedule, pg_url: str = PG_DEFAULT) -> dict[str, A
             elif lock is not None:
                 lock.execute("ROLLBACK")
                 lock.close()
+            mark("outage_over")
             deadline = time.monotonic() + sch.chaos_s + sch.drain_s
             for s in senders:
                 assert s.proc is not None
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     s.proc.wait(max(1.0, deadline - time.monotonic()))
             drained = all(s.proc is not None and s.proc.returncode == 0 for s in senders)
+            mark("senders_drained")
             writer_restarts = int(_metrics(tmp).get("writer_restarts", 0))
             daemon.send_signal(signal.SIGTERM)
             daemon.wait(60)
             m = _metrics(tmp)
             writer_restarts += int(m.get("writer_restarts", 0))
+            mark("daemon_stopped")
         finally:
             for s in senders:
                 s.kill()
@@ -671,7 +682,7 @@ def run_chaos(kind: str, sch: Schedule, pg_url: str = PG_DEFAULT) -> dict[str, A
             "writer_restarts": writer_restarts,
             "daemon_dropped_phases_1_2": m_before_kill.get("dropped", {}),
             "daemon_dropped_phase_3": m.get("dropped", {}),
-            "proxy_20": p20.counts, "proxy_30": p30.counts,
+            "proxy_20": p20.counts, "proxy_30": p30.counts, "timings_s": timings,
         }
 
 
