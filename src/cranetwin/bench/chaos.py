@@ -507,18 +507,6 @@ def _p95(x: list[float]) -> float | None:
     return None if not x else round(float(np.percentile(x, 95)), 1)
 
 
-def _daemon(db_url: str, port: int, tmp: Path) -> subprocess.Popen[bytes]:
-    return start_daemon(db_url, port, tmp / "metrics.json")
-
-
-def _metrics(tmp: Path) -> dict[str, Any]:
-    try:
-        out: dict[str, Any] = json.loads((tmp / "metrics.json").read_text())
-        return out
-    except (OSError, ValueError):
-        return {}
-
-
 def run_chaos(kind: str, sch: Schedule, pg_url: str = PG_DEFAULT) -> dict[str, Any]:
     """Run the schedule on one database kind (``sqlite`` or ``postgresql``)."""
     from cranetwin.storage import Store
@@ -533,7 +521,7 @@ def run_chaos(kind: str, sch: Schedule, pg_url: str = PG_DEFAULT) -> dict[str, A
                 store.add_machine(f"chaos-{w}", w, SECRET)
         port = free_udp_port()
         server = ("127.0.0.1", port)
-        daemon = _daemon(durl, port, tmp)
+        daemon = start_daemon(durl, port, tmp)
         restarts = 0
         writer_restarts = 0
         t_base = time.time_ns() - 3600 * 10**9  # the machines' sample clock (an hour back)
@@ -587,11 +575,10 @@ def run_chaos(kind: str, sch: Schedule, pg_url: str = PG_DEFAULT) -> dict[str, A
                 time.sleep(max(0.0, t3 + t - time.monotonic()))
 
             at(5)
-            m_before_kill = _metrics(tmp)
+            m_before_kill = daemon.counters()
             daemon.kill()
-            daemon.wait(10)
             at(7)
-            daemon = _daemon(durl, port, tmp)
+            daemon = start_daemon(durl, port, tmp)
             restarts += 1
             at(12)
             senders[0].kill()
@@ -619,10 +606,8 @@ def run_chaos(kind: str, sch: Schedule, pg_url: str = PG_DEFAULT) -> dict[str, A
                     s.proc.wait(max(1.0, deadline - time.monotonic()))
             drained = all(s.proc is not None and s.proc.returncode == 0 for s in senders)
             mark("senders_drained")
-            writer_restarts = int(_metrics(tmp).get("writer_restarts", 0))
-            daemon.send_signal(signal.SIGTERM)
-            daemon.wait(60)
-            m = _metrics(tmp)
+            writer_restarts = int(m_before_kill.get("writer_restarts", 0))
+            m = daemon.stop(60)
             writer_restarts += int(m.get("writer_restarts", 0))
             mark("daemon_stopped")
         finally:

@@ -15,6 +15,7 @@ of 11 values per sample), as an ingest without blocks would do.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -48,7 +49,10 @@ from cranetwin.protocol import (
 )
 
 F64 = npt.NDArray[np.float64]
-T0_NS = 1_800_000_000 * 10**9
+DAY_NS = 86_400 * 10**9
+T0_NS = (time.time_ns() // DAY_NS - 1) * DAY_NS
+"""Start of the bench's sample clock: midnight (UTC) before last, so that every sample is within
+the daemon's accepted window around its clock (and the same in every process of one run)."""
 PERIOD_NS = 10_000_000  # 100 Hz
 
 
@@ -267,25 +271,107 @@ def free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
-def start_daemon(db_url: str, port: int, metrics: Path, *extra: str) -> subprocess.Popen[bytes]:
-    """``cranetwin ingest`` in a subprocess; returns once its metrics file shows it listening."""
-    metrics.unlink(missing_ok=True)
+@dataclass
+class DaemonProcess:
+    """A ``cranetwin ingest`` child process (see :func:`start_daemon`).
+
+    Attributes:
+        proc: The process.
+        metrics_url: Its Prometheus ``/metrics`` URL (from its ready line).
+        stderr_path: File that receives its log.
+    """
+
+    proc: subprocess.Popen[bytes]
+    metrics_url: str
+    stderr_path: Path
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def counters(self, timeout_s: float = 5.0) -> dict[str, Any]:
+        """The daemon's counters now, scraped from ``/metrics``: ``{name: value}`` without the
+        ``cranetwin_ingest_`` prefix and ``_total`` suffix, ``dropped`` as ``{reason: n}``;
+        ``{}`` if it does not answer."""
+        import urllib.request
+
+        from prometheus_client.parser import text_string_to_metric_families
+
+        try:
+            text = urllib.request.urlopen(self.metrics_url, timeout=timeout_s).read().decode()
+        except OSError:
+            return {}
+        out: dict[str, Any] = {"dropped": {}}
+        for fam in text_string_to_metric_families(text):
+            for smp in fam.samples:
+                name = smp.name.removeprefix("cranetwin_ingest_")
+                if name.startswith("dropped"):
+                    out["dropped"][smp.labels.get("reason", "?")] = int(smp.value)
+                elif name.endswith("_total"):
+                    out[name.removesuffix("_total")] = smp.value
+        return out
+
+    def stop(self, timeout_s: float = 60.0) -> dict[str, Any]:
+        """SIGTERM, wait, and return the final counters of its ``stopped`` line ({} if none)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        self.proc.wait(timeout_s)
+        return self._last_line("stopped")
+
+    def kill(self) -> None:
+        """SIGKILL (no flush, no goodbye) and reap."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(10)
+
+    def poll(self) -> int | None:
+        return self.proc.poll()
+
+    def _last_line(self, event: str) -> dict[str, Any]:
+        assert self.proc.stdout is not None
+        rest = self.proc.stdout.read().decode(errors="replace")
+        for line in reversed(rest.splitlines()):
+            with contextlib.suppress(ValueError):
+                d = json.loads(line)
+                if isinstance(d, dict) and d.get("event") == event:
+                    return d
+        return {}
+
+
+def start_daemon(db_url: str, port: int, workdir: Path, *extra: str) -> DaemonProcess:
+    """``cranetwin ingest`` in a subprocess on 127.0.0.1:``port``, its Prometheus endpoint on a
+    free port; returns once its ``ready`` line says it is listening (≤ 60 s).
+
+    Its log goes to a file in ``workdir``, never to a pipe nobody reads; stdout (two lines: ready,
+    stopped) is read with a deadline, so a daemon that hangs at start cannot hang the caller.
+
+    Raises:
+        RuntimeError: it exited or did not get ready in time (its log attached).
+    """
+    workdir.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-c", "from cranetwin.cli import main; main()", "ingest",
-           "--bind", f"127.0.0.1:{port}", "--db", db_url, "--metrics-file", str(metrics),
-           "--metrics-interval", "0.2", "--log-level", "WARNING", *extra]
-    # stderr goes to a file, never a pipe: nobody reads a pipe while the daemon runs, and a full
-    # pipe (or reading one of a process that is still alive) would block for ever
-    log = metrics.with_name(metrics.name + ".stderr")
-    with open(log, "wb") as err:
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
+           "--bind", f"127.0.0.1:{port}", "--db", db_url, "--metrics-bind", "127.0.0.1:0",
+           "--log-level", "WARNING", *extra]
+    log = workdir / f"ingest-{port}.stderr"
+    with open(log, "ab") as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err)
+    assert proc.stdout is not None
     end = time.monotonic() + 60
-    while not metrics.exists():
-        if proc.poll() is not None or time.monotonic() > end:
+    buf = b""
+    while b"\n" not in buf:
+        left = end - time.monotonic()
+        ready, _, _ = select.select([proc.stdout], [], [], max(0.0, min(left, 0.5)))
+        if ready:
+            chunk = os.read(proc.stdout.fileno(), 4096)
+            buf += chunk
+            if chunk:
+                continue
+        if proc.poll() is not None or left <= 0:
             proc.kill()
             proc.wait(10)
             raise RuntimeError(f"ingest daemon did not start: {log.read_text()[-2000:]}")
-        time.sleep(0.05)
-    return proc
+    info = json.loads(buf.split(b"\n", 1)[0])
+    return DaemonProcess(proc, str(info.get("metrics") or ""), log)
 
 
 # --- the benchmark ----------------------------------------------------------------------------
@@ -304,7 +390,8 @@ def _sender_proc(wire_ids: list[int], secret: bytes, samples: int, server: tuple
     ok = fleet.run(timeout_s=600)
     result.put({"t0": t0, "t1": time.time(), "ok": ok, "wire_bytes": fleet.unique_bytes,
                 "sent": sum(s.sent_datagrams for s in senders),
-                "retransmissions": sum(s.retransmissions for s in senders)})
+                "retransmissions": sum(s.retransmissions for s in senders),
+                "refused": sum(s.refused for s in senders)})
     fleet.close()
 
 
@@ -362,8 +449,7 @@ def run_bench(db_url: str, machines: int, samples: int, processes: int,
         raise typer.BadParameter("the database already holds bench samples; use a fresh one")
     port = free_udp_port()
     with tempfile.TemporaryDirectory() as tmp:
-        metrics = Path(tmp) / "metrics.json"
-        daemon = start_daemon(db_url, port, metrics)
+        daemon = start_daemon(db_url, port, Path(tmp))
         try:
             ctx = mp.get_context("spawn")
             start, result = ctx.Event(), ctx.Queue()
@@ -380,9 +466,7 @@ def run_bench(db_url: str, machines: int, samples: int, processes: int,
             for p in procs:
                 p.join()
             daemon_cpu = _cpu_seconds(daemon.pid)
-            daemon.send_signal(signal.SIGTERM)
-            daemon.wait(timeout=120)
-            stats = json.loads(metrics.read_text())
+            stats = daemon.stop(timeout_s=120)
         finally:
             if daemon.poll() is None:
                 daemon.kill()
@@ -420,7 +504,8 @@ def run_bench(db_url: str, machines: int, samples: int, processes: int,
         "load_average_1min": os.getloadavg()[0],
         "datagrams_sent": sum(r["sent"] for r in res),
         "retransmissions": sum(r["retransmissions"] for r in res),
-        "daemon": {k: stats[k] for k in ("received", "stored_blocks", "duplicates", "dropped",
+        "refused_datagrams": sum(r["refused"] for r in res),
+        "daemon": {k: stats.get(k) for k in ("received", "stored_blocks", "duplicates", "dropped",
                                          "batches", "write_seconds")},
         "baseline": "row-per-sample executemany, same database",
         "baseline_samples_per_second": round(base),
