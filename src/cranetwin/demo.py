@@ -191,7 +191,9 @@ class FleetDemo:
         db = ["--db", c.db_url] if c.db_url else []
         if not c.attach:
             self._fresh_sqlite()
-            self._spawn("ingest", ["ingest", "--bind", c.ingest, *db])
+            # its Prometheus endpoint on a free port: the default 9105 may be taken
+            self._spawn("ingest", ["ingest", "--bind", c.ingest, "--metrics-bind", "127.0.0.1:0",
+                                   *db])
             self._spawn("api", ["serve", "--host", c.host, "--port", str(c.port), *db])
         self.wait_healthy()
         admin = self._run_cli(["keys", "create", "--role", "admin", "--name", "fleet demo", *db])
