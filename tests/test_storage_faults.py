@@ -265,6 +265,21 @@ def test_a_batch_that_fails_but_no_block_alone_raises_and_stores_nothing(
     assert store.stats().blocks == 0
 
 
+def test_a_failure_that_is_no_data_error_refuses_nothing_and_stores_nothing(
+        store: Store, monkeypatch: pytest.MonkeyPatch) -> None:
+    from sqlalchemy.exc import ProgrammingError
+
+    def bug(*_a: Any) -> None:  # e.g. a broken statement: not the blocks' fault
+        raise ProgrammingError("INSERT INTO summary_dirty", {}, Exception("syntax error"))
+
+    monkeypatch.setattr(summaries_mod, "mark_dirty", bug)
+    commits = _count_commits(store)
+    with pytest.raises(StorageError, match="nothing stored") as err:
+        store.write_batch([blk("crane-1", s) for s in range(4)])
+    assert not isinstance(err.value, StorageUnavailableError)
+    assert store.stats().blocks == 0 and commits == []
+
+
 # --- overlapping samples -------------------------------------------------------------------------
 def test_overlapping_blocks_are_refused_so_samples_and_history_agree(store: Store) -> None:
     a = blk("crane-1", 0, n=250)  # 2.5 s from T0

@@ -246,7 +246,7 @@ def rollup(factory: Callable[[], Session], before_s: float | None = None) -> Rol
                                 "from summary_dirty: %r", pk, minute, exc)
                     dropped.append(d)
         if not done and not dropped:
-            return RollupCounts(0, 0, len(corrupt))
+            return RollupCounts(0, 0, len(set(corrupt)))
         try:
             _write_minutes(factory, done, dropped)
         except (SQLAlchemyError, OverflowError) as exc:
@@ -272,7 +272,7 @@ def rollup(factory: Callable[[], Session], before_s: float | None = None) -> Rol
         if is_unavailable(exc):
             raise unavailable("summary rollup", exc) from exc
         raise StorageError(f"summary rollup failed: {exc}") from exc
-    return RollupCounts(len(done), len(dropped), len(corrupt))
+    return RollupCounts(len(done), len(dropped), len(set(corrupt)))
 
 
 def accumulate(acc: dict[Key, Agg], channels: Sequence[str], t_ns: npt.NDArray[np.int64],

@@ -160,7 +160,7 @@ class Pending:
         b = self.block
         self.key = (self.pk, int(b.epoch), int(b.seq))
         self.shape = (int(b.t0_ns), b.n, int(b.period_ns))
-        self.t_end = int(self.row[4])  # type: ignore[call-overload]
+        self.t_end = self.shape[0] + (self.shape[1] - 1) * self.shape[2]
 
 
 def prepare(blocks: Sequence[SampleBlock], pks: dict[str, int],
@@ -277,25 +277,27 @@ def _drop_overlaps_within(items: Sequence[Pending],
     return keep
 
 
-def _isolate(factory: Callable[[], Session], items: Sequence[Pending]) -> dict[int, str]:
-    """Blocks of ``items`` (a set that failed with a data error) that fail on their own, found by
-    bisection in rolled-back transactions; index → the database's error."""
+def _rejected(exc: BaseException) -> str:
+    return f"the database rejected it: {str(exc).splitlines()[0]}"
+
+
+def _isolate(factory: Callable[[], Session], items: Sequence[Pending],
+             exc: BaseException) -> dict[int, str]:
+    """Blocks of ``items`` (a set that failed with the data error ``exc``) that fail on their
+    own, found by bisection in rolled-back transactions; index → the database's error."""
     if len(items) == 1:
-        return {items[0].i: "the database rejected it"}
+        return {items[0].i: _rejected(exc)}
     bad: dict[int, str] = {}
     mid = len(items) // 2
     for half in (items[:mid], items[mid:]):
         try:
             _attempt(factory, half, commit=False)
-        except Exception as exc:
-            if is_unavailable(exc):
-                raise unavailable(f"storing {len(items)} block(s)", exc) from exc
-            if not is_data_error(exc):
-                raise
-            if len(half) == 1:
-                bad[half[0].i] = f"the database rejected it: {str(exc).splitlines()[0]}"
-            else:
-                bad.update(_isolate(factory, half))
+        except Exception as err:
+            if is_unavailable(err):
+                raise unavailable(f"storing {len(items)} block(s)", err) from err
+            if not is_data_error(err):
+                raise _storage_error(len(items), err) from err
+            bad.update(_isolate(factory, half, err))
     return bad
 
 
@@ -312,7 +314,7 @@ def _run(factory: Callable[[], Session], items: list[Pending]) -> dict[int, Bloc
         if not is_data_error(exc):
             raise _storage_error(len(items), exc) from exc
         first = exc
-    bad = _isolate(factory, items)
+    bad = _isolate(factory, items, first)
     for i, why in bad.items():
         log.warning("block %d of the batch refused: %s", i, why)
     good = [it for it in items if it.i not in bad]
@@ -321,16 +323,16 @@ def _run(factory: Callable[[], Session], items: list[Pending]) -> dict[int, Bloc
     except Exception as exc:
         if is_unavailable(exc):
             raise unavailable(f"storing {len(items)} block(s)", exc) from exc
+        first_line = str(first).splitlines()[0]
         raise StorageError(f"could not store {len(items)} block(s): the batch fails but no "
-                           f"block fails alone ({first}); nothing stored") from exc
+                           f"block fails alone ({first_line}); nothing stored") from exc
     for i, why in bad.items():
         out[i] = refused("unstorable", why)
     return out
 
 
 def _storage_error(n: int, exc: BaseException) -> StorageError:
-    if isinstance(exc, StorageError):
-        return exc
+    """``exc`` as the StorageError to raise (a new one naming the batch size)."""
     return StorageError(f"could not store {n} block(s), nothing stored: {type(exc).__name__}: "
                         f"{exc}".splitlines()[0])
 
