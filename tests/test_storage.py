@@ -20,6 +20,8 @@ T0_NS = 1_700_000_000 * 10**9 + 250_000_000  # not on a second boundary
 PERIOD = 10_000_000  # 100 Hz
 SECRET = b"0123456789abcdef0123456789abcdef"
 
+pytestmark = pytest.mark.timeout(60)
+
 
 def make_block(machine: str, seq: int, n: int = 100, rng: np.random.Generator | None = None,
                t0_ns: int | None = None) -> SampleBlock:

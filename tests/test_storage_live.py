@@ -13,6 +13,8 @@ from cranetwin.errors import StorageError
 from cranetwin.samples import SampleBlock
 from cranetwin.storage.live import BlockNote, InProcessBus, LiveBus, _payloads, open_bus
 
+pytestmark = pytest.mark.timeout(60)
+
 
 def blocks(n: int, machine: str = "crane-1") -> list[SampleBlock]:
     return [SampleBlock(machine, s, 1_000 + s * 500, 10, ("a",), (1.0,),
