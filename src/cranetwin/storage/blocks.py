@@ -25,6 +25,7 @@ import logging
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -305,7 +306,8 @@ class ProbeHit:
 
 _PROBE_PG = (
     "SELECT v.i, k.t_start_ns, k.n, k.period_ns, o.epoch, o.seq "
-    "FROM (VALUES {rows}) AS v(i, pk, epoch, seq, t0, t1) "
+    "FROM unnest(%b::int[], %b::int[], %b::bigint[], %b::bigint[], %b::bigint[], "
+    "%b::bigint[]) AS v(i, pk, epoch, seq, t0, t1) "
     "LEFT JOIN sample_blocks k ON k.machine_pk = v.pk AND k.epoch = v.epoch AND k.seq = v.seq "
     "LEFT JOIN LATERAL (SELECT b.epoch, b.seq, b.t_start_ns FROM sample_blocks b "
     "WHERE b.machine_pk = v.pk AND b.t_end_ns >= v.t0 ORDER BY b.t_end_ns LIMIT 1) o "
@@ -339,14 +341,15 @@ def probe(conn: Connection, items: Sequence[tuple[int, int, int, int, int, int]]
         Label → hit, for the blocks with at least one hit only (none in the usual case).
     """
     pg = conn.dialect.name == "postgresql"
-    one = ("(%s::int,%s::int,%s::bigint,%s::bigint,%s::bigint,%s::bigint)" if pg
-           else "(?,?,?,?,?,?)")
-    template = _PROBE_PG if pg else _PROBE_SQLITE
     out: dict[int, ProbeHit] = {}
     for a in range(0, len(items), _PROBE_ROWS):
         chunk = items[a:a + _PROBE_ROWS]
-        sql = template.format(rows=",".join([one] * len(chunk)))
-        params = tuple(v for r in chunk for v in r)
+        if pg:  # one array per column: a fixed statement, nothing for the driver to parse
+            sql = _PROBE_PG
+            params: tuple[Any, ...] = tuple(list(c) for c in zip(*chunk, strict=True))
+        else:
+            sql = _PROBE_SQLITE.format(rows=",".join(["(?,?,?,?,?,?)"] * len(chunk)))
+            params = tuple(v for r in chunk for v in r)
         for i, k_t0, k_n, k_per, o_ep, o_seq in conn.exec_driver_sql(sql, params).all():
             out[int(i)] = ProbeHit(
                 None if k_t0 is None else (int(k_t0), int(k_n), int(k_per)),
