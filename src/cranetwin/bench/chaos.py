@@ -240,6 +240,24 @@ def _head(dg: bytes) -> tuple[int, int, int]:
             int.from_bytes(dg[h + 20:h + 22], "big"))
 
 
+def _receive_acks(sock: socket.socket, s: Sender, wait_s: float) -> list[tuple[int, bytes]]:
+    """Wait up to ``wait_s`` for server datagrams, feed all that arrived to ``s``; return the
+    (seq, datagram) they acknowledged."""
+    out: list[tuple[int, bytes]] = []
+    ready, _, _ = select.select([sock], [], [], wait_s)
+    while ready:
+        try:
+            data = sock.recv(2048)
+        except (BlockingIOError, ConnectionRefusedError):
+            break
+        try:
+            s.receive(data, time.time_ns())
+        except DatagramError:
+            continue
+        out.extend(s.last_acked)
+    return out
+
+
 def sender_main() -> None:  # pragma: no cover - runs in a subprocess
     """Entry of one chaos sender process: argv[1] is a JSON object of its settings."""
     from cranetwin.ingest.journal import FileJournal
@@ -275,19 +293,9 @@ def sender_main() -> None:  # pragma: no cover - runs in a subprocess
         if journaled != last_journaled or journal.end != before_end:
             log.write(f"J {journaled}\n")  # rows ≤ journaled are durable in the journal
             last_journaled = journaled
-        ready, _, _ = select.select([sock], [], [], 0.01)
-        while ready:
-            try:
-                data = sock.recv(2048)
-            except (BlockingIOError, ConnectionRefusedError):
-                break
-            try:
-                s.receive(data, time.time_ns())
-            except DatagramError:
-                continue
-            for _, dg in s.last_acked:
-                _, t0, n = _head(dg)
-                log.write(f"A {t0} {n}\n")
+        for _, dg in _receive_acks(sock, s, 0.01):
+            _, t0, n = _head(dg)
+            log.write(f"A {t0} {n}\n")
         if row >= end and s.idle:
             break
     journal.close()
@@ -395,21 +403,10 @@ class Bystander:
                 first_sent.setdefault(q, time.monotonic())
                 with contextlib.suppress(OSError):
                     sock.send(dg)
-            ready, _, _ = select.select([sock], [], [], 0.005)
-            while ready:
-                try:
-                    data = sock.recv(2048)
-                except (BlockingIOError, ConnectionRefusedError):
-                    break
-                try:
-                    s.receive(data, time.time_ns())
-                except DatagramError:
-                    continue
-                now = time.monotonic()
-                for q, dg in s.last_acked:
-                    self.latencies_ms.append((now - first_sent[q]) * 1e3)
-                    t0, n = _head(dg)[1:]
-                    self.acked.update(range(t0, t0 + n * PERIOD_NS, PERIOD_NS))
+            for q, dg in _receive_acks(sock, s, 0.005):
+                self.latencies_ms.append((time.monotonic() - first_sent[q]) * 1e3)
+                t0, n = _head(dg)[1:]
+                self.acked.update(range(t0, t0 + n * PERIOD_NS, PERIOD_NS))
             if row >= row0 + n_rows and s.idle:
                 break
         sock.close()

@@ -27,12 +27,10 @@ from cranetwin.protocol.wire import (
     TYPE_ACK,
     TYPE_REFUSAL,
     VERSION,
-    Header,
     MachineKey,
+    open_datagram,
     pack_header,
-    peek_header,
     tag,
-    verify,
 )
 
 ACK_FIXED = struct.Struct(">QqB")  # cumulative, server time, bitmap length
@@ -109,27 +107,13 @@ def encode_ack(key: MachineKey, cumulative: int, selective: Iterable[int] = (), 
     return bytes(out)
 
 
-def _open(datagram: bytes, key: MachineKey, typ: int, kind: str,
-          fixed: int) -> tuple[Header, memoryview]:
-    head = peek_header(datagram)
-    wid = head.wire_id
-    if head.type != typ:
-        raise GarbageError(f"expected {kind} (type {typ:#04x}), got {head.type:#04x}", wid)
-    if wid != key.wire_id:
-        raise GarbageError(f"{kind} for wire id {wid}, key is for {key.wire_id}", wid)
-    body = verify(key.secret, datagram, wid)
-    if len(body) < head.size + fixed:
-        raise TruncatedError(f"{kind} shorter than its fixed fields", wid)
-    return head, body
-
-
 def decode_ack(datagram: bytes, key: MachineKey) -> Ack:
     """Authenticate and decode an ack datagram (version 1 or 2).
 
     Raises:
         DatagramError: any subclass, for any malformed, truncated or forged input.
     """
-    head, body = _open(datagram, key, TYPE_ACK, "an ack", ACK_FIXED.size)
+    head, body = open_datagram(datagram, key, TYPE_ACK, "ack", ACK_FIXED.size)
     wid = head.wire_id
     fixed_end = head.size + ACK_FIXED.size
     cum, server_ns, nbytes = ACK_FIXED.unpack_from(body, head.size)
@@ -168,7 +152,7 @@ def decode_refusal(datagram: bytes, key: MachineKey) -> Refusal:
     Raises:
         DatagramError: any subclass, for any malformed, truncated or forged input.
     """
-    head, body = _open(datagram, key, TYPE_REFUSAL, "a refusal", REFUSAL_FIXED.size)
+    head, body = open_datagram(datagram, key, TYPE_REFUSAL, "refusal", REFUSAL_FIXED.size)
     if len(body) != head.size + REFUSAL_FIXED.size:
         raise GarbageError("refusal longer than its fields", head.wire_id)
     seq, server_ns, code = REFUSAL_FIXED.unpack_from(body, head.size)

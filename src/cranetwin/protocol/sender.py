@@ -340,24 +340,27 @@ class Sender:
         self._offsets.append(ack.server_time_ns - now_ns)
         done = [s for s in self._pending if ack.covers(s)]
         sample: int | None = None
+        sample_xmit = -1
         newest_xmit = -1
         for s in done:
             p = self._pending.pop(s)
             self.last_acked.append((s, p.datagram))
             self.acked_samples += datagram_samples(p.datagram)
-            if p.last_sent_ns > newest_xmit:
-                newest_xmit = p.last_sent_ns
-                # Karn: only a datagram sent once gives an unambiguous round trip, and only one
-                # sent since the last timeout (one sent into an outage measures the outage)
-                sample = (now_ns - p.last_sent_ns
-                          if p.sends == 1 and p.last_sent_ns >= self._last_timeout_ns else None)
+            # Karn: only a datagram sent once gives an unambiguous round trip, and not one sent
+            # before the last timeout (a datagram sent into an outage measures the outage)
+            measured = p.sends == 1 and p.last_sent_ns >= self._last_timeout_ns
+            newest_xmit = max(newest_xmit, p.last_sent_ns)
+            if measured and p.last_sent_ns > sample_xmit:
+                sample_xmit, sample = p.last_sent_ns, now_ns - p.last_sent_ns
         if done:
             # forward progress clears the backoff, as Linux does (RFC 6298 (5.7) would keep it
             # until a valid sample: after an outage the tail of the queue then drains at one
             # retransmission per max_rto_ns)
             self._backoffs = 0
             self.rto_ns = self._base_rto()
-            if sample is not None:
+            # the round trip is the newest transmission's: the one that made the server ack
+            # (an older one acked along with it waited for that, e.g. behind a lost ack)
+            if sample is not None and sample_xmit == newest_xmit:
                 self._rtt_sample(sample)
             if newest_xmit > self._rack_xmit_ns:
                 self._rack_xmit_ns = newest_xmit
