@@ -1,4 +1,4 @@
-"""Joint reaction moments of the twin against the simulator's truth (issue 5 follow-up).
+"""Joint reaction moments of the twin against the simulator's truth.
 
 The simulator's truth wrenches come from the same RNEA convention (``physics.inverse_dynamics``
 of the integrator's q, qd, qdd and payload), so frames and conventions agree; what differs is
