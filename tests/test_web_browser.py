@@ -214,8 +214,11 @@ def test_live_updates_within_a_second(page: Any, server: Service) -> None:
     page.wait_for_timeout(1000)
     latencies = []
     seq = 500_000
+    start = 0.0
     for k in range(4):
-        start = float(int(time.time()))  # whole seconds: sample-aligned block starts
+        # whole seconds (sample-aligned block starts), each second once: storage refuses samples
+        # whose times overlap stored ones
+        start = max(float(int(time.time())), start + 1.0)
         blocks = list(tiled_blocks("crane-1", machine, start, 1.0, 1.0, base=base, seq0=seq))
         seq += len(blocks)
         sent = time.time()
