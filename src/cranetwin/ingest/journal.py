@@ -319,14 +319,7 @@ class FileJournal:
             "bytes": len(datagram), "datagram": bytes(datagram).hex()}) + "\n"
         path = self.directory / "rejected.log"
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, _FILE_MODE)
-            try:
-                _write_all(fd, line.encode())
-                if self.fsync:
-                    os.fsync(fd)
-                    self.fsyncs += 1
-            finally:
-                os.close(fd)
+            self._write_file(path, line.encode(), os.O_APPEND)
         except OSError as exc:
             raise self._fail(f"cannot write {path}: {exc}") from exc
         log.warning("journal %s: seq %d (epoch %d) refused by the server (%s), kept in %s",
@@ -498,14 +491,7 @@ class FileJournal:
         body = json.dumps({"format": STATE_FORMAT, "version": 1, "epoch": self._epoch,
                            "released": self._released, "owner": self._owner}) + "\n"
         try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, _FILE_MODE)
-            try:
-                _write_all(fd, body.encode())
-                if self.fsync:
-                    os.fsync(fd)
-                    self.fsyncs += 1
-            finally:
-                os.close(fd)
+            self._write_file(tmp, body.encode(), os.O_TRUNC)
             os.replace(tmp, path)
             self._fsync_dir()
         except OSError as exc:
@@ -723,6 +709,18 @@ class FileJournal:
             raise SenderError(f"{seg.path} is shorter than its index ({pos + len(data)} < "
                               f"{pos + need} bytes): changed behind the sender's back?")
         return data
+
+    def _write_file(self, path: Path, data: bytes, mode_flag: int) -> None:
+        """Write ``data`` to ``path`` (created 0600; ``os.O_APPEND`` or ``os.O_TRUNC``) and
+        fsync it when the journal syncs. Raises OSError."""
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | mode_flag, _FILE_MODE)
+        try:
+            _write_all(fd, data)
+            if self.fsync:
+                os.fsync(fd)
+                self.fsyncs += 1
+        finally:
+            os.close(fd)
 
     def _fsync_dir(self) -> None:
         if self.fsync:
