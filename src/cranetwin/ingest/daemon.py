@@ -69,7 +69,6 @@ from typing import Any, Literal
 from prometheus_client import CollectorRegistry, Histogram, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
-from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 
 from cranetwin.errors import CraneTwinError, MachineFileError, StorageUnavailableError
 from cranetwin.model import builtin_machines, load_machine, machine_from_dict
@@ -87,7 +86,7 @@ from cranetwin.protocol import (
 )
 from cranetwin.protocol.status import StatusReport
 from cranetwin.samples import SampleBlock
-from cranetwin.storage import Store, WriteResult
+from cranetwin.storage import Store, WriteResult, dberrors
 from cranetwin.storage.live import LiveBus
 
 log = logging.getLogger(__name__)
@@ -310,9 +309,7 @@ def is_unavailable(exc: BaseException) -> bool:
     cur: BaseException | None = exc
     while cur is not None and id(cur) not in seen:
         seen.add(id(cur))
-        if isinstance(cur, OperationalError | InterfaceError):
-            return True
-        if isinstance(cur, DBAPIError) and cur.connection_invalidated:
+        if dberrors.is_unavailable(cur):
             return True
         cur = cur.__cause__ or cur.__context__
     return False
