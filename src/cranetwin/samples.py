@@ -69,12 +69,16 @@ class SampleArrays:
         t_s: Sample times, shape (n,) [s since the Unix epoch], strictly increasing.
         channels: Channel names, in column order.
         values: Shape (n, len(channels)) [channel units]; NaN = missing.
+        period_ns: The sample period the source carried [ns] (the wire's and storage's
+            ``period_ns``), or None where the source has none (a file of bare timestamps):
+            readers take the period from here and estimate it from ``t_s`` only when None.
     """
 
     machine_id: str
     t_s: F64
     channels: tuple[str, ...]
     values: F64
+    period_ns: int | None = None
 
     def column(self, name: str) -> F64:
         """One channel's samples, shape (n,)."""

@@ -7,7 +7,7 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.model import Cylinder, Friction, Machine
-from cranetwin.physics import kernels as K
+from cranetwin.physics import actuator
 from cranetwin.physics.chain import compile_chain
 from cranetwin.physics.kinematics import as_columns, as_joint_array, moment_arms
 
@@ -24,9 +24,7 @@ def friction_force(v: npt.ArrayLike, friction: Friction) -> F64:
     Returns:
         Friction force [N] (or torque [N·m]) opposing v, same shape as v.
     """
-    va = np.asarray(v, dtype=np.float64)
-    return np.asarray(friction.coulomb * np.tanh(va / friction.coulomb_velocity)
-                      + friction.viscous * va, dtype=np.float64)
+    return actuator.friction(v, friction.coulomb, friction.coulomb_velocity, friction.viscous)
 
 
 def cylinder_force(
@@ -43,10 +41,13 @@ def cylinder_force(
     Returns:
         F [N], > 0 pushing (extending), same shape.
     """
-    pa = np.asarray(pA, dtype=np.float64)
-    pb = np.asarray(pB, dtype=np.float64)
-    return np.asarray(pa * cylinder.area_a_m2 - pb * cylinder.area_b_m2
-                      - friction_force(v, cylinder.friction), dtype=np.float64)
+    pa, pb, va = np.broadcast_arrays(np.asarray(pA, dtype=np.float64),
+                                     np.asarray(pB, dtype=np.float64),
+                                     np.asarray(v, dtype=np.float64))
+    params = np.array([[cylinder.area_a_m2, cylinder.area_b_m2, cylinder.friction.coulomb,
+                        cylinder.friction.coulomb_velocity, cylinder.friction.viscous]])
+    flat = [np.ascontiguousarray(x).reshape(-1, 1) for x in (pa, pb, va)]
+    return actuator.cylinder_forces_array(*flat, params).reshape(pa.shape)
 
 
 def cylinder_forces(machine: Machine, pA: npt.ArrayLike, pB: npt.ArrayLike,
@@ -67,12 +68,7 @@ def cylinder_forces(machine: Machine, pA: npt.ArrayLike, pB: npt.ArrayLike,
     pa = as_columns("pA", pa, n, nc)
     pb = as_columns("pB", pB, n, nc)
     va = as_columns("v", v, n, nc)
-    params = np.array([[c.area_a_m2, c.area_b_m2, c.friction.coulomb,
-                        c.friction.coulomb_velocity, c.friction.viscous]
-                       for c in machine.cylinders], dtype=np.float64).reshape(nc, 5)
-    out = np.empty((n, nc))
-    K.cylinder_forces_batch(pa, pb, va, params, out)
-    return out
+    return actuator.cylinder_forces_array(pa, pb, va, actuator.cylinder_params(machine))
 
 
 def actuator_torques(

@@ -904,23 +904,6 @@ def cylinder_motion_batch(cyl, s, v, a, q, qd, qdd, arm):  # type: ignore[no-unt
 
 
 @njit(cache=True)
-def cylinder_forces_batch(pa, pb, v, params, out):  # type: ignore[no-untyped-def]
-    """Eq. 1–2 over samples: out[i, k] = pA·A1 − pB·A2 − (Fc·tanh(v/vc) + b·v).
-
-    Args:
-        pa, pb: Chamber pressures, shape (n, nc) [Pa] (any strides).
-        v: Rod velocities, shape (n, nc) [m/s].
-        params: Per cylinder (A1 [m²], A2 [m²], Fc [N], vc [m/s], b [N·s/m]), shape (nc, 5).
-        out: Forces, shape (n, nc) [N].
-    """
-    for i in range(pa.shape[0]):
-        for k in range(params.shape[0]):
-            vk = v[i, k]
-            out[i, k] = (pa[i, k] * params[k, 0] - pb[i, k] * params[k, 1]
-                         - (params[k, 2] * math.tanh(vk / params[k, 3]) + params[k, 4] * vk))
-
-
-@njit(cache=True)
 def _chol_solve(a, y, nd):  # type: ignore[no-untyped-def]
     """Solve a[:nd, :nd]·x = y[:nd] for symmetric positive definite a (overwritten by its
     Cholesky factor), x into y. False if a is not positive definite."""

@@ -42,8 +42,7 @@ from numba import njit
 from cranetwin import physics
 from cranetwin.errors import PhysicsError, TwinError
 from cranetwin.model import Machine
-from cranetwin.physics import gridpass
-from cranetwin.physics import kernels as K
+from cranetwin.physics import actuator, gridpass
 from cranetwin.physics.chain import CYL_BLOCK, compile_chain
 from cranetwin.physics.dynamics import rnea_kernels
 from cranetwin.samples import SampleArrays
@@ -640,7 +639,7 @@ class TwinStream:
     def _eq12(self, pa: F64, pb: F64, v: F64) -> F64:
         """Eq. 1–2 for every cylinder, (n, n_cylinders) [N] (as physics.cylinder_forces)."""
         out = np.empty(v.shape)
-        K.cylinder_forces_batch(pa, pb, v, self._fpar, out)
+        actuator.cylinder_forces_into(pa, pb, v, self._fpar, out)
         return out
 
     def _payload_weights(self) -> tuple[F64, F64]:
