@@ -46,8 +46,10 @@ def cylinder_force(
                                      np.asarray(v, dtype=np.float64))
     params = np.array([[cylinder.area_a_m2, cylinder.area_b_m2, cylinder.friction.coulomb,
                         cylinder.friction.coulomb_velocity, cylinder.friction.viscous]])
-    flat = [np.ascontiguousarray(x).reshape(-1, 1) for x in (pa, pb, va)]
-    return actuator.cylinder_forces_array(*flat, params).reshape(pa.shape)
+    def col(x: F64) -> F64:
+        return np.ascontiguousarray(x).reshape(-1, 1)
+
+    return actuator.cylinder_forces_array(col(pa), col(pb), col(va), params).reshape(pa.shape)
 
 
 def cylinder_forces(machine: Machine, pA: npt.ArrayLike, pB: npt.ArrayLike,
