@@ -18,11 +18,12 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     CRANETWIN_DATABASE_URL=sqlite:////data/cranetwin.db
 
 WORKDIR /app
-# dependencies first (cached layer), then the code
-COPY pyproject.toml README.md ./
+# the service's extras (PostgreSQL, Redis live bus, PDF reports, web UI, uvloop) at the versions
+# CI tested (constraints.txt); the code, then the web UI's static files
+COPY pyproject.toml README.md constraints.txt ./
 COPY src ./src
-RUN pip install . && useradd --create-home --uid 10001 cranetwin && mkdir -p /data \
-    && chown cranetwin /data
+RUN pip install -c constraints.txt '.[postgres,redis,reports,web,ingest]' \
+    && useradd --create-home --uid 10001 cranetwin && mkdir -p /data && chown cranetwin /data
 COPY web ./web
 
 USER cranetwin

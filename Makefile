@@ -5,10 +5,11 @@ BIN    := $(VENV)/bin
 
 .PHONY: setup system-deps demo test lint bench clean
 
-$(BIN)/.installed: pyproject.toml
+# every extra plus the test and lint tools, at the versions pinned in constraints.txt
+$(BIN)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[dev]'
+	$(BIN)/pip install -q -c constraints.txt -e '.[dev]'
 	touch $@
 
 setup: $(BIN)/.installed
