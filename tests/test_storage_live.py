@@ -4,12 +4,13 @@ processes through PostgreSQL NOTIFY and Redis pub/sub."""
 from __future__ import annotations
 
 import socket
+import sys
 
 import numpy as np
 import pytest
 
 from conftest import pg_unreachable_reason
-from cranetwin.errors import StorageError
+from cranetwin.errors import MissingExtraError, StorageError, StorageUnavailableError
 from cranetwin.samples import SampleBlock
 from cranetwin.storage.live import BlockNote, InProcessBus, LiveBus, _payloads, open_bus
 
@@ -95,3 +96,31 @@ def test_broker_bus_delivers_notes_across_connections(url: str) -> None:
 def test_unknown_bus_url_is_rejected() -> None:
     with pytest.raises(StorageError, match="unknown live bus"):
         open_bus("nats://127.0.0.1:4222")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_redis_bus_without_a_server_raises_storage_unavailable() -> None:
+    pytest.importorskip("redis")
+    bus = open_bus(f"redis://127.0.0.1:{_free_port()}")
+    with pytest.raises(StorageUnavailableError, match="redis unreachable"):
+        bus.publish(blocks(1))
+    with pytest.raises(StorageUnavailableError):
+        bus.subscribe()
+    bus.close()
+
+
+@pytest.mark.parametrize(("url", "module", "extra"), [
+    ("redis://127.0.0.1:6379", "redis", "redis"),
+    ("postgresql://127.0.0.1/test", "psycopg", "postgres"),
+])
+def test_broker_bus_without_its_extra_names_the_extra(
+        monkeypatch: pytest.MonkeyPatch, url: str, module: str, extra: str) -> None:
+    monkeypatch.setitem(sys.modules, module, None)  # import raises ImportError
+    with pytest.raises(MissingExtraError, match=rf"cranetwin\[{extra}\]") as info:
+        open_bus(url)
+    assert info.value.extra == extra

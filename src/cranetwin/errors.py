@@ -14,7 +14,8 @@ translate them once into an exit message, a dropped-and-counted datagram or a 4x
     ├── ProtocolError           datagram malformed, forged or replayed
     ├── StorageError            database problems
     ├── AnalyticsError          analytics input unusable
-    └── ReportError             export failed
+    ├── ReportError             export failed
+    └── MissingExtraError       an optional dependency is not installed (names the extra)
 """
 
 from __future__ import annotations
@@ -83,3 +84,25 @@ class AnalyticsError(CraneTwinError):
 
 class ReportError(CraneTwinError):
     """An export could not be produced."""
+
+
+class MissingExtraError(CraneTwinError):
+    """A feature needs an optional dependency that is not installed.
+
+    Raised where the optional module is imported (lazily), ``from`` the ``ImportError``::
+
+        try:
+            import reportlab
+        except ImportError as exc:
+            raise MissingExtraError("reports", "PDF reports") from exc
+
+    Attributes:
+        extra: Name of the ``cranetwin[...]`` extra that installs it.
+        feature: What needs it ("PDF reports", "the Redis live bus").
+    """
+
+    def __init__(self, extra: str, feature: str) -> None:
+        self.extra = extra
+        self.feature = feature
+        super().__init__(f"{feature}: install the {extra!r} extra: "
+                         f"pip install 'cranetwin[{extra}]'")

@@ -6,7 +6,8 @@ One small interface, :class:`LiveBus` (``publish`` from the ingest daemon after 
 * ``memory://`` — :class:`InProcessBus`, when daemon and API share a process (embedded default);
   subscribers get the :class:`~cranetwin.samples.SampleBlock` itself.
 * ``postgresql://…`` — :class:`PostgresBus`, ``NOTIFY``/``LISTEN`` on the database server.
-* ``redis://host:port`` — :class:`RedisBus`, Redis ``PUBLISH``/``SUBSCRIBE`` (tiny RESP client).
+* ``redis://host:port`` — :class:`RedisBus`, Redis ``PUBLISH``/``SUBSCRIBE`` (redis-py, the
+  ``redis`` extra).
 
 Across processes only a :class:`BlockNote` travels (machine, seq, time span, sample count); the
 subscriber reads the samples from storage. A slow subscriber never slows ingest: its queue is
@@ -17,18 +18,19 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import queue
-import socket
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 from urllib.parse import urlsplit
 
-from cranetwin.errors import StorageError
+from cranetwin.errors import MissingExtraError, StorageError, StorageUnavailableError
 from cranetwin.samples import SampleBlock
 
 CHANNEL = "cranetwin_blocks"
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -189,6 +191,7 @@ class PostgresBus:
     """
 
     def __init__(self, url: str, channel: str = CHANNEL, maxsize: int = 10_000) -> None:
+        _psycopg()  # fail at open_bus, not at the first publish
         self._conninfo = url.replace("postgresql+psycopg://", "postgresql://", 1)
         self._channel = channel
         self._maxsize = maxsize
@@ -196,8 +199,7 @@ class PostgresBus:
         self._lock = threading.Lock()
 
     def publish(self, blocks: Sequence[SampleBlock]) -> None:
-        import psycopg
-
+        psycopg = _psycopg()
         with self._lock:
             if self._pub is None or self._pub.closed:
                 self._pub = psycopg.connect(self._conninfo, autocommit=True)
@@ -205,9 +207,7 @@ class PostgresBus:
                 self._pub.execute("SELECT pg_notify(%s, %s)", (self._channel, p))
 
     def subscribe(self) -> Subscription:
-        import psycopg
-
-        conn = psycopg.connect(self._conninfo, autocommit=True)
+        conn = _psycopg().connect(self._conninfo, autocommit=True)
         conn.execute(f'LISTEN "{self._channel}"')
         sub = _ThreadSubscription(self._maxsize)
 
@@ -230,102 +230,105 @@ class PostgresBus:
                 self._pub = None
 
 
-def _resp(*parts: bytes) -> bytes:
-    out = b"*%d\r\n" % len(parts)
-    for p in parts:
-        out += b"$%d\r\n%s\r\n" % (len(p), p)
-    return out
-
-
-class _RespReader:
-    """Minimal RESP2 reader (integers, bulk strings, arrays, simple strings, errors)."""
-
-    def __init__(self, sock: socket.socket) -> None:
-        self._f = sock.makefile("rb")
-
-    def read(self) -> Any:
-        line = self._f.readline()
-        if not line:
-            raise ConnectionError("redis closed the connection")
-        kind, rest = line[:1], line[1:-2]
-        if kind == b"+":
-            return rest
-        if kind == b"-":
-            raise StorageError(f"redis error: {rest.decode(errors='replace')}")
-        if kind == b":":
-            return int(rest)
-        if kind == b"$":
-            n = int(rest)
-            return None if n < 0 else self._f.read(n + 2)[:-2]
-        if kind == b"*":
-            return [self.read() for _ in range(int(rest))]
-        raise StorageError(f"unexpected redis reply {line!r}")
+def _psycopg() -> Any:
+    """The psycopg module, or MissingExtraError naming the ``postgres`` extra."""
+    try:
+        import psycopg
+    except ImportError as exc:
+        raise MissingExtraError("postgres", "the PostgreSQL live bus") from exc
+    return psycopg
 
 
 class RedisBus:
-    """Redis ``PUBLISH``/``SUBSCRIBE`` (daemon and API in separate processes).
+    """Redis ``PUBLISH``/``SUBSCRIBE`` through redis-py (daemon and API in separate processes).
+
+    Publishing uses redis-py's connection pool (it reconnects after a lost connection); each
+    subscription has its own pub/sub connection read by a background thread.
 
     Args:
         host, port: Redis server (127.0.0.1:6379 by default).
         channel: Pub/sub channel name.
+        maxsize: Notes buffered per subscriber before the oldest are dropped.
+
+    Raises:
+        MissingExtraError: redis-py is not installed (``cranetwin[redis]``).
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 6379, channel: str = CHANNEL,
                  maxsize: int = 10_000) -> None:
-        self._addr = (host, port)
-        self._channel = channel.encode()
+        try:
+            import redis
+        except ImportError as exc:
+            raise MissingExtraError("redis", "the Redis live bus") from exc
+        self._redis = redis
+        self._client = redis.Redis(host=host, port=port, socket_timeout=5,
+                                   socket_connect_timeout=5)
+        self._channel = channel
         self._maxsize = maxsize
-        self._pub: socket.socket | None = None
-        self._reader: _RespReader | None = None
-        self._lock = threading.Lock()
+        self._readers: list[tuple[_ThreadSubscription, threading.Thread]] = []
 
     def publish(self, blocks: Sequence[SampleBlock]) -> None:
-        with self._lock:
-            if self._pub is None:
-                self._pub = socket.create_connection(self._addr, timeout=5)
-                self._reader = _RespReader(self._pub)
-            assert self._reader is not None
-            payloads = _payloads(blocks, limit=64_000)
-            self._pub.sendall(b"".join(_resp(b"PUBLISH", self._channel, p.encode())
-                                       for p in payloads))
-            for _ in payloads:
-                self._reader.read()
+        """Publish notes of ``blocks`` (one pipelined round trip).
+
+        Raises:
+            StorageUnavailableError: Redis cannot be reached.
+            StorageError: Redis refused a command.
+        """
+        pipe = self._client.pipeline(transaction=False)
+        for p in _payloads(blocks, limit=64_000):
+            pipe.publish(self._channel, p)
+        with self._translated():
+            pipe.execute()
 
     def subscribe(self) -> Subscription:
-        sock = socket.create_connection(self._addr, timeout=5)
-        sock.sendall(_resp(b"SUBSCRIBE", self._channel))
-        reader = _RespReader(sock)
-        reader.read()  # subscribe confirmation
-        sock.settimeout(None)  # blocking reads; close() shuts the socket down to end them
+        """A subscription that receives every note published after this call returns.
+
+        Raises:
+            StorageUnavailableError: Redis cannot be reached.
+        """
+        pubsub = self._client.pubsub()
+        with self._translated():
+            pubsub.subscribe(self._channel)
+            confirmed = pubsub.get_message(timeout=5)  # the server has registered us
+        if not confirmed or confirmed["type"] != "subscribe":
+            pubsub.close()
+            raise StorageUnavailableError(f"redis did not confirm SUBSCRIBE: {confirmed!r}")
         sub = _ThreadSubscription(self._maxsize)
-
-        def stop() -> None:
-            sub._stop.set()
-            with contextlib.suppress(OSError):
-                sock.shutdown(socket.SHUT_RDWR)
-
-        sub.close = stop  # type: ignore[method-assign]
 
         def run() -> None:
             try:
                 while not sub._stop.is_set():
-                    msg = reader.read()
-                    if isinstance(msg, list) and msg and msg[0] == b"message":
-                        for note in _notes(msg[2]):
+                    msg = pubsub.get_message(timeout=0.2)
+                    if msg is not None and msg["type"] == "message":
+                        for note in _notes(msg["data"]):
                             sub.put(note)
-            except (OSError, ConnectionError):
-                pass
+            except (self._redis.RedisError, OSError) as exc:
+                log.warning("redis subscription ended: %s", exc)
             finally:
-                sock.close()
+                pubsub.close()
 
-        threading.Thread(target=run, name="redis-sub", daemon=True).start()
+        reader = threading.Thread(target=run, name="redis-sub", daemon=True)
+        reader.start()
+        self._readers.append((sub, reader))
         return sub
 
+    @contextlib.contextmanager
+    def _translated(self) -> Iterator[None]:
+        """redis-py's errors as storage errors (connection problems: unavailable)."""
+        try:
+            yield
+        except (self._redis.ConnectionError, self._redis.TimeoutError) as exc:
+            raise StorageUnavailableError(f"redis unreachable: {exc}") from exc
+        except self._redis.RedisError as exc:
+            raise StorageError(f"redis error: {exc}") from exc
+
     def close(self) -> None:
-        with self._lock:
-            if self._pub is not None:
-                self._pub.close()
-                self._pub = None
+        """End every subscription's reader, then release the connections."""
+        for sub, reader in self._readers:
+            sub.close()
+            reader.join(timeout=2.0)
+        self._readers.clear()
+        self._client.close()
 
 
 def open_bus(url: str = "memory://") -> LiveBus:
@@ -333,6 +336,7 @@ def open_bus(url: str = "memory://") -> LiveBus:
 
     Raises:
         StorageError: Unknown scheme.
+        MissingExtraError: The transport's optional dependency is not installed.
     """
     scheme = urlsplit(url).scheme
     if scheme == "memory":
