@@ -25,7 +25,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import fatpack
 import numpy as np
 import typer
 
@@ -33,12 +32,22 @@ from cranetwin.analytics import AnalyticsState, LoadHistory, load_channels
 from cranetwin.analytics.state import default_class_widths
 from cranetwin.analytics.synthetic import SyntheticCrane
 from cranetwin.bench import emit
+from cranetwin.errors import MissingExtraError
 from cranetwin.model import Machine, load_machine
 
 
 def _peak_rss_mib() -> float:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+
+
+def _fatpack() -> Any:
+    """The fatpack module (the baseline), or MissingExtraError: it is a ``dev`` dependency."""
+    try:
+        import fatpack
+    except ImportError as exc:
+        raise MissingExtraError("dev", "the analytics benchmark's fatpack baseline") from exc
+    return fatpack
 
 
 def _py_rainflow(y: list[float], width: float) -> int:
@@ -81,6 +90,7 @@ def _baseline(machine: Machine, crane: SyntheticCrane, hours: float,
     for ch, c in zip(chans, load_channels(machine), strict=True):
         _py_rainflow(ch.tolist(), widths[c])
     py = clock() - start
+    fatpack = _fatpack()
     start = clock()
     for ch, c in zip(chans, load_channels(machine), strict=True):
         k = int(np.ceil((ch.max() - ch.min()) / widths[c])) + 1
@@ -98,7 +108,12 @@ def _baseline(machine: Machine, crane: SyntheticCrane, hours: float,
 
 def run(days: int = 30, rate_hz: float = 100.0, baseline_hours: float = 0.25,
         pdf: bool = True) -> dict[str, Any]:
-    """Run the benchmark; return its figures (see the module docstring)."""
+    """Run the benchmark; return its figures (see the module docstring).
+
+    Raises:
+        MissingExtraError: fatpack (a ``dev`` dependency) is not installed; checked first.
+    """
+    _fatpack()
     machine = load_machine("patu655")
     crane = SyntheticCrane(machine, seed=0, days=days)
     state = AnalyticsState(machine)

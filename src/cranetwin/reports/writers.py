@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from cranetwin.analytics import AnalyticsReport
-from cranetwin.errors import ReportError
+from cranetwin.errors import MissingExtraError, ReportError
 from cranetwin.model import Machine
 from cranetwin.reports import tables as T
 
@@ -54,6 +54,18 @@ def _sections(rep: AnalyticsReport, machine: Machine, source: str,
         ("Productivity", "Work cycles: grab (payload above 50 kg) → lift → swing → release.",
          [T.productivity(rep)], figs.get("productivity")),
     ]
+
+
+def _require_reports_extra(fmt: str) -> None:
+    """Raise MissingExtraError unless what ``fmt`` needs is installed: matplotlib for the
+    figures (PDF and HTML), reportlab for the PDF (the ``reports`` extra)."""
+    try:
+        import matplotlib  # noqa: F401
+
+        if fmt == "pdf":
+            import reportlab  # type: ignore[import-untyped]  # noqa: F401
+    except ImportError as exc:
+        raise MissingExtraError("reports", f"{fmt.upper()} reports") from exc
 
 
 # --- PDF ------------------------------------------------------------------------------------------
@@ -211,9 +223,12 @@ def write(rep: AnalyticsReport, machine: Machine, fmt: str, out: Path, source: s
 
     Raises:
         ReportError: Unknown format or the file could not be written.
+        MissingExtraError: PDF or HTML without the ``reports`` extra installed.
     """
     if fmt not in FORMATS:
         raise ReportError(f"unknown format {fmt!r}; expected one of {FORMATS}")
+    if fmt != "csv":
+        _require_reports_extra(fmt)
     try:
         if fmt == "csv":
             return write_csv(rep, machine, out, source)
