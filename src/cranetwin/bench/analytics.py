@@ -6,7 +6,8 @@ positions and velocities, payload, reach, height, 3 rod positions and velocities
 generated one hour at a time; generation is timed separately and not counted.
 Timed (``wall_seconds``, ``cpu_seconds``): :meth:`AnalyticsState.update` on every chunk — rainflow
 of the 7 load channels, events, work cycles, usage — and the final :meth:`~AnalyticsState.report`
-(spectra, Miner damage, classification, duty record). ``report_pdf_seconds``: writing the PDF.
+(spectra, Miner damage, classification, duty record). ``report_pdf_seconds``: writing the PDF
+(null with ``--no-pdf``).
 ``samples_per_second``: samples per channel / wall_seconds.
 Baseline in the same run: a pure-Python rainflow in the style of the ``rainflow`` package
 (per-sample reversal generator with the same classes, then a stack count), and fatpack's own
@@ -136,7 +137,8 @@ def run(days: int = 30, rate_hz: float = 100.0, baseline_hours: float = 0.25,
     rep = state.report()
     wall += time.perf_counter() - w0
     cpu += time.process_time() - c0
-    pdf_s = pdf_cpu = float("nan")
+    pdf_s: float | None = None
+    pdf_cpu: float | None = None
     if pdf:
         from cranetwin.reports import write
 
@@ -158,10 +160,11 @@ def run(days: int = 30, rate_hz: float = 100.0, baseline_hours: float = 0.25,
         "cpu_seconds": round(cpu, 3),
         "samples_per_second": round(n / wall),
         "cpu_samples_per_second": round(n / cpu),
-        "report_pdf_seconds": round(pdf_s, 3),
-        "report_pdf_cpu_seconds": round(pdf_cpu, 3),
-        "report_total_seconds": round(wall + pdf_s, 3),
-        "report_total_cpu_seconds": round(cpu + pdf_cpu, 3),
+        # None (JSON null) without --pdf: not measured
+        "report_pdf_seconds": None if pdf_s is None else round(pdf_s, 3),
+        "report_pdf_cpu_seconds": None if pdf_cpu is None else round(pdf_cpu, 3),
+        "report_total_seconds": round(wall + (pdf_s or 0.0), 3),
+        "report_total_cpu_seconds": round(cpu + (pdf_cpu or 0.0), 3),
         "generate_seconds_not_counted": round(gen, 3),
         "peak_rss_mib": round(_peak_rss_mib(), 1),
         "baseline_hours_measured": baseline_hours,
