@@ -1,33 +1,51 @@
-"""Report figures drawn with matplotlib (Agg backend, no display) as PNG bytes."""
+"""Report figures drawn with matplotlib (Agg backend, no display) as PNG bytes.
+
+matplotlib is the ``reports`` extra: imported on the first figure, not with this module.
+"""
 
 from __future__ import annotations
 
 import io
+from functools import cache
 from typing import Any
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from cranetwin.analytics import KINDS, AnalyticsReport  # noqa: E402
-from cranetwin.model import Machine  # noqa: E402
+from cranetwin.analytics import KINDS, AnalyticsReport
+from cranetwin.errors import MissingExtraError
+from cranetwin.model import Machine
 
 DAY_S = 86400.0
+
+
+@cache
+def _plt() -> Any:
+    """matplotlib.pyplot on the Agg backend.
+
+    Raises:
+        MissingExtraError: matplotlib is not installed (``cranetwin[reports]``).
+    """
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        raise MissingExtraError("reports", "report figures") from exc
+    return plt
 
 
 def _png(fig: Any) -> bytes:
     buf = io.BytesIO()
     fig.tight_layout()
     fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
+    _plt().close(fig)
     return buf.getvalue()
 
 
 def usage(rep: AnalyticsReport) -> bytes:
     """Working and idle hours and work cycles per day."""
-    fig, ax = plt.subplots(figsize=(7.5, 3.2))
+    fig, ax = _plt().subplots(figsize=(7.5, 3.2))
     days = sorted(rep.days)
     x = np.arange(len(days))
     work = np.array([rep.days[d].working_s / 3600 for d in days])
@@ -48,7 +66,7 @@ def usage(rep: AnalyticsReport) -> bytes:
 
 def spectrum(rep: AnalyticsReport) -> bytes:
     """Cumulative load spectra: cycles with range ≥ x, ranges relative to the largest."""
-    fig, axes = plt.subplots(1, 2, figsize=(7.5, 3.4))
+    fig, axes = _plt().subplots(1, 2, figsize=(7.5, 3.4))
     for ax, kind in zip(axes, (":force", ":moment"), strict=True):
         for s in rep.spectra:
             if not s.channel.endswith(kind) or s.cycles.count.size == 0:
@@ -68,7 +86,7 @@ def spectrum(rep: AnalyticsReport) -> bytes:
 
 def damage(rep: AnalyticsReport) -> bytes:
     """Miner damage per detail and remaining life."""
-    fig, ax = plt.subplots(figsize=(7.5, 0.5 + 0.45 * max(len(rep.life), 1)))
+    fig, ax = _plt().subplots(figsize=(7.5, 0.5 + 0.45 * max(len(rep.life), 1)))
     names = [e.name for e in rep.life]
     d = [e.damage for e in rep.life]
     y = np.arange(len(names))
@@ -86,7 +104,7 @@ def damage(rep: AnalyticsReport) -> bytes:
 
 def events(rep: AnalyticsReport) -> bytes:
     """Events over time by kind."""
-    fig, ax = plt.subplots(figsize=(7.5, 2.8))
+    fig, ax = _plt().subplots(figsize=(7.5, 2.8))
     t0 = rep.t_start
     for i, k in enumerate(KINDS):
         ev = [e for e in rep.events if e.kind == k]
@@ -103,7 +121,7 @@ def events(rep: AnalyticsReport) -> bytes:
 
 def productivity(rep: AnalyticsReport, machine: Machine) -> bytes:
     """Payload per work cycle and load ratio distribution."""
-    fig, axes = plt.subplots(1, 2, figsize=(7.5, 3.0))
+    fig, axes = _plt().subplots(1, 2, figsize=(7.5, 3.0))
     p = np.array([c.payload_kg for c in rep.cycles])
     r = np.array([c.load_ratio for c in rep.cycles])
     axes[0].hist(p, bins=30, color="#2f6db5")

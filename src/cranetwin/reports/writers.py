@@ -82,9 +82,12 @@ def _font() -> str:
     """Register DejaVu Sans (shipped with matplotlib; covers Σ, Δ, σ) and return its name."""
     from pathlib import Path as _P
 
-    import matplotlib
-    from reportlab.pdfbase import pdfmetrics  # type: ignore[import-untyped]
-    from reportlab.pdfbase.ttfonts import TTFont  # type: ignore[import-untyped]
+    try:
+        import matplotlib
+        from reportlab.pdfbase import pdfmetrics  # type: ignore[import-untyped]
+        from reportlab.pdfbase.ttfonts import TTFont  # type: ignore[import-untyped]
+    except ImportError as exc:
+        raise MissingExtraError("reports", "PDF reports") from exc
 
     if "DejaVuSans" not in pdfmetrics.getRegisteredFontNames():
         d = _P(matplotlib.get_data_path()) / "fonts" / "ttf"
@@ -95,23 +98,30 @@ def _font() -> str:
 
 def write_pdf(rep: AnalyticsReport, machine: Machine, out: Path, source: str,
               figs: dict[str, bytes], progress: Callable[[], None] | None = None) -> Path:
-    """PDF with one page per section (plots and tables)."""
-    from reportlab.lib import colors  # type: ignore[import-untyped]
-    from reportlab.lib.pagesizes import A4  # type: ignore[import-untyped]
-    from reportlab.lib.styles import (  # type: ignore[import-untyped]
-        ParagraphStyle,
-        getSampleStyleSheet,
-    )
-    from reportlab.lib.units import mm  # type: ignore[import-untyped]
-    from reportlab.platypus import (  # type: ignore[import-untyped]
-        Image,
-        LongTable,
-        PageBreak,
-        Paragraph,
-        SimpleDocTemplate,
-        Spacer,
-        TableStyle,
-    )
+    """PDF with one page per section (plots and tables).
+
+    Raises:
+        MissingExtraError: reportlab or matplotlib is not installed (``cranetwin[reports]``).
+    """
+    try:
+        from reportlab.lib import colors  # type: ignore[import-untyped]
+        from reportlab.lib.pagesizes import A4  # type: ignore[import-untyped]
+        from reportlab.lib.styles import (  # type: ignore[import-untyped]
+            ParagraphStyle,
+            getSampleStyleSheet,
+        )
+        from reportlab.lib.units import mm  # type: ignore[import-untyped]
+        from reportlab.platypus import (  # type: ignore[import-untyped]
+            Image,
+            LongTable,
+            PageBreak,
+            Paragraph,
+            SimpleDocTemplate,
+            Spacer,
+            TableStyle,
+        )
+    except ImportError as exc:
+        raise MissingExtraError("reports", "PDF reports") from exc
 
     font = _font()
     ss = getSampleStyleSheet()
