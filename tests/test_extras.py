@@ -155,15 +155,15 @@ def test_constraints_pin_every_declared_distribution() -> None:
     assert "cranetwin" not in pins
 
 
-def test_reports_without_the_extra_name_it(monkeypatch: pytest.MonkeyPatch,
-                                           tmp_path: Path) -> None:
+def test_reports_without_the_extra_name_it(monkeypatch: pytest.MonkeyPatch) -> None:
     from cranetwin.errors import MissingExtraError
-    from cranetwin.reports import writers
+    from cranetwin.reports import check_format
 
     monkeypatch.setitem(sys.modules, "reportlab", None)  # `import reportlab` raises ImportError
     with pytest.raises(MissingExtraError, match=r"cranetwin\[reports\]"):
-        writers._require_reports_extra("pdf")
-    writers._require_reports_extra("html")  # HTML needs matplotlib only
+        check_format("pdf")
+    check_format("html")  # HTML needs matplotlib only
     monkeypatch.setitem(sys.modules, "matplotlib", None)
     with pytest.raises(MissingExtraError, match="HTML reports"):
-        writers._require_reports_extra("html")
+        check_format("html")
+    check_format("csv")  # CSV needs neither

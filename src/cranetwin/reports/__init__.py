@@ -21,7 +21,7 @@ from cranetwin.reports.sources import (
     history_from_recording,
     history_from_twin,
 )
-from cranetwin.reports.writers import FORMATS, SECTIONS, csv_tables, render, write
+from cranetwin.reports.writers import FORMATS, SECTIONS, check_format, csv_tables, render, write
 
 
 def build_report(source: Source, config: AnalyticsConfig | None = None,
@@ -50,5 +50,5 @@ def build_report(source: Source, config: AnalyticsConfig | None = None,
 
 
 __all__ = ["FORMATS", "SECTIONS", "DemoSource", "RecordingSource", "Source", "StoreSource",
-           "build_report", "csv_tables", "history_from_recording", "history_from_twin", "render",
-           "write"]
+           "build_report", "check_format", "csv_tables", "history_from_recording",
+           "history_from_twin", "render", "write"]

@@ -56,9 +56,18 @@ def _sections(rep: AnalyticsReport, machine: Machine, source: str,
     ]
 
 
-def _require_reports_extra(fmt: str) -> None:
-    """Raise MissingExtraError unless what ``fmt`` needs is installed: matplotlib for the
-    figures (PDF and HTML), reportlab for the PDF (the ``reports`` extra)."""
+def check_format(fmt: str) -> None:
+    """Check, before any work, that a report in ``fmt`` can be written here.
+
+    Raises:
+        ReportError: Unknown format.
+        MissingExtraError: PDF or HTML without the ``reports`` extra (matplotlib draws the
+            figures of both, reportlab writes the PDF).
+    """
+    if fmt not in FORMATS:
+        raise ReportError(f"unknown format {fmt!r}; expected one of {FORMATS}")
+    if fmt == "csv":
+        return
     try:
         import matplotlib  # noqa: F401
 
@@ -235,10 +244,7 @@ def write(rep: AnalyticsReport, machine: Machine, fmt: str, out: Path, source: s
         ReportError: Unknown format or the file could not be written.
         MissingExtraError: PDF or HTML without the ``reports`` extra installed.
     """
-    if fmt not in FORMATS:
-        raise ReportError(f"unknown format {fmt!r}; expected one of {FORMATS}")
-    if fmt != "csv":
-        _require_reports_extra(fmt)
+    check_format(fmt)
     try:
         if fmt == "csv":
             return write_csv(rep, machine, out, source)
@@ -262,11 +268,11 @@ def render(rep: AnalyticsReport, machine: Machine, fmt: str, source: str) -> tup
 
     Raises:
         ReportError: Unknown format or the report could not be produced.
+        MissingExtraError: PDF or HTML without the ``reports`` extra installed.
     """
     import tempfile
 
-    if fmt not in FORMATS:
-        raise ReportError(f"unknown format {fmt!r}; expected one of {FORMATS}")
+    check_format(fmt)
     name = f"{machine.name}-report.{'zip' if fmt == 'csv' else fmt}"
     with tempfile.TemporaryDirectory() as d:
         path = write(rep, machine, fmt, Path(d) / name, source)
