@@ -3,7 +3,7 @@ VENV   ?= .venv
 PYTHON ?= python3
 BIN    := $(VENV)/bin
 
-.PHONY: setup system-deps demo test lint bench clean
+.PHONY: setup system-deps demo test lint clean
 
 # every extra plus the test and lint tools, at the versions pinned in constraints.txt
 $(BIN)/.installed: pyproject.toml constraints.txt
