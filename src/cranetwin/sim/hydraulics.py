@@ -278,10 +278,17 @@ def slew_torque_rate(torque: float, u: float, omega: float, sp: F64) -> float:
 
 
 @njit(cache=True)
-def slew_limit(theta: float, omega: float, sp: F64) -> float:
-    """End-stop torque at the slewing joint limits [N·m]."""
-    if theta < sp[S_LO]:
-        return max(0.0, float(-sp[S_KLIM] * (theta - sp[S_LO]) - sp[S_CLIM] * omega))
-    if theta > sp[S_HI]:
-        return min(0.0, float(-sp[S_KLIM] * (theta - sp[S_HI]) - sp[S_CLIM] * omega))
+def joint_limit(theta: float, omega: float, lo: float, hi: float, k: float, c: float) -> float:
+    """End-stop torque (or force) at joint limits lo, hi [rad or m], stiffness k, damping c;
+    pushes back into the range only."""
+    if theta < lo:
+        return max(0.0, -k * (theta - lo) - c * omega)
+    if theta > hi:
+        return min(0.0, -k * (theta - hi) - c * omega)
     return 0.0
+
+
+@njit(cache=True)
+def slew_limit(theta: float, omega: float, sp: F64) -> float:
+    """End-stop torque at the joint limits of a drive's parameter row ``sp`` [N·m]."""
+    return joint_limit(theta, omega, sp[S_LO], sp[S_HI], sp[S_KLIM], sp[S_CLIM])
