@@ -51,13 +51,10 @@ def simulate_command(
     if out.suffix not in (".npz", ".csv"):
         raise SimulationError(f"--out {out}: expected a .npz or .csv file name")
     m = load_machine(machine)
-    params: dict[str, float] = {}
-    if payload is not None:
-        params["payload_kg"] = payload
-    from cranetwin.sim.scenario import BUILTIN
+    from cranetwin.sim.scenario import BUILTIN, builtin_scenario
 
     if scenario in BUILTIN:
-        sc = load_scenario(scenario, seed=seed, **params)
+        sc = builtin_scenario(scenario, seed=seed, payload_kg=payload)
     else:
         sc = load_scenario(scenario, machine=m.name)
         if payload is not None:
