@@ -8,8 +8,25 @@ import numpy as np
 import pytest
 
 from cranetwin.model import Machine, load_machine
-from cranetwin.physics import cylinder_forces, inverse_dynamics, joints_from_cylinders
-from cranetwin.sim import Recording, SensorModel, load_scenario, simulate
+from cranetwin.physics import (
+    cylinder_forces,
+    cylinder_kinematics,
+    gravity_torques,
+    inverse_dynamics,
+    joints_from_cylinders,
+)
+from cranetwin.sim import (
+    Recording,
+    Scenario,
+    SensorModel,
+    SimOptions,
+    load_scenario,
+    prepare,
+    simulate,
+)
+from cranetwin.sim.energy import energy_terms
+from cranetwin.sim.runner import initial_state
+from cranetwin.sim.scenario import InitialState
 from cranetwin.twin import replay
 from cranetwin.twin.toolload import load_point_jacobian, tool_force
 
@@ -128,3 +145,46 @@ def test_free_air_replay_positions_forces_and_bucket_load(machine: Machine) -> N
     assert np.all(err < 0.05 * scale), err / scale
     # the 150 kg bucket load, estimated by the twin's payload regression
     assert np.nanmedian(res.payload_kg[inner]) == pytest.approx(150.0, abs=10.0)
+
+
+POSE = (0.0, 0.294398, -0.918903, 0.026456)    # rods at 0.45, 0.15, 0.10 m
+
+
+def _pressures(machine: Machine, sc: Scenario, factor_a: list[float]) -> SimOptions:
+    prep = prepare(machine)
+    lay = prep.layout
+    x0 = initial_state(prep, sc, SimOptions())
+    pa = x0[lay.x_pa:lay.x_pa + lay.nc] * np.asarray(factor_a)
+    pb = x0[lay.x_pb:lay.x_pb + lay.nc]
+    return SimOptions(initial_pressures_pa=(tuple(pa), tuple(pb)))
+
+
+def test_static_holding_pressures_balance_gravity(machine: Machine) -> None:
+    sc = Scenario(name="hold", duration_s=6.0, initial=InitialState(q=POSE, payload_kg=150.0))
+    opts = _pressures(machine, sc, [1.02, 0.97, 1.05])   # off equilibrium, valves closed
+    tr = simulate(machine, sc, options=opts, sensors=SensorModel.ideal(), wrenches=False).truth
+    late = tr.t_s > 4.5
+    a1 = np.array([c.area_a_m2 for c in machine.cylinders])
+    a2 = np.array([c.area_b_m2 for c in machine.cylinders])
+    f_hyd = (tr.p_a[late] * a1 - tr.p_b[late] * a2).mean(axis=0)
+    q_end = tr.q[late].mean(axis=0)[None, :]
+    g = gravity_torques(machine, q_end, 150.0)
+    _, dsdq = cylinder_kinematics(machine, q_end)
+    f_static = g[0, 1:] / dsdq[0]
+    coulomb = np.array([c.friction.coulomb for c in machine.cylinders])
+    assert np.all(np.abs(f_hyd - f_static) <= coulomb), (f_hyd, f_static)
+
+
+def test_energy_is_conserved_without_losses(machine: Machine) -> None:
+    # friction, valves and relief/leakage off; swinging, and the arm ringing on its oil springs
+    sc = Scenario(name="energy", duration_s=4.0,
+                  initial=InitialState(q=POSE, qd=(0.3, 0.0, 0.0, 0.0), payload_kg=150.0))
+    base = _pressures(machine, sc, [1.1, 0.9, 1.2])
+    opts = SimOptions(scheme="rk4", friction=False, valves=False, hydraulic_losses=False,
+                      initial_pressures_pa=base.initial_pressures_pa)
+    rec = simulate(machine, sc, options=opts, sensors=SensorModel.ideal(), wrenches=False)
+    e = energy_terms(machine, rec.truth, opts.hydraulics)
+    swing = max(np.ptp(e["kinetic"]), np.ptp(e["gravity"]))
+    drift = np.abs(e["total"] - e["total"][0]).max()
+    assert swing > 20.0
+    assert drift <= 1e-4 * swing
