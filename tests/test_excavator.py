@@ -15,6 +15,7 @@ from cranetwin.physics import (
     inverse_dynamics,
     joints_from_cylinders,
 )
+from cranetwin.signal import nrmse
 from cranetwin.sim import (
     Recording,
     Scenario,
@@ -128,23 +129,34 @@ def test_tool_force_from_the_replay_noisy_sensors(machine: Machine,
     assert mean[[0, 2]] == pytest.approx([4000.0, 2000.0], rel=0.02)
 
 
+# measured (seed 1, 100 Hz grid): ideal sensors — q NRMSE ≤ 7e-5, max 2.5e-4 rad; force NRMSE
+# 1.4 / 0.66 / 0.16 % (boom / arm / bucket), max 4.9 % of range at the boom's rod reversals
+# (its published Coulomb friction, 15.3 kN, switches within ±5 mm/s); bucket load median
+# 150.1 kg (5–95 %: 149.5–150.9). Default sensor model — q NRMSE ≤ 1.3e-3; force NRMSE
+# 6.0 / 1.8 / 0.52 % (the noisy rod speed flips the boom's Coulomb friction); 150.6 kg
+# (147.9–152.2).
+FREE_AIR_BOUNDS = {
+    "ideal": (2e-4, [0.03, 0.015, 0.005], 2.0),
+    "default": (3e-3, [0.12, 0.04, 0.012], 5.0),
+}
+
+
 @pytest.mark.timeout(300)
-def test_free_air_replay_positions_forces_and_bucket_load(machine: Machine) -> None:
+@pytest.mark.parametrize("sensors", ["ideal", "default"])
+def test_free_air_replay_positions_forces_and_bucket_load(machine: Machine,
+                                                         sensors: str) -> None:
+    model = SensorModel.ideal() if sensors == "ideal" else SensorModel()
     rec = simulate(machine, load_scenario("free-air", machine=machine.name), seed=1,
-                   sensors=SensorModel.ideal())
+                   sensors=model)
     res = replay(rec.samples, machine, grid_hz=100.0)
     tr = rec.truth
     ti = np.searchsorted(tr.t_s, res.t_s - 1e-9)
     inner = (res.t_s > 0.5) & (res.t_s < res.t_s[-1] - 0.5)
-    # positions: quantisation 0.1 mm through the kinematics (swing integrated from its torque
-    # or read from the optional angle channel)
-    assert np.nanmax(np.abs(res.q[inner] - tr.q[ti][inner])) < 2e-3
-    # cylinder forces: pressures quantised at 5 kPa, friction from smoothed rod speeds
-    scale = np.abs(tr.cyl_force).max(axis=0)
-    err = np.abs(res.cyl_force[inner] - tr.cyl_force[ti][inner]).max(axis=0)
-    assert np.all(err < 0.05 * scale), err / scale
+    q_bound, force_bound, payload_bound = FREE_AIR_BOUNDS[sensors]
+    assert np.all(nrmse(res.q[inner], tr.q[ti][inner]) < q_bound)
+    assert np.all(nrmse(res.cyl_force[inner], tr.cyl_force[ti][inner]) < force_bound)
     # the 150 kg bucket load, estimated by the twin's payload regression
-    assert np.nanmedian(res.payload_kg[inner]) == pytest.approx(150.0, abs=10.0)
+    assert np.nanmedian(res.payload_kg[inner]) == pytest.approx(150.0, abs=payload_bound)
 
 
 POSE = (0.0, 0.294398, -0.918903, 0.026456)    # rods at 0.45, 0.15, 0.10 m
