@@ -14,7 +14,6 @@ from cranetwin.sim.hydraulics import G_KREL
 from cranetwin.sim.runner import Prepared, SimOptions, initial_state, prepare, simulate
 from cranetwin.sim.scenario import (
     ActuatorProgram,
-    Actuators,
     InitialState,
     PayloadEvent,
     Scenario,
@@ -180,7 +179,7 @@ def test_lift_natural_frequency_in_published_range(machine: Machine, prep: Prepa
 
 def test_positive_lift_voltage_raises_the_boom_and_end_stop_holds(prep: Prepared) -> None:
     sc = Scenario(name="up", duration_s=6.0, initial=InitialState(q=POSE),
-                  actuators=Actuators(lift=ActuatorProgram(voltage=[(0.0, 10.0)])))
+                  actuators={"lift": ActuatorProgram(voltage=[(0.0, 10.0)])})
     tr = simulate(prep, sc, sensors=SensorModel.ideal(), wrenches=False).truth
     stroke = 0.535
     assert tr.rod_s[-1, 0] > tr.rod_s[0, 0] + 0.1

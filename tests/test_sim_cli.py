@@ -50,3 +50,18 @@ def test_sim_imports_no_web_or_database_stack() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_simulate_the_excavator_dig_cycle_to_csv(tmp_path: Path) -> None:
+    out = tmp_path / "dig.csv"
+    res = CliRunner().invoke(app, ["simulate", "--machine", "bobcat435", "--scenario",
+                                   "dig-cycle", "--duration", "0.4", "--quiet", "--out",
+                                   str(out)])
+    assert res.exit_code == 0, res.output
+    rec = Recording.load(out)
+    assert rec.machine == "bobcat435" and rec.scenario == "dig-cycle"
+    assert "swing_torque" in rec.samples.channels and "boom_pA" in rec.samples.channels
+    assert rec.topology.cylinders == ("boom", "arm", "bucket")
+    header = (tmp_path / "dig.truth.csv").read_text().splitlines()[0].split(",")
+    assert "rod_s_bucket" in header and "drive_torque_swing" in header
+    assert "contact_force_fz" in header

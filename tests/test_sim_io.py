@@ -17,6 +17,7 @@ from cranetwin.sim import (
     SensorModel,
     load_scenario,
     prepare,
+    scenario_from_dict,
     simulate,
 )
 from cranetwin.sim.scenario import InitialState
@@ -73,7 +74,6 @@ def test_valid_toml_and_json_scenarios_run(tmp_path: Path, prep: Prepared) -> No
     ('name = "x"\n[actuators.lift]\nvoltage = [[0, 0], [1, 12]]\n', "actuators.lift"),
     ('name = "x"\n[actuators.jib]\nvoltage = [[1, 0], [0.5, 2]]\n', "actuators.jib"),
     ('name = "x"\n[initial]\npayload_kg = -5\n', "initial.payload_kg"),
-    ('name = "x"\n[actuators.boom]\nvoltage = []\n', "actuators.boom"),
     ('name = "x"\n[[payload]]\nt_s = "soon"\nmass_kg = 1\n', "payload.0.t_s"),
     ('name = "x"\nduration_s = 0\n', "duration_s"),
 ])
@@ -204,6 +204,15 @@ def test_live_session_in_chunks_matches_the_batch_run(prep: Prepared) -> None:
     assert live.t_s == pytest.approx(1.5)
     with pytest.raises(SimulationError, match="finished"):
         live.advance(0.1)
+
+
+def test_actuators_the_machine_lacks_are_named(prep: Prepared) -> None:
+    sc = scenario_from_dict({"name": "x", "actuators": {"boom": {"voltage": []}},
+                             "initial": {"q": [0.0, 0.6, -1.6]}})
+    with pytest.raises(ScenarioFileError) as exc:
+        simulate(prep, sc, duration_s=0.1)
+    assert any(p.startswith("actuators.boom:") for p in exc.value.problems)
+    assert any(p.startswith("initial.q:") and "one per joint" in p for p in exc.value.problems)
 
 
 def test_targets_outside_the_machine_are_named(prep: Prepared, tmp_path: Path) -> None:

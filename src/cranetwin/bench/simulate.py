@@ -7,7 +7,8 @@ simulated seconds / wall seconds of the integration (best of ``reps``); on a sha
 much of the wall time was spent waiting for a core. Not timed: JIT compile or numba cache
 load (reported as ``compile_seconds``). Also reported: the wall time of a whole
 recording (integration + sensor model + joint reaction wrenches), the RK4 scheme's factor, and
-the factor at a 5e-4 s step (≈ 25 µm / 0.16 bar from a 5e-5 s reference: fine for a demo fleet).
+the factor at a 5e-4 s step (≈ 25 µm / 0.16 bar from a 5e-5 s reference: fine for a demo fleet),
+and the CPU factor of the excavator's ``dig-cycle`` (another topology, with a contact force).
 
 Baseline, in the same run: the very same step function with numba's JIT disabled
 (``NUMBA_DISABLE_JIT=1``, i.e. plain Python/NumPy executing the same code), in a subprocess over
@@ -86,6 +87,14 @@ def run(duration_s: float = 60.0, step_s: float = 1.0e-4, reps: int = 3,
              sensors=SensorModel.ideal(), wrenches=False)
     coarse_wall = time.perf_counter() - t1
 
+    # a second topology: the excavator's dig cycle (contact force at the bucket tip)
+    exc = prepare(load_machine("bobcat435"))
+    dig = load_scenario("dig-cycle", machine="bobcat435")
+    simulate(exc, dig, duration_s=0.01, options=opts)
+    c1 = time.process_time()
+    simulate(exc, dig, options=opts, sensors=SensorModel.ideal(), wrenches=False)
+    exc_cpu = time.process_time() - c1
+
     steps = int(round(duration_s / step_s))
     result: dict[str, Any] = {
         "benchmark": "simulate",
@@ -107,6 +116,7 @@ def run(duration_s: float = 60.0, step_s: float = 1.0e-4, reps: int = 3,
         "recording_real_time_factor": duration_s / full,
         "recording_samples": int(rec.samples.values.shape[0]),
         "rk4_real_time_factor": rk4_span / rk4,
+        "excavator_dig_cycle_real_time_factor_cpu": dig.duration_s / exc_cpu,
         "real_time_factor_step_5e-4": duration_s / coarse_wall,
         "baseline": "same step function, numba JIT disabled (pure Python), short span scaled",
         "baseline_simulated_seconds": baseline_span_s,

@@ -17,7 +17,8 @@ def simulate_command(
     machine: str = typer.Option("patu655", "--machine", "-m",
                                 help="Built-in machine name or machine TOML file."),
     scenario: str = typer.Option("fig3", "--scenario", "-s",
-                                 help="fig3, log-loading, random, or a .toml/.json file."),
+                                 help="fig3, log-loading, random (PATU 655), a scenario shipped "
+                                      "with the machine (e.g. dig-cycle), or a .toml/.json file."),
     duration: float | None = typer.Option(None, "--duration", "-d",
                                           help="Simulated time [s] (default: the scenario's)."),
     rate: float = typer.Option(100.0, "--rate", help="Sensor sampling rate [Hz]."),
@@ -50,15 +51,12 @@ def simulate_command(
     if out.suffix not in (".npz", ".csv"):
         raise SimulationError(f"--out {out}: expected a .npz or .csv file name")
     m = load_machine(machine)
-    params: dict[str, float] = {}
-    if payload is not None:
-        params["payload_kg"] = payload
-    from cranetwin.sim.scenario import BUILTIN
+    from cranetwin.sim.scenario import BUILTIN, builtin_scenario
 
     if scenario in BUILTIN:
-        sc = load_scenario(scenario, seed=seed, **params)
+        sc = builtin_scenario(scenario, seed=seed, payload_kg=payload)
     else:
-        sc = load_scenario(scenario)
+        sc = load_scenario(scenario, machine=m.name)
         if payload is not None:
             init = sc.initial.model_dump() | {"payload_kg": payload}
             sc = sc.model_copy(update={"initial": InitialState(**init)})

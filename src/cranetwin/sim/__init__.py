@@ -1,9 +1,11 @@
-"""Machine-side simulator: hydraulic + multibody crane producing realistic sensor streams.
+"""Machine-side simulator: hydraulic + multibody model of any machine description (crane,
+excavator, ...) producing realistic sensor streams.
 
 Modules: :mod:`~cranetwin.sim.recording` (the output type), :mod:`~cranetwin.sim.scenario`
-(valve-voltage scenarios), :mod:`~cranetwin.sim.hydraulics` (valve, chambers, relief, end stops,
-friction, slewing drive), :mod:`~cranetwin.sim.sensors` (sampling, quantisation, noise, bias,
-dropouts, jitter), :mod:`~cranetwin.sim.engine` (the compiled fixed-step loop on the
+(valve-voltage scenarios per actuator, payload, contact force), :mod:`~cranetwin.sim.layout`
+(the flat arrays' blocks for any topology), :mod:`~cranetwin.sim.hydraulics` (valve, chambers,
+relief, end stops, torque drives), :mod:`~cranetwin.sim.sensors` (sampling, quantisation,
+noise, bias, dropouts, jitter), :mod:`~cranetwin.sim.engine` (the compiled fixed-step loop on the
 ``physics.kernels``), :mod:`~cranetwin.sim.runner` (:func:`simulate`) and
 :mod:`~cranetwin.sim.energy` (energy bookkeeping for checks). See docs/SIMULATOR.md.
 

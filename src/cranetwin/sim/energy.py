@@ -7,7 +7,7 @@ With friction, valves and hydraulic losses off, the simulated system is conserva
 is constant, where Ve = B_oil·C(s) is the chamber's effective volume (oil in the cylinder plus
 the hose volume scaled by B_oil/B_hose, see :mod:`cranetwin.sim.hydraulics`): the chamber law
 dp = −B_oil·dVe/Ve makes d[−(p + B_oil)·Ve] = −p·dVe, the work the oil does on the piston.
-T²/(2·K_s) is the energy of the slewing drive's hydraulic torsional spring.
+T²/(2·K_s), summed over the torque drives, is the energy of their hydraulic torsional springs.
 """
 
 from __future__ import annotations
@@ -63,6 +63,6 @@ def energy_terms(machine: Machine, truth: Truth,
         va = c.area_a_m2 * s + v0e
         vb = c.area_b_m2 * (c.stroke_m - s) + v0e
         hydraulic -= (truth.p_a[:, k] + b_oil) * va + (truth.p_b[:, k] + b_oil) * vb
-    slew = truth.slew_torque**2 / (2.0 * st.slew_stiffness_nm_rad)
+    slew = np.sum(truth.drive_torque**2, axis=1) / (2.0 * st.slew_stiffness_nm_rad)
     return {"kinetic": kinetic, "gravity": gravity, "hydraulic": hydraulic, "slew_spring": slew,
             "total": kinetic + gravity + hydraulic + slew}

@@ -1,15 +1,20 @@
-"""The fixed-step integration loop: hydraulics + 4-DOF multibody forward dynamics, in numba.
+"""The fixed-step integration loop: hydraulics + multibody forward dynamics, in numba.
 
-State x (N_X,): q (4), qd (4), pA (3), pB (3), spool voltages U (4: slew, lift, jib, extension),
-slewing drive torque T (1). Each step:
+Any serial machine: ``nj`` joints, ``nc`` cylinders (each on a revolute or prismatic joint,
+directly or through its linkage), ``nd`` torque drives (e.g. a hydraulic slewing/swing motor),
+and free joints with neither (end stops at their limits only). Array layouts:
+:mod:`cranetwin.sim.layout`. Each step:
 
-1. Operator commands U_cmd(t) (:mod:`cranetwin.sim.scenario`), payload m_p(t).
+1. Operator commands U_cmd(t) (:mod:`cranetwin.sim.scenario`), payload m_p(t), contact force
+   F_c(t) at the load point (world frame).
 2. Rod positions and moment arms s_k, ds_k/dq from ``physics.kernels.cylinder_kinematics``;
    rod velocities v_k = ds_k/dq · qd.
-3. Cylinder forces (Eq. 1–2 + end stops) and the slewing torque give the actuator loads
-   tau_j = Σ F_k·ds_k/dq_j + (T − F_fr,slew) (virtual work).
-4. Forward dynamics ``M(q)·qdd = tau − h(q, qd)`` with M and h from ``physics.kernels.rnea_into``
-   (unit-acceleration columns for M, zero acceleration for h; Paper Eq. 4 solved for qdd).
+3. Cylinder forces (paper Eq. 1–2, ``physics.actuator.eq1_cylinder_force``, + end stops) and
+   the drive torques give the actuator loads tau_j = Σ F_k·ds_k/dq_j + (T_d − F_fr,d(ω)) (virtual
+   work); the contact force adds J_p(q)ᵀ·F_c (J_p the load point's translational Jacobian).
+4. Forward dynamics ``M(q)·qdd = tau + J_pᵀ·F_c − h(q, qd)`` with M and h from
+   ``physics.kernels.rnea_into`` (unit-acceleration columns for M, zero acceleration for h;
+   Paper Eq. 4 solved for qdd).
 5. Update. ``semi-implicit`` (default, 1e-4 s as in the paper): symplectic Euler for the
    mechanics (qd += dt·qdd, then q += dt·qd); chamber pressures follow the rod displacement of
    that step through the exact closed-chamber law p − p0 = −B_oil·ln(Ve/Ve0) (so the oil spring
@@ -20,6 +25,11 @@ slewing drive torque T (1). Each step:
 
 Truth is recorded every ``truth_every`` steps (state, qdd, forces as the step used them), sensor
 snapshots at precomputed step indices (see :mod:`cranetwin.sim.sensors`).
+
+Arguments travel as two tuples: ``model`` = (chain, cyl, hc, hg, hs, hf, dj, fj, lay) — the
+compiled chain and cylinders (``physics.chain``), the cylinder, circuit, drive and free-joint
+tables (:mod:`cranetwin.sim.hydraulics`), drive and free joint indices, sizes — and ``sched``
+= the scenario's tables (:class:`cranetwin.sim.scenario.ScenarioTables`, in field order).
 """
 
 from __future__ import annotations
@@ -33,9 +43,12 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from cranetwin.physics import actuator as actuator_module
 from cranetwin.physics import chain as chain_module
 from cranetwin.physics import kernels as kernels_module
-from cranetwin.physics.kernels import cylinder_kinematics, rnea_into
+from cranetwin.physics.actuator import eq1_cylinder_force, eq2_friction
+from cranetwin.physics.chain import CYL_BLOCK, HEADER, JOINT_BLOCK, PRISMATIC
+from cranetwin.physics.kernels import cylinder_kinematics, joint_transforms, rnea_into
 from cranetwin.sim.hydraulics import (
     C_A1,
     C_A2,
@@ -57,8 +70,12 @@ from cranetwin.sim.hydraulics import (
     G_PT,
     G_PTR,
     S_B,
+    S_CLIM,
     S_FC,
+    S_HI,
+    S_KLIM,
     S_KS,
+    S_LO,
     S_TAU,
     S_TLEAK,
     S_TMAX,
@@ -67,14 +84,13 @@ from cranetwin.sim.hydraulics import (
     S_WMAX,
     capacitances,
     end_stop,
-    friction,
+    joint_limit,
     pressure_step,
     relief,
-    slew_limit,
     spool_step,
     valve_flows,
 )
-from cranetwin.sim.sensors import SNAP_PA, SNAP_PB, SNAP_Q, SNAP_S, SNAP_SLEW_TORQUE
+from cranetwin.sim.layout import L_NC, L_ND, L_NJ
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -88,8 +104,9 @@ def _drop_stale_cache() -> None:
     silently run the old code. A stamp of those sources next to the cache decides.
     """
     here = Path(__file__).resolve()
-    deps = [here, here.with_name("hydraulics.py"), here.with_name("sensors.py"),
-            Path(kernels_module.__file__).resolve(), Path(chain_module.__file__).resolve()]
+    deps = [here, here.with_name("hydraulics.py"), here.with_name("layout.py"),
+            Path(kernels_module.__file__).resolve(), Path(chain_module.__file__).resolve(),
+            Path(actuator_module.__file__).resolve()]
     digest = hashlib.sha256(b"".join(p.read_bytes() for p in deps)).hexdigest()
     cache_dirs = [here.parent / "__pycache__"]
     if os.environ.get("NUMBA_CACHE_DIR"):
@@ -109,20 +126,10 @@ def _drop_stale_cache() -> None:
 
 _drop_stale_cache()
 
-NJ = 4
-NC = 3
-X_Q, X_QD, X_PA, X_PB, X_U, X_TS = 0, 4, 8, 11, 14, 18
-N_X = 19
-# truth columns
-T_T, T_Q, T_QD, T_QDD, T_S, T_V, T_PA, T_PB, T_F, T_TS, T_TAU, T_PAY, T_U = (
-    0, 1, 5, 9, 13, 16, 19, 22, 25, 28, 29, 33, 34)
-N_T = 38
 # flags
 F_FRICTION, F_VALVES, F_LOSSES, F_SCHEME = 0, 1, 2, 3
 SCHEME_SEMI_IMPLICIT = 0.0
 SCHEME_RK4 = 1.0
-# scratch layout: rows of a (N_SCR, 12) work matrix
-N_SCRATCH_VEC = 16
 
 
 @njit(cache=True)
@@ -147,22 +154,81 @@ def _interp(tk: F64, vk: F64, n: int, t: float, cur: I64, c: int, before: float)
 
 
 @njit(cache=True)
-def _commands(t: float, x: F64, s: F64, u_t: F64, u_v: F64, u_n: I64, r_t: F64, r_v: F64,
-              r_n: I64, gain: F64, umax: F64, pay_t: F64, pay_m: F64, cur: I64,
-              u_cmd: F64) -> float:
-    """Operator commands at time t into ``u_cmd`` (4,) [V]; returns the payload [kg]."""
-    for a in range(4):
+def _commands(t, x, s, dj, nd, sched, cur, u_cmd, fext):  # type: ignore[no-untyped-def]
+    """Operator commands at time t into ``u_cmd`` (na,) [V] (drives, then cylinders) and the
+    contact force into ``fext`` (3,) [N, world frame]; returns the payload [kg].
+
+    A tracked actuator follows its drive joint's position x[dj[a]] or its rod position s.
+    Cursors: cur[a] voltage, cur[na + a] target, cur[2·na] payload, cur[2·na + 1] contact.
+    """
+    u_t, u_v, u_n, r_t, r_v, r_n, gain, umax, pay_t, pay_m, f_t, f_v, f_n = sched
+    na = u_cmd.shape[0]
+    for a in range(na):
         u = _interp(u_t[a], u_v[a], u_n[a], t, cur, a, 0.0)
         if r_n[a] > 0:
-            y = x[X_Q] if a == 0 else s[a - 1]
-            r = _interp(r_t[a], r_v[a], r_n[a], t, cur, 4 + a, r_v[a, 0])
+            y = x[dj[a]] if a < nd else s[a - nd]
+            r = _interp(r_t[a], r_v[a], r_n[a], t, cur, na + a, r_v[a, 0])
             u += gain[a] * (r - y)
         u_cmd[a] = min(max(u, -umax[a]), umax[a])
-    i = cur[8]
+    i = cur[2 * na]
     while i + 1 < pay_t.shape[0] and pay_t[i + 1] <= t:
         i += 1
-    cur[8] = i
+    cur[2 * na] = i
+    if f_n > 0:
+        for m in range(3):
+            fext[m] = _interp(f_t, f_v[m], f_n, t, cur, 2 * na + 1, 0.0)
     return float(pay_m[i])
+
+
+@njit(cache=True)
+def _contact_loads(chain, q, f, work, out):  # type: ignore[no-untyped-def]
+    """Generalised forces out (nj,) = J_p(q)ᵀ·f of a world-frame force f (3,) [N] acting at the
+    load point: revolute joint i (axis a_i through o_i, world) gets (a_i × (p − o_i))·f [N·m],
+    prismatic a_i·f [N]; joints beyond the load body get 0. ``work``: scratch (nj, 12)."""
+    nj = int(chain[0])
+    lb = int(chain[4])
+    joint_transforms(chain, q, work)
+    # world pose of the running body: rotation r (row-major) and origin (px, py, pz)
+    r = np.eye(3)
+    px = 0.0
+    py = 0.0
+    pz = 0.0
+    ax = np.empty((nj, 3))
+    org = np.empty((nj, 3))
+    tip = np.zeros(3)
+    for i in range(nj):
+        o = HEADER + i * JOINT_BLOCK
+        npx = px + r[0, 0] * work[i, 9] + r[0, 1] * work[i, 10] + r[0, 2] * work[i, 11]
+        npy = py + r[1, 0] * work[i, 9] + r[1, 1] * work[i, 10] + r[1, 2] * work[i, 11]
+        npz = pz + r[2, 0] * work[i, 9] + r[2, 1] * work[i, 10] + r[2, 2] * work[i, 11]
+        nr = np.empty((3, 3))
+        for a in range(3):
+            for b in range(3):
+                nr[a, b] = (r[a, 0] * work[i, b] + r[a, 1] * work[i, 3 + b]
+                            + r[a, 2] * work[i, 6 + b])
+        r = nr
+        px, py, pz = npx, npy, npz
+        for a in range(3):
+            ax[i, a] = (r[a, 0] * chain[o + 1] + r[a, 1] * chain[o + 2]
+                        + r[a, 2] * chain[o + 3])
+        org[i, 0], org[i, 1], org[i, 2] = px, py, pz
+        if i == lb:
+            for a in range(3):
+                tip[a] = (r[a, 0] * chain[5] + r[a, 1] * chain[6] + r[a, 2] * chain[7]
+                          + org[i, a])
+    for i in range(nj):
+        if i > lb:
+            out[i] = 0.0
+        elif chain[HEADER + i * JOINT_BLOCK] == PRISMATIC:
+            out[i] = ax[i, 0] * f[0] + ax[i, 1] * f[1] + ax[i, 2] * f[2]
+        else:
+            dx = tip[0] - org[i, 0]
+            dy = tip[1] - org[i, 1]
+            dz = tip[2] - org[i, 2]
+            cx = ax[i, 1] * dz - ax[i, 2] * dy
+            cy = ax[i, 2] * dx - ax[i, 0] * dz
+            cz = ax[i, 0] * dy - ax[i, 1] * dx
+            out[i] = cx * f[0] + cy * f[1] + cz * f[2]
 
 
 @njit(cache=True)
@@ -190,36 +256,51 @@ def _solve_spd(m: F64, b: F64, out: F64, lo: F64) -> None:
         out[i] = acc / lo[i, i]
 
 
-@njit(cache=True)
-def _eval(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int, x: F64,
-          payload: float, u_cmd: F64, flags: F64, s: F64, dsdq: F64, v: F64, force: F64,
-          tau: F64, qdd: F64, flow: F64, mm: F64, hb: F64, lo: F64, wr: F64, work: F64,
-          e: F64, zero: F64, rhs: F64, kin_ready: bool) -> float:
+@njit(cache=True, inline="always")
+def _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, flow,  # type: ignore[no-untyped-def]
+          dtorque, scr, kin_ready):
     """Everything the state implies: kinematics, forces, accelerations, chamber flows.
 
     ``kin_ready``: s and dsdq already hold the kinematics of x (skip recomputing them).
+    Inlined into its callers: as a separate function, unpacking the ``model`` and ``scr`` tuples
+    at every step cost ≈ 10 % of the loop (reference counting); inlined, it runs as fast as
+    the former fixed-size 4-joint loop.
+    ``scr`` = (mm, hb, lo, wr, work, e, zero, rhs): scratch of the forward dynamics.
 
-    Writes s, dsdq, v, force (3,), tau, qdd (4,), flow (12,) = [QA, QB, gA, gB] per cylinder
-    (valve + relief, into the chamber, and their −∂/∂p), returns the slewing dT/dt [N·m/s].
+    Writes s, dsdq, v, force (nc,), tau (actuator loads), tau_ext (J_pᵀ·F_c, only while the
+    contact force is not zero), qdd (nj,),
+    flow (4·nc,) = [QA, QB, gA, gB] per cylinder (valve + relief, into the chamber, and their
+    −∂/∂p), dtorque (nd,) the drives' dT/dt [N·m/s].
     """
-    q = x[X_Q:X_Q + NJ]
-    qd = x[X_QD:X_QD + NJ]
+    chain, cyl, hc, hg, hs, hf, dj, fj, lay = model
+    mm, hb, lo, wr, work, e, zero, rhs = scr
+    nj = lay[L_NJ]
+    nc = lay[L_NC]
+    nd = lay[L_ND]
+    x_pa = 2 * nj
+    x_pb = x_pa + nc
+    x_u = x_pb + nc
+    x_ts = x_u + nd + nc
+    q = x[0:nj]
+    qd = x[nj:2 * nj]
     if not kin_ready:
         cylinder_kinematics(cyl, q, s, dsdq)
-    for j in range(NJ):
+    for j in range(nj):
         tau[j] = 0.0
     fric = flags[F_FRICTION] > 0.0
     valves = flags[F_VALVES] > 0.0
     losses = flags[F_LOSSES] > 0.0
-    for k in range(NC):
-        jk = cj[k]
+    for k in range(nc):
+        jk = int(cyl[1 + k * CYL_BLOCK + 1])
         vk = dsdq[k] * qd[jk]
         v[k] = vk
-        pa = x[X_PA + k]
-        pb = x[X_PB + k]
-        f = pa * hc[k, C_A1] - pb * hc[k, C_A2]
+        pa = x[x_pa + k]
+        pb = x[x_pb + k]
         if fric:
-            f -= friction(vk, hc[k, C_FC], hc[k, C_VC], hc[k, C_B])
+            f = eq1_cylinder_force(pa, pb, vk, hc[k, C_A1], hc[k, C_A2], hc[k, C_FC],
+                                   hc[k, C_VC], hc[k, C_B])
+        else:
+            f = pa * hc[k, C_A1] - pb * hc[k, C_A2]
         f += end_stop(s[k], vk, hc[k, C_STROKE], hc[k, C_KEND], hc[k, C_CEND])
         force[k] = f
         tau[jk] += f * dsdq[k]
@@ -228,7 +309,7 @@ def _eval(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int, x: 
         ga = 0.0
         gb = 0.0
         if valves:
-            qa, qb, ga, gb = valve_flows(hc[k, C_QN], x[X_U + 1 + k], pa, pb, hg[G_PS],
+            qa, qb, ga, gb = valve_flows(hc[k, C_QN], x[x_u + nd + k], pa, pb, hg[G_PS],
                                          hg[G_PT], hg[G_PTR])
         if losses:
             ra, dra = relief(pa, hg[G_PREL], hg[G_KREL])
@@ -241,107 +322,156 @@ def _eval(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int, x: 
         flow[4 * k + 1] = qb
         flow[4 * k + 2] = ga
         flow[4 * k + 3] = gb
-    w = qd[sj]
-    torque = x[X_TS]
-    tq = torque
-    if fric:
-        tq -= friction(w, hs[S_FC], hs[S_VC], hs[S_B])
-    tq += slew_limit(q[sj], w, hs)
-    tau[sj] += tq
-    w_cmd = x[X_U] / hs[S_UMAX] * hs[S_WMAX] if valves else 0.0
-    dtorque = hs[S_KS] * (w_cmd - w)
-    if losses:
-        dtorque -= torque / hs[S_TLEAK]
-    # forward dynamics: M qdd = tau - h   (Eq. 4)
-    for j in range(NJ):
-        for i in range(NJ):
+    for d in range(nd):
+        jd = dj[d]
+        w = qd[jd]
+        torque = x[x_ts + d]
+        tq = torque
+        if fric:
+            tq -= eq2_friction(w, hs[d, S_FC], hs[d, S_VC], hs[d, S_B])
+        tq += joint_limit(q[jd], w, hs[d, S_LO], hs[d, S_HI], hs[d, S_KLIM], hs[d, S_CLIM])
+        tau[jd] += tq
+        w_cmd = x[x_u + d] / hs[d, S_UMAX] * hs[d, S_WMAX] if valves else 0.0
+        dt_d = hs[d, S_KS] * (w_cmd - w)
+        if losses:
+            dt_d -= torque / hs[d, S_TLEAK]
+        dtorque[d] = dt_d
+    for m in range(fj.shape[0]):
+        jf = fj[m]
+        tau[jf] += joint_limit(q[jf], qd[jf], hf[m, S_LO], hf[m, S_HI], hf[m, S_KLIM],
+                               hf[m, S_CLIM])
+    contact = fext[0] != 0.0 or fext[1] != 0.0 or fext[2] != 0.0
+    if contact:      # tau_ext is only read (below) when there is contact
+        _contact_loads(chain, q, fext, work, tau_ext)
+    # forward dynamics: M qdd = tau + J_pᵀ F_c − h   (Eq. 4)
+    for j in range(nj):
+        for i in range(nj):
             e[i] = 0.0
         e[j] = 1.0
         rnea_into(chain, q, zero, e, payload, 0.0, hb, wr, work)
-        for i in range(NJ):
+        for i in range(nj):
             mm[i, j] = hb[i]
-    for i in range(NJ):
-        for j in range(i + 1, NJ):
+    for i in range(nj):
+        for j in range(i + 1, nj):
             a = 0.5 * (mm[i, j] + mm[j, i])
             mm[i, j] = a
             mm[j, i] = a
     rnea_into(chain, q, qd, zero, payload, 1.0, hb, wr, work)
-    for j in range(NJ):
-        rhs[j] = tau[j] - hb[j]
+    if contact:
+        for j in range(nj):
+            rhs[j] = tau[j] + tau_ext[j] - hb[j]
+    else:
+        for j in range(nj):
+            rhs[j] = tau[j] - hb[j]
     _solve_spd(mm, rhs, qdd, lo)
-    return float(dtorque)
 
 
 @njit(cache=True)
-def _deriv(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int, x: F64,
-           payload: float, u_cmd: F64, flags: F64, dx: F64, s: F64, dsdq: F64, v: F64,
-           force: F64, tau: F64, qdd: F64, flow: F64, mm: F64, hb: F64, lo: F64, wr: F64,
-           work: F64, e: F64, zero: F64, rhs: F64) -> None:
+def _deriv(model, x, payload, fext, u_cmd, flags, dx, s, dsdq, v, force, tau, tau_ext, qdd,  # type: ignore[no-untyped-def]
+           flow, dtorque, scr):
     """dx/dt of the whole state (for the RK4 scheme)."""
-    dtorque = _eval(chain, cyl, hc, hg, hs, cj, sj, x, payload, u_cmd, flags, s, dsdq, v, force,
-                    tau, qdd, flow, mm, hb, lo, wr, work, e, zero, rhs, False)
-    for j in range(NJ):
-        dx[X_Q + j] = x[X_QD + j]
-        dx[X_QD + j] = qdd[j]
-    for k in range(NC):
+    _, _, hc, hg, hs, _, _, _, lay = model
+    nj = lay[L_NJ]
+    nc = lay[L_NC]
+    nd = lay[L_ND]
+    x_pa = 2 * nj
+    x_pb = x_pa + nc
+    x_u = x_pb + nc
+    x_ts = x_u + nd + nc
+    _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, flow, dtorque,
+          scr, False)
+    for j in range(nj):
+        dx[j] = x[nj + j]
+        dx[nj + j] = qdd[j]
+    for k in range(nc):
         ca, cb = capacitances(s[k], hc[k, C_A1], hc[k, C_A2], hc[k, C_STROKE], hc[k, C_V0],
                               hg[G_BOIL], hg[G_BHOSE])
-        dx[X_PA + k] = (flow[4 * k] - hc[k, C_A1] * v[k]) / ca
-        dx[X_PB + k] = (flow[4 * k + 1] + hc[k, C_A2] * v[k]) / cb
-        dx[X_U + 1 + k] = (u_cmd[1 + k] - x[X_U + 1 + k]) / hc[k, C_TAU]
-    dx[X_U] = (u_cmd[0] - x[X_U]) / hs[S_TAU]
-    dx[X_TS] = dtorque
+        dx[x_pa + k] = (flow[4 * k] - hc[k, C_A1] * v[k]) / ca
+        dx[x_pb + k] = (flow[4 * k + 1] + hc[k, C_A2] * v[k]) / cb
+        dx[x_u + nd + k] = (u_cmd[nd + k] - x[x_u + nd + k]) / hc[k, C_TAU]
+    for d in range(nd):
+        dx[x_u + d] = (u_cmd[d] - x[x_u + d]) / hs[d, S_TAU]
+        dx[x_ts + d] = dtorque[d]
 
 
 @njit(cache=True)
-def run_steps(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int, flags: F64,
-              dt: float, x: F64, i0: int, i1: int, n_steps: int, truth_every: int,
-              truth: F64, snap_steps: I64, snaps: F64, idx: I64, cur: I64, u_t: F64, u_v: F64,
-              u_n: I64, r_t: F64, r_v: F64, r_n: I64, gain: F64, umax: F64, pay_t: F64,
-              pay_m: F64) -> None:
+def run_steps(model, sched, flags, dt, x, i0, i1, n_steps, truth_every, truth, snap_steps,  # type: ignore[no-untyped-def]
+              snaps, idx, cur):
     """Advance the state ``x`` in place over steps i0 … i1−1 (global step indices).
+
+    Args:
+        model: (chain, cyl, hc, hg, hs, hf, dj, fj, lay) (module docstring).
+        sched: Scenario tables (u_t, u_v, u_n, r_t, r_v, r_n, gain, umax, pay_t, pay_m, f_t,
+            f_v, f_n).
+        flags: ``F_*`` switches. dt: Step [s]. x: State (n_x,) (:mod:`~cranetwin.sim.layout`).
+        truth: Truth rows (m, n_t); snap_steps: step index of each sensor snapshot;
+        snaps: Snapshot rows (m', n_snap); cur: Scenario cursors (2·na + 2,).
 
     Records truth rows at every step index divisible by ``truth_every`` and sensor snapshots
     at ``snap_steps`` (``idx`` = [next truth row, next snapshot]), including step ``n_steps``
     (the final state) when i1 == n_steps. Raises nothing: a non-finite state stops the loop
     and leaves ``idx[2] = 1`` (checked by the caller).
     """
-    s = np.empty(NC)
-    dsdq = np.empty(NC)
-    v = np.empty(NC)
-    force = np.empty(NC)
-    tau = np.empty(NJ)
-    qdd = np.empty(NJ)
-    flow = np.empty(4 * NC)
-    mm = np.empty((NJ, NJ))
-    hb = np.empty(NJ)
-    lo = np.zeros((NJ, NJ))
-    wr = np.empty((NJ, 6))
-    work = np.empty((NJ, 12))
-    e = np.empty(NJ)
-    zero = np.zeros(NJ)
-    rhs = np.empty(NJ)
-    u_cmd = np.empty(4)
-    s_new = np.empty(NC)
-    dsdq_new = np.empty(NC)
-    q_new = np.empty(NJ)
+    chain, cyl, hc, hg, hs, hf, dj, fj, lay = model
+    nj = lay[L_NJ]
+    nc = lay[L_NC]
+    nd = lay[L_ND]
+    na = nd + nc
+    x_pa = 2 * nj
+    x_pb = x_pa + nc
+    x_u = x_pb + nc
+    x_ts = x_u + na
+    n_x = x_ts + nd
+    # truth columns (layout.Layout.truth_blocks)
+    t_q = 1
+    t_qd = t_q + nj
+    t_qdd = t_qd + nj
+    t_s = t_qdd + nj
+    t_v = t_s + nc
+    t_pa = t_v + nc
+    t_pb = t_pa + nc
+    t_f = t_pb + nc
+    t_ts = t_f + nc
+    t_tau = t_ts + nd
+    t_pay = t_tau + nj
+    t_u = t_pay + 1
+    t_fc = t_u + na
+    # snapshot columns (layout.Layout.snap_*)
+    sn_s = 2 * nc
+    sn_ts = 3 * nc
+    sn_q = sn_ts + nd
+    s = np.empty(nc)
+    dsdq = np.empty(nc)
+    v = np.empty(nc)
+    force = np.empty(nc)
+    tau = np.empty(nj)
+    tau_ext = np.zeros(nj)
+    qdd = np.empty(nj)
+    flow = np.empty(4 * nc)
+    dtorque = np.empty(nd)
+    scr = (np.empty((nj, nj)), np.empty(nj), np.zeros((nj, nj)), np.empty((nj, 6)),
+           np.empty((nj, 12)), np.empty(nj), np.zeros(nj), np.empty(nj))
+    u_cmd = np.empty(na)
+    fext = np.zeros(3)
+    s_new = np.empty(nc)
+    dsdq_new = np.empty(nc)
+    q_new = np.empty(nj)
     rk4 = flags[F_SCHEME] == SCHEME_RK4
-    k1 = np.empty(N_X)
-    k2 = np.empty(N_X)
-    k3 = np.empty(N_X)
-    k4 = np.empty(N_X)
-    xt = np.empty(N_X)
+    k1 = np.empty(n_x)
+    k2 = np.empty(n_x)
+    k3 = np.empty(n_x)
+    k4 = np.empty(n_x)
+    xt = np.empty(n_x)
     last = i1 + 1 if i1 == n_steps else i1
     # kinematics of the current state (the operator tracks rod positions); carried over steps
-    cylinder_kinematics(cyl, x[X_Q:X_Q + NJ], s, dsdq)
+    cylinder_kinematics(cyl, x[0:nj], s, dsdq)
     for i in range(i0, last):
         t = i * dt
-        payload = _commands(t, x, s, u_t, u_v, u_n, r_t, r_v, r_n, gain, umax, pay_t, pay_m,
-                            cur, u_cmd)
-        dtorque = _eval(chain, cyl, hc, hg, hs, cj, sj, x, payload, u_cmd, flags, s, dsdq, v,
-                        force, tau, qdd, flow, mm, hb, lo, wr, work, e, zero, rhs, True)
+        payload = _commands(t, x, s, dj, nd, sched, cur, u_cmd, fext)
+        _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, flow,
+              dtorque, scr, True)
         ok = True
-        for j in range(NJ):
+        for j in range(nj):
             if not math.isfinite(qdd[j]):
                 ok = False
         if not ok:
@@ -349,86 +479,94 @@ def run_steps(chain: F64, cyl: F64, hc: F64, hg: F64, hs: F64, cj: I64, sj: int,
             return
         if i % truth_every == 0 and idx[0] < truth.shape[0]:
             r = idx[0]
-            truth[r, T_T] = t
-            for j in range(NJ):
-                truth[r, T_Q + j] = x[X_Q + j]
-                truth[r, T_QD + j] = x[X_QD + j]
-                truth[r, T_QDD + j] = qdd[j]
-                truth[r, T_TAU + j] = tau[j]
-                truth[r, T_U + j] = u_cmd[j]
-            for k in range(NC):
-                truth[r, T_S + k] = s[k]
-                truth[r, T_V + k] = v[k]
-                truth[r, T_PA + k] = x[X_PA + k]
-                truth[r, T_PB + k] = x[X_PB + k]
-                truth[r, T_F + k] = force[k]
-            truth[r, T_TS] = x[X_TS]
-            truth[r, T_PAY] = payload
+            truth[r, 0] = t
+            for j in range(nj):
+                truth[r, t_q + j] = x[j]
+                truth[r, t_qd + j] = x[nj + j]
+                truth[r, t_qdd + j] = qdd[j]
+                truth[r, t_tau + j] = tau[j]
+            for a in range(na):
+                truth[r, t_u + a] = u_cmd[a]
+            for k in range(nc):
+                truth[r, t_s + k] = s[k]
+                truth[r, t_v + k] = v[k]
+                truth[r, t_pa + k] = x[x_pa + k]
+                truth[r, t_pb + k] = x[x_pb + k]
+                truth[r, t_f + k] = force[k]
+            for d in range(nd):
+                truth[r, t_ts + d] = x[x_ts + d]
+            truth[r, t_pay] = payload
+            for m in range(3):
+                truth[r, t_fc + m] = fext[m]
             idx[0] = r + 1
         while idx[1] < snap_steps.shape[0] and snap_steps[idx[1]] == i:
             r = idx[1]
-            for k in range(NC):
-                snaps[r, SNAP_PA + k] = x[X_PA + k]
-                snaps[r, SNAP_PB + k] = x[X_PB + k]
-                snaps[r, SNAP_S + k] = s[k]
-            snaps[r, SNAP_SLEW_TORQUE] = x[X_TS]
-            for j in range(NJ):
-                snaps[r, SNAP_Q + j] = x[X_Q + j]
+            for k in range(nc):
+                snaps[r, k] = x[x_pa + k]
+                snaps[r, nc + k] = x[x_pb + k]
+                snaps[r, sn_s + k] = s[k]
+            for d in range(nd):
+                snaps[r, sn_ts + d] = x[x_ts + d]
+            for j in range(nj):
+                snaps[r, sn_q + j] = x[j]
             idx[1] = r + 1
         if i == n_steps:
             break
         if rk4:
-            _deriv(chain, cyl, hc, hg, hs, cj, sj, x, payload, u_cmd, flags, k1, s, dsdq, v,
-                   force, tau, qdd, flow, mm, hb, lo, wr, work, e, zero, rhs)
-            for m in range(N_X):
+            _deriv(model, x, payload, fext, u_cmd, flags, k1, s, dsdq, v, force, tau, tau_ext,
+                   qdd, flow, dtorque, scr)
+            for m in range(n_x):
                 xt[m] = x[m] + 0.5 * dt * k1[m]
-            _deriv(chain, cyl, hc, hg, hs, cj, sj, xt, payload, u_cmd, flags, k2, s, dsdq, v,
-                   force, tau, qdd, flow, mm, hb, lo, wr, work, e, zero, rhs)
-            for m in range(N_X):
+            _deriv(model, xt, payload, fext, u_cmd, flags, k2, s, dsdq, v, force, tau, tau_ext,
+                   qdd, flow, dtorque, scr)
+            for m in range(n_x):
                 xt[m] = x[m] + 0.5 * dt * k2[m]
-            _deriv(chain, cyl, hc, hg, hs, cj, sj, xt, payload, u_cmd, flags, k3, s, dsdq, v,
-                   force, tau, qdd, flow, mm, hb, lo, wr, work, e, zero, rhs)
-            for m in range(N_X):
+            _deriv(model, xt, payload, fext, u_cmd, flags, k3, s, dsdq, v, force, tau, tau_ext,
+                   qdd, flow, dtorque, scr)
+            for m in range(n_x):
                 xt[m] = x[m] + dt * k3[m]
-            _deriv(chain, cyl, hc, hg, hs, cj, sj, xt, payload, u_cmd, flags, k4, s, dsdq, v,
-                   force, tau, qdd, flow, mm, hb, lo, wr, work, e, zero, rhs)
-            for m in range(N_X):
+            _deriv(model, xt, payload, fext, u_cmd, flags, k4, s, dsdq, v, force, tau, tau_ext,
+                   qdd, flow, dtorque, scr)
+            for m in range(n_x):
                 x[m] += dt / 6.0 * (k1[m] + 2.0 * k2[m] + 2.0 * k3[m] + k4[m])
-            for k in range(NC):
-                x[X_PA + k] = max(x[X_PA + k], hg[G_PMIN])
-                x[X_PB + k] = max(x[X_PB + k], hg[G_PMIN])
-            cylinder_kinematics(cyl, x[X_Q:X_Q + NJ], s, dsdq)
+            for k in range(nc):
+                x[x_pa + k] = max(x[x_pa + k], hg[G_PMIN])
+                x[x_pb + k] = max(x[x_pb + k], hg[G_PMIN])
+            cylinder_kinematics(cyl, x[0:nj], s, dsdq)
         else:
             # symplectic Euler for the mechanics
-            for j in range(NJ):
-                x[X_QD + j] += dt * qdd[j]
-                q_new[j] = x[X_Q + j] + dt * x[X_QD + j]
+            for j in range(nj):
+                x[nj + j] += dt * qdd[j]
+                q_new[j] = x[j] + dt * x[nj + j]
             cylinder_kinematics(cyl, q_new, s_new, dsdq_new)
-            for k in range(NC):
+            for k in range(nc):
                 ca, cb = capacitances(s[k], hc[k, C_A1], hc[k, C_A2], hc[k, C_STROKE],
                                       hc[k, C_V0], hg[G_BOIL], hg[G_BHOSE])
                 ca1, cb1 = capacitances(s_new[k], hc[k, C_A1], hc[k, C_A2], hc[k, C_STROKE],
                                         hc[k, C_V0], hg[G_BOIL], hg[G_BHOSE])
                 # piston motion: exact closed-chamber law p = p0 − B·ln(Ve/Ve0) (Ve = B·C),
                 # which keeps the oil-spring energy exact; then valve/relief flows
-                pa = x[X_PA + k] - hg[G_BOIL] * math.log(ca1 / ca)
-                pb = x[X_PB + k] - hg[G_BOIL] * math.log(cb1 / cb)
+                pa = x[x_pa + k] - hg[G_BOIL] * math.log(ca1 / ca)
+                pb = x[x_pb + k] - hg[G_BOIL] * math.log(cb1 / cb)
                 # flows linearised about the pressure after the displacement (Q − g·Δp)
-                qa = flow[4 * k] - flow[4 * k + 2] * (pa - x[X_PA + k])
-                qb = flow[4 * k + 1] - flow[4 * k + 3] * (pb - x[X_PB + k])
-                x[X_PA + k] = pressure_step(pa, qa, flow[4 * k + 2], ca1, dt, hg[G_PMIN])
-                x[X_PB + k] = pressure_step(pb, qb, flow[4 * k + 3], cb1, dt, hg[G_PMIN])
-                x[X_U + 1 + k] = spool_step(x[X_U + 1 + k], u_cmd[1 + k], hc[k, C_TAU], dt)
-            # slewing drive: torque rate with the updated speed (symplectic pairing)
-            w_old = x[X_QD + sj] - dt * qdd[sj]
-            dtorque += hs[S_KS] * (w_old - x[X_QD + sj])
-            x[X_TS] += dt * dtorque
-            x[X_U] = spool_step(x[X_U], u_cmd[0], hs[S_TAU], dt)
-            for j in range(NJ):
-                x[X_Q + j] = q_new[j]
-            for k in range(NC):
+                qa = flow[4 * k] - flow[4 * k + 2] * (pa - x[x_pa + k])
+                qb = flow[4 * k + 1] - flow[4 * k + 3] * (pb - x[x_pb + k])
+                x[x_pa + k] = pressure_step(pa, qa, flow[4 * k + 2], ca1, dt, hg[G_PMIN])
+                x[x_pb + k] = pressure_step(pb, qb, flow[4 * k + 3], cb1, dt, hg[G_PMIN])
+                x[x_u + nd + k] = spool_step(x[x_u + nd + k], u_cmd[nd + k], hc[k, C_TAU], dt)
+            for d in range(nd):
+                # drive torque rate with the updated speed (symplectic pairing)
+                jd = dj[d]
+                w_old = x[nj + jd] - dt * qdd[jd]
+                dtorque[d] += hs[d, S_KS] * (w_old - x[nj + jd])
+                x[x_ts + d] += dt * dtorque[d]
+                x[x_u + d] = spool_step(x[x_u + d], u_cmd[d], hs[d, S_TAU], dt)
+            for j in range(nj):
+                x[j] = q_new[j]
+            for k in range(nc):
                 s[k] = s_new[k]
                 dsdq[k] = dsdq_new[k]
         if flags[F_LOSSES] > 0.0:
-            # the slewing circuit's relief valve caps the drive torque
-            x[X_TS] = min(max(x[X_TS], -hs[S_TMAX]), hs[S_TMAX])
+            # each drive's relief valve caps its torque
+            for d in range(nd):
+                x[x_ts + d] = min(max(x[x_ts + d], -hs[d, S_TMAX]), hs[d, S_TMAX])

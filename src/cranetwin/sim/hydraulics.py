@@ -14,14 +14,18 @@ Per cylinder (all pressures gauge [Pa], flows into a chamber positive [m³/s]):
 * Relief valve per chamber to tank: ``Q = −K_r·max(0, p − p_relief)``.
 * End stops (stiff, damped) at s = 0 and s = stroke: ``F = k·δ + c·δ̇`` pushing out of the stop,
   only while pushing.
-* Friction, Eq. 2: ``F_fr = Fc·tanh(v/vc) + b·v``;
-  cylinder force, Eq. 1: ``F = pA·A1 − pB·A2 − F_fr``.
+* Friction and cylinder force, paper Eq. 1–2: :mod:`cranetwin.physics.actuator` (the loop
+  calls ``eq1_cylinder_force`` and ``eq2_friction``; nothing here re-derives them).
 
-Slewing: a flow-controlled hydraulic motor through the slewing gear, modelled at the pillar:
+Torque drives (a slewing/swing motor; zero or more, each on its own joint): a flow-controlled
+hydraulic motor through its gear, modelled at the joint:
 ``dT/dt = K_s·(ω_cmd − ω) − T/τ_leak`` with ω_cmd = (U/U_max)·ω_max, the torque clipped at
-±T_max (relief). K_s is the hydraulic torsional stiffness seen at the pillar, τ_leak the motor
-leakage time constant. The measured slewing torque is T (before friction); the pillar receives
-``T − (Fc·tanh(ω/ωc) + b·ω)``.
+±T_max (relief). K_s is the hydraulic torsional stiffness seen at the joint, τ_leak the motor
+leakage time constant. The measured drive torque is T (before friction); the joint receives
+``T − F_fr(ω)`` (Eq. 2 with the drive's friction).
+
+Free joints (no actuator) get only end stops at their joint limits (rows of the same table as
+the drives, of which only the limit columns are used).
 
 The pressure update is linearly implicit in the valve and relief flows (robust at 1e-4 s near
 Δp = 0), explicit in the piston motion (see :mod:`cranetwin.sim.engine`).
@@ -36,7 +40,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from cranetwin.model import Machine
+from cranetwin.model import Hydraulics, Machine
 
 F64 = npt.NDArray[np.float64]
 
@@ -46,7 +50,7 @@ N_CYL_PARAMS = 12
 # global hydraulic parameters
 G_PS, G_PT, G_PREL, G_BOIL, G_BHOSE, G_PTR, G_KREL, G_PMIN = range(8)
 N_GLOBAL = 8
-# slewing drive parameters
+# torque-drive parameters (one row per drive; free joints use the S_LO … S_CLIM columns)
 (S_TMAX, S_FC, S_VC, S_B, S_KS, S_TLEAK, S_WMAX, S_TAU, S_UMAX, S_LO, S_HI, S_KLIM,
  S_CLIM) = range(13)
 N_SLEW = 13
@@ -87,26 +91,40 @@ class HydraulicParams:
     """Packed parameters for the compiled loop.
 
     Attributes:
-        cyl: Per-cylinder table, shape (3, N_CYL_PARAMS) (columns ``C_*``).
+        cyl: Per-cylinder table, shape (n_cylinders, N_CYL_PARAMS) (columns ``C_*``).
         glob: Circuit constants, shape (N_GLOBAL,) (``G_*``).
-        slew: Slewing drive, shape (N_SLEW,) (``S_*``).
+        drives: Torque drives, shape (n_drives, N_SLEW) (``S_*``), machine order.
+        free: End stops of the free (unactuated) joints, shape (n_free, N_SLEW) (only
+            ``S_LO``, ``S_HI``, ``S_KLIM``, ``S_CLIM`` used).
+        drive_joint: Joint index of each drive, shape (n_drives,).
+        free_joint: Joint index of each free joint, shape (n_free,).
     """
 
     cyl: F64
     glob: F64
-    slew: F64
+    drives: F64
+    free: F64
+    drive_joint: npt.NDArray[np.int64]
+    free_joint: npt.NDArray[np.int64]
+
+
+# a machine without cylinders (torque drives and free joints only) needs no circuit
+_NO_CIRCUIT = Hydraulics(supply_pressure_pa=1.0, tank_pressure_pa=0.0, relief_pressure_pa=1.0,
+                         oil_bulk_modulus_pa=1.0, hose_bulk_modulus_pa=1.0, dead_volume_m3=1.0)
 
 
 def pack(machine: Machine, settings: HydraulicSettings | None = None) -> HydraulicParams:
     """Collect the hydraulic parameters of ``machine`` (cylinders in machine order).
 
     Raises:
-        ValueError: the machine has no hydraulics, a cylinder has no valve, or no torque drive.
+        ValueError: the machine has cylinders but no hydraulics, or a cylinder has no valve.
     """
     st = settings or HydraulicSettings()
     h = machine.hydraulics
     if h is None:
-        raise ValueError("machine has no [hydraulics] section")
+        if machine.cylinders:
+            raise ValueError("machine has cylinders but no [hydraulics] section")
+        h = _NO_CIRCUIT
     cyl = np.zeros((len(machine.cylinders), N_CYL_PARAMS))
     for i, c in enumerate(machine.cylinders):
         if c.valve is None:
@@ -132,31 +150,37 @@ def pack(machine: Machine, settings: HydraulicSettings | None = None) -> Hydraul
     glob[G_PTR] = st.transition_pressure_pa
     glob[G_KREL] = st.relief_gain_m3_s_pa
     glob[G_PMIN] = st.min_pressure_pa
-    if not machine.torque_drives:
-        raise ValueError("machine has no slewing torque drive")
-    d = machine.torque_drives[0]
-    j = machine.joints[machine.joint_index(d.joint)]
-    slew = np.zeros(N_SLEW)
-    slew[S_TMAX] = d.max_torque_nm
-    slew[S_FC] = d.friction.coulomb
-    slew[S_VC] = d.friction.coulomb_velocity
-    slew[S_B] = d.friction.viscous
-    slew[S_KS] = st.slew_stiffness_nm_rad
-    slew[S_TLEAK] = st.slew_leak_time_s
-    slew[S_WMAX] = j.velocity_limit
-    slew[S_TAU] = st.slew_spool_time_s
-    slew[S_UMAX] = 10.0
-    slew[S_LO] = j.lower
-    slew[S_HI] = j.upper
-    slew[S_KLIM] = st.slew_limit_stiffness_nm_rad
-    slew[S_CLIM] = st.slew_limit_damping_nms_rad
-    return HydraulicParams(cyl=cyl, glob=glob, slew=slew)
+    drives = np.zeros((len(machine.torque_drives), N_SLEW))
+    for i, d in enumerate(machine.torque_drives):
+        j = machine.joints[machine.joint_index(d.joint)]
+        row = drives[i]
+        row[S_TMAX] = d.max_torque_nm
+        row[S_FC] = d.friction.coulomb
+        row[S_VC] = d.friction.coulomb_velocity
+        row[S_B] = d.friction.viscous
+        row[S_KS] = st.slew_stiffness_nm_rad
+        row[S_TLEAK] = st.slew_leak_time_s
+        row[S_WMAX] = j.velocity_limit
+        row[S_TAU] = st.slew_spool_time_s
+        row[S_UMAX] = 10.0
+        _limits(row, j.lower, j.upper, st)
+    actuated = {c.joint for c in machine.cylinders} | {d.joint for d in machine.torque_drives}
+    free_joint = [i for i, j in enumerate(machine.joints) if j.name not in actuated]
+    free = np.zeros((len(free_joint), N_SLEW))
+    for r, i in enumerate(free_joint):
+        _limits(free[r], machine.joints[i].lower, machine.joints[i].upper, st)
+    return HydraulicParams(
+        cyl=cyl, glob=glob, drives=drives, free=free,
+        drive_joint=np.array([machine.joint_index(d.joint) for d in machine.torque_drives],
+                             dtype=np.int64),
+        free_joint=np.array(free_joint, dtype=np.int64))
 
 
-@njit(cache=True)
-def friction(v: float, fc: float, vc: float, b: float) -> float:
-    """Eq. 2: F_fr = Fc·tanh(v/vc) + b·v [N or N·m] at velocity v [m/s or rad/s]."""
-    return fc * math.tanh(v / vc) + b * v
+def _limits(row: F64, lower: float, upper: float, st: HydraulicSettings) -> None:
+    row[S_LO] = lower
+    row[S_HI] = upper
+    row[S_KLIM] = st.slew_limit_stiffness_nm_rad
+    row[S_CLIM] = st.slew_limit_damping_nms_rad
 
 
 @njit(cache=True)
@@ -254,10 +278,17 @@ def slew_torque_rate(torque: float, u: float, omega: float, sp: F64) -> float:
 
 
 @njit(cache=True)
-def slew_limit(theta: float, omega: float, sp: F64) -> float:
-    """End-stop torque at the slewing joint limits [N·m]."""
-    if theta < sp[S_LO]:
-        return max(0.0, float(-sp[S_KLIM] * (theta - sp[S_LO]) - sp[S_CLIM] * omega))
-    if theta > sp[S_HI]:
-        return min(0.0, float(-sp[S_KLIM] * (theta - sp[S_HI]) - sp[S_CLIM] * omega))
+def joint_limit(theta: float, omega: float, lo: float, hi: float, k: float, c: float) -> float:
+    """End-stop torque (or force) at joint limits lo, hi [rad or m], stiffness k, damping c;
+    pushes back into the range only."""
+    if theta < lo:
+        return max(0.0, -k * (theta - lo) - c * omega)
+    if theta > hi:
+        return min(0.0, -k * (theta - hi) - c * omega)
     return 0.0
+
+
+@njit(cache=True)
+def slew_limit(theta: float, omega: float, sp: F64) -> float:
+    """End-stop torque at the joint limits of a drive's parameter row ``sp`` [N·m]."""
+    return joint_limit(theta, omega, sp[S_LO], sp[S_HI], sp[S_KLIM], sp[S_CLIM])

@@ -15,13 +15,14 @@ from cranetwin.errors import ScenarioError, SimulationError
 from cranetwin.model import Machine
 from cranetwin.physics import inverse_dynamics
 from cranetwin.physics.chain import ChainParams, compile_chain
-from cranetwin.physics.kernels import bias, cylinder_kinematics
+from cranetwin.physics.kernels import bias, cylinder_joint, cylinder_kinematics
 from cranetwin.samples import SampleArrays
 from cranetwin.sim import engine as E
 from cranetwin.sim.hydraulics import HydraulicParams, HydraulicSettings, pack
-from cranetwin.sim.recording import Recording, Truth
-from cranetwin.sim.scenario import Scenario
-from cranetwin.sim.sensors import N_SNAP, SampleClock, SensorModel, SensorReader
+from cranetwin.sim.layout import Layout, layout_of
+from cranetwin.sim.recording import Recording, Topology, Truth
+from cranetwin.sim.scenario import Scenario, actuator_names
+from cranetwin.sim.sensors import SampleClock, SensorModel, SensorReader
 
 log = logging.getLogger(__name__)
 F64 = npt.NDArray[np.float64]
@@ -40,7 +41,7 @@ class SimOptions:
         hydraulic_losses: Relief valves (cylinders and the slewing torque cap) and slewing-motor
             leakage on.
         holding_pressure_pa: Low-side chamber pressure of the initial static equilibrium [Pa].
-        initial_pressures_pa: Override of the initial (pA, pB) per cylinder, shape (2, 3) [Pa].
+        initial_pressures_pa: Override of the initial (pA, pB) per cylinder, shape (2, nc) [Pa].
         hydraulics: Simulator-side hydraulic constants.
     """
 
@@ -57,99 +58,132 @@ class SimOptions:
 
 @dataclass(frozen=True)
 class Prepared:
-    """A machine and scenario compiled for the loop (reusable for several runs)."""
+    """A machine compiled for the loop (reusable for several runs).
+
+    Attributes:
+        machine: The description.
+        chain: Its chain and cylinder arrays (``physics.chain``).
+        hyd: Cylinder, circuit, drive and free-joint tables.
+        layout: Array layout (:mod:`cranetwin.sim.layout`).
+        actuators: Actuator names in the loop's order (drives, then cylinders).
+    """
 
     machine: Machine
     chain: ChainParams
     hyd: HydraulicParams
-    cj: npt.NDArray[np.int64]
-    sj: int
+    layout: Layout
+    actuators: tuple[str, ...]
+
+    @property
+    def model(self) -> tuple[object, ...]:
+        """The loop's ``model`` tuple (:mod:`cranetwin.sim.engine`)."""
+        h = self.hyd
+        return (self.chain.chain, self.chain.cyl, h.cyl, h.glob, h.drives, h.free,
+                h.drive_joint, h.free_joint, self.layout.array())
 
 
 def prepare(machine: Machine, options: SimOptions | None = None) -> Prepared:
-    """Compile ``machine`` for the loop.
+    """Compile ``machine`` for the loop: any serial chain, each joint driven by one cylinder
+    (with a valve), by one torque drive, or by nothing (a free joint).
 
     Raises:
-        SimulationError: the machine is not a 4-joint crane with 3 valve-driven cylinders and
-            one torque drive (what this simulator models).
+        SimulationError: a cylinder has no valve, or cylinders but no hydraulics section.
     """
     opts = options or SimOptions()
-    if machine.n_joints != E.NJ or len(machine.cylinders) != E.NC or \
-            len(machine.torque_drives) != 1:
-        raise SimulationError(
-            f"machine {machine.name!r}: the simulator models {E.NJ} joints, {E.NC} cylinders and "
-            f"1 torque drive; got {machine.n_joints}, {len(machine.cylinders)}, "
-            f"{len(machine.torque_drives)}")
     try:
         hyd = pack(machine, opts.hydraulics)
     except ValueError as exc:
         raise SimulationError(f"machine {machine.name!r}: {exc}") from exc
     chain = compile_chain(machine)
-    sj = machine.joint_index(machine.torque_drives[0].joint)
-    cj = chain.cylinder_joint.astype(np.int64)
-    if sj != 0 or sorted(cj.tolist()) != [1, 2, 3]:
-        raise SimulationError(
-            f"machine {machine.name!r}: the simulator expects the torque drive on the first "
-            f"joint and one cylinder on each of the others (slew, lift, jib, extension)")
-    return Prepared(machine, chain, hyd, cj, sj)
+    return Prepared(machine, chain, hyd, layout_of(machine), actuator_names(machine))
 
 
 def check_scenario(machine: Machine, scenario: Scenario) -> None:
-    """Check a scenario against a machine: targets inside the strokes and joint limits.
+    """Check a scenario against a machine: actuators it names exist, targets lie inside the
+    strokes and joint limits, the initial pose has one value per joint.
 
     Raises:
-        ScenarioFileError: one ``field.path: message`` line per target knot out of range.
+        ScenarioFileError: one ``field.path: message`` line per problem.
     """
-    from cranetwin.sim.scenario import ACTUATORS, ScenarioFileError
+    from cranetwin.sim.scenario import ScenarioFileError
 
     problems: list[str] = []
-    progs = scenario.actuators.ordered()
-    slew_joint = machine.joints[machine.joint_index(machine.torque_drives[0].joint)]
-    ranges = [(slew_joint.lower, slew_joint.upper, "rad", "joint limits")]
-    ranges += [(0.0, c.stroke_m, "m", "stroke") for c in machine.cylinders]
-    for name, prog, (lo, hi, unit, what) in zip(ACTUATORS, progs, ranges, strict=True):
+    ranges: dict[str, tuple[float, float, str, str]] = {}
+    for d in machine.torque_drives:
+        j = machine.joints[machine.joint_index(d.joint)]
+        ranges[d.name] = (j.lower, j.upper, j.unit or "rad", "joint limits")
+    for c in machine.cylinders:
+        ranges[c.name] = (0.0, c.stroke_m, "m", "stroke")
+    for name, prog in scenario.actuators.items():
+        if name not in ranges:
+            problems.append(f"actuators.{name}: {machine.name} has no actuator {name!r} "
+                            f"(expected one of {', '.join(ranges) or 'none'})")
+            continue
+        lo, hi, unit, what = ranges[name]
         for i, (_, r) in enumerate(prog.target):
             if not lo <= r <= hi:
                 problems.append(f"actuators.{name}.target.{i}: {r:g} {unit} is outside the "
                                 f"{what} [{lo:g}, {hi:g}] {unit} of {machine.name}")
+    for what in ("q", "qd"):
+        value = getattr(scenario.initial, what)
+        if value is not None and len(value) != machine.n_joints:
+            problems.append(f"initial.{what}: {len(value)} values, expected one per joint "
+                            f"({machine.n_joints}: {', '.join(j.name for j in machine.joints)})")
     if problems:
         raise ScenarioFileError(scenario.name, problems)
 
 
+def default_pose(machine: Machine) -> F64:
+    """Every cylinder's rod at mid-stroke, every other joint at 0 clipped into its limits."""
+    q = np.array([min(max(0.0, j.lower), j.upper) for j in machine.joints])
+    chain = compile_chain(machine)
+    for k, c in enumerate(machine.cylinders):
+        ji = int(chain.cylinder_joint[k])
+        q[ji] = float(cylinder_joint(chain.cyl, k, 0.5 * c.stroke_m))
+    return q
+
+
 def initial_state(prep: Prepared, scenario: Scenario, options: SimOptions) -> F64:
     """State in the scenario's initial pose and velocities, with the chamber pressures (and
-    slewing torque) that balance the bias forces h(q, qd), so the machine starts unaccelerated.
+    drive torques) that balance the bias forces h(q, qd), so the machine starts unaccelerated
+    (free joints are not held: they start as the dynamics take them).
 
     Raises:
         ScenarioError: a rod of the initial pose is outside its stroke.
     """
-    q0 = np.asarray(scenario.initial.q, dtype=np.float64)
-    s = np.empty(E.NC)
-    dsdq = np.empty(E.NC)
+    lay = prep.layout
+    nj, nc = lay.nj, lay.nc
+    q0 = (np.asarray(scenario.initial.q, dtype=np.float64) if scenario.initial.q is not None
+          else default_pose(prep.machine))
+    s = np.empty(nc)
+    dsdq = np.empty(nc)
     cylinder_kinematics(prep.chain.cyl, q0, s, dsdq)
     for k, c in enumerate(prep.machine.cylinders):
         if not (np.isfinite(s[k]) and -1e-9 <= s[k] <= c.stroke_m + 1e-9):
             raise ScenarioError(f"initial.q: the {c.name} rod position would be {s[k]:.4f} m, "
                                 f"outside its stroke [0, {c.stroke_m}] m")
-    qd0 = np.asarray(scenario.initial.qd, dtype=np.float64)
-    h = np.empty(E.NJ)
+    qd0 = (np.asarray(scenario.initial.qd, dtype=np.float64) if scenario.initial.qd is not None
+           else np.zeros(nj))
+    h = np.empty(nj)
     bias(prep.chain.chain, q0, qd0, scenario.initial.payload_kg, h)
-    x = np.zeros(E.N_X)
-    x[E.X_Q:E.X_Q + E.NJ] = q0
-    x[E.X_QD:E.X_QD + E.NJ] = qd0
+    x = np.zeros(lay.n_x)
+    x[lay.x_q:lay.x_q + nj] = q0
+    x[lay.x_qd:lay.x_qd + nj] = qd0
     p_low = options.holding_pressure_pa
+    cj = prep.chain.cylinder_joint
     for k, c in enumerate(prep.machine.cylinders):
-        f = h[prep.cj[k]] / dsdq[k]            # static rod force that holds gravity
+        f = h[cj[k]] / dsdq[k]            # static rod force that holds gravity
         a1, a2 = c.area_a_m2, c.area_b_m2
         if f >= 0:
-            x[E.X_PA + k], x[E.X_PB + k] = (f + p_low * a2) / a1, p_low
+            x[lay.x_pa + k], x[lay.x_pb + k] = (f + p_low * a2) / a1, p_low
         else:
-            x[E.X_PA + k], x[E.X_PB + k] = p_low, (p_low * a1 - f) / a2
+            x[lay.x_pa + k], x[lay.x_pb + k] = p_low, (p_low * a1 - f) / a2
     if options.initial_pressures_pa is not None:
         p = np.asarray(options.initial_pressures_pa, dtype=np.float64)
-        x[E.X_PA:E.X_PA + E.NC] = p[0]
-        x[E.X_PB:E.X_PB + E.NC] = p[1]
-    x[E.X_TS] = h[prep.sj]
+        x[lay.x_pa:lay.x_pa + nc] = p[0]
+        x[lay.x_pb:lay.x_pb + nc] = p[1]
+    for d, jd in enumerate(prep.hyd.drive_joint):
+        x[lay.x_ts + d] = h[jd]
     return x
 
 
@@ -214,9 +248,10 @@ class Session:
         self._clock = SampleClock(self.sensors, dt, np.random.default_rng([seed, 1]))
         self._reader = SensorReader(prep.machine, self.sensors, np.random.default_rng([seed, 2]))
         self.x = initial_state(prep, scenario, opts)
-        self._tab = scenario.tables()
-        self._cur = np.zeros(9, dtype=np.int64)
+        self._sched = scenario.tables(prep.actuators).as_tuple()
+        self._cur = np.zeros(2 * prep.layout.na + 2, dtype=np.int64)
         self._flags = _flags(opts)
+        self._model = prep.model
         self.step_index = 0
         self._truth_chunks: list[F64] = []
         self._finished = False
@@ -239,14 +274,12 @@ class Session:
         n_truth = 0
         if self.keep_truth and hi >= i0:
             n_truth = hi // self.every - (i0 - 1) // self.every if i0 > 0 else hi // self.every + 1
-        truth = np.full((n_truth, E.N_T), np.nan)
-        snaps = np.full((steps.shape[0], N_SNAP), np.nan)
+        lay = self.prep.layout
+        truth = np.full((n_truth, lay.n_t), np.nan)
+        snaps = np.full((steps.shape[0], lay.n_snap), np.nan)
         idx = np.zeros(3, dtype=np.int64)
-        tab, p = self._tab, self.prep
-        E.run_steps(p.chain.chain, p.chain.cyl, p.hyd.cyl, p.hyd.glob, p.hyd.slew, p.cj, p.sj,
-                    self._flags, self.options.step_s, self.x, i0, i1, i1 if final else -1,
-                    self.every, truth, steps, snaps, idx, self._cur, tab.u_t, tab.u_v, tab.u_n,
-                    tab.r_t, tab.r_v, tab.r_n, tab.gain, tab.umax, tab.pay_t, tab.pay_m)
+        E.run_steps(self._model, self._sched, self._flags, self.options.step_s, self.x, i0, i1,
+                    i1 if final else -1, self.every, truth, steps, snaps, idx, self._cur)
         if idx[2]:
             raise SimulationError(
                 f"integration unstable before t = {i1 * self.options.step_s:.4f} s (non-finite "
@@ -278,7 +311,7 @@ class Session:
     def truth(self, wrenches: bool = True) -> Truth:
         """Ground truth accumulated so far (empty when ``keep_truth`` is off)."""
         rows = (np.concatenate(self._truth_chunks) if self._truth_chunks
-                else np.zeros((0, E.N_T)))
+                else np.zeros((0, self.prep.layout.n_t)))
         return _truth(self.prep, rows, self.start_epoch_s, wrenches)
 
 
@@ -338,24 +371,29 @@ def simulate(machine: Machine | Prepared, scenario: Scenario, *, duration_s: flo
             "friction": opts.friction, "valves": opts.valves,
             "hydraulic_losses": opts.hydraulic_losses,
             "sensors": sensor_model.model_dump(), "scenario_description": scenario.description,
-            "channel_resolution": [prep.machine.channel(c).resolution for c in session.channels]}
+            "channel_resolution": [prep.machine.channel(c).resolution for c in session.channels],
+            "topology": Topology.of(prep.machine).to_json()}
     return Recording(machine=prep.machine.name, scenario=scenario.name, seed=seed,
                      step_s=opts.step_s, start_epoch_s=start_epoch_s, samples=samples,
                      truth=session.truth(wrenches), meta=meta)
 
 
 def _truth(prep: Prepared, m: F64, t0: float, wrenches: bool) -> Truth:
+    lay = prep.layout
     n = m.shape[0]
+    block = {name: (lay.truth_offset(name), w) for name, w in lay.truth_blocks()}
 
-    def cols(c: int, w: int) -> F64:
+    def cols(name: str) -> F64:
+        c, w = block[name]
         return np.ascontiguousarray(m[:, c:c + w])
 
-    q, qd, qdd, pay = cols(E.T_Q, 4), cols(E.T_QD, 4), cols(E.T_QDD, 4), m[:, E.T_PAY].copy()
-    wrench = np.full((n, E.NJ, 6), np.nan)
+    q, qd, qdd = cols("q"), cols("qd"), cols("qdd")
+    pay = cols("payload_kg")[:, 0].copy()
+    wrench = np.full((n, lay.nj, 6), np.nan)
     if wrenches and n:
         _, wrench = inverse_dynamics(prep.machine, q, qd, qdd, pay)
-    return Truth(t_s=t0 + m[:, E.T_T], q=q, qd=qd, qdd=qdd, rod_s=cols(E.T_S, 3),
-                 rod_v=cols(E.T_V, 3), p_a=cols(E.T_PA, 3), p_b=cols(E.T_PB, 3),
-                 cyl_force=cols(E.T_F, 3), slew_torque=m[:, E.T_TS].copy(),
-                 joint_torque=cols(E.T_TAU, 4), joint_wrench=wrench, payload_kg=pay,
-                 u=cols(E.T_U, 4))
+    return Truth(t_s=t0 + cols("t_s")[:, 0], q=q, qd=qd, qdd=qdd, rod_s=cols("rod_s"),
+                 rod_v=cols("rod_v"), p_a=cols("p_a"), p_b=cols("p_b"),
+                 cyl_force=cols("cyl_force"), drive_torque=cols("drive_torque"),
+                 joint_torque=cols("joint_torque"), joint_wrench=wrench, payload_kg=pay,
+                 u=cols("u"), contact_force=cols("contact_force"))

@@ -1,27 +1,37 @@
-"""Valve-voltage scenarios: what the operator does with the levers, and when logs are grabbed.
+"""Valve-voltage scenarios: what the operator does with the levers, when loads are taken, and
+what the tool touches.
 
-A :class:`Scenario` drives four actuators, in the order ``slew, lift, jib, extension``. Each
-actuator gets a feed-forward voltage U(t) (piecewise linear through ``voltage`` knots; two knots
-at the same time make a step) and, optionally, a ``target`` path that a simple operator tracks:
-``U = clip(U_ff + gain·(r − y), ±max_voltage_v)``, where y is the rod position s [m] of a
-cylinder or the slewing angle theta0 [rad]. ``payload`` events set the payload mass [kg] at the
-tip from their time on (grab / release).
+A :class:`Scenario` gives each actuator of the machine, by name (its torque drives and
+cylinders, e.g. ``slew, lift, jib, extension`` on the PATU 655 or ``swing, boom, arm, bucket``
+on the excavator), a feed-forward voltage U(t) (piecewise linear through ``voltage`` knots; two
+knots at the same time make a step) and, optionally, a ``target`` path that a simple operator
+tracks: ``U = clip(U_ff + gain·(r − y), ±max_voltage_v)``, where y is the rod position s [m]
+of a cylinder or the position of a drive's joint [rad]. Actuators not named keep their lever in
+neutral. ``payload`` events set the payload mass [kg] at the load point from their time on
+(grab / release / bucket filled). ``contact`` knots give an external force [N] on the tool at
+the load point, in the world frame (piecewise linear, 0 before the first knot, held after the
+last): the soil's reaction while digging.
 
-Built-ins (:func:`builtin_scenario`): ``fig3`` (steps and ramps of U lift, U jib and U slewing
-over 20 s, like Figure 3 of the paper), ``log-loading`` (the timber-loading work cycle, repeated),
-``random`` (a seeded random operator). User files are TOML or JSON with the same fields as
-:class:`Scenario` (:func:`load_scenario`); every problem is reported with its field path::
+Built-ins (:func:`builtin_scenario`, PATU 655): ``fig3`` (steps and ramps of U lift, U jib
+and U slewing over 20 s, like Figure 3 of the paper), ``log-loading`` (the timber-loading work
+cycle, repeated), ``random`` (a seeded random operator). A machine's own scenarios are files in
+``cranetwin/machines/scenarios/<machine>/<name>.toml`` (:func:`machine_scenarios`). User files
+are TOML or JSON with the same fields as :class:`Scenario` (:func:`load_scenario`); every
+problem is reported with its field path::
 
     name = "my-run"
     duration_s = 12.0
     [initial]
-    q = [0.0, 0.6, -1.6, 0.3]        # theta0 [rad], theta1 [rad], theta2 [rad], L [m]
+    q = [0.0, 0.6, -1.6, 0.3]        # one per joint [rad or m]; default: every rod mid-stroke
     payload_kg = 0.0
     [actuators.lift]
     voltage = [[0, 0], [1, 0], [1.5, 6], [4, 6], [4.5, 0]]    # [t_s, U_V] knots
     [[payload]]
     t_s = 6.0
     mass_kg = 250.0
+    [[contact]]
+    t_s = 7.0
+    force_n = [0.0, 0.0, 0.0]        # world frame, at the load point
 """
 
 from __future__ import annotations
@@ -30,6 +40,7 @@ import json
 import math
 import tomllib
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -38,10 +49,12 @@ import numpy.typing as npt
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from cranetwin.errors import ScenarioError
+from cranetwin.model import Machine
 
 F64 = npt.NDArray[np.float64]
 
-ACTUATORS = ("slew", "lift", "jib", "extension")
+ACTUATORS = ("slew", "lift", "jib", "extension")   # the PATU 655's, for its built-ins
+MACHINE_SCENARIOS = "scenarios"     # folder under cranetwin/machines
 Knot = Annotated[tuple[float, float], Field(description="(t_s, value)")]
 
 
@@ -113,27 +126,23 @@ class InitialState(_Frozen):
     """Initial pose, velocities and payload.
 
     Attributes:
-        q: Joint positions [theta0 rad, theta1 rad, theta2 rad, L m].
-        qd: Joint velocities [rad/s, rad/s, rad/s, m/s] (default at rest).
-        payload_kg: Payload at the tip at t = 0 [kg].
+        q: Joint positions, one per joint in chain order [rad or m]; None = every cylinder's rod
+            at mid-stroke and the other joints at 0 (clipped into their limits).
+        qd: Joint velocities [rad/s or m/s]; None = at rest.
+        payload_kg: Payload at the load point at t = 0 [kg].
     """
 
-    q: tuple[float, float, float, float] = (0.0, 0.6, -1.6, 0.3)
-    qd: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    q: tuple[float, ...] | None = None
+    qd: tuple[float, ...] | None = None
     payload_kg: float = Field(0.0, ge=0, le=5000.0)
 
 
-class Actuators(_Frozen):
-    """One program per actuator (all default to 'lever in neutral')."""
+class ContactKnot(_Frozen):
+    """From ``t_s`` on (linearly towards the next knot), the tool feels ``force_n`` [N], world
+    frame, at the load point."""
 
-    slew: ActuatorProgram = Field(default_factory=ActuatorProgram)
-    lift: ActuatorProgram = Field(default_factory=ActuatorProgram)
-    jib: ActuatorProgram = Field(default_factory=ActuatorProgram)
-    extension: ActuatorProgram = Field(default_factory=ActuatorProgram)
-
-    def ordered(self) -> tuple[ActuatorProgram, ...]:
-        """Programs in actuator order (slew, lift, jib, extension)."""
-        return (self.slew, self.lift, self.jib, self.extension)
+    t_s: float = Field(ge=0)
+    force_n: tuple[float, float, float]
 
 
 class Scenario(_Frozen):
@@ -143,29 +152,43 @@ class Scenario(_Frozen):
     description: str = ""
     duration_s: float = Field(20.0, gt=0, le=86400.0)
     initial: InitialState = Field(default_factory=InitialState)
-    actuators: Actuators = Field(default_factory=Actuators)
+    actuators: dict[str, ActuatorProgram] = Field(default_factory=dict)
     payload: list[PayloadEvent] = Field(default_factory=list)
+    contact: list[ContactKnot] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _events(self) -> Scenario:
         for i in range(1, len(self.payload)):
             if self.payload[i].t_s < self.payload[i - 1].t_s:
                 raise ValueError(f"payload.{i}.t_s: events must be in time order")
+        for i in range(1, len(self.contact)):
+            if self.contact[i].t_s < self.contact[i - 1].t_s:
+                raise ValueError(f"contact.{i}.t_s: knots must be in time order")
         return self
 
-    def tables(self) -> ScenarioTables:
-        """Pack the scenario into fixed arrays for the compiled integration loop."""
-        progs = self.actuators.ordered()
-        kv = max(1, max(len(p.voltage) for p in progs))
-        kt = max(1, max(len(p.target) for p in progs))
-        u_t = np.zeros((4, kv))
-        u_v = np.zeros((4, kv))
-        u_n = np.zeros(4, dtype=np.int64)
-        r_t = np.zeros((4, kt))
-        r_v = np.zeros((4, kt))
-        r_n = np.zeros(4, dtype=np.int64)
-        gain = np.zeros(4)
-        umax = np.zeros(4)
+    def program(self, actuator: str) -> ActuatorProgram:
+        """The program of ``actuator`` (lever in neutral if the scenario does not name it)."""
+        return self.actuators.get(actuator, _NEUTRAL)
+
+    def tables(self, actuators: tuple[str, ...] = ACTUATORS) -> ScenarioTables:
+        """Pack the scenario into fixed arrays for the compiled integration loop.
+
+        Args:
+            actuators: Actuator names in the loop's order (the machine's torque drives, then
+                its cylinders; :func:`actuator_names`).
+        """
+        progs = [self.program(a) for a in actuators]
+        na = len(progs)
+        kv = max(1, max((len(p.voltage) for p in progs), default=0))
+        kt = max(1, max((len(p.target) for p in progs), default=0))
+        u_t = np.zeros((na, kv))
+        u_v = np.zeros((na, kv))
+        u_n = np.zeros(na, dtype=np.int64)
+        r_t = np.zeros((na, kt))
+        r_v = np.zeros((na, kt))
+        r_n = np.zeros(na, dtype=np.int64)
+        gain = np.zeros(na)
+        umax = np.zeros(na)
         for a, p in enumerate(progs):
             u_n[a] = len(p.voltage)
             for k, (t, v) in enumerate(p.voltage):
@@ -177,19 +200,32 @@ class Scenario(_Frozen):
             umax[a] = p.max_voltage_v
         pay_t = np.array([0.0] + [e.t_s for e in self.payload])
         pay_m = np.array([self.initial.payload_kg] + [e.mass_kg for e in self.payload])
-        return ScenarioTables(u_t, u_v, u_n, r_t, r_v, r_n, gain, umax, pay_t, pay_m)
+        f_t = np.array([c.t_s for c in self.contact] or [0.0])
+        f_v = np.ascontiguousarray(np.array([c.force_n for c in self.contact] or [(0.0,) * 3]).T)
+        return ScenarioTables(u_t, u_v, u_n, r_t, r_v, r_n, gain, umax, pay_t, pay_m, f_t, f_v,
+                              len(self.contact))
+
+
+_NEUTRAL = ActuatorProgram()
+
+
+def actuator_names(machine: Machine) -> tuple[str, ...]:
+    """The machine's actuators in the simulator's order: torque drives, then cylinders."""
+    return (*(d.name for d in machine.torque_drives), *(c.name for c in machine.cylinders))
 
 
 @dataclass(frozen=True)
 class ScenarioTables:
-    """A scenario as arrays (actuator order slew, lift, jib, extension).
+    """A scenario as arrays (na actuators in the order given to :meth:`Scenario.tables`).
 
     Attributes:
-        u_t, u_v: Voltage knots (times [s], values [V]), shape (4, K); ``u_n`` (4,) used counts.
-        r_t, r_v: Target knots (times [s], values [m or rad]), shape (4, K'); ``r_n`` counts.
-        gain: Tracking gains, shape (4,) [V/m or V/rad]; 0 = no tracking.
-        umax: Command clip, shape (4,) [V].
+        u_t, u_v: Voltage knots (times [s], values [V]), shape (na, K); ``u_n`` (na,) counts.
+        r_t, r_v: Target knots (times [s], values [m or rad]), shape (na, K'); ``r_n`` counts.
+        gain: Tracking gains, shape (na,) [V/m or V/rad]; 0 = no tracking.
+        umax: Command clip, shape (na,) [V].
         pay_t, pay_m: Payload events (times [s] ascending, masses [kg]), shape (P,).
+        f_t, f_v, f_n: Contact-force knots: times (F,) [s], forces (3, F) [N, world frame],
+            count (0 = no contact).
     """
 
     u_t: F64
@@ -202,6 +238,14 @@ class ScenarioTables:
     umax: F64
     pay_t: F64
     pay_m: F64
+    f_t: F64
+    f_v: F64
+    f_n: int
+
+    def as_tuple(self) -> tuple[object, ...]:
+        """The fields in order, as the compiled loop takes them (``sched``)."""
+        return (self.u_t, self.u_v, self.u_n, self.r_t, self.r_v, self.r_n, self.gain,
+                self.umax, self.pay_t, self.pay_m, self.f_t, self.f_v, self.f_n)
 
 
 # --- loading ---------------------------------------------------------------------------------
@@ -226,13 +270,25 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<dict>") -> Scenario
         raise ScenarioFileError(source, _problems(exc)) from exc
 
 
-def load_scenario(source: str | Path, *, seed: int = 0, **params: float) -> Scenario:
-    """A built-in scenario by name, or a TOML/JSON scenario file.
+def machine_scenarios(machine: str) -> list[str]:
+    """Names of the scenario files shipped for built-in machine ``machine`` (may be empty)."""
+    folder = resources.files("cranetwin") / "machines" / MACHINE_SCENARIOS / machine
+    if not folder.is_dir():
+        return []
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def load_scenario(source: str | Path, *, seed: int = 0, machine: str | None = None,
+                  **params: float) -> Scenario:
+    """A built-in scenario by name, a machine's shipped scenario, or a TOML/JSON file.
 
     Args:
-        source: ``fig3``, ``log-loading``, ``random`` or a ``.toml``/``.json`` path.
+        source: ``fig3``, ``log-loading``, ``random`` (PATU 655 built-ins), the name of a
+            scenario of ``machine`` (:func:`machine_scenarios`), or a ``.toml``/``.json`` path.
         seed: Seed of the random parts of built-in scenarios.
-        **params: Built-in parameters (``duration_s``, ``payload_kg``).
+        machine: Built-in machine name whose shipped scenarios ``source`` may name.
+        **params: Built-in parameters (``duration_s``, ``payload_kg``); for a file,
+            ``duration_s`` overrides the file's.
 
     Raises:
         ScenarioError: unknown name, unreadable file, syntax error or invalid fields.
@@ -240,9 +296,17 @@ def load_scenario(source: str | Path, *, seed: int = 0, **params: float) -> Scen
     name = str(source)
     if name in BUILTIN:
         return builtin_scenario(name, seed=seed, **params)
+    if machine is not None and name in machine_scenarios(machine):
+        ref = resources.files("cranetwin") / "machines" / MACHINE_SCENARIOS / machine
+        with resources.as_file(ref / f"{name}.toml") as shipped:
+            sc = load_scenario(shipped)
+        if "duration_s" in params:
+            sc = sc.model_copy(update={"duration_s": float(params["duration_s"])})
+        return sc
     path = Path(source)
     if path.suffix not in (".toml", ".json"):
-        raise ScenarioError(f"{name}: not a built-in scenario ({', '.join(BUILTIN)}) "
+        known = [*BUILTIN, *(machine_scenarios(machine) if machine else [])]
+        raise ScenarioError(f"{name}: not a built-in scenario ({', '.join(known)}) "
                             "and not a .toml/.json file")
     try:
         text = path.read_text("utf-8")
@@ -275,16 +339,16 @@ def fig3(duration_s: float = 20.0, payload_kg: float = 0.0) -> Scenario:
         description="Valve-voltage steps and ramps of lift, jib and slewing (paper, Figure 3)",
         duration_s=duration_s,
         initial=InitialState(q=(0.0, 0.45, -1.5, 0.3), payload_kg=payload_kg),
-        actuators=Actuators(
-            lift=ActuatorProgram(voltage=_steps((1.0, 0.0, 3.0, 0.0, 6.0),
+        actuators={
+            "lift": ActuatorProgram(voltage=_steps((1.0, 0.0, 3.0, 0.0, 6.0),
                                                 (8.0, 1.0, 2.0, 1.0, -5.0),
                                                 (15.0, 0.0, 2.0, 0.0, 4.0))),
-            jib=ActuatorProgram(voltage=_steps((3.0, 0.5, 2.5, 0.5, -5.0),
+            "jib": ActuatorProgram(voltage=_steps((3.0, 0.5, 2.5, 0.5, -5.0),
                                                (11.0, 0.0, 2.5, 0.0, 6.0),
                                                (16.5, 1.0, 1.0, 1.0, -4.0))),
-            slew=ActuatorProgram(voltage=_steps((5.0, 1.0, 2.0, 1.0, 7.0),
+            "slew": ActuatorProgram(voltage=_steps((5.0, 1.0, 2.0, 1.0, 7.0),
                                                 (12.0, 1.0, 2.0, 1.0, -7.0))),
-        ),
+        },
     )
 
 
@@ -332,7 +396,7 @@ def log_loading(duration_s: float = 60.0, payload_kg: float = 300.0, seed: int =
     return Scenario(name="log-loading", duration_s=duration_s,
                     description=f"timber loading cycle, logs of ~{payload_kg:g} kg",
                     initial=InitialState(q=q0, payload_kg=0.0),
-                    actuators=Actuators(**progs), payload=events)
+                    actuators=progs, payload=events)
 
 
 def random_operator(duration_s: float = 30.0, payload_kg: float = 0.0, seed: int = 0) -> Scenario:
@@ -372,7 +436,7 @@ def random_operator(duration_s: float = 30.0, payload_kg: float = 0.0, seed: int
     return Scenario(name="random", duration_s=duration_s,
                     description=f"random operator, seed {seed}",
                     initial=InitialState(q=q0, payload_kg=0.0),
-                    actuators=Actuators(**progs), payload=events)
+                    actuators=progs, payload=events)
 
 
 BUILTIN = ("fig3", "log-loading", "random")

@@ -21,14 +21,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from cranetwin.errors import SimulationError
 from cranetwin.model import Channel, Machine
+from cranetwin.sim.layout import layout_of
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
-# snapshot columns recorded by the integration loop at each sampling instant
-SNAP_PA, SNAP_PB, SNAP_S = 0, 3, 6           # + cylinder index (machine order)
-SNAP_SLEW_TORQUE, SNAP_Q = 9, 10             # + joint index for SNAP_Q
-N_SNAP = 14
+# the integration loop's snapshot columns at each sampling instant: cranetwin.sim.layout
 
 
 class SensorModel(BaseModel):
@@ -127,17 +125,23 @@ def channel_source_column(machine: Machine, ch: Channel) -> int:
     Raises:
         SimulationError: the simulator does not produce this kind of channel.
     """
+    lay = layout_of(machine)
     cyl_names = [c.name for c in machine.cylinders]
     if ch.quantity in ("pressure_a", "pressure_b", "position"):
         if ch.source not in cyl_names:
             raise SimulationError(f"channel {ch.name!r}: {ch.quantity} of {ch.source!r}, "
                                   f"expected one of the cylinders {cyl_names}")
-        base = {"pressure_a": SNAP_PA, "pressure_b": SNAP_PB, "position": SNAP_S}[ch.quantity]
+        base = {"pressure_a": lay.snap_pa, "pressure_b": lay.snap_pb,
+                "position": lay.snap_s}[ch.quantity]
         return base + cyl_names.index(ch.source)
     if ch.quantity == "torque":
-        return SNAP_SLEW_TORQUE
+        drives = [d.name for d in machine.torque_drives]
+        if ch.source not in drives:
+            raise SimulationError(f"channel {ch.name!r}: torque of {ch.source!r}, expected one "
+                                  f"of the torque drives {drives}")
+        return lay.snap_torque + drives.index(ch.source)
     if ch.quantity == "angle":
-        return SNAP_Q + machine.joint_index(ch.source)
+        return lay.snap_q + machine.joint_index(ch.source)
     raise SimulationError(f"channel {ch.name!r}: the simulator cannot produce {ch.quantity!r}")
 
 
@@ -157,7 +161,7 @@ class SensorReader:
         self._burst_left = np.zeros(len(self.channels), dtype=np.int64)
 
     def read(self, snapshots: F64) -> F64:
-        """Readings for true values ``snapshots`` (m, N_SNAP) -> (m, n_channels), NaN = lost."""
+        """Readings for true values ``snapshots`` (m, n_snap) -> (m, n_channels), NaN = lost."""
         m = snapshots.shape[0]
         model = self.model
         out = np.empty((m, len(self.channels)))
@@ -192,7 +196,8 @@ def apply_sensors(machine: Machine, snapshots: F64, model: SensorModel,
 
     Args:
         machine: Machine description (channels, ranges, resolutions).
-        snapshots: True values at the sampling instants, shape (m, N_SNAP).
+        snapshots: True values at the sampling instants, shape (m, n_snap)
+            (:mod:`cranetwin.sim.layout`).
         model: Sensor model.
         rng: Random generator (noise, bias, dropouts).
 
