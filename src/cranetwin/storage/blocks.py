@@ -1,7 +1,9 @@
 """Raw samples, stored as compressed blocks: one row per received datagram, not one per sample.
 
 A row holds one :class:`~cranetwin.samples.SampleBlock` (``n`` regularly spaced samples of one
-machine) compressed by :mod:`cranetwin.storage.codec`, plus its per-second summary (count, min,
+machine) as the run the wire carried: t0, period, channel layout and the integer steps
+(``SampleBlock.steps`` when the block has them, as decoded from the datagram; otherwise ``values``
+quantised once), compressed by :mod:`cranetwin.storage.codec`, plus its per-second summary (count, min,
 max, sum of the quantised values per channel for every whole second the block touches), so that
 1-s load history never decodes raw samples. Rows are unique on (machine, epoch, seq), and
 inserted with ``ON CONFLICT DO NOTHING`` on both dialects, so writing a block twice (a
@@ -14,7 +16,7 @@ query bound next to it is representable), a span t_end − t0 of at most :data:`
 (6 h; a datagram spans at most 4096 × (2**32 − 1) ns ≈ 4.9 h, and the per-second summary
 grows with the span), period ≥ 1 ns, 1 ≤ n < 2**31, seq and epoch in [0, 2**63 − 1], 1..64
 distinct channel names of at most 64 characters, finite resolutions > 0, and finite values
-(NaN = missing) within 2**52 resolution steps of zero.
+(NaN = missing) within 2**52 resolution steps of zero (for blocks with steps: |steps| < 2**52).
 """
 
 from __future__ import annotations
