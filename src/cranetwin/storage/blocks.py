@@ -3,8 +3,8 @@
 A row holds one :class:`~cranetwin.samples.SampleBlock` (``n`` regularly spaced samples of one
 machine) as the run the wire carried: t0, period, channel layout and the integer steps
 (``SampleBlock.steps`` when the block has them, as decoded from the datagram; otherwise ``values``
-quantised once), compressed by :mod:`cranetwin.storage.codec`, plus its per-second summary (count, min,
-max, sum of the quantised values per channel for every whole second the block touches), so that
+quantised once), compressed by :mod:`cranetwin.storage.codec`, plus its per-second summary
+(count, min, max, sum of the steps per channel for every whole second the block touches), so that
 1-s load history never decodes raw samples. Rows are unique on (machine, epoch, seq), and
 inserted with ``ON CONFLICT DO NOTHING`` on both dialects, so writing a block twice (a
 retransmission, a replayed batch after a crash) stores it once.
