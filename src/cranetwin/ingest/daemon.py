@@ -37,6 +37,10 @@ Faults never stop the daemon:
 * a machine registered with a model that does not load is logged once and its datagrams are
   dropped as ``bad_model``; the other machines are served.
 
+Modules: configuration in :mod:`~cranetwin.ingest.config`, counters in
+:mod:`~cranetwin.ingest.metrics`, binding sockets in :mod:`~cranetwin.ingest.sockets`; this module
+is the daemon itself (event loop, decoder and writer threads, supervisor, shutdown).
+
 ``serve()`` owns the lifecycle: SIGTERM/SIGINT stop the socket, the queue is drained and
 written, the last acks go out and the 1-min rollup runs, in bounded time: during a database
 outage (or a database call stuck longer than ``stall_timeout_s``) the unwritten batches are
@@ -49,7 +53,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import errno
 import json
 import logging
 import os
@@ -58,27 +61,21 @@ import signal
 import socket
 import threading
 import time
-import tomllib
-from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
 from functools import partial
-from pathlib import Path
 from typing import Any, Literal
 
 from prometheus_client import CollectorRegistry, Histogram, start_http_server
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
-from prometheus_client.registry import Collector
 
-from cranetwin.errors import CraneTwinError, MachineFileError, StorageUnavailableError
-from cranetwin.model import builtin_machines, load_machine, machine_from_dict
-from cranetwin.model.schema import Machine
+from cranetwin.errors import CraneTwinError, StorageUnavailableError
+from cranetwin.ingest.config import DaemonConfig, IngestConfigError, check_model, layout_of
+from cranetwin.ingest.metrics import COUNTERS, Metrics, SnapshotCollector
+from cranetwin.ingest.sockets import _bind, _bind_message, new_event_loop
 from cranetwin.protocol import (
     REFUSAL_CODES,
     TYPE_REFUSAL,
     DatagramError,
     Layout,
-    Limits,
     MachineKey,
     Receiver,
     RefusedError,
@@ -89,200 +86,13 @@ from cranetwin.samples import SampleBlock
 from cranetwin.storage import Store, WriteResult, dberrors
 from cranetwin.storage.live import LiveBus
 
+__all__ = ["COUNTERS", "DaemonConfig", "IngestConfigError", "IngestDaemon", "Metrics",
+           "check_model", "is_unavailable", "layout_of", "new_event_loop", "serve"]
+
 log = logging.getLogger(__name__)
 
 Addr = tuple[Any, ...]
 Item = SampleBlock | StatusReport
-
-
-class IngestConfigError(CraneTwinError):
-    """The daemon cannot start as configured (address in use, unresolvable host, …)."""
-
-
-# --- machine models -----------------------------------------------------------------------------
-def check_model(model: str, source: str = "machine model") -> tuple[Machine, Layout]:
-    """Load and validate a machine model as registered: a built-in name or description TOML text.
-
-    The one check used when a machine is registered (CLI and API) and when the daemon loads its
-    keys, so that what registration accepts the daemon can serve.
-
-    Returns:
-        The machine description and its wire channel layout.
-
-    Raises:
-        MachineFileError: The model does not load; ``problems`` lists ``"field.path: message"``.
-    """
-    if model in builtin_machines():
-        machine = load_machine(model)
-    else:
-        try:
-            data = tomllib.loads(model)
-        except tomllib.TOMLDecodeError as exc:
-            known = ", ".join(builtin_machines())
-            hint = "" if "\n" in model or "=" in model else f" (and not a built-in: {known})"
-            raise MachineFileError(source, [f"(file): TOML syntax error: {exc}{hint}"]) from None
-        machine = machine_from_dict(data, source)
-    try:
-        layout = Layout.from_channels(machine.channels)
-    except (CraneTwinError, ValueError, TypeError) as exc:
-        raise MachineFileError(source, [f"channels: {exc}"]) from exc
-    return machine, layout
-
-
-def layout_of(model: str) -> Layout:
-    """Channel layout of a machine model: a built-in name or machine-description TOML text.
-
-    Raises:
-        MachineFileError: The model does not load.
-    """
-    return check_model(model, "<stored model>")[1]
-
-
-# --- settings -----------------------------------------------------------------------------------
-@dataclass
-class DaemonConfig:
-    """Settings of one daemon.
-
-    Attributes:
-        host, port: UDP address to bind (port 0 picks a free one; see ``IngestDaemon.address``).
-        queue_max: Accepted datagrams waiting for the writer; beyond it they are dropped
-            (counted as ``queue_full``) and the sender retransmits.
-        batch_max: Blocks written per transaction at most.
-        batch_wait_s: How long the writer gathers a batch after its first item [s].
-        rcvbuf_bytes: Requested SO_RCVBUF [bytes] (the kernel caps it at net.core.rmem_max).
-        metrics_host, metrics_port: HTTP address of the Prometheus ``/metrics`` endpoint
-            (``metrics_host`` None: not served; port 0 picks a free one, see
-            ``IngestDaemon.metrics_address``).
-        metrics_path: Deprecated: JSON file of :meth:`IngestDaemon.snapshot` rewritten every
-            ``metrics_interval_s`` (None: not written). Use ``/metrics``.
-        metrics_interval_s: Period of the metrics log line (and file) [s].
-        rollup_interval_s: Period of the 1-min summary rollup [s].
-        key_refresh_s: Least time between reloads of machine keys after an unknown wire id [s].
-        retry_min_s, retry_max_s: First and longest wait between retries of a batch while
-            storage is unavailable [s] (doubling in between).
-        shutdown_timeout_s: Longest flush of the queue after SIGTERM while storage is writable [s].
-        stall_timeout_s: At shutdown, a database call that has not returned for this long is
-            given up (its batch was never acknowledged) [s].
-        supervise_interval_s: Period of the check that restarts a dead decoder/writer thread [s].
-        limits: What is accepted from authenticated machines: datagram size, time window
-            around the server clock [s], sensor range margin (:class:`~cranetwin.protocol.Limits`).
-    """
-
-    host: str = "127.0.0.1"
-    port: int = 5005
-    queue_max: int = 50_000
-    batch_max: int = 1000
-    batch_wait_s: float = 0.05
-    rcvbuf_bytes: int = 8 * 1024 * 1024
-    metrics_host: str | None = None
-    metrics_port: int = 9105
-    metrics_path: Path | None = None
-    metrics_interval_s: float = 10.0
-    rollup_interval_s: float = 30.0
-    key_refresh_s: float = 2.0
-    retry_min_s: float = 0.05
-    retry_max_s: float = 5.0
-    shutdown_timeout_s: float = 60.0
-    stall_timeout_s: float = 5.0
-    supervise_interval_s: float = 0.2
-    limits: Limits = field(default_factory=Limits)
-
-
-# --- counters -----------------------------------------------------------------------------------
-COUNTERS: dict[str, str] = {
-    "received": "datagrams received on the UDP socket",
-    "received_bytes": "bytes of UDP payload received",
-    "accepted": "datagrams authenticated, valid and handed to the writer",
-    "stored_blocks": "sample blocks newly stored",
-    "stored_samples": "samples newly stored",
-    "duplicates": "blocks already stored (retransmissions), acknowledged again",
-    "status_reports": "status reports stored",
-    "acks_sent": "ack datagrams sent",
-    "refusals_sent": "refusal datagrams sent (authenticated datagrams never to be stored)",
-    "batches": "write batches committed",
-    "write_errors": "failed write attempts (storage unavailable or an unexpected error)",
-    "rollup_errors": "failed summary rollups (queries stay exact; retried)",
-    "writer_restarts": "writer threads restarted after dying",
-    "decoder_restarts": "decoder threads restarted after dying",
-}
-"""Counter name → help text; each is a key of :meth:`IngestDaemon.snapshot` and, with the prefix
-``cranetwin_ingest_`` and the suffix ``_total``, a Prometheus counter."""
-
-
-@dataclass
-class Metrics:
-    """Counters of one daemon run (ints; those touched by several threads go through
-    :meth:`add` / :meth:`drop`)."""
-
-    received: int = 0
-    received_bytes: int = 0
-    accepted: int = 0
-    stored_blocks: int = 0
-    stored_samples: int = 0
-    duplicates: int = 0
-    status_reports: int = 0
-    acks_sent: int = 0
-    refusals_sent: int = 0
-    batches: int = 0
-    write_errors: int = 0
-    rollup_errors: int = 0
-    writer_restarts: int = 0
-    decoder_restarts: int = 0
-    write_seconds: float = 0.0
-    dropped: Counter[str] = field(default_factory=Counter)
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
-
-    def add(self, name: str, n: int = 1) -> None:
-        """Add ``n`` to counter ``name`` (thread-safe)."""
-        with self._lock:
-            setattr(self, name, getattr(self, name) + n)
-
-    def drop(self, reason: str, n: int = 1) -> None:
-        """Count ``n`` datagrams dropped for ``reason`` (thread-safe)."""
-        with self._lock:
-            self.dropped[reason] += n
-
-    def snapshot(self, queue_depth: int, queue_max: int, started: float) -> dict[str, Any]:
-        with self._lock:
-            d: dict[str, Any] = {k: v for k, v in self.__dict__.items()
-                                 if k not in ("dropped", "_lock")}
-            d["dropped"] = dict(self.dropped)
-        d["dropped_total"] = sum(d["dropped"].values())
-        d["queue_depth"] = queue_depth
-        d["queue_max"] = queue_max
-        d["uptime_s"] = round(time.monotonic() - started, 3)
-        d["time_unix_s"] = time.time()
-        return d
-
-
-class _SnapshotCollector(Collector):
-    """Prometheus view of :meth:`IngestDaemon.snapshot`, read at scrape time (the hot path only
-    increments ints)."""
-
-    def __init__(self, daemon: IngestDaemon) -> None:
-        self.daemon = daemon
-
-    def describe(self) -> Iterable[Metric]:
-        return []  # names are not known before the first scrape (drop reasons); no clash check
-
-    def collect(self) -> Iterable[Metric]:
-        s = self.daemon.snapshot()
-        for name, doc in COUNTERS.items():
-            yield CounterMetricFamily(f"cranetwin_ingest_{name}", doc, value=s[name])
-        dropped = CounterMetricFamily("cranetwin_ingest_dropped",
-                                      "datagrams dropped, by reason", labels=["reason"])
-        for reason, n in sorted(s["dropped"].items()):
-            dropped.add_metric([reason], n)
-        yield dropped
-        yield GaugeMetricFamily("cranetwin_ingest_queue_depth",
-                                "datagrams waiting for the writer", value=s["queue_depth"])
-        yield GaugeMetricFamily("cranetwin_ingest_queue_max",
-                                "capacity of the datagram queue", value=s["queue_max"])
-        yield GaugeMetricFamily("cranetwin_ingest_storage_available",
-                                "1 while the last write attempt succeeded, 0 during an outage",
-                                value=0.0 if self.daemon.storage_outage else 1.0)
-        yield GaugeMetricFamily("cranetwin_ingest_uptime_seconds", "seconds since start [s]",
-                                value=s["uptime_s"])
 
 
 # --- storage outcomes ---------------------------------------------------------------------------
@@ -357,7 +167,7 @@ class IngestDaemon:
         self.ready = threading.Event()
         self.storage_outage = False
         self.registry = CollectorRegistry()
-        self.registry.register(_SnapshotCollector(self))
+        self.registry.register(SnapshotCollector(self))
         self.write_latency = Histogram(
             "cranetwin_ingest_write_seconds", "duration of one committed batch write [s]",
             registry=self.registry,
@@ -1054,56 +864,6 @@ def _drain(q: queue.Queue[list[tuple[Item, Addr]]]) -> list[list[tuple[Item, Add
         except queue.Empty:
             return out
 
-
-def _bind_message(exc: OSError, host: str, port: int, proto: str, option: str) -> str:
-    where = f"{host}:{port}" if ":" not in host else f"[{host}]:{port}"
-    if isinstance(exc, socket.gaierror):
-        return f"{option} {where}: cannot resolve host {host!r} ({exc.strerror})"
-    if exc.errno == errno.EADDRINUSE:
-        return (f"{option} {where}: {proto} port {port} is already in use (another daemon "
-                f"running?); stop it or choose another port")
-    if exc.errno == errno.EADDRNOTAVAIL:
-        return f"{option} {where}: {host} is not an address of this machine"
-    if exc.errno == errno.EACCES:
-        return f"{option} {where}: permission denied (ports below 1024 need privileges)"
-    return f"{option} {where}: cannot bind {proto} socket: {exc.strerror or exc}"
-
-
-def _bind(host: str, port: int, kind: socket.SocketKind, proto: str,
-          option: str) -> socket.socket:
-    """A socket of ``kind`` bound to (host, port), resolving ``host`` (IPv4 or IPv6).
-
-    Raises:
-        IngestConfigError: unresolvable host, non-local address, port in use, no permission.
-    """
-    if not 0 <= port <= 65535:
-        raise IngestConfigError(f"{option}: port {port} outside 0..65535")
-    try:
-        infos = socket.getaddrinfo(host, port, type=kind, flags=socket.AI_PASSIVE)
-    except (socket.gaierror, UnicodeError) as exc:
-        if isinstance(exc, socket.gaierror):
-            raise IngestConfigError(_bind_message(exc, host, port, proto, option)) from None
-        raise IngestConfigError(f"{option}: bad host name {host!r}") from None
-    family, socktype, sproto, _, addr = infos[0]
-    sock = socket.socket(family, socktype, sproto)
-    try:
-        if kind == socket.SOCK_STREAM:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(addr)
-    except OSError as exc:
-        sock.close()
-        raise IngestConfigError(_bind_message(exc, host, port, proto, option)) from None
-    return sock
-
-
-def new_event_loop() -> asyncio.AbstractEventLoop:
-    """uvloop's loop when installed (it receives ≈ 3× more datagrams/s), else asyncio's."""
-    try:
-        import uvloop
-    except ImportError:  # pragma: no cover - uvloop is a dependency
-        return asyncio.new_event_loop()
-    loop: asyncio.AbstractEventLoop = uvloop.new_event_loop()
-    return loop
 
 
 def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None = None,
