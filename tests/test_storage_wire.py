@@ -125,6 +125,15 @@ def test_blocks_without_steps_are_quantised_once_as_before(store: Store) -> None
     assert got.period_ns == 10_000_000
 
 
+def test_blocks_with_malformed_steps_are_refused(store: Store) -> None:
+    store.add_machine("m", 1, SECRET)
+    v = np.array([[1.0], [2.0]])
+    bad = [SampleBlock("m", 1, 10**18, 10, ("a",), (1.0,), v, steps=np.array([[1], [2], [3]])),
+           SampleBlock("m", 2, 2 * 10**18, 10, ("a",), (1.0,), v, steps=v.copy())]
+    res = store.write_batch(bad)
+    assert [o.reason for o in res.outcomes] == ["unstorable", "unstorable"]
+
+
 # Blobs written by the storage codec before it was built on cranetwin.codec (same format, v1).
 _OLD_BLOB = bytes.fromhex(
     "0108010004000000040000007801636062e45c20dcddc4c0cb17c1c0c6fa9f0108f819f8f98114131083f920"

@@ -182,6 +182,10 @@ def check_block(b: SampleBlock) -> str | None:
             or values.dtype.kind not in "fiu"):
         return "values must be a real 2-D array (samples × channels)"
     n, c = values.shape
+    steps = b.steps
+    if steps is not None and (not isinstance(steps, np.ndarray) or steps.shape != values.shape
+                              or steps.dtype.kind not in "iu"):
+        return "steps must be an integer array of the values' shape (samples × channels)"
     if not 1 <= n <= MAX_N:
         return f"{n} samples; expected 1..{MAX_N}"
     if period < 1:
