@@ -6,7 +6,9 @@ differences d_i = k_i − k_{i−1} as fixed-width unsigned offsets ``d_i − mi
 width w that holds ``max(d) − min(d)`` (frame-of-reference bit packing). Smooth motion plus a few
 quanta of sensor noise gives w ≈ 3–6 bits, i.e. under 1 byte per channel per sample. Missing
 samples (NaN) are flagged in a per-channel dropout bitmap; a channel that is entirely missing is
-left out via the channel mask. Byte layout: docs/PROTOCOL.md, "Data datagram".
+left out via the channel mask. Byte layout: docs/PROTOCOL.md, "Data datagram". The integer
+transforms are :mod:`cranetwin.codec`'s; this module frames them. A decoded block carries the
+integer steps (``SampleBlock.steps``) so that storage keeps them without a float round trip.
 """
 
 from __future__ import annotations
