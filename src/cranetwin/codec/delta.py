@@ -2,7 +2,8 @@
 
 Zigzag maps signed to unsigned 64-bit integers so that small magnitudes get small codes:
 ``z = (v << 1) ^ (v >> 63)``, i.e. 0, −1, 1, −2, … → 0, 1, 2, 3, … (the same as Protocol
-Buffers). Arithmetic on deltas wraps modulo 2**64, so any int64 series round-trips.
+Buffers). Arithmetic on deltas wraps modulo 2**64 (numpy integer arrays wrap silently), so any
+int64 series round-trips.
 """
 
 from __future__ import annotations
@@ -29,8 +30,7 @@ def unzigzag(z: int) -> int:
 
 def zigzag_array(d: I64) -> U64:
     """:func:`zigzag` elementwise on an int64 array."""
-    with np.errstate(over="ignore"):
-        return ((d << 1) ^ (d >> 63)).view(np.uint64)
+    return ((d << 1) ^ (d >> 63)).view(np.uint64)
 
 
 def unzigzag_array(z: U64) -> I64:
@@ -47,12 +47,11 @@ def deltas(k: I64, axis: int = 0, *, first: bool = False) -> I64:
         first: Keep the first element as the difference from 0 (same length as ``k``);
             otherwise the result is one shorter along ``axis``.
     """
-    with np.errstate(over="ignore"):
-        if first:
-            shape = list(k.shape)
-            shape[axis] = 1
-            return np.diff(k, axis=axis, prepend=np.zeros(shape, dtype=np.int64))
-        return np.diff(k, axis=axis)
+    if first:
+        shape = list(k.shape)
+        shape[axis] = 1
+        return np.diff(k, axis=axis, prepend=np.zeros(shape, dtype=np.int64))
+    return np.diff(k, axis=axis)
 
 
 def undelta(d: I64, axis: int = 0, start: I64 | None = None) -> I64:
@@ -64,10 +63,9 @@ def undelta(d: I64, axis: int = 0, start: I64 | None = None) -> I64:
         start: Value before the first difference (broadcast against one slice of ``d``), or None
             for 0 (the inverse of ``deltas(k, first=True)``).
     """
-    with np.errstate(over="ignore"):
-        out = np.cumsum(d, axis=axis)
-        if start is not None:
-            out += np.expand_dims(start, axis)
+    out = np.cumsum(d, axis=axis)
+    if start is not None:
+        out += start if axis == 0 else np.expand_dims(start, axis)
     return out
 
 

@@ -71,7 +71,7 @@ def dequantise(k: I64, missing: Mask | None, resolution: Sequence[float] | npt.A
         resolution: Step per channel, length c [channel units].
     """
     out = k.astype(np.float64) * _res(resolution, k.shape[1])
-    if missing is not None and missing.any():
+    if missing is not None:
         out[missing] = np.nan
     return out
 

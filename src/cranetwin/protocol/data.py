@@ -126,8 +126,7 @@ def encode_data(key: MachineKey, seq: int, t0_ns: int, period_ns: int, values: F
             out += packed_bitmaps[:, i].tobytes()
     if n > 1 and any(widths):
         sel = [i for i, w in enumerate(widths) if w]
-        with np.errstate(over="ignore"):
-            offs = (d[:, sel] - dmin[sel]).view(np.uint64).T  # channel-major rows
+        offs = (d[:, sel] - dmin[sel]).view(np.uint64).T  # channel-major rows
         out += codec.pack_rows(offs, tuple(widths[i] for i in sel))
     out += tag(key.secret, out)
     return bytes(out)
@@ -239,8 +238,7 @@ def parse_data(head: Header, body: memoryview, key: MachineKey) -> SampleBlock:
             offs[[i for i, w in enumerate(widths) if w]] = codec.unpack_rows(body[pos:end],
                                                                              n - 1, nz)
         dm = np.asarray([_wrap(x) & (2**64 - 1) for x in dmins], dtype=np.uint64)
-        with np.errstate(over="ignore"):
-            k[1:] = codec.undelta((offs.T + dm).view(np.int64), start=k[0])
+        k[1:] = codec.undelta((offs.T + dm).view(np.int64), start=k[0])  # wraps mod 2**64
     miss = None
     gi = [i for i, g in enumerate(gaps) if g is not None]
     if gi:
