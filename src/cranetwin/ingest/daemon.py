@@ -38,8 +38,10 @@ Faults never stop the daemon:
   dropped as ``bad_model``; the other machines are served.
 
 Modules: configuration in :mod:`~cranetwin.ingest.config`, counters in
-:mod:`~cranetwin.ingest.metrics`, binding sockets in :mod:`~cranetwin.ingest.sockets`; this module
-is the daemon itself (event loop, decoder and writer threads, supervisor, shutdown).
+:mod:`~cranetwin.ingest.metrics`, binding sockets in :mod:`~cranetwin.ingest.sockets`, the
+database side (retries through outages, block-by-block fallback, status, rollup) in
+:mod:`~cranetwin.ingest.writer`; this module is the daemon itself (event loop, decoder and writer
+threads, acks after commit, supervisor, shutdown).
 
 ``serve()`` owns the lifecycle: SIGTERM/SIGINT stop the socket, the queue is drained and
 written, the last acks go out and the 1-min rollup runs, in bounded time: during a database
@@ -61,16 +63,17 @@ import signal
 import socket
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from functools import partial
-from typing import Any, Literal
+from typing import Any
 
 from prometheus_client import CollectorRegistry, Histogram, start_http_server
 
-from cranetwin.errors import CraneTwinError, StorageUnavailableError
+from cranetwin.errors import CraneTwinError
 from cranetwin.ingest.config import DaemonConfig, IngestConfigError, check_model, layout_of
 from cranetwin.ingest.metrics import COUNTERS, Metrics, SnapshotCollector
 from cranetwin.ingest.sockets import _bind, _bind_message, new_event_loop
+from cranetwin.ingest.writer import Abandoned, StorageWriter, is_unavailable
 from cranetwin.protocol import (
     REFUSAL_CODES,
     TYPE_REFUSAL,
@@ -83,7 +86,7 @@ from cranetwin.protocol import (
 )
 from cranetwin.protocol.status import StatusReport
 from cranetwin.samples import SampleBlock
-from cranetwin.storage import Store, WriteResult, dberrors
+from cranetwin.storage import Store
 from cranetwin.storage.live import LiveBus
 
 __all__ = ["COUNTERS", "DaemonConfig", "IngestConfigError", "IngestDaemon", "Metrics",
@@ -95,43 +98,9 @@ Addr = tuple[Any, ...]
 Item = SampleBlock | StatusReport
 
 
-# --- storage outcomes ---------------------------------------------------------------------------
-Outcome = tuple[Literal["stored", "duplicate", "refused", "error"], str]
-"""Per-block result of a write: stored (new), duplicate (already held), refused (never storable,
-with storage's refusal reason) or error (the block could not be written even alone, for a reason
-storage did not explain: neither acked nor refused, so its sender retransmits; counted as
-``write_error``)."""
-
-
-def _outcomes(result: WriteResult) -> list[Outcome]:
-    return [(o.status, o.reason or "unstorable") if o.status == "refused" else (o.status, "")
-            for o in result.outcomes]
-
-
-def is_unavailable(exc: BaseException) -> bool:
-    """Whether ``exc`` is an operational database failure (connection lost, server down,
-    database locked, disk I/O): the write should be retried, not refused. Storage raises
-    :class:`~cranetwin.errors.StorageUnavailableError` for these; the SQLAlchemy errors in the
-    cause chain are recognised too, for calls that let them through."""
-    if isinstance(exc, StorageUnavailableError):
-        return True
-    seen: set[int] = set()
-    cur: BaseException | None = exc
-    while cur is not None and id(cur) not in seen:
-        seen.add(id(cur))
-        if dberrors.is_unavailable(cur):
-            return True
-        cur = cur.__cause__ or cur.__context__
-    return False
-
-
 def _is_refusal(datagram: bytes) -> bool:
     """Whether a datagram the daemon sends is a refusal (else an ack): its type byte."""
     return len(datagram) > 3 and datagram[3] == TYPE_REFUSAL
-
-
-class _Abandoned(Exception):
-    """Shutdown gave up retrying (storage unavailable)."""
 
 
 # --- the daemon ---------------------------------------------------------------------------------
@@ -165,7 +134,7 @@ class IngestDaemon:
         self.address: tuple[str, int] | None = None
         self.metrics_address: tuple[str, int] | None = None
         self.ready = threading.Event()
-        self.storage_outage = False
+        self.db = StorageWriter(self.store, self.config, self.metrics, self._log_once)
         self.registry = CollectorRegistry()
         self.registry.register(SnapshotCollector(self))
         self.write_latency = Histogram(
@@ -184,13 +153,11 @@ class IngestDaemon:
         self._rx_lock = threading.Lock()  # the Receiver is shared by decoder and writer
         self._stopping = False
         self._draining = threading.Event()   # shutdown: finish what is queued, then return
-        self._abandon = threading.Event()    # shutdown: give up unwritten batches now
+        self._abandon = self.db.abandon      # shutdown: give up unwritten batches now
         self._decoder_done = threading.Event()
         self._threads: dict[str, threading.Thread] = {}
         self._finished: set[str] = set()
-        self._progress = time.monotonic()    # last time the writer was not inside a DB call
         self._in_hand = 0                    # items of the batch the writer is writing
-        self._outage_since: float | None = None
         self._logged: set[str] = set()
         self._log_lock = threading.Lock()
         self._transport: asyncio.DatagramTransport | None = None
@@ -200,7 +167,12 @@ class IngestDaemon:
         self._signals = 0
         self._http: Any = None
         self._started = time.monotonic()
-        self._last_rollup = time.monotonic()
+
+    @property
+    def storage_outage(self) -> bool:
+        """True while storage is unavailable (from the first failed write of an outage until a
+        write succeeds)."""
+        return self.db.outage
 
     # -- logging ------------------------------------------------------------------------------
     def _log_once(self, kind: str, exc: BaseException | None, msg: str, *args: Any) -> None:
@@ -392,7 +364,7 @@ class IngestDaemon:
         meanwhile) → acks. Returns once draining and everything decoded is written (or
         abandoned)."""
         while True:
-            self._progress = time.monotonic()
+            self.db.progress = time.monotonic()
             if self._abandon.is_set():
                 self._discard_decoded()
                 return
@@ -402,7 +374,7 @@ class IngestDaemon:
                 if self._draining.is_set() and self._decoder_done.is_set():
                     return
                 if not self._draining.is_set():
-                    self._maybe_rollup()
+                    self.db.maybe_rollup()
                 continue
             items = list(first)
             while len(items) < self.config.batch_max:
@@ -413,7 +385,7 @@ class IngestDaemon:
             self._in_hand = len(items)
             try:
                 self._write(items)
-            except _Abandoned:
+            except Abandoned:
                 self.metrics.drop("unwritten_at_shutdown", len(items))
             except Exception as exc:  # a bug must not kill the writer: nothing acked, retried
                 self.metrics.add("write_errors")
@@ -421,7 +393,7 @@ class IngestDaemon:
                                "acknowledged (senders retransmit): %s", len(items), exc)
             self._in_hand = 0
             if not self._draining.is_set():
-                self._maybe_rollup()
+                self.db.maybe_rollup()
 
     def _discard_decoded(self) -> None:
         while True:
@@ -431,77 +403,11 @@ class IngestDaemon:
                 return
             self.metrics.drop("unwritten_at_shutdown", len(batch))
 
-    def _retry(self, what: str, fn: Callable[[], Any]) -> Any:
-        """``fn()``, retried with exponential backoff while storage is unavailable.
-
-        Raises:
-            _Abandoned: shutdown gave up while storage was unavailable.
-            Exception: whatever ``fn`` raised that is not unavailability.
-        """
-        cfg = self.config
-        delay = cfg.retry_min_s
-        while True:
-            try:
-                result = fn()
-            except Exception as exc:
-                self._progress = time.monotonic()
-                if not is_unavailable(exc):
-                    raise
-                self.metrics.add("write_errors")
-                if self._outage_since is None:
-                    self._outage_since = time.monotonic()
-                    self.storage_outage = True
-                    log.error("storage unavailable (%s): retrying with backoff up to %.1f s, "
-                              "nothing is acknowledged meanwhile: %s", what, cfg.retry_max_s,
-                              " ".join(str(exc).split())[:500])
-                if self._abandon.wait(delay):
-                    raise _Abandoned() from exc
-                delay = min(2 * delay, cfg.retry_max_s)
-                continue
-            self._progress = time.monotonic()
-            if self._outage_since is not None:
-                log.warning("storage available again after %.1f s; ingest resumes",
-                            time.monotonic() - self._outage_since)
-                self._outage_since = None
-                self.storage_outage = False
-            return result
-
-    def _write_blocks(self, blocks: Sequence[SampleBlock]) -> list[Outcome]:
-        """Per-block outcomes of one :meth:`Store.write_batch`, retried while storage is
-        unavailable. A batch that fails as a whole for another reason (nothing of it stored)
-        is written again block by block, so such a failure only ever holds back the blocks
-        that cause it."""
-        if not blocks:
-            return []
-        try:
-            result: WriteResult = self._retry("batch", partial(self.store.write_batch, blocks))
-            return _outcomes(result)
-        except _Abandoned:
-            raise
-        except Exception as exc:
-            self.metrics.add("write_errors")
-            self._log_once("write_batch", exc, "batch write failed unexpectedly, writing its "
-                           "%d block(s) one by one: %s", len(blocks), exc)
-        outcomes: list[Outcome] = []
-        for b in blocks:
-            try:
-                one: WriteResult = self._retry("block", partial(self.store.write_batch, [b]))
-                outcomes.extend(_outcomes(one))
-            except _Abandoned:
-                raise
-            except Exception as exc:
-                self.metrics.add("write_errors")
-                self._log_once("write_block", exc, "a block of %s (epoch %d, seq %d) could not "
-                               "be written alone (not acknowledged; its sender retransmits): %s",
-                               b.machine_id, b.epoch, b.seq, exc)
-                outcomes.append(("error", "write_error"))
-        return outcomes
-
     def _write(self, items: list[tuple[Item, Addr]]) -> None:
         """Write one batch; ack what is durable, refuse what storage refused.
 
         Raises:
-            _Abandoned: shutdown gave up while storage was unavailable (nothing acked).
+            Abandoned: shutdown gave up while storage was unavailable (nothing acked).
         """
         if not items:
             return
@@ -509,7 +415,7 @@ class IngestDaemon:
         t = time.perf_counter()
         block_items = [(i, a) for i, a in items if isinstance(i, SampleBlock)]
         blocks = [i for i, _ in block_items]
-        outcomes = self._write_blocks(blocks)
+        outcomes = self.db.write_blocks(blocks)
         durable: list[tuple[Item, Addr]] = []
         refused: list[tuple[Item, Addr, str]] = []
         new: list[SampleBlock] = []
@@ -527,8 +433,8 @@ class IngestDaemon:
         for item, addr in items:
             if isinstance(item, StatusReport):
                 try:
-                    self._retry("status", partial(self._write_status, item))
-                except _Abandoned:
+                    self.db.retry("status", partial(self.db.write_status, item))
+                except Abandoned:
                     raise
                 except Exception as exc:
                     m.drop("write_error")
@@ -576,31 +482,6 @@ class IngestDaemon:
                                 "refusals_sent" if _is_refusal(reply) else "acks_sent"))
         for data, addr, counter in out:
             self._sendto(data, addr, counter)
-
-    def _write_status(self, r: StatusReport) -> None:
-        def val(x: float) -> float | None:
-            return None if x != x else x  # NaN → not reported
-
-        self.store.update_status(r.machine_id, r.t_ns / 1e9, latitude_deg=val(r.latitude_deg),
-                                 longitude_deg=val(r.longitude_deg),
-                                 altitude_m=val(r.altitude_m),
-                                 operating_hours=val(r.operating_hours))
-        self.metrics.add("status_reports")
-
-    def _maybe_rollup(self, force: bool = False) -> None:
-        now = time.monotonic()
-        if not force and now - self._last_rollup < self.config.rollup_interval_s:
-            return
-        self._last_rollup = now
-        try:
-            # minutes that ended a while ago (machine clocks may lag), or everything at shutdown
-            self.store.rollup(None if force else time.time() - 120)
-        except Exception as exc:  # never fatal: dirty minutes stay exact, retried next time
-            self.metrics.add("rollup_errors")
-            self._log_once("rollup", exc, "summary rollup failed (queries stay exact; retried "
-                           "every %.0f s): %s", self.config.rollup_interval_s, exc)
-        finally:
-            self._progress = time.monotonic()
 
     # -- threads and supervision ----------------------------------------------------------------
     def _run_thread(self, name: str, target: Callable[[], None]) -> None:
@@ -671,7 +552,7 @@ class IngestDaemon:
                      "duplicates %d, dropped %s, queue %d/%d, write errors %d%s",
                      s["received"], s["stored_blocks"], s["stored_samples"], rate,
                      s["duplicates"], s["dropped"], s["queue_depth"], s["queue_max"],
-                     s["write_errors"], ", STORAGE UNAVAILABLE" if self.storage_outage else "")
+                     s["write_errors"], ", STORAGE UNAVAILABLE" if self.db.outage else "")
             try:
                 self.write_metrics()
             except OSError as exc:
@@ -789,14 +670,14 @@ class IngestDaemon:
             if writer is None or (not writer.is_alive() and "writer" in self._finished):
                 break
             now = time.monotonic()
-            if self.storage_outage:
+            if self.db.outage:
                 log.warning("storage unavailable at shutdown: giving up %d queued datagram(s) "
                             "and the batch in hand (never acknowledged: their senders "
                             "retransmit)", self._queue.qsize())
                 self._abandon.set()
-            elif now - self._progress > cfg.stall_timeout_s:
+            elif now - self.db.progress > cfg.stall_timeout_s:
                 log.warning("a database call has not returned for %.1f s: giving up the "
-                            "unwritten batches (never acknowledged)", now - self._progress)
+                            "unwritten batches (never acknowledged)", now - self.db.progress)
                 self._abandon.set()
             elif now - t0 > cfg.shutdown_timeout_s:
                 log.warning("flush not done after %.0f s: giving up the rest (never "
@@ -819,7 +700,7 @@ class IngestDaemon:
                 await task
         transport.close()
         if clean:
-            await self._bounded(lambda: self._maybe_rollup(True), cfg.stall_timeout_s,
+            await self._bounded(lambda: self.db.maybe_rollup(True), cfg.stall_timeout_s,
                                 "final summary rollup")
         if self._http is not None:
             self._http.shutdown()

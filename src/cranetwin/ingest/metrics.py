@@ -16,7 +16,8 @@ from prometheus_client.registry import Collector
 class _Snapshotting(Protocol):
     """What the collector reads from the daemon."""
 
-    storage_outage: bool
+    @property
+    def storage_outage(self) -> bool: ...
 
     def snapshot(self) -> dict[str, Any]: ...
 
