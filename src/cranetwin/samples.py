@@ -34,6 +34,10 @@ class SampleBlock:
         epoch: The sender's epoch (boot id, 1 … 2**63 − 1; 0 for protocol version 1): a
             sender that lost its durable log starts a new epoch, so its sequence numbers never
             collide with an earlier run's.
+        steps: The integer steps the wire carried, shape (n, len(channels)), 0 where ``values``
+            is NaN, with ``values == steps · resolution`` elsewhere; or None (then storage
+            quantises ``values``). The protocol decoder sets it, and storage stores it as it
+            is: no float round trip, no second quantisation.
     """
 
     machine_id: str
@@ -44,6 +48,7 @@ class SampleBlock:
     resolution: tuple[float, ...]
     values: F64
     epoch: int = 0
+    steps: I64 | None = None
 
     @property
     def n(self) -> int:
@@ -70,8 +75,12 @@ class SampleArrays:
         channels: Channel names, in column order.
         values: Shape (n, len(channels)) [channel units]; NaN = missing.
         period_ns: The sample period the source carried [ns] (the wire's and storage's
-            ``period_ns``), or None where the source has none (a file of bare timestamps):
-            readers take the period from here and estimate it from ``t_s`` only when None.
+            ``period_ns``), or None where the source has none (a file of bare timestamps) or
+            where it changes inside the range (storage: blocks of different periods): readers
+            take the period from here and estimate it from ``t_s`` only when None.
+        t_ns: Exact sample times, shape (n,) [ns since the Unix epoch], where the source has
+            them (storage: ``t0_ns + k · period_ns`` of each stored run), else None; ``t_s`` is
+            ``t_ns / 1e9``.
     """
 
     machine_id: str
@@ -79,6 +88,7 @@ class SampleArrays:
     channels: tuple[str, ...]
     values: F64
     period_ns: int | None = None
+    t_ns: I64 | None = None
 
     def column(self, name: str) -> F64:
         """One channel's samples, shape (n,)."""

@@ -37,6 +37,12 @@ Faults never stop the daemon:
 * a machine registered with a model that does not load is logged once and its datagrams are
   dropped as ``bad_model``; the other machines are served.
 
+Modules: configuration in :mod:`~cranetwin.ingest.config`, counters in
+:mod:`~cranetwin.ingest.metrics`, binding sockets in :mod:`~cranetwin.ingest.sockets`, the
+database side (retries through outages, block-by-block fallback, status, rollup) in
+:mod:`~cranetwin.ingest.writer`; this module is the daemon itself (event loop, decoder and writer
+threads, acks after commit, supervisor, shutdown).
+
 ``serve()`` owns the lifecycle: SIGTERM/SIGINT stop the socket, the queue is drained and
 written, the last acks go out and the 1-min rollup runs, in bounded time: during a database
 outage (or a database call stuck longer than ``stall_timeout_s``) the unwritten batches are
@@ -49,7 +55,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import errno
 import json
 import logging
 import os
@@ -58,27 +63,22 @@ import signal
 import socket
 import threading
 import time
-import tomllib
-from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from functools import partial
-from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from prometheus_client import CollectorRegistry, Histogram, start_http_server
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
-from prometheus_client.registry import Collector
 
-from cranetwin.errors import CraneTwinError, MachineFileError, StorageUnavailableError
-from cranetwin.model import builtin_machines, load_machine, machine_from_dict
-from cranetwin.model.schema import Machine
+from cranetwin.errors import CraneTwinError
+from cranetwin.ingest.config import DaemonConfig, IngestConfigError, check_model, layout_of
+from cranetwin.ingest.metrics import COUNTERS, Metrics, SnapshotCollector
+from cranetwin.ingest.sockets import _bind, _bind_message, new_event_loop
+from cranetwin.ingest.writer import Abandoned, StorageWriter, is_unavailable
 from cranetwin.protocol import (
     REFUSAL_CODES,
     TYPE_REFUSAL,
     DatagramError,
     Layout,
-    Limits,
     MachineKey,
     Receiver,
     RefusedError,
@@ -86,8 +86,11 @@ from cranetwin.protocol import (
 )
 from cranetwin.protocol.status import StatusReport
 from cranetwin.samples import SampleBlock
-from cranetwin.storage import Store, WriteResult, dberrors
+from cranetwin.storage import Store
 from cranetwin.storage.live import LiveBus
+
+__all__ = ["COUNTERS", "DaemonConfig", "IngestConfigError", "IngestDaemon", "Metrics",
+           "check_model", "is_unavailable", "layout_of", "new_event_loop", "serve"]
 
 log = logging.getLogger(__name__)
 
@@ -95,233 +98,9 @@ Addr = tuple[Any, ...]
 Item = SampleBlock | StatusReport
 
 
-class IngestConfigError(CraneTwinError):
-    """The daemon cannot start as configured (address in use, unresolvable host, …)."""
-
-
-# --- machine models -----------------------------------------------------------------------------
-def check_model(model: str, source: str = "machine model") -> tuple[Machine, Layout]:
-    """Load and validate a machine model as registered: a built-in name or description TOML text.
-
-    The one check used when a machine is registered (CLI and API) and when the daemon loads its
-    keys, so that what registration accepts the daemon can serve.
-
-    Returns:
-        The machine description and its wire channel layout.
-
-    Raises:
-        MachineFileError: The model does not load; ``problems`` lists ``"field.path: message"``.
-    """
-    if model in builtin_machines():
-        machine = load_machine(model)
-    else:
-        try:
-            data = tomllib.loads(model)
-        except tomllib.TOMLDecodeError as exc:
-            known = ", ".join(builtin_machines())
-            hint = "" if "\n" in model or "=" in model else f" (and not a built-in: {known})"
-            raise MachineFileError(source, [f"(file): TOML syntax error: {exc}{hint}"]) from None
-        machine = machine_from_dict(data, source)
-    try:
-        layout = Layout.from_channels(machine.channels)
-    except (CraneTwinError, ValueError, TypeError) as exc:
-        raise MachineFileError(source, [f"channels: {exc}"]) from exc
-    return machine, layout
-
-
-def layout_of(model: str) -> Layout:
-    """Channel layout of a machine model: a built-in name or machine-description TOML text.
-
-    Raises:
-        MachineFileError: The model does not load.
-    """
-    return check_model(model, "<stored model>")[1]
-
-
-# --- settings -----------------------------------------------------------------------------------
-@dataclass
-class DaemonConfig:
-    """Settings of one daemon.
-
-    Attributes:
-        host, port: UDP address to bind (port 0 picks a free one; see ``IngestDaemon.address``).
-        queue_max: Accepted datagrams waiting for the writer; beyond it they are dropped
-            (counted as ``queue_full``) and the sender retransmits.
-        batch_max: Blocks written per transaction at most.
-        batch_wait_s: How long the writer gathers a batch after its first item [s].
-        rcvbuf_bytes: Requested SO_RCVBUF [bytes] (the kernel caps it at net.core.rmem_max).
-        metrics_host, metrics_port: HTTP address of the Prometheus ``/metrics`` endpoint
-            (``metrics_host`` None: not served; port 0 picks a free one, see
-            ``IngestDaemon.metrics_address``).
-        metrics_path: Deprecated: JSON file of :meth:`IngestDaemon.snapshot` rewritten every
-            ``metrics_interval_s`` (None: not written). Use ``/metrics``.
-        metrics_interval_s: Period of the metrics log line (and file) [s].
-        rollup_interval_s: Period of the 1-min summary rollup [s].
-        key_refresh_s: Least time between reloads of machine keys after an unknown wire id [s].
-        retry_min_s, retry_max_s: First and longest wait between retries of a batch while
-            storage is unavailable [s] (doubling in between).
-        shutdown_timeout_s: Longest flush of the queue after SIGTERM while storage is writable [s].
-        stall_timeout_s: At shutdown, a database call that has not returned for this long is
-            given up (its batch was never acknowledged) [s].
-        supervise_interval_s: Period of the check that restarts a dead decoder/writer thread [s].
-        limits: What is accepted from authenticated machines: datagram size, time window
-            around the server clock [s], sensor range margin (:class:`~cranetwin.protocol.Limits`).
-    """
-
-    host: str = "127.0.0.1"
-    port: int = 5005
-    queue_max: int = 50_000
-    batch_max: int = 1000
-    batch_wait_s: float = 0.05
-    rcvbuf_bytes: int = 8 * 1024 * 1024
-    metrics_host: str | None = None
-    metrics_port: int = 9105
-    metrics_path: Path | None = None
-    metrics_interval_s: float = 10.0
-    rollup_interval_s: float = 30.0
-    key_refresh_s: float = 2.0
-    retry_min_s: float = 0.05
-    retry_max_s: float = 5.0
-    shutdown_timeout_s: float = 60.0
-    stall_timeout_s: float = 5.0
-    supervise_interval_s: float = 0.2
-    limits: Limits = field(default_factory=Limits)
-
-
-# --- counters -----------------------------------------------------------------------------------
-COUNTERS: dict[str, str] = {
-    "received": "datagrams received on the UDP socket",
-    "received_bytes": "bytes of UDP payload received",
-    "accepted": "datagrams authenticated, valid and handed to the writer",
-    "stored_blocks": "sample blocks newly stored",
-    "stored_samples": "samples newly stored",
-    "duplicates": "blocks already stored (retransmissions), acknowledged again",
-    "status_reports": "status reports stored",
-    "acks_sent": "ack datagrams sent",
-    "refusals_sent": "refusal datagrams sent (authenticated datagrams never to be stored)",
-    "batches": "write batches committed",
-    "write_errors": "failed write attempts (storage unavailable or an unexpected error)",
-    "rollup_errors": "failed summary rollups (queries stay exact; retried)",
-    "writer_restarts": "writer threads restarted after dying",
-    "decoder_restarts": "decoder threads restarted after dying",
-}
-"""Counter name → help text; each is a key of :meth:`IngestDaemon.snapshot` and, with the prefix
-``cranetwin_ingest_`` and the suffix ``_total``, a Prometheus counter."""
-
-
-@dataclass
-class Metrics:
-    """Counters of one daemon run (ints; those touched by several threads go through
-    :meth:`add` / :meth:`drop`)."""
-
-    received: int = 0
-    received_bytes: int = 0
-    accepted: int = 0
-    stored_blocks: int = 0
-    stored_samples: int = 0
-    duplicates: int = 0
-    status_reports: int = 0
-    acks_sent: int = 0
-    refusals_sent: int = 0
-    batches: int = 0
-    write_errors: int = 0
-    rollup_errors: int = 0
-    writer_restarts: int = 0
-    decoder_restarts: int = 0
-    write_seconds: float = 0.0
-    dropped: Counter[str] = field(default_factory=Counter)
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
-
-    def add(self, name: str, n: int = 1) -> None:
-        """Add ``n`` to counter ``name`` (thread-safe)."""
-        with self._lock:
-            setattr(self, name, getattr(self, name) + n)
-
-    def drop(self, reason: str, n: int = 1) -> None:
-        """Count ``n`` datagrams dropped for ``reason`` (thread-safe)."""
-        with self._lock:
-            self.dropped[reason] += n
-
-    def snapshot(self, queue_depth: int, queue_max: int, started: float) -> dict[str, Any]:
-        with self._lock:
-            d: dict[str, Any] = {k: v for k, v in self.__dict__.items()
-                                 if k not in ("dropped", "_lock")}
-            d["dropped"] = dict(self.dropped)
-        d["dropped_total"] = sum(d["dropped"].values())
-        d["queue_depth"] = queue_depth
-        d["queue_max"] = queue_max
-        d["uptime_s"] = round(time.monotonic() - started, 3)
-        d["time_unix_s"] = time.time()
-        return d
-
-
-class _SnapshotCollector(Collector):
-    """Prometheus view of :meth:`IngestDaemon.snapshot`, read at scrape time (the hot path only
-    increments ints)."""
-
-    def __init__(self, daemon: IngestDaemon) -> None:
-        self.daemon = daemon
-
-    def describe(self) -> Iterable[Metric]:
-        return []  # names are not known before the first scrape (drop reasons); no clash check
-
-    def collect(self) -> Iterable[Metric]:
-        s = self.daemon.snapshot()
-        for name, doc in COUNTERS.items():
-            yield CounterMetricFamily(f"cranetwin_ingest_{name}", doc, value=s[name])
-        dropped = CounterMetricFamily("cranetwin_ingest_dropped",
-                                      "datagrams dropped, by reason", labels=["reason"])
-        for reason, n in sorted(s["dropped"].items()):
-            dropped.add_metric([reason], n)
-        yield dropped
-        yield GaugeMetricFamily("cranetwin_ingest_queue_depth",
-                                "datagrams waiting for the writer", value=s["queue_depth"])
-        yield GaugeMetricFamily("cranetwin_ingest_queue_max",
-                                "capacity of the datagram queue", value=s["queue_max"])
-        yield GaugeMetricFamily("cranetwin_ingest_storage_available",
-                                "1 while the last write attempt succeeded, 0 during an outage",
-                                value=0.0 if self.daemon.storage_outage else 1.0)
-        yield GaugeMetricFamily("cranetwin_ingest_uptime_seconds", "seconds since start [s]",
-                                value=s["uptime_s"])
-
-
-# --- storage outcomes ---------------------------------------------------------------------------
-Outcome = tuple[Literal["stored", "duplicate", "refused", "error"], str]
-"""Per-block result of a write: stored (new), duplicate (already held), refused (never storable,
-with storage's refusal reason) or error (the block could not be written even alone, for a reason
-storage did not explain: neither acked nor refused, so its sender retransmits; counted as
-``write_error``)."""
-
-
-def _outcomes(result: WriteResult) -> list[Outcome]:
-    return [(o.status, o.reason or "unstorable") if o.status == "refused" else (o.status, "")
-            for o in result.outcomes]
-
-
-def is_unavailable(exc: BaseException) -> bool:
-    """Whether ``exc`` is an operational database failure (connection lost, server down,
-    database locked, disk I/O): the write should be retried, not refused. Storage raises
-    :class:`~cranetwin.errors.StorageUnavailableError` for these; the SQLAlchemy errors in the
-    cause chain are recognised too, for calls that let them through."""
-    if isinstance(exc, StorageUnavailableError):
-        return True
-    seen: set[int] = set()
-    cur: BaseException | None = exc
-    while cur is not None and id(cur) not in seen:
-        seen.add(id(cur))
-        if dberrors.is_unavailable(cur):
-            return True
-        cur = cur.__cause__ or cur.__context__
-    return False
-
-
 def _is_refusal(datagram: bytes) -> bool:
     """Whether a datagram the daemon sends is a refusal (else an ack): its type byte."""
     return len(datagram) > 3 and datagram[3] == TYPE_REFUSAL
-
-
-class _Abandoned(Exception):
-    """Shutdown gave up retrying (storage unavailable)."""
 
 
 # --- the daemon ---------------------------------------------------------------------------------
@@ -355,9 +134,9 @@ class IngestDaemon:
         self.address: tuple[str, int] | None = None
         self.metrics_address: tuple[str, int] | None = None
         self.ready = threading.Event()
-        self.storage_outage = False
+        self.db = StorageWriter(self.store, self.config, self.metrics, self._log_once)
         self.registry = CollectorRegistry()
-        self.registry.register(_SnapshotCollector(self))
+        self.registry.register(SnapshotCollector(self))
         self.write_latency = Histogram(
             "cranetwin_ingest_write_seconds", "duration of one committed batch write [s]",
             registry=self.registry,
@@ -374,13 +153,11 @@ class IngestDaemon:
         self._rx_lock = threading.Lock()  # the Receiver is shared by decoder and writer
         self._stopping = False
         self._draining = threading.Event()   # shutdown: finish what is queued, then return
-        self._abandon = threading.Event()    # shutdown: give up unwritten batches now
+        self._abandon = self.db.abandon      # shutdown: give up unwritten batches now
         self._decoder_done = threading.Event()
         self._threads: dict[str, threading.Thread] = {}
         self._finished: set[str] = set()
-        self._progress = time.monotonic()    # last time the writer was not inside a DB call
         self._in_hand = 0                    # items of the batch the writer is writing
-        self._outage_since: float | None = None
         self._logged: set[str] = set()
         self._log_lock = threading.Lock()
         self._transport: asyncio.DatagramTransport | None = None
@@ -390,7 +167,12 @@ class IngestDaemon:
         self._signals = 0
         self._http: Any = None
         self._started = time.monotonic()
-        self._last_rollup = time.monotonic()
+
+    @property
+    def storage_outage(self) -> bool:
+        """True while storage is unavailable (from the first failed write of an outage until a
+        write succeeds)."""
+        return self.db.outage
 
     # -- logging ------------------------------------------------------------------------------
     def _log_once(self, kind: str, exc: BaseException | None, msg: str, *args: Any) -> None:
@@ -582,7 +364,7 @@ class IngestDaemon:
         meanwhile) → acks. Returns once draining and everything decoded is written (or
         abandoned)."""
         while True:
-            self._progress = time.monotonic()
+            self.db.progress = time.monotonic()
             if self._abandon.is_set():
                 self._discard_decoded()
                 return
@@ -592,7 +374,7 @@ class IngestDaemon:
                 if self._draining.is_set() and self._decoder_done.is_set():
                     return
                 if not self._draining.is_set():
-                    self._maybe_rollup()
+                    self.db.maybe_rollup()
                 continue
             items = list(first)
             while len(items) < self.config.batch_max:
@@ -603,7 +385,7 @@ class IngestDaemon:
             self._in_hand = len(items)
             try:
                 self._write(items)
-            except _Abandoned:
+            except Abandoned:
                 self.metrics.drop("unwritten_at_shutdown", len(items))
             except Exception as exc:  # a bug must not kill the writer: nothing acked, retried
                 self.metrics.add("write_errors")
@@ -611,7 +393,7 @@ class IngestDaemon:
                                "acknowledged (senders retransmit): %s", len(items), exc)
             self._in_hand = 0
             if not self._draining.is_set():
-                self._maybe_rollup()
+                self.db.maybe_rollup()
 
     def _discard_decoded(self) -> None:
         while True:
@@ -621,77 +403,11 @@ class IngestDaemon:
                 return
             self.metrics.drop("unwritten_at_shutdown", len(batch))
 
-    def _retry(self, what: str, fn: Callable[[], Any]) -> Any:
-        """``fn()``, retried with exponential backoff while storage is unavailable.
-
-        Raises:
-            _Abandoned: shutdown gave up while storage was unavailable.
-            Exception: whatever ``fn`` raised that is not unavailability.
-        """
-        cfg = self.config
-        delay = cfg.retry_min_s
-        while True:
-            try:
-                result = fn()
-            except Exception as exc:
-                self._progress = time.monotonic()
-                if not is_unavailable(exc):
-                    raise
-                self.metrics.add("write_errors")
-                if self._outage_since is None:
-                    self._outage_since = time.monotonic()
-                    self.storage_outage = True
-                    log.error("storage unavailable (%s): retrying with backoff up to %.1f s, "
-                              "nothing is acknowledged meanwhile: %s", what, cfg.retry_max_s,
-                              " ".join(str(exc).split())[:500])
-                if self._abandon.wait(delay):
-                    raise _Abandoned() from exc
-                delay = min(2 * delay, cfg.retry_max_s)
-                continue
-            self._progress = time.monotonic()
-            if self._outage_since is not None:
-                log.warning("storage available again after %.1f s; ingest resumes",
-                            time.monotonic() - self._outage_since)
-                self._outage_since = None
-                self.storage_outage = False
-            return result
-
-    def _write_blocks(self, blocks: Sequence[SampleBlock]) -> list[Outcome]:
-        """Per-block outcomes of one :meth:`Store.write_batch`, retried while storage is
-        unavailable. A batch that fails as a whole for another reason (nothing of it stored)
-        is written again block by block, so such a failure only ever holds back the blocks
-        that cause it."""
-        if not blocks:
-            return []
-        try:
-            result: WriteResult = self._retry("batch", partial(self.store.write_batch, blocks))
-            return _outcomes(result)
-        except _Abandoned:
-            raise
-        except Exception as exc:
-            self.metrics.add("write_errors")
-            self._log_once("write_batch", exc, "batch write failed unexpectedly, writing its "
-                           "%d block(s) one by one: %s", len(blocks), exc)
-        outcomes: list[Outcome] = []
-        for b in blocks:
-            try:
-                one: WriteResult = self._retry("block", partial(self.store.write_batch, [b]))
-                outcomes.extend(_outcomes(one))
-            except _Abandoned:
-                raise
-            except Exception as exc:
-                self.metrics.add("write_errors")
-                self._log_once("write_block", exc, "a block of %s (epoch %d, seq %d) could not "
-                               "be written alone (not acknowledged; its sender retransmits): %s",
-                               b.machine_id, b.epoch, b.seq, exc)
-                outcomes.append(("error", "write_error"))
-        return outcomes
-
     def _write(self, items: list[tuple[Item, Addr]]) -> None:
         """Write one batch; ack what is durable, refuse what storage refused.
 
         Raises:
-            _Abandoned: shutdown gave up while storage was unavailable (nothing acked).
+            Abandoned: shutdown gave up while storage was unavailable (nothing acked).
         """
         if not items:
             return
@@ -699,7 +415,7 @@ class IngestDaemon:
         t = time.perf_counter()
         block_items = [(i, a) for i, a in items if isinstance(i, SampleBlock)]
         blocks = [i for i, _ in block_items]
-        outcomes = self._write_blocks(blocks)
+        outcomes = self.db.write_blocks(blocks)
         durable: list[tuple[Item, Addr]] = []
         refused: list[tuple[Item, Addr, str]] = []
         new: list[SampleBlock] = []
@@ -717,8 +433,8 @@ class IngestDaemon:
         for item, addr in items:
             if isinstance(item, StatusReport):
                 try:
-                    self._retry("status", partial(self._write_status, item))
-                except _Abandoned:
+                    self.db.retry("status", partial(self.db.write_status, item))
+                except Abandoned:
                     raise
                 except Exception as exc:
                     m.drop("write_error")
@@ -766,31 +482,6 @@ class IngestDaemon:
                                 "refusals_sent" if _is_refusal(reply) else "acks_sent"))
         for data, addr, counter in out:
             self._sendto(data, addr, counter)
-
-    def _write_status(self, r: StatusReport) -> None:
-        def val(x: float) -> float | None:
-            return None if x != x else x  # NaN → not reported
-
-        self.store.update_status(r.machine_id, r.t_ns / 1e9, latitude_deg=val(r.latitude_deg),
-                                 longitude_deg=val(r.longitude_deg),
-                                 altitude_m=val(r.altitude_m),
-                                 operating_hours=val(r.operating_hours))
-        self.metrics.add("status_reports")
-
-    def _maybe_rollup(self, force: bool = False) -> None:
-        now = time.monotonic()
-        if not force and now - self._last_rollup < self.config.rollup_interval_s:
-            return
-        self._last_rollup = now
-        try:
-            # minutes that ended a while ago (machine clocks may lag), or everything at shutdown
-            self.store.rollup(None if force else time.time() - 120)
-        except Exception as exc:  # never fatal: dirty minutes stay exact, retried next time
-            self.metrics.add("rollup_errors")
-            self._log_once("rollup", exc, "summary rollup failed (queries stay exact; retried "
-                           "every %.0f s): %s", self.config.rollup_interval_s, exc)
-        finally:
-            self._progress = time.monotonic()
 
     # -- threads and supervision ----------------------------------------------------------------
     def _run_thread(self, name: str, target: Callable[[], None]) -> None:
@@ -861,7 +552,7 @@ class IngestDaemon:
                      "duplicates %d, dropped %s, queue %d/%d, write errors %d%s",
                      s["received"], s["stored_blocks"], s["stored_samples"], rate,
                      s["duplicates"], s["dropped"], s["queue_depth"], s["queue_max"],
-                     s["write_errors"], ", STORAGE UNAVAILABLE" if self.storage_outage else "")
+                     s["write_errors"], ", STORAGE UNAVAILABLE" if self.db.outage else "")
             try:
                 self.write_metrics()
             except OSError as exc:
@@ -979,14 +670,14 @@ class IngestDaemon:
             if writer is None or (not writer.is_alive() and "writer" in self._finished):
                 break
             now = time.monotonic()
-            if self.storage_outage:
+            if self.db.outage:
                 log.warning("storage unavailable at shutdown: giving up %d queued datagram(s) "
                             "and the batch in hand (never acknowledged: their senders "
                             "retransmit)", self._queue.qsize())
                 self._abandon.set()
-            elif now - self._progress > cfg.stall_timeout_s:
+            elif now - self.db.progress > cfg.stall_timeout_s:
                 log.warning("a database call has not returned for %.1f s: giving up the "
-                            "unwritten batches (never acknowledged)", now - self._progress)
+                            "unwritten batches (never acknowledged)", now - self.db.progress)
                 self._abandon.set()
             elif now - t0 > cfg.shutdown_timeout_s:
                 log.warning("flush not done after %.0f s: giving up the rest (never "
@@ -1009,7 +700,7 @@ class IngestDaemon:
                 await task
         transport.close()
         if clean:
-            await self._bounded(lambda: self._maybe_rollup(True), cfg.stall_timeout_s,
+            await self._bounded(lambda: self.db.maybe_rollup(True), cfg.stall_timeout_s,
                                 "final summary rollup")
         if self._http is not None:
             self._http.shutdown()
@@ -1054,56 +745,6 @@ def _drain(q: queue.Queue[list[tuple[Item, Addr]]]) -> list[list[tuple[Item, Add
         except queue.Empty:
             return out
 
-
-def _bind_message(exc: OSError, host: str, port: int, proto: str, option: str) -> str:
-    where = f"{host}:{port}" if ":" not in host else f"[{host}]:{port}"
-    if isinstance(exc, socket.gaierror):
-        return f"{option} {where}: cannot resolve host {host!r} ({exc.strerror})"
-    if exc.errno == errno.EADDRINUSE:
-        return (f"{option} {where}: {proto} port {port} is already in use (another daemon "
-                f"running?); stop it or choose another port")
-    if exc.errno == errno.EADDRNOTAVAIL:
-        return f"{option} {where}: {host} is not an address of this machine"
-    if exc.errno == errno.EACCES:
-        return f"{option} {where}: permission denied (ports below 1024 need privileges)"
-    return f"{option} {where}: cannot bind {proto} socket: {exc.strerror or exc}"
-
-
-def _bind(host: str, port: int, kind: socket.SocketKind, proto: str,
-          option: str) -> socket.socket:
-    """A socket of ``kind`` bound to (host, port), resolving ``host`` (IPv4 or IPv6).
-
-    Raises:
-        IngestConfigError: unresolvable host, non-local address, port in use, no permission.
-    """
-    if not 0 <= port <= 65535:
-        raise IngestConfigError(f"{option}: port {port} outside 0..65535")
-    try:
-        infos = socket.getaddrinfo(host, port, type=kind, flags=socket.AI_PASSIVE)
-    except (socket.gaierror, UnicodeError) as exc:
-        if isinstance(exc, socket.gaierror):
-            raise IngestConfigError(_bind_message(exc, host, port, proto, option)) from None
-        raise IngestConfigError(f"{option}: bad host name {host!r}") from None
-    family, socktype, sproto, _, addr = infos[0]
-    sock = socket.socket(family, socktype, sproto)
-    try:
-        if kind == socket.SOCK_STREAM:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(addr)
-    except OSError as exc:
-        sock.close()
-        raise IngestConfigError(_bind_message(exc, host, port, proto, option)) from None
-    return sock
-
-
-def new_event_loop() -> asyncio.AbstractEventLoop:
-    """uvloop's loop when installed (it receives ≈ 3× more datagrams/s), else asyncio's."""
-    try:
-        import uvloop
-    except ImportError:  # pragma: no cover - uvloop is a dependency
-        return asyncio.new_event_loop()
-    loop: asyncio.AbstractEventLoop = uvloop.new_event_loop()
-    return loop
 
 
 def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None = None,

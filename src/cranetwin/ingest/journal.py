@@ -32,6 +32,11 @@ keeps the longest valid prefix)::
   directory whose state cannot be read is an error; a new epoch is only ever chosen for an
   empty directory, so data that could not be read is never overwritten under a new identity.
 
+Modules: the record format, segment indexing and reading, and file helpers are
+:mod:`~cranetwin.ingest.journal_files`; the ``state`` file and the dead letters of
+``rejected.log`` are :mod:`~cranetwin.ingest.journal_state`; this module is the journal itself
+(appending, syncing, rolling, releasing, recovery on open).
+
 Files are created 0600 and directories 0700. One process at a time: a second
 :class:`FileJournal` on the same directory raises :class:`SenderError` (two senders sharing an
 epoch would reuse sequence numbers).
@@ -43,72 +48,48 @@ import bisect
 import contextlib
 import errno
 import fcntl
-import json
 import logging
 import os
-import re
-import secrets
-import struct
 import time
-import zlib
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from types import TracebackType
 
-from cranetwin.errors import ProtocolError
+from cranetwin.ingest.journal_files import (
+    FILE_MODE,
+    MAX_RECORD,
+    MAX_SEQ,
+    REC,
+    SEG_RE,
+    Cursor,
+    Segment,
+    SenderError,
+    encode_record,
+    index_records,
+    make_dirs,
+    read_records,
+    seg_name,
+    write_all,
+    write_file,
+)
+from cranetwin.ingest.journal_state import (
+    STATE_FORMAT,
+    load_rejected,
+    new_epoch,
+    read_state,
+    rejected_line,
+    state_body,
+)
+
+__all__ = ["MAX_RECORD", "MAX_SEQ", "SEGMENT_BYTES", "SEGMENT_RECORDS", "STATE_FORMAT",
+           "STATE_INTERVAL_S", "FileJournal", "SenderError", "encode_record"]
 
 log = logging.getLogger(__name__)
 
-_REC = struct.Struct(">IIQ")  # length of the datagram, crc32 of (seq ‖ datagram), seq
-MAX_RECORD = 65_507  # largest UDP payload [bytes]
-MAX_SEQ = 2**63  # sequence numbers are < 2**63
 SEGMENT_BYTES = 4 << 20
 SEGMENT_RECORDS = 4096
 STATE_INTERVAL_S = 5.0
-STATE_FORMAT = "cranetwin-send-journal"
-_SEG_RE = re.compile(r"seg-(\d{20})\.log")
-_SPARSE = 64  # a file offset is kept for every 64th record of a segment
 _WRITE_OUT = 1 << 20  # buffered bytes written to the OS (not synced) beyond this
-_READ_BLOCK = 256 << 10
-_FILE_MODE = 0o600
-_DIR_MODE = 0o700
-
-
-class SenderError(ProtocolError):
-    """The sender could not start or continue: bad address, bad key, or an unusable journal."""
-
-
-def _seg_name(first: int) -> str:
-    return f"seg-{first:020d}.log"
-
-
-def _crc(seq_bytes: bytes | memoryview, datagram: bytes | memoryview) -> int:
-    return zlib.crc32(datagram, zlib.crc32(seq_bytes)) & 0xFFFFFFFF
-
-
-def encode_record(seq: int, datagram: bytes) -> bytes:
-    """One journal record: ``u32 length ‖ u32 crc32(seq ‖ datagram) ‖ u64 seq ‖ datagram``."""
-    seq_bytes = seq.to_bytes(8, "big")
-    return _REC.pack(len(datagram), _crc(seq_bytes, datagram), seq) + datagram
-
-
-@dataclass
-class _Segment:
-    """One segment file: records ``first`` … ``end − 1`` in ``size`` bytes."""
-
-    first: int
-    path: Path
-    end: int = 0
-    size: int = 0
-    marks: list[int] = field(default_factory=list)  # offset of record first + k·_SPARSE
-
-    def add(self, record_bytes: int) -> None:
-        if (self.end - self.first) % _SPARSE == 0:
-            self.marks.append(self.size)
-        self.end += 1
-        self.size += record_bytes
 
 
 class FileJournal:
@@ -156,7 +137,7 @@ class FileJournal:
         self._start = self._end = self._synced_end = self._released = 0
         self._owner: str | None = None
         self._last_state = 0.0
-        self._segments: list[_Segment] = []
+        self._segments: list[Segment] = []
         self._firsts: list[int] = []
         self._fd: int | None = None  # active (newest) segment, open for appending
         self._buf = bytearray()  # appended, not yet written to the OS
@@ -164,7 +145,7 @@ class FileJournal:
         self._tail_first = 0  # seq of _tail[0]
         self._dir_dirty = False
         self._rfd: tuple[int, int] | None = None  # (segment first, fd) of the last read
-        self._cursor: tuple[int, int, int] = (-1, -1, 0)  # (segment, next seq, its offset)
+        self._cursor: Cursor = (-1, -1, 0)  # (segment, next seq, its offset)
         self._rejected: set[int] = set()
         self._state_dirty = False
         self._closed = False
@@ -219,7 +200,7 @@ class FileJournal:
         if not self._tail:
             self._tail_first = seq
         self._buf += rec
-        self._tail.append(rec[_REC.size:])
+        self._tail.append(rec[REC.size:])
         seg.add(len(rec))
         self._end = seq + 1
         if len(self._buf) >= _WRITE_OUT:
@@ -313,13 +294,10 @@ class FileJournal:
             raise ValueError(f"reject of seq {seq}, the journal ends at {self._end}")
         if seq >= self._synced_end:
             self.sync()  # a refused seq is durable: a crash can never hand it out again
-        line = json.dumps({
-            "time": datetime.now(UTC).isoformat(timespec="milliseconds"),
-            "epoch": self._epoch, "seq": seq, "reason": str(reason),
-            "bytes": len(datagram), "datagram": bytes(datagram).hex()}) + "\n"
-        path = self.directory / "rejected.log"
+        line = rejected_line(self._epoch, seq, reason, datagram)
+        path = self.rejected_path
         try:
-            self._write_file(path, line.encode(), os.O_APPEND)
+            self._write_file(path, line, os.O_APPEND)
         except OSError as exc:
             raise self._fail(f"cannot write {path}: {exc}") from exc
         log.warning("journal %s: seq %d (epoch %d) refused by the server (%s), kept in %s",
@@ -396,7 +374,7 @@ class FileJournal:
     def _open(self, owner: str | None) -> None:
         d = self.directory
         try:
-            _make_dirs(d)
+            make_dirs(d)
             self._dir_fd = os.open(d, os.O_RDONLY | os.O_DIRECTORY)
         except OSError as exc:
             raise SenderError(f"cannot use {d} as the send journal: {exc}") from exc
@@ -410,19 +388,19 @@ class FileJournal:
             names.discard("state.tmp")
             with contextlib.suppress(OSError):
                 os.unlink(d / "state.tmp")
-        segs = sorted((int(m.group(1)), n) for n in names if (m := _SEG_RE.fullmatch(n)))
+        segs = sorted((int(m.group(1)), n) for n in names if (m := SEG_RE.fullmatch(n)))
         if "state" not in names:
             if segs or "rejected.log" in names:
                 raise SenderError(
                     f"the send journal {d} holds data but no state file (its epoch is unknown); "
                     "restore the state file or move the directory away to start a new journal")
-            self._epoch = _new_epoch()
+            self._epoch = new_epoch()
             self._released = 0
             self._owner = owner
             self._write_state()
             log.info("journal %s: new, epoch %d", d, self._epoch)
         else:
-            self._epoch, self._released, self._owner = self._read_state()
+            self._epoch, self._released, self._owner = read_state(d)
             if owner is not None and self._owner is not None and owner != self._owner:
                 raise SenderError(
                     f"the send journal {d} belongs to {self._owner!r}, not {owner!r}: its "
@@ -442,7 +420,7 @@ class FileJournal:
     def _lock(self) -> None:
         path = self.directory / "lock"
         try:
-            self._lock_fd = os.open(path, os.O_RDWR | os.O_CREAT, _FILE_MODE)
+            self._lock_fd = os.open(path, os.O_RDWR | os.O_CREAT, FILE_MODE)
         except OSError as exc:
             raise SenderError(f"cannot create {path}: {exc}") from exc
         try:
@@ -460,38 +438,13 @@ class FileJournal:
             os.ftruncate(self._lock_fd, 0)
             os.pwrite(self._lock_fd, f"{os.getpid()}\n".encode(), 0)
 
-    def _read_state(self) -> tuple[int, int, str | None]:
-        path = self.directory / "state"
-        try:
-            with open(path, "rb") as f:
-                raw = f.read(1 << 16)
-        except OSError as exc:
-            raise SenderError(f"cannot read the journal state {path}: {exc}") from exc
-        try:
-            st = json.loads(raw)
-            ok = (isinstance(st, dict) and st.get("format") == STATE_FORMAT
-                  and st.get("version") == 1)
-            epoch, released, owner = st["epoch"], st["released"], st.get("owner")
-            ok = ok and type(epoch) is int and 0 < epoch < MAX_SEQ
-            ok = ok and type(released) is int and 0 <= released < MAX_SEQ
-            ok = ok and (owner is None or isinstance(owner, str))
-        except (ValueError, TypeError, KeyError, AttributeError):
-            ok = False
-        if not ok:
-            raise SenderError(
-                f"the journal state {path} is corrupt ({raw[:80]!r}); the datagrams in "
-                f"{self.directory} cannot be sent without it. Repair it or move the directory "
-                "away to start a new journal")
-        return epoch, released, owner
-
     def _write_state(self) -> None:
         """Persist epoch and watermark atomically: temp file, fsync, rename, directory fsync."""
         d = self.directory
         tmp, path = d / "state.tmp", d / "state"
-        body = json.dumps({"format": STATE_FORMAT, "version": 1, "epoch": self._epoch,
-                           "released": self._released, "owner": self._owner}) + "\n"
+        body = state_body(self._epoch, self._released, self._owner)
         try:
-            self._write_file(tmp, body.encode(), os.O_TRUNC)
+            self._write_file(tmp, body, os.O_TRUNC)
             os.replace(tmp, path)
             self._fsync_dir()
         except OSError as exc:
@@ -505,9 +458,9 @@ class FileJournal:
         # segments followed by one that starts at or below the watermark hold released data only
         while len(segs) > 1 and segs[1][0] <= watermark:
             self._unlink(d / segs.pop(0)[1])
-        loaded: list[_Segment] = []
+        loaded: list[Segment] = []
         for k, (first, name) in enumerate(segs):
-            seg = self._scan(_Segment(first, d / name, end=first), last=k == len(segs) - 1)
+            seg = self._scan(Segment(first, d / name, end=first), last=k == len(segs) - 1)
             if loaded and seg.first != loaded[-1].end and seg.first > max(watermark,
                                                                           loaded[0].first):
                 raise SenderError(
@@ -530,25 +483,14 @@ class FileJournal:
             except OSError as exc:
                 raise SenderError(f"cannot open {loaded[-1].path}: {exc}") from exc
 
-    def _scan(self, seg: _Segment, *, last: bool) -> _Segment:
+    def _scan(self, seg: Segment, *, last: bool) -> Segment:
         """Index the records of ``seg``; cut a torn or corrupt tail if it is the newest."""
         try:
             with open(seg.path, "rb") as f:
                 data = f.read()
         except OSError as exc:
             raise SenderError(f"cannot read {seg.path}: {exc}") from exc
-        mv = memoryview(data)
-        pos, size = 0, len(data)
-        while pos < size:
-            if pos + _REC.size > size:
-                break
-            length, crc, seq = _REC.unpack_from(mv, pos)
-            end = pos + _REC.size + length
-            if (length == 0 or length > MAX_RECORD or end > size or seq != seg.end
-                    or _crc(mv[pos + 8:pos + 16], mv[pos + 16:end]) != crc):
-                break
-            seg.add(end - pos)
-            pos = end
+        pos, size = index_records(seg, data), len(data)
         if pos < size:
             if not last:
                 raise SenderError(
@@ -573,22 +515,7 @@ class FileJournal:
 
     def _load_rejected(self) -> None:
         """Seqs of this epoch at or above the watermark that the server refused before."""
-        path = self.directory / "rejected.log"
-        try:
-            with open(path, "rb") as f:
-                lines = f.read().splitlines()
-        except FileNotFoundError:
-            return
-        except OSError as exc:
-            raise SenderError(f"cannot read {path}: {exc}") from exc
-        for line in lines:
-            try:
-                rec = json.loads(line)
-                if rec["epoch"] == self._epoch and isinstance(rec["seq"], int):
-                    if self._start <= rec["seq"] < self._end:
-                        self._rejected.add(rec["seq"])
-            except (ValueError, TypeError, KeyError):
-                continue  # a torn last line, or edited by the operator
+        self._rejected |= load_rejected(self.rejected_path, self._epoch, self._start, self._end)
 
     # --- internals -----------------------------------------------------------------------------
     def _check_open(self) -> None:
@@ -626,7 +553,7 @@ class FileJournal:
         if self._state_dirty and self._clock() - self._last_state >= self.state_interval_s:
             self._write_state()
 
-    def _roll(self, seq: int) -> _Segment:
+    def _roll(self, seq: int) -> Segment:
         """Seal the active segment (write + fsync) and start ``seg-<seq>.log``."""
         if self._fd is not None:
             self._write_out()
@@ -639,13 +566,13 @@ class FileJournal:
                 raise self._fail(f"cannot seal {self._segments[-1].path}: {exc}") from exc
             self._fd = None
             self._synced_end = max(self._synced_end, self._segments[-1].end)
-        path = self.directory / _seg_name(seq)
+        path = self.directory / seg_name(seq)
         try:
             self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND,
-                               _FILE_MODE)
+                               FILE_MODE)
         except OSError as exc:
             raise self._fail(f"cannot create {path}: {exc}") from exc
-        seg = _Segment(seq, path, end=seq)
+        seg = Segment(seq, path, end=seq)
         self._segments.append(seg)
         self._firsts.append(seq)
         self._dir_dirty = True
@@ -656,13 +583,13 @@ class FileJournal:
             return
         assert self._fd is not None
         try:
-            _write_all(self._fd, self._buf)
+            write_all(self._fd, self._buf)
         except OSError as exc:
             raise self._fail(f"cannot write to {self._segments[-1].path}: {exc}") from exc
         self._buf.clear()
         self._tail.clear()
 
-    def _read_segment(self, seg: _Segment, seq: int, n: int) -> list[bytes]:
+    def _read_segment(self, seg: Segment, seq: int, n: int) -> list[bytes]:
         """``n`` datagrams from ``seq`` in ``seg`` (all of them on disk, not in the buffer)."""
         if self._rfd is None or self._rfd[0] != seg.first:
             if self._rfd is not None:
@@ -672,55 +599,13 @@ class FileJournal:
                 self._rfd = (seg.first, os.open(seg.path, os.O_RDONLY))
             except OSError as exc:
                 raise SenderError(f"cannot open {seg.path}: {exc}") from exc
-        fd = self._rfd[1]
-        if self._cursor[:2] == (seg.first, seq):
-            pos, at = self._cursor[2], seq
-        else:
-            k = (seq - seg.first) // _SPARSE
-            pos, at = seg.marks[k], seg.first + k * _SPARSE
-        out: list[bytes] = []
-        block, bpos = b"", pos  # file bytes [bpos, bpos + len(block))
-        while len(out) < n:
-            need = pos + _REC.size - bpos
-            if need > len(block):
-                block, bpos = self._pread(fd, seg, pos, _REC.size), pos
-            length, crc, rseq = _REC.unpack_from(block, pos - bpos)
-            end = pos + _REC.size + length
-            if end - bpos > len(block):
-                block, bpos = self._pread(fd, seg, pos, _REC.size + length), pos
-            body = block[pos - bpos + _REC.size:end - bpos]
-            if rseq != at or _crc(block[pos - bpos + 8:pos - bpos + 16], body) != crc:
-                raise SenderError(f"{seg.path}: record seq {at} at byte {pos} no longer matches "
-                                  "its checksum (disk damage?)")
-            if at >= seq:
-                out.append(bytes(body))
-            at += 1
-            pos = end
-        self._cursor = (seg.first, at, pos)
+        out, self._cursor = read_records(self._rfd[1], seg, seq, n, self._cursor)
         return out
-
-    def _pread(self, fd: int, seg: _Segment, pos: int, need: int) -> bytes:
-        want = max(need, min(_READ_BLOCK, seg.size - pos))
-        try:
-            data = os.pread(fd, want, pos)
-        except OSError as exc:
-            raise SenderError(f"cannot read {seg.path}: {exc}") from exc
-        if len(data) < need:
-            raise SenderError(f"{seg.path} is shorter than its index ({pos + len(data)} < "
-                              f"{pos + need} bytes): changed behind the sender's back?")
-        return data
 
     def _write_file(self, path: Path, data: bytes, mode_flag: int) -> None:
         """Write ``data`` to ``path`` (created 0600; ``os.O_APPEND`` or ``os.O_TRUNC``) and
         fsync it when the journal syncs. Raises OSError."""
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | mode_flag, _FILE_MODE)
-        try:
-            _write_all(fd, data)
-            if self.fsync:
-                os.fsync(fd)
-                self.fsyncs += 1
-        finally:
-            os.close(fd)
+        self.fsyncs += write_file(path, data, mode_flag, self.fsync)
 
     def _fsync_dir(self) -> None:
         if self.fsync:
@@ -742,34 +627,3 @@ class FileJournal:
                 with contextlib.suppress(OSError):
                     os.close(fd)
         self._fd, self._rfd, self._dir_fd, self._lock_fd = None, None, -1, -1
-
-
-def _new_epoch() -> int:
-    """A random epoch in 1 … 2**63 − 1."""
-    while True:
-        e = secrets.randbits(63)
-        if e:
-            return e
-
-
-def _make_dirs(d: Path) -> None:
-    """Create ``d`` and its missing parents with mode 0700."""
-    missing: list[Path] = []
-    p = d
-    while not p.exists():
-        missing.append(p)
-        if p.parent == p:
-            break
-        p = p.parent
-    for q in reversed(missing):
-        with contextlib.suppress(FileExistsError):
-            os.mkdir(q, _DIR_MODE)
-    if not d.is_dir():
-        raise NotADirectoryError(errno.ENOTDIR, "not a directory", str(d))
-
-
-def _write_all(fd: int, data: bytes | bytearray) -> None:
-    mv = memoryview(data)
-    while mv:
-        n = os.write(fd, mv)
-        mv = mv[n:]

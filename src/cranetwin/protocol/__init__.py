@@ -2,9 +2,10 @@
 
 Pure functions and state machines over bytes and a caller-supplied ``now``: no sockets, no
 clocks, no threads, no files (the spill file and the sockets live in :mod:`cranetwin.ingest`).
-Dependencies: the standard library plus numpy. DESIGN.md lists "stdlib" for this package; numpy
-is used because the daemon must decode 100,000 samples/s on two cores, and bit-packing in pure
-Python is ~50× too slow. numpy does no I/O, so the package is still sans-IO.
+Dependencies: the standard library, numpy and :mod:`cranetwin.codec` (quantisation,
+zigzag/deltas and bit packing, shared with storage). numpy because the daemon must decode
+100,000 samples/s on two cores, and bit-packing in pure Python is ~50× too slow; numpy does no
+I/O, so the package is still sans-IO.
 
 Datagrams (all authenticated with HMAC-SHA256/128 under a per-machine secret):
 

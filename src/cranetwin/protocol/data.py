@@ -6,17 +6,20 @@ differences d_i = k_i − k_{i−1} as fixed-width unsigned offsets ``d_i − mi
 width w that holds ``max(d) − min(d)`` (frame-of-reference bit packing). Smooth motion plus a few
 quanta of sensor noise gives w ≈ 3–6 bits, i.e. under 1 byte per channel per sample. Missing
 samples (NaN) are flagged in a per-channel dropout bitmap; a channel that is entirely missing is
-left out via the channel mask. Byte layout: docs/PROTOCOL.md, "Data datagram".
+left out via the channel mask. Byte layout: docs/PROTOCOL.md, "Data datagram". The integer
+transforms are :mod:`cranetwin.codec`'s; this module frames them. A decoded block carries the
+integer steps (``SampleBlock.steps``) so that storage keeps them without a float round trip.
 """
 
 from __future__ import annotations
 
 import struct
-from functools import lru_cache
 
 import numpy as np
 import numpy.typing as npt
 
+from cranetwin import codec
+from cranetwin.codec import on_grid as on_grid  # re-exported
 from cranetwin.protocol.errors import GarbageError, LayoutError, TruncatedError
 from cranetwin.protocol.wire import (
     SEQ_LIMIT,
@@ -31,56 +34,26 @@ from cranetwin.protocol.wire import (
     peek_header,
     put_varint,
     tag,
-    unzigzag,
-    zigzag,
 )
 from cranetwin.samples import SampleBlock
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
-U64 = npt.NDArray[np.uint64]
 
 DATA_FIXED = struct.Struct(">QqIHII")  # seq, t0_ns, period_ns, n, layout_id, channel mask
 """Fixed fields after the header (30 bytes); the lag varint follows them."""
 MAX_SAMPLES = 4096
 FLAG_DROPOUTS = 0x01
-_K_LIMIT = 2.0**53  # |k| beyond which float64 ↔ int64 is no longer exact
 
 
 def quantise(values: F64, resolution: tuple[float, ...]) -> tuple[I64, npt.NDArray[np.bool_]]:
-    """Integers on the sensor grid, k = round(v / resolution), and the missing mask.
-
-    Args:
-        values: Shape (n, c) [channel units]; NaN = missing.
-        resolution: Quantisation step per channel, length c [channel units].
-
-    Returns:
-        ``(k, missing)``, both shape (n, c); k is 0 where missing.
+    """Integers on the sensor grid, k = round(v / resolution), and the missing mask
+    (:func:`cranetwin.codec.quantise`).
 
     Raises:
         ValueError: shapes disagree, or a value is infinite or beyond ±2**53 quanta.
     """
-    v = np.asarray(values, dtype=np.float64)
-    res = np.asarray(resolution, dtype=np.float64)
-    if v.ndim != 2 or v.shape[1] != res.shape[0]:
-        raise ValueError(f"values shape {v.shape} does not match {res.shape[0]} channels")
-    missing = np.isnan(v)
-    q = np.round(np.where(missing, 0.0, v) / res)
-    if not np.all(np.abs(q) < _K_LIMIT):
-        raise ValueError("values are infinite or beyond ±2**53 quanta of their resolution")
-    return q.astype(np.int64), missing
-
-
-def on_grid(values: F64, resolution: tuple[float, ...]) -> F64:
-    """``values`` snapped to the sensor grid exactly as a decoder returns them (k · resolution)."""
-    k, missing = quantise(values, resolution)
-    out = k.astype(np.float64) * np.asarray(resolution, dtype=np.float64)
-    out[missing] = np.nan
-    return out
-
-
-def _bit_width(span: int) -> int:
-    return int(span).bit_length()
+    return codec.quantise(values, resolution)
 
 
 def encode_data(key: MachineKey, seq: int, t0_ns: int, period_ns: int, values: F64, *,
@@ -131,20 +104,13 @@ def encode_data(key: MachineKey, seq: int, t0_ns: int, period_ns: int, values: F
     out = pack_header(version, TYPE_DATA, key.wire_id, 0 if version == 1 else epoch)
     out += DATA_FIXED.pack(seq, t0_ns, period_ns, n, layout.layout_id, mask)
     put_varint(out, seq - low)
-    k = k[:, cols]
     miss = missing[:, cols]
     gappy: npt.NDArray[np.bool_] = np.asarray(miss.any(axis=0))
-    if gappy.any():  # carry the previous value through gaps (deltas 0), the first valid backwards
-        rows = np.arange(n)[:, None]
-        idx = np.where(miss, 0, rows)
-        np.maximum.accumulate(idx, axis=0, out=idx)
-        idx = np.maximum(idx, np.argmax(~miss, axis=0)[None, :])
-        k = np.take_along_axis(k, idx, axis=0)
+    k = codec.carry_through_gaps(k[:, cols], miss)  # gaps add no deltas
     if n > 1:
-        d = np.diff(k, axis=0)
+        d = codec.deltas(k)
         dmin = d.min(axis=0)
-        span = d.max(axis=0) - dmin
-        widths = [int(x).bit_length() for x in span]
+        widths = codec.row_widths(d.max(axis=0) - dmin)
     else:
         dmin = np.zeros(len(cols), dtype=np.int64)
         widths = [0] * len(cols)
@@ -152,17 +118,16 @@ def encode_data(key: MachineKey, seq: int, t0_ns: int, period_ns: int, values: F
     packed_bitmaps = np.packbits(miss, axis=0) if gappy.any() else None
     for i in range(len(cols)):
         out.append(FLAG_DROPOUTS if gappy[i] else 0)
-        put_varint(out, zigzag(int(firsts[i])))
+        put_varint(out, codec.zigzag(int(firsts[i])))
         if n > 1:
-            put_varint(out, zigzag(int(dmin[i])))
+            put_varint(out, codec.zigzag(int(dmin[i])))
             out.append(widths[i])
         if packed_bitmaps is not None and gappy[i]:
             out += packed_bitmaps[:, i].tobytes()
     if n > 1 and any(widths):
-        w_arr = np.asarray(widths, dtype=np.int64)
-        sel = w_arr > 0
-        offs = (d[:, sel] - dmin[sel]).astype(np.uint64).T.ravel()  # channel-major rows
-        out += np.packbits(_row_bits(offs, n - 1, tuple(int(w) for w in w_arr[sel]))).tobytes()
+        sel = [i for i, w in enumerate(widths) if w]
+        offs = (d[:, sel] - dmin[sel]).view(np.uint64).T  # channel-major rows
+        out += codec.pack_rows(offs, tuple(widths[i] for i in sel))
     out += tag(key.secret, out)
     return bytes(out)
 
@@ -225,10 +190,10 @@ def parse_data(head: Header, body: memoryview, key: MachineKey) -> SampleBlock:
         if flags & ~FLAG_DROPOUTS:
             raise GarbageError(f"reserved channel flag bits set ({flags:#04x})", wid)
         z, pos = get_varint(body, pos, end)
-        firsts.append(unzigzag(z))
+        firsts.append(codec.unzigzag(z))
         if n > 1:
             z, pos = get_varint(body, pos, end)
-            dmins.append(unzigzag(z))
+            dmins.append(codec.unzigzag(z))
             if pos >= end:
                 raise TruncatedError("bit width runs past the end", wid)
             w = body[pos]
@@ -258,78 +223,40 @@ def parse_data(head: Header, body: memoryview, key: MachineKey) -> SampleBlock:
     if nbits % 8 and body[end - 1] & ((1 << (8 - nbits % 8)) - 1):
         raise GarbageError("bit-stream padding bits are not zero", wid)
     ncol = len(cols)
+    res = layout.resolutions
     if not ncol:
         return SampleBlock(machine_id=key.machine_id, seq=seq, t0_ns=t0_ns,
-                           period_ns=period_ns, channels=layout.names,
-                           resolution=layout.resolutions, values=np.full((n, c), np.nan),
-                           epoch=head.epoch)
+                           period_ns=period_ns, channels=layout.names, resolution=res,
+                           values=np.full((n, c), np.nan), epoch=head.epoch,
+                           steps=np.zeros((n, c), dtype=np.int64))
     k = np.empty((n, ncol), dtype=np.int64)
     k[0] = [_wrap(f) for f in firsts]
     if n > 1:
         nz = tuple(w for w in widths if w)
         offs = np.zeros((ncol, n - 1), dtype=np.uint64)
         if nz:
-            starts, shift, _ = _bit_plan(n - 1, nz)
-            bits = np.unpackbits(np.frombuffer(body[pos:end], dtype=np.uint8), count=nbits)
-            vals_nz = np.add.reduceat(bits.astype(np.uint64) << shift, starts)
-            offs[[i for i, w in enumerate(widths) if w]] = vals_nz.reshape(-1, n - 1)
+            offs[[i for i, w in enumerate(widths) if w]] = codec.unpack_rows(body[pos:end],
+                                                                             n - 1, nz)
         dm = np.asarray([_wrap(x) & (2**64 - 1) for x in dmins], dtype=np.uint64)
-        with np.errstate(over="ignore"):
-            d = (offs.T + dm).view(np.int64)
-            k[1:] = k[0] + np.cumsum(d, axis=0)
-    res = np.asarray(layout.resolutions, dtype=np.float64)
-    vals = k.astype(np.float64) * (res if ncol == c else res[cols])
+        k[1:] = codec.undelta((offs.T + dm).view(np.int64), start=k[0])  # wraps mod 2**64
+    miss = None
     gi = [i for i, g in enumerate(gaps) if g is not None]
     if gi:
         bm = np.unpackbits(np.frombuffer(b"".join(g for g in gaps if g is not None),
                                          dtype=np.uint8)).reshape(len(gi), -1)[:, :n]
-        sub = vals[:, gi]
-        sub[bm.T.astype(bool)] = np.nan
-        vals[:, gi] = sub
+        miss = np.zeros((n, ncol), dtype=bool)
+        miss[:, gi] = bm.T.astype(bool)
+        k[miss] = 0
     if ncol == c:
-        values = vals
+        steps, values = k, codec.dequantise(k, miss, res)
     else:
+        steps = np.zeros((n, c), dtype=np.int64)
+        steps[:, cols] = k
         values = np.full((n, c), np.nan)
-        values[:, cols] = vals
+        values[:, cols] = codec.dequantise(k, miss, [res[j] for j in cols])
     return SampleBlock(machine_id=key.machine_id, seq=seq, t0_ns=t0_ns, period_ns=period_ns,
-                       channels=layout.names, resolution=layout.resolutions, values=values,
-                       epoch=head.epoch)
-
-
-_PLAN_CACHE_BITS = 16384  # plans of larger (rare, > 2 KB) bit streams are not cached
-
-
-def _bit_plan(n1: int, widths: tuple[int, ...]) -> tuple[I64, U64, I64]:
-    """:func:`_make_bit_plan`, cached for datagram-sized streams (memory bound ≈ 4096 × 260 KB
-    worst case, typically a few MB)."""
-    if n1 * sum(widths) <= _PLAN_CACHE_BITS:
-        return _cached_bit_plan(n1, widths)
-    return _make_bit_plan(n1, widths)
-
-
-def _make_bit_plan(n1: int, widths: tuple[int, ...]) -> tuple[I64, U64, I64]:
-    """Where the bits of rows of ``widths`` (each repeated n1 times) sit in a packed stream.
-
-    Returns:
-        ``(starts, shift, row)``: first bit of each row, shape (R,); left shift of each bit
-        within its row value, shape (nbits,); row of each bit, shape (nbits,).
-    """
-    w_rows = np.repeat(np.asarray(widths, dtype=np.int64), n1)
-    starts = np.cumsum(w_rows) - w_rows
-    row = np.repeat(np.arange(w_rows.size), w_rows)
-    shift = (w_rows[row] - 1 - (np.arange(row.size) - starts[row])).astype(np.uint64)
-    for arr in (starts, shift, row):
-        arr.flags.writeable = False
-    return starts, shift, row
-
-
-_cached_bit_plan = lru_cache(maxsize=4096)(_make_bit_plan)
-
-
-def _row_bits(vals: U64, n1: int, widths: tuple[int, ...]) -> npt.NDArray[np.uint8]:
-    """Bits of each value (rows of ``widths``, n1 values each), most significant first."""
-    _, shift, row = _bit_plan(n1, widths)
-    return ((vals[row] >> shift) & np.uint64(1)).astype(np.uint8)
+                       channels=layout.names, resolution=res, values=values, epoch=head.epoch,
+                       steps=steps)
 
 
 def _wrap(v: int) -> int:

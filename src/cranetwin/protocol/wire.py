@@ -3,7 +3,8 @@
 Every multi-byte integer is big-endian ("network order"), except varints, which are unsigned
 LEB128 (7 bits per byte, least significant group first, high bit = "more bytes follow", at most
 10 bytes, value < 2**64; the same as Protocol Buffers). Signed values in varints are zigzag
-mapped: ``z = (v << 1) ^ (v >> 63)``, i.e. 0, −1, 1, −2, … → 0, 1, 2, 3, … See docs/PROTOCOL.md.
+mapped: ``z = (v << 1) ^ (v >> 63)``, i.e. 0, −1, 1, −2, … → 0, 1, 2, 3, … (:mod:`cranetwin.codec`,
+re-exported here). See docs/PROTOCOL.md.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from dataclasses import dataclass
 from functools import cached_property
 from typing import Protocol
 
+from cranetwin.codec.delta import unzigzag as unzigzag  # re-exported: the wire's zigzag
+from cranetwin.codec.delta import zigzag as zigzag
 from cranetwin.protocol.errors import (
     BadHmacError,
     GarbageError,
@@ -52,16 +55,6 @@ IP_UDP_OVERHEAD_V6 = 48  # 40 bytes IPv6 + 8 bytes UDP
 
 
 # --- varints -----------------------------------------------------------------------------------
-def zigzag(v: int) -> int:
-    """Map a signed 64-bit integer to unsigned: 0, −1, 1, −2 → 0, 1, 2, 3."""
-    return ((v << 1) ^ (v >> 63)) & U64_MAX
-
-
-def unzigzag(z: int) -> int:
-    """Inverse of :func:`zigzag`."""
-    return (z >> 1) ^ -(z & 1)
-
-
 def put_varint(out: bytearray, value: int) -> None:
     """Append ``value`` (0 ≤ value < 2**64) as an unsigned LEB128 varint."""
     if not 0 <= value <= U64_MAX:

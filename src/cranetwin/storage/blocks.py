@@ -1,8 +1,10 @@
 """Raw samples, stored as compressed blocks: one row per received datagram, not one per sample.
 
 A row holds one :class:`~cranetwin.samples.SampleBlock` (``n`` regularly spaced samples of one
-machine) compressed by :mod:`cranetwin.storage.codec`, plus its per-second summary (count, min,
-max, sum of the quantised values per channel for every whole second the block touches), so that
+machine) as the run the wire carried: t0, period, channel layout and the integer steps
+(``SampleBlock.steps`` when the block has them, as decoded from the datagram; otherwise ``values``
+quantised once), compressed by :mod:`cranetwin.storage.codec`, plus its per-second summary
+(count, min, max, sum of the steps per channel for every whole second the block touches), so that
 1-s load history never decodes raw samples. Rows are unique on (machine, epoch, seq), and
 inserted with ``ON CONFLICT DO NOTHING`` on both dialects, so writing a block twice (a
 retransmission, a replayed batch after a crash) stores it once.
@@ -14,7 +16,7 @@ query bound next to it is representable), a span t_end − t0 of at most :data:`
 (6 h; a datagram spans at most 4096 × (2**32 − 1) ns ≈ 4.9 h, and the per-second summary
 grows with the span), period ≥ 1 ns, 1 ≤ n < 2**31, seq and epoch in [0, 2**63 − 1], 1..64
 distinct channel names of at most 64 characters, finite resolutions > 0, and finite values
-(NaN = missing) within 2**52 resolution steps of zero.
+(NaN = missing) within 2**52 resolution steps of zero (for blocks with steps: |steps| < 2**52).
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from sqlalchemy import (
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Mapped, Session, mapped_column
 
+from cranetwin import codec as intcodec
 from cranetwin.samples import F64, SampleBlock
 from cranetwin.storage import bulk, codec
 from cranetwin.storage.base import Base
@@ -62,6 +65,7 @@ MAX_N = 2**31 - 1
 MAX_CHANNELS = 64
 MAX_CHANNEL_NAME = 64
 _VALUE_LIMIT = 2.0**52
+_STEP_LIMIT = 2**52
 
 
 class BlockRow(Base):
@@ -178,6 +182,10 @@ def check_block(b: SampleBlock) -> str | None:
             or values.dtype.kind not in "fiu"):
         return "values must be a real 2-D array (samples × channels)"
     n, c = values.shape
+    steps = b.steps
+    if steps is not None and (not isinstance(steps, np.ndarray) or steps.shape != values.shape
+                              or steps.dtype.kind not in "iu"):
+        return "steps must be an integer array of the values' shape (samples × channels)"
     if not 1 <= n <= MAX_N:
         return f"{n} samples; expected 1..{MAX_N}"
     if period < 1:
@@ -214,21 +222,28 @@ def block_rows(items: Sequence[tuple[int, SampleBlock]]) -> list[tuple[object, .
     out: list[tuple[object, ...] | str] = [""] * len(items)
     for idxs in groups.values():
         values = np.stack([items[i][1].values for i in idxs]).astype(np.float64, copy=False)
-        res = np.stack([np.asarray(items[i][1].resolution, dtype=np.float64)
-                        for i in idxs])[:, None, :]
         mask = np.isnan(values)
-        scaled = np.rint(np.where(mask, 0.0, values) / res)
-        ok = np.all(np.abs(scaled) < _VALUE_LIMIT, axis=(1, 2))
+        wire = [st for i in idxs if (st := items[i][1].steps) is not None
+                and st.shape == values.shape[1:]]
+        if len(wire) == len(idxs):
+            k = np.stack(wire).astype(np.int64, copy=False)  # the wire's steps, kept as they are
+            ok = np.all((k > -_STEP_LIMIT) & (k < _STEP_LIMIT), axis=(1, 2))
+        else:
+            res = np.stack([np.asarray(items[i][1].resolution, dtype=np.float64)
+                            for i in idxs])[:, None, :]
+            scaled = np.rint(np.where(mask, 0.0, values) / res)
+            ok = np.all(np.abs(scaled) < _VALUE_LIMIT, axis=(1, 2))
+            k = scaled.astype(np.int64) if ok.all() else np.where(
+                ok[:, None, None], scaled, 0.0).astype(np.int64)
         if ok.all():
             good = idxs
-            k = scaled.astype(np.int64)
         else:
             for bad in np.flatnonzero(~ok).tolist():
                 out[idxs[bad]] = "values are infinite or too large for their resolution"
             if not ok.any():
                 continue
             good = [i for i, g in zip(idxs, ok.tolist(), strict=True) if g]
-            k = scaled[ok].astype(np.int64)
+            k = k[ok]
             mask = mask[ok]
         data = codec.encode_many(k, mask)
         t0s = [int(items[i][1].t0_ns) for i in good]
@@ -359,13 +374,14 @@ def probe(conn: Connection, items: Sequence[tuple[int, int, int, int, int, int]]
 
 @dataclass(frozen=True)
 class StoredBlock:
-    """A block read back from the table.
+    """A block read back from the table: the run the wire carried.
 
     Attributes:
         seq: Sequence number.
         t0_ns: First sample time [ns]; period_ns: sample period [ns].
         channels, resolution: Channel layout.
-        values: Shape (n, len(channels)) [channel units].
+        steps: Integer steps, shape (n, len(channels)), 0 where ``missing``.
+        missing: Missing samples, shape (n, len(channels)).
     """
 
     seq: int
@@ -373,11 +389,22 @@ class StoredBlock:
     period_ns: int
     channels: tuple[str, ...]
     resolution: tuple[float, ...]
-    values: F64
+    steps: I64
+    missing: npt.NDArray[np.bool_]
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.steps.shape[0])
+
+    @property
+    def values(self) -> F64:
+        """``steps · resolution``, shape (n, len(channels)) [channel units]; NaN where missing."""
+        return intcodec.dequantise(self.steps, self.missing, self.resolution)
 
     def times_ns(self) -> I64:
-        """Sample times, shape (n,) [ns]."""
-        return self.t0_ns + np.arange(self.values.shape[0], dtype=np.int64) * self.period_ns
+        """Sample times ``t0_ns + k · period_ns``, shape (n,) [ns]."""
+        return self.t0_ns + np.arange(self.n, dtype=np.int64) * self.period_ns
 
 
 def clamp_ns(t_ns: int | float) -> int:
@@ -401,8 +428,12 @@ def read_range(session: Session, machine_pk: int, t0_ns: int, t1_ns: int) -> lis
     out = []
     for seq, t0, period, chans, res, data in session.execute(stmt):
         resolution = tuple(float(r) for r in json.loads(res))
+        steps, missing = codec.decode_ints(data)
+        if steps.shape[1] != len(resolution):
+            raise codec.CodecError(f"block seq {seq}: {steps.shape[1]} channels stored, "
+                                   f"{len(resolution)} resolutions")
         out.append(StoredBlock(int(seq), int(t0), int(period), tuple(json.loads(chans)),
-                               resolution, codec.decode(data, resolution)))
+                               resolution, steps, missing))
     return out
 
 

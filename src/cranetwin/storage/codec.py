@@ -1,4 +1,5 @@
-"""Compression of sample arrays for the ``sample_blocks`` table.
+"""Compression of sample arrays for the ``sample_blocks`` table: the blob around
+:mod:`cranetwin.codec`'s integer transforms.
 
 Values are quantised at the channel resolution to integers (lossless for values that are
 multiples of the resolution, as sensors send them), differenced along time per channel,
@@ -26,6 +27,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
+from cranetwin import codec as intcodec
 from cranetwin.errors import StorageError
 
 F64 = npt.NDArray[np.float64]
@@ -34,7 +36,6 @@ I64 = npt.NDArray[np.int64]
 VERSION = 1
 _HEAD = struct.Struct("<BBBxII")
 _LIMIT = 2.0**52  # |quantised value| beyond which float64 → int64 is no longer exact
-_WIDTHS = ((1, np.uint8), (2, np.uint16), (4, np.uint32), (8, np.uint64))
 
 
 class CodecError(StorageError):
@@ -42,11 +43,8 @@ class CodecError(StorageError):
 
 
 def quantise(values: F64, resolution: Sequence[float]) -> tuple[I64, npt.NDArray[np.bool_]]:
-    """Integers k with values ≈ k · resolution, and the NaN mask.
-
-    Args:
-        values: Shape (n, c) [channel units]; NaN = missing.
-        resolution: Quantisation step per channel, length c [channel units].
+    """Integers k with values ≈ k · resolution, and the NaN mask
+    (:func:`cranetwin.codec.quantise` within storage's ±2**52 steps).
 
     Returns:
         ``(k, mask)``, both shape (n, c); k is 0 where mask (NaN) is set.
@@ -55,16 +53,10 @@ def quantise(values: F64, resolution: Sequence[float]) -> tuple[I64, npt.NDArray
         CodecError: Shapes disagree, a resolution is not positive, or a value is infinite or too
             large to quantise exactly.
     """
-    res = np.asarray(resolution, dtype=np.float64)
-    if values.ndim != 2 or values.shape[1] != res.shape[0]:
-        raise CodecError(f"values shape {values.shape} does not match {res.shape[0]} channels")
-    if not np.all(res > 0):
-        raise CodecError(f"resolutions must be > 0, got {res.tolist()}")
-    mask = np.isnan(values)
-    scaled = np.rint(np.where(mask, 0.0, values) / res)
-    if not np.all(np.abs(scaled) < _LIMIT):
-        raise CodecError("values are infinite or too large for their resolution")
-    return scaled.astype(np.int64), mask
+    try:
+        return intcodec.quantise(values, resolution, limit=_LIMIT)
+    except intcodec.QuantiseError as exc:
+        raise CodecError(str(exc)) from exc
 
 
 def encode(values: F64, resolution: Sequence[float], level: int = 6) -> bytes:
@@ -86,16 +78,7 @@ def encode_ints(k: I64, mask: npt.NDArray[np.bool_] | None = None, level: int = 
     """Compress an integer array, shape (n, c), with an optional missing-value mask (n, c)."""
     if mask is None:
         mask = np.zeros(k.shape, dtype=bool)
-    n, c = k.shape
-    kt = np.ascontiguousarray(k.T)  # channel-major: each channel's run is contiguous
-    d = np.diff(kt, axis=1, prepend=np.zeros((c, 1), dtype=np.int64))
-    z = ((d << 1) ^ (d >> 63)).view(np.uint64)
-    top = int(z.max()) if z.size else 0
-    width, dtype = next((w, t) for w, t in _WIDTHS if top < 2 ** (8 * w))
-    planes = z.astype(dtype).reshape(-1).view(np.uint8).reshape(-1, width).T.tobytes()
-    has_mask = bool(mask.any())
-    body = planes + (np.packbits(mask.T.reshape(-1)).tobytes() if has_mask else b"")
-    return _HEAD.pack(VERSION, width, int(has_mask), n, c) + zlib.compress(body, level)
+    return encode_many(k[None], mask[None], level)[0]
 
 
 def decode_ints(blob: bytes) -> tuple[I64, npt.NDArray[np.bool_]]:
@@ -120,11 +103,8 @@ def decode_ints(blob: bytes) -> tuple[I64, npt.NDArray[np.bool_]]:
     nmask = (n * c + 7) // 8 if flags & 1 else 0
     if len(body) != nplane + nmask:
         raise CodecError(f"block body has {len(body)} bytes, expected {nplane + nmask}")
-    dtype = dict(_WIDTHS)[width]
-    planes = np.frombuffer(body, dtype=np.uint8, count=nplane).reshape(width, n * c)
-    z = np.ascontiguousarray(planes.T).view(dtype).reshape(c, n).astype(np.uint64)
-    d = (z >> np.uint64(1)).view(np.int64) ^ -(z & np.uint64(1)).view(np.int64)
-    k = np.cumsum(d, axis=1).T
+    z = intcodec.from_byte_planes(body, width, n * c).reshape(c, n)
+    k = intcodec.undelta(intcodec.unzigzag_array(z), axis=1).T
     if nmask:
         bits = np.frombuffer(body, dtype=np.uint8, offset=nplane)
         mask = np.unpackbits(bits, count=n * c).astype(bool).reshape(c, n).T
@@ -136,42 +116,31 @@ def decode_ints(blob: bytes) -> tuple[I64, npt.NDArray[np.bool_]]:
 def decode(blob: bytes, resolution: Sequence[float]) -> F64:
     """Decompress a blob back to values, shape (n, c) [channel units], NaN where missing."""
     k, mask = decode_ints(blob)
-    res = np.asarray(resolution, dtype=np.float64)
-    if res.shape[0] != k.shape[1]:
-        raise CodecError(f"blob has {k.shape[1]} channels, {res.shape[0]} resolutions given")
-    out = k * res
-    out[mask] = np.nan
-    return out
+    if len(resolution) != k.shape[1]:
+        raise CodecError(f"blob has {k.shape[1]} channels, {len(resolution)} resolutions given")
+    return intcodec.dequantise(k, mask, resolution)
 
 
 def encode_many(k: I64, mask: npt.NDArray[np.bool_], level: int = 1) -> list[bytes]:
-    """:func:`encode_ints` of B equally shaped arrays at once (same bytes, less overhead).
+    """Blobs of B equally shaped integer arrays at once (vectorised over blocks).
 
     Args:
-        k: Quantised values, shape (B, n, c); mask: missing samples, shape (B, n, c).
+        k: Integer steps, shape (B, n, c); mask: missing samples, shape (B, n, c).
+        level: zlib level (1 fastest … 9 smallest).
 
     Returns:
         B blobs; ``decode_ints(blobs[i])`` gives back ``(k[i], mask[i])``.
     """
     nb, n, c = k.shape
     kt = np.ascontiguousarray(k.transpose(0, 2, 1))  # (B, c, n): channel-major per block
-    d = np.diff(kt, axis=2, prepend=np.zeros((nb, c, 1), dtype=np.int64))
-    z = ((d << 1) ^ (d >> 63)).view(np.uint64).reshape(nb, c * n)
+    z = intcodec.zigzag_array(intcodec.deltas(kt, axis=2, first=True)).reshape(nb, c * n)
     top = z.max(axis=1) if z.size else np.zeros(nb, dtype=np.uint64)
     has_mask: npt.NDArray[np.bool_] = np.asarray(mask.reshape(nb, -1).any(axis=1))
+    widths = np.array([intcodec.byte_width(int(t)) for t in top.tolist()], dtype=np.int64)
     out: list[bytes] = [b""] * nb
-    for width, dtype in _WIDTHS:
-        lim = np.uint64(2 ** (8 * width) - 1) if width < 8 else np.iinfo(np.uint64).max
-        lower = np.uint64(2 ** (8 * (width // 2)) - 1) if width > 1 else None
-        sel = top <= lim
-        if lower is not None:
-            sel &= top > lower
-        idx = np.flatnonzero(sel)
-        if idx.size == 0:
-            continue
-        planes = np.ascontiguousarray(
-            z[idx].astype(dtype).view(np.uint8).reshape(idx.size, c * n, width)
-            .transpose(0, 2, 1))
+    for width in np.unique(widths).tolist():
+        idx = np.flatnonzero(widths == width)
+        planes = intcodec.byte_planes(z[idx], width)
         for row, b in enumerate(idx.tolist()):
             body = planes[row].tobytes()
             if has_mask[b]:

@@ -280,8 +280,15 @@ class Store:
         float64 seconds of a sample time (≈ 0.24 µs resolution today) includes that sample at
         ``t0_s`` and excludes it at ``t1_s``.
 
+        Times are exact: ``t_ns`` is ``t0_ns + k · period_ns`` of each stored run, ``t_s`` is
+        ``t_ns / 1e9``. ``period_ns`` is the stored period when every block contributing a
+        sample has the same one; when the period changes inside the range (the machine changed
+        its rate) it is None (no one period describes the range) while ``t_ns`` stays exact.
+        Values are ``steps · resolution`` of the stored integer steps, bit for bit what the
+        wire decoder produced.
+
         Returns:
-            ``SampleArrays`` with t_s shape (n,) [s] strictly increasing, values (n, c).
+            ``SampleArrays`` with t_s, t_ns shape (n,) strictly increasing, values (n, c).
         """
         t0 = blocks_mod.clamp_ns(_ns(t0_s) - _EPS_NS)
         t1 = blocks_mod.clamp_ns(_ns(t1_s) - _EPS_NS)
@@ -292,18 +299,24 @@ class Store:
             for c in b.channels:
                 chans.setdefault(c, len(chans))
         if not stored:
-            return SampleArrays(machine_id, np.zeros(0), (), np.zeros((0, 0)))
+            return SampleArrays(machine_id, np.zeros(0), (), np.zeros((0, 0)),
+                                t_ns=np.zeros(0, dtype=np.int64))
         t_all = np.concatenate([b.times_ns() for b in stored])
         vals: F64 = np.full((t_all.size, len(chans)), np.nan)
+        keep = (t_all >= t0) & (t_all < t1)
+        periods: set[int] = set()
         row = 0
         for b in stored:
             cols = [chans[c] for c in b.channels]
-            vals[row:row + b.values.shape[0], cols] = b.values
-            row += b.values.shape[0]
-        keep = (t_all >= t0) & (t_all < t1)
+            vals[row:row + b.n, cols] = b.values
+            if keep[row:row + b.n].any():
+                periods.add(b.period_ns)
+            row += b.n
         t_all, vals = t_all[keep], vals[keep]
         t_u, first = np.unique(t_all, return_index=True)  # sorted, first occurrence kept
-        return SampleArrays(machine_id, t_u.astype(np.float64) / 1e9, tuple(chans), vals[first])
+        period = next(iter(periods)) if len(periods) == 1 else None
+        return SampleArrays(machine_id, t_u.astype(np.float64) / 1e9, tuple(chans), vals[first],
+                            period_ns=period, t_ns=t_u)
 
     def data_range(self, machine_id: str) -> tuple[float, float] | None:
         """Time span of the stored samples of one machine (one index probe).
