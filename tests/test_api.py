@@ -1,6 +1,6 @@
 """HTTP API on a real store: auth per role on every route, each route's happy path, bad input.
 
-Data: 4 minutes of exact kinematic samples (:func:`cranetwin.api.synthetic.kinematic_samples`:
+Data: 4 minutes of exact kinematic samples (:func:`cranetwin.testing.blocks.kinematic_samples`:
 a known motion, a payload of 400 kg in the second half of every minute, pressures from inverse
 dynamics) written through the store's write path, then the twin worker's windows.
 """
@@ -18,10 +18,10 @@ from fastapi.testclient import TestClient
 
 from cranetwin.api import Settings, create_app
 from cranetwin.api.services import Services
-from cranetwin.api.synthetic import PAYLOAD_KG, kinematic_samples, payload_schedule, tiled_blocks
 from cranetwin.api.worker import TwinWorker
 from cranetwin.model import load_machine
 from cranetwin.samples import SampleArrays
+from cranetwin.testing.blocks import PAYLOAD_KG, kinematic_samples, payload_schedule, tiled_blocks
 
 T0 = 1795420800.0  # 2026-11-23T08:00:00Z, a whole minute
 SPAN = 240.0

@@ -11,8 +11,8 @@ import pytest
 from cranetwin.api.backend import Backend, Progress
 from cranetwin.api.live_payload import LivePayload, public_kg
 from cranetwin.api.replayer import Replayer
-from cranetwin.api.synthetic import PAYLOAD_KG, kinematic_samples, tiled_blocks
 from cranetwin.model import load_machine
+from cranetwin.testing.blocks import PAYLOAD_KG, kinematic_samples, tiled_blocks
 
 T0 = 1795420800.0  # a whole minute; the payload is PAYLOAD_KG in [T0+30, T0+60), 0 after
 MID = "crane-lp"

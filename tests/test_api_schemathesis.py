@@ -18,8 +18,8 @@ from hypothesis import HealthCheck, given, settings
 from schemathesis import checks
 
 from cranetwin.api import Settings, create_app
-from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
 from cranetwin.model import load_machine
+from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
 T0 = 1795420800.0
 # schema-level checks; positive_data_acceptance is left out on purpose: a schema-valid request

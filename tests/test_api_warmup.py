@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from cranetwin.api import Settings
 from cranetwin.api.services import Services
-from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
 from cranetwin.api.warmup import start_warm_up, warm_up
 from cranetwin.model import load_machine
+from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
 T0 = 1795420800.0
 MACHINE = load_machine("patu655")

@@ -12,10 +12,10 @@ from fastapi.testclient import TestClient
 
 from cranetwin.api import Settings, create_app
 from cranetwin.api.backend import Backend
-from cranetwin.api.synthetic import PAYLOAD_KG, kinematic_samples, tiled_blocks
 from cranetwin.api.worker import TwinWorker, derived_channels
 from cranetwin.model import load_machine
 from cranetwin.samples import SampleArrays
+from cranetwin.testing.blocks import PAYLOAD_KG, kinematic_samples, tiled_blocks
 
 T0 = 1795420800.0  # a whole minute
 MID = "crane-w"

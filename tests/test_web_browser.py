@@ -49,9 +49,9 @@ class Service:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     from cranetwin.api import Settings, create_app
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
     from cranetwin.api.worker import TwinWorker
     from cranetwin.model import load_machine
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
     from cranetwin.viz.preview import ServerThread
 
     url = f"sqlite:///{tmp_path_factory.mktemp('web') / 'web.db'}"
@@ -202,8 +202,8 @@ def test_play_advances_and_charts_follow(page: Any, server: Service) -> None:
 
 def test_live_updates_within_a_second(page: Any, server: Service) -> None:
     """Samples stored now reach the page through the API's live websocket within a second."""
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
     from cranetwin.model import load_machine
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     machine = load_machine("patu655")
     base = kinematic_samples(machine, 120.0)

@@ -2,7 +2,7 @@
 
 Setup: a database (temporary SQLite unless ``--db``) filled through the store's write path with
 ``--hours`` (24) of one crane at 100 Hz (8.64 M samples, 11 channels) in 10-s blocks, the exact
-kinematic samples of :mod:`cranetwin.api.synthetic` tiled in time; the twin worker then derives
+kinematic samples of :mod:`cranetwin.testing.blocks` tiled in time; the twin worker then derives
 the last ``--worker-hours`` (1) of it. ``cranetwin serve`` runs in a subprocess.
 
 Figures (``--json`` prints one object):
@@ -53,9 +53,9 @@ def _p95(x: list[float]) -> float:
 def _fill(url: str, hours: float, worker_hours: float) -> tuple[float, float, dict[str, Any]]:
     from cranetwin.api.backend import Backend
     from cranetwin.api.settings import Settings
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
     from cranetwin.api.worker import TwinWorker
     from cranetwin.model import load_machine
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     machine = load_machine("patu655")
     base = kinematic_samples(machine, 120.0)
@@ -202,9 +202,9 @@ def _live(url: str, port: int, key: str, clients: int, seconds: float,
     second (as datagram batches arrive), measure latencies."""
     import websockets
 
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
     from cranetwin.model import load_machine
     from cranetwin.storage import Store
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     machine = load_machine("patu655")
     base = kinematic_samples(machine, 120.0)

@@ -44,8 +44,8 @@ class _LiveFeeder:
         self.thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self) -> None:
-        from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
         from cranetwin.model import load_machine
+        from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
         machine = load_machine("patu655")
         base = kinematic_samples(machine, 120.0)
@@ -71,9 +71,9 @@ def _real_app(tmpdir: str, end: float, history_s: float) -> tuple[Any, dict[str,
 def _fill(app: Any, srv_url: str, end: float, history_s: float) -> str:
     import httpx
 
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
     from cranetwin.api.worker import TwinWorker
     from cranetwin.model import load_machine
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     services = app.state.services
     viewer = services.backend.create_key("viewer", "bench web")[1]
