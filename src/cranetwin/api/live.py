@@ -3,7 +3,7 @@
 The follower reads the samples newer than the last it saw — when the ingest daemon's live bus
 (:mod:`cranetwin.storage.live`) announces a newly stored block of its machine, or at the latest
 every ``1 / live_rate_hz`` s when there is no bus — at most ``live_rate_hz`` times a second,
-turns the newest into a frame (:class:`~cranetwin.api.views.LiveKinematics`: pose,
+turns the newest into a frame (:class:`~cranetwin.service.views.LiveKinematics`: pose,
 cylinder pins and forces, pressures), serialises it once and offers it to every client. Each
 client has a queue of one frame: a slow client skips frames instead of slowing the others or
 growing memory. The follower starts with the first client of a machine and stops with the last.
@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from cranetwin.api.views import LiveKinematics
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
+from cranetwin.service.views import LiveKinematics
 
 log = logging.getLogger(__name__)
 

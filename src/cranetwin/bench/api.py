@@ -51,10 +51,10 @@ def _p95(x: list[float]) -> float:
 
 
 def _fill(url: str, hours: float, worker_hours: float) -> tuple[float, float, dict[str, Any]]:
-    from cranetwin.api.backend import Backend
-    from cranetwin.api.settings import Settings
-    from cranetwin.api.worker import TwinWorker
     from cranetwin.model import load_machine
+    from cranetwin.service.backend import Backend
+    from cranetwin.service.worker import TwinWorker
+    from cranetwin.settings import Settings
     from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     machine = load_machine("patu655")
@@ -78,12 +78,12 @@ def _fill(url: str, hours: float, worker_hours: float) -> tuple[float, float, di
     rollup_s = time.perf_counter() - t
     stats = b.store.stats(MID)
     # the worker derives the last worker_hours (its watermark placed there, as after a restart)
-    from cranetwin.api.backend import Progress
+    from cranetwin.service.backend import Progress
 
-    b.save_progress(Progress.empty(MID, end - worker_hours * 3600.0))
+    b.reset_progress(Progress.empty(MID, end - worker_hours * 3600.0))
     t = time.perf_counter()
     w = TwinWorker(b, Settings(database_url=url, worker_settle_s=0.0))
-    windows = w.catch_up(b.machine_or_404(MID))
+    windows = w.catch_up(b.machine(MID))
     worker_s = time.perf_counter() - t
     key = b.create_key("viewer", "bench")[1]
     b.close()

@@ -62,17 +62,18 @@ class _LiveFeeder:
 
 def _real_app(tmpdir: str, end: float, history_s: float) -> tuple[Any, dict[str, Any]]:
     """create_app on a temporary SQLite database holding ``history_s`` of kinematic samples."""
-    from cranetwin.api import Settings, create_app
+    from cranetwin.api import create_app
+    from cranetwin.settings import Settings
 
     url = f"sqlite:///{tmpdir}/bench-web.db"
-    return create_app(Settings(database_url=url, worker_enabled=False)), {"url": url}
+    return create_app(Settings(database_url=url, worker_in_process=False)), {"url": url}
 
 
 def _fill(app: Any, srv_url: str, end: float, history_s: float) -> str:
     import httpx
 
-    from cranetwin.api.worker import TwinWorker
     from cranetwin.model import load_machine
+    from cranetwin.service.worker import TwinWorker
     from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     services = app.state.services
@@ -86,7 +87,7 @@ def _fill(app: Any, srv_url: str, end: float, history_s: float) -> str:
     services.backend.store.write_blocks(list(tiled_blocks("crane-2", machine, end - history_s,
                                                           history_s, 1.0, base=base)))
     TwinWorker(services.backend, services.settings, services.metrics,
-               services.replayer).catch_up(services.backend.machine_or_404("crane-2"))
+               services.fleet.replayer).catch_up(services.backend.machine("crane-2"))
     return str(viewer)
 
 

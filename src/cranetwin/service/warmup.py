@@ -11,7 +11,7 @@ the interpreter and doubled their p95 latency for the first seconds; :func:`star
 the background variant.
 
 The first replay of a machine with at least 20 s of samples also chooses its smoothing (about
-two thirds of the cost of a replay, :mod:`cranetwin.api.replayer`), which short windows such as
+two thirds of the cost of a replay, :mod:`cranetwin.service.replayer`), which short windows such as
 the page's first 1-s frame then reuse; the service therefore replays the newest 30 s of its four
 most recently seen machines after the generic warm-up (``then``).
 """
@@ -36,8 +36,8 @@ def warm_up(model: str = "patu655") -> float:
         Time taken [s].
     """
     t = time.perf_counter()
-    from cranetwin.api.views import LiveKinematics, twin_json
     from cranetwin.model import load_machine
+    from cranetwin.service.views import LiveKinematics, twin_json
     from cranetwin.testing.blocks import kinematic_samples
     from cranetwin.twin import replay
     from cranetwin.viz.scene import build_scene

@@ -18,10 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from cranetwin.api.params import TimeRange, iso
-from cranetwin.api.replayer import Replayer
 from cranetwin.errors import AnalyticsError, CraneTwinError
 from cranetwin.model import Machine
+from cranetwin.service.replayer import Replayer
+from cranetwin.service.timerange import TimeRange, iso
 
 WINDOW_S = 60.0
 MARGIN_S = 2.0

@@ -24,8 +24,8 @@ from cranetwin.errors import CraneTwinError
 from cranetwin.model import Machine
 
 if TYPE_CHECKING:
-    from cranetwin.api.backend import Backend
-    from cranetwin.api.replayer import Replayer
+    from cranetwin.service.backend import Backend
+    from cranetwin.service.replayer import Replayer
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ class LivePayload:
             The new estimate [kg] (the previous one when nothing new is stored), or None when
             there is too little data or the replay failed (the previous estimate is kept).
         """
-        from cranetwin.api.replayer import nominal_period
+        from cranetwin.service.replayer import nominal_period
 
         try:
             self.backend.progress(self.machine_id)  # the fallback, for a worker elsewhere
