@@ -259,7 +259,8 @@ class Backend:
                 return None
             s = self.read_samples(machine_id, max(after_s, dr[1] - 10.0), dr[1] + 1.0)
         keep = s.t_s > after_s
-        return SampleArrays(s.machine_id, s.t_s[keep], s.channels, s.values[keep])
+        return SampleArrays(s.machine_id, s.t_s[keep], s.channels, s.values[keep],
+                            period_ns=s.period_ns)
 
     def next_sample_time(self, machine_id: str, after_s: float) -> float | None:
         """Start of the first stored block ending at or after ``after_s`` [s], or None."""

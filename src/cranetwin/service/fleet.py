@@ -28,7 +28,7 @@ from cranetwin.service.cache import LruCache
 from cranetwin.service.errors import InvalidRequestError, NotFoundError
 from cranetwin.service.live_payload import LivePayload, public_kg
 from cranetwin.service.metrics import Metrics
-from cranetwin.service.replayer import Replayer, nominal_period
+from cranetwin.service.replayer import Replayer, sample_rate_hz
 from cranetwin.service.timerange import TimeRange, iso, parse_time
 from cranetwin.service.views import twin_json
 from cranetwin.service.worker import TwinWorker, derived_channels
@@ -153,12 +153,11 @@ class FleetService:
         done = 0
         for end, rec in sorted(seen, key=lambda x: -x[0])[:limit]:
             samples = self.backend.read_samples(rec.machine_id, end - span_s, end + 1.0)
-            period = nominal_period(samples.t_s)
-            if period is None or samples.t_s.shape[0] < 8:
+            if samples.t_s.shape[0] < 8:
                 continue
             try:
                 self.replayer.replay(rec.machine_id, self.backend.model_of(rec), samples,
-                                     max(1.0, float(round(1.0 / period))))
+                                     sample_rate_hz(samples))
             except CraneTwinError as exc:
                 log.info("warm-up of %s skipped: %s", rec.machine_id, exc)
                 continue
@@ -304,8 +303,7 @@ class FleetService:
         if samples.t_s.shape[0] < 8:
             raise TwinError(f"only {samples.t_s.shape[0]} samples in and around the window; "
                             "the twin needs at least 8")
-        period = float(np.median(np.diff(samples.t_s)))
-        sample_hz = max(1.0, round(1.0 / period)) if period > 0 else self.settings.nominal_rate_hz
+        sample_hz = sample_rate_hz(samples)
         grid_hz = sample_hz * max(1, math.ceil(rate_hz / sample_hz - 1e-9))
         res = self.replayer.replay(rec.machine_id, machine, samples, grid_hz)
         return twin_json(machine, res, rng.t0_s, rng.t1_s, rate_hz)

@@ -309,6 +309,7 @@ class TwinWorker:
             of this replay was stored).
         """
         from cranetwin.physics import horizontal_reach
+        from cranetwin.service.replayer import sample_rate_hz
 
         expected = expected_watermark_s
         s = self.settings
@@ -321,8 +322,7 @@ class TwinWorker:
         try:
             if n_in < 8:
                 raise CraneTwinError(f"only {n_in} samples in the window")
-            period = float(np.median(np.diff(samples.t_s)))
-            grid_hz = max(1.0, float(round(1.0 / period)))
+            grid_hz = sample_rate_hz(samples)
             res = self.replayer.replay(rec.machine_id, machine, samples, grid_hz,
                                        theta0_initial=prog.theta0_rad or 0.0)
         except CraneTwinError as exc:
