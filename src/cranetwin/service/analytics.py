@@ -1,4 +1,4 @@
-"""Analytics and report downloads of a range: replay → :mod:`cranetwin.analytics` → JSON/file.
+"""Analytics and reports of a stored range: replay → :mod:`cranetwin.analytics` → JSON or file.
 
 The range (at most ``Settings.max_analytics_range_s``) is replayed window by window at the
 sample rate, each window folded into an :class:`cranetwin.analytics.AnalyticsState` (rainflow

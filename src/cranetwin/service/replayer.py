@@ -1,4 +1,5 @@
-"""Replays for the API and the worker, reusing each machine's smoothing choice.
+"""Replays for the fleet service, the live payload and the worker, reusing each machine's
+smoothing choice.
 
 Choosing the Savitzky–Golay windows from the noise level costs about two thirds of a one-minute
 replay; the noise level is a property of the machine's sensors, not of the minute. So the first

@@ -1,6 +1,6 @@
 """Twin output → public JSON: resampling to the requested rate, poses, pins, forces, wrenches.
 
-Pure functions of (machine, arrays); the routes and the live stream call them.
+Pure functions of (machine, arrays); the fleet service, the warm-up and the live stream call them.
 """
 
 from __future__ import annotations

@@ -11,8 +11,8 @@ the interpreter and doubled their p95 latency for the first seconds; :func:`star
 the background variant.
 
 The first replay of a machine with at least 20 s of samples also chooses its smoothing (about
-two thirds of the cost of a replay, :mod:`cranetwin.service.replayer`), which short windows such as
-the page's first 1-s frame then reuse; the service therefore replays the newest 30 s of its four
+two thirds of the cost of a replay, :mod:`cranetwin.service.replayer`), which short windows such
+as the page's first 1-s frame then reuse; the service therefore replays the newest 30 s of its four
 most recently seen machines after the generic warm-up (``then``).
 """
 
