@@ -65,8 +65,7 @@ class Services:
 
     def refresh_gauges(self) -> None:
         """Copy cache counters into the metrics."""
-        self.metrics.twin_cache_hits.set(self.fleet.twin_cache.hits)
-        self.metrics.twin_cache_misses.set(self.fleet.twin_cache.misses)
+        self.fleet.refresh_gauges()
 
     def follower_factory(self, rec: MachineRecord) -> Any:
         """A zero-argument factory of the live follower of ``rec`` (for :class:`LiveHub`)."""

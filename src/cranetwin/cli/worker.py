@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import logging
 import signal
-import threading
 from types import FrameType
 
 import typer
@@ -57,14 +56,6 @@ def worker(
                              worker_interval_s=interval)
     logging.basicConfig(level=log_level.upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    stop = threading.Event()
-
-    def _stop(signum: int, frame: FrameType | None) -> None:
-        log.info("%s: stopping after the current window", signal.Signals(signum).name)
-        stop.set()
-
-    signal.signal(signal.SIGTERM, _stop)
-    signal.signal(signal.SIGINT, _stop)
     metrics = Metrics()
     bind = settings.worker_metrics_bind.strip()
     if bind not in ("0", "", "off"):
@@ -77,9 +68,16 @@ def worker(
     backend = Backend.open(settings.database_url)
     try:
         tw = TwinWorker(backend, settings, metrics)
+
+        def _stop(signum: int, frame: FrameType | None) -> None:
+            log.info("%s: stopping after the current window", signal.Signals(signum).name)
+            tw.stop_event.set()
+
+        signal.signal(signal.SIGTERM, _stop)
+        signal.signal(signal.SIGINT, _stop)
         typer.echo(f"cranetwin worker ready: {safe_url(settings.database_url)}, windows of "
                    f"{settings.worker_window_s:g} s")
-        windows = tw.run_until(stop)
+        windows = tw.run()
     finally:
         backend.close()
     typer.echo(f"cranetwin worker stopped: {windows} window(s) replayed")

@@ -164,11 +164,20 @@ class FleetService:
             done += 1
         return done
 
-    async def close(self) -> None:
-        """Stop the in-process worker and close the store."""
-        if self._worker_task is not None:
-            self._worker_task.cancel()
-            await asyncio.gather(self._worker_task, return_exceptions=True)
+    async def close(self, timeout_s: float = 30.0) -> None:
+        """Stop the in-process worker (it finishes the window it is replaying, for at most
+        ``timeout_s``; then it is cancelled and that window is done again next time) and close
+        the store."""
+        if self.worker is not None and self._worker_task is not None:
+            self.worker.stop_event.set()
+            try:
+                await asyncio.wait_for(asyncio.shield(self._worker_task), timeout_s)
+            except TimeoutError:
+                log.warning("twin worker did not stop in %.0f s; cancelled", timeout_s)
+                self._worker_task.cancel()
+                await asyncio.gather(self._worker_task, return_exceptions=True)
+            except Exception:  # noqa: BLE001 - logged by the worker; shutting down anyway
+                log.exception("twin worker failed while stopping")
         self.backend.close()
 
     def refresh_gauges(self) -> None:

@@ -31,7 +31,6 @@ import asyncio
 import logging
 import math
 import threading
-from collections.abc import Callable
 from dataclasses import replace as dc_replace
 from typing import TYPE_CHECKING
 
@@ -151,7 +150,7 @@ def update_counters(prog: Progress, machine: Machine, t_s: F64, payload_kg: F64,
 class TwinWorker:
     """Replays every machine's new samples into derived summaries (see module docstring).
 
-    Runs as its own process (``cranetwin worker``: :meth:`run_until` in the main thread) or, for
+    Runs as its own process (``cranetwin worker``: :meth:`run` in the main thread) or, for
     the embedded demo, as a task of ``cranetwin serve`` (:meth:`run_forever`). Every window is
     committed only from the watermark it started from (:meth:`Backend.commit_window`), so several
     workers on one database never count a window twice.
@@ -173,12 +172,18 @@ class TwinWorker:
         self.settings = settings
         self.metrics = metrics
         self.max_windows_per_pass = max_windows_per_pass
-        self.stop_requested: Callable[[], bool] = lambda: False
-        """Checked between windows: True ends the pass after the current window."""
+        self.stop_event = threading.Event()
+        """Set to stop: checked between windows, so the window being replayed is finished and
+        committed first (a second or so)."""
+
+    def stop_requested(self) -> bool:
+        """Whether :attr:`stop_event` is set."""
+        return self.stop_event.is_set()
 
     async def run_forever(self) -> None:
-        """Process passes until cancelled, sleeping when caught up (in-process mode)."""
-        while True:
+        """Process passes until :attr:`stop_event` is set, sleeping when caught up (in-process
+        mode: each pass runs in a thread, so the event loop keeps serving)."""
+        while not self.stop_event.is_set():
             try:
                 done = await asyncio.to_thread(self.run_once)
             except asyncio.CancelledError:
@@ -187,19 +192,19 @@ class TwinWorker:
                 log.exception("twin worker pass failed")
                 done = 0
             if done == 0:
-                await asyncio.sleep(self.settings.worker_interval_s)
+                await asyncio.to_thread(self.stop_event.wait, self.settings.worker_interval_s)
             else:
                 await asyncio.sleep(0)
 
-    def run_until(self, stop: threading.Event) -> int:
-        """Process passes until ``stop`` is set (own-process mode); returns windows processed.
+    def run(self) -> int:
+        """Process passes until :attr:`stop_event` is set (own-process mode); returns windows
+        processed.
 
-        ``stop`` is checked between windows: the window being replayed is finished and
-        committed (a second or so), or — if the process is killed instead — rolled back and
-        done again by the next run. Never raises for a failed pass (logged, retried after
-        ``worker_interval_s``).
+        The window being replayed when the event is set is finished and committed; if the
+        process is killed instead, its transaction is rolled back and the next run does it
+        again. Never raises for a failed pass (logged, retried after ``worker_interval_s``).
         """
-        self.stop_requested = stop.is_set
+        stop = self.stop_event
         total = 0
         while not stop.is_set():
             try:
