@@ -6,6 +6,7 @@ turns the result into a response) and above twin, analytics and storage:
 * :mod:`~cranetwin.service.fleet` — :class:`FleetService`: machine status, samples paging, twin
   windows (cached), history from summaries, "find the moment", events, analytics and reports,
   ISO 15143-3 snapshots; plain data out, :mod:`~cranetwin.service.errors` raised.
+* :mod:`~cranetwin.service.queries` — samples paging and "find the moment" (no replay).
 * :mod:`~cranetwin.service.backend` — the adapter over storage (machines, samples, summaries,
   events, keys, twin progress).
 * :mod:`~cranetwin.service.worker` — :class:`TwinWorker`, run as ``cranetwin worker`` (or inside

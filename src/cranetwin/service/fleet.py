@@ -5,7 +5,8 @@ twin worker.
 Each capability returns plain data — dataclasses, dicts of arrays, pre-serialised JSON bytes —
 and raises :mod:`cranetwin.service.errors` (or the replay's own errors); nothing here knows HTTP.
 Machine status, samples paging, twin windows (cached), history from summaries, "find the
-moment", events, analytics and reports, ISO 15143-3 snapshots.
+moment", events, analytics and reports, ISO 15143-3 snapshots; the queries that replay nothing
+live in :mod:`cranetwin.service.queries`.
 """
 
 from __future__ import annotations
@@ -28,10 +29,17 @@ from cranetwin.service.cache import LruCache
 from cranetwin.service.errors import InvalidRequestError, NotFoundError
 from cranetwin.service.live_payload import LivePayload, public_kg
 from cranetwin.service.metrics import Metrics
+from cranetwin.service.queries import (
+    Moment,
+    SamplesPage,
+    check_channels,
+    find_moment,
+    samples_page,
+)
 from cranetwin.service.replayer import Replayer, sample_rate_hz
-from cranetwin.service.timerange import TimeRange, iso, parse_time
+from cranetwin.service.timerange import TimeRange, iso
 from cranetwin.service.views import twin_json
-from cranetwin.service.worker import TwinWorker, derived_channels
+from cranetwin.service.worker import TwinWorker
 from cranetwin.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -69,25 +77,6 @@ class MachineStatus:
     alarms: int
     location: tuple[float, float] | None
     data_range: tuple[float, float] | None
-
-
-@dataclass(frozen=True)
-class SamplesPage:
-    """One page of raw samples: ``values`` (len(t), len(channels)) in channel units, None =
-    missing; ``next_cursor`` continues the paging (None: done)."""
-
-    channels: list[str]
-    t: list[float]
-    values: list[list[float | None]]
-    next_cursor: str | None
-
-
-@dataclass(frozen=True)
-class Moment:
-    """When a condition held (``t`` [s]) and the value there; both None when it never held."""
-
-    t: float | None
-    value: float | None
 
 
 @dataclass(frozen=True)
@@ -231,53 +220,13 @@ class FleetService:
     # -- samples ----------------------------------------------------------------------------------
     def samples_page(self, rec: MachineRecord, rng: TimeRange, limit: int,
                      cursor: str | None) -> SamplesPage:
-        """One page of raw samples in [from, to) (≤ ``limit``; next page from ``next_cursor``).
-
-        Gaps of any length are skipped with one index probe (the start of the next stored
-        block), so paging never stops early: ``next_cursor`` is null only when no sample is
-        left in [cursor, to).
+        """One page of raw samples in [from, to) (:func:`cranetwin.service.queries.samples_page`).
         """
         if limit > self.settings.max_samples_limit:
             raise InvalidRequestError("Page too large", f"limit={limit}; at most "
                                       f"{self.settings.max_samples_limit} samples per page")
-        start = rng.t0_s
-        if cursor is not None:
-            c = parse_time(cursor, "cursor")
-            if not rng.t0_s <= c <= rng.t1_s:
-                raise InvalidRequestError("Invalid cursor",
-                                          f"cursor {cursor!r} is outside [from, to)")
-            start = c
-        mid = rec.machine_id
-        first = self.backend.next_sample_time(mid, start)  # a leading gap: skipped at once
-        if first is None or first >= rng.t1_s:
-            return SamplesPage(channels=[], t=[], values=[], next_cursor=None)
-        start = max(start, first)
-        span = limit / self.settings.nominal_rate_hz * 1.1 + 1.0
-        t = np.zeros(0)
-        vals = np.zeros((0, 0))
-        channels: tuple[str, ...] = ()
-        while True:
-            end = min(rng.t1_s, start + span)
-            s = self.backend.read_samples(mid, start, end)
-            t, vals, channels = s.t_s, s.values, s.channels
-            keep = t < rng.t1_s
-            t, vals = t[keep], vals[keep]
-            if t.shape[0] > limit or end >= rng.t1_s or span > 400 * 86400.0:
-                break
-            span *= 4.0
-        nxt = None
-        if t.shape[0] > limit:
-            nxt = repr(float(t[limit]))
-            t, vals = t[:limit], vals[:limit]
-        elif end < rng.t1_s:  # a page short of ``limit`` before a long gap: continue after it
-            more = self.backend.next_sample_time(mid, end)
-            if more is not None and more < rng.t1_s:
-                nxt = repr(float(max(more, end)))
-        v = np.where(np.isfinite(vals), vals, np.nan)
-        return SamplesPage(channels=list(channels), t=t.tolist(),
-                           values=[[None if not math.isfinite(x) else x for x in row]
-                                   for row in v.tolist()],
-                           next_cursor=nxt)
+        return samples_page(self.backend, rec.machine_id, rng, limit, cursor,
+                            self.settings.nominal_rate_hz)
 
     # -- twin -------------------------------------------------------------------------------------
     def twin_window(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> bytes:
@@ -318,15 +267,6 @@ class FleetService:
         return twin_json(machine, res, rng.t0_s, rng.t1_s, rate_hz)
 
     # -- history / find / events ------------------------------------------------------------
-    def _check_channels(self, machine: Machine, names: list[str]) -> None:
-        raw = [c.name for c in machine.channels]
-        derived = derived_channels(machine)
-        bad = [n for n in names if n not in raw and n not in derived]
-        if bad:
-            raise InvalidRequestError(
-                "Unknown channel", f"{', '.join(repr(b) for b in bad)}: expected raw channels "
-                f"({', '.join(raw)}) or derived ones ({', '.join(derived)})")
-
     def history(self, rec: MachineRecord, rng: TimeRange, channels: str,
                 max_points: int) -> bytes:
         """Min/max/mean per bucket of each channel, from the stored summaries, as JSON bytes
@@ -344,7 +284,7 @@ class FleetService:
             raise InvalidRequestError(
                 "Too many channels",
                 f"{len(names)} channels; at most {MAX_HISTORY_CHANNELS} per request")
-        self._check_channels(self.backend.model_of(rec), names)
+        check_channels(self.backend.model_of(rec), names)
         data = self.backend.summaries(rec.machine_id, names, rng.t0_s, rng.t1_s, max_points)
         out = {n: {"t": data[n][0], "min": data[n][1], "max": data[n][2], "mean": data[n][3]}
                for n in names}
@@ -352,47 +292,12 @@ class FleetService:
 
     def find(self, rec: MachineRecord, rng: TimeRange, channel: str, op: Literal["gt", "lt"],
              value: float, which: Literal["first", "last"]) -> Moment:
-        """First/last time ``channel`` op ``value`` held in [from, to).
-
-        Coarse-to-fine over the summaries: a bucket whose max (min) does not pass cannot hold a
-        passing value, so the search narrows to the first (last) passing bucket, then to the
-        finest summaries inside it, then (raw channels) to the exact sample.
-        """
+        """First/last time ``channel`` op ``value`` held in [from, to)
+        (:func:`cranetwin.service.queries.find_moment`)."""
         rng.limit(self.settings.max_history_range_s, "find")
         machine = self.backend.model_of(rec)
-        self._check_channels(machine, [channel])
-        t0, t1 = rng.t0_s, rng.t1_s
-        finest = self.backend.finest_interval_s()
-        hit: tuple[float, float, float] | None = None
-        for _ in range(6):
-            t, lo, hi, _mean = self.backend.summaries(rec.machine_id, [channel], t0, t1,
-                                                      2000)[channel]
-            if t.shape[0] == 0:
-                return Moment(t=None, value=None)
-            ext = hi if op == "gt" else lo
-            ok = np.isfinite(ext) & ((ext > value) if op == "gt" else (ext < value))
-            if not ok.any():
-                if hit is None:
-                    return Moment(t=None, value=None)
-                break
-            i = int(np.argmax(ok)) if which == "first" else int(len(ok) - 1 - np.argmax(ok[::-1]))
-            width = float(np.median(np.diff(t))) if t.shape[0] > 1 else finest
-            hit = (float(t[i]), float(ext[i]), width)
-            t0, t1 = max(rng.t0_s, float(t[i])), min(rng.t1_s, float(t[i]) + width)
-            if width <= finest * 1.0001:
-                break
-        assert hit is not None
-        if channel in {c.name for c in machine.channels}:
-            s = self.backend.read_samples(rec.machine_id, t0, t1 + 1e-9)
-            if s.t_s.shape[0] and channel in s.channels:
-                col = s.column(channel)
-                inside = (s.t_s >= rng.t0_s) & (s.t_s < rng.t1_s)
-                ok = inside & np.isfinite(col) & ((col > value) if op == "gt" else (col < value))
-                if ok.any():
-                    idx = np.flatnonzero(ok)
-                    j = int(idx[0] if which == "first" else idx[-1])
-                    return Moment(t=float(s.t_s[j]), value=float(col[j]))
-        return Moment(t=max(hit[0], rng.t0_s), value=hit[1])
+        check_channels(machine, [channel])
+        return find_moment(self.backend, machine, rec.machine_id, rng, channel, op, value, which)
 
     def events(self, rec: MachineRecord, rng: TimeRange) -> list[dict[str, Any]]:
         """Stored events in [from, to): ``{t, kind, severity, message, evidence}`` each."""
