@@ -49,11 +49,11 @@ class Service:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     from cranetwin.api import create_app
+    from cranetwin.api.preview import ServerThread
     from cranetwin.model import load_machine
     from cranetwin.service.worker import TwinWorker
     from cranetwin.settings import Settings
     from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
-    from cranetwin.viz.preview import ServerThread
 
     url = f"sqlite:///{tmp_path_factory.mktemp('web') / 'web.db'}"
     app = create_app(Settings(database_url=url, worker_in_process=False))

@@ -104,6 +104,8 @@ def get_report(
 ) -> Response:
     """The maintenance report of [from, to) (cranetwin.reports): load spectra, damage and
     remaining life, duty class, events, productivity — as PDF, HTML or a zip of CSV tables."""
-    rep = services.fleet.report(machine, rng, format)
+    from cranetwin.reports import render
+
+    rep = services.fleet.report(machine, rng, format, render)
     return Response(rep.body, media_type=rep.media_type,
                     headers={"Content-Disposition": f'attachment; filename="{rep.filename}"'})

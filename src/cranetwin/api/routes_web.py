@@ -166,7 +166,7 @@ def static_file(path: str, request: Request) -> Response:
 async def require_viewer(request: Request) -> None:
     """The API's key check (role viewer) when the app has the API's services.
 
-    Apps without them (the synthetic preview of :mod:`cranetwin.viz.preview`) check keys in their
+    Apps without them (the synthetic preview of :mod:`cranetwin.api.preview`) check keys in their
     own middleware; the data these routes read comes from the API's routes, called with the
     caller's credentials, so a key that may not read a machine gets its 401/403 either way.
     """

@@ -1,6 +1,6 @@
 """``cranetwin bench web``: first meaningful paint, replay frame rate and live latency in Chromium.
 
-Runs the web UI on the synthetic preview app (:mod:`cranetwin.viz.preview`, real uvicorn on
+Runs the web UI on the synthetic preview app (:mod:`cranetwin.api.preview`, real uvicorn on
 loopback) and drives Debian's Chromium headless (software WebGL) with Playwright. Figures:
 
 - ``first_paint_ms``: navigation start → first crane frame drawn on the machine page (median of 3
@@ -105,7 +105,7 @@ def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
 
     from playwright.sync_api import sync_playwright
 
-    from cranetwin.viz.preview import PREVIEW_KEY, ServerThread, create_preview_app
+    from cranetwin.api.preview import PREVIEW_KEY, ServerThread, create_preview_app
 
     end = float(int(time.time()) - 60)
     tmp = tempfile.TemporaryDirectory()

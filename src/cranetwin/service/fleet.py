@@ -15,6 +15,7 @@ import asyncio
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -77,6 +78,10 @@ class MachineStatus:
     alarms: int
     location: tuple[float, float] | None
     data_range: tuple[float, float] | None
+
+
+RenderReport = Callable[[Any, Machine, str, str], tuple[bytes, str, str]]
+"""``(analytics report, machine, format, source label) -> (body, media type, file name)``."""
 
 
 @dataclass(frozen=True)
@@ -313,9 +318,11 @@ class FleetService:
                                   rec.machine_id, rng)
         return analytics_json(report, rng)
 
-    def report(self, rec: MachineRecord, rng: TimeRange, fmt: str) -> ReportFile:
-        """The maintenance report of the range from :func:`cranetwin.reports.render` (PDF, HTML,
-        or a zip of CSV tables); a one-table stub file when the range holds no samples."""
+    def report(self, rec: MachineRecord, rng: TimeRange, fmt: str,
+               render_report: RenderReport) -> ReportFile:
+        """The maintenance report of the range, rendered by ``render_report`` (the caller passes
+        :func:`cranetwin.reports.render`: PDF, HTML or a zip of CSV tables; reports sit above
+        this layer); a one-table stub file when the range holds no samples."""
         from cranetwin.service.analytics import analytics_json, analytics_report, render
 
         rng.limit(self.settings.max_analytics_range_s, "a report")
@@ -324,8 +331,6 @@ class FleetService:
         if rep is None:
             body, media, name = render(analytics_json(None, rng), fmt, rec.machine_id)
         else:
-            from cranetwin.reports import render as render_report
-
             source = f"cranetwin API: machine {rec.machine_id}, {iso(rng.t0_s)} – {iso(rng.t1_s)}"
             body, media, name = render_report(rep, machine, fmt, source)
             name = f"{rec.machine_id}-{name}"
