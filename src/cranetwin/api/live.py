@@ -104,8 +104,11 @@ class Follower:
         if self._kin is None or self._kin.channels != samples.channels:
             self._kin = LiveKinematics(self.machine, samples.channels)
             self._prev = None
-        frames = self._kin.frames(samples.t_s[-1:], samples.values[-1:],
-                                  samples.values[-2] if samples.t_s.shape[0] > 1 else self._prev)
+        if samples.t_s.shape[0] > 1:
+            prev, prev_t = samples.values[-2], float(samples.t_s[-2])
+        else:  # the newest sample of the previous poll (its time is after_t)
+            prev, prev_t = self._prev, self.after_t
+        frames = self._kin.frames(samples.t_s[-1:], samples.values[-1:], prev, prev_t)
         self.after_t = float(samples.t_s[-1])
         self._prev = samples.values[-1]
         if not frames:

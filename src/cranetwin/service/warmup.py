@@ -47,7 +47,7 @@ def warm_up(model: str = "patu655") -> float:
     res = replay(samples, machine, grid_hz=100.0)
     twin_json(machine, res, float(samples.t_s[100]), float(samples.t_s[-100]), 50.0)
     LiveKinematics(machine, samples.channels).frames(samples.t_s[-1:], samples.values[-1:],
-                                                      samples.values[-2])
+                                                      samples.values[-2], samples.t_s[-2])
     build_scene(machine)
     return time.perf_counter() - t
 
