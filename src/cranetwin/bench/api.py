@@ -218,13 +218,18 @@ def _live(url: str, port: int, key: str, clients: int, seconds: float,
         t_next = time.time()
         dt = 1.0 / block_hz
         n = int(round(100.0 / block_hz))
+        last = -np.inf  # newest sample written [s]: blocks never overlap (storage refuses that)
         while not stop.is_set():
-            now = time.time()
-            t0 = float(np.floor(now * 100.0) / 100.0) - (n - 1) / 100.0
-            blk = next(tiled_blocks(MID, machine, t0, n / 100.0, n / 100.0, base=base, seq0=seq))
-            st.write_blocks([blk])
-            committed[round(t0 + (n - 1) / 100.0, 2)] = time.time()
-            seq += 1
+            newest = float(np.floor(time.time() * 100.0) / 100.0)
+            t0 = max(newest - (n - 1) / 100.0, round(last + 0.01, 2))
+            k = int(round((newest - t0) * 100.0)) + 1
+            if k >= 1:
+                blk = next(tiled_blocks(MID, machine, t0, k / 100.0, k / 100.0, base=base,
+                                        seq0=seq))
+                st.write_blocks([blk])
+                last = round(t0 + (k - 1) / 100.0, 2)
+                committed[last] = time.time()
+                seq += 1
             t_next += dt
             time.sleep(max(0.0, t_next - time.time()))
 
