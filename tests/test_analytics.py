@@ -34,9 +34,9 @@ from cranetwin.analytics import (
 )
 from cranetwin.analytics.rainflow import levels
 from cranetwin.analytics.runs import RunTracker
-from cranetwin.analytics.synthetic import CYCLE_S, Misuse, SyntheticCrane
 from cranetwin.errors import AnalyticsError
 from cranetwin.model import FatigueDetail, Machine, load_machine
+from cranetwin.testing.histories import CYCLE_S, Misuse, SyntheticCrane
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "cranetwin" / "analytics"
 

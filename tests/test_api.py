@@ -1,6 +1,6 @@
 """HTTP API on a real store: auth per role on every route, each route's happy path, bad input.
 
-Data: 4 minutes of exact kinematic samples (:func:`cranetwin.api.synthetic.kinematic_samples`:
+Data: 4 minutes of exact kinematic samples (:func:`cranetwin.testing.blocks.kinematic_samples`:
 a known motion, a payload of 400 kg in the second half of every minute, pressures from inverse
 dynamics) written through the store's write path, then the twin worker's windows.
 """
@@ -16,12 +16,13 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from cranetwin.api import Settings, create_app
+from cranetwin.api import create_app
 from cranetwin.api.services import Services
-from cranetwin.api.synthetic import PAYLOAD_KG, kinematic_samples, payload_schedule, tiled_blocks
-from cranetwin.api.worker import TwinWorker
 from cranetwin.model import load_machine
 from cranetwin.samples import SampleArrays
+from cranetwin.service.worker import TwinWorker
+from cranetwin.settings import Settings
+from cranetwin.testing.blocks import PAYLOAD_KG, kinematic_samples, payload_schedule, tiled_blocks
 
 T0 = 1795420800.0  # 2026-11-23T08:00:00Z, a whole minute
 SPAN = 240.0
@@ -47,7 +48,7 @@ class Ctx:
 
 
 def _populate(url: str, base: SampleArrays) -> Iterator[Ctx]:
-    app = create_app(Settings(database_url=url, worker_enabled=False))
+    app = create_app(Settings(database_url=url, worker_in_process=False))
     with TestClient(app) as client:
         services: Services = app.state.services
         keys = {r: services.backend.create_key(r, f"test {r}")[1]
@@ -61,8 +62,8 @@ def _populate(url: str, base: SampleArrays) -> Iterator[Ctx]:
         services.backend.store.write_blocks(list(tiled_blocks(MID, machine, T0, SPAN, 1.0,
                                                               base=base)))
         worker = TwinWorker(services.backend, services.settings, services.metrics,
-                            services.replayer)
-        assert worker.catch_up(services.backend.machine_or_404(MID)) == 3  # 4th needs settle
+                            services.fleet.replayer)
+        assert worker.catch_up(services.backend.machine(MID)) == 3  # 4th needs settle
         yield ctx
 
 
@@ -224,9 +225,9 @@ def test_twin_recovers_the_known_payload_and_matches_the_kinematics(ctx: Ctx) ->
 def test_twin_second_call_is_served_from_cache(ctx: Ctx) -> None:
     p = {"from": T0 + 10, "to": T0 + 20, "rate_hz": 25}
     first = ctx.get(f"/api/v1/machines/{MID}/twin", **p).content
-    hits = ctx.services.twin_cache.hits
+    hits = ctx.services.fleet.twin_cache.hits
     assert ctx.get(f"/api/v1/machines/{MID}/twin", **p).content == first
-    assert ctx.services.twin_cache.hits == hits + 1
+    assert ctx.services.fleet.twin_cache.hits == hits + 1
 
 
 def test_history_of_raw_channel_agrees_with_samples(ctx: Ctx, base: SampleArrays) -> None:
@@ -455,7 +456,7 @@ def test_live_frames_follow_bus_notes(base: SampleArrays, tmp_path) -> None:
 
     bus = InProcessBus()
     app = create_app(Settings(database_url=f"sqlite:///{tmp_path / 'bus.db'}",
-                              worker_enabled=False), bus=bus)
+                              worker_in_process=False), bus=bus)
     machine = load_machine("patu655")
     with TestClient(app) as client:
         services: Services = app.state.services

@@ -5,8 +5,9 @@ from __future__ import annotations
 from fastapi.testclient import TestClient
 from typer.testing import CliRunner
 
-from cranetwin.api import Settings, create_app
+from cranetwin.api import create_app
 from cranetwin.cli import app as cli
+from cranetwin.settings import Settings
 
 
 def test_keys_create_list_revoke(sqlite_url: str) -> None:
@@ -19,7 +20,7 @@ def test_keys_create_list_revoke(sqlite_url: str) -> None:
     key_id = token.split("_")[1]
     listing = runner.invoke(cli, ["keys", "list", "--db", sqlite_url]).output
     assert key_id in listing and "fleet" in listing and token not in listing
-    app = create_app(Settings(database_url=sqlite_url, worker_enabled=False))
+    app = create_app(Settings(database_url=sqlite_url, worker_in_process=False))
     with TestClient(app) as client:
         assert client.get("/api/v1/aemp/Fleet/1", headers={"X-API-Key": token}).status_code == 200
         r = runner.invoke(cli, ["keys", "revoke", key_id, "--db", sqlite_url])

@@ -16,10 +16,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from cranetwin.api import Settings, create_app
+from cranetwin.api import create_app
 from cranetwin.api.app import ACCESS_LOGGERS, RedactKeysFilter, redact_keys
 from cranetwin.api.services import Services
 from cranetwin.samples import SampleBlock
+from cranetwin.settings import Settings
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -43,7 +44,7 @@ class Api:
 
 @pytest.fixture
 def api(db_url: str) -> Iterator[Api]:
-    app = create_app(Settings(database_url=db_url, worker_enabled=False))
+    app = create_app(Settings(database_url=db_url, worker_in_process=False))
     with TestClient(app) as client:
         services: Services = app.state.services
         admin = services.backend.create_key("admin", "test")[1]
@@ -61,7 +62,7 @@ ODD_STATIC = ["%00", "css/app.css%00", "foo%00.js", "vendor/%00", "%0a", "a%5Cb"
 
 @pytest.mark.parametrize("path", ODD_STATIC, ids=lambda p: p[:24])
 def test_odd_static_paths_are_4xx_never_500(sqlite_url: str, path: str) -> None:
-    app = create_app(Settings(database_url=sqlite_url, worker_enabled=False))
+    app = create_app(Settings(database_url=sqlite_url, worker_in_process=False))
     with TestClient(app, raise_server_exceptions=False) as client:
         r = client.get(f"/static/{path}")
         assert r.status_code in (400, 404), (r.status_code, r.text[:200])
@@ -97,7 +98,7 @@ def test_access_log_of_a_real_server_never_holds_the_key(sqlite_url: str) -> Non
     import uvicorn
 
     secret = "ctk_0123456789ab_supersecretvalue"
-    app = create_app(Settings(database_url=sqlite_url, worker_enabled=False))
+    app = create_app(Settings(database_url=sqlite_url, worker_in_process=False))
     port = _free_port()
     # as `cranetwin serve` does: the app first, then uvicorn configures logging
     config = uvicorn.Config(app, host="127.0.0.1", port=port, log_level="info",

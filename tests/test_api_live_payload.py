@@ -8,11 +8,11 @@ import math
 
 import pytest
 
-from cranetwin.api.backend import Backend, Progress
-from cranetwin.api.live_payload import LivePayload, public_kg
-from cranetwin.api.replayer import Replayer
-from cranetwin.api.synthetic import PAYLOAD_KG, kinematic_samples, tiled_blocks
 from cranetwin.model import load_machine
+from cranetwin.service.backend import Backend, Progress
+from cranetwin.service.live_payload import LivePayload, public_kg
+from cranetwin.service.replayer import Replayer
+from cranetwin.testing.blocks import PAYLOAD_KG, kinematic_samples, tiled_blocks
 
 T0 = 1795420800.0  # a whole minute; the payload is PAYLOAD_KG in [T0+30, T0+60), 0 after
 MID = "crane-lp"
@@ -50,8 +50,8 @@ def test_live_estimate_follows_the_held_payload(sqlite_url: str) -> None:
 def test_falls_back_to_the_worker_estimate(sqlite_url: str) -> None:
     b = Backend.open(sqlite_url)
     b.store.add_machine(MID, wire_id=8, secret=b"k" * 32)
-    b.save_progress(Progress.empty(MID, T0))
-    b.save_progress(Progress(**{**Progress.empty(MID, T0).__dict__, "last_payload_kg": 321.0}))
+    b.reset_progress(Progress.empty(MID, T0))
+    b.reset_progress(Progress(**{**Progress.empty(MID, T0).__dict__, "last_payload_kg": 321.0}))
     lp = LivePayload(MID, MACHINE, b, Replayer())
     assert lp.refresh() is None  # no samples: no live estimate
     assert lp.value() == 321.0
@@ -88,10 +88,10 @@ def test_no_replay_when_nothing_new_is_stored(sqlite_url: str) -> None:
 def test_machines_list_starts_a_live_estimate_before_the_worker_has_one(sqlite_url: str) -> None:
     import time
 
-    from cranetwin.api import Settings
     from cranetwin.api.services import Services
+    from cranetwin.settings import Settings
 
-    services = Services.open(Settings(database_url=sqlite_url, worker_enabled=False,
+    services = Services.open(Settings(database_url=sqlite_url, worker_in_process=False,
                                       warm_up=False))
     b = services.backend
     b.store.add_machine(MID, wire_id=8, secret=b"k" * 32)
@@ -99,14 +99,14 @@ def test_machines_list_starts_a_live_estimate_before_the_worker_has_one(sqlite_u
     base = kinematic_samples(MACHINE, 120.0)
     blocks = list(tiled_blocks(MID, MACHINE, start, 52.0, 1.0, base=base))
     b.store.write_blocks(blocks[-3:])  # the newest 3 s ("live"): too little for an estimate
-    rec = b.machine_or_404(MID)
+    rec = b.machine(MID)
     first = services.machine_public(rec)
     assert first.payload_kg is None  # no worker estimate yet, no live one either
-    services.live_payload[MID].join()
-    services.live_payload[MID].every_s = 0.0  # (2 s between refreshes in service)
+    services.fleet.live_payload[MID].join()
+    services.fleet.live_payload[MID].every_s = 0.0  # (2 s between refreshes in service)
     b.store.write_blocks(blocks[:-3])  # the 49 s before them arrive (retransmitted)
     second = services.machine_public(rec)  # a later listing refreshes the estimate
     assert second.status == "live" and second.payload_kg is None
-    services.live_payload[MID].join()
+    services.fleet.live_payload[MID].join()
     assert services.machine_public(rec).payload_kg == pytest.approx(PAYLOAD_KG, rel=0.02)
     b.close()

@@ -17,9 +17,10 @@ from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from schemathesis import checks
 
-from cranetwin.api import Settings, create_app
-from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
+from cranetwin.api import create_app
 from cranetwin.model import load_machine
+from cranetwin.settings import Settings
+from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
 T0 = 1795420800.0
 # schema-level checks; positive_data_acceptance is left out on purpose: a schema-valid request
@@ -31,7 +32,7 @@ WEB_ROUTES = ("/scene", "/export.html")  # the web engineer's routes, tested in 
 
 
 def _app(tmp: str) -> tuple[FastAPI, TestClient, str]:
-    app = create_app(Settings(database_url=f"sqlite:///{tmp}/schema.db", worker_enabled=False,
+    app = create_app(Settings(database_url=f"sqlite:///{tmp}/schema.db", worker_in_process=False,
                               max_analytics_range_s=120.0))
     client = TestClient(app)
     client.__enter__()

@@ -3,11 +3,11 @@ per-machine warm-up caches each machine's smoothing choice (what short page wind
 
 from __future__ import annotations
 
-from cranetwin.api import Settings
 from cranetwin.api.services import Services
-from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
-from cranetwin.api.warmup import start_warm_up, warm_up
 from cranetwin.model import load_machine
+from cranetwin.service.warmup import start_warm_up, warm_up
+from cranetwin.settings import Settings
+from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
 T0 = 1795420800.0
 MACHINE = load_machine("patu655")
@@ -22,7 +22,7 @@ def test_warm_up_runs_the_page_code_paths() -> None:
 
 
 def test_warm_machines_caches_the_smoothing_choice_of_machines_with_data(sqlite_url: str) -> None:
-    services = Services.open(Settings(database_url=sqlite_url, worker_enabled=False,
+    services = Services.open(Settings(database_url=sqlite_url, worker_in_process=False,
                                       warm_up=False))
     store = services.backend.store
     store.add_machine("with-data", wire_id=1, secret=b"k" * 32)
@@ -30,6 +30,6 @@ def test_warm_machines_caches_the_smoothing_choice_of_machines_with_data(sqlite_
     base = kinematic_samples(MACHINE, 120.0)
     store.write_blocks(list(tiled_blocks("with-data", MACHINE, T0, 40.0, 1.0, base=base,
                                          origin_s=T0)))
-    assert services.warm_machines() == 1
-    assert [k[0] for k in services.replayer._choices] == ["with-data"]
+    assert services.fleet.warm_machines() == 1
+    assert [k[0] for k in services.fleet.replayer._choices] == ["with-data"]
     services.backend.close()

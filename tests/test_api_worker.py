@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from cranetwin.api import Settings, create_app
-from cranetwin.api.backend import Backend
-from cranetwin.api.synthetic import PAYLOAD_KG, kinematic_samples, tiled_blocks
-from cranetwin.api.worker import TwinWorker, derived_channels
+from cranetwin.api import create_app
 from cranetwin.model import load_machine
 from cranetwin.samples import SampleArrays
+from cranetwin.service.backend import Backend
+from cranetwin.service.worker import TwinWorker, derived_channels
+from cranetwin.settings import Settings
+from cranetwin.testing.blocks import PAYLOAD_KG, kinematic_samples, tiled_blocks
 
 T0 = 1795420800.0  # a whole minute
 MID = "crane-w"
@@ -45,14 +46,14 @@ def _derived(b: Backend, t1: float) -> dict[str, np.ndarray]:
 
 
 def _worker(b: Backend) -> TwinWorker:
-    return TwinWorker(b, Settings(database_url="unused", worker_enabled=False))
+    return TwinWorker(b, Settings(database_url="unused", worker_in_process=False))
 
 
 def test_worker_never_processes_a_window_twice_and_resumes(sqlite_url: str, tmp_path,
                                                            base: SampleArrays) -> None:
     b = _backend(sqlite_url)
     _write(b, base, T0, 180.0, 0)
-    rec = b.machine_or_404(MID)
+    rec = b.machine(MID)
     assert _worker(b).catch_up(rec) == 2  # the third minute waits for samples past its end
     first = b.progress(MID)
     assert first is not None and first.watermark_s == T0 + 120 and first.windows == 2
@@ -67,7 +68,7 @@ def test_worker_never_processes_a_window_twice_and_resumes(sqlite_url: str, tmp_
     other = _backend(f"sqlite:///{tmp_path / 'batch.db'}")
     _write(other, base, T0, 180.0, 0)
     _write(other, base, T0 + 180, 125.0, 10_000)
-    assert _worker(other).catch_up(other.machine_or_404(MID)) == 5
+    assert _worker(other).catch_up(other.machine(MID)) == 5
     batch = other.progress(MID)
     assert incremental is not None and batch is not None
     # each worker instance chooses its smoothing windows from the first window it replays
@@ -96,7 +97,7 @@ def test_worker_skips_gaps_in_one_step(sqlite_url: str, base: SampleArrays) -> N
     b = _backend(sqlite_url)
     _write(b, base, T0, 60.0, 0)
     _write(b, base, T0 + 7200, 125.0, 1000)  # two hours off
-    n = _worker(b).catch_up(b.machine_or_404(MID))
+    n = _worker(b).catch_up(b.machine(MID))
     assert n == 3  # minute 0, then the two minutes after the gap
     prog = b.progress(MID)
     assert prog is not None and prog.watermark_s == T0 + 7320
@@ -105,7 +106,8 @@ def test_worker_skips_gaps_in_one_step(sqlite_url: str, base: SampleArrays) -> N
 
 
 def test_background_worker_follows_the_store(sqlite_url: str, base: SampleArrays) -> None:
-    app = create_app(Settings(database_url=sqlite_url, worker_interval_s=0.05))
+    app = create_app(Settings(database_url=sqlite_url, worker_in_process=True,
+                              worker_interval_s=0.05))
     with TestClient(app):
         b: Backend = app.state.services.backend
         b.store.add_machine(MID, wire_id=7, secret=b"k" * 32)
@@ -120,7 +122,7 @@ def test_background_worker_follows_the_store(sqlite_url: str, base: SampleArrays
 
 
 def test_happy_path_on_each_database(db_url: str, base: SampleArrays) -> None:
-    app = create_app(Settings(database_url=db_url, worker_enabled=False))
+    app = create_app(Settings(database_url=db_url, worker_in_process=False))
     with TestClient(app) as client:
         services = app.state.services
         _, key = services.backend.create_key("admin")
@@ -129,7 +131,7 @@ def test_happy_path_on_each_database(db_url: str, base: SampleArrays) -> None:
                         json={"machine_id": MID, "model": "patu655"})
         assert r.status_code == 201
         _write(services.backend, base, T0, 125.0, 0)
-        assert _worker(services.backend).catch_up(services.backend.machine_or_404(MID)) == 2
+        assert _worker(services.backend).catch_up(services.backend.machine(MID)) == 2
         p = {"from": T0, "to": T0 + 120}
         assert client.get(f"/api/v1/machines/{MID}", headers=h).json()["data_range"]["to"] \
             .startswith("2026-11-23T08:02:04.99")
@@ -153,13 +155,13 @@ def test_happy_path_on_each_database(db_url: str, base: SampleArrays) -> None:
 
 def test_worker_stores_detected_events_once(sqlite_url: str, base: SampleArrays) -> None:
     from cranetwin.analytics import EventDetector
-    from cranetwin.api.analytics_view import load_history
-    from cranetwin.api.backend import Progress
+    from cranetwin.service.analytics import load_history
+    from cranetwin.service.backend import Progress
     from cranetwin.twin import replay
 
     b = _backend(sqlite_url)
     _write(b, base, T0, 185.0, 0)
-    assert _worker(b).catch_up(b.machine_or_404(MID)) == 3
+    assert _worker(b).catch_up(b.machine(MID)) == 3
     stored = b.events(MID, T0, T0 + 400)
     # independently: each minute replayed with its margins and run through the detector
     expected = []
@@ -174,7 +176,31 @@ def test_worker_stores_detected_events_once(sqlite_url: str, base: SampleArrays)
     assert [(round(e["t"], 2), e["kind"]) for e in stored] == expected
     assert all(e["message"] and "limit" in e["evidence"] for e in stored)
     # a crash before the watermark moved: the windows are redone, events are not doubled
-    b.save_progress(Progress.empty(MID, T0))
-    assert _worker(b).catch_up(b.machine_or_404(MID)) == 3
+    b.reset_progress(Progress.empty(MID, T0))
+    assert _worker(b).catch_up(b.machine(MID)) == 3
     assert len(b.events(MID, T0, T0 + 400)) == len(stored)
+    b.close()
+
+
+def test_two_workers_never_count_a_window_twice(db_url: str, base: SampleArrays) -> None:
+    """Two workers on one machine: the one that commits second finds the watermark moved,
+    stores nothing of its replay, and leaves counters and summaries as one worker would."""
+    b = _backend(db_url)
+    _write(b, base, T0, 130.0, 0)
+    rec = b.machine(MID)
+    first, second = _worker(b), _worker(b)
+    from cranetwin.service.backend import Progress
+
+    start = Progress.empty(MID, T0)
+    done = first.process_window(rec, start, None)
+    assert done is not None and done.watermark_s == T0 + 60
+    before = _derived(b, T0 + 130)
+    assert second.process_window(rec, start, None) is None  # same window, same start: refused
+    assert b.progress(MID) == done
+    after = _derived(b, T0 + 130)
+    for name, arr in before.items():
+        np.testing.assert_array_equal(after[name], arr)
+    assert second.catch_up(rec) == 1  # re-reads the progress and does the next window only
+    prog = b.progress(MID)
+    assert prog is not None and prog.windows == 2 and prog.watermark_s == T0 + 120
     b.close()

@@ -715,7 +715,7 @@ def test_api_registration_refuses_an_unknown_model_with_the_field_path(sqlite_ur
     from fastapi.testclient import TestClient
 
     from cranetwin.api import Settings, create_app
-    from cranetwin.api.backend import Backend
+    from cranetwin.service.backend import Backend
 
     settings = Settings(database_url=sqlite_url, worker_enabled=False, warm_up=False)
     backend = Backend.open(sqlite_url)

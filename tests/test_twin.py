@@ -9,8 +9,8 @@ from cranetwin.errors import TwinError
 from cranetwin.model import Machine, load_machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import inject_uniform_noise, nrmse
+from cranetwin.testing.recordings import Synthetic, make
 from cranetwin.twin import ReplayOptions, TwinResult, TwinStream, replay
-from cranetwin.twin.synthetic import Synthetic, make
 
 INNER = slice(1000, -1000)  # away from the natural-spline ends (first and last second)
 

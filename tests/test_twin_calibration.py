@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from cranetwin.model import Friction, load_machine
+from cranetwin.testing.recordings import make
 from cranetwin.twin.calibration import calibrate
-from cranetwin.twin.synthetic import make
 
 
 def test_calibration_recovers_friction_and_mass() -> None:

@@ -20,8 +20,8 @@ from cranetwin.physics import codegen, gridpass
 from cranetwin.physics import kernels as K
 from cranetwin.physics.chain import compile_chain
 from cranetwin.signal import inject_uniform_noise
+from cranetwin.testing.recordings import make
 from cranetwin.twin import ReplayOptions, TwinResult, replay
-from cranetwin.twin.synthetic import make
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from cranetwin.api.preview import PREVIEW_KEY, create_preview_app
 from cranetwin.api.routes_web import vendor_file, web_dir
 from cranetwin.model import load_machine
 from cranetwin.physics.kinematics import body_poses, load_point_position
@@ -22,7 +23,6 @@ from cranetwin.viz.export import (
     join_twin,
 )
 from cranetwin.viz.poses import column_major, frame_arrays
-from cranetwin.viz.preview import PREVIEW_KEY, create_preview_app
 from cranetwin.viz.scene import (
     LOG_DENSITY_KGM3,
     LOG_LENGTH_M,

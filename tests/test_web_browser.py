@@ -48,14 +48,15 @@ class Service:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
-    from cranetwin.api import Settings, create_app
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
-    from cranetwin.api.worker import TwinWorker
+    from cranetwin.api import create_app
+    from cranetwin.api.preview import ServerThread
     from cranetwin.model import load_machine
-    from cranetwin.viz.preview import ServerThread
+    from cranetwin.service.worker import TwinWorker
+    from cranetwin.settings import Settings
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     url = f"sqlite:///{tmp_path_factory.mktemp('web') / 'web.db'}"
-    app = create_app(Settings(database_url=url, worker_enabled=False))
+    app = create_app(Settings(database_url=url, worker_in_process=False))
     machine = load_machine("patu655")
     with ServerThread(app) as srv:
         services = app.state.services
@@ -71,7 +72,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
         services.backend.store.write_blocks(list(tiled_blocks("crane-2", machine, END - SPAN,
                                                               SPAN, 1.0, base=base)))
         TwinWorker(services.backend, services.settings, services.metrics,
-                   services.replayer).catch_up(services.backend.machine_or_404("crane-2"))
+                   services.fleet.replayer).catch_up(services.backend.machine("crane-2"))
         yield Service(srv, app, viewer, fleet)
 
 
@@ -202,8 +203,8 @@ def test_play_advances_and_charts_follow(page: Any, server: Service) -> None:
 
 def test_live_updates_within_a_second(page: Any, server: Service) -> None:
     """Samples stored now reach the page through the API's live websocket within a second."""
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
     from cranetwin.model import load_machine
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     machine = load_machine("patu655")
     base = kinematic_samples(machine, 120.0)

@@ -4,7 +4,11 @@
 commands a deployment runs, see ``docker-compose.yml``):
 
 1. ``cranetwin ingest`` — the UDP daemon writing to the embedded SQLite database;
-2. ``cranetwin serve`` — the HTTP API, live websocket and web UI on the same database;
+2. ``cranetwin serve --no-worker`` — the HTTP API, live websocket and web UI on the same database;
+   ``cranetwin worker`` — the twin worker, its own process as in a deployment: its numba replays
+   (a second of CPU per machine-minute) never compete with the API's requests for the
+   interpreter, a crash of one leaves the other running, and the demo exercises the same
+   two-process path (progress marks in the database) that production runs;
 3. an admin key (to register machines) and a viewer key (printed in the URL) via
    ``cranetwin keys create``; machines registered with ``POST /api/v1/machines``;
 4. one ``cranetwin send`` per crane, streaming the simulator's ``log-loading`` work cycle with its
@@ -13,7 +17,9 @@ commands a deployment runs, see ``docker-compose.yml``):
 With ``attach=True`` only steps 3–4 run, against a service and daemon started elsewhere (the
 ``fleet`` service of docker-compose). Children run in their own sessions so that the terminal's
 Ctrl-C reaches only this process, which then stops them in order: senders (they flush), then the
-daemon (it flushes its queue), then the API.
+daemon (it flushes its queue), then the worker (it finishes its window), then the API.
+
+Where the children's logs go is the ``demo_logs`` setting (``CRANETWIN_DEMO_LOGS``).
 """
 
 from __future__ import annotations
@@ -114,8 +120,11 @@ class FleetDemo:
         self.children: list[tuple[str, subprocess.Popen[bytes]]] = []
         self.viewer_key: str | None = None
         self.machine_ids: list[str] = []
+        from cranetwin.settings import Settings, load_settings
+
+        logs = load_settings(Settings).demo_logs
         default = Path(tempfile.gettempdir()) / f"cranetwin-demo-{os.getuid()}"
-        self.logdir = Path(os.environ.get("CRANETWIN_DEMO_LOGS", default))
+        self.logdir = logs if logs is not None else default
 
     # --- processes ---------------------------------------------------------------------------
     def _spawn(self, name: str, args: list[str]) -> subprocess.Popen[bytes]:
@@ -194,7 +203,9 @@ class FleetDemo:
             # its Prometheus endpoint on a free port: the default 9105 may be taken
             self._spawn("ingest", ["ingest", "--bind", c.ingest, "--metrics-bind", "127.0.0.1:0",
                                    *db])
-            self._spawn("api", ["serve", "--host", c.host, "--port", str(c.port), *db])
+            self._spawn("api", ["serve", "--host", c.host, "--port", str(c.port), "--no-worker",
+                                *db])
+            self._spawn("worker", ["worker", "--metrics-bind", "0", *db])
         self.wait_healthy()
         admin = self._run_cli(["keys", "create", "--role", "admin", "--name", "fleet demo", *db])
         self.viewer_key = self._run_cli(["keys", "create", "--role", "viewer",
@@ -275,9 +286,11 @@ class FleetDemo:
                 p.unlink()
 
     def stop(self, timeout_s: float = 15.0) -> None:
-        """Stop children in order (senders, daemon, API): SIGINT, then SIGTERM, then SIGKILL."""
+        """Stop children in order (senders, daemon, worker, API): SIGINT, then SIGTERM, then
+        SIGKILL."""
         order = ([c for c in self.children if c[0].startswith("send-")] +
                  [c for c in self.children if c[0] == "ingest"] +
+                 [c for c in self.children if c[0] == "worker"] +
                  [c for c in self.children if c[0] == "api"])
         for name, proc in order:
             if proc.poll() is not None:

@@ -1,15 +1,20 @@
 """The one settings object every ``cranetwin`` command reads (environment prefix ``CRANETWIN_``).
 
-:class:`Settings` holds what more than one command needs — above all the database every process
-of a deployment shares (``CRANETWIN_DATABASE_URL``) — and the ingest daemon's options.
-:class:`cranetwin.api.Settings` extends it with the HTTP service's fields, so ``cranetwin serve``,
-``cranetwin ingest``, ``cranetwin machines`` and ``cranetwin keys`` all resolve the database the
-same way: the ``--db`` option if given, else ``CRANETWIN_DATABASE_URL``, else
-``sqlite:///cranetwin.db``. Nothing is read at import time; call :func:`load_settings`.
+:class:`Settings` holds every option of every process of a deployment: the database they share
+(``CRANETWIN_DATABASE_URL``), the ingest daemon's, the HTTP service's, the twin worker's, the
+web front end's and the demo's. ``cranetwin serve``, ``cranetwin worker``, ``cranetwin ingest``,
+``cranetwin machines``, ``cranetwin keys``, ``cranetwin report`` and ``cranetwin fleetdemo`` all
+build it once at start with :func:`load_settings` (command-line options override the
+environment), so they resolve the database the same way: the ``--db`` option if given, else
+``CRANETWIN_DATABASE_URL``, else ``sqlite:///cranetwin.db``. Nothing is read at import time.
+
+Secrets (machine HMAC keys) are not settings: they come from files or the environment variable
+the sending command documents, never from argv.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, TypeVar
 
 from pydantic import Field, ValidationError
@@ -25,7 +30,7 @@ class SettingsError(CraneTwinError):
 
 
 class Settings(BaseSettings):
-    """Configuration shared by every command.
+    """Configuration of every command (see the module docstring).
 
     Every field can be set by an environment variable ``CRANETWIN_<FIELD>`` (upper case), e.g.
     ``CRANETWIN_DATABASE_URL`` or ``CRANETWIN_INGEST_METRICS_BIND``; command-line options
@@ -61,6 +66,60 @@ class Settings(BaseSettings):
     ingest_shutdown_timeout_s: float = Field(
         60.0, gt=0, description="longest flush of queued datagrams on SIGTERM while the database "
                                 "is writable [s]")
+
+    # -- HTTP service (``cranetwin serve``) ------------------------------------------------------
+    host: str = Field("127.0.0.1", description="bind address of `cranetwin serve`")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port of `cranetwin serve`")
+    max_history_range_s: float = Field(
+        400 * 86400.0, gt=0, description="longest range of one history/events/find query [s]")
+    max_history_points: int = Field(10_000, ge=10, description="largest max_points of history")
+    max_twin_range_s: float = Field(120.0, gt=0, description="longest window of one twin query [s]")
+    max_twin_points: int = Field(12_000, ge=10, description="most output samples of one twin query")
+    max_twin_rate_hz: float = Field(1000.0, gt=0, description="highest twin output rate [Hz]")
+    twin_margin_s: float = Field(
+        2.0, ge=0, description="extra samples read either side of a twin window [s] (spline ends)")
+    max_analytics_range_s: float = Field(
+        3600.0, gt=0, description="longest range of one analytics/report request [s] (replayed)")
+    max_samples_limit: int = Field(10_000, ge=1, description="most samples per samples page")
+    nominal_rate_hz: float = Field(100.0, gt=0, description="expected sensor sample rate [Hz]")
+    twin_cache_entries: int = Field(64, ge=0, description="replay results kept in the LRU cache")
+    live_rate_hz: float = Field(25.0, ge=1, le=50, description="live websocket frames per second")
+    live_offline_s: float = Field(
+        300.0, gt=0, description="a machine not seen for this long is 'offline' [s]")
+    live_idle_s: float = Field(
+        5.0, gt=0, description="a machine not seen for this long is 'idle' [s]")
+    warm_up: bool = Field(
+        True, description="load the twin's compiled kernels and the 3D scene code before "
+                          "serving (fast first machine page)")
+    web_dir: Path | None = Field(
+        None, description="folder of the web front end's files (default: web/ of the "
+                          "repository next to the package)")
+
+    # -- twin worker (``cranetwin worker``; in ``cranetwin serve`` only when asked) --------------
+    worker_in_process: bool = Field(
+        False, description="run the twin worker inside `cranetwin serve` (the embedded demo); "
+                           "otherwise it runs as its own process, `cranetwin worker`")
+    worker_window_s: float = Field(60.0, gt=0, description="twin worker window [s]")
+    worker_interval_s: float = Field(1.0, gt=0, description="twin worker poll period [s]")
+    worker_settle_s: float = Field(
+        2.0, ge=0, description="a window is processed once samples this much past its end exist")
+    worker_grid_hz: float = Field(100.0, gt=0, description="twin worker replay grid rate [Hz]")
+    worker_metrics_bind: str = Field(
+        "0", description="HOST:PORT of `cranetwin worker`'s Prometheus /metrics (HTTP); "
+                         "0 = not served")
+    summary_interval_s: float = Field(1.0, gt=0, description="derived summary interval [s]")
+    payload_lift_threshold_kg: float = Field(
+        50.0, ge=0, description="payload above which the crane is holding a load (load count) [kg]")
+
+    # -- machine side (``cranetwin send``) -----------------------------------------------------
+    state_dir: Path | None = Field(
+        None, description="folder of `cranetwin send`'s durable journals (<state_dir>/send); "
+                          "default: $XDG_STATE_HOME/cranetwin, else ~/.local/state/cranetwin")
+
+    # -- the one-command demo (``cranetwin fleetdemo``) ------------------------------------------
+    demo_logs: Path | None = Field(
+        None, description="folder of the demo's child-process logs, scenario and secret files "
+                          "(default: cranetwin-demo-<uid> in the temporary folder)")
 
 
 S = TypeVar("S", bound=Settings)

@@ -12,8 +12,9 @@ from fastapi import FastAPI
 from cranetwin import __version__
 from cranetwin.api import routes_aemp, routes_data, routes_live, routes_machines, routes_ops
 from cranetwin.api.errors import install_error_handlers
+from cranetwin.api.metrics import count_request
 from cranetwin.api.services import Services
-from cranetwin.api.settings import Settings
+from cranetwin.settings import Settings, load_settings
 
 log = logging.getLogger(__name__)
 
@@ -78,15 +79,15 @@ def install_log_redaction() -> None:
 
 
 def create_app(settings: Settings | None = None, *, bus: object = None) -> FastAPI:
-    """Build the FastAPI app; the lifespan opens the store, starts the twin worker, and closes
-    both on shutdown.
+    """Build the FastAPI app; the lifespan opens the store (and starts the twin worker when
+    ``settings.worker_in_process``), and closes both on shutdown.
 
     Args:
-        settings: Service settings; read from the environment (``CRANETWIN_*``) when None.
+        settings: The settings; read from the environment (``CRANETWIN_*``) when None.
         bus: The live bus of an ingest daemon running in the same process
             (``cranetwin.storage.live.InProcessBus``); None to use ``settings.live_bus_url``.
     """
-    cfg = settings if settings is not None else Settings()
+    cfg = settings if settings is not None else load_settings(Settings)
     install_log_redaction()  # API keys in ?key= never reach the access log
 
     @asynccontextmanager
@@ -112,7 +113,7 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
         services = request.app.state.services
         if services is None:
             return await call_next(request)
-        return await services.metrics.middleware(request, call_next)
+        return await count_request(services.metrics, request, call_next)
 
     for module in (routes_ops, routes_machines, routes_data, routes_aemp, routes_live):
         app.include_router(module.router)

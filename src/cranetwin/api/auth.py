@@ -1,31 +1,25 @@
-"""API keys and roles: who may call what.
+"""API keys and roles over HTTP: who may call what.
 
-A key is ``ctk_<key_id>_<secret>``: ``key_id`` (12 hex digits) finds the stored row, the secret
-(32 random bytes, URL-safe base64) is never stored — only ``sha256(secret)`` is, compared in
-constant time. Roles are ordered ``viewer < fleet < admin``; a route needing ``fleet`` accepts
-``fleet`` and ``admin`` keys. A key is read from ``X-API-Key``, ``Authorization: Bearer``, or the
-``key`` query parameter (browser links and websockets), in that order.
+A key is ``ctk_<key_id>_<secret>``; only ``sha256(secret)`` is stored, compared in constant time
+(:mod:`cranetwin.service.keys`). Roles are ordered ``viewer < fleet < admin``; a route needing
+``fleet`` accepts ``fleet`` and ``admin`` keys. A key is read from ``X-API-Key``,
+``Authorization: Bearer``, or the ``key`` query parameter (browser links and websockets), in that
+order.
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
-import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
 
 from fastapi.security import APIKeyHeader, APIKeyQuery, HTTPBearer
 from starlette.requests import HTTPConnection
 
 from cranetwin.api.errors import ApiError
+from cranetwin.service.keys import KEY_PREFIX, ROLES, Role, new_key, split_token, verify
 
-Role = Literal["viewer", "fleet", "admin"]
-ROLES: tuple[Role, ...] = ("viewer", "fleet", "admin")
 _RANK = {r: i for i, r in enumerate(ROLES)}
-KEY_PREFIX = "ctk_"
 
 
 @dataclass(frozen=True)
@@ -45,33 +39,6 @@ class ApiKey:
     def allows(self, role: Role) -> bool:
         """Whether this key's role is at least ``role``."""
         return _RANK[self.role] >= _RANK[role]
-
-
-def hash_secret(secret: str) -> str:
-    """Hex sha256 of a key's secret part (what is stored)."""
-    return hashlib.sha256(secret.encode("utf-8")).hexdigest()
-
-
-def new_key() -> tuple[str, str, str]:
-    """A fresh key: ``(key_id, token, secret_hash)``; the token is shown to the user once."""
-    key_id = secrets.token_hex(6)
-    secret = secrets.token_urlsafe(32)
-    return key_id, f"{KEY_PREFIX}{key_id}_{secret}", hash_secret(secret)
-
-
-def split_token(token: str) -> tuple[str, str] | None:
-    """``(key_id, secret)`` of a well-formed token, else None."""
-    if not token.startswith(KEY_PREFIX):
-        return None
-    key_id, sep, secret = token[len(KEY_PREFIX):].partition("_")
-    if not sep or len(key_id) != 12 or not secret or len(token) > 200:
-        return None
-    return key_id, secret
-
-
-def verify(stored_hash: str, secret: str) -> bool:
-    """Constant-time comparison of a presented secret with the stored hash."""
-    return hmac.compare_digest(stored_hash.encode(), hash_secret(secret).encode())
 
 
 # OpenAPI security schemes (documentation); the actual check is `authenticate`.
@@ -147,3 +114,7 @@ def authorise(key: ApiKey, role: Role) -> ApiKey:
         raise ApiError(403, "Insufficient role",
                        f"this operation needs a {role!r} key (or higher); yours is {key.role!r}")
     return key
+
+
+__all__ = ["KEY_PREFIX", "ROLES", "ApiKey", "KeyVerifier", "Role", "authorise", "new_key",
+           "presented_token"]

@@ -16,11 +16,11 @@ from cranetwin.api.auth import (
     presented_token,
     query_scheme,
 )
-from cranetwin.api.settings import Settings
+from cranetwin.settings import Settings
 
 if TYPE_CHECKING:
-    from cranetwin.api.backend import Backend, MachineRecord
     from cranetwin.api.services import Services
+    from cranetwin.service.backend import Backend, MachineRecord
 
 
 def get_services(request: Request) -> Services:
@@ -76,8 +76,8 @@ MachineIdPath = Annotated[str, Path(description="machine identifier", examples=[
 
 
 def get_machine(request: Request, machine_id: MachineIdPath) -> MachineRecord:
-    """The stored machine ``machine_id``, or 404 problem JSON."""
-    return get_backend(request).machine_or_404(machine_id)
+    """The stored machine ``machine_id`` (unknown: 404 problem JSON, by the error handler)."""
+    return get_backend(request).machine(machine_id)
 
 
 MachineDep = Annotated["MachineRecord", Depends(get_machine)]

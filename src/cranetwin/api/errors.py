@@ -4,8 +4,12 @@ Every error response of the API has media type ``application/problem+json`` and 
 ``{type, title, status, detail}`` (plus ``errors`` for validation failures, one entry per bad
 field). Bad input is always a 4xx: request validation → 422 (malformed JSON body → 400), unknown
 machine → 404, unusable range → 422, missing key → 401, wrong role → 403. cranetwin errors raised
-below the API are translated here once: a :class:`~cranetwin.errors.TwinError` (too few samples to
-replay) → 422, a :class:`~cranetwin.errors.StorageError` → 503.
+below the API are translated here once: the service's
+(:mod:`cranetwin.service.errors`) :class:`~cranetwin.service.errors.NotFoundError` → 404,
+:class:`~cranetwin.service.errors.ConflictError` → 409,
+:class:`~cranetwin.service.errors.InvalidRequestError` → 422; a
+:class:`~cranetwin.errors.TwinError` (too few samples to replay) → 422, a
+:class:`~cranetwin.errors.StorageError` → 503.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from cranetwin.errors import (
     StorageError,
     TwinError,
 )
+from cranetwin.service.errors import ConflictError, NotFoundError, ServiceError
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +96,18 @@ async def _api(request: Request, exc: Exception) -> JSONResponse:
     return problem(exc.status, exc.title, exc.detail, headers=exc.headers)
 
 
+def http_status(exc: ServiceError) -> int:
+    """The HTTP status of a service error: 404 not found, 409 conflict, else 422."""
+    if isinstance(exc, NotFoundError):
+        return 404
+    if isinstance(exc, ConflictError):
+        return 409
+    return 422
+
+
 async def _cranetwin(request: Request, exc: Exception) -> JSONResponse:
+    if isinstance(exc, ServiceError):
+        return problem(http_status(exc), exc.title, exc.detail)
     if isinstance(exc, StorageError):
         log.error("storage error on %s: %s", request.url.path, exc)
         return problem(503, "Storage unavailable", str(exc))

@@ -3,7 +3,7 @@
 The follower reads the samples newer than the last it saw — when the ingest daemon's live bus
 (:mod:`cranetwin.storage.live`) announces a newly stored block of its machine, or at the latest
 every ``1 / live_rate_hz`` s when there is no bus — at most ``live_rate_hz`` times a second,
-turns the newest into a frame (:class:`~cranetwin.api.views.LiveKinematics`: pose,
+turns the newest into a frame (:class:`~cranetwin.service.views.LiveKinematics`: pose,
 cylinder pins and forces, pressures), serialises it once and offers it to every client. Each
 client has a queue of one frame: a slow client skips frames instead of slowing the others or
 growing memory. The follower starts with the first client of a machine and stops with the last.
@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from cranetwin.api.views import LiveKinematics
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
+from cranetwin.service.views import LiveKinematics
 
 log = logging.getLogger(__name__)
 
@@ -104,8 +104,11 @@ class Follower:
         if self._kin is None or self._kin.channels != samples.channels:
             self._kin = LiveKinematics(self.machine, samples.channels)
             self._prev = None
-        frames = self._kin.frames(samples.t_s[-1:], samples.values[-1:],
-                                  samples.values[-2] if samples.t_s.shape[0] > 1 else self._prev)
+        if samples.t_s.shape[0] > 1:
+            prev, prev_t = samples.values[-2], float(samples.t_s[-2])
+        else:  # the newest sample of the previous poll (its time is after_t)
+            prev, prev_t = self._prev, self.after_t
+        frames = self._kin.frames(samples.t_s[-1:], samples.values[-1:], prev, prev_t)
         self.after_t = float(samples.t_s[-1])
         self._prev = samples.values[-1]
         if not frames:

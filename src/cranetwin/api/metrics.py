@@ -1,4 +1,4 @@
-"""Prometheus metrics of one app instance (own registry, so several apps can live in a process)."""
+"""Request counting of the HTTP API into the service's Prometheus metrics."""
 
 from __future__ import annotations
 
@@ -6,46 +6,17 @@ import time
 from collections.abc import Awaitable, Callable
 
 from fastapi import Request, Response
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+from cranetwin.service.metrics import Metrics
 
 
-class Metrics:
-    """Counters and gauges of the HTTP service, the live stream and the twin worker."""
-
-    def __init__(self) -> None:
-        self.registry = CollectorRegistry()
-        r = self.registry
-        self.requests = Counter("cranetwin_http_requests", "HTTP requests handled",
-                                ["method", "route", "status"], registry=r)
-        self.latency = Histogram("cranetwin_http_request_seconds", "HTTP request latency [s]",
-                                 ["route"], registry=r,
-                                 buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.2, 0.5, 1, 2.5, 10))
-        self.live_clients = Gauge("cranetwin_live_clients", "open live websockets", registry=r)
-        self.live_frames = Counter("cranetwin_live_frames", "live frames sent", registry=r)
-        self.twin_cache_hits = Gauge("cranetwin_twin_cache_hits", "replay cache hits", registry=r)
-        self.twin_cache_misses = Gauge("cranetwin_twin_cache_misses", "replay cache misses",
-                                       registry=r)
-        self.worker_windows = Counter("cranetwin_worker_windows",
-                                      "windows processed by the twin worker", ["machine"],
-                                      registry=r)
-        self.worker_lag = Gauge("cranetwin_worker_lag_seconds",
-                                "newest sample minus the worker's watermark [s]", ["machine"],
-                                registry=r)
-        self.worker_errors = Counter("cranetwin_worker_errors",
-                                     "windows the twin worker could not process", ["machine"],
-                                     registry=r)
-
-    def render(self) -> bytes:
-        """Prometheus text exposition of every metric."""
-        return generate_latest(self.registry)
-
-    async def middleware(self, request: Request,
-                         call_next: Callable[[Request], Awaitable[Response]]) -> Response:
-        """Count requests and their latency per route template (not per raw path)."""
-        start = time.perf_counter()
-        response = await call_next(request)
-        matched = request.scope.get("route")
-        route = str(getattr(matched, "path", "unmatched"))
-        self.requests.labels(request.method, route, str(response.status_code)).inc()
-        self.latency.labels(route).observe(time.perf_counter() - start)
-        return response
+async def count_request(metrics: Metrics, request: Request,
+                        call_next: Callable[[Request], Awaitable[Response]]) -> Response:
+    """Count requests and their latency per route template (not per raw path)."""
+    start = time.perf_counter()
+    response = await call_next(request)
+    matched = request.scope.get("route")
+    route = str(getattr(matched, "path", "unmatched"))
+    metrics.requests.labels(request.method, route, str(response.status_code)).inc()
+    metrics.latency.labels(route).observe(time.perf_counter() - start)
+    return response

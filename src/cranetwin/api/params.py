@@ -1,77 +1,15 @@
-"""Query parameters shared by the data routes: time ranges and channel lists."""
+"""Query parameters shared by the routes: the ``from``/``to`` range as a typed dependency."""
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-from datetime import UTC, datetime
 from typing import Annotated
 
 from fastapi import Depends, Query
 
-from cranetwin.api.errors import ApiError
-
-_EPOCH_MIN = 0.0
-_EPOCH_MAX = 253402300799.0  # 9999-12-31T23:59:59Z
+from cranetwin.service.timerange import TimeRange
 
 TIME_DESCRIPTION = ("ISO 8601 with zone (`2026-11-23T10:42:00Z`; no zone = UTC) or epoch seconds "
                     "(`1795430520.5`) [s]")
-
-
-def parse_time(value: str, name: str) -> float:
-    """Seconds since the Unix epoch of an ISO 8601 string or a number.
-
-    Raises:
-        ApiError: 422 when ``value`` is neither, not finite, or outside years 1970–9999.
-    """
-    text = value.strip()
-    try:
-        t = float(text)
-    except ValueError:
-        try:
-            dt = datetime.fromisoformat(text.replace("Z", "+00:00").replace("z", "+00:00"))
-        except ValueError as exc:
-            raise ApiError(422, "Invalid time", f"{name}={value!r}: expected ISO 8601 "
-                           "(2026-11-23T10:42:00Z) or epoch seconds (1795430520.5)") from exc
-        if dt.tzinfo is None:
-            dt = dt.replace(tzinfo=UTC)
-        try:
-            t = dt.timestamp()
-        except (OverflowError, OSError, ValueError) as exc:
-            raise ApiError(422, "Invalid time", f"{name}={value!r} is out of range") from exc
-    if not math.isfinite(t) or not _EPOCH_MIN <= t <= _EPOCH_MAX:
-        raise ApiError(422, "Invalid time", f"{name}={value!r}: expected a finite time between "
-                       "1970-01-01 and 9999-12-31")
-    return t
-
-
-def iso(t_s: float | None) -> str | None:
-    """ISO 8601 UTC text of epoch seconds (millisecond precision), None stays None."""
-    if t_s is None:
-        return None
-    return datetime.fromtimestamp(t_s, UTC).isoformat(timespec="milliseconds").replace(
-        "+00:00", "Z")
-
-
-@dataclass(frozen=True)
-class TimeRange:
-    """A half-open query range [t0_s, t1_s) in epoch seconds, t1_s > t0_s."""
-
-    t0_s: float
-    t1_s: float
-
-    @property
-    def duration_s(self) -> float:
-        """Length of the range [s]."""
-        return self.t1_s - self.t0_s
-
-    def limit(self, max_s: float, what: str) -> TimeRange:
-        """This range, or 422 when longer than ``max_s`` seconds."""
-        if self.duration_s > max_s:
-            raise ApiError(422, "Range too long",
-                           f"{self.duration_s:.6g} s requested; {what} covers at most "
-                           f"{max_s:.6g} s per request (split the range)")
-        return self
 
 
 def time_range(
@@ -81,10 +19,7 @@ def time_range(
                              examples=["2026-11-23T10:43:00Z"], max_length=64)],
 ) -> TimeRange:
     """Dependency: the ``from``/``to`` query parameters as a validated :class:`TimeRange`."""
-    t0, t1 = parse_time(from_, "from"), parse_time(to, "to")
-    if not t1 > t0:
-        raise ApiError(422, "Invalid range", f"to ({to}) must be after from ({from_})")
-    return TimeRange(t0, t1)
+    return TimeRange.parse(from_, to)
 
 
 RangeDep = Annotated[TimeRange, Depends(time_range)]

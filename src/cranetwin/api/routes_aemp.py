@@ -1,4 +1,4 @@
-"""ISO 15143-3 (AEMP 2.0) fleet and equipment snapshots (see :mod:`cranetwin.api.aemp`)."""
+"""ISO 15143-3 (AEMP 2.0) fleet and equipment snapshots (see :mod:`cranetwin.service.aemp`)."""
 
 from __future__ import annotations
 
@@ -44,11 +44,12 @@ def fleet(key: FleetKey, services: ServicesDep, request: Request,
           ) -> dict[str, Any]:
     """≤ 100 equipment snapshots per page, sorted by id, with self/first/prev/next/last links;
     404 for a page past the last."""
-    return services.aemp_fleet(page, request.scope.get("root_path", "") + "/api/v1/aemp/Fleet")
+    base = request.scope.get("root_path", "") + "/api/v1/aemp/Fleet"
+    return services.fleet.aemp_fleet(page, base)
 
 
 @router.get("/Equipment/{machine_id}", summary="One equipment snapshot (fleet)",
             response_model=dict[str, Any])
 def equipment(key: FleetKey, services: ServicesDep, machine_id: MachineIdPath) -> dict[str, Any]:
     """The ISO 15143-3 snapshot of one machine (same elements as in ``Fleet``)."""
-    return services.aemp_equipment(machine_id)
+    return services.fleet.aemp_equipment(machine_id)

@@ -12,6 +12,8 @@ from cranetwin.api.errors import PROBLEM_RESPONSES
 from cranetwin.api.params import RangeDep
 from cranetwin.api.schemas import EventOut, FindOut, HistoryOut, SamplesPage, TwinOut
 
+JSON = "application/json"
+
 router = APIRouter(prefix="/api/v1/machines/{machine_id}", tags=["data"],
                    responses=PROBLEM_RESPONSES)
 
@@ -25,7 +27,9 @@ def get_samples(
                                         "previous page")] = None,
 ) -> SamplesPage:
     """Stored samples in [from, to), oldest first, ``limit`` per page; follow ``next_cursor``."""
-    return services.samples_page(machine, rng, limit, cursor)
+    page = services.fleet.samples_page(machine, rng, limit, cursor)
+    return SamplesPage(channels=page.channels, t=page.t, values=page.values,
+                       next_cursor=page.next_cursor)
 
 
 @router.get("/twin", response_model=TwinOut, summary="Twin replay of a window")
@@ -38,7 +42,7 @@ def get_twin(
     torques and reaction wrenches (inverse dynamics), payload estimate — for [from, to) at
     ``rate_hz``. At most CRANETWIN_MAX_TWIN_RANGE_S (120 s) and 12000 output samples per call;
     results are cached per (machine, window, rate)."""
-    return services.twin_window(machine, rng, rate_hz)
+    return Response(services.fleet.twin_window(machine, rng, rate_hz), media_type=JSON)
 
 
 @router.get("/history", response_model=HistoryOut, summary="Load history (min/max/mean)")
@@ -53,14 +57,14 @@ def get_history(
 ) -> Response:
     """Min/max/mean per bucket from the stored per-interval summaries (never from raw samples);
     buckets are whole summary intervals, at most ``max_points`` of them per channel."""
-    return services.history(machine, rng, channels, max_points)
+    return Response(services.fleet.history(machine, rng, channels, max_points), media_type=JSON)
 
 
 @router.get("/events", response_model=list[EventOut], summary="Events in a range")
 def get_events(key: CurrentKey, machine: MachineDep, services: ServicesDep,
                rng: RangeDep) -> list[EventOut]:
     """Stored events (overload, end-stop impact, over-pressure, …) in [from, to), oldest first."""
-    return services.events(machine, rng)
+    return [EventOut(**e) for e in services.fleet.events(machine, rng)]
 
 
 @router.get("/find", response_model=FindOut, summary="Find the moment a condition held")
@@ -75,7 +79,8 @@ def find_moment(
 ) -> FindOut:
     """When ``channel`` first (last) went above (``gt``) or below (``lt``) ``value`` in
     [from, to): from the summaries, refined to the exact sample for raw channels."""
-    return services.find(machine, rng, channel, op, value, which)
+    hit = services.fleet.find(machine, rng, channel, op, value, which)
+    return FindOut(t=hit.t, value=hit.value)
 
 
 @router.get("/analytics", summary="Load spectrum, damage, duty class, productivity (fleet)",
@@ -84,7 +89,7 @@ def get_analytics(key: FleetKey, machine: MachineDep, services: ServicesDep,
                   rng: RangeDep) -> dict[str, Any]:
     """Analytics of [from, to) from the derived history: load spectrum, Miner damage, duty
     class and productivity."""
-    return services.analytics(machine, rng)
+    return services.fleet.analytics(machine, rng)
 
 
 @router.get("/report", summary="Report download (fleet)",
@@ -99,4 +104,8 @@ def get_report(
 ) -> Response:
     """The maintenance report of [from, to) (cranetwin.reports): load spectra, damage and
     remaining life, duty class, events, productivity — as PDF, HTML or a zip of CSV tables."""
-    return services.report(machine, rng, format)
+    from cranetwin.reports import render
+
+    rep = services.fleet.report(machine, rng, format, render)
+    return Response(rep.body, media_type=rep.media_type,
+                    headers={"Content-Disposition": f'attachment; filename="{rep.filename}"'})

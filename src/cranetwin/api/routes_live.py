@@ -15,8 +15,9 @@ import contextlib
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from cranetwin.api.auth import authorise, presented_token
-from cranetwin.api.errors import ApiError
+from cranetwin.api.errors import ApiError, http_status
 from cranetwin.api.services import Services
+from cranetwin.service.errors import ServiceError
 
 router = APIRouter(tags=["live"])
 
@@ -28,12 +29,13 @@ async def live(websocket: WebSocket, machine_id: str) -> None:
     await websocket.accept()
     try:
         authorise(services.keys.check(presented_token(websocket)), "viewer")
-        rec = await asyncio.to_thread(services.backend.machine_or_404, machine_id)
+        rec = await asyncio.to_thread(services.backend.machine, machine_id)
         follower_factory = services.follower_factory(rec)
-    except ApiError as exc:
-        await websocket.send_json({"type": "error", "status": exc.status, "title": exc.title,
+    except (ApiError, ServiceError) as exc:
+        status = exc.status if isinstance(exc, ApiError) else http_status(exc)
+        await websocket.send_json({"type": "error", "status": status, "title": exc.title,
                                    "detail": exc.detail})
-        await websocket.close(code=4000 + exc.status)
+        await websocket.close(code=4000 + status)
         return
     await websocket.send_json({"type": "hello", "machine_id": rec.machine_id,
                                "model": rec.model, "rate_hz": services.settings.live_rate_hz})

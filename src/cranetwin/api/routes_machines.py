@@ -67,7 +67,9 @@ def create_machine(key: AdminKey, services: ServicesDep,
     in this response only (409 if the id is taken, 422 for an unknown or invalid model, with
     the field path in ``errors``)."""
     check_registered_model(body.model)
-    rec, secret = services.backend.create_machine(body)
+    loc = (body.location.lat, body.location.lon) if body.location is not None else None
+    rec, secret = services.backend.create_machine(body.machine_id, body.model, name=body.name,
+                                                  wire_id=body.wire_id, location=loc)
     detail = services.machine_detail(rec)
     return MachineCreated(**detail.model_dump(by_alias=True), wire_id=rec.wire_id, secret=secret)
 
@@ -76,7 +78,8 @@ def create_machine(key: AdminKey, services: ServicesDep,
 def update_machine(key: AdminKey, machine: MachineDep, services: ServicesDep,
                    body: MachineUpdate) -> MachineDetail:
     """Change the display name or location; omitted fields stay."""
-    rec = services.backend.update_machine(machine.machine_id, body)
+    loc = (body.location.lat, body.location.lon) if body.location is not None else None
+    rec = services.backend.update_machine(machine.machine_id, name=body.name, location=loc)
     return services.machine_detail(rec)
 
 

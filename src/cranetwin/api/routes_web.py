@@ -8,7 +8,8 @@ role rules live in one place (the API's auth dependency).
 
 Files of ``web/`` are found in the repository next to the package (``src/cranetwin`` →
 ``../../web``), which is where an editable install (``pip install -e .``) and the Docker image
-keep them; ``CRANETWIN_WEB_DIR`` overrides the location for other layouts.
+keep them; the ``web_dir`` setting (``CRANETWIN_WEB_DIR``) overrides the location for other
+layouts.
 """
 
 from __future__ import annotations
@@ -17,7 +18,6 @@ import hashlib
 import json
 import logging
 import math
-import os
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any
@@ -28,6 +28,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 
 from cranetwin.errors import CraneTwinError
 from cranetwin.model import load_machine, machine_from_dict
+from cranetwin.settings import Settings, load_settings
 from cranetwin.viz.export import EXPORT_MAX_SECONDS, export_rate_hz, render_export
 from cranetwin.viz.poses import rest_frame
 from cranetwin.viz.scene import build_scene
@@ -49,12 +50,24 @@ class WebError(CraneTwinError):
         super().__init__(f"{title}: {detail}")
 
 
-def web_dir() -> Path:
-    """Folder of the static web files (``web/`` of the repository, or ``CRANETWIN_WEB_DIR``)."""
-    env = os.environ.get("CRANETWIN_WEB_DIR")
-    if env:
-        return Path(env)
+def web_dir(settings: Settings | None = None) -> Path:
+    """Folder of the static web files: ``settings.web_dir`` (``CRANETWIN_WEB_DIR``) if set,
+    else ``web/`` of the repository.
+
+    Args:
+        settings: The app's settings; None reads them from the environment (the preview app,
+            tests).
+    """
+    cfg = settings if settings is not None else load_settings(Settings)
+    if cfg.web_dir is not None:
+        return cfg.web_dir
     return Path(__file__).resolve().parents[3] / "web"
+
+
+def _web_dir(request: Request) -> Path:
+    """:func:`web_dir` of the app serving ``request``."""
+    settings = getattr(request.app.state, "settings", None)
+    return web_dir(settings if isinstance(settings, Settings) else None)
 
 
 def vendor_file(name: str) -> Path:
@@ -76,8 +89,8 @@ def _problem(status: int, title: str, detail: str) -> JSONResponse:
                         media_type="application/problem+json")
 
 
-def _page(name: str) -> Response:
-    path = web_dir() / name
+def _page(request: Request, name: str) -> Response:
+    path = _web_dir(request) / name
     if not path.is_file():
         return _problem(500, "Web files missing",
                         f"{path} not found: install cranetwin from its repository "
@@ -86,15 +99,15 @@ def _page(name: str) -> Response:
 
 
 @router.get("/", include_in_schema=False)
-def fleet_page() -> Response:
+def fleet_page(request: Request) -> Response:
     """The fleet page (HTML)."""
-    return _page("index.html")
+    return _page(request, "index.html")
 
 
 @router.get("/machines/{machine_id}", include_in_schema=False)
-def machine_page(machine_id: str) -> Response:
+def machine_page(machine_id: str, request: Request) -> Response:
     """The machine page (HTML); the machine id is read by the page's script from the path."""
-    return _page("machine.html")
+    return _page(request, "machine.html")
 
 
 _MEDIA = {".js": "text/javascript", ".css": "text/css", ".html": "text/html",
@@ -119,7 +132,7 @@ def _static_path_problem(path: str) -> JSONResponse | None:
 
 
 @router.get("/static/{path:path}", include_in_schema=False)
-def static_file(path: str) -> Response:
+def static_file(path: str, request: Request) -> Response:
     """Files of ``web/`` and the vendored viewer/chart libraries under ``/static/vendor/``.
 
     A path that cannot name one (NUL or other control characters, ``..``, empty segments,
@@ -136,7 +149,7 @@ def static_file(path: str) -> Response:
         return FileResponse(file, media_type="text/javascript",
                             headers={"Cache-Control": "public, max-age=86400"})
     try:
-        root = web_dir().resolve()
+        root = _web_dir(request).resolve()
         file = (root / path).resolve()
         found = root in file.parents and file.is_file()
     except (OSError, ValueError):  # name too long for the file system, ...
@@ -153,7 +166,7 @@ def static_file(path: str) -> Response:
 async def require_viewer(request: Request) -> None:
     """The API's key check (role viewer) when the app has the API's services.
 
-    Apps without them (the synthetic preview of :mod:`cranetwin.viz.preview`) check keys in their
+    Apps without them (the synthetic preview of :mod:`cranetwin.api.preview`) check keys in their
     own middleware; the data these routes read comes from the API's routes, called with the
     caller's credentials, so a key that may not read a machine gets its 401/403 either way.
     """
@@ -301,7 +314,7 @@ async def machine_export(
             events = []
     except WebError as exc:
         return _problem(exc.status, exc.title, exc.detail)
-    html = render_export(web_dir(), {
+    html = render_export(_web_dir(request), {
         "machine": machine, "model": model, "scene": scene, "twin": twin,
         "history": history, "events": events, "from": t0, "to": t1,
     })

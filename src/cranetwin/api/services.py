@@ -1,87 +1,50 @@
-"""What the routes call: one object per app holding the store adapter, caches, live hub, worker.
+"""What the routes hold: the fleet service plus the HTTP side's own parts (keys, live fan-out).
 
-Routes stay thin (parse, call one method here, return); the logic of each capability lives
-below: machine status, samples paging, twin windows (cached), history from summaries, "find the
-moment", AEMP snapshots.
+One :class:`Services` per app, opened by the app's lifespan: the
+:class:`~cranetwin.service.fleet.FleetService` (data, replays, the in-process twin worker when
+the settings ask for it), the :class:`~cranetwin.api.auth.KeyVerifier`, the websocket fan-out
+(:class:`~cranetwin.api.live.LiveHub`) and the Prometheus metrics. The functions below turn
+the service's plain results into the public schemas.
 """
 
 from __future__ import annotations
 
-import asyncio
-import logging
-import math
-import time
-from typing import Any, Literal
+from typing import Any
 
-import numpy as np
-import orjson
-from fastapi.responses import Response
-
-from cranetwin.api import aemp
 from cranetwin.api.auth import KeyVerifier
-from cranetwin.api.backend import Backend, MachineRecord, Progress
-from cranetwin.api.cache import LruCache
-from cranetwin.api.errors import ApiError
 from cranetwin.api.live import Follower, LiveHub
-from cranetwin.api.live_payload import LivePayload, public_kg
-from cranetwin.api.metrics import Metrics
-from cranetwin.api.params import TimeRange, iso, parse_time
-from cranetwin.api.replayer import Replayer, nominal_period
-from cranetwin.api.schemas import (
-    DataRange,
-    EventOut,
-    FindOut,
-    Location,
-    MachineDetail,
-    MachinePublic,
-    SamplesPage,
-)
-from cranetwin.api.settings import Settings
-from cranetwin.api.views import twin_json
-from cranetwin.api.worker import TwinWorker, derived_channels
-from cranetwin.errors import CraneTwinError, TwinError
-from cranetwin.model import Machine
-
-log = logging.getLogger(__name__)
-
-MAX_HISTORY_CHANNELS = 32
-MAX_LIST_LIVE_PAYLOADS = 32
-"""Live payload estimators the machines list may start (machines without a worker estimate)."""
-
-
-class JsonBytes(Response):
-    """A pre-serialised JSON body (cached twin windows)."""
-
-    media_type = "application/json"
+from cranetwin.api.schemas import DataRange, Location, MachineDetail, MachinePublic
+from cranetwin.service.backend import Backend, MachineRecord
+from cranetwin.service.fleet import FleetService, MachineStatus
+from cranetwin.service.live_payload import public_kg
+from cranetwin.service.metrics import Metrics
+from cranetwin.service.timerange import iso
+from cranetwin.settings import Settings
 
 
 class Services:
-    """Everything the routes need, opened by the app's lifespan.
+    """Everything the routes need (see module docstring).
 
     Args:
-        settings: Service settings.
-        backend: The store adapter (opened).
+        settings: The settings of the process.
+        fleet: The fleet service (its store opened).
+        bus: The ingest daemon's live bus, or None (the live view polls the store).
     """
 
-    def __init__(self, settings: Settings, backend: Backend, bus: Any = None) -> None:
+    def __init__(self, settings: Settings, fleet: FleetService, bus: Any = None) -> None:
         self.settings = settings
-        self.backend = backend
-        self.metrics = Metrics()
-        self.keys = KeyVerifier(backend.key_lookup)
-        self.twin_cache: LruCache[bytes] = LruCache(settings.twin_cache_entries)
+        self.fleet = fleet
+        self.backend: Backend = fleet.backend
+        self.metrics: Metrics = fleet.metrics
+        self.keys = KeyVerifier(fleet.backend.key_lookup)
         self.live = LiveHub(bus)
-        self.replayer = Replayer()
-        self.worker: TwinWorker | None = None
-        self.live_payload: dict[str, LivePayload] = {}
-        """Live payload estimators of the machines watched live (created by their follower)."""
-        self._worker_task: asyncio.Task[None] | None = None
 
     @classmethod
     def open(cls, settings: Settings, bus: Any = None) -> Services:
         """Open the store at ``settings.database_url`` and build the services.
 
         Args:
-            settings: Service settings.
+            settings: The settings of the process.
             bus: A live bus shared with an in-process ingest daemon, or None to open
                 ``settings.live_bus_url`` (if set; else the live view polls the store).
         """
@@ -89,102 +52,20 @@ class Services:
             from cranetwin.storage.live import open_bus
 
             bus = open_bus(settings.live_bus_url)
-        return cls(settings, Backend.open(settings.database_url), bus)
+        return cls(settings, FleetService.open(settings), bus)
 
     async def start(self) -> None:
-        """Warm up (:mod:`cranetwin.api.warmup`, before serving: ~0.5 s, and done in the
-        background it slowed the first seconds of requests), then start the twin worker; each
-        if enabled."""
-        if self.settings.warm_up:
-            from cranetwin.api.warmup import run_warm_up
-
-            await asyncio.to_thread(run_warm_up, then=self.warm_machines)
-        if self.settings.worker_enabled:
-            self.worker = TwinWorker(self.backend, self.settings, self.metrics, self.replayer)
-            self._worker_task = asyncio.get_running_loop().create_task(
-                self.worker.run_forever(), name="twin-worker")
-
-    def warm_machines(self, limit: int = 4, span_s: float = 30.0) -> int:
-        """Replay the newest ``span_s`` of the ``limit`` most recently seen machines once, so
-        that their smoothing choice is cached before the first page asks for a short window.
-
-        Returns:
-            Machines replayed.
-        """
-        seen = []
-        for rec in self.backend.list_machines():
-            dr = self.backend.data_range(rec.machine_id)
-            if dr is not None:
-                seen.append((dr[1], rec))
-        done = 0
-        for end, rec in sorted(seen, key=lambda x: -x[0])[:limit]:
-            samples = self.backend.read_samples(rec.machine_id, end - span_s, end + 1.0)
-            period = nominal_period(samples.t_s)
-            if period is None or samples.t_s.shape[0] < 8:
-                continue
-            try:
-                self.replayer.replay(rec.machine_id, self.backend.model_of(rec), samples,
-                                     max(1.0, float(round(1.0 / period))))
-            except CraneTwinError as exc:
-                log.info("warm-up of %s skipped: %s", rec.machine_id, exc)
-                continue
-            done += 1
-        return done
+        """Warm up and start the in-process worker, as the settings ask."""
+        await self.fleet.start()
 
     async def close(self) -> None:
-        """Stop background tasks and close the store."""
+        """Stop the live followers, the worker, and close the store."""
         await self.live.close()
-        if self._worker_task is not None:
-            self._worker_task.cancel()
-            await asyncio.gather(self._worker_task, return_exceptions=True)
-        self.backend.close()
+        await self.fleet.close()
 
     def refresh_gauges(self) -> None:
         """Copy cache counters into the metrics."""
-        self.metrics.twin_cache_hits.set(self.twin_cache.hits)
-        self.metrics.twin_cache_misses.set(self.twin_cache.misses)
-
-    # -- machines ---------------------------------------------------------------------------------
-    def _status(self, last_seen: float | None) -> Literal["live", "idle", "offline"]:
-        if last_seen is None:
-            return "offline"
-        age = time.time() - last_seen
-        if age <= self.settings.live_idle_s:
-            return "live"
-        return "idle" if age <= self.settings.live_offline_s else "offline"
-
-    def machine_public(self, rec: MachineRecord) -> MachinePublic:
-        """List entry of a machine: status from its newest sample, payload from the worker."""
-        rng = self.backend.data_range(rec.machine_id)
-        last = rng[1] if rng else None
-        prog = self.backend.progress(rec.machine_id)
-        now = time.time()
-        alarms = self.backend.count_events(rec.machine_id, now - 86400.0, now, "alarm")
-        loc = Location(lat=rec.location[0], lon=rec.location[1]) if rec.location else None
-        payload = public_kg(prog.last_payload_kg if prog is not None else None)
-        lp = self.live_payload.get(rec.machine_id)
-        if payload is None and self._status(last) == "live":
-            # streaming, but the worker has no estimate yet (its first window ends 1–2 min
-            # after the first sample): keep a live estimate going, shown from the next listing
-            if lp is None and len(self.live_payload) < MAX_LIST_LIVE_PAYLOADS:
-                lp = self.live_payload[rec.machine_id] = LivePayload(
-                    rec.machine_id, self.backend.model_of(rec), self.backend, self.replayer)
-            if lp is not None:
-                lp.value()  # starts a refresh when one is due
-        if lp is not None and lp.kg is not None and lp.t_s is not None and (
-                prog is None or lp.t_s > prog.watermark_s):  # watched live: fresher
-            payload = public_kg(lp.kg)
-        return MachinePublic(machine_id=rec.machine_id, name=rec.name, model=rec.model,
-                             status=self._status(last), last_seen=iso(last), payload_kg=payload,
-                             alarms=alarms, location=loc)
-
-    def machine_detail(self, rec: MachineRecord) -> MachineDetail:
-        """A machine and its stored data range."""
-        pub = self.machine_public(rec)
-        rng = self.backend.data_range(rec.machine_id)
-        dr = DataRange.model_validate({"from": iso(rng[0]) if rng else None,
-                                       "to": iso(rng[1]) if rng else None})
-        return MachineDetail(**pub.model_dump(), data_range=dr)
+        self.fleet.refresh_gauges()
 
     def follower_factory(self, rec: MachineRecord) -> Any:
         """A zero-argument factory of the live follower of ``rec`` (for :class:`LiveHub`)."""
@@ -192,11 +73,7 @@ class Services:
         rng = self.backend.data_range(rec.machine_id)
 
         def extra() -> dict[str, Any]:
-            lp = self.live_payload.get(rec.machine_id)
-            if lp is None:
-                lp = self.live_payload[rec.machine_id] = LivePayload(
-                    rec.machine_id, machine, self.backend, self.replayer)
-            return {"payload_kg": public_kg(lp.value())}
+            return {"payload_kg": public_kg(self.fleet.live_payload_of(rec).value())}
 
         def on_frame(n_clients: int) -> None:
             self.metrics.live_frames.inc(n_clients)
@@ -208,244 +85,26 @@ class Services:
 
         return make
 
-    # -- samples ----------------------------------------------------------------------------------
-    def samples_page(self, rec: MachineRecord, rng: TimeRange, limit: int,
-                     cursor: str | None) -> SamplesPage:
-        """One page of raw samples in [from, to) (≤ ``limit``; next page from ``next_cursor``).
+    def machine_public(self, rec: MachineRecord) -> MachinePublic:
+        """List entry of a machine."""
+        return public(self.fleet.machine_status(rec))
 
-        Gaps of any length are skipped with one index probe (the start of the next stored
-        block), so paging never stops early: ``next_cursor`` is null only when no sample is
-        left in [cursor, to).
-        """
-        if limit > self.settings.max_samples_limit:
-            raise ApiError(422, "Page too large", f"limit={limit}; at most "
-                           f"{self.settings.max_samples_limit} samples per page")
-        start = rng.t0_s
-        if cursor is not None:
-            c = parse_time(cursor, "cursor")
-            if not rng.t0_s <= c <= rng.t1_s:
-                raise ApiError(422, "Invalid cursor", f"cursor {cursor!r} is outside [from, to)")
-            start = c
-        mid = rec.machine_id
-        first = self.backend.next_sample_time(mid, start)  # a leading gap: skipped at once
-        if first is None or first >= rng.t1_s:
-            return SamplesPage(channels=[], t=[], values=[], next_cursor=None)
-        start = max(start, first)
-        span = limit / self.settings.nominal_rate_hz * 1.1 + 1.0
-        t = np.zeros(0)
-        vals = np.zeros((0, 0))
-        channels: tuple[str, ...] = ()
-        while True:
-            end = min(rng.t1_s, start + span)
-            s = self.backend.read_samples(mid, start, end)
-            t, vals, channels = s.t_s, s.values, s.channels
-            keep = t < rng.t1_s
-            t, vals = t[keep], vals[keep]
-            if t.shape[0] > limit or end >= rng.t1_s or span > 400 * 86400.0:
-                break
-            span *= 4.0
-        nxt = None
-        if t.shape[0] > limit:
-            nxt = repr(float(t[limit]))
-            t, vals = t[:limit], vals[:limit]
-        elif end < rng.t1_s:  # a page short of ``limit`` before a long gap: continue after it
-            more = self.backend.next_sample_time(mid, end)
-            if more is not None and more < rng.t1_s:
-                nxt = repr(float(max(more, end)))
-        v = np.where(np.isfinite(vals), vals, np.nan)
-        return SamplesPage(channels=list(channels), t=t.tolist(),
-                           values=[[None if not math.isfinite(x) else x for x in row]
-                                   for row in v.tolist()],
-                           next_cursor=nxt)
-
-    # -- twin -------------------------------------------------------------------------------------
-    def twin_window(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> Response:
-        """Replay of [from, to) at ``rate_hz`` as JSON bytes (cached per machine/window/rate)."""
-        s = self.settings
-        rng.limit(s.max_twin_range_s, "the twin")
-        if rate_hz > s.max_twin_rate_hz:
-            raise ApiError(422, "Rate too high", f"rate_hz={rate_hz}; at most {s.max_twin_rate_hz}")
-        n_out = rng.duration_s * rate_hz
-        if n_out > s.max_twin_points:
-            raise ApiError(422, "Too many points",
-                           f"{n_out:.0f} output samples requested ({rng.duration_s:g} s at "
-                           f"{rate_hz:g} Hz); at most {s.max_twin_points} per call")
-        key = (rec.machine_id, round(rng.t0_s, 6), round(rng.t1_s, 6), float(rate_hz))
-        body = self.twin_cache.get(key)
-        if body is None:
-            body = orjson.dumps(self._twin(rec, rng, rate_hz), option=orjson.OPT_SERIALIZE_NUMPY)
-            # the newest window may still grow: cache only windows that end in stored data
-            dr = self.backend.data_range(rec.machine_id)
-            if dr is not None and rng.t1_s + s.twin_margin_s <= dr[1]:
-                self.twin_cache.put(key, body)
-        return JsonBytes(body)
-
-    def _twin(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> dict[str, Any]:
-        machine = self.backend.model_of(rec)
-        m = self.settings.twin_margin_s
-        samples = self.backend.read_samples(rec.machine_id, rng.t0_s - m, rng.t1_s + m)
-        inside = (samples.t_s >= rng.t0_s) & (samples.t_s < rng.t1_s)
-        if not inside.any():
-            return _empty_twin(machine)
-        if samples.t_s.shape[0] < 8:
-            raise TwinError(f"only {samples.t_s.shape[0]} samples in and around the window; "
-                            "the twin needs at least 8")
-        period = float(np.median(np.diff(samples.t_s)))
-        sample_hz = max(1.0, round(1.0 / period)) if period > 0 else self.settings.nominal_rate_hz
-        grid_hz = sample_hz * max(1, math.ceil(rate_hz / sample_hz - 1e-9))
-        res = self.replayer.replay(rec.machine_id, machine, samples, grid_hz)
-        return twin_json(machine, res, rng.t0_s, rng.t1_s, rate_hz)
-
-    # -- history / find / events ------------------------------------------------------------
-    def _check_channels(self, machine: Machine, names: list[str]) -> None:
-        raw = [c.name for c in machine.channels]
-        derived = derived_channels(machine)
-        bad = [n for n in names if n not in raw and n not in derived]
-        if bad:
-            raise ApiError(422, "Unknown channel",
-                           f"{', '.join(repr(b) for b in bad)}: expected raw channels "
-                           f"({', '.join(raw)}) or derived ones ({', '.join(derived)})")
-
-    def history(self, rec: MachineRecord, rng: TimeRange, channels: str,
-                max_points: int) -> Response:
-        """Min/max/mean per bucket of each channel, from the stored summaries (JSON of
-        :class:`HistoryOut`, serialised straight from the arrays)."""
-        s = self.settings
-        rng.limit(s.max_history_range_s, "load history")
-        if max_points > s.max_history_points:
-            raise ApiError(422, "Too many points",
-                           f"max_points={max_points}; at most {s.max_history_points}")
-        names = list(dict.fromkeys(c.strip() for c in channels.split(",") if c.strip()))
-        if not names:
-            raise ApiError(422, "No channels", "channels: give one or more names, comma-separated")
-        if len(names) > MAX_HISTORY_CHANNELS:
-            raise ApiError(422, "Too many channels",
-                           f"{len(names)} channels; at most {MAX_HISTORY_CHANNELS} per request")
-        self._check_channels(self.backend.model_of(rec), names)
-        data = self.backend.summaries(rec.machine_id, names, rng.t0_s, rng.t1_s, max_points)
-        out = {n: {"t": data[n][0], "min": data[n][1], "max": data[n][2], "mean": data[n][3]}
-               for n in names}
-        return JsonBytes(orjson.dumps({"channels": out}, option=orjson.OPT_SERIALIZE_NUMPY))
-
-    def find(self, rec: MachineRecord, rng: TimeRange, channel: str, op: Literal["gt", "lt"],
-             value: float, which: Literal["first", "last"]) -> FindOut:
-        """First/last time ``channel`` op ``value`` held in [from, to).
-
-        Coarse-to-fine over the summaries: a bucket whose max (min) does not pass cannot hold a
-        passing value, so the search narrows to the first (last) passing bucket, then to the
-        finest summaries inside it, then (raw channels) to the exact sample.
-        """
-        rng.limit(self.settings.max_history_range_s, "find")
-        machine = self.backend.model_of(rec)
-        self._check_channels(machine, [channel])
-        t0, t1 = rng.t0_s, rng.t1_s
-        finest = self.backend.finest_interval_s()
-        hit: tuple[float, float, float] | None = None
-        for _ in range(6):
-            t, lo, hi, _mean = self.backend.summaries(rec.machine_id, [channel], t0, t1,
-                                                      2000)[channel]
-            if t.shape[0] == 0:
-                return FindOut(t=None, value=None)
-            ext = hi if op == "gt" else lo
-            ok = np.isfinite(ext) & ((ext > value) if op == "gt" else (ext < value))
-            if not ok.any():
-                if hit is None:
-                    return FindOut(t=None, value=None)
-                break
-            i = int(np.argmax(ok)) if which == "first" else int(len(ok) - 1 - np.argmax(ok[::-1]))
-            width = float(np.median(np.diff(t))) if t.shape[0] > 1 else finest
-            hit = (float(t[i]), float(ext[i]), width)
-            t0, t1 = max(rng.t0_s, float(t[i])), min(rng.t1_s, float(t[i]) + width)
-            if width <= finest * 1.0001:
-                break
-        assert hit is not None
-        if channel in {c.name for c in machine.channels}:
-            s = self.backend.read_samples(rec.machine_id, t0, t1 + 1e-9)
-            if s.t_s.shape[0] and channel in s.channels:
-                col = s.column(channel)
-                inside = (s.t_s >= rng.t0_s) & (s.t_s < rng.t1_s)
-                ok = inside & np.isfinite(col) & ((col > value) if op == "gt" else (col < value))
-                if ok.any():
-                    idx = np.flatnonzero(ok)
-                    j = int(idx[0] if which == "first" else idx[-1])
-                    return FindOut(t=float(s.t_s[j]), value=float(col[j]))
-        return FindOut(t=max(hit[0], rng.t0_s), value=hit[1])
-
-    def events(self, rec: MachineRecord, rng: TimeRange) -> list[EventOut]:
-        """Stored events in [from, to)."""
-        rng.limit(self.settings.max_history_range_s, "events")
-        return [EventOut(**e) for e in self.backend.events(rec.machine_id, rng.t0_s, rng.t1_s)]
-
-    def analytics(self, rec: MachineRecord, rng: TimeRange) -> dict[str, Any]:
-        """Analytics of the range: replayed window by window into cranetwin.analytics."""
-        from cranetwin.api.analytics_view import analytics_json, analytics_report
-
-        rng.limit(self.settings.max_analytics_range_s, "analytics")
-        report = analytics_report(self.backend, self.replayer, self.backend.model_of(rec),
-                                  rec.machine_id, rng)
-        return analytics_json(report, rng)
-
-    def report(self, rec: MachineRecord, rng: TimeRange, fmt: str) -> Response:
-        """The maintenance report of the range from :func:`cranetwin.reports.render` (PDF, HTML,
-        or a zip of CSV tables); a one-table stub file when the range holds no samples."""
-        from cranetwin.api.analytics_view import analytics_json, analytics_report, render
-
-        rng.limit(self.settings.max_analytics_range_s, "a report")
-        machine = self.backend.model_of(rec)
-        rep = analytics_report(self.backend, self.replayer, machine, rec.machine_id, rng)
-        if rep is None:
-            body, media, name = render(analytics_json(None, rng), fmt, rec.machine_id)
-        else:
-            from cranetwin.reports import render as render_report
-
-            source = f"cranetwin API: machine {rec.machine_id}, {iso(rng.t0_s)} – {iso(rng.t1_s)}"
-            body, media, name = render_report(rep, machine, fmt, source)
-            name = f"{rec.machine_id}-{name}"
-        return Response(body, media_type=media,
-                        headers={"Content-Disposition": f'attachment; filename="{name}"'})
-
-    # -- AEMP -------------------------------------------------------------------------------------
-    def _figures(self, rec: MachineRecord) -> aemp.EquipmentFigures:
-        p = self.backend.progress(rec.machine_id) or Progress.empty(rec.machine_id)
-        return aemp.EquipmentFigures(
-            machine_id=rec.machine_id, name=rec.name, model=rec.model,
-            machine=self.backend.model_of(rec), location=rec.location,
-            counters_t_s=p.watermark_s if p.windows else None,
-            operating_s=p.operating_s, idle_s=p.idle_s, load_count=p.load_count,
-            payload_total_kg=p.payload_total_kg, load_cube_sum=p.load_cube_sum,
-            overloads=p.overloads, max_payload_kg=p.max_payload_kg)
-
-    def aemp_fleet(self, page: int, base_url: str) -> dict[str, Any]:
-        """ISO 15143-3 Fleet page ``page``; 404 past the last page."""
-        recs = self.backend.list_machines()
-        n_total = len(recs)
-        last = max(1, math.ceil(n_total / aemp.PAGE_SIZE))
-        if page > last:
-            raise ApiError(404, "No such page", f"page {page} requested; the fleet has {last} "
-                           f"page(s) of {aemp.PAGE_SIZE}")
-        recs = sorted(recs, key=lambda r: r.machine_id)
-        recs = recs[(page - 1) * aemp.PAGE_SIZE: page * aemp.PAGE_SIZE]
-        figs = [self._figures(r) for r in recs]
-        return aemp.fleet_page(figs, page, n_total, base_url, time.time())
-
-    def aemp_equipment(self, machine_id: str) -> dict[str, Any]:
-        """ISO 15143-3 snapshot of one machine."""
-        rec = self.backend.machine_or_404(machine_id)
-        return {"Version": "2", "SnapshotTime": iso(time.time()),
-                **aemp.equipment(self._figures(rec))}
+    def machine_detail(self, rec: MachineRecord) -> MachineDetail:
+        """A machine and its stored data range."""
+        return detail(self.fleet.machine_status(rec))
 
 
-def _nullable(a: np.ndarray) -> list[float | None]:
-    return [x if math.isfinite(x) else None for x in np.asarray(a, dtype=float).tolist()]
+def public(st: MachineStatus) -> MachinePublic:
+    """The public list entry of a machine's status."""
+    loc = Location(lat=st.location[0], lon=st.location[1]) if st.location else None
+    return MachinePublic(machine_id=st.machine_id, name=st.name, model=st.model,
+                         status=st.status, last_seen=iso(st.last_seen_s),
+                         payload_kg=st.payload_kg, alarms=st.alarms, location=loc)
 
 
-def _empty_twin(machine: Machine) -> dict[str, Any]:
-    z = np.zeros((0,))
-    return {"t": z, "q": np.zeros((0, machine.n_joints)), "tip": np.zeros((0, 3)),
-            "poses": {j.child: np.zeros((0, 16)) for j in machine.joints},
-            "cylinder_pins": {c.name: np.zeros((0, 6)) for c in machine.cylinders},
-            "cylinder_forces": {c.name: z for c in machine.cylinders},
-            "utilisation": {c.name: z for c in machine.cylinders},
-            "joint_torques": np.zeros((0, machine.n_joints)),
-            "wrenches": np.zeros((0, machine.n_joints, 6)),
-            "payload": {"t": z, "kg": z, "std_kg": z}}
+def detail(st: MachineStatus) -> MachineDetail:
+    """The public detail of a machine's status (with its stored data range)."""
+    rng = st.data_range
+    dr = DataRange.model_validate({"from": iso(rng[0]) if rng else None,
+                                   "to": iso(rng[1]) if rng else None})
+    return MachineDetail(**public(st).model_dump(), data_range=dr)

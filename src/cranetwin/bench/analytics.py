@@ -1,7 +1,7 @@
 """``cranetwin bench analytics``: a 30-day load-history report of one crane.
 
 Input: 30 days of 8-hour shifts at 100 Hz (240 h, 86.4 M samples per channel) of synthetic load
-histories (:mod:`cranetwin.analytics.synthetic`: 3 cylinder forces, 4 joint moments, 4 joint
+histories (:mod:`cranetwin.testing.histories`: 3 cylinder forces, 4 joint moments, 4 joint
 positions and velocities, payload, reach, height, 3 rod positions and velocities, 6 pressures),
 generated one hour at a time; generation is timed separately and not counted.
 Timed (``wall_seconds``, ``cpu_seconds``): :meth:`AnalyticsState.update` on every chunk — rainflow
@@ -31,10 +31,10 @@ import typer
 
 from cranetwin.analytics import AnalyticsState, LoadHistory, load_channels
 from cranetwin.analytics.state import default_class_widths
-from cranetwin.analytics.synthetic import SyntheticCrane
 from cranetwin.bench import emit
 from cranetwin.errors import MissingExtraError
 from cranetwin.model import Machine, load_machine
+from cranetwin.testing.histories import SyntheticCrane
 
 
 def _peak_rss_mib() -> float:

@@ -2,7 +2,7 @@
 
 Setup: a database (temporary SQLite unless ``--db``) filled through the store's write path with
 ``--hours`` (24) of one crane at 100 Hz (8.64 M samples, 11 channels) in 10-s blocks, the exact
-kinematic samples of :mod:`cranetwin.api.synthetic` tiled in time; the twin worker then derives
+kinematic samples of :mod:`cranetwin.testing.blocks` tiled in time; the twin worker then derives
 the last ``--worker-hours`` (1) of it. ``cranetwin serve`` runs in a subprocess.
 
 Figures (``--json`` prints one object):
@@ -51,11 +51,11 @@ def _p95(x: list[float]) -> float:
 
 
 def _fill(url: str, hours: float, worker_hours: float) -> tuple[float, float, dict[str, Any]]:
-    from cranetwin.api.backend import Backend
-    from cranetwin.api.settings import Settings
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
-    from cranetwin.api.worker import TwinWorker
     from cranetwin.model import load_machine
+    from cranetwin.service.backend import Backend
+    from cranetwin.service.worker import TwinWorker
+    from cranetwin.settings import Settings
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     machine = load_machine("patu655")
     base = kinematic_samples(machine, 120.0)
@@ -78,12 +78,12 @@ def _fill(url: str, hours: float, worker_hours: float) -> tuple[float, float, di
     rollup_s = time.perf_counter() - t
     stats = b.store.stats(MID)
     # the worker derives the last worker_hours (its watermark placed there, as after a restart)
-    from cranetwin.api.backend import Progress
+    from cranetwin.service.backend import Progress
 
-    b.save_progress(Progress.empty(MID, end - worker_hours * 3600.0))
+    b.reset_progress(Progress.empty(MID, end - worker_hours * 3600.0))
     t = time.perf_counter()
     w = TwinWorker(b, Settings(database_url=url, worker_settle_s=0.0))
-    windows = w.catch_up(b.machine_or_404(MID))
+    windows = w.catch_up(b.machine(MID))
     worker_s = time.perf_counter() - t
     key = b.create_key("viewer", "bench")[1]
     b.close()
@@ -202,9 +202,9 @@ def _live(url: str, port: int, key: str, clients: int, seconds: float,
     second (as datagram batches arrive), measure latencies."""
     import websockets
 
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
     from cranetwin.model import load_machine
     from cranetwin.storage import Store
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     machine = load_machine("patu655")
     base = kinematic_samples(machine, 120.0)
@@ -218,13 +218,18 @@ def _live(url: str, port: int, key: str, clients: int, seconds: float,
         t_next = time.time()
         dt = 1.0 / block_hz
         n = int(round(100.0 / block_hz))
+        last = -np.inf  # newest sample written [s]: blocks never overlap (storage refuses that)
         while not stop.is_set():
-            now = time.time()
-            t0 = float(np.floor(now * 100.0) / 100.0) - (n - 1) / 100.0
-            blk = next(tiled_blocks(MID, machine, t0, n / 100.0, n / 100.0, base=base, seq0=seq))
-            st.write_blocks([blk])
-            committed[round(t0 + (n - 1) / 100.0, 2)] = time.time()
-            seq += 1
+            newest = float(np.floor(time.time() * 100.0) / 100.0)
+            t0 = max(newest - (n - 1) / 100.0, round(last + 0.01, 2))
+            k = int(round((newest - t0) * 100.0)) + 1
+            if k >= 1:
+                blk = next(tiled_blocks(MID, machine, t0, k / 100.0, k / 100.0, base=base,
+                                        seq0=seq))
+                st.write_blocks([blk])
+                last = round(t0 + (k - 1) / 100.0, 2)
+                committed[last] = time.time()
+                seq += 1
             t_next += dt
             time.sleep(max(0.0, t_next - time.time()))
 

@@ -1,6 +1,6 @@
 """``cranetwin bench replay``: one hour of 100 Hz sensor data replayed onto a 1 kHz grid.
 
-Input: a synthetic hour (:mod:`cranetwin.twin.synthetic`: analytic motion of the PATU 655
+Input: a synthetic hour (:mod:`cranetwin.testing.recordings`: analytic motion of the PATU 655
 through its kinematics and inverse dynamics, the paper's channel set without the slew angle,
 so theta0 is integrated from the pillar torque) with 0.5 % uniform sensor error, so that the
 smoothing windows are real. Input generation and numba compile/cache load are not timed.
@@ -35,8 +35,8 @@ from cranetwin import physics
 from cranetwin.bench import emit
 from cranetwin.model import load_machine
 from cranetwin.signal import inject_uniform_noise
+from cranetwin.testing.recordings import make
 from cranetwin.twin import iter_replay
-from cranetwin.twin.synthetic import make
 
 
 def _peak_rss_mib() -> float:

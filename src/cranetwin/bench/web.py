@@ -1,6 +1,6 @@
 """``cranetwin bench web``: first meaningful paint, replay frame rate and live latency in Chromium.
 
-Runs the web UI on the synthetic preview app (:mod:`cranetwin.viz.preview`, real uvicorn on
+Runs the web UI on the synthetic preview app (:mod:`cranetwin.api.preview`, real uvicorn on
 loopback) and drives Debian's Chromium headless (software WebGL) with Playwright. Figures:
 
 - ``first_paint_ms``: navigation start → first crane frame drawn on the machine page (median of 3
@@ -44,8 +44,8 @@ class _LiveFeeder:
         self.thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self) -> None:
-        from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
         from cranetwin.model import load_machine
+        from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
         machine = load_machine("patu655")
         base = kinematic_samples(machine, 120.0)
@@ -62,18 +62,19 @@ class _LiveFeeder:
 
 def _real_app(tmpdir: str, end: float, history_s: float) -> tuple[Any, dict[str, Any]]:
     """create_app on a temporary SQLite database holding ``history_s`` of kinematic samples."""
-    from cranetwin.api import Settings, create_app
+    from cranetwin.api import create_app
+    from cranetwin.settings import Settings
 
     url = f"sqlite:///{tmpdir}/bench-web.db"
-    return create_app(Settings(database_url=url, worker_enabled=False)), {"url": url}
+    return create_app(Settings(database_url=url, worker_in_process=False)), {"url": url}
 
 
 def _fill(app: Any, srv_url: str, end: float, history_s: float) -> str:
     import httpx
 
-    from cranetwin.api.synthetic import kinematic_samples, tiled_blocks
-    from cranetwin.api.worker import TwinWorker
     from cranetwin.model import load_machine
+    from cranetwin.service.worker import TwinWorker
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
     services = app.state.services
     viewer = services.backend.create_key("viewer", "bench web")[1]
@@ -86,7 +87,7 @@ def _fill(app: Any, srv_url: str, end: float, history_s: float) -> str:
     services.backend.store.write_blocks(list(tiled_blocks("crane-2", machine, end - history_s,
                                                           history_s, 1.0, base=base)))
     TwinWorker(services.backend, services.settings, services.metrics,
-               services.replayer).catch_up(services.backend.machine_or_404("crane-2"))
+               services.fleet.replayer).catch_up(services.backend.machine("crane-2"))
     return str(viewer)
 
 
@@ -104,7 +105,7 @@ def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
 
     from playwright.sync_api import sync_playwright
 
-    from cranetwin.viz.preview import PREVIEW_KEY, ServerThread, create_preview_app
+    from cranetwin.api.preview import PREVIEW_KEY, ServerThread, create_preview_app
 
     end = float(int(time.time()) - 60)
     tmp = tempfile.TemporaryDirectory()

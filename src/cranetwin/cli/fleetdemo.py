@@ -1,4 +1,5 @@
-"""``cranetwin fleetdemo``: ingest daemon + API + simulated cranes, one Ctrl-C stops all."""
+"""``cranetwin fleetdemo``: ingest daemon + API + twin worker + simulated cranes, one Ctrl-C stops
+all."""
 
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ def register(app: typer.Typer) -> None:
             typer.echo("Ctrl-C stops everything.")
             demo.watch()
         except KeyboardInterrupt:
-            typer.echo("\nstopping: cranes, ingest daemon, API …")
+            typer.echo("\nstopping: cranes, ingest daemon, twin worker, API …")
         except DemoError as exc:
             typer.echo(f"error: {exc}", err=True)
             demo.stop()

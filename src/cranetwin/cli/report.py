@@ -7,7 +7,6 @@ recording (``--recording rec.npz``, its ground truth) or synthetic (``--demo``).
 from __future__ import annotations
 
 import datetime as dt
-import os
 from pathlib import Path
 
 import typer
@@ -79,7 +78,9 @@ def report(
         if machine is None or t_from is None or t_to is None:
             raise ReportError("give --machine ID --from T0 --to T1 (storage), or --recording "
                               "FILE, or --demo")
-        url = db or os.environ.get("CRANETWIN_DATABASE_URL", "sqlite:///cranetwin.db")
+        from cranetwin.settings import Settings, load_settings
+
+        url = load_settings(Settings, database_url=db).database_url
         src = StoreSource(url, machine, parse_time(t_from), parse_time(t_to))
     with Progress(TextColumn("{task.description}"), BarColumn(),
                   TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(),

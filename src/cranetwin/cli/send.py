@@ -64,9 +64,11 @@ def default_journal_root() -> Path:
     """Where ``cranetwin send`` keeps its journals: ``$CRANETWIN_STATE_DIR/send`` if set, else
     ``$XDG_STATE_HOME/cranetwin/send`` (``~/.local/state/cranetwin/send``); one subdirectory
     per machine id."""
-    state = os.environ.get(STATE_ENV)
-    if state:
-        return Path(state).expanduser() / "send"
+    from cranetwin.settings import Settings, load_settings
+
+    state = load_settings(Settings).state_dir
+    if state is not None:
+        return state.expanduser() / "send"
     xdg = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
     return Path(xdg).expanduser() / "cranetwin" / "send"
 

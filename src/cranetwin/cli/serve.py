@@ -1,4 +1,10 @@
-"""``cranetwin serve`` (the HTTP API with uvicorn) and ``cranetwin keys create|list|revoke``."""
+"""``cranetwin serve`` (the HTTP API with uvicorn) and ``cranetwin keys create|list|revoke``.
+
+Options left out fall back to the one settings object (:class:`cranetwin.settings.Settings`,
+``CRANETWIN_…``). The twin worker is its own process (``cranetwin worker``); ``serve --worker``
+(or ``CRANETWIN_WORKER_IN_PROCESS=1``) runs it inside the API process instead, for a one-process
+setup.
+"""
 
 from __future__ import annotations
 
@@ -7,22 +13,25 @@ from datetime import UTC, datetime
 
 import typer
 
+from cranetwin.settings import Settings, load_settings
+
 keys_app = typer.Typer(help="API keys: create (shown once), list, revoke.", no_args_is_help=True)
 
 _DB_HELP = "Database URL (default: CRANETWIN_DATABASE_URL or sqlite:///cranetwin.db)."
 
 
-def _settings(db: str | None):  # type: ignore[no-untyped-def]
-    from cranetwin.api.settings import Settings
-
-    return Settings(database_url=db) if db else Settings()
+def _settings(db: str | None, **overrides: object) -> Settings:
+    return load_settings(Settings, database_url=db, **overrides)
 
 
 def serve(
     db: str | None = typer.Option(None, "--db", help=_DB_HELP),
     host: str | None = typer.Option(None, help="Bind address (default 127.0.0.1)."),
     port: int | None = typer.Option(None, help="TCP port (default 8000)."),
-    no_worker: bool = typer.Option(False, "--no-worker", help="Do not run the twin worker."),
+    worker: bool | None = typer.Option(
+        None, "--worker/--no-worker",
+        help="Run the twin worker inside this process (default: "
+             "$CRANETWIN_WORKER_IN_PROCESS, else no: run `cranetwin worker`)."),
     log_level: str = typer.Option("info", help="uvicorn log level."),
 ) -> None:
     """Serve the HTTP API and live websockets (uvicorn, uvloop when available)."""
@@ -30,15 +39,7 @@ def serve(
 
     from cranetwin.api import create_app
 
-    settings = _settings(db)
-    update: dict[str, object] = {}
-    if host is not None:
-        update["host"] = host
-    if port is not None:
-        update["port"] = port
-    if no_worker:
-        update["worker_enabled"] = False
-    settings = settings.model_copy(update=update)
+    settings = _settings(db, host=host, port=port, worker_in_process=worker)
     logging.basicConfig(level=log_level.upper())
     app = create_app(settings)
     uvicorn.run(app, host=settings.host, port=settings.port, log_level=log_level,
@@ -52,8 +53,8 @@ def create(
     db: str | None = typer.Option(None, "--db", help=_DB_HELP),
 ) -> None:
     """Create a key and print it (only its hash is stored: copy it now)."""
-    from cranetwin.api.auth import ROLES
-    from cranetwin.api.backend import Backend
+    from cranetwin.service.backend import Backend
+    from cranetwin.service.keys import ROLES
 
     if role not in ROLES:
         raise typer.BadParameter(f"{role!r}: expected one of {', '.join(ROLES)}",
@@ -69,7 +70,7 @@ def create(
 @keys_app.command("list")
 def list_keys(db: str | None = typer.Option(None, "--db", help=_DB_HELP)) -> None:
     """List keys (id, role, name, created, revoked); secrets are not stored."""
-    from cranetwin.api.backend import Backend
+    from cranetwin.service.backend import Backend
     from cranetwin.storage import apikeys
 
     backend = Backend.open(_settings(db).database_url)
@@ -91,7 +92,7 @@ def list_keys(db: str | None = typer.Option(None, "--db", help=_DB_HELP)) -> Non
 def revoke(key_id: str = typer.Argument(..., help="The key id (12 hex digits after ctk_)."),
            db: str | None = typer.Option(None, "--db", help=_DB_HELP)) -> None:
     """Revoke a key (servers stop accepting it within 10 s)."""
-    from cranetwin.api.backend import Backend
+    from cranetwin.service.backend import Backend
     from cranetwin.storage import apikeys
 
     backend = Backend.open(_settings(db).database_url)

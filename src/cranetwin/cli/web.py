@@ -16,7 +16,7 @@ def register(app: typer.Typer) -> None:
         """Serve the fleet and machine pages on synthetic cranes (key: viewer-key)."""
         import uvicorn
 
-        from cranetwin.viz.preview import PREVIEW_KEY, create_preview_app
+        from cranetwin.api.preview import PREVIEW_KEY, create_preview_app
 
         typer.echo(f"open  http://{host}:{port}/?key={PREVIEW_KEY}   (synthetic data, Ctrl-C "
                    "stops)")

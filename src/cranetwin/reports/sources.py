@@ -16,9 +16,9 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.analytics import LoadHistory
-from cranetwin.analytics.synthetic import Misuse, SyntheticCrane
 from cranetwin.errors import CraneTwinError, ReportError
 from cranetwin.model import Machine, load_machine
+from cranetwin.testing.histories import Misuse, SyntheticCrane
 
 if TYPE_CHECKING:
     from cranetwin.sim import Recording
@@ -96,7 +96,7 @@ class Source(Protocol):
 
 @dataclass
 class DemoSource:
-    """Synthetic shifts (see :class:`cranetwin.analytics.synthetic.SyntheticCrane`) with a few
+    """Synthetic shifts (see :class:`cranetwin.testing.histories.SyntheticCrane`) with a few
     injected misuse events, for a report that works without any data."""
 
     machine: Machine

@@ -1,10 +1,15 @@
-"""Replays for the API and the worker, reusing each machine's smoothing choice.
+"""Replays for the fleet service, the live payload and the worker, reusing each machine's
+smoothing choice.
 
 Choosing the Savitzky–Golay windows from the noise level costs about two thirds of a one-minute
 replay; the noise level is a property of the machine's sensors, not of the minute. So the first
 replay of a machine with at least ``MIN_CHOICE_S`` of data chooses, and later replays of the same
 machine and channel layout reuse the choice (``ReplayOptions.smoothing``) until
 ``REFRESH_S`` has passed.
+
+The sample period is the one the data carry (:attr:`SampleArrays.period_ns`, what the wire and
+storage hold); it is estimated from the sample times only for data that carry none
+(:func:`sample_period_s`).
 """
 
 from __future__ import annotations
@@ -12,27 +17,35 @@ from __future__ import annotations
 import threading
 import time
 
-import numpy as np
-
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
-from cranetwin.signal import SmoothingChoice
+from cranetwin.signal import SmoothingChoice, nominal_period
 from cranetwin.twin import ReplayOptions, TwinResult, replay
 
 MIN_CHOICE_S = 20.0
 REFRESH_S = 3600.0
 
 
-def nominal_period(t_s: np.ndarray) -> float | None:
-    """Median sample spacing [s], snapped to 1/whole Hz when within 1e-4 of it (epoch
-    timestamps in float64 carry ~1e-7 s of rounding that would otherwise drift the grid)."""
-    if t_s.shape[0] < 2:
-        return None
-    p = float(np.median(np.diff(t_s)))
-    if p <= 0:
-        return None
-    hz = round(1.0 / p)
-    return 1.0 / hz if hz >= 1 and abs(hz * p - 1.0) < 1e-4 else p
+def sample_period_s(samples: SampleArrays) -> float:
+    """The sample period of ``samples`` [s]: ``period_ns`` as the source carried it, else (data
+    without one) estimated from the sample times by :func:`cranetwin.signal.nominal_period`.
+
+    Raises:
+        SignalError: No period carried, and fewer than 2 samples or times not increasing.
+    """
+    if samples.period_ns is not None:
+        return samples.period_ns * 1e-9
+    return nominal_period(samples.t_s)
+
+
+def sample_rate_hz(samples: SampleArrays) -> float:
+    """The sample rate of ``samples`` as a whole number of Hz, at least 1 [Hz] (the replay grid
+    of the worker, the live payload and the analytics; a multiple of it for the twin view).
+
+    Raises:
+        SignalError: As :func:`sample_period_s`.
+    """
+    return max(1.0, float(round(1.0 / sample_period_s(samples))))
 
 
 class Replayer:
@@ -55,7 +68,7 @@ class Replayer:
         with self._lock:
             hit = self._choices.get(key)
         choices = hit[1] if hit is not None and now - hit[0] < REFRESH_S else None
-        period = nominal_period(samples.t_s)
+        period = sample_period_s(samples) if samples.t_s.shape[0] >= 2 else None
         opts = ReplayOptions(grid_hz=grid_hz, smoothing=choices, sample_period_s=period,
                              theta0_initial=theta0_initial)
         res = replay(samples, machine, grid_hz=grid_hz, options=opts)

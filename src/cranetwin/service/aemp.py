@@ -29,8 +29,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from cranetwin.api.params import iso
 from cranetwin.model import Machine
+from cranetwin.service.timerange import iso
 
 PAGE_SIZE = 100
 

@@ -1,8 +1,9 @@
 """A stand-alone preview of the web UI on synthetic data (no database, no ingest).
 
 ``create_preview_app()`` serves the real web router (:mod:`cranetwin.api.routes_web`) next to
-stand-in JSON routes that follow the HTTP contract v1 with data from :mod:`cranetwin.viz.synthetic`.
-Front-end work and the browser tests use it; it is not the service (see ``cranetwin.api``).
+stand-in JSON routes that follow the HTTP contract v1 with data from
+:mod:`cranetwin.testing.views`. Front-end work and the browser tests use it; it is not the
+service (see :func:`cranetwin.api.create_app`).
 
 Keys: ``viewer-key`` (role viewer) is accepted; no key → 401, any other key → 403.
 Live: every machine streams the scripted cycle at ``live_hz``; frames pushed with
@@ -21,7 +22,7 @@ from fastapi import FastAPI, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import JSONResponse, Response
 
 from cranetwin.model import Machine, load_machine
-from cranetwin.viz.synthetic import synthetic_frame, synthetic_history, synthetic_twin
+from cranetwin.testing.views import synthetic_frame, synthetic_history, synthetic_twin
 
 PREVIEW_KEY = "viewer-key"
 Time = Annotated[str | None, Query()]

@@ -1,4 +1,7 @@
-"""Background twin worker: follows stored samples window by window and stores derived summaries.
+"""The twin worker: follows stored samples window by window and stores derived summaries.
+
+It runs as its own process, ``cranetwin worker`` (:func:`cranetwin.cli.worker`), or inside
+``cranetwin serve`` for the embedded demo (``CRANETWIN_WORKER_IN_PROCESS``).
 
 For each machine, windows of ``worker_window_s`` (60 s, aligned to whole minutes so that the
 storage's 1-min summary level stays exact) are replayed once samples exist a little past their
@@ -16,7 +19,10 @@ The summaries of a window and the machine's new progress row (watermark = end of
 cumulative counters) are committed in ONE transaction, and derived summaries are written by
 overwriting their buckets: a crash before the commit leaves the window unprocessed (it is done
 again, once), a crash after it leaves it done. After downtime the worker starts from the
-watermark and catches up; empty stretches (machine off) are skipped in one step.
+watermark and catches up; empty stretches (machine off) are skipped in one step. The commit is
+conditional on the watermark the window started from, so a second worker on the same machine
+(two processes by mistake, or during a hand-over) finds the window done and rolls its own
+replay back instead of counting it twice.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import threading
 from dataclasses import replace as dc_replace
 from typing import TYPE_CHECKING
 
@@ -34,10 +41,10 @@ from cranetwin.errors import CraneTwinError
 from cranetwin.model import Machine
 
 if TYPE_CHECKING:
-    from cranetwin.api.backend import Backend, MachineRecord, Progress
-    from cranetwin.api.metrics import Metrics
-    from cranetwin.api.replayer import Replayer
-    from cranetwin.api.settings import Settings
+    from cranetwin.service.backend import Backend, MachineRecord, Progress
+    from cranetwin.service.metrics import Metrics
+    from cranetwin.service.replayer import Replayer
+    from cranetwin.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -141,21 +148,42 @@ def update_counters(prog: Progress, machine: Machine, t_s: F64, payload_kg: F64,
 
 
 class TwinWorker:
-    """Replays every machine's new samples into derived summaries (see module docstring)."""
+    """Replays every machine's new samples into derived summaries (see module docstring).
+
+    Runs as its own process (``cranetwin worker``: :meth:`run` in the main thread) or, for
+    the embedded demo, as a task of ``cranetwin serve`` (:meth:`run_forever`). Every window is
+    committed only from the watermark it started from (:meth:`Backend.commit_window`), so several
+    workers on one database never count a window twice.
+
+    Args:
+        backend: Store adapter.
+        settings: The settings of the process (``worker_*``, ``twin_margin_s``).
+        metrics: Counters of windows, lag and errors (None: not counted).
+        replayer: Replayer shared with the API in the same process (a new one when None).
+        max_windows_per_pass: Windows of one machine per pass before the next machine's turn.
+    """
 
     def __init__(self, backend: Backend, settings: Settings, metrics: Metrics | None = None,
                  replayer: Replayer | None = None, max_windows_per_pass: int = 30) -> None:
-        from cranetwin.api.replayer import Replayer
+        from cranetwin.service.replayer import Replayer
 
         self.replayer = replayer if replayer is not None else Replayer()
         self.backend = backend
         self.settings = settings
         self.metrics = metrics
         self.max_windows_per_pass = max_windows_per_pass
+        self.stop_event = threading.Event()
+        """Set to stop: checked between windows, so the window being replayed is finished and
+        committed first (a second or so)."""
+
+    def stop_requested(self) -> bool:
+        """Whether :attr:`stop_event` is set."""
+        return self.stop_event.is_set()
 
     async def run_forever(self) -> None:
-        """Process passes until cancelled, sleeping when caught up."""
-        while True:
+        """Process passes until :attr:`stop_event` is set, sleeping when caught up (in-process
+        mode: each pass runs in a thread, so the event loop keeps serving)."""
+        while not self.stop_event.is_set():
             try:
                 done = await asyncio.to_thread(self.run_once)
             except asyncio.CancelledError:
@@ -164,9 +192,33 @@ class TwinWorker:
                 log.exception("twin worker pass failed")
                 done = 0
             if done == 0:
-                await asyncio.sleep(self.settings.worker_interval_s)
+                await asyncio.to_thread(self.stop_event.wait, self.settings.worker_interval_s)
             else:
                 await asyncio.sleep(0)
+
+    def run(self) -> int:
+        """Process passes until :attr:`stop_event` is set (own-process mode); returns windows
+        processed.
+
+        The window being replayed when the event is set is finished and committed; if the
+        process is killed instead, its transaction is rolled back and the next run does it
+        again. Never raises for a failed pass (logged, retried after ``worker_interval_s``).
+        """
+        stop = self.stop_event
+        total = 0
+        while not stop.is_set():
+            try:
+                done = self.run_once()
+            except CraneTwinError as exc:
+                log.error("twin worker pass failed: %s", exc)
+                done = 0
+            except Exception:
+                log.exception("twin worker pass failed")
+                done = 0
+            total += done
+            if done == 0:
+                stop.wait(self.settings.worker_interval_s)
+        return total
 
     def run_once(self) -> int:
         """One pass over all machines: at most ``max_windows_per_pass`` windows each.
@@ -179,35 +231,50 @@ class TwinWorker:
         # service fed by another writer still answers long history queries from 1-min rows
         self.backend.store.rollup()
         for rec in self.backend.list_machines():
+            if self.stop_requested():
+                break
             total += self.catch_up(rec, self.max_windows_per_pass)
         return total
 
     def catch_up(self, rec: MachineRecord, max_windows: int | None = None) -> int:
-        """Process the ready windows of one machine, oldest first; returns how many."""
-        from cranetwin.api.backend import Progress
+        """Process the ready windows of one machine, oldest first; returns how many.
+
+        Stops early when :attr:`stop_requested`, or when another worker moved the machine's
+        watermark (it is processing the same machine; the next pass re-reads the progress).
+        """
+        from cranetwin.service.backend import Progress
 
         s = self.settings
         win = s.worker_window_s
         dr = self.backend.data_range(rec.machine_id)
         if dr is None:
             return 0
-        prog = self.backend.progress(rec.machine_id)
-        if prog is None:
-            prog = Progress.empty(rec.machine_id, math.floor(dr[0] / win) * win)
+        stored = self.backend.progress(rec.machine_id)
+        expected = stored.watermark_s if stored is not None else None
+        prog = stored if stored is not None else Progress.empty(
+            rec.machine_id, math.floor(dr[0] / win) * win)
         done = 0
-        while max_windows is None or done < max_windows:
+        while (max_windows is None or done < max_windows) and not self.stop_requested():
             w0 = prog.watermark_s
             if w0 + win + s.worker_settle_s > dr[1]:
                 break
             nxt = self.backend.next_sample_time(rec.machine_id, w0)
             if nxt is None:
                 break
+            new: Progress | None
             if nxt >= w0 + win:  # nothing in this window: skip the gap in one step
-                prog = dc_replace(prog, watermark_s=math.floor(nxt / win) * win)
-                self.backend.save_progress(prog)
-                continue
-            prog = self.process_window(rec, prog)
-            done += 1
+                new = dc_replace(prog, watermark_s=math.floor(nxt / win) * win)
+                if not self.backend.save_progress(new, expected):
+                    log.info("machine %s: watermark moved by another worker", rec.machine_id)
+                    break
+            else:
+                new = self.process_window(rec, prog, expected)
+                if new is None:
+                    log.info("machine %s: window %.0f committed by another worker",
+                             rec.machine_id, w0)
+                    break
+                done += 1
+            prog, expected = new, new.watermark_s
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
@@ -218,7 +285,7 @@ class TwinWorker:
         commit: a redone window stores the same events, which storage ignores (unique on
         machine, time, kind). Runs spanning a window edge are reported once per window."""
         from cranetwin.analytics import EventDetector
-        from cranetwin.api.analytics_view import load_history, stored_events
+        from cranetwin.service.analytics import load_history, stored_events
 
         if int(np.count_nonzero(keep)) < 2:
             return
@@ -232,10 +299,24 @@ class TwinWorker:
         if events:
             self.backend.store.add_events(events)
 
-    def process_window(self, rec: MachineRecord, prog: Progress) -> Progress:
-        """Replay [watermark, watermark + window), commit its summaries and progress together."""
-        from cranetwin.physics import horizontal_reach
+    def process_window(self, rec: MachineRecord, prog: Progress,
+                       expected_watermark_s: float | None) -> Progress | None:
+        """Replay [watermark, watermark + window), commit its summaries and progress together.
 
+        Args:
+            rec: The machine.
+            prog: Its progress before the window.
+            expected_watermark_s: The stored watermark the commit is conditional on (None: no
+                progress row stored yet).
+
+        Returns:
+            The new progress, or None when another worker committed the window first (nothing
+            of this replay was stored).
+        """
+        from cranetwin.physics import horizontal_reach
+        from cranetwin.service.replayer import sample_rate_hz
+
+        expected = expected_watermark_s
         s = self.settings
         machine = self.backend.model_of(rec)
         w0, w1 = prog.watermark_s, prog.watermark_s + s.worker_window_s
@@ -246,8 +327,7 @@ class TwinWorker:
         try:
             if n_in < 8:
                 raise CraneTwinError(f"only {n_in} samples in the window")
-            period = float(np.median(np.diff(samples.t_s)))
-            grid_hz = max(1.0, float(round(1.0 / period)))
+            grid_hz = sample_rate_hz(samples)
             res = self.replayer.replay(rec.machine_id, machine, samples, grid_hz,
                                        theta0_initial=prog.theta0_rad or 0.0)
         except CraneTwinError as exc:
@@ -255,8 +335,7 @@ class TwinWorker:
                         exc)
             if self.metrics is not None:
                 self.metrics.worker_errors.labels(rec.machine_id).inc()
-            self.backend.save_progress(new)
-            return new
+            return new if self.backend.save_progress(new, expected) else None
         keep = (res.t_s >= w0) & (res.t_s < w1)
         names, values = derive(machine, res, keep)
         t = res.t_s[keep]
@@ -266,7 +345,8 @@ class TwinWorker:
         if t.size:
             new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
             self._store_events(rec, machine, res, keep)
-        self.backend.commit_window(new, names, t, values)
+        if not self.backend.commit_window(new, expected, names, t, values):
+            return None
         if self.metrics is not None:
             self.metrics.worker_windows.labels(rec.machine_id).inc()
         return new

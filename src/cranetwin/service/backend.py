@@ -1,9 +1,18 @@
-"""The API's adapter over :class:`cranetwin.storage.Store`: the one module that knows storage.
+"""The service's adapter over :class:`cranetwin.storage.Store`: the one module that knows storage.
 
-Routes and services see :class:`MachineRecord`, :class:`Progress`, numpy arrays and
-:class:`~cranetwin.samples.SampleArrays`; storage errors for unknown machines become 404
-problem JSON, a taken id 409, an unknown model 422. The API's own tables (keys, twin progress,
-:mod:`cranetwin.storage.apikeys`) are read and written here with sessions on the store's engine.
+The service and the API see :class:`MachineRecord`, :class:`Progress`, numpy arrays and
+:class:`~cranetwin.samples.SampleArrays`; an unknown machine raises
+:class:`~cranetwin.service.errors.NotFoundError`, a taken id
+:class:`~cranetwin.service.errors.ConflictError`, an unknown model
+:class:`~cranetwin.service.errors.InvalidRequestError`. The service's own tables (API keys, twin
+progress, :mod:`cranetwin.storage.apikeys`) are read and written here with sessions on the
+store's engine.
+
+Two processes share the progress rows: the twin worker (``cranetwin worker``) writes them, the
+API reads them on every request that needs them (nothing is cached across processes). A
+window's commit is conditional on the watermark it started from (:meth:`Backend.commit_window`),
+so two workers on one machine never both count a window: the second one's transaction, summaries
+included, is rolled back and it re-reads the progress.
 """
 
 from __future__ import annotations
@@ -17,13 +26,14 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from sqlalchemy import update as sa_update
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from cranetwin.api.errors import ApiError
-from cranetwin.api.schemas import MachineCreate, MachineUpdate
 from cranetwin.errors import CraneTwinError, ModelError, StorageError
 from cranetwin.model import Machine, builtin_machines, load_machine
 from cranetwin.samples import SampleArrays
+from cranetwin.service.errors import ConflictError, InvalidRequestError, NotFoundError
 from cranetwin.storage import Store
 from cranetwin.storage import apikeys as keyrepo
 from cranetwin.storage import summaries as summ
@@ -34,7 +44,7 @@ F64 = npt.NDArray[np.float64]
 
 @dataclass(frozen=True)
 class MachineRecord:
-    """A registered machine as the API sees it.
+    """A registered machine as the service sees it.
 
     Attributes:
         machine_id: Identifier.
@@ -91,7 +101,7 @@ def _load_model(source: str) -> Machine:
 
 
 class Backend:
-    """Store access for the API.
+    """Store access for the service, the API and the twin worker.
 
     Args:
         store: An open :class:`cranetwin.storage.Store`.
@@ -136,15 +146,19 @@ class Backend:
         return sorted((self._record(i) for i in self.store.machines()),
                       key=lambda r: r.machine_id)
 
-    def machine_or_404(self, machine_id: str) -> MachineRecord:
-        """The machine ``machine_id``; 404 when none is registered."""
+    def machine(self, machine_id: str) -> MachineRecord:
+        """The machine ``machine_id``.
+
+        Raises:
+            NotFoundError: No machine of that id is registered.
+        """
         try:
             info = self.store.get_machine(machine_id)
         except StorageError:
             info = None
         if info is None:
-            raise ApiError(404, "Unknown machine", f"no machine {machine_id!r} is registered "
-                           "(GET /api/v1/machines lists them)")
+            raise NotFoundError("Unknown machine", f"no machine {machine_id!r} is registered "
+                                "(GET /api/v1/machines lists them)")
         return self._record(info)
 
     def model_of(self, rec: MachineRecord) -> Machine:
@@ -152,53 +166,68 @@ class Backend:
         try:
             return _load_model(rec.model_source)
         except CraneTwinError as exc:
-            raise ApiError(422, "Invalid machine description",
-                           f"machine {rec.machine_id!r}: {exc}") from exc
+            raise InvalidRequestError("Invalid machine description",
+                                      f"machine {rec.machine_id!r}: {exc}") from exc
 
-    def create_machine(self, body: MachineCreate) -> tuple[MachineRecord, str]:
-        """Register a machine; returns it and its HMAC secret (hex)."""
-        if body.model not in builtin_machines():
-            raise ApiError(422, "Unknown model", f"model {body.model!r}: expected one of "
-                           f"{', '.join(builtin_machines())}")
+    def create_machine(self, machine_id: str, model: str, name: str | None = None,
+                       wire_id: int | None = None,
+                       location: tuple[float, float] | None = None) -> tuple[MachineRecord, str]:
+        """Register a machine of a built-in model; returns it and its HMAC secret (hex).
+
+        Args:
+            machine_id: Identifier.
+            model: Built-in machine description name.
+            name: Display name (default: the id).
+            wire_id: Numeric id on the wire (default: the largest in use + 1).
+            location: (latitude, longitude) [deg], or None.
+
+        Raises:
+            InvalidRequestError: Unknown or invalid model.
+            ConflictError: The id or the wire id is taken.
+        """
+        if model not in builtin_machines():
+            raise InvalidRequestError("Unknown model", f"model {model!r}: expected one of "
+                                      f"{', '.join(builtin_machines())}")
         existing = {i.machine_id: i for i in self.store.machines()}
-        if body.machine_id in existing:
-            raise ApiError(409, "Machine exists", f"machine {body.machine_id!r} is already "
-                           "registered (PATCH it to change metadata)")
+        if machine_id in existing:
+            raise ConflictError("Machine exists", f"machine {machine_id!r} is already "
+                                "registered (PATCH it to change metadata)")
         wire_ids = {int(i.wire_id) for i in existing.values()}
-        if body.wire_id is not None and body.wire_id in wire_ids:
-            raise ApiError(409, "Wire id taken", f"wire_id {body.wire_id} is used by another "
-                           "machine")
-        wire_id = body.wire_id if body.wire_id is not None else (max(wire_ids, default=0) + 1)
+        if wire_id is not None and wire_id in wire_ids:
+            raise ConflictError("Wire id taken", f"wire_id {wire_id} is used by another machine")
+        wid = wire_id if wire_id is not None else (max(wire_ids, default=0) + 1)
         secret = secrets.token_bytes(32)
-        meta: dict[str, Any] = {"name": body.name or body.machine_id}
+        meta: dict[str, Any] = {"name": name or machine_id}
         try:
-            self.store.add_machine(body.machine_id, wire_id=wire_id, model=body.model,
-                                   secret=secret, metadata=meta)
-            if body.location is not None:
-                self._set_location(body.machine_id, body.location.lat, body.location.lon)
+            self.store.add_machine(machine_id, wire_id=wid, model=model, secret=secret,
+                                   metadata=meta)
+            if location is not None:
+                self._set_location(machine_id, location[0], location[1])
         except ModelError as exc:
-            raise ApiError(422, "Invalid machine", str(exc)) from exc
-        return self.machine_or_404(body.machine_id), secret.hex()
+            raise InvalidRequestError("Invalid machine", str(exc)) from exc
+        return self.machine(machine_id), secret.hex()
 
     def _set_location(self, machine_id: str, lat: float, lon: float) -> None:
         with self.session() as s, s.begin():
             row = get_row(s, machine_id)
             row.latitude_deg, row.longitude_deg = lat, lon
 
-    def update_machine(self, machine_id: str, body: MachineUpdate) -> MachineRecord:
-        """Change a machine's display name and/or location."""
+    def update_machine(self, machine_id: str, name: str | None = None,
+                       location: tuple[float, float] | None = None) -> MachineRecord:
+        """Change a machine's display name and/or location ((latitude, longitude) [deg]);
+        None leaves a field as it is."""
         import json
 
         with self.session() as s, s.begin():
             row = get_row(s, machine_id)
             meta = json.loads(row.meta_json or "{}")
-            if body.name is not None:
-                meta["name"] = body.name
-            if body.location is not None:
-                row.latitude_deg, row.longitude_deg = body.location.lat, body.location.lon
+            if name is not None:
+                meta["name"] = name
+            if location is not None:
+                row.latitude_deg, row.longitude_deg = location
                 meta["location_t_s"] = time.time()
             row.meta_json = json.dumps(meta)
-        return self.machine_or_404(machine_id)
+        return self.machine(machine_id)
 
     # -- samples ------------------------------------------------------------------------------
     def _pk(self, s: Session, machine_id: str) -> int:
@@ -230,7 +259,8 @@ class Backend:
                 return None
             s = self.read_samples(machine_id, max(after_s, dr[1] - 10.0), dr[1] + 1.0)
         keep = s.t_s > after_s
-        return SampleArrays(s.machine_id, s.t_s[keep], s.channels, s.values[keep])
+        return SampleArrays(s.machine_id, s.t_s[keep], s.channels, s.values[keep],
+                            period_ns=s.period_ns)
 
     def next_sample_time(self, machine_id: str, after_s: float) -> float | None:
         """Start of the first stored block ending at or after ``after_s`` [s], or None."""
@@ -278,7 +308,7 @@ class Backend:
 
     def create_key(self, role: str, name: str = "") -> tuple[str, str]:
         """A new key of ``role``: ``(key_id, token)``; only the hash is stored."""
-        from cranetwin.api.auth import new_key
+        from cranetwin.service.keys import new_key
 
         key_id, token, digest = new_key()
         with self.session() as s, s.begin():
@@ -302,34 +332,80 @@ class Backend:
         with self._lock:
             return self._progress_cache.get(machine_id)
 
-    def save_progress(self, prog: Progress) -> None:
-        """Store progress alone (a skipped or failed window)."""
+    def save_progress(self, prog: Progress, expected_watermark_s: float | None) -> bool:
+        """Store progress alone (a skipped or failed window), if the stored watermark is still
+        ``expected_watermark_s`` (None: no progress row stored yet).
+
+        Returns:
+            Whether it was stored (False: another worker moved the watermark first).
+        """
+        return self.commit_window(prog, expected_watermark_s, [], np.zeros(0),
+                                  np.zeros((0, 0)))
+
+    def reset_progress(self, prog: Progress) -> None:
+        """Store progress unconditionally (position the worker: tests, benchmarks, operators)."""
         with self.session() as s, s.begin():
-            self._upsert_progress(s, prog)
+            row = s.get(keyrepo.TwinProgressRow, prog.machine_id)
+            values = asdict(prog)
+            values["updated_s"] = time.time()
+            if row is None:
+                s.add(keyrepo.TwinProgressRow(**values))
+            else:
+                for k, v in values.items():
+                    setattr(row, k, v)
         with self._lock:
             self._progress_cache[prog.machine_id] = prog
 
     @staticmethod
-    def _upsert_progress(s: Session, prog: Progress) -> None:
-        row = s.get(keyrepo.TwinProgressRow, prog.machine_id)
+    def _put_progress(s: Session, prog: Progress, expected_watermark_s: float | None) -> None:
+        """Insert or update the progress row, only from the expected watermark.
+
+        Raises:
+            _WatermarkMoved: The stored row is not at ``expected_watermark_s`` (or exists when
+                None was expected); the transaction must be rolled back.
+        """
         values = asdict(prog)
         values["updated_s"] = time.time()
-        if row is None:
-            s.add(keyrepo.TwinProgressRow(**values))
-        else:
-            for k, v in values.items():
-                setattr(row, k, v)
+        row_t = keyrepo.TwinProgressRow
+        if expected_watermark_s is None:
+            if s.get(row_t, prog.machine_id) is not None:
+                raise _WatermarkMoved
+            s.add(row_t(**values))
+            s.flush()  # a concurrent insert fails here (primary key)
+            return
+        res = s.execute(sa_update(row_t)
+                        .where(row_t.machine_id == prog.machine_id,
+                               row_t.watermark_s == expected_watermark_s)
+                        .values(**values)
+                        .execution_options(synchronize_session=False))
+        if getattr(res, "rowcount", 0) != 1:
+            raise _WatermarkMoved
 
-    def commit_window(self, prog: Progress, channels: list[str], t_s: F64, values: F64) -> None:
-        """Derived summaries of one window and the new progress, in one transaction."""
-        with self.session() as s, s.begin():
-            if t_s.size:
-                pk = self._pk(s, prog.machine_id)
-                t_ns = np.round(t_s * 1e9).astype(np.int64)
-                summ.replace(s, pk, channels, t_ns, values)
-            self._upsert_progress(s, prog)
+    def commit_window(self, prog: Progress, expected_watermark_s: float | None,
+                      channels: list[str], t_s: F64, values: F64) -> bool:
+        """Derived summaries of one window and the new progress, in one transaction, committed
+        only if the stored watermark is still ``expected_watermark_s`` (None: no row yet).
+
+        Returns:
+            Whether it was committed. False: another worker committed this window first; nothing
+            of this one was written (summaries included).
+        """
+        try:
+            with self.session() as s, s.begin():
+                if t_s.size:
+                    pk = self._pk(s, prog.machine_id)
+                    t_ns = np.round(t_s * 1e9).astype(np.int64)
+                    summ.replace(s, pk, channels, t_ns, values)
+                self._put_progress(s, prog, expected_watermark_s)
+        except (_WatermarkMoved, IntegrityError):
+            return False
         with self._lock:
             self._progress_cache[prog.machine_id] = prog
+        return True
+
+
+class _WatermarkMoved(Exception):
+    """Internal: the stored watermark is not the one a window started from (rolls back)."""
 
 
 def _message(kind: str, ev: dict[str, Any]) -> str:

@@ -1,6 +1,6 @@
 """Twin output → public JSON: resampling to the requested rate, poses, pins, forces, wrenches.
 
-Pure functions of (machine, arrays); the routes and the live stream call them.
+Pure functions of (machine, arrays); the fleet service, the warm-up and the live stream call them.
 """
 
 from __future__ import annotations
@@ -127,13 +127,16 @@ class LiveKinematics:
         """Whether every cylinder's rod position is sent."""
         return all(i is not None for i in self.i_s)
 
-    def frames(self, t_s: F64, values: F64, prev: F64 | None) -> list[dict[str, Any]]:
+    def frames(self, t_s: F64, values: F64, prev: F64 | None,
+               prev_t_s: float | None = None) -> list[dict[str, Any]]:
         """Live frames for samples ``values`` (n, n_channels) at ``t_s`` (n,).
 
         Args:
             t_s: Sample times [s].
             values: Samples in channel units.
-            prev: The sample row before ``values[0]`` (for the first velocity), or None.
+            prev: The sample row before ``values[0]`` (for the first velocity), or None (the
+                first velocity is then 0).
+            prev_t_s: Time of ``prev`` [s]; required with ``prev``.
         """
         n = len(t_s)
         if n == 0 or not self.usable():
@@ -150,9 +153,15 @@ class LiveKinematics:
         lo = np.zeros(len(m.cylinders))
         hi = np.array([c.stroke_m for c in m.cylinders])
         q = joints_from_cylinders(m, np.clip(s, lo, hi), qo)
-        s_prev = s[:1] if prev is None else np.nan_to_num(
-            np.array([[prev[i] for i in self.i_s if i is not None]]), nan=0.0)
-        dt = np.diff(np.concatenate([[t_s[0] - 0.01], t_s]))
+        if prev is None:
+            s_prev, t_prev = s[:1], float(t_s[0]) - 1.0  # zero first velocity, any dt
+        else:
+            if prev_t_s is None:
+                raise ValueError("prev_t_s is required with prev (the time of the previous row)")
+            s_prev = np.nan_to_num(np.array([[prev[i] for i in self.i_s if i is not None]]),
+                                   nan=0.0)
+            t_prev = prev_t_s
+        dt = np.diff(np.concatenate([[t_prev], t_s]))
         v = np.diff(np.vstack([s_prev, s]), axis=0) / np.maximum(dt, 1e-6)[:, None]
         forces = np.zeros((n, len(m.cylinders)))
         for k, c in enumerate(m.cylinders):

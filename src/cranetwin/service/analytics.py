@@ -1,4 +1,4 @@
-"""Analytics and report downloads of a range: replay → :mod:`cranetwin.analytics` → JSON/file.
+"""Analytics and reports of a stored range: replay → :mod:`cranetwin.analytics` → JSON or file.
 
 The range (at most ``Settings.max_analytics_range_s``) is replayed window by window at the
 sample rate, each window folded into an :class:`cranetwin.analytics.AnalyticsState` (rainflow
@@ -18,10 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from cranetwin.api.params import TimeRange, iso
-from cranetwin.api.replayer import Replayer
 from cranetwin.errors import AnalyticsError, CraneTwinError
 from cranetwin.model import Machine
+from cranetwin.service.replayer import Replayer, sample_rate_hz
+from cranetwin.service.timerange import TimeRange, iso
 
 WINDOW_S = 60.0
 MARGIN_S = 2.0
@@ -85,9 +85,8 @@ def analytics_report(backend: Any, replayer: Replayer, machine: Machine, machine
         samples = backend.read_samples(machine_id, a - MARGIN_S, b + MARGIN_S)
         inside = (samples.t_s >= a) & (samples.t_s < b)
         if int(inside.sum()) >= 8 and samples.t_s.shape[0] >= 16:
-            period = float(np.median(np.diff(samples.t_s)))
-            grid_hz = max(1.0, float(round(1.0 / period)))
             try:
+                grid_hz = sample_rate_hz(samples)
                 res = replayer.replay(machine_id, machine, samples, grid_hz)
             except CraneTwinError:
                 res = None

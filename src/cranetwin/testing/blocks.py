@@ -97,7 +97,8 @@ def kinematic_samples(machine: Machine, duration_s: float = 120.0, rate_hz: floa
             continue
         names.append(ch.name)
         values.append(np.round(v / ch.resolution) * ch.resolution)
-    return SampleArrays(machine.name, t, tuple(names), np.column_stack(values))
+    return SampleArrays(machine.name, t, tuple(names), np.column_stack(values),
+                        period_ns=int(round(1e9 / rate_hz)))
 
 
 @lru_cache(maxsize=4)
@@ -129,7 +130,12 @@ def tiled_blocks(machine_id: str, machine: Machine, start_s: float, duration_s: 
             give the same origin to consecutive calls to continue the motion seamlessly.
     """
     src = base if base is not None else simulated_samples(machine.name)
-    period_ns = int(round(float(np.median(np.diff(src.t_s))) * 1e9))
+    if src.period_ns is not None:
+        period_ns = src.period_ns
+    else:
+        from cranetwin.signal import nominal_period
+
+        period_ns = int(round(nominal_period(src.t_s) * 1e9))
     n_base = src.t_s.shape[0]
     per_block = max(1, int(round(block_s * 1e9 / period_ns)))
     n_total = int(round(duration_s * 1e9 / period_ns))

@@ -24,8 +24,8 @@ from cranetwin.errors import CraneTwinError
 from cranetwin.model import Machine
 
 if TYPE_CHECKING:
-    from cranetwin.api.backend import Backend
-    from cranetwin.api.replayer import Replayer
+    from cranetwin.service.backend import Backend
+    from cranetwin.service.replayer import Replayer
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ class LivePayload:
             The new estimate [kg] (the previous one when nothing new is stored), or None when
             there is too little data or the replay failed (the previous estimate is kept).
         """
-        from cranetwin.api.replayer import nominal_period
+        from cranetwin.service.replayer import sample_rate_hz
 
         try:
             self.backend.progress(self.machine_id)  # the fallback, for a worker elsewhere
@@ -116,10 +116,9 @@ class LivePayload:
                 return self.kg
             samples = self.backend.read_samples(self.machine_id, dr[1] - self.span_s,
                                                 dr[1] + 1.0)
-            period = nominal_period(samples.t_s)
-            if period is None or samples.t_s.shape[0] < 8:
+            if samples.t_s.shape[0] < 8:
                 return None
-            grid_hz = max(1.0, float(round(1.0 / period)))
+            grid_hz = sample_rate_hz(samples)
             res = self.replayer.replay(self.machine_id, self.machine, samples, grid_hz)
         except CraneTwinError as exc:
             log.debug("live payload of %s not estimated: %s", self.machine_id, exc)

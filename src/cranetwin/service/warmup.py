@@ -5,14 +5,14 @@ The first replay in a fresh process loads the twin's compiled (numba) kernels an
 physics, signal and view modules; the first scene imports trimesh and meshes the crane. Done on
 the first request, that made the cold first paint of a machine page ~3 s against ~1.25 s warm.
 :func:`warm_up` does it once on a few seconds of synthetic samples of the built-in crane
-(:mod:`cranetwin.api.synthetic`). The service runs it before it starts serving (about 0.5 s
+(:mod:`cranetwin.testing.blocks`). The service runs it before it starts serving (about 0.5 s
 after the imports): run in a background thread instead, it competed with the first requests for
 the interpreter and doubled their p95 latency for the first seconds; :func:`start_warm_up` is
 the background variant.
 
 The first replay of a machine with at least 20 s of samples also chooses its smoothing (about
-two thirds of the cost of a replay, :mod:`cranetwin.api.replayer`), which short windows such as
-the page's first 1-s frame then reuse; the service therefore replays the newest 30 s of its four
+two thirds of the cost of a replay, :mod:`cranetwin.service.replayer`), which short windows such
+as the page's first 1-s frame then reuse; the service therefore replays the newest 30 s of its four
 most recently seen machines after the generic warm-up (``then``).
 """
 
@@ -36,9 +36,9 @@ def warm_up(model: str = "patu655") -> float:
         Time taken [s].
     """
     t = time.perf_counter()
-    from cranetwin.api.synthetic import kinematic_samples
-    from cranetwin.api.views import LiveKinematics, twin_json
     from cranetwin.model import load_machine
+    from cranetwin.service.views import LiveKinematics, twin_json
+    from cranetwin.testing.blocks import kinematic_samples
     from cranetwin.twin import replay
     from cranetwin.viz.scene import build_scene
 
@@ -47,7 +47,7 @@ def warm_up(model: str = "patu655") -> float:
     res = replay(samples, machine, grid_hz=100.0)
     twin_json(machine, res, float(samples.t_s[100]), float(samples.t_s[-100]), 50.0)
     LiveKinematics(machine, samples.channels).frames(samples.t_s[-1:], samples.values[-1:],
-                                                      samples.values[-2])
+                                                      samples.values[-2], samples.t_s[-2])
     build_scene(machine)
     return time.perf_counter() - t
 
