@@ -14,10 +14,10 @@ import pytest
 from typer.testing import CliRunner
 
 from cranetwin.analytics import RainflowCounter
-from cranetwin.analytics.synthetic import CYCLE_S, SyntheticCrane
 from cranetwin.bench.analytics import _py_rainflow
 from cranetwin.cli import app
 from cranetwin.model import load_machine
+from cranetwin.testing.histories import CYCLE_S, SyntheticCrane
 
 pytestmark = pytest.mark.timeout(300)
 
