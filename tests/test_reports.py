@@ -226,3 +226,15 @@ def test_render_gives_downloadable_bytes(machine: Machine,
     assert media == "application/zip" and zipfile.ZipFile(io.BytesIO(zipped)).testzip() is None
     html_bytes, media, _ = render(rep, machine, "html", label)
     assert html_bytes.startswith(b"<!doctype html>") and media.startswith("text/html")
+
+
+@pytest.mark.postgres
+def test_report_names_its_database_without_the_password(pg_url: str) -> None:
+    from cranetwin.reports import StoreSource
+    from cranetwin.storage import Store
+
+    url = pg_url.replace("postgres@", "postgres:s3cret-pw@", 1)  # trust auth ignores it
+    assert "s3cret-pw" in url
+    Store.open(url).add_machine("crane-1", 1, b"k" * 16)
+    src = StoreSource(url, "crane-1", 0.0, 60.0)
+    assert "s3cret-pw" not in src.label and "***" in src.label

@@ -26,6 +26,7 @@ from cranetwin.api.schemas import Problem
 from cranetwin.errors import (
     AnalyticsError,
     CraneTwinError,
+    MissingExtraError,
     ModelError,
     PhysicsError,
     ReportError,
@@ -106,6 +107,8 @@ def http_status(exc: ServiceError) -> int:
 
 
 async def _cranetwin(request: Request, exc: Exception) -> JSONResponse:
+    if isinstance(exc, MissingExtraError):
+        return problem(501, "Not installed on this server", str(exc))
     if isinstance(exc, ServiceError):
         return problem(http_status(exc), exc.title, exc.detail)
     if isinstance(exc, StorageError):

@@ -26,7 +26,7 @@ import httpx
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
 
-from cranetwin.errors import CraneTwinError
+from cranetwin.errors import CraneTwinError, MissingExtraError
 from cranetwin.model import load_machine, machine_from_dict
 from cranetwin.settings import Settings, load_settings
 from cranetwin.viz.export import EXPORT_MAX_SECONDS, export_rate_hz, render_export
@@ -75,10 +75,15 @@ def vendor_file(name: str) -> Path:
 
     ``meshcat.min.js``: meshcat's three.js viewer bundle; ``plotly.min.js``: plotly.js.
     """
-    if name == "meshcat.min.js":
-        return Path(str(resources.files("meshcat") / "viewer" / "dist" / "main.min.js"))
-    if name == "plotly.min.js":
-        return Path(str(resources.files("plotly") / "package_data" / "plotly.min.js"))
+    package = {"meshcat.min.js": "meshcat", "plotly.min.js": "plotly"}.get(name)
+    if package is not None:
+        try:
+            root = resources.files(package)
+        except ModuleNotFoundError as exc:
+            raise MissingExtraError("web", "the web UI's 3D view and charts") from exc
+        if package == "meshcat":
+            return Path(str(root / "viewer" / "dist" / "main.min.js"))
+        return Path(str(root / "package_data" / "plotly.min.js"))
     raise WebError(404, "Not found", f"no vendored file {name!r}; expected meshcat.min.js or "
                    "plotly.min.js")
 

@@ -21,6 +21,7 @@ from typing import Any
 import typer
 
 from cranetwin.bench import emit
+from cranetwin.errors import MissingExtraError
 
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
@@ -103,7 +104,10 @@ def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
     """
     import tempfile
 
-    from playwright.sync_api import sync_playwright
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError as exc:
+        raise MissingExtraError("dev", "the browser benchmark (playwright)") from exc
 
     from cranetwin.api.preview import PREVIEW_KEY, ServerThread, create_preview_app
 

@@ -62,10 +62,12 @@ def report(
         Source,
         StoreSource,
         build_report,
+        check_format,
         write,
     )
 
     fmt = fmt.lower()
+    check_format(fmt)  # an unknown format or a missing extra, before any analysis
     src: Source
     if demo:
         src = DemoSource(load_machine(machine or "patu655"), days=days, rate_hz=rate_hz)

@@ -26,16 +26,6 @@ _DB_HELP = "sqlite:///… or postgresql://… (default: $CRANETWIN_DATABASE_URL,
            "sqlite:///cranetwin.db)."
 
 
-def safe_url(url: str) -> str:
-    """A database URL with its password hidden (for log lines)."""
-    try:
-        from sqlalchemy.engine import make_url
-
-        return make_url(url).render_as_string(hide_password=True)
-    except Exception:  # noqa: BLE001 - an unparsable URL is reported by the store, not here
-        return url.split("@")[-1]
-
-
 def worker(
     db: str | None = typer.Option(None, "--db", help=_DB_HELP),
     metrics_bind: str | None = typer.Option(
@@ -51,6 +41,7 @@ def worker(
     from cranetwin.service.backend import Backend
     from cranetwin.service.metrics import Metrics
     from cranetwin.service.worker import TwinWorker
+    from cranetwin.storage.engine import display_url
 
     settings = load_settings(Settings, database_url=db, worker_metrics_bind=metrics_bind,
                              worker_interval_s=interval)
@@ -75,7 +66,7 @@ def worker(
 
         signal.signal(signal.SIGTERM, _stop)
         signal.signal(signal.SIGINT, _stop)
-        typer.echo(f"cranetwin worker ready: {safe_url(settings.database_url)}, windows of "
+        typer.echo(f"cranetwin worker ready: {display_url(settings.database_url)}, windows of "
                    f"{settings.worker_window_s:g} s")
         windows = tw.run()
     finally:

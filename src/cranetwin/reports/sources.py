@@ -167,6 +167,7 @@ class StoreSource:
     def __post_init__(self) -> None:
         try:
             from cranetwin.storage import Store
+            from cranetwin.storage.engine import display_url
         except ImportError as exc:  # pragma: no cover - storage is part of the package
             raise ReportError(f"storage is not available: {exc}") from exc
         self.store = Store.open(self.url)
@@ -185,7 +186,7 @@ class StoreSource:
             self.machine = load_machine(model)
         if not self.t1_s > self.t0_s:
             raise ReportError(f"--to ({self.t1_s}) must be after --from ({self.t0_s})")
-        self.label = self.label or f"machine {self.machine_id} from {self.url}"
+        self.label = self.label or f"machine {self.machine_id} from {display_url(self.url)}"
 
     def total(self) -> int:
         return int(np.ceil((self.t1_s - self.t0_s) / WINDOW_S))

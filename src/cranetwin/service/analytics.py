@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from cranetwin.errors import AnalyticsError, CraneTwinError
+from cranetwin.errors import AnalyticsError, CraneTwinError, MissingExtraError
 from cranetwin.model import Machine
 from cranetwin.service.replayer import Replayer, sample_rate_hz
 from cranetwin.service.timerange import TimeRange, iso
@@ -147,8 +147,11 @@ def render(data: dict[str, Any], fmt: str, machine_id: str) -> tuple[bytes, str,
                 f"<h1>cranetwin report: {html.escape(machine_id)}</h1><table>{body}</table>")
         return page.encode(), "text/html", f"{stem}.html"
     if fmt == "pdf":
-        from reportlab.lib.pagesizes import A4  # type: ignore[import-untyped]
-        from reportlab.pdfgen import canvas  # type: ignore[import-untyped]
+        try:
+            from reportlab.lib.pagesizes import A4  # type: ignore[import-untyped]
+            from reportlab.pdfgen import canvas  # type: ignore[import-untyped]
+        except ImportError as exc:
+            raise MissingExtraError("reports", "PDF reports") from exc
 
         buf_b = io.BytesIO()
         c = canvas.Canvas(buf_b, pagesize=A4)

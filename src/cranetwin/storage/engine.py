@@ -56,6 +56,15 @@ def _sqlite_pragmas(busy_timeout_s: float) -> Any:
     return on_connect
 
 
+def display_url(url: str) -> str:
+    """A database URL fit for a log line or a report: the password hidden (``***``), and
+    only the host part when the URL does not parse."""
+    try:
+        return make_url(url).render_as_string(hide_password=True)
+    except (ArgumentError, ValueError):
+        return url.rsplit("@", 1)[-1]
+
+
 def sqlite_path(u: URL) -> Path | None:
     """The file of a SQLite URL, or None for an in-memory or URI-style database."""
     db = u.database

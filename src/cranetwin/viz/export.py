@@ -23,7 +23,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from cranetwin.errors import CraneTwinError
+from cranetwin.errors import CraneTwinError, MissingExtraError
 
 EXPORT_MAX_SECONDS = 600.0
 """Longest window an export holds [s]."""
@@ -139,7 +139,12 @@ def _gzip_b64(text: str) -> str:
 
 
 def _vendor(package: str, *parts: str) -> str:
-    return (resources.files(package).joinpath(*parts)).read_text("utf-8")
+    """Text of a browser library shipped in an installed wheel (the ``web`` extra)."""
+    try:
+        root = resources.files(package)
+    except ModuleNotFoundError as exc:
+        raise MissingExtraError("web", "the HTML export") from exc
+    return root.joinpath(*parts).read_text("utf-8")
 
 
 _IMPORT = re.compile(r"^import\s.*?from\s+['\"].*?['\"];\s*$", re.MULTILINE)
