@@ -9,8 +9,6 @@ physics API, which the physics tests check against Pinocchio.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -60,13 +58,6 @@ def test_kinematics_table_matches_exact_inverse(machine: Machine) -> None:
         fb = np.array([gridpass.inverse_motion(table, no, p.cyl, k, per_m, s) for s in s_all])
         np.testing.assert_allclose(fb[:, 1], 1.0 / exact[:, 1], rtol=1e-14)
         np.testing.assert_allclose(fb[:, 2], q2, rtol=1e-13, atol=1e-15 * q2_scale)
-
-
-def test_fast_tanh_agrees_with_libm() -> None:
-    xs = np.concatenate([np.linspace(-25, 25, 20001), [0.0, -0.0, 1e-300, -1e-12, 19.09, 19.2],
-                         np.geomspace(1e-10, 1.0, 500)])
-    for x in xs:
-        assert gridpass.fast_tanh(x) == pytest.approx(math.tanh(x), rel=7e-16, abs=1e-300)
 
 
 def test_fused_pass_agrees_with_separate_physics(machine: Machine, result: TwinResult) -> None:

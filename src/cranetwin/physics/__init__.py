@@ -9,7 +9,6 @@ Modules (one concept each):
   joint torques it produces;
 * :mod:`~cranetwin.physics.dynamics` — recursive Newton–Euler inverse dynamics with joint
   reaction wrenches, mass matrix and bias forces (paper Eq. 3–4), vectorised over time;
-* :mod:`~cranetwin.physics.hydraulics` — orifice flow and chamber pressure build-up;
 * :mod:`~cranetwin.physics.kernels` — the numba single-sample kernels behind all of the above,
   callable from the simulator's own ``@njit`` loop; :mod:`~cranetwin.physics.chain` builds the
   flat parameter arrays they read (:func:`compile_chain`).
@@ -42,12 +41,6 @@ from cranetwin.physics.dynamics import (
     joint_torques,
     mass_matrix,
 )
-from cranetwin.physics.hydraulics import (
-    chamber_volumes,
-    orifice_flow,
-    pressure_rates,
-    valve_flows,
-)
 from cranetwin.physics.kinematics import (
     CylinderPins,
     body_poses,
@@ -71,7 +64,6 @@ __all__ = [
     "actuator_torques",
     "bias_forces",
     "body_poses",
-    "chamber_volumes",
     "compile_chain",
     "cylinder_force",
     "cylinder_forces",
@@ -92,8 +84,5 @@ __all__ = [
     "mass_matrix",
     "moment_arm_rates",
     "moment_arms",
-    "orifice_flow",
-    "pressure_rates",
     "reach_problems",
-    "valve_flows",
 ]

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from cranetwin.physics.actuator import eq1_cylinder_force, eq2_friction
 from cranetwin.physics.chain import CYL_BLOCK, ChainParams
 from cranetwin.physics.kernels import _chol_solve, cylinder_motion, rnea_into
 from cranetwin.physics.kernels import mass_matrix_batch as K_mass_matrix_batch
@@ -42,7 +43,8 @@ from cranetwin.physics.kernels import mass_matrix_batch as K_mass_matrix_batch
 IMPORTS = ("import numpy as np\n"
            "from cranetwin.physics.chain import CYL_BLOCK\n"
            "from cranetwin.physics.gridpass import chol_solve_inline, derivative_group\n"
-           "from cranetwin.physics.gridpass import fast_tanh, joint_motion")
+           "from cranetwin.physics.gridpass import joint_motion\n"
+           "from cranetwin.physics.actuator import eq1_cylinder_force, eq2_friction")
 """Imports the copied :func:`grid_pass` needs in the generated module (besides ``math`` and
 ``njit``, which it has)."""
 
@@ -131,40 +133,6 @@ def spline_points(coef, i_first, n_out, r, h0, h_last, src, der, out):  # type: 
                 out[g, m] = b + dx * (2.0 * c2 + 3.0 * d * dx)
             else:
                 out[g, m] = 2.0 * c2 + 6.0 * d * dx
-
-
-_POW2 = np.array([2.0**k for k in range(64)])
-_INV_LN2 = 1.4426950408889634
-_LN2_HI = 6.93147180369123816490e-01  # ln 2 = _LN2_HI + _LN2_LO, _LN2_HI·n exact for n < 2¹¹
-_LN2_LO = 1.90821492927058770002e-10
-_E2, _E3, _E4, _E5, _E6, _E7, _E8, _E9, _E10, _E11, _E12, _E13, _E14 = (
-    1.0 / math.factorial(k) for k in range(2, 15))
-
-
-@njit(cache=True, inline="always")
-def fast_tanh(x):  # type: ignore[no-untyped-def]
-    """tanh(x) = e/(e + 2) with e = expm1(2|x|), expm1 inlined: 2|x| = n·ln 2 + r with
-    |r| ≤ ln 2/2, expm1(r) by its Taylor series to r¹⁴ (truncation < 1e-19, Estrin's scheme)
-    and expm1 = 2ⁿ·expm1(r) + (2ⁿ − 1), which cancels at most a factor 3.4 for n ≥ 1. No
-    library call in the per-instant loop (libm's tanh, or its expm1, cost several times more);
-    within 3 ulp of :func:`math.tanh` (tested)."""
-    ax = abs(x)
-    if ax > 19.1:  # tanh = 1 to double precision
-        t = 1.0
-    else:
-        y = 2.0 * ax
-        n = int(y * _INV_LN2 + 0.5)
-        r = (y - n * _LN2_HI) - n * _LN2_LO
-        r2 = r * r
-        r4 = r2 * r2
-        b0 = (_E2 + _E3 * r) + (_E4 + _E5 * r) * r2
-        b1 = (_E6 + _E7 * r) + (_E8 + _E9 * r) * r2
-        b2 = (_E10 + _E11 * r) + (_E12 + _E13 * r) * r2 + _E14 * r4
-        p = r + r2 * (b0 + r4 * (b1 + r4 * b2))
-        sc = _POW2[n]
-        e = sc * p + (sc - 1.0)
-        t = e / (e + 2.0)
-    return t if x >= 0.0 else -t
 
 
 chol_solve_inline = njit(cache=True, inline="always")(_chol_solve.py_func)
@@ -406,20 +374,17 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
     cj = np.empty(nc, dtype=np.uint64)
     sj = np.uint64(slew_joint if slew_joint >= 0 else 0)
     cells_per_m = np.empty(nc)
-    inv_vc = np.empty(nc)  # 1 / vc of Eq. 2 [s/m]
     driven = np.zeros(nj, dtype=np.bool_)
     for k in range(nc):
         cj[k] = int(cyl[1 + k * CYL_BLOCK + 1])
         driven[cj[k]] = True
         cells_per_m[k] = table.shape[1] / stroke[k]
-        inv_vc[k] = 1.0 / fpar[k, 3]
     free = np.empty(nj, dtype=np.uint64)  # joints no cylinder drives
     n_free = 0
     for j in range(nj):
         if not driven[j]:
             free[n_free] = j
             n_free += 1
-    inv_dvc = 1.0 / drive[1] if slew_joint >= 0 and has_drive else 0.0
     bad = 0
     for g in range(n):
         # -- splines ------------------------------------------------------------------------
@@ -474,8 +439,8 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
             pbk = val[4 * nc + 3 + k]
             pa[g, k] = pak
             pb[g, k] = pbk
-            f = (pak * fpar[k, 0] - pbk * fpar[k, 1]
-                 - (fpar[k, 2] * fast_tanh(v * inv_vc[k]) + fpar[k, 4] * v))
+            f = eq1_cylinder_force(pak, pbk, v, fpar[k, 0], fpar[k, 1], fpar[k, 2],
+                                   fpar[k, 3], fpar[k, 4])
             force[g, k] = f
             tau_act[g, ji] = f * d1
             # a rod at (or past) an end of its stroke is held by the end stop, a force the
@@ -486,8 +451,8 @@ def grid_pass(chain, coef, i_first, r, h0, h_last, src, der,  # type: ignore[no-
         if slew_joint >= 0:
             if has_drive:
                 wd = qd[g, sj]
-                tau_act[g, sj] = val[5 * nc + 3] - (
-                    drive[0] * fast_tanh(wd * inv_dvc) + drive[2] * wd)
+                tau_act[g, sj] = val[5 * nc + 3] - eq2_friction(wd, drive[0], drive[1],
+                                                                drive[2])
                 known[sj] = True
             else:
                 tau_act[g, sj] = math.nan

@@ -4,7 +4,7 @@ For the simulator engineer
 --------------------------
 Build the parameters once, outside your ``@njit`` loop, and pass the two float64 arrays in::
 
-    from cranetwin.physics import compile_chain, hydraulics as H, kernels as K
+    from cranetwin.physics import actuator as A, compile_chain, kernels as K
     p = compile_chain(machine)            # p.chain, p.cyl: flat float64 arrays
     nj, nc = p.n_joints, p.n_cylinders
 
@@ -15,7 +15,7 @@ Build the parameters once, outside your ``@njit`` loop, and pass the two float64
         K.bias(chain, q, qd, payload_kg, b)           # C(q, qd)·qd + g(q), shape (nj,)
         s = np.empty(nc); dsdq = np.empty(nc)
         K.cylinder_kinematics(cyl, q, s, dsdq)        # rod positions [m], ds_k/dq_joint(k)
-        F = H.cylinder_force_nb(pA, pB, v, A1, A2, Fc, vc, b)  # Eq. 1-2 (physics.hydraulics)
+        F = A.eq1_cylinder_force(pA, pB, v, A1, A2, Fc, vc, b)  # Eq. 1-2 (physics.actuator)
         ...  # tau[joint(k)] += F[k] * dsdq[k];  qdd = solve(M, tau - b)
 
 All kernels write into caller-provided arrays; :func:`rnea`, :func:`mass_matrix` and :func:`bias`

@@ -53,6 +53,7 @@ from cranetwin import physics
 from cranetwin.errors import TwinError
 from cranetwin.model import Cylinder, Machine
 from cranetwin.samples import SampleArrays
+from cranetwin.signal import nominal_period
 from cranetwin.signal.smoothing import sg_filter
 from cranetwin.twin.channels import ChannelMap
 from cranetwin.twin.replay import ReplayOptions, derivative_filter, replay
@@ -188,19 +189,18 @@ def _design(vc: F64, v: F64, g: F64, width: int, passes: int, sigma_v: F64) -> F
 
 def res_rate(res: TwinResult) -> float:
     """Grid rate of a replay result [Hz]."""
-    return float(1.0 / np.median(np.diff(res.t_s[:100])))
+    return 1.0 / nominal_period(res.t_s[:100])
 
 
 def sample_rate(samples: SampleArrays) -> float:
-    """Nominal sample rate [Hz]."""
-    return float(1.0 / np.median(np.diff(samples.t_s)))
+    """Nominal sample rate [Hz]: the period the samples carry, estimated only if they carry
+    none."""
+    return 1.0 / nominal_period(samples.t_s, samples.period_ns)
 
 
 def _before(y: F64, v: F64, cyls: list[Cylinder], c: int, width: int, passes: int) -> F64:
     """Low-passed force residual of cylinder ``c`` with the file's friction, no extra mass [N]."""
-    fr = cyls[c].friction
-    return _lowpass(y[:, c] - fr.coulomb * np.tanh(v[:, c] / fr.coulomb_velocity)
-                    - fr.viscous * v[:, c], width, passes)
+    return _lowpass(y[:, c] - physics.friction_force(v[:, c], cyls[c].friction), width, passes)
 
 
 def _fit(y: F64, g: F64, v: F64, vc0: F64, width: int, passes: int,

@@ -79,8 +79,7 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
     the cylinder joints' q, qd, qdd through the kinematics tables (as
     :func:`cranetwin.physics.gridpass.table_motion_batch`) into q, qd, qdd (n, n_joints), and
     the states row cs (n, 5·n_c) = [q, qd, qdd of the cylinder joints, moment arms ds/dq,
-    forces (Eq. 1–2, as :func:`cranetwin.physics.kernels.cylinder_forces_batch` but with
-    the grid pass's :func:`~cranetwin.physics.gridpass.fast_tanh`)]; the rates
+    forces (Eq. 1–2, :func:`cranetwin.physics.actuator.eq1_cylinder_force`)]; the rates
     and accelerations are columns v_col + k, a_col + k. Returns the number of samples whose
     position does not fit the geometry (q not finite)."""
     nc = s_cols.shape[0]
@@ -105,9 +104,9 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
             cs[i, nc + k] = w
             cs[i, 2 * nc + k] = acc
             cs[i, 3 * nc + k] = d1
-            fr = fpar[k, 2] * gridpass.fast_tanh(vk / fpar[k, 3]) + fpar[k, 4] * vk
-            cs[i, 4 * nc + k] = (sm[i, pa_cols[k]] * fpar[k, 0] - sm[i, pb_cols[k]] * fpar[k, 1]
-                                 - fr)
+            cs[i, 4 * nc + k] = actuator.eq1_cylinder_force(
+                sm[i, pa_cols[k]], sm[i, pb_cols[k]], vk, fpar[k, 0], fpar[k, 1], fpar[k, 2],
+                fpar[k, 3], fpar[k, 4])
             if not math.isfinite(qj):
                 row_bad = True
         if row_bad:
@@ -385,6 +384,8 @@ class TwinStream:
         vals = np.asarray(samples.values, dtype=np.float64)
         if self._cols != list(range(vals.shape[1])):
             vals = vals[:, self._cols]
+        if self._period is None and samples.period_ns is not None:
+            self._period = nominal_period(t, samples.period_ns)
         self._raw_t = np.concatenate([self._raw_t, t])
         self._raw_v = np.concatenate([self._raw_v, vals])
         yield from self._advance(final=False)
@@ -884,7 +885,9 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
         opt = ReplayOptions(**{**opt.__dict__, "grid_hz": grid_hz})
     n = samples.t_s.shape[0]
     if opt.sample_period_s is None and n >= 2:
-        opt = ReplayOptions(**{**opt.__dict__, "sample_period_s": nominal_period(samples.t_s)})
+        opt = ReplayOptions(**{**opt.__dict__,
+                               "sample_period_s": nominal_period(samples.t_s,
+                                                                 samples.period_ns)})
     stream = TwinStream(machine, samples.channels, opt, payload)
     if opt.smoothing is None and n >= 4 and opt.sample_period_s is not None:
         cols = [samples.channels.index(c) for c in stream.cmap.names]
@@ -898,7 +901,8 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
     for i in range(0, n, block_samples):
         j = min(n, i + block_samples)
         yield from stream.push_iter(SampleArrays(samples.machine_id, samples.t_s[i:j],
-                                                 samples.channels, samples.values[i:j]))
+                                                 samples.channels, samples.values[i:j],
+                                                 samples.period_ns))
     yield from stream.flush_iter()
 
 
