@@ -294,7 +294,9 @@ class TwinStream:
         self._cs = _Buf(5 * len(machine.cylinders))
         self._out_done = 0
         self._slew = SlewState(theta0=self.opt.theta0_initial)
-        self._integrate = self.cmap.angle is None
+        # a free joint with a torque drive but no angle sensor: its angle is integrated from
+        # the torque (twin.slew); with neither, it is held at 0 (the reference pose)
+        self._integrate = self.cmap.angle is None and bool(machine.torque_drives)
         self._use_cs = self._integrate and self.opt.velocity == "spline"
         self._drive = machine.torque_drives[0] if machine.torque_drives else None
         self._slew_joint = machine.joint_index(self._drive.joint) if self._drive else None
@@ -598,7 +600,9 @@ class TwinStream:
 
     def _trim(self) -> None:
         need = self._out_done - self._wh - self.opt.settle_samples - 4
-        need = min(need, self._theta_done - self._wh - 8, self._sm_valid - 2 * self._hw - 8)
+        need = min(need, self._sm_valid - 2 * self._hw - 8)
+        if self._integrate:
+            need = min(need, self._theta_done - self._wh - 8)
         if need > 0:
             self._sm.trim(min(need, self._sm.end))
             self._reg.trim(min(need, self._reg.end))
