@@ -302,6 +302,37 @@ def rnea_tau_batch(chain, q, qd, qdd, payload_kg, tau):  # type: ignore[no-untyp
         rnea_into(chain, q[k], qd[k], qdd[k], payload_kg[k], 1.0, tau[k], wr, work)
 
 
+@njit(cache=True, nogil=True)
+def rnea_lin_batch(chain, q, acc, payload_kg, rows, wrench):  # type: ignore[no-untyped-def]
+    """Adds to ``wrench`` (n, nj, 6) the part of the RNEA wrenches linear in the accelerations
+    (qd = 0, no gravity) at accelerations ``acc`` (n, nj), on the rows where ``rows`` (n,) is
+    true: RNEA is affine in qdd, so the wrench at qdd + Δ is the wrench at qdd plus this at Δ."""
+    nj = int(chain[0])
+    work = np.empty((nj, 12))
+    zero = np.zeros(nj)
+    tt = np.empty(nj)
+    wt = np.empty((nj, 6))
+    for k in range(q.shape[0]):
+        if not rows[k]:
+            continue
+        rnea_into(chain, q[k], zero, acc[k], payload_kg[k], 0.0, tt, wt, work)
+        for i in range(nj):
+            for j in range(6):
+                wrench[k, i, j] += wt[i, j]
+
+
+@njit(cache=True, nogil=True)
+def rnea_payload_batch(chain, q, qd, qdd, tau0, tau1):  # type: ignore[no-untyped-def]
+    """Joint loads (n, nj) at the same motion without payload (tau0) and with 1 kg at the load
+    point (tau1): tau1 − tau0 is the load per kg of payload (the payload regression)."""
+    nj = int(chain[0])
+    work = np.empty((nj, 12))
+    wr = np.empty((nj, 6))
+    for k in range(q.shape[0]):
+        rnea_into(chain, q[k], qd[k], qdd[k], 0.0, 1.0, tau0[k], wr, work)
+        rnea_into(chain, q[k], qd[k], qdd[k], 1.0, 1.0, tau1[k], wr, work)
+
+
 @njit(cache=True)
 def joint_transforms(chain, q, work):  # type: ignore[no-untyped-def]
     """Parent-from-child rotation R (row-major, work[i, 0:9]) and child origin p in the parent

@@ -42,9 +42,9 @@ from numba import njit
 from cranetwin import physics
 from cranetwin.errors import PhysicsError, TwinError
 from cranetwin.model import Machine
-from cranetwin.physics import actuator, gridpass
+from cranetwin.physics import actuator
 from cranetwin.physics.chain import CYL_BLOCK, compile_chain
-from cranetwin.physics.dynamics import rnea_kernels
+from cranetwin.physics.dynamics import batch_kernels
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import (
     ICI_WINDOWS,
@@ -58,6 +58,7 @@ from cranetwin.signal import (
     savgol_smooth,
 )
 from cranetwin.signal.smoothing import savgol_columns
+from cranetwin.twin import gridpass, kintable
 from cranetwin.twin.channels import ChannelMap, choose_smoothing
 from cranetwin.twin.payload import regression_payload
 from cranetwin.twin.result import TwinResult
@@ -77,7 +78,7 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
                      fpar, q, qd, qdd, cs):
     """Per sample row of the smoothed channels ``sm``: rod positions clipped to [0, stroke],
     the cylinder joints' q, qd, qdd through the kinematics tables (as
-    :func:`cranetwin.physics.gridpass.table_motion_batch`) into q, qd, qdd (n, n_joints), and
+    :func:`cranetwin.twin.kintable.table_motion_batch`) into q, qd, qdd (n, n_joints), and
     the states row cs (n, 5·n_c) = [q, qd, qdd of the cylinder joints, moment arms ds/dq,
     forces (Eq. 1–2, :func:`cranetwin.physics.actuator.eq1_cylinder_force`)]; the rates
     and accelerations are columns v_col + k, a_col + k. Returns the number of samples whose
@@ -94,7 +95,7 @@ def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, 
                 s = stroke[k]
             ji = int(cyl[1 + k * CYL_BLOCK + 1])
             vk = sm[i, v_col + k]
-            qj, w, acc, d1 = gridpass.joint_motion(
+            qj, w, acc, d1 = kintable.joint_motion(
                 table, table_ok, cyl, k, table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s, vk,
                 sm[i, a_col + k])
             q[i, ji] = qj
@@ -312,21 +313,27 @@ class TwinStream:
         self._stroke = np.array([c.stroke_m for c in machine.cylinders])
         self._finished = False
         params = compile_chain(machine)
-        self._chain = params.chain
         self._cyl = params.cyl
-        self._fpar = np.array([[c.area_a_m2, c.area_b_m2, c.friction.coulomb,
-                                c.friction.coulomb_velocity, c.friction.viscous]
-                               for c in machine.cylinders], dtype=np.float64)
-        fr = self._drive.friction if self._drive is not None else None
-        self._drive_fric = np.array([fr.coulomb, fr.coulomb_velocity, fr.viscous]
-                                    if fr is not None else [0.0, 1.0, 0.0])
-        self._grid = gridpass.kernel_for(params)
-        self._rnea_tau = rnea_kernels(params)[1]
-        self._payload_tau = gridpass.payload_kernel_for(params, self._rnea_tau)
-        self._mass_matrix = gridpass.mass_matrix_kernel_for(params)
-        self._table = np.empty((len(machine.cylinders), gridpass.KIN_TABLE_NODES - 1, 6))
-        self._table_ok = gridpass.kinematics_table(params.cyl, self._stroke,
-                                                   gridpass.KIN_TABLE_NODES, self._table)
+        self._fpar = actuator.cylinder_params(machine)
+        self._kernels = batch_kernels(params)
+        self._mass_matrix = self._kernels.mass_matrix
+        self._table = np.empty((len(machine.cylinders), kintable.KIN_TABLE_NODES - 1, 6))
+        self._table_ok = kintable.kinematics_table(params.cyl, self._stroke,
+                                                   kintable.KIN_TABLE_NODES, self._table)
+        self._qi = gridpass.Quantities.of(len(machine.cylinders), len(self._free))
+        drive_friction = np.zeros((len(self._free), 3))
+        drive_friction[:, 1] = 1.0
+        for d in machine.torque_drives:
+            f = d.friction
+            drive_friction[self._free.index(machine.joint_index(d.joint))] = (
+                f.coulomb, f.coulomb_velocity, f.viscous)
+        self._free_joints = gridpass.FreeJoints(np.array(self._free, dtype=np.int64),
+                                                drive_friction)
+        self._cylinders = gridpass.Cylinders(params.cyl, self._table, self._table_ok,
+                                             self._fpar, self._stroke, self._cyl_joint_arr,
+                                             END_STOP_MARGIN_M)
+        # the free joint of the (first) torque drive: its angle and torque channels
+        self._m = self._free.index(self._slew_joint) if self._slew_joint is not None else None
 
     # -- geometry of the margins -------------------------------------------------------------
     @property
@@ -619,7 +626,7 @@ class TwinStream:
     def _joint_motion(self, s: F64, v: F64, a: F64,
                       q_other: F64) -> tuple[F64, F64, F64, F64]:
         """q, qd, qdd (n, n_joints) and moment arms ds/dq (n, n_cylinders), one fused pass
-        through the kinematics tables (:func:`cranetwin.physics.gridpass.kinematics_table`;
+        through the kinematics tables (:func:`cranetwin.twin.kintable.kinematics_table`;
         s within the strokes)."""
         n = s.shape[0]
         nj = self.machine.n_joints
@@ -629,7 +636,7 @@ class TwinStream:
         if q_other.shape[1]:
             q[:, self._free] = q_other
         arm = np.empty((n, len(self.machine.cylinders)))
-        gridpass.table_motion_batch(self._table, self._table_ok, self._cyl,
+        kintable.table_motion_batch(self._table, self._table_ok, self._cyl,
                                     np.ascontiguousarray(s), np.ascontiguousarray(v),
                                     np.ascontiguousarray(a), q, qd, qdd, arm)
         if not np.all(np.isfinite(q[:, self._cyl_joint])):
@@ -672,7 +679,7 @@ class TwinStream:
         t0 = np.empty((q.shape[0], nj))  # joint loads without payload
         t1 = np.empty((q.shape[0], nj))  # and with 1 kg at the load point
         c = np.ascontiguousarray
-        self._payload_tau(c(q), c(qd), c(qdd), t0, t1)
+        self._kernels.rnea_payload(c(q), c(qd), c(qdd), t0, t1)
         weights, frac = self._payload_weights()
         return regression_payload(t0, t1, f, arm, self._cyl_joint_arr, weights,
                                   self._prefilter // 2, self._payload_half, frac)
@@ -705,44 +712,49 @@ class TwinStream:
         nc = len(self.machine.cylinders)
         nd = self._nd
         cm = self.cmap
+        qi = self._qi
+        rod_s, rod_v, rod_a = (slice(o, o + nc) for o in (qi.s, qi.v, qi.a))
         ang = cm.angle
         theta_col = self._nch if self._integrate else ang
+        # the drive's free joint: angle, rate, acceleration; its torque
+        th = qi.free + 3 * (self._m or 0)
+        th_rates = slice(th + 1, th + 3)
         pos_cols = list(cm.s) + ([theta_col] if theta_col is not None else [])
         cols: list[int] = list(pos_cols)
-        src = np.full(gridpass.n_quantities(nc), -1, dtype=np.int64)
+        src = np.full(qi.size, -1, dtype=np.int64)
         der = np.zeros_like(src)
-        src[:nc] = np.arange(nc)
+        src[rod_s] = np.arange(nc)
         if self.opt.velocity == "newton":
             base = len(cols) + len(cm.p_a) + len(cm.p_b) + (cm.torque is not None)
-            src[nc : 2 * nc] = base + np.arange(nc)
-            src[2 * nc : 3 * nc] = base + np.arange(nc)
-            der[2 * nc : 3 * nc] = 1
+            src[rod_v] = base + np.arange(nc)
+            src[rod_a] = base + np.arange(nc)
+            der[rod_a] = 1
             if theta_col is not None:
-                src[3 * nc] = nc
-                src[3 * nc + 1 : 3 * nc + 3] = base + nc
-                der[3 * nc + 2] = 1
+                src[th] = nc
+                src[th_rates] = base + nc
+                der[th + 2] = 1
         else:
             rates = [self._nch + 1 + i for i in range(nd)]
             accs = [self._nch + 1 + nd + i for i in range(nd)]
-            src[nc : 2 * nc] = len(cols) + np.arange(nc)
-            src[2 * nc : 3 * nc] = len(cols) + nd + np.arange(nc)
+            src[rod_v] = len(cols) + np.arange(nc)
+            src[rod_a] = len(cols) + nd + np.arange(nc)
             cols += rates + accs
             if theta_col is not None:
-                src[3 * nc] = nc
+                src[th] = nc
                 if ang is not None and not self._integrate:
                     # the angle is the last derivative channel: its rate and acceleration
-                    src[3 * nc + 1] = len(pos_cols) + nd - 1
-                    src[3 * nc + 2] = len(pos_cols) + 2 * nd - 1
+                    src[th + 1] = len(pos_cols) + nd - 1
+                    src[th + 2] = len(pos_cols) + 2 * nd - 1
                 else:
-                    src[3 * nc + 1 : 3 * nc + 3] = nc
-                    der[3 * nc + 1] = 1
-                    der[3 * nc + 2] = 2
-        src[3 * nc + 3 : 4 * nc + 3] = len(cols) + np.arange(nc)
+                    src[th_rates] = nc
+                    der[th + 1] = 1
+                    der[th + 2] = 2
+        src[qi.pa : qi.pa + nc] = len(cols) + np.arange(nc)
         cols += list(cm.p_a)
-        src[4 * nc + 3 : 5 * nc + 3] = len(cols) + np.arange(nc)
+        src[qi.pb : qi.pb + nc] = len(cols) + np.arange(nc)
         cols += list(cm.p_b)
         if cm.torque is not None:
-            src[5 * nc + 3] = len(cols)
+            src[qi.torque + (self._m or 0)] = len(cols)
             cols.append(cm.torque)
         return pos_cols, cols, src, der
 
@@ -751,7 +763,7 @@ class TwinStream:
 
         Payload, its regression and the mass matrices run at the sample instants of an
         extended range (the payload window reaches ``_wh`` samples on each side); every grid
-        quantity is then computed in one compiled pass (:mod:`cranetwin.physics.gridpass`).
+        quantity is then computed by :func:`cranetwin.twin.gridpass.grid_pass`.
         """
         assert self._period is not None and self._origin is not None and self._choices is not None
         m = self.machine
@@ -760,6 +772,7 @@ class TwinStream:
         wh = self._wh
         nc = len(m.cylinders)
         nj = m.n_joints
+        qi = self._qi
         n_total = self._sm_valid if last else ready  # rows with every column final
         e0 = max(0, ka - wh)
         e1 = min(n_total - 1, kb + wh)  # inclusive
@@ -771,18 +784,20 @@ class TwinStream:
         h_last = float(knots_t[-1] - knots_t[-2])
         # -- the sample instants e0 … e1: state, actuator loads, payload ----------------------
         ne = e1 - e0 + 1
-        has_theta = bool(src[3 * nc] >= 0 and nj > nc)
+        th = slice(qi.free + 3 * (self._m or 0), qi.free + 3 * (self._m or 0) + 3)
+        has_theta = self._m is not None and bool(src[th.start] >= 0)
+        rod_v, rod_a = slice(qi.v, qi.v + nc), slice(qi.a, qi.a + nc)
         # the spline at a knot is the knot's value, except the end knot (last piece at h_last)
         cached = self._use_cs and e1 < f1 and self._cs.base <= e0 and e1 < self._cs.end
+        at_samples = gridpass.Splines(coef, e0 - f0, 1, h0, h_last, src, der, qi)
         if cached:  # only the slew angle, its rate and acceleration are needed from the spline
             smp = np.empty((ne, 3))
-            gridpass.spline_points(coef, e0 - f0, ne, 1, h0, h_last, src[3 * nc : 3 * nc + 3],
-                                   der[3 * nc : 3 * nc + 3], smp)
-            th = smp
+            gridpass.spline_points(at_samples._replace(src=src[th], der=der[th]), ne, smp)
+            theta = smp
         else:
             smp = np.empty((ne, src.shape[0]))
-            gridpass.spline_points(coef, e0 - f0, ne, 1, h0, h_last, src, der, smp)
-            th = smp[:, 3 * nc : 3 * nc + 3]
+            gridpass.spline_points(at_samples, ne, smp)
+            theta = smp[:, th]
         f_s: F64 | None = None
         if cached:  # cylinder joints' motion, arms and forces as the slew stage found them
             q_s = np.empty((ne, nj))
@@ -790,20 +805,20 @@ class TwinStream:
             qdd_s = np.empty((ne, nj))
             arm_s = np.empty((ne, nc))
             f_s = np.empty((ne, nc))
-            _unpack_states(self._cs.get(e0, e1 + 1), self._cyl_joint_arr, th[:, 0],
-                           self._free[0] if has_theta else -1, q_s, qd_s, qdd_s, arm_s, f_s)
+            _unpack_states(self._cs.get(e0, e1 + 1), self._cyl_joint_arr, theta[:, 0],
+                           self._slew_joint if has_theta else -1, q_s, qd_s, qdd_s, arm_s, f_s)
         else:
-            s_s = self._clip_s(smp[:, :nc])
+            s_s = self._clip_s(smp[:, qi.s : qi.s + nc])
             q_other = np.zeros((ne, nj - nc))
             if has_theta:
-                q_other[:, 0] = th[:, 0]
-            q_s, qd_s, qdd_s, arm_s = self._joint_motion(s_s, smp[:, nc : 2 * nc],
-                                                         smp[:, 2 * nc : 3 * nc], q_other)
+                q_other[:, self._m] = theta[:, 0]
+            q_s, qd_s, qdd_s, arm_s = self._joint_motion(s_s, smp[:, rod_v], smp[:, rod_a],
+                                                         q_other)
         sj = self._slew_joint
         has_drive = self._drive is not None and self.cmap.torque is not None
         if has_theta and sj is not None:
-            qd_s[:, sj] = th[:, 1]
-            qdd_s[:, sj] = th[:, 2]
+            qd_s[:, sj] = theta[:, 1]
+            qdd_s[:, sj] = theta[:, 2]
         ks = slice(ka - e0, min(kb - e0 + 1, ne))  # samples ka … kb (if there)
         n_ks = ks.stop - ks.start
         if self.payload is not None:
@@ -811,8 +826,8 @@ class TwinStream:
             sk = np.zeros(n_ks)
         else:
             if f_s is None:
-                f_s = self._eq12(smp[:, 3 * nc + 3 : 4 * nc + 3],
-                                 smp[:, 4 * nc + 3 : 5 * nc + 3], smp[:, nc : 2 * nc])
+                f_s = self._eq12(smp[:, qi.pa : qi.pa + nc], smp[:, qi.pb : qi.pb + nc],
+                                 smp[:, rod_v])
             mk, sk = self._estimate_payload(q_s, qd_s, qdd_s, f_s, arm_s)
             mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
         dynamic = self.opt.wrench_acceleration == "dynamic"
@@ -835,24 +850,14 @@ class TwinStream:
         gap_g = np.repeat(gap, r)[:n] if r > 1 else gap[:n]
         if gap_g.shape[0] < n:
             gap_g = np.concatenate([gap_g, np.zeros(n - gap_g.shape[0], dtype=bool)])
-        out = {name: np.empty((n, w)) for name, w in (
-            ("q", nj), ("qd", nj), ("qdd", nj), ("rod_s", nc), ("rod_v", nc), ("p_a", nc),
-            ("p_b", nc), ("cyl_force", nc), ("actuator_torque", nj), ("id_torque", nj),
-            ("residual", nj))}
-        wrench = np.empty((n, nj, 6))
-        mass_g = np.empty(n)
-        std_g = np.empty(n)
-        bad = self._grid(
-            self._chain, coef, ka - f0, r, h0, h_last, src, der,
-            self._cyl, self._table, self._table_ok, self._fpar, self._stroke, END_STOP_MARGIN_M,
-            -1 if sj is None else sj, self._drive_fric, has_drive, has_theta,
-            mk, sk, mm, minv, minv_ok, len(full), dynamic, np.ascontiguousarray(gap_g),
-            out["q"], out["qd"], out["qdd"], out["rod_s"], out["rod_v"], out["p_a"],
-            out["p_b"], out["cyl_force"], out["actuator_torque"], out["id_torque"],
-            out["residual"], wrench, mass_g, std_g, np.empty((n, nj)), np.empty((nj, 12)))
+        out = gridpass.GridOut.empty(n, nj, nc, np.ascontiguousarray(gap_g))
+        bad = gridpass.grid_pass(
+            gridpass.Splines(coef, ka - f0, r, h0, h_last, src, der, qi), self._cylinders,
+            self._free_joints, gridpass.SampleState(mk, sk, mm, minv, minv_ok, len(full), dynamic),
+            out, self._kernels)
         if bad:
-            rows = ~np.all(np.isfinite(out["q"]), axis=1)
-            self._joint_motion(out["rod_s"][rows], out["rod_v"][rows], out["rod_v"][rows],
+            rows = ~np.all(np.isfinite(out.q), axis=1)
+            self._joint_motion(out.rod_s[rows], out.rod_v[rows], out.rod_v[rows],
                                np.zeros((int(rows.sum()), nj - nc)))
             raise TwinError(f"rod positions do not fit the machine geometry at {bad} instants")
         t = np.arange(n, dtype=np.float64)  # origin + (ka + g/r)·p, in place
@@ -861,11 +866,10 @@ class TwinStream:
         t *= p
         t += self._origin
         return TwinResult(
-            t_s=t, q=out["q"], qd=out["qd"], qdd=out["qdd"], rod_s=out["rod_s"],
-            rod_v=out["rod_v"], p_a=out["p_a"], p_b=out["p_b"], cyl_force=out["cyl_force"],
-            actuator_torque=out["actuator_torque"], id_torque=out["id_torque"],
-            residual=out["residual"], joint_wrench=wrench, payload_kg=mass_g,
-            payload_std_kg=std_g, gap=gap_g,
+            t_s=t, q=out.q, qd=out.qd, qdd=out.qdd, rod_s=out.rod_s, rod_v=out.rod_v,
+            p_a=out.pa, p_b=out.pb, cyl_force=out.force, actuator_torque=out.tau_act,
+            id_torque=out.tau_id, residual=out.resid, joint_wrench=out.wrench,
+            payload_kg=out.mass, payload_std_kg=out.std, gap=gap_g,
             smoothing=dict(zip(self.cmap.choice_names, self._choices, strict=True)),
         )
 
