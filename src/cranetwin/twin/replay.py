@@ -189,6 +189,9 @@ class ReplayOptions:
             ``residual`` stay kinematic either way, and so does a cylinder joint while its
             rod is within ``END_STOP_MARGIN_M`` of an end of the stroke (the end stop takes
             a force the pressures do not show) and during bridged dropouts.
+        generated_kernels: Inverse dynamics and mass matrices by the kernels generated for
+            the machine (:func:`cranetwin.physics.dynamics.batch_kernels`); False: the
+            generic ones (same results to rounding; the benchmark's baseline).
     """
 
     grid_hz: float = 1000.0
@@ -205,6 +208,7 @@ class ReplayOptions:
     max_gap_s: float | None = None
     lookahead_s: float | None = None
     wrench_acceleration: Literal["dynamic", "kinematic"] = "dynamic"
+    generated_kernels: bool = True
 
 
 class _Buf:
@@ -315,7 +319,7 @@ class TwinStream:
         params = compile_chain(machine)
         self._cyl = params.cyl
         self._fpar = actuator.cylinder_params(machine)
-        self._kernels = batch_kernels(params)
+        self._kernels = batch_kernels(params, self.opt.generated_kernels)
         self._mass_matrix = self._kernels.mass_matrix
         self._table = np.empty((len(machine.cylinders), kintable.KIN_TABLE_NODES - 1, 6))
         self._table_ok = kintable.kinematics_table(params.cyl, self._stroke,
