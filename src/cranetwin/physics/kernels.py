@@ -47,14 +47,8 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from cranetwin.physics.chain import (
-    CYL_BLOCK,
-    CYL_PRISMATIC,
-    CYL_REVOLUTE,
-    HEADER,
-    JOINT_BLOCK,
-    PRISMATIC,
-)
+from cranetwin.physics import linkage
+from cranetwin.physics.layout import C_JOINT, HEADER, JOINT_BLOCK, PRISMATIC, cyl_block
 
 F64 = npt.NDArray[np.float64]
 
@@ -560,373 +554,119 @@ def bias_batch(chain, q, qd, payload_kg, out):  # type: ignore[no-untyped-def]
 
 
 # ----------------------------------------------------------------------------------------------
-# Cylinder kinematics
+# Cylinder kinematics: loops over the cylinders and samples; each linkage kind's formulas live in
+# its module of cranetwin.physics.linkage
 
 
-@njit(cache=True)
-def _circle_intersection(x1, y1, r1, x2, y2, r2, branch):  # type: ignore[no-untyped-def]
-    """Intersection of circles (x1, y1, r1) and (x2, y2, r2); ``branch`` +1 puts the point P on
-    the side where cross(c2 − c1, P − c1) > 0. Returns (x, y, ok)."""
-    dx = x2 - x1
-    dy = y2 - y1
-    d = math.sqrt(dx * dx + dy * dy)
-    if d == 0.0:
-        return math.nan, math.nan, False
-    a = (r1 * r1 - r2 * r2 + d * d) / (2.0 * d)
-    h2 = r1 * r1 - a * a
-    if h2 < 0.0:
-        return math.nan, math.nan, False
-    h = math.sqrt(h2)
-    ux = dx / d
-    uy = dy / d
-    return x1 + a * ux - branch * h * uy, y1 + a * uy + branch * h * ux, True
-
-
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def four_bar_points(cyl, k, q):  # type: ignore[no-untyped-def]
     """Rod end E and coupler pin F of four-bar cylinder ``k`` at joint angle q, in the joint
     plane (2-D). Returns (Ex, Ey, Fx, Fy, ok); ok False when the linkage cannot assemble."""
-    o = 1 + k * CYL_BLOCK
-    c = math.cos(q)
-    s = math.sin(q)
-    fx = c * cyl[o + 13] - s * cyl[o + 14]
-    fy = s * cyl[o + 13] + c * cyl[o + 14]
-    ex, ey, ok = _circle_intersection(cyl[o + 11], cyl[o + 12], cyl[o + 15], fx, fy,
-                                      cyl[o + 16], cyl[o + 17])
-    return ex, ey, fx, fy, ok
+    return linkage.four_bar.points(cyl, cyl_block(k), q)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cylinder_state(cyl, k, q):  # type: ignore[no-untyped-def]
     """Rod position s [m] and moment arm ds/dq [m/rad or m/m] of cylinder ``k`` at the
     position ``q`` [rad or m] of the joint it drives. NaN when the geometry cannot assemble."""
-    o = 1 + k * CYL_BLOCK
-    kind = int(cyl[o])
-    closed = cyl[o + 2]
-    if kind == CYL_REVOLUTE:
-        k0 = cyl[o + 5]
-        rho = cyl[o + 6]
-        phi = cyl[o + 7]
-        l2 = k0 - 2.0 * rho * math.cos(q - phi)
-        if l2 <= 0.0:
-            return math.nan, math.nan
-        ln = math.sqrt(l2)
-        return ln - closed, rho * math.sin(q - phi) / ln
-    if kind == CYL_PRISMATIC:
-        de = cyl[o + 5]
-        l2 = cyl[o + 6] + 2.0 * de * q + q * q
-        if l2 <= 0.0:
-            return math.nan, math.nan
-        ln = math.sqrt(l2)
-        return ln - closed, (de + q) / ln
-    # four-bar
-    ex, ey, fx, fy, ok = four_bar_points(cyl, k, q)
-    if not ok:
-        return math.nan, math.nan
-    cx = cyl[o + 9]
-    cy = cyl[o + 10]
-    dx = cyl[o + 11]
-    dy = cyl[o + 12]
-    lx = ex - cx
-    ly = ey - cy
-    ln = math.sqrt(lx * lx + ly * ly)
-    # dE/dq from (E−D)·E' = 0 and (E−F)·(E' − F') = 0, F' = (−Fy, Fx)
-    r1x = ex - dx
-    r1y = ey - dy
-    r2x = ex - fx
-    r2y = ey - fy
-    det = r1x * r2y - r1y * r2x
-    rhs = r2x * (-fy) + r2y * fx
-    if det == 0.0:
-        return ln - closed, math.nan
-    dex = -r1y * rhs / det
-    dey = r1x * rhs / det
-    return ln - closed, (lx * dex + ly * dey) / ln
+    s, d1, _ = linkage.state(cyl, cyl_block(k), q)
+    return s, d1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cylinder_state2(cyl, k, q):  # type: ignore[no-untyped-def]
-    """:func:`cylinder_state` plus the second derivative: (s, ds/dq, d²s/dq²) of cylinder
-    ``k`` at the position q of its joint [m, m/rad, m/rad²]. NaN where it cannot assemble."""
-    o = 1 + k * CYL_BLOCK
-    kind = int(cyl[o])
-    closed = cyl[o + 2]
-    if kind == CYL_REVOLUTE:
-        # L² = K0 − 2 rho cos u: L L' = rho sin u, L'² + L L'' = rho cos u
-        k0 = cyl[o + 5]
-        rho = cyl[o + 6]
-        u = q - cyl[o + 7]
-        l2 = k0 - 2.0 * rho * math.cos(u)
-        if l2 <= 0.0:
-            return math.nan, math.nan, math.nan
-        ln = math.sqrt(l2)
-        d1 = rho * math.sin(u) / ln
-        return ln - closed, d1, (rho * math.cos(u) - d1 * d1) / ln
-    if kind == CYL_PRISMATIC:
-        # L L' = d·e + q, L'² + L L'' = 1
-        de = cyl[o + 5]
-        l2 = cyl[o + 6] + 2.0 * de * q + q * q
-        if l2 <= 0.0:
-            return math.nan, math.nan, math.nan
-        ln = math.sqrt(l2)
-        d1 = (de + q) / ln
-        return ln - closed, d1, (1.0 - d1 * d1) / ln
-    ex, ey, fx, fy, ok = four_bar_points(cyl, k, q)
-    if not ok:
-        return math.nan, math.nan, math.nan
-    cx = cyl[o + 9]
-    cy = cyl[o + 10]
-    r1x = ex - cyl[o + 11]
-    r1y = ey - cyl[o + 12]
-    r2x = ex - fx
-    r2y = ey - fy
-    det = r1x * r2y - r1y * r2x
-    lx = ex - cx
-    ly = ey - cy
-    ln = math.sqrt(lx * lx + ly * ly)
-    if det == 0.0:
-        return ln - closed, math.nan, math.nan
-    # first derivative: r1·E' = 0, r2·E' = r2·F', F' = (−Fy, Fx)
-    fdx = -fy
-    fdy = fx
-    rhs = r2x * fdx + r2y * fdy
-    dex = -r1y * rhs / det
-    dey = r1x * rhs / det
-    # second: r1·E'' = −|E'|², r2·E'' = r2·F'' − |E' − F'|², F'' = −F
-    b1 = -(dex * dex + dey * dey)
-    gx = dex - fdx
-    gy = dey - fdy
-    b2 = -(r2x * fx + r2y * fy) - (gx * gx + gy * gy)
-    ddx = (b1 * r2y - r1y * b2) / det
-    ddy = (r1x * b2 - r2x * b1) / det
-    d1 = (lx * dex + ly * dey) / ln
-    # L L' = (E − C)·E'  =>  L'² + L L'' = |E'|² + (E − C)·E''
-    d2 = ((dex * dex + dey * dey) + (lx * ddx + ly * ddy) - d1 * d1) / ln
-    return ln - closed, d1, d2
+    """(s, ds/dq, d²s/dq²) of cylinder ``k`` at the position q of its joint [m, m/rad,
+    m/rad²] (:func:`cranetwin.physics.linkage.state`)."""
+    return linkage.state(cyl, cyl_block(k), q)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cylinder_kinematics2_batch(cyl, q, s_out, d1_out, d2_out):  # type: ignore[no-untyped-def]
     """s, ds/dq, d²s/dq² of every cylinder over samples: q (n, nj), outputs (n, nc)."""
     nc = int(cyl[0])
     for i in range(q.shape[0]):
         for k in range(nc):
-            ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            s, d1, d2 = cylinder_state2(cyl, k, q[i, ji])
+            o = cyl_block(k)
+            s, d1, d2 = linkage.state(cyl, o, q[i, int(cyl[o + C_JOINT])])
             s_out[i, k] = s
             d1_out[i, k] = d1
             d2_out[i, k] = d2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cylinder_kinematics(cyl, q, s_out, dsdq_out):  # type: ignore[no-untyped-def]
     """Rod positions s (nc,) [m] and moment arms ds_k/dq_joint(k) (nc,) for joint positions q."""
     nc = int(cyl[0])
     for k in range(nc):
-        ji = int(cyl[1 + k * CYL_BLOCK + 1])
-        s, d = cylinder_state(cyl, k, q[ji])
+        o = cyl_block(k)
+        s, d, _ = linkage.state(cyl, o, q[int(cyl[o + C_JOINT])])
         s_out[k] = s
         dsdq_out[k] = d
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cylinder_kinematics_batch(cyl, q, s_out, dsdq_out):  # type: ignore[no-untyped-def]
     """:func:`cylinder_kinematics` over samples: q (n, nj), s_out and dsdq_out (n, nc)."""
     for i in range(q.shape[0]):
         cylinder_kinematics(cyl, q[i], s_out[i], dsdq_out[i])
 
 
-@njit(cache=True)
-def _wrap(q, centre):  # type: ignore[no-untyped-def]
-    return q + 2.0 * math.pi * math.floor((centre - q) / (2.0 * math.pi) + 0.5)
-
-
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cylinder_joint(cyl, k, s):  # type: ignore[no-untyped-def]
     """Inverse of :func:`cylinder_state`: the joint position [rad or m] for rod position s [m],
-    on the branch chosen at compile time (see :func:`choose_inverse_branches`). NaN if none."""
-    o = 1 + k * CYL_BLOCK
-    kind = int(cyl[o])
-    ln = s + cyl[o + 2]
-    centre = cyl[o + 4]
-    if kind == CYL_REVOLUTE:
-        k0 = cyl[o + 5]
-        rho = cyl[o + 6]
-        phi = cyl[o + 7]
-        c = (k0 - ln * ln) / (2.0 * rho)
-        if c > 1.0 or c < -1.0 or ln < 0.0:
-            return math.nan
-        return _wrap(phi + cyl[o + 8] * math.acos(c), centre)
-    if kind == CYL_PRISMATIC:
-        de = cyl[o + 5]
-        disc = de * de - cyl[o + 6] + ln * ln
-        if disc < 0.0 or ln < 0.0:
-            return math.nan
-        return -de + cyl[o + 8] * math.sqrt(disc)
-    # four-bar: E on circle(C, L) and circle(D, |DE|); F on circle(O, |F|) and circle(E, |EF|)
-    ex, ey, ok = _circle_intersection(cyl[o + 9], cyl[o + 10], ln, cyl[o + 11], cyl[o + 12],
-                                      cyl[o + 15], cyl[o + 18])
-    if not ok:
-        return math.nan
-    f0x = cyl[o + 13]
-    f0y = cyl[o + 14]
-    rf = math.sqrt(f0x * f0x + f0y * f0y)
-    fx, fy, ok = _circle_intersection(0.0, 0.0, rf, ex, ey, cyl[o + 16], cyl[o + 19])
-    if not ok:
-        return math.nan
-    return _wrap(math.atan2(fy, fx) - math.atan2(f0y, f0x), centre)
+    on the branch chosen at compile time (:func:`cranetwin.physics.chain.choose_inverse_branches`).
+    NaN if none."""
+    return linkage.inverse(cyl, cyl_block(k), s)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def cylinder_joint_batch(cyl, k, s, out):  # type: ignore[no-untyped-def]
     """:func:`cylinder_joint` over samples: s (n,) -> out (n,)."""
     for i in range(s.shape[0]):
-        out[i] = cylinder_joint(cyl, k, s[i])
+        out[i] = linkage.inverse(cyl, cyl_block(k), s[i])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def branch_signs(cyl, k, q):  # type: ignore[no-untyped-def]
-    """Signs that identify the inverse branch at joint position q: (sigma, sigma_E, sigma_F).
-
-    Direct revolute: sign(sin(q − phi)); prismatic: sign(d·e + q); four-bar: side of E from the
-    line C→D and side of F from the line O→E. NaN where the geometry does not assemble.
-    """
-    o = 1 + k * CYL_BLOCK
-    kind = int(cyl[o])
-    if kind == CYL_REVOLUTE:
-        return np.sign(math.sin(q - cyl[o + 7])), 1.0, 1.0
-    if kind == CYL_PRISMATIC:
-        return np.sign(cyl[o + 5] + q), 1.0, 1.0
-    ex, ey, fx, fy, ok = four_bar_points(cyl, k, q)
-    if not ok:
-        return math.nan, math.nan, math.nan
-    cx = cyl[o + 9]
-    cy = cyl[o + 10]
-    dx = cyl[o + 11]
-    dy = cyl[o + 12]
-    se = np.sign((dx - cx) * (ey - cy) - (dy - cy) * (ex - cx))
-    sf = np.sign(ex * fy - ey * fx)
-    return 1.0, se, sf
+    """Signs that identify the inverse branch at joint position q: (sigma, sigma_E, sigma_F)
+    (:func:`cranetwin.physics.linkage.branch_signs`)."""
+    return linkage.branch_signs(cyl, cyl_block(k), q)
 
 
-def choose_inverse_branches(block: F64, grid: F64) -> None:
-    """Set the inverse branches of one cylinder block (in place) from the forward map.
-
-    The branch signs are sampled over ``grid`` (joint positions, usually the joint's range);
-    samples where the rod is inside its stroke count first. The majority sign is kept, so the
-    inverse is exact wherever the forward map does not pass a dead centre; ``reach_problems``
-    reports ranges where it does.
-    """
-    cyl = np.concatenate(([1.0], block))
-    signs = np.array([branch_signs(cyl, 0, float(q)) for q in grid])
-    s = np.array([cylinder_state(cyl, 0, float(q))[0] for q in grid])
-    ok = np.isfinite(s)
-    inside = ok & (s >= -1e-9) & (s <= block[3] + 1e-9)
-    use = inside if inside.any() else ok
-    if not use.any():
-        return
-    picked = signs[use]
-    for col, idx in ((0, 8), (1, 18), (2, 19)):
-        total = float(np.sum(picked[:, col]))
-        block[idx] = 1.0 if total >= 0 else -1.0
-
-
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def four_bar_points_batch(cyl, k, q, out):  # type: ignore[no-untyped-def]
     """:func:`four_bar_points` over samples: q (n,) -> out (n, 4) = (Ex, Ey, Fx, Fy), NaN if
     the linkage cannot assemble."""
     for i in range(q.shape[0]):
-        ex, ey, fx, fy, ok = four_bar_points(cyl, k, q[i])
+        ex, ey, fx, fy, _ = linkage.four_bar.points(cyl, cyl_block(k), q[i])
         out[i, 0] = ex
         out[i, 1] = ey
         out[i, 2] = fx
         out[i, 3] = fy
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def cylinder_motion(cyl, k, s):  # type: ignore[no-untyped-def]
-    """Inverse kinematics and the first two derivatives of the forward map in one go:
-    (q, ds/dq, d²s/dq²) of cylinder ``k`` at rod position s [m] — the same numbers as
-    :func:`cylinder_joint` followed by :func:`cylinder_state2`, reusing the inverse's
-    intermediate points (pin length L = s + closed, cos/sin of the crank angle, the four-bar's
-    E and F) instead of recomputing them from q. NaN where the geometry cannot produce s."""
-    o = 1 + k * CYL_BLOCK
-    kind = int(cyl[o])
-    ln = s + cyl[o + 2]
-    centre = cyl[o + 4]
-    if kind == CYL_REVOLUTE:
-        # L² = K0 − 2 rho cos u, u = q − phi: L L' = rho sin u, L'² + L L'' = rho cos u
-        rho = cyl[o + 6]
-        c = (cyl[o + 5] - ln * ln) / (2.0 * rho)
-        if c > 1.0 or c < -1.0 or ln <= 0.0:
-            return math.nan, math.nan, math.nan
-        sign = cyl[o + 8]
-        q = _wrap(cyl[o + 7] + sign * math.acos(c), centre)
-        d1 = rho * sign * math.sqrt(1.0 - c * c) / ln
-        return q, d1, (rho * c - d1 * d1) / ln
-    if kind == CYL_PRISMATIC:
-        de = cyl[o + 5]
-        disc = de * de - cyl[o + 6] + ln * ln
-        if disc < 0.0 or ln <= 0.0:
-            return math.nan, math.nan, math.nan
-        q = -de + cyl[o + 8] * math.sqrt(disc)
-        d1 = (de + q) / ln
-        return q, d1, (1.0 - d1 * d1) / ln
-    cx = cyl[o + 9]
-    cy = cyl[o + 10]
-    ex, ey, ok = _circle_intersection(cx, cy, ln, cyl[o + 11], cyl[o + 12], cyl[o + 15],
-                                      cyl[o + 18])
-    if not ok or ln <= 0.0:
-        return math.nan, math.nan, math.nan
-    f0x = cyl[o + 13]
-    f0y = cyl[o + 14]
-    rf = math.sqrt(f0x * f0x + f0y * f0y)
-    fx, fy, ok = _circle_intersection(0.0, 0.0, rf, ex, ey, cyl[o + 16], cyl[o + 19])
-    if not ok:
-        return math.nan, math.nan, math.nan
-    # angle from F0 to F: one atan2 of (F0 × F, F0 · F) instead of the difference of two
-    q = _wrap(math.atan2(f0x * fy - f0y * fx, f0x * fx + f0y * fy), centre)
-    # derivatives as cylinder_state2, at the E and F just found
-    r1x = ex - cyl[o + 11]
-    r1y = ey - cyl[o + 12]
-    r2x = ex - fx
-    r2y = ey - fy
-    det = r1x * r2y - r1y * r2x
-    if det == 0.0:
-        return q, math.nan, math.nan
-    lx = ex - cx
-    ly = ey - cy
-    fdx = -fy
-    fdy = fx
-    rhs = r2x * fdx + r2y * fdy
-    dex = -r1y * rhs / det
-    dey = r1x * rhs / det
-    b1 = -(dex * dex + dey * dey)
-    gx = dex - fdx
-    gy = dey - fdy
-    b2 = -(r2x * fx + r2y * fy) - (gx * gx + gy * gy)
-    ddx = (b1 * r2y - r1y * b2) / det
-    ddy = (r1x * b2 - r2x * b1) / det
-    d1 = (lx * dex + ly * dey) / ln
-    d2 = ((dex * dex + dey * dey) + (lx * ddx + ly * ddy) - d1 * d1) / ln
-    return q, d1, d2
+    """(q, ds/dq, d²s/dq²) of cylinder ``k`` at rod position s [m]: the inverse kinematics and
+    the forward map's derivatives at once (:func:`cranetwin.physics.linkage.motion`)."""
+    return linkage.motion(cyl, cyl_block(k), s)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def cylinder_motion_batch(cyl, s, v, a, q, qd, qdd, arm):  # type: ignore[no-untyped-def]
     """Joint motion of the cylinder-driven joints and the moment arms in one pass.
 
-    For every sample i and cylinder k: q_j = inverse kinematics of s[i, k] (as
-    :func:`cylinder_joint`), then (ds/dq, d²s/dq²) there (as :func:`cylinder_state2`) and the
-    chain rule qd_j = v/s', qdd_j = (a − s''·qd_j²)/s'. Fills the columns j of the driven
-    joints in q, qd, qdd (n, nj) and arm (n, nc) = ds/dq; leaves the other columns untouched.
-    NaN where the geometry cannot produce s.
+    For every sample i and cylinder k: q_j and (ds/dq, d²s/dq²) at s[i, k]
+    (:func:`cylinder_motion`) and the chain rule qd_j = v/s', qdd_j = (a − s''·qd_j²)/s'.
+    Fills the columns j of the driven joints in q, qd, qdd (n, nj) and arm (n, nc) = ds/dq;
+    leaves the other columns untouched. NaN where the geometry cannot produce s.
     """
     nc = int(cyl[0])
     for i in range(s.shape[0]):
         for k in range(nc):
-            ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            qj, d1, d2 = cylinder_motion(cyl, k, s[i, k])
+            o = cyl_block(k)
+            ji = int(cyl[o + C_JOINT])
+            qj, d1, d2 = linkage.motion(cyl, o, s[i, k])
             w = v[i, k] / d1
             q[i, ji] = qj
             qd[i, ji] = w

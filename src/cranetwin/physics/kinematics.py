@@ -30,6 +30,7 @@ from cranetwin.model import WORLD, Machine
 from cranetwin.physics import kernels as K
 from cranetwin.physics.chain import (
     axis_rotation,
+    choose_inverse_branches,
     compile_chain,
     cylinder_geometry,
     joint_frame_point,
@@ -430,7 +431,7 @@ def reach_problems(machine: Machine, tolerance: float = 0.005) -> list[str]:
                     f"normal to the axis of joint {joint.name!r} (axial offsets {w} m)")
                 continue
         lim = np.linspace(joint.lower, joint.upper, 2001)
-        K.choose_inverse_branches(block, lim)
+        choose_inverse_branches(block, lim)
         arr = np.concatenate(([1.0], block))
         need = f"{cyl.closed_length_m:g} … {cyl.closed_length_m + cyl.stroke_m:g} m"
         full = (np.linspace(-np.pi, np.pi, 7201) if joint.kind == "revolute"
