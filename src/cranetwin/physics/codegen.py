@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from cranetwin.physics.chain import HEADER, JOINT_BLOCK, PRISMATIC, ChainParams
+from cranetwin.physics.chain import ChainParams
+from cranetwin.physics.layout import HEADER, JOINT_BLOCK, PRISMATIC
 
 Ex = float | str
 Vec = list[Ex]

@@ -42,7 +42,7 @@ from numba import njit
 
 from cranetwin.physics.actuator import eq1_cylinder_force, eq2_friction
 from cranetwin.physics.dynamics import BatchKernels
-from cranetwin.physics.kernels import _chol_solve
+from cranetwin.physics.rnea import _chol_solve
 from cranetwin.twin.kintable import joint_motion
 
 F64 = npt.NDArray[np.float64]
