@@ -127,7 +127,7 @@ def friction_force(v: npt.ArrayLike, friction: Friction) -> F64:
     Returns:
         Friction force [N] (or torque [N·m]) opposing v, same shape as v.
     """
-    return friction(v, friction.coulomb, friction.coulomb_velocity, friction.viscous)
+    return _friction_array(v, friction.coulomb, friction.coulomb_velocity, friction.viscous)
 
 
 def cylinder_force(
@@ -218,3 +218,6 @@ def cylinder_forces_from_torques(machine: Machine, q: npt.ArrayLike, tau: npt.Ar
     p = compile_chain(machine)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.asarray(ta[:, p.cylinder_joint] / moment_arms(machine, qa), dtype=np.float64)
+
+
+_friction_array = friction
