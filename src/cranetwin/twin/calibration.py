@@ -56,8 +56,9 @@ from cranetwin.samples import SampleArrays
 from cranetwin.signal import nominal_period
 from cranetwin.signal.smoothing import sg_filter
 from cranetwin.twin.channels import ChannelMap
-from cranetwin.twin.replay import ReplayOptions, derivative_filter, replay
+from cranetwin.twin.replay import ReplayOptions, replay
 from cranetwin.twin.result import TwinResult
+from cranetwin.twin.stages import derivative_filter
 
 F64 = npt.NDArray[np.float64]
 
@@ -154,7 +155,7 @@ def coulomb_column(v: F64, vc: float, sigma_v: float) -> F64:
 def velocity_noise_std(res: TwinResult, samples: SampleArrays, machine: Machine) -> F64:
     """Standard deviation of each cylinder's rod-velocity noise in a replay [m/s]:
     σ_s·‖h'‖/Δt, with σ_s the position noise the replay estimated and h' the Savitzky–Golay
-    derivative filter it used (:func:`cranetwin.twin.replay.derivative_filter`). The spline
+    derivative filter it used (:func:`cranetwin.twin.stages.derivative_filter`). The spline
     onto the grid is not counted (the fit's instants fall 1 ms after the samples; on simulated
     runs this matched the measured velocity error of the sensor noise to 1 %)."""
     cmap = ChannelMap.build(machine, samples.channels)

@@ -19,9 +19,11 @@ margin leave < 1e-20 of it), and the payload window is centred. So the streaming
 
 Where the work is done: the sample-rate stages (smoothing, the payload regression, the slew
 integration, mass matrices) run at the 100 Hz instants; every grid-rate quantity is computed
-in one compiled pass per chunk (:mod:`cranetwin.physics.gridpass`: splines, table-driven
-inverse kinematics, Eq. 1–2, the machine-specific RNEA inlined, the Eq. 3/4 correction, the
-wrenches), writing the output arrays once. The kinematics tables (quintic Hermite pieces of
+per chunk by :func:`cranetwin.twin.gridpass.grid_pass` (splines, table-driven inverse
+kinematics, Eq. 1–2, the machine's batch RNEA, the Eq. 3/4 correction, the wrenches). Free
+joints (no cylinder drives them): the one with a torque drive takes its angle from the angle
+channel, or integrates it from the torque (:mod:`cranetwin.twin.slew`); a free joint with
+neither is held at 0 (the reference pose). The kinematics tables (quintic Hermite pieces of
 the exact inverse, 2048 cells per stroke) agree with the exact inverse to 1e-11 in q and ds/dq
 and 1e-8 of the largest d²s/dq²; M_DD⁻¹ is interpolated between samples (agreement with the
 exact M(q) at every instant: 1.5e-5 of the wrench range). ``tests/test_twin_gridpass.py``
@@ -30,20 +32,18 @@ recomputes every output through the separate physics functions.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from cranetwin import physics
 from cranetwin.errors import PhysicsError, TwinError
 from cranetwin.model import Machine
 from cranetwin.physics import actuator
-from cranetwin.physics.chain import CYL_BLOCK, compile_chain
+from cranetwin.physics.chain import compile_chain
 from cranetwin.physics.dynamics import batch_kernels
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import (
@@ -63,6 +63,12 @@ from cranetwin.twin.channels import ChannelMap, choose_smoothing
 from cranetwin.twin.payload import regression_payload
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.slew import SlewState, integrate_slew
+from cranetwin.twin.stages import (
+    cylinder_states,
+    derivative_filter,
+    spline_layout,
+    unpack_states,
+)
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
@@ -71,82 +77,6 @@ END_STOP_MARGIN_M = 0.002
 """Rod positions this close to either end of the stroke [m] count as in the end stop: the
 wrench accelerations stay kinematic for that joint there (``wrench_acceleration``)."""
 
-
-
-@njit(cache=True, error_model="numpy")
-def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, table_ok, cyl,  # type: ignore[no-untyped-def]
-                     fpar, q, qd, qdd, cs):
-    """Per sample row of the smoothed channels ``sm``: rod positions clipped to [0, stroke],
-    the cylinder joints' q, qd, qdd through the kinematics tables (as
-    :func:`cranetwin.twin.kintable.table_motion_batch`) into q, qd, qdd (n, n_joints), and
-    the states row cs (n, 5·n_c) = [q, qd, qdd of the cylinder joints, moment arms ds/dq,
-    forces (Eq. 1–2, :func:`cranetwin.physics.actuator.eq1_cylinder_force`)]; the rates
-    and accelerations are columns v_col + k, a_col + k. Returns the number of samples whose
-    position does not fit the geometry (q not finite)."""
-    nc = s_cols.shape[0]
-    bad = 0
-    for i in range(sm.shape[0]):
-        row_bad = False
-        for k in range(nc):
-            s = sm[i, s_cols[k]]
-            if s < 0.0:
-                s = 0.0
-            elif s > stroke[k]:
-                s = stroke[k]
-            ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            vk = sm[i, v_col + k]
-            qj, w, acc, d1 = kintable.joint_motion(
-                table, table_ok, cyl, k, table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s, vk,
-                sm[i, a_col + k])
-            q[i, ji] = qj
-            qd[i, ji] = w
-            qdd[i, ji] = acc
-            cs[i, k] = qj
-            cs[i, nc + k] = w
-            cs[i, 2 * nc + k] = acc
-            cs[i, 3 * nc + k] = d1
-            cs[i, 4 * nc + k] = actuator.eq1_cylinder_force(
-                sm[i, pa_cols[k]], sm[i, pb_cols[k]], vk, fpar[k, 0], fpar[k, 1], fpar[k, 2],
-                fpar[k, 3], fpar[k, 4])
-            if not math.isfinite(qj):
-                row_bad = True
-        if row_bad:
-            bad += 1
-    return bad
-
-
-@njit(cache=True)
-def _unpack_states(st, joints, theta, theta_joint, q, qd, qdd, arm, force):  # type: ignore[no-untyped-def]
-    """Rows of :func:`_cylinder_states` back into q, qd, qdd (n, n_joints; zero but the
-    cylinder joints and, if theta_joint >= 0, q of that joint = theta), arm and force
-    (n, n_c)."""
-    nc = joints.shape[0]
-    nj = q.shape[1]
-    for i in range(st.shape[0]):
-        for j in range(nj):
-            q[i, j] = 0.0
-            qd[i, j] = 0.0
-            qdd[i, j] = 0.0
-        for k in range(nc):
-            j = joints[k]
-            q[i, j] = st[i, k]
-            qd[i, j] = st[i, nc + k]
-            qdd[i, j] = st[i, 2 * nc + k]
-            arm[i, k] = st[i, 3 * nc + k]
-            force[i, k] = st[i, 4 * nc + k]
-        if theta_joint >= 0:
-            q[i, theta_joint] = theta[i]
-
-
-def derivative_filter(choice: SmoothingChoice, n_samples: int | None = None) -> tuple[int, int]:
-    """(window, polynomial order) of the Savitzky–Golay filters that give a position channel's
-    rate and acceleration from its derivative channel's smoothing choice: a window of 1 (no
-    smoothing chosen) means 5, the order is at least 3 (an acceleration needs it) and below
-    the window, and the window is cut to the largest odd length within ``n_samples``."""
-    w = choice.window if choice.window > 1 else 5
-    if n_samples is not None:
-        w = min(w, n_samples - (1 - n_samples % 2))
-    return w, min(max(choice.polyorder, 3), w - 1)
 
 
 class HasSamples(Protocol):
@@ -543,7 +473,7 @@ class TwinStream:
         qd = np.zeros((n, nj))
         qdd = np.zeros((n, nj))
         cs = np.empty((n, 5 * nc))
-        bad = _cylinder_states(sm, self._s_cols, self._nch + 1, self._nch + 1 + self._nd,
+        bad = cylinder_states(sm, self._s_cols, self._nch + 1, self._nch + 1 + self._nd,
                                self._pa_cols, self._pb_cols, self._stroke, self._table,
                                self._table_ok, self._cyl, self._fpar, q, qd, qdd, cs)
         if bad:  # the descriptive error
@@ -692,7 +622,7 @@ class TwinStream:
     def _splines(self, knots_t: F64, sm: F64) -> tuple[F64, npt.NDArray[np.int64],
                                                        npt.NDArray[np.int64]]:
         """One natural spline over every column the grid needs and the quantity table
-        (:mod:`cranetwin.physics.gridpass`) saying which column (and derivative) is what.
+        (:mod:`cranetwin.twin.gridpass`) saying which column (and derivative) is what.
 
         Rates and accelerations are the Savitzky–Golay derivative filters at the samples,
         splined (``velocity="spline"``); or Newton's divided differences of the smoothed
@@ -700,67 +630,14 @@ class TwinStream:
         integrated slew angle takes its rate and acceleration from its own spline.
         """
         if self._layout is None:
-            self._layout = self._spline_layout()
+            self._layout = spline_layout(self.cmap, self._nch, self.opt.velocity,
+                                         self._integrate, self._qi, self._m or 0)
         pos_cols, cols, src, der = self._layout
         data = sm[:, cols]
         if self.opt.velocity == "newton":
             extra = newton_derivative(knots_t, sm[:, pos_cols], 2 if sm.shape[0] >= 5 else 1)
             data = np.concatenate([data, extra], axis=1)
         return natural_pieces(knots_t, data), src, der
-
-    def _spline_layout(self) -> tuple[list[int], list[int], npt.NDArray[np.int64],
-                                      npt.NDArray[np.int64]]:
-        """(position columns, spline columns of the smoothed samples, src, der) of
-        :meth:`_splines` (fixed for a stream; with ``"newton"`` the Newton rates of the
-        position columns follow the listed columns)."""
-        nc = len(self.machine.cylinders)
-        nd = self._nd
-        cm = self.cmap
-        qi = self._qi
-        rod_s, rod_v, rod_a = (slice(o, o + nc) for o in (qi.s, qi.v, qi.a))
-        ang = cm.angle
-        theta_col = self._nch if self._integrate else ang
-        # the drive's free joint: angle, rate, acceleration; its torque
-        th = qi.free + 3 * (self._m or 0)
-        th_rates = slice(th + 1, th + 3)
-        pos_cols = list(cm.s) + ([theta_col] if theta_col is not None else [])
-        cols: list[int] = list(pos_cols)
-        src = np.full(qi.size, -1, dtype=np.int64)
-        der = np.zeros_like(src)
-        src[rod_s] = np.arange(nc)
-        if self.opt.velocity == "newton":
-            base = len(cols) + len(cm.p_a) + len(cm.p_b) + (cm.torque is not None)
-            src[rod_v] = base + np.arange(nc)
-            src[rod_a] = base + np.arange(nc)
-            der[rod_a] = 1
-            if theta_col is not None:
-                src[th] = nc
-                src[th_rates] = base + nc
-                der[th + 2] = 1
-        else:
-            rates = [self._nch + 1 + i for i in range(nd)]
-            accs = [self._nch + 1 + nd + i for i in range(nd)]
-            src[rod_v] = len(cols) + np.arange(nc)
-            src[rod_a] = len(cols) + nd + np.arange(nc)
-            cols += rates + accs
-            if theta_col is not None:
-                src[th] = nc
-                if ang is not None and not self._integrate:
-                    # the angle is the last derivative channel: its rate and acceleration
-                    src[th + 1] = len(pos_cols) + nd - 1
-                    src[th + 2] = len(pos_cols) + 2 * nd - 1
-                else:
-                    src[th_rates] = nc
-                    der[th + 1] = 1
-                    der[th + 2] = 2
-        src[qi.pa : qi.pa + nc] = len(cols) + np.arange(nc)
-        cols += list(cm.p_a)
-        src[qi.pb : qi.pb + nc] = len(cols) + np.arange(nc)
-        cols += list(cm.p_b)
-        if cm.torque is not None:
-            src[qi.torque + (self._m or 0)] = len(cols)
-            cols.append(cm.torque)
-        return pos_cols, cols, src, der
 
     def _chunk(self, ka: int, kb: int, last: bool, ready: int) -> TwinResult:
         """Outputs at samples [ka, kb) (through kb − 1 … the end on the ``last`` chunk).
@@ -809,7 +686,7 @@ class TwinStream:
             qdd_s = np.empty((ne, nj))
             arm_s = np.empty((ne, nc))
             f_s = np.empty((ne, nc))
-            _unpack_states(self._cs.get(e0, e1 + 1), self._cyl_joint_arr, theta[:, 0],
+            unpack_states(self._cs.get(e0, e1 + 1), self._cyl_joint_arr, theta[:, 0],
                            self._slew_joint if has_theta else -1, q_s, qd_s, qdd_s, arm_s, f_s)
         else:
             s_s = self._clip_s(smp[:, qi.s : qi.s + nc])

@@ -1,0 +1,162 @@
+"""Stages of the replay as pure functions of arrays: the cylinder states at the samples, the
+derivative filters, and the spline layout (which spline column feeds which grid quantity).
+
+:class:`cranetwin.twin.replay.TwinStream` buffers the samples and calls these and
+:func:`cranetwin.twin.gridpass.grid_pass`; :mod:`cranetwin.twin.slew` and
+:mod:`cranetwin.twin.payload` are the other stages.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+from numba import njit
+
+from cranetwin.physics import actuator
+from cranetwin.physics.layout import C_JOINT, C_STROKE, cyl_block
+from cranetwin.signal import SmoothingChoice
+from cranetwin.twin import kintable
+from cranetwin.twin.channels import ChannelMap
+from cranetwin.twin.gridpass import Quantities
+
+I64 = npt.NDArray[np.int64]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, table_ok, cyl,  # type: ignore[no-untyped-def]
+                     fpar, q, qd, qdd, cs):
+    """Per sample row of the smoothed channels ``sm``: rod positions clipped to [0, stroke],
+    the cylinder joints' q, qd, qdd through the kinematics tables (as
+    :func:`cranetwin.twin.kintable.table_motion_batch`) into q, qd, qdd (n, n_joints), and
+    the states row cs (n, 5·n_c) = [q, qd, qdd of the cylinder joints, moment arms ds/dq,
+    forces (Eq. 1–2, :func:`cranetwin.physics.actuator.eq1_cylinder_force`)]; the rates
+    and accelerations are columns v_col + k, a_col + k. Returns the number of samples whose
+    position does not fit the geometry (q not finite)."""
+    nc = s_cols.shape[0]
+    bad = 0
+    for i in range(sm.shape[0]):
+        row_bad = False
+        for k in range(nc):
+            s = sm[i, s_cols[k]]
+            if s < 0.0:
+                s = 0.0
+            elif s > stroke[k]:
+                s = stroke[k]
+            ji = int(cyl[cyl_block(k) + C_JOINT])
+            vk = sm[i, v_col + k]
+            qj, w, acc, d1 = kintable.joint_motion(
+                table, table_ok, cyl, k, table.shape[1] / cyl[cyl_block(k) + C_STROKE], s, vk,
+                sm[i, a_col + k])
+            q[i, ji] = qj
+            qd[i, ji] = w
+            qdd[i, ji] = acc
+            cs[i, k] = qj
+            cs[i, nc + k] = w
+            cs[i, 2 * nc + k] = acc
+            cs[i, 3 * nc + k] = d1
+            cs[i, 4 * nc + k] = actuator.eq1_cylinder_force(
+                sm[i, pa_cols[k]], sm[i, pb_cols[k]], vk, fpar[k, 0], fpar[k, 1], fpar[k, 2],
+                fpar[k, 3], fpar[k, 4])
+            if not math.isfinite(qj):
+                row_bad = True
+        if row_bad:
+            bad += 1
+    return bad
+
+
+@njit(cache=True, nogil=True)
+def unpack_states(st, joints, theta, theta_joint, q, qd, qdd, arm, force):  # type: ignore[no-untyped-def]
+    """Rows of :func:`cylinder_states` back into q, qd, qdd (n, n_joints; zero but the
+    cylinder joints and, if theta_joint >= 0, q of that joint = theta), arm and force
+    (n, n_c)."""
+    nc = joints.shape[0]
+    nj = q.shape[1]
+    for i in range(st.shape[0]):
+        for j in range(nj):
+            q[i, j] = 0.0
+            qd[i, j] = 0.0
+            qdd[i, j] = 0.0
+        for k in range(nc):
+            j = joints[k]
+            q[i, j] = st[i, k]
+            qd[i, j] = st[i, nc + k]
+            qdd[i, j] = st[i, 2 * nc + k]
+            arm[i, k] = st[i, 3 * nc + k]
+            force[i, k] = st[i, 4 * nc + k]
+        if theta_joint >= 0:
+            q[i, theta_joint] = theta[i]
+
+
+def derivative_filter(choice: SmoothingChoice, n_samples: int | None = None) -> tuple[int, int]:
+    """(window, polynomial order) of the Savitzky–Golay filters that give a position channel's
+    rate and acceleration from its derivative channel's smoothing choice: a window of 1 (no
+    smoothing chosen) means 5, the order is at least 3 (an acceleration needs it) and below
+    the window, and the window is cut to the largest odd length within ``n_samples``."""
+    w = choice.window if choice.window > 1 else 5
+    if n_samples is not None:
+        w = min(w, n_samples - (1 - n_samples % 2))
+    return w, min(max(choice.polyorder, 3), w - 1)
+
+
+def spline_layout(cm: ChannelMap, n_channels: int, velocity: Literal["spline", "newton"],
+                  integrate: bool, qi: Quantities,
+                  drive_free: int) -> tuple[list[int], list[int], I64, I64]:
+    """Which spline column feeds which grid quantity: (position columns, spline columns of the
+    smoothed samples, src, der) (quantity table: :mod:`cranetwin.twin.gridpass`).
+
+    The smoothed sample rows hold the ``n_channels`` working channels, the integrated angle,
+    then the rates and accelerations of the position channels. Rates and accelerations are
+    splined from those (``velocity="spline"``), or come from Newton's divided differences of
+    the positions, appended after the listed columns, and that spline's derivative
+    (``"newton"``). ``drive_free``: the index among the free joints of the torque drive's
+    joint (its angle and torque quantities).
+    """
+    nc = len(cm.s)
+    nd = len(cm.derivative_channels)
+    rod_s, rod_v, rod_a = (slice(o, o + nc) for o in (qi.s, qi.v, qi.a))
+    ang = cm.angle
+    theta_col = n_channels if integrate else ang
+    # the drive's free joint: angle, rate, acceleration; its torque
+    th = qi.free + 3 * drive_free
+    th_rates = slice(th + 1, th + 3)
+    pos_cols = list(cm.s) + ([theta_col] if theta_col is not None else [])
+    cols: list[int] = list(pos_cols)
+    src = np.full(qi.size, -1, dtype=np.int64)
+    der = np.zeros_like(src)
+    src[rod_s] = np.arange(nc)
+    if velocity == "newton":
+        base = len(cols) + len(cm.p_a) + len(cm.p_b) + (cm.torque is not None)
+        src[rod_v] = base + np.arange(nc)
+        src[rod_a] = base + np.arange(nc)
+        der[rod_a] = 1
+        if theta_col is not None:
+            src[th] = nc
+            src[th_rates] = base + nc
+            der[th + 2] = 1
+    else:
+        rates = [n_channels + 1 + i for i in range(nd)]
+        accs = [n_channels + 1 + nd + i for i in range(nd)]
+        src[rod_v] = len(cols) + np.arange(nc)
+        src[rod_a] = len(cols) + nd + np.arange(nc)
+        cols += rates + accs
+        if theta_col is not None:
+            src[th] = nc
+            if ang is not None and not integrate:
+                # the angle is the last derivative channel: its rate and acceleration
+                src[th + 1] = len(pos_cols) + nd - 1
+                src[th + 2] = len(pos_cols) + 2 * nd - 1
+            else:
+                src[th_rates] = nc
+                der[th + 1] = 1
+                der[th + 2] = 2
+    src[qi.pa : qi.pa + nc] = len(cols) + np.arange(nc)
+    cols += list(cm.p_a)
+    src[qi.pb : qi.pb + nc] = len(cols) + np.arange(nc)
+    cols += list(cm.p_b)
+    if cm.torque is not None:
+        src[qi.torque + drive_free] = len(cols)
+        cols.append(cm.torque)
+    return pos_cols, cols, src, der
