@@ -229,12 +229,17 @@ class TwinStream:
         self._cs = _Buf(5 * len(machine.cylinders))
         self._out_done = 0
         self._slew = SlewState(theta0=self.opt.theta0_initial)
-        # a free joint with a torque drive but no angle sensor: its angle is integrated from
-        # the torque (twin.slew); with neither, it is held at 0 (the reference pose)
-        self._integrate = self.cmap.angle is None and bool(machine.torque_drives)
-        self._use_cs = self._integrate and self.opt.velocity == "spline"
-        self._drive = machine.torque_drives[0] if machine.torque_drives else None
-        self._slew_joint = machine.joint_index(self._drive.joint) if self._drive else None
+        # free joints (no cylinder drives them) have torque drives: a drive's joint takes its
+        # angle from its angle channel; the first one without an angle channel integrates it
+        # from its torque (twin.slew: a vertical axis); any other is held at 0
+        drives = machine.torque_drives
+        self._drive_joints = [machine.joint_index(d.joint) for d in drives]
+        no_angle = [d for d, a in enumerate(self.cmap.angles) if a is None]
+        self._integrated = no_angle[0] if no_angle else None  # drive index
+        self._integrate = self._integrated is not None
+        self._drive = drives[self._integrated] if self._integrated is not None else None
+        self._slew_joint = (self._drive_joints[self._integrated]
+                            if self._integrated is not None else None)
         self._cyl_joint = [machine.joint_index(c.joint) for c in machine.cylinders]
         self._cyl_joint_arr = np.array(self._cyl_joint, dtype=np.int64)
         self._s_cols = np.array(self.cmap.s, dtype=np.int64)
@@ -266,8 +271,12 @@ class TwinStream:
         self._cylinders = gridpass.Cylinders(params.cyl, self._table, self._table_ok,
                                              self._fpar, self._stroke, self._cyl_joint_arr,
                                              END_STOP_MARGIN_M)
-        # the free joint of the (first) torque drive: its angle and torque channels
-        self._m = self._free.index(self._slew_joint) if self._slew_joint is not None else None
+        # each drive's index among the free joints (its angle and torque quantities)
+        self._drive_free = [self._free.index(j) for j in self._drive_joints]
+        # the sample-rate states of the slew stage serve the chunks when the integrated angle
+        # is the only free joint
+        self._use_cs = (self._integrate and self.opt.velocity == "spline"
+                        and len(self._free) == 1)
 
     # -- geometry of the margins -------------------------------------------------------------
     @property
@@ -517,10 +526,11 @@ class TwinStream:
         m00 = row[:, j0]
         others = [j for j in range(self.machine.n_joints) if j != j0]
         coupling = np.einsum("nj,nj->n", row[:, others], qd[sl][:, others])
-        if self.cmap.torque is None:
+        tc = self.cmap.torques[self._integrated] if self._integrated is not None else None
+        if tc is None:
             torque = np.zeros(m00.shape[0])
         else:
-            torque = self._sm.get(k0, k_hi)[:, self.cmap.torque]
+            torque = self._sm.get(k0, k_hi)[:, tc]
         fr = self._drive.friction
         theta, _ = integrate_slew(self._period, torque, m00, coupling, fr.coulomb,
                                   fr.coulomb_velocity, fr.viscous, self._slew)
@@ -631,7 +641,7 @@ class TwinStream:
         """
         if self._layout is None:
             self._layout = spline_layout(self.cmap, self._nch, self.opt.velocity,
-                                         self._integrate, self._qi, self._m or 0)
+                                         self._integrated, self._qi, self._drive_free)
         pos_cols, cols, src, der = self._layout
         data = sm[:, cols]
         if self.opt.velocity == "newton":
@@ -665,20 +675,22 @@ class TwinStream:
         h_last = float(knots_t[-1] - knots_t[-2])
         # -- the sample instants e0 … e1: state, actuator loads, payload ----------------------
         ne = e1 - e0 + 1
-        th = slice(qi.free + 3 * (self._m or 0), qi.free + 3 * (self._m or 0) + 3)
-        has_theta = self._m is not None and bool(src[th.start] >= 0)
+        # free joints whose angle the splines carry (from a channel or integrated)
+        thetas = [f for f in range(len(self._free)) if src[qi.free + 3 * f] >= 0]
         rod_v, rod_a = slice(qi.v, qi.v + nc), slice(qi.a, qi.a + nc)
         # the spline at a knot is the knot's value, except the end knot (last piece at h_last)
         cached = self._use_cs and e1 < f1 and self._cs.base <= e0 and e1 < self._cs.end
         at_samples = gridpass.Splines(coef, e0 - f0, 1, h0, h_last, src, der, qi)
+        free_q = slice(qi.free, qi.free + 3 * len(self._free))
         if cached:  # only the slew angle, its rate and acceleration are needed from the spline
-            smp = np.empty((ne, 3))
-            gridpass.spline_points(at_samples._replace(src=src[th], der=der[th]), ne, smp)
+            smp = np.empty((ne, 3 * len(self._free)))
+            gridpass.spline_points(at_samples._replace(src=src[free_q], der=der[free_q]), ne,
+                                   smp)
             theta = smp
         else:
             smp = np.empty((ne, src.shape[0]))
             gridpass.spline_points(at_samples, ne, smp)
-            theta = smp[:, th]
+            theta = smp[:, free_q]  # per free joint: angle, rate, acceleration
         f_s: F64 | None = None
         if cached:  # cylinder joints' motion, arms and forces as the slew stage found them
             q_s = np.empty((ne, nj))
@@ -687,19 +699,17 @@ class TwinStream:
             arm_s = np.empty((ne, nc))
             f_s = np.empty((ne, nc))
             unpack_states(self._cs.get(e0, e1 + 1), self._cyl_joint_arr, theta[:, 0],
-                           self._slew_joint if has_theta else -1, q_s, qd_s, qdd_s, arm_s, f_s)
+                          self._free[0] if thetas else -1, q_s, qd_s, qdd_s, arm_s, f_s)
         else:
             s_s = self._clip_s(smp[:, qi.s : qi.s + nc])
             q_other = np.zeros((ne, nj - nc))
-            if has_theta:
-                q_other[:, self._m] = theta[:, 0]
+            for f in thetas:
+                q_other[:, f] = theta[:, 3 * f]
             q_s, qd_s, qdd_s, arm_s = self._joint_motion(s_s, smp[:, rod_v], smp[:, rod_a],
                                                          q_other)
-        sj = self._slew_joint
-        has_drive = self._drive is not None and self.cmap.torque is not None
-        if has_theta and sj is not None:
-            qd_s[:, sj] = theta[:, 1]
-            qdd_s[:, sj] = theta[:, 2]
+        for f in thetas:
+            qd_s[:, self._free[f]] = theta[:, 3 * f + 1]
+            qdd_s[:, self._free[f]] = theta[:, 3 * f + 2]
         ks = slice(ka - e0, min(kb - e0 + 1, ne))  # samples ka … kb (if there)
         n_ks = ks.stop - ks.start
         if self.payload is not None:
@@ -712,8 +722,9 @@ class TwinStream:
             mk, sk = self._estimate_payload(q_s, qd_s, qdd_s, f_s, arm_s)
             mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
         dynamic = self.opt.wrench_acceleration == "dynamic"
-        full = list(self._cyl_joint) + ([sj] if has_drive and sj is not None else [])
-        full.sort()
+        # the joints whose loads are measured: every cylinder's, every drive's with a torque
+        full = sorted(self._cyl_joint + [j for j, t in zip(self._drive_joints, self.cmap.torques,
+                                                           strict=True) if t is not None])
         if dynamic:
             mm = np.empty((n_ks, nj, nj))
             self._mass_matrix(np.ascontiguousarray(q_s[ks]), np.nan_to_num(np.maximum(mk, 0.0)),

@@ -102,61 +102,72 @@ def derivative_filter(choice: SmoothingChoice, n_samples: int | None = None) -> 
 
 
 def spline_layout(cm: ChannelMap, n_channels: int, velocity: Literal["spline", "newton"],
-                  integrate: bool, qi: Quantities,
-                  drive_free: int) -> tuple[list[int], list[int], I64, I64]:
+                  integrated: int | None, qi: Quantities,
+                  drive_free: list[int]) -> tuple[list[int], list[int], I64, I64]:
     """Which spline column feeds which grid quantity: (position columns, spline columns of the
     smoothed samples, src, der) (quantity table: :mod:`cranetwin.twin.gridpass`).
 
     The smoothed sample rows hold the ``n_channels`` working channels, the integrated angle,
-    then the rates and accelerations of the position channels. Rates and accelerations are
-    splined from those (``velocity="spline"``), or come from Newton's divided differences of
-    the positions, appended after the listed columns, and that spline's derivative
-    (``"newton"``). ``drive_free``: the index among the free joints of the torque drive's
-    joint (its angle and torque quantities).
+    then the rates and accelerations of the derivative channels (rod positions, angles sent).
+    Rates and accelerations are splined from those (``velocity="spline"``), or come from
+    Newton's divided differences of the positions, appended after the listed columns, and that
+    spline's derivative (``"newton"``). An integrated angle takes its rate and acceleration
+    from its own spline.
+
+    Args:
+        cm: The channel map; n_channels: its number of working channels.
+        velocity: As ``ReplayOptions.velocity``.
+        integrated: The torque drive (index) whose angle is integrated, or None.
+        qi: The quantity table's layout.
+        drive_free: Per torque drive, its joint's index among the free joints.
     """
     nc = len(cm.s)
     nd = len(cm.derivative_channels)
     rod_s, rod_v, rod_a = (slice(o, o + nc) for o in (qi.s, qi.v, qi.a))
-    ang = cm.angle
-    theta_col = n_channels if integrate else ang
-    # the drive's free joint: angle, rate, acceleration; its torque
-    th = qi.free + 3 * drive_free
-    th_rates = slice(th + 1, th + 3)
-    pos_cols = list(cm.s) + ([theta_col] if theta_col is not None else [])
+    # per drive: the column of its angle (an angle channel, the integrated one, or none)
+    theta_cols = [a if a is not None else (n_channels if d == integrated else None)
+                  for d, a in enumerate(cm.angles)]
+    pos_cols = list(cm.s) + [c for c in theta_cols if c is not None]
     cols: list[int] = list(pos_cols)
     src = np.full(qi.size, -1, dtype=np.int64)
     der = np.zeros_like(src)
     src[rod_s] = np.arange(nc)
+    n_torques = sum(t is not None for t in cm.torques)
+    base = len(cols) + len(cm.p_a) + len(cm.p_b) + n_torques  # Newton rates (after cols)
     if velocity == "newton":
-        base = len(cols) + len(cm.p_a) + len(cm.p_b) + (cm.torque is not None)
         src[rod_v] = base + np.arange(nc)
         src[rod_a] = base + np.arange(nc)
         der[rod_a] = 1
-        if theta_col is not None:
-            src[th] = nc
-            src[th_rates] = base + nc
-            der[th + 2] = 1
     else:
         rates = [n_channels + 1 + i for i in range(nd)]
         accs = [n_channels + 1 + nd + i for i in range(nd)]
         src[rod_v] = len(cols) + np.arange(nc)
         src[rod_a] = len(cols) + nd + np.arange(nc)
         cols += rates + accs
-        if theta_col is not None:
-            src[th] = nc
-            if ang is not None and not integrate:
-                # the angle is the last derivative channel: its rate and acceleration
-                src[th + 1] = len(pos_cols) + nd - 1
-                src[th + 2] = len(pos_cols) + 2 * nd - 1
-            else:
-                src[th_rates] = nc
-                der[th + 1] = 1
-                der[th + 2] = 2
+    rank = nc  # the angle's index among pos_cols
+    for d, col in enumerate(theta_cols):
+        if col is None:
+            continue  # held at 0
+        th = qi.free + 3 * drive_free[d]
+        src[th] = rank
+        if velocity == "newton":
+            src[th + 1 : th + 3] = base + rank
+            der[th + 2] = 1
+        elif d != integrated:  # its rate and acceleration from the derivative filters
+            di = cm.derivative_channels.index(col)
+            src[th + 1] = len(pos_cols) + di
+            src[th + 2] = len(pos_cols) + nd + di
+        else:
+            src[th + 1 : th + 3] = rank
+            der[th + 1] = 1
+            der[th + 2] = 2
+        rank += 1
     src[qi.pa : qi.pa + nc] = len(cols) + np.arange(nc)
     cols += list(cm.p_a)
     src[qi.pb : qi.pb + nc] = len(cols) + np.arange(nc)
     cols += list(cm.p_b)
-    if cm.torque is not None:
-        src[qi.torque + drive_free] = len(cols)
-        cols.append(cm.torque)
+    for d, t in enumerate(cm.torques):
+        if t is not None:
+            src[qi.torque + drive_free[d]] = len(cols)
+            cols.append(t)
     return pos_cols, cols, src, der
