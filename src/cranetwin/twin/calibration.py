@@ -56,7 +56,8 @@ from cranetwin.samples import SampleArrays
 from cranetwin.signal import nominal_period
 from cranetwin.signal.smoothing import sg_filter
 from cranetwin.twin.channels import ChannelMap
-from cranetwin.twin.replay import ReplayOptions, replay
+from cranetwin.twin.options import ReplayOptions
+from cranetwin.twin.replay import replay
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.stages import derivative_filter
 

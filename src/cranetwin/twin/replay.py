@@ -33,8 +33,6 @@ recomputes every output through the separate physics functions.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
-from typing import Literal, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -59,7 +57,9 @@ from cranetwin.signal import (
 )
 from cranetwin.signal.smoothing import savgol_columns
 from cranetwin.twin import gridpass, kintable
+from cranetwin.twin.buffer import RowBuffer
 from cranetwin.twin.channels import ChannelMap, choose_smoothing
+from cranetwin.twin.options import END_STOP_MARGIN_M, HasSamples, ReplayOptions
 from cranetwin.twin.payload import regression_payload
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.slew import SlewState, integrate_slew
@@ -71,115 +71,13 @@ from cranetwin.twin.stages import (
 )
 
 F64 = npt.NDArray[np.float64]
+
+__all__ = ["END_STOP_MARGIN_M", "HasSamples", "ReplayOptions", "TwinStream",
+           "derivative_filter", "iter_replay", "replay"]
 B = npt.NDArray[np.bool_]
 
-END_STOP_MARGIN_M = 0.002
-"""Rod positions this close to either end of the stroke [m] count as in the end stop: the
-wrench accelerations stay kinematic for that joint there (``wrench_acceleration``)."""
 
 
-
-class HasSamples(Protocol):
-    """Anything carrying sensor samples, e.g. :class:`cranetwin.sim.Recording`."""
-
-    @property
-    def samples(self) -> SampleArrays: ...
-
-
-@dataclass(frozen=True)
-class ReplayOptions:
-    """Settings of a replay.
-
-    Attributes:
-        grid_hz: Output grid rate [Hz]; must be an integer multiple of the sample rate.
-        smooth: Savitzky–Golay smoothing on (window chosen from the noise level) or off.
-        adaptive_pressures: Pressure windows adapted per sample (LPA-ICI) rather than fixed.
-        smoothing: Fixed smoothing choices per working channel (skips the automatic choice).
-        velocity: Rod velocity from the derivative of the position spline (``"spline"``) or by
-            Newton's divided-difference formula at the samples, then splined (``"newton"``).
-        payload_window_s: Length of the payload least-squares window [s].
-        chunk_samples: Samples per processing chunk (memory and cache size). Each chunk
-            recomputes a margin of ``payload window / 2 + prefilter / 2 + settle_samples``
-            samples on either side (≈ 200 at 100 Hz), so longer chunks waste less; 6000 (one
-            minute at 100 Hz, ≈ 30 MB of 1 kHz outputs) matches iter_replay's blocks.
-        settle_samples: Spline margin on each side of a chunk [samples].
-        sample_period_s: Nominal sample period [s]; the median spacing of the first data if None.
-        choose_after_s: Streaming: data collected before the smoothing windows are chosen [s].
-        theta0_initial: Slew angle at the start when it is integrated from torque [rad].
-        max_gap_s: Dropouts longer than this are flagged in ``TwinResult.gap`` (5 periods if None).
-        lookahead_s: Streaming: raw data held back for regularisation [s] (50 periods if None).
-        wrench_acceleration: Joint accelerations behind ``joint_wrench``: ``"dynamic"`` =
-            forward dynamics from the measured actuator loads, qdd = M⁻¹(tau_act − C·qd − g)
-            (paper Eq. 3/4) on every joint whose load is measured (cylinder joints; the slew
-            when the pillar torque is sent), keeping the hydraulic oscillations that the
-            smoothed kinematic accelerations lose (docs/ACCURACY.md "Joint reaction loads":
-            moment NRMSE 4–30× lower on fig3/log-loading at e = 0 and 2 %, fatigue damage of
-            the bending moments 0.66–1.04× the truth's instead of 0.00–0.6×); ``"kinematic"``
-            = the twice-differentiated positions (``qdd``). ``qdd``, ``id_torque`` and
-            ``residual`` stay kinematic either way, and so does a cylinder joint while its
-            rod is within ``END_STOP_MARGIN_M`` of an end of the stroke (the end stop takes
-            a force the pressures do not show) and during bridged dropouts.
-        generated_kernels: Inverse dynamics and mass matrices by the kernels generated for
-            the machine (:func:`cranetwin.physics.dynamics.batch_kernels`); False: the
-            generic ones (same results to rounding; the benchmark's baseline).
-    """
-
-    grid_hz: float = 1000.0
-    smooth: bool = True
-    adaptive_pressures: bool = True
-    smoothing: tuple[SmoothingChoice, ...] | None = None
-    velocity: Literal["spline", "newton"] = "spline"
-    payload_window_s: float = 2.0
-    chunk_samples: int = 6000
-    settle_samples: int = 40
-    sample_period_s: float | None = None
-    choose_after_s: float = 10.0
-    theta0_initial: float = 0.0
-    max_gap_s: float | None = None
-    lookahead_s: float | None = None
-    wrench_acceleration: Literal["dynamic", "kinematic"] = "dynamic"
-    generated_kernels: bool = True
-
-
-class _Buf:
-    """Rows indexed by a global sample index k: rows [base, base + len), stored with spare
-    capacity so that appending does not copy the whole buffer each time."""
-
-    def __init__(self, width: int) -> None:
-        self.base = 0
-        self._data = np.empty((0, width))
-        self._n = 0
-
-    @property
-    def arr(self) -> F64:
-        return self._data[: self._n]
-
-    @property
-    def end(self) -> int:
-        return self.base + self._n
-
-    def append(self, rows: F64) -> None:
-        rows = rows.reshape(rows.shape[0], -1)
-        need = self._n + rows.shape[0]
-        if need > self._data.shape[0]:
-            grown = np.empty((max(need, 2 * self._data.shape[0]), self._data.shape[1]))
-            grown[: self._n] = self._data[: self._n]
-            self._data = grown
-        self._data[self._n : need] = rows
-        self._n = need
-
-    def get(self, k0: int, k1: int) -> F64:
-        if k0 < self.base or k1 > self.end:
-            raise TwinError(f"internal: rows {k0}..{k1} outside buffer {self.base}..{self.end}")
-        return self._data[k0 - self.base : k1 - self.base]
-
-    def trim(self, keep_from: int) -> None:
-        cut = keep_from - self.base
-        if cut > 0:
-            rest = self._n - cut
-            self._data[:rest] = self._data[cut : self._n].copy()
-            self._n = rest
-            self.base = keep_from
 
 
 def _h0(choice: SmoothingChoice) -> float:
@@ -215,18 +113,18 @@ class TwinStream:
         if self._choices is not None and len(self._choices) != n_choice:
             raise TwinError(f"smoothing: expected {n_choice} choices {self.cmap.choice_names}, "
                             f"got {len(self._choices)}")
-        self._reg = _Buf(self._nch)
-        self._gap = _Buf(1)
+        self._reg = RowBuffer(self._nch)
+        self._gap = RowBuffer(1)
         # smoothed channels | integrated theta0 | rates | accelerations of the position channels
         self._nd = len(self.cmap.derivative_channels)
-        self._sm = _Buf(self._nch + 1 + 2 * self._nd)
+        self._sm = RowBuffer(self._nch + 1 + 2 * self._nd)
         self._sm_valid = 0  # smoothed rows [.., _sm_valid) have final values
         self._theta_done = 0
         # cylinder states at the samples (q, qd, qdd of the cylinder joints, moment arms,
         # forces; 5 blocks of n_cylinders) as the slew stage computed them, reused by the
         # chunks: the same rows from the same smoothed samples (only with the rates taken from
         # the smoothed samples, velocity="spline"; the Newton rates differ)
-        self._cs = _Buf(5 * len(machine.cylinders))
+        self._cs = RowBuffer(5 * len(machine.cylinders))
         self._out_done = 0
         self._slew = SlewState(theta0=self.opt.theta0_initial)
         # free joints (no cylinder drives them) have torque drives: a drive's joint takes its
