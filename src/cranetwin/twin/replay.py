@@ -64,6 +64,7 @@ from cranetwin.twin.payload import regression_payload
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.slew import SlewState, integrate_slew
 from cranetwin.twin.stages import (
+    SampleColumns,
     cylinder_states,
     derivative_filter,
     spline_layout,
@@ -380,9 +381,9 @@ class TwinStream:
         qd = np.zeros((n, nj))
         qdd = np.zeros((n, nj))
         cs = np.empty((n, 5 * nc))
-        bad = cylinder_states(sm, self._s_cols, self._nch + 1, self._nch + 1 + self._nd,
-                               self._pa_cols, self._pb_cols, self._stroke, self._table,
-                               self._table_ok, self._cyl, self._fpar, q, qd, qdd, cs)
+        cols = SampleColumns(self._s_cols, self._pa_cols, self._pb_cols, self._nch + 1,
+                             self._nch + 1 + self._nd)
+        bad = cylinder_states(sm, cols, self._cylinders, q, qd, qdd, cs)
         if bad:  # the descriptive error
             self._joint_motion(self._clip_s(sm[:, self._s_cols]),
                                sm[:, self._nch + 1 : self._nch + 1 + nc],

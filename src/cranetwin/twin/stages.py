@@ -9,14 +9,13 @@ derivative filters, and the spline layout (which spline column feeds which grid 
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 from numba import njit
 
 from cranetwin.physics import actuator
-from cranetwin.physics.layout import C_JOINT, C_STROKE, cyl_block
 from cranetwin.signal import SmoothingChoice
 from cranetwin.twin import kintable
 from cranetwin.twin.channels import ChannelMap
@@ -25,41 +24,47 @@ from cranetwin.twin.gridpass import Quantities
 I64 = npt.NDArray[np.int64]
 
 
+class SampleColumns(NamedTuple):
+    """Columns of the smoothed sample rows: per cylinder its rod position ``s``, pressures
+    ``pa`` and ``pb`` (n_c,), and where the rates (``v0 + k``) and accelerations (``a0 + k``)
+    of the rod positions start."""
+
+    s: I64
+    pa: I64
+    pb: I64
+    v0: int
+    a0: int
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, table_ok, cyl,  # type: ignore[no-untyped-def]
-                     fpar, q, qd, qdd, cs):
-    """Per sample row of the smoothed channels ``sm``: rod positions clipped to [0, stroke],
-    the cylinder joints' q, qd, qdd through the kinematics tables (as
-    :func:`cranetwin.twin.kintable.table_motion_batch`) into q, qd, qdd (n, n_joints), and
-    the states row cs (n, 5·n_c) = [q, qd, qdd of the cylinder joints, moment arms ds/dq,
-    forces (Eq. 1–2, :func:`cranetwin.physics.actuator.eq1_cylinder_force`)]; the rates
-    and accelerations are columns v_col + k, a_col + k. Returns the number of samples whose
-    position does not fit the geometry (q not finite)."""
-    nc = s_cols.shape[0]
+def cylinder_states(sm, col, cy, q, qd, qdd, cs):  # type: ignore[no-untyped-def]
+    """Per sample row of the smoothed channels ``sm`` (columns: :class:`SampleColumns`
+    ``col``): rod positions clipped to [0, stroke], the cylinder joints' q, qd, qdd through
+    the kinematics tables (:class:`cranetwin.twin.gridpass.Cylinders` ``cy``) into q, qd, qdd
+    (n, n_joints), and the states row cs (n, 5·n_c) = [q, qd, qdd of the cylinder joints,
+    moment arms ds/dq, forces (Eq. 1–2, :func:`cranetwin.physics.actuator.eq1_cylinder_force`)].
+    Returns the number of samples whose position does not fit the geometry (q not finite)."""
+    nc = col.s.shape[0]
     bad = 0
     for i in range(sm.shape[0]):
         row_bad = False
         for k in range(nc):
-            s = sm[i, s_cols[k]]
-            if s < 0.0:
-                s = 0.0
-            elif s > stroke[k]:
-                s = stroke[k]
-            ji = int(cyl[cyl_block(k) + C_JOINT])
-            vk = sm[i, v_col + k]
+            s = min(max(sm[i, col.s[k]], 0.0), cy.stroke[k])
+            j = cy.joint[k]
+            vk = sm[i, col.v0 + k]
             qj, w, acc, d1 = kintable.joint_motion(
-                table, table_ok, cyl, k, table.shape[1] / cyl[cyl_block(k) + C_STROKE], s, vk,
-                sm[i, a_col + k])
-            q[i, ji] = qj
-            qd[i, ji] = w
-            qdd[i, ji] = acc
+                cy.table, cy.table_ok, cy.cyl, k, cy.table.shape[1] / cy.stroke[k], s, vk,
+                sm[i, col.a0 + k])
+            q[i, j] = qj
+            qd[i, j] = w
+            qdd[i, j] = acc
             cs[i, k] = qj
             cs[i, nc + k] = w
             cs[i, 2 * nc + k] = acc
             cs[i, 3 * nc + k] = d1
+            p = cy.params[k]
             cs[i, 4 * nc + k] = actuator.eq1_cylinder_force(
-                sm[i, pa_cols[k]], sm[i, pb_cols[k]], vk, fpar[k, 0], fpar[k, 1], fpar[k, 2],
-                fpar[k, 3], fpar[k, 4])
+                sm[i, col.pa[k]], sm[i, col.pb[k]], vk, p[0], p[1], p[2], p[3], p[4])
             if not math.isfinite(qj):
                 row_bad = True
         if row_bad:
