@@ -26,7 +26,9 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from cranetwin.errors import ModelError
 from cranetwin.model import Cylinder, Joint
+from cranetwin.physics.frames import joint_frame_point, plane_basis
 from cranetwin.physics.layout import C_CENTRE, C_CLOSED
 
 F64 = npt.NDArray[np.float64]
@@ -46,9 +48,6 @@ def fill(block: F64, joint: Joint, cyl: Cylinder, base: F64) -> None:
     Raises:
         ModelError: the joint is not revolute.
     """
-    from cranetwin.errors import ModelError
-    from cranetwin.physics.frames import joint_frame_point, plane_basis
-
     if joint.kind != "revolute":
         raise ModelError(f"cylinder {cyl.name!r}: a four-bar linkage needs a revolute joint")
     lk = cyl.linkage

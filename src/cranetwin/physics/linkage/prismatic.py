@@ -20,6 +20,7 @@ import numpy.typing as npt
 from numba import njit
 
 from cranetwin.model import Cylinder, Joint
+from cranetwin.physics.frames import rpy_matrix
 from cranetwin.physics.layout import C_CLOSED, C_PARAMS
 
 F64 = npt.NDArray[np.float64]
@@ -36,8 +37,6 @@ def matches(joint: Joint, cyl: Cylinder) -> bool:
 def fill(block: F64, joint: Joint, cyl: Cylinder, base: F64) -> None:
     """Write the kind's fields into ``block`` (``base`` unused: the pins are taken in the
     parent frame here)."""
-    from cranetwin.physics.frames import rpy_matrix
-
     r0 = rpy_matrix(joint.origin_rpy_rad)
     d_vec = (np.asarray(joint.origin_m) + r0 @ np.asarray(cyl.rod_pin_m)
              - np.asarray(cyl.base_pin_m))
