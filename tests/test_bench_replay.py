@@ -21,6 +21,14 @@ def test_replay_bench_reports_every_run_and_the_median() -> None:
     assert out["grid_points"] == 20 * 1000 + 1
     # wall_seconds is rounded to 1 ms: a few per cent of a 20 s replay's time
     assert out["real_time_factor"] == pytest.approx(20.0 / out["wall_seconds"], rel=0.1)
+    # replayed hours per CPU-hour, of the median run, for both builds (same number of runs)
+    assert len(out["cpu_seconds_runs"]) == len(out["generic_cpu_seconds_runs"]) == 3
+    assert out["cpu_seconds"] == sorted(out["cpu_seconds_runs"])[1]
+    assert out["generic_cpu_seconds"] == sorted(out["generic_cpu_seconds_runs"])[1]
+    assert out["machine_hours_per_core_hour"] == pytest.approx(20.0 / out["cpu_seconds"],
+                                                               rel=0.05)
+    assert out["baseline_machine_hours_per_core_hour"] == pytest.approx(
+        20.0 / out["generic_cpu_seconds"], rel=0.05)
 
 
 def test_replay_bench_rejects_no_runs() -> None:

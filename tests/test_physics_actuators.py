@@ -1,4 +1,4 @@
-"""Cylinder force (Eq. 1–2), actuator torques (virtual work) and hydraulic equations."""
+"""Cylinder force (Eq. 1–2) and actuator torques (virtual work)."""
 
 from __future__ import annotations
 
@@ -7,17 +7,13 @@ import pytest
 
 from cranetwin.model import Machine, load_machine
 from cranetwin.physics import (
+    actuator,
     actuator_torques,
-    chamber_volumes,
     cylinder_force,
     cylinder_forces_from_torques,
     cylinder_lengths,
     friction_force,
-    orifice_flow,
-    pressure_rates,
-    valve_flows,
 )
-from cranetwin.physics import hydraulics as H
 
 
 @pytest.fixture(scope="module")
@@ -40,9 +36,9 @@ def test_cylinder_force_eq1_eq2(machine: Machine) -> None:
     assert np.all(f * vv >= 0)
     np.testing.assert_allclose(f, -friction_force(-vv, lift.friction), atol=1e-12)
     assert abs(friction_force(0.5, lift.friction) - (210.0 + 165.0)) < 1e-6
-    # the numba twin is the same code
-    assert H.cylinder_force_nb(10e6, 1e6, 0.05, a1, a2, 210.0, 0.005, 330.0) == pytest.approx(
-        float(cylinder_force(10e6, 1e6, 0.05, lift)), rel=1e-14)
+    # the scalar form every compiled loop inlines is the one the array forms evaluate
+    assert actuator.eq1_cylinder_force(10e6, 1e6, 0.05, a1, a2, 210.0, 0.005, 330.0) == (
+        float(cylinder_force(10e6, 1e6, 0.05, lift)))
 
 
 def test_actuator_torques_obey_virtual_work(machine: Machine) -> None:
@@ -59,43 +55,6 @@ def test_actuator_torques_obey_virtual_work(machine: Machine) -> None:
     work_joints = np.sum(tau[:, 1:] * 2 * dq[:, 1:], axis=1)
     np.testing.assert_allclose(work_joints, np.sum(f * ds, axis=1), rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(cylinder_forces_from_torques(machine, q, tau), f, rtol=1e-12)
-
-
-def test_orifice_and_valve_flows() -> None:
-    qn = 2.16e-8
-    assert orifice_flow(qn, 10.0, 3.5e6) == pytest.approx(qn * 10 * np.sqrt(3.5e6))
-    assert orifice_flow(qn, 10.0, -3.5e6) == pytest.approx(-qn * 10 * np.sqrt(3.5e6))
-    assert orifice_flow(qn, 0.0, 3.5e6) == 0.0
-    # ≈ 24 L/min at 35 bar and 10 V for the lift valve (reference)
-    assert orifice_flow(qn, 10.0, 35e5) * 60e3 == pytest.approx(24.0, rel=0.03)
-    qa, qb = valve_flows(qn, 5.0, 5e6, 2e6, 16e6, 1e5)
-    assert qa == pytest.approx(qn * 5 * np.sqrt(11e6))
-    assert qb == pytest.approx(qn * 5 * np.sqrt(1.9e6))
-    qa, qb = valve_flows(qn, -5.0, 5e6, 2e6, 16e6, 1e5)
-    assert qa == pytest.approx(-qn * 5 * np.sqrt(4.9e6))
-    assert qb == pytest.approx(-qn * 5 * np.sqrt(14e6))
-    for u in (5.0, -5.0):
-        np.testing.assert_allclose(H.valve_flows_nb(qn, u, 5e6, 2e6, 16e6, 1e5),
-                                   valve_flows(qn, u, 5e6, 2e6, 16e6, 1e5), rtol=1e-15)
-
-
-def test_pressure_rates_conserve_oil_volume(machine: Machine) -> None:
-    hyd = machine.hydraulics
-    assert hyd is not None
-    lift = machine.cylinder("lift")
-    be, vd, a1, a2, st = (hyd.effective_bulk_modulus_pa, hyd.dead_volume_m3, lift.area_a_m2,
-                          lift.area_b_m2, lift.stroke_m)
-    va, vb = chamber_volumes(vd, a1, a2, st, 0.2)
-    assert va == pytest.approx(vd + a1 * 0.2) and vb == pytest.approx(vd + a2 * (st - 0.2))
-    # closed valve, rod extending: A expands (pressure falls), B compresses (pressure rises)
-    dpa, dpb = pressure_rates(be, vd, a1, a2, st, 0.2, 0.1, 0.0, 0.0)
-    assert dpa == pytest.approx(-be / va * a1 * 0.1) and dpb == pytest.approx(be / vb * a2 * 0.1)
-    # flow exactly matching the rod motion keeps both pressures constant
-    dpa, dpb = pressure_rates(be, vd, a1, a2, st, 0.2, 0.1, a1 * 0.1, a2 * 0.1)
-    assert dpa == 0.0 and dpb == 0.0
-    np.testing.assert_allclose(H.pressure_rates_nb(be, vd, a1, a2, st, 0.2, 0.1, 1e-4, 2e-4),
-                               pressure_rates(be, vd, a1, a2, st, 0.2, 0.1, 1e-4, 2e-4),
-                               rtol=1e-15)
 
 
 def test_actuator_inputs_of_wrong_shape_raise_physics_error(machine: Machine) -> None:

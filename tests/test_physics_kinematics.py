@@ -258,3 +258,43 @@ def test_reach_problems_flags_dead_centre_inside_working_range() -> None:
     assert problems[0].startswith("cylinders.0.base_pin_m: the moment arm vanishes (dead centre)")
     angle = float(problems[0].split("= ")[1].split("°")[0])
     assert abs(angle - -56.8) < 3.0
+
+
+def test_each_linkage_kind_gives_consistent_derivatives_and_inverse() -> None:
+    """For every cylinder of the crane (a direct revolute, a four-bar, a direct prismatic):
+    s′ and s″ of ``linkage.state`` match central differences of s, ``inverse`` undoes it and
+    ``motion`` equals (inverse, state) at once."""
+    from cranetwin.physics import compile_chain, linkage
+    from cranetwin.physics.layout import C_JOINT, C_KIND, cyl_block
+
+    machine = load_machine("patu655")
+    p = compile_chain(machine)
+    kinds = set()
+    for k in range(p.n_cylinders):
+        o = cyl_block(k)
+        kinds.add(int(p.cyl[o + C_KIND]))
+        joint = machine.joints[int(p.cyl[o + C_JOINT])]
+        h = 1e-4
+        for qv in np.linspace(joint.lower + 0.1 * (joint.upper - joint.lower),
+                              joint.upper - 0.1 * (joint.upper - joint.lower), 9):
+            s, d1, d2 = linkage.state(p.cyl, o, qv)
+            sp = linkage.state(p.cyl, o, qv + h)[0]
+            sm = linkage.state(p.cyl, o, qv - h)[0]
+            assert d1 == pytest.approx((sp - sm) / (2 * h), rel=1e-6, abs=1e-9)
+            assert d2 == pytest.approx((sp - 2 * s + sm) / h**2, rel=1e-4, abs=1e-5)
+            assert linkage.inverse(p.cyl, o, s) == pytest.approx(qv, abs=1e-9)
+            np.testing.assert_allclose(linkage.motion(p.cyl, o, s), (qv, d1, d2), rtol=1e-9,
+                                       atol=1e-12)
+    assert kinds == {linkage.revolute.KIND, linkage.four_bar.KIND, linkage.prismatic.KIND}
+
+
+@pytest.mark.parametrize("module", ["cranetwin.physics.layout", "cranetwin.physics.linkage",
+                                    "cranetwin.physics.rnea", "cranetwin.physics.chain",
+                                    "cranetwin.physics.kernels", "cranetwin.physics.codegen",
+                                    "cranetwin.physics.actuator", "cranetwin.twin.gridpass"])
+def test_module_imports_first_on_its_own(module: str) -> None:
+    """No import circle: each module of the core imports first in a fresh interpreter."""
+    code = f"import {module}"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=False)
+    assert res.returncode == 0, res.stderr[-2000:]

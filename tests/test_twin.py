@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from cranetwin.errors import TwinError
@@ -11,6 +12,8 @@ from cranetwin.samples import SampleArrays
 from cranetwin.signal import inject_uniform_noise, nrmse
 from cranetwin.testing.recordings import Synthetic, make
 from cranetwin.twin import ReplayOptions, TwinResult, TwinStream, replay
+
+F64 = npt.NDArray[np.float64]
 
 INNER = slice(1000, -1000)  # away from the natural-spline ends (first and last second)
 
@@ -207,3 +210,148 @@ def test_windowed_payload_equals_direct_window_sums() -> None:
         assert m[i] == pytest.approx(m_ref, rel=1e-12)
         assert std[i] == pytest.approx(std_ref, rel=1e-9)
     assert abs(np.median(m) - 150.0) < 2.0
+
+
+def _without_slew_drive(machine: Machine) -> Machine:
+    """The crane without its slewing drive: the slew joint, its torque drive and channels and
+    the pillar removed, the lift boom's joint on the world frame (the pillar's frame at
+    theta0 = 0, so every pin keeps its coordinates)."""
+    from cranetwin.model.loader import machine_from_dict
+
+    data = machine.model_dump(mode="python")
+    drive = data["torque_drives"][0]
+    slew = next(j for j in data["joints"] if j["name"] == drive["joint"])
+    data["torque_drives"] = []
+    data["joints"] = [j for j in data["joints"] if j is not slew]
+    for j in data["joints"]:
+        if j["parent"] == slew["child"]:
+            j["parent"] = slew["parent"]
+    data["bodies"] = [b for b in data["bodies"] if b["name"] != slew["child"]]
+    data["channels"] = [c for c in data["channels"]
+                        if c["source"] not in (drive["name"], slew["name"])]
+    return machine_from_dict(data, "patu655 without slew drive")
+
+
+def _boom_samples(machine: Machine, payload: float, duration_s: float = 12.0,
+                  rate_hz: float = 100.0) -> tuple[SampleArrays, F64, F64]:
+    """Samples of the synthetic boom motion (:func:`cranetwin.testing.recordings.motion` without
+    theta0) on a machine whose joints are all cylinder-driven, pA from inverse dynamics and
+    Eq. 1–2 at pB = 2 MPa: (samples, true q, true cylinder forces)."""
+    from cranetwin import physics
+    from cranetwin.testing.recordings import motion
+
+    t = np.arange(int(round(duration_s * rate_hz)) + 1) / rate_hz
+    q, qd, qdd = (x[:, 1:] for x in motion(t, 0.5))
+    tau = physics.joint_torques(machine, q, qd, qdd, np.full(t.shape, payload))
+    s, arm = physics.cylinder_kinematics(machine, q)
+    v = arm * qd
+    force = tau / arm
+    cols: dict[str, F64] = {}
+    for c, cyl in enumerate(machine.cylinders):
+        pb = 2.0e6
+        pa = (force[:, c] + physics.friction_force(v[:, c], cyl.friction)
+              + pb * cyl.area_b_m2) / cyl.area_a_m2
+        by_q = {ch.quantity: ch.name for ch in machine.channels if ch.source == cyl.name}
+        cols[by_q["pressure_a"]] = pa
+        cols[by_q["pressure_b"]] = np.full(t.shape, pb)
+        cols[by_q["position"]] = s[:, c]
+    return (SampleArrays("bare", t, tuple(cols), np.column_stack(list(cols.values()))), q,
+            force)
+
+
+def test_replay_of_a_machine_without_torque_drive(machine: Machine) -> None:
+    bare = _without_slew_drive(machine)
+    assert not bare.torque_drives and bare.n_joints == 3
+    samples, q_true, f_true = _boom_samples(bare, 150.0)
+    res = replay(samples, bare, grid_hz=100)
+    np.testing.assert_allclose(res.q, q_true, atol=1e-4)
+    assert np.all(nrmse(res.cyl_force, f_true) < 1e-3)
+    for name in ("q", "qd", "qdd", "cyl_force", "actuator_torque", "id_torque",
+                 "joint_wrench"):
+        assert np.all(np.isfinite(getattr(res, name))), name
+    assert np.abs(res.payload_kg[100:-100] - 150.0).max() < 5.0
+    # streaming equals batch for it too
+    stream = TwinStream(bare, samples.channels,
+                        ReplayOptions(grid_hz=100, smoothing=tuple(res.smoothing.values())))
+    parts = [stream.push(SampleArrays(samples.machine_id, samples.t_s[i:i + 317],
+                                      samples.channels, samples.values[i:i + 317]))
+             for i in range(0, samples.t_s.shape[0], 317)]
+    parts.append(stream.flush())
+    got = TwinResult.concat([p for p in parts if p is not None])
+    np.testing.assert_allclose(got.cyl_force, res.cyl_force, rtol=1e-9, atol=1e-6)
+
+
+def _with_rotator(machine: Machine) -> Machine:
+    """The crane with a second free joint: a rotator at the boom tip (revolute about the
+    tip's z axis) carrying a 40 kg body, with its own torque drive, torque and angle channels.
+    The load point stays on the extension boom."""
+    from cranetwin.model.loader import machine_from_dict
+
+    data = machine.model_dump(mode="python")
+    data["bodies"].append({"name": "rotator", "mass_kg": 40.0, "com_m": (0.0, 0.0, -0.2),
+                           "inertia_kgm2": ((0.8, 0.0, 0.0), (0.0, 0.8, 0.0), (0.0, 0.0, 0.3))})
+    data["joints"].append({"name": "theta4", "kind": "revolute", "parent": "extension_boom",
+                           "child": "rotator", "axis": (0.0, 0.0, 1.0),
+                           "origin_m": (2.49, 0.0, 0.0), "lower": -3.5, "upper": 3.5,
+                           "unit": "rad"})
+    data["torque_drives"].append({"name": "rotator", "joint": "theta4", "max_torque_nm": 500.0,
+                                  "friction": {"coulomb": 20.0, "coulomb_velocity": 0.01,
+                                               "viscous": 10.0}})
+    data["channels"] += [
+        {"name": "rotator_torque", "quantity": "torque", "source": "rotator", "unit": "N*m",
+         "min": -1000.0, "max": 1000.0, "resolution": 0.01},
+        {"name": "rotator_angle", "quantity": "angle", "source": "theta4", "unit": "rad",
+         "min": -3.5, "max": 3.5, "resolution": 1.0e-5},
+    ]
+    return machine_from_dict(data, "patu655 with a rotator")
+
+
+def test_replay_of_a_machine_with_two_free_joints(machine: Machine) -> None:
+    from cranetwin import physics
+    from cranetwin.testing.recordings import motion
+
+    rot = _with_rotator(machine)
+    assert rot.n_joints == 5 and len(rot.torque_drives) == 2
+    t = np.arange(1201) / 100.0
+    q4, qd4, qdd4 = motion(t, 0.5)
+    w = 2 * np.pi * 0.2
+    # the rotator starts at rest too (the slew's integration assumes the machine at rest)
+    q = np.column_stack([q4, 0.6 * (1.0 - np.cos(w * t))])
+    qd = np.column_stack([qd4, 0.6 * w * np.sin(w * t)])
+    qdd = np.column_stack([qdd4, 0.6 * w * w * np.cos(w * t)])
+    tau = physics.joint_torques(rot, q, qd, qdd, np.full(t.shape, 150.0))
+    s, arm = physics.cylinder_kinematics(rot, q)
+    force = tau[:, 1:4] / arm
+    cols: dict[str, F64] = {}
+    for c, cyl in enumerate(rot.cylinders):
+        v = arm[:, c] * qd[:, c + 1]
+        by_q = {ch.quantity: ch.name for ch in rot.channels if ch.source == cyl.name}
+        cols[by_q["pressure_a"]] = (force[:, c] + physics.friction_force(v, cyl.friction)
+                                    + 2.0e6 * cyl.area_b_m2) / cyl.area_a_m2
+        cols[by_q["pressure_b"]] = np.full(t.shape, 2.0e6)
+        cols[by_q["position"]] = s[:, c]
+    for d in rot.torque_drives:
+        j = rot.joint_index(d.joint)
+        cols[f"{d.name}_torque"] = tau[:, j] + physics.friction_force(qd[:, j], d.friction)
+    cols["slew_angle"] = q[:, 0]
+    cols["rotator_angle"] = q[:, 4]
+    samples = SampleArrays("rot", t, tuple(cols), np.column_stack(list(cols.values())))
+    res = replay(samples, rot, grid_hz=100, payload=150.0)
+    inner = slice(100, -100)
+    np.testing.assert_allclose(res.q[inner], q[inner], atol=1e-3)
+    assert np.all(nrmse(res.cyl_force, force) < 1e-3)
+    # both drives' loads are measured: actuator loads match the truth, residuals are small
+    for j in (0, 4):
+        scale = float(np.abs(tau[:, j]).max())
+        assert np.abs(res.actuator_torque[inner, j] - tau[inner, j]).max() < 0.05 * scale
+        assert np.abs(res.residual[inner, j]).max() < 0.05 * scale
+    assert np.all(np.isfinite(res.joint_wrench))
+    # without the slew angle, the slew is integrated from its torque; the rotator keeps its
+    # angle channel
+    keep = [i for i, c in enumerate(samples.channels) if c != "slew_angle"]
+    no_slew = SampleArrays("rot", t, tuple(samples.channels[i] for i in keep),
+                           samples.values[:, keep])
+    res2 = replay(no_slew, rot, grid_hz=100, payload=150.0,
+                  options=ReplayOptions(grid_hz=100, theta0_initial=float(q[0, 0])))
+    np.testing.assert_allclose(res2.q[inner, 4], q[inner, 4], atol=1e-3)
+    assert np.abs(res2.q[inner, 0] - q[inner, 0]).max() < 0.05

@@ -1,27 +1,28 @@
-"""The fused model-step pass of the replay against the separate physics functions.
+"""The replay's grid stage against the separate physics functions.
 
-`cranetwin.physics.gridpass` computes kinematics, Eq. 1–2, inverse dynamics, the Eq. 3/4
-acceleration correction and the wrenches per instant in one compiled loop, with kinematics
-tables and the machine-specific RNEA inlined. Here every output is recomputed from the replay's
+`cranetwin.twin.gridpass` computes kinematics (through the tables of `cranetwin.twin.kintable`),
+Eq. 1–2, inverse dynamics with the machine's batch kernels, the Eq. 3/4 acceleration correction
+and the wrenches. Here every output is recomputed from the replay's
 own inputs (rod positions, velocities, pressures, payload) through the public vectorised
 physics API, which the physics tests check against Pinocchio.
 """
 
 from __future__ import annotations
 
-import math
+import importlib
 
 import numpy as np
 import pytest
 
 from cranetwin import physics
 from cranetwin.model import Machine, load_machine
-from cranetwin.physics import codegen, gridpass
+from cranetwin.physics import codegen
 from cranetwin.physics import kernels as K
 from cranetwin.physics.chain import compile_chain
+from cranetwin.physics.dynamics import batch_kernels
 from cranetwin.signal import inject_uniform_noise
 from cranetwin.testing.recordings import make
-from cranetwin.twin import ReplayOptions, TwinResult, replay
+from cranetwin.twin import ReplayOptions, TwinResult, gridpass, kintable, replay
 
 
 @pytest.fixture(scope="module")
@@ -40,15 +41,15 @@ def result(machine: Machine) -> TwinResult:
 def test_kinematics_table_matches_exact_inverse(machine: Machine) -> None:
     p = compile_chain(machine)
     stroke = np.array([c.stroke_m for c in machine.cylinders])
-    table = np.empty((len(stroke), gridpass.KIN_TABLE_NODES - 1, 6))
-    ok = gridpass.kinematics_table(p.cyl, stroke, gridpass.KIN_TABLE_NODES, table)
+    table = np.empty((len(stroke), kintable.KIN_TABLE_NODES - 1, 6))
+    ok = kintable.kinematics_table(p.cyl, stroke, kintable.KIN_TABLE_NODES, table)
     assert ok.all()
     rng = np.random.default_rng(0)
     for k, st in enumerate(stroke):
         s_all = np.concatenate([rng.uniform(0.0, st, 4000), [0.0, st, st / 2048.0]])
         exact = np.array([K.cylinder_motion(p.cyl, k, s) for s in s_all])  # q, s′, s″
-        per_m = (gridpass.KIN_TABLE_NODES - 1) / st
-        tab = np.array([gridpass.table_inverse(table, k, per_m, s) for s in s_all])  # q, q′, q″
+        per_m = (kintable.KIN_TABLE_NODES - 1) / st
+        tab = np.array([kintable.table_inverse(table, k, per_m, s) for s in s_all])  # q, q′, q″
         np.testing.assert_allclose(tab[:, 0], exact[:, 0], rtol=0, atol=1e-11)  # q [rad or m]
         # the inverse map's derivatives: q′ = 1/s′, q″ = −s″/s′³
         np.testing.assert_allclose(1.0 / tab[:, 1], exact[:, 1], rtol=1e-10)  # ds/dq
@@ -57,16 +58,9 @@ def test_kinematics_table_matches_exact_inverse(machine: Machine) -> None:
         np.testing.assert_allclose(tab[:, 2], q2, rtol=0, atol=1e-7 * q2_scale)
         # the fallback gives the same numbers from the exact inverse
         no = np.zeros(len(stroke), dtype=bool)
-        fb = np.array([gridpass.inverse_motion(table, no, p.cyl, k, per_m, s) for s in s_all])
+        fb = np.array([kintable.inverse_motion(table, no, p.cyl, k, per_m, s) for s in s_all])
         np.testing.assert_allclose(fb[:, 1], 1.0 / exact[:, 1], rtol=1e-14)
         np.testing.assert_allclose(fb[:, 2], q2, rtol=1e-13, atol=1e-15 * q2_scale)
-
-
-def test_fast_tanh_agrees_with_libm() -> None:
-    xs = np.concatenate([np.linspace(-25, 25, 20001), [0.0, -0.0, 1e-300, -1e-12, 19.09, 19.2],
-                         np.geomspace(1e-10, 1.0, 500)])
-    for x in xs:
-        assert gridpass.fast_tanh(x) == pytest.approx(math.tanh(x), rel=7e-16, abs=1e-300)
 
 
 def test_fused_pass_agrees_with_separate_physics(machine: Machine, result: TwinResult) -> None:
@@ -110,9 +104,15 @@ def test_generic_pass_equals_specialised(machine: Machine, monkeypatch: pytest.M
                                          result: TwinResult) -> None:
     syn = make(machine, duration_s=6.0, fine_hz=None, scale=0.6, payload=200.0)
     noisy = inject_uniform_noise(syn.samples, machine, 0.01, seed=4)
-    assert gridpass.kernel_for(compile_chain(machine)) is not gridpass.grid_pass_generic
+    from cranetwin.physics import dynamics
+
+    p = compile_chain(machine)
+    assert batch_kernels(p).rnea.__module__.startswith("cranetwin_rnea_")  # generated
     spec = replay(noisy, machine, 1000.0)
-    monkeypatch.setattr(gridpass, "kernel_for", lambda params: gridpass.grid_pass_generic)
+    monkeypatch.setattr(dynamics, "batch_kernels",
+                        lambda params, specialised=True: dynamics.generic_batch_kernels(params))
+    monkeypatch.setattr(importlib.import_module("cranetwin.twin.replay"), "batch_kernels",
+                        dynamics.batch_kernels)
     gen = replay(noisy, machine, 1000.0)
     for name in ("q", "qdd", "cyl_force", "id_torque", "residual", "joint_wrench", "payload_kg"):
         a, b = getattr(spec, name), getattr(gen, name)
@@ -131,8 +131,6 @@ def test_kinematic_option_skips_the_correction(machine: Machine) -> None:
 
 def test_generated_mass_matrix_and_payload_pass_agree_with_generic(machine: Machine) -> None:
     p = compile_chain(machine)
-    for name in ("mass_matrix_batch", "rnea_payload_batch"):  # the generated ones
-        assert gridpass._module_attr(p, name) is not None
     rng = np.random.default_rng(7)
     n = 500
     q = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(0.0, 1.2, n),
@@ -141,15 +139,12 @@ def test_generated_mass_matrix_and_payload_pass_agree_with_generic(machine: Mach
     qdd = rng.normal(0, 2.0, (n, 4))
     pl = rng.uniform(0, 500, n)
     mm = np.empty((n, 4, 4))
-    gridpass.mass_matrix_kernel_for(p)(q, pl, mm)
-    np.testing.assert_allclose(mm, physics.mass_matrix(machine, q, pl), rtol=1e-12, atol=1e-9)
-    rnea_tau = physics.dynamics.rnea_kernels(p)[1]
-    kernels = [gridpass.payload_kernel_for(p, rnea_tau)]
-    with pytest.MonkeyPatch.context() as mp:  # the fallback without a generated module
-        mp.setattr(gridpass, "_module_attr", lambda params, name: None)
-        kernels.append(gridpass.payload_kernel_for(p, rnea_tau))
-    assert kernels[0] is not kernels[1]
-    for fn in kernels:
+    both = [batch_kernels(p), physics.dynamics.generic_batch_kernels(p)]
+    for kernels in both:
+        kernels.mass_matrix(q, pl, mm)
+        np.testing.assert_allclose(mm, physics.mass_matrix(machine, q, pl), rtol=1e-12,
+                                   atol=1e-9)
+    for fn in (k.rnea_payload for k in both):
         t0 = np.empty((n, 4))
         t1 = np.empty((n, 4))
         fn(q, qd, qdd, t0, t1)
@@ -179,7 +174,8 @@ def test_tracer_folds_axis_rotations_and_shares_common_terms(machine: Machine) -
 
 def test_linear_wrench_pass_adds_the_acceleration_part(machine: Machine) -> None:
     """wrench(q, qd, qdd + Δ) = wrench(q, qd, qdd) + wrench(q, 0, Δ) without gravity: what the
-    grid pass's @RNEA_LIN marker relies on (RNEA is affine in the accelerations)."""
+    grid stage's linear pass relies on (RNEA is affine in the accelerations), for the
+    generated and the generic kernel, on the rows asked for only."""
     rng = np.random.default_rng(3)
     n = 200
     q = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(0.0, 1.2, n),
@@ -188,13 +184,13 @@ def test_linear_wrench_pass_adds_the_acceleration_part(machine: Machine) -> None
     _, w_full = physics.inverse_dynamics(machine, q, qd, qdd + dq, 300.0)
     _, w0 = physics.inverse_dynamics(machine, q, qd, qdd, 300.0)
     p = compile_chain(machine)
-    wl = np.empty((n, 4, 6))
-    zero = np.zeros(4)
-    for k in range(n):
-        wl[k] = w0[k]
-        gridpass.rnea_lin_row(p.chain, q, dq, 300.0, k, wl, np.empty((4, 12)), zero,
-                              np.empty(4), np.empty((4, 6)))
-    np.testing.assert_allclose(wl, w_full, rtol=1e-12, atol=1e-8)
+    rows = np.ones(n, dtype=bool)
+    rows[::7] = False
+    for kernels in (batch_kernels(p), physics.dynamics.generic_batch_kernels(p)):
+        wl = w0.copy()
+        kernels.rnea_lin(q, dq, np.full(n, 300.0), rows, wl)
+        np.testing.assert_allclose(wl[rows], w_full[rows], rtol=1e-12, atol=1e-8)
+        np.testing.assert_array_equal(wl[~rows], w0[~rows])
 
 
 def test_dd_inverse_batch_inverts_the_measured_block() -> None:

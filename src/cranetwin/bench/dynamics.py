@@ -3,10 +3,22 @@
 Measures :func:`cranetwin.physics.inverse_dynamics` (joint torques AND the joint reaction
 wrenches) over 3.6 M samples of a smooth motion of the built-in crane with a time-varying
 payload, on one thread, in chunks (the wrenches of a whole hour alone would take 690 MB; each
-chunk's outputs are reused). Baseline in the same run: a Python loop of ``pinocchio.rnea`` on
-the same crane, timed on a subset spread over the hour and scaled to all samples; the same
-subset gives ``max_rel_error``. Input generation is not timed; JIT compile time (or numba's
+chunk's outputs are reused). Input generation is not timed; JIT compile time (or numba's
 cache load) is reported apart as ``compile_seconds``.
+
+Baselines in the same run, each as a ratio (> 1: ours is faster):
+
+* ``generic_ratio``: the generic kernel (array-driven, no code generated for the machine) on
+  one chunk, against the generated one the physics API uses (``tau_wrench_ns_per_sample`` of
+  the bare kernel, without the API's input checks);
+* ``pinocchio_batch_ratio``: Pinocchio's C++ RNEA called once for a batch of samples
+  (``pinocchio.rneaInParallel`` on a ``ModelPool`` with one thread: no Python per sample), on
+  ``pinocchio_batch_samples`` samples. It returns joint torques only, so it is compared with our
+  torques-only kernel (``tau_ns_per_sample``); ``pinocchio_batch`` says why when it is not
+  callable;
+* ``speedup`` (and ``baseline_ns_per_call``): a Python loop of ``pinocchio.rnea``, one call per
+  sample, timed on a subset spread over the hour and scaled to all samples; the same subset
+  gives ``max_rel_error``. This one includes Python's call overhead per sample.
 """
 
 from __future__ import annotations
@@ -99,6 +111,25 @@ def _baseline(machine: Machine, t: F64, reps: int) -> tuple[float, float, float]
     return best, err_t, err_w
 
 
+def _pinocchio_batch(machine: Machine, q: F64, qd: F64, qdd: F64, payload: float,
+                     reps: int) -> float:
+    """Seconds per sample of ``pinocchio.rneaInParallel`` (one thread) over the batch."""
+    import pinocchio as pin
+
+    model = pinocchio_model(machine, payload)
+    pool = pin.ModelPool(model, 1)
+    qf, qdf, qddf = (np.asfortranarray(x.T) for x in (q, qd, qdd))
+    tau = np.asfortranarray(np.empty_like(qf))
+    pin.rneaInParallel(1, pool, qf[:, :10], qdf[:, :10], qddf[:, :10],
+                       np.asfortranarray(tau[:, :10]))
+    best = np.inf
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        pin.rneaInParallel(1, pool, qf, qdf, qddf, tau)
+        best = min(best, time.perf_counter() - t0)
+    return float(best / q.shape[0])
+
+
 def run(samples: int = 3_600_000, rate_hz: float = 1000.0, chunk: int = 65_536,
         baseline_samples: int = 20_000, reps: int = 3) -> dict[str, Any]:
     """Run the benchmark and return its figures (see the module docstring)."""
@@ -128,14 +159,25 @@ def run(samples: int = 3_600_000, rate_hz: float = 1000.0, chunk: int = 65_536,
             checksum = max(checksum, float(np.abs(wrench[:n, :, 3:]).max()))
         best = min(best, total)
 
-    # generic (array-driven) kernel on one chunk, for the record
+    # the bare kernels on one chunk: generated and generic, with wrenches and torques only
     n = min(chunk, samples)
     q, qd, qdd, payload = motion(machine, np.arange(n) / rate_hz)
-    generic = rnea_kernels(params, specialised=False)[0]
-    generic(q[:10], qd[:10], qdd[:10], payload[:10], tau[:10], wrench[:10])
-    t1 = time.perf_counter()
-    generic(q, qd, qdd, payload, tau[:n], wrench[:n])
-    generic_ns = (time.perf_counter() - t1) / n * 1e9
+
+    def per_sample(fn: Any, *args: Any) -> float:
+        fn(*(a[:10] for a in args))
+        t = np.inf
+        for _ in range(reps):
+            t1 = time.perf_counter()
+            fn(*args)
+            t = min(t, time.perf_counter() - t1)
+        return float(t / n * 1e9)
+
+    gen_w, gen_t = rnea_kernels(params)
+    generic_w, generic_t = rnea_kernels(params, specialised=False)
+    tau_wrench_ns = per_sample(gen_w, q, qd, qdd, payload, tau[:n], wrench[:n])
+    tau_ns = per_sample(gen_t, q, qd, qdd, payload, tau[:n])
+    generic_ns = per_sample(generic_w, q, qd, qdd, payload, tau[:n], wrench[:n])
+    generic_tau_ns = per_sample(generic_t, q, qd, qdd, payload, tau[:n])
 
     result: dict[str, Any] = {
         "benchmark": "dynamics",
@@ -148,7 +190,16 @@ def run(samples: int = 3_600_000, rate_hz: float = 1000.0, chunk: int = 65_536,
         "chunk_samples": chunk,
         "threads": 1,
         "compile_seconds": compile_seconds,
+        "tau_wrench_ns_per_sample": tau_wrench_ns,
+        "tau_ns_per_sample": tau_ns,
         "generic_kernel_ns_per_sample": generic_ns,
+        "generic_tau_ns_per_sample": generic_tau_ns,
+        "generic_ratio": generic_ns / tau_wrench_ns,
+        "generic_tau_ratio": generic_tau_ns / tau_ns,
+        "pinocchio_batch": None,
+        "pinocchio_batch_samples": n,
+        "pinocchio_batch_ns_per_sample": None,
+        "pinocchio_batch_ratio": None,
         "baseline": "Python loop of pinocchio.rnea, timed on a subset and scaled",
         "baseline_subset_samples": baseline_samples,
         "baseline_seconds": None,
@@ -170,6 +221,15 @@ def run(samples: int = 3_600_000, rate_hz: float = 1000.0, chunk: int = 65_536,
         result["max_rel_error"] = max(err_t, err_w)
         result["max_rel_error_tau"] = err_t
         result["max_rel_error_wrench"] = err_w
+        try:
+            batch = _pinocchio_batch(machine, q, qd, qdd, float(payload.mean()), reps)
+        except (AttributeError, RuntimeError, TypeError, ValueError) as exc:
+            result["pinocchio_batch"] = f"not callable: {exc}"
+        else:
+            result["pinocchio_batch"] = ("pinocchio.rneaInParallel, 1 thread, ModelPool; "
+                                         "torques only, against tau_ns_per_sample")
+            result["pinocchio_batch_ns_per_sample"] = batch * 1e9
+            result["pinocchio_batch_ratio"] = batch * 1e9 / tau_ns
     result["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     result["max_joint_moment_nm"] = checksum  # keeps the outputs observable
     return result

@@ -14,7 +14,15 @@ reported apart (``consumer_seconds``, ``consumer_cpu_seconds``; ``total_wall_sec
 whole loop). On a busy shared machine the wall time is longer than the CPU time.
 ``peak_rss_mib`` is the process's peak resident memory.
 
-Baseline in the same run: scipy ``CubicSpline(bc_type="natural")`` per channel and a plain
+``machine_hours_per_core_hour`` is replayed hours per CPU-hour (``time.process_time``) at the
+worker's settings (payload estimated, wrenches with the forward-dynamics correction), from the
+median run's CPU time; ``baseline_machine_hours_per_core_hour`` is the same with the generic
+build (no kernels generated for the machine: ``ReplayOptions(generated_kernels=False)``),
+measured in the same run, the same number of times (``generic_cpu_seconds`` its median,
+``cpu_seconds_runs`` and ``generic_cpu_seconds_runs`` every run). Run with
+``NUMBA_NUM_THREADS=1`` for figures per core.
+
+A second baseline in the same run: scipy ``CubicSpline(bc_type="natural")`` per channel and a plain
 per-grid-instant path (kinematics, Eq. 1–2 and inverse dynamics called one instant at a time
 through the same physics functions), timed on ``baseline_seconds_of_data`` of the recording and
 scaled to the hour; ``speedup`` = scaled baseline / measured.
@@ -36,7 +44,7 @@ from cranetwin.bench import emit
 from cranetwin.model import load_machine
 from cranetwin.signal import inject_uniform_noise
 from cranetwin.testing.recordings import make
-from cranetwin.twin import iter_replay
+from cranetwin.twin import ReplayOptions, iter_replay
 
 
 def _peak_rss_mib() -> float:
@@ -69,8 +77,8 @@ def _baseline(samples: Any, machine: Any, grid_hz: float, seconds: float) -> flo
     return time.perf_counter() - start
 
 
-def _timed_replay(noisy: Any, machine: Any, grid_hz: float,
-                  force_max: Any) -> tuple[float, float, float, float, float, int]:
+def _timed_replay(noisy: Any, machine: Any, grid_hz: float, force_max: Any,
+                  generated: bool = True) -> tuple[float, float, float, float, float, int]:
     """One timed replay of the recording: (replay wall, replay CPU, consumer wall, consumer CPU,
     whole loop wall [s], grid instants); the consumer keeps the maxima in ``force_max``."""
     start = time.perf_counter()
@@ -79,7 +87,8 @@ def _timed_replay(noisy: Any, machine: Any, grid_hz: float,
     wrench_max = np.zeros((machine.n_joints, 6))
     use_wall = 0.0
     use_cpu = 0.0
-    for part in iter_replay(noisy, machine, grid_hz):
+    opt = ReplayOptions(grid_hz=grid_hz, generated_kernels=generated)
+    for part in iter_replay(noisy, machine, grid_hz, options=opt):
         u0, c0 = time.perf_counter(), time.process_time()
         n_grid += part.n
         np.maximum(wrench_max, np.abs(part.joint_wrench).max(axis=0), out=wrench_max)
@@ -94,26 +103,34 @@ def _timed_replay(noisy: Any, machine: Any, grid_hz: float,
 def run(recording_seconds: float = 3600.0, grid_hz: float = 1000.0,
         baseline_seconds_of_data: float = 2.0, repeat: int = 1) -> dict[str, Any]:
     """Run the benchmark; return its figures (see the module docstring). With ``repeat`` > 1
-    the hour is replayed that many times: ``wall_seconds``, ``cpu_seconds`` and the consumer's
-    times are the median run's (the lower middle one for an even count), ``wall_seconds_runs``
-    lists every run."""
+    the hour is replayed that many times: ``wall_seconds`` and the consumer's times are the
+    median run's by wall time, ``cpu_seconds`` the median CPU time (the lower middle one for
+    an even count); ``wall_seconds_runs`` and ``cpu_seconds_runs`` list every run."""
     if repeat < 1:
         raise ValueError(f"repeat must be at least 1, got {repeat}")
     machine = load_machine("patu655")
     warm = make(machine, duration_s=20.0, fine_hz=None, scale=0.5)
     t0 = time.perf_counter()
-    for _ in iter_replay(warm.samples, machine, grid_hz):
-        pass
+    for generated in (True, False):
+        for _ in iter_replay(warm.samples, machine, grid_hz,
+                             options=ReplayOptions(grid_hz=grid_hz, generated_kernels=generated)):
+            pass
     compile_seconds = time.perf_counter() - t0
     syn = make(machine, duration_s=recording_seconds, fine_hz=None, scale=0.5,
                payload=lambda t: 150.0 + 100.0 * np.sin(2 * np.pi * t / 600.0))
     noisy = inject_uniform_noise(syn.samples, machine, 0.005, seed=0)
     runs: list[tuple[float, float, float, float, float, int]] = []
+    generic_cpu: list[float] = []
     force_max = np.zeros(len(machine.cylinders))
-    for _ in range(repeat):
+    for _ in range(repeat):  # interleaved, so that both builds see the same machine load
         runs.append(_timed_replay(noisy, machine, grid_hz, force_max))
+        generic_cpu.append(_timed_replay(noisy, machine, grid_hz, force_max, False)[1])
+    cpu_runs = [round(r[1], 3) for r in runs]
+    mid = (len(runs) - 1) // 2
+    cpu = sorted(r[1] for r in runs)[mid]  # the median CPU time, whichever run had it
     runs.sort()
-    wall, cpu, use_wall, use_cpu, total_wall, n_grid = runs[(len(runs) - 1) // 2]
+    wall, _, use_wall, use_cpu, total_wall, n_grid = runs[mid]
+    g_cpu = sorted(generic_cpu)[mid]
     peak = _peak_rss_mib()
     base = _baseline(noisy, machine, grid_hz, baseline_seconds_of_data)
     base_scaled = base * recording_seconds / baseline_seconds_of_data
@@ -126,6 +143,11 @@ def run(recording_seconds: float = 3600.0, grid_hz: float = 1000.0,
         "wall_seconds_runs": [round(r[0], 3) for r in runs],
         "real_time_factor": round(recording_seconds / wall, 1),
         "cpu_seconds": round(cpu, 3),  # on a shared machine wall > cpu when others run
+        "cpu_seconds_runs": cpu_runs,
+        "machine_hours_per_core_hour": round(recording_seconds / cpu, 1),
+        "generic_cpu_seconds": round(g_cpu, 3),
+        "generic_cpu_seconds_runs": [round(c, 3) for c in generic_cpu],
+        "baseline_machine_hours_per_core_hour": round(recording_seconds / g_cpu, 1),
         "consumer_seconds": round(use_wall, 3),
         "consumer_cpu_seconds": round(use_cpu, 3),
         "total_wall_seconds": round(total_wall, 3),

@@ -5,14 +5,21 @@ Modules (one concept each):
 * :mod:`~cranetwin.physics.kinematics` — cylinder rod positions <-> joint coordinates
   (closed-form triangle, four-bar circle intersection, prismatic), moment arms ds/dq, body
   poses, load point and reach, cylinder pins, and ``reach_problems`` (model validation);
-* :mod:`~cranetwin.physics.actuators` — cylinder force with friction (paper Eq. 1–2) and the
-  joint torques it produces;
-* :mod:`~cranetwin.physics.dynamics` — recursive Newton–Euler inverse dynamics with joint
-  reaction wrenches, mass matrix and bias forces (paper Eq. 3–4), vectorised over time;
-* :mod:`~cranetwin.physics.hydraulics` — orifice flow and chamber pressure build-up;
-* :mod:`~cranetwin.physics.kernels` — the numba single-sample kernels behind all of the above,
-  callable from the simulator's own ``@njit`` loop; :mod:`~cranetwin.physics.chain` builds the
-  flat parameter arrays they read (:func:`compile_chain`).
+* :mod:`~cranetwin.physics.actuator` — cylinder force with friction (paper Eq. 1–2), once, and
+  the joint torques it produces;
+* :mod:`~cranetwin.physics.dynamics` — inverse dynamics with joint reaction wrenches, mass
+  matrix and bias forces (paper Eq. 3–4), vectorised over time, and the machine's batch
+  kernels (:func:`~cranetwin.physics.dynamics.batch_kernels`);
+* :mod:`~cranetwin.physics.rnea` — RNEA and CRBA for one sample (compiled), the one joint
+  transform; :mod:`~cranetwin.physics.codegen` — the same RNEA traced into straight-line batch
+  kernels for one machine;
+* :mod:`~cranetwin.physics.linkage` — one module per linkage kind (revolute, prismatic,
+  four-bar): s, s′, s″ and the inverse;
+* :mod:`~cranetwin.physics.kernels` — the compiled loops over cylinders and samples, and the
+  single-sample kernels the simulator's own ``@njit`` loop calls;
+* :mod:`~cranetwin.physics.layout` — the flat arrays' fields by name;
+  :mod:`~cranetwin.physics.chain` builds them (:func:`compile_chain`);
+  :mod:`~cranetwin.physics.frames` — rotations and frames.
 
 Dependencies: numpy, numba, ``cranetwin.model`` and ``cranetwin.errors`` only. DESIGN.md says
 "numpy only"; numba is the one deliberate exception. Replay must run one hour of 1 kHz data
@@ -25,7 +32,7 @@ does the recursion in registers (see ``cranetwin bench dynamics``). Kernels are 
 
 from __future__ import annotations
 
-from cranetwin.physics.actuators import (
+from cranetwin.physics.actuator import (
     actuator_torques,
     cylinder_force,
     cylinder_forces,
@@ -41,12 +48,6 @@ from cranetwin.physics.dynamics import (
     inverse_dynamics,
     joint_torques,
     mass_matrix,
-)
-from cranetwin.physics.hydraulics import (
-    chamber_volumes,
-    orifice_flow,
-    pressure_rates,
-    valve_flows,
 )
 from cranetwin.physics.kinematics import (
     CylinderPins,
@@ -71,7 +72,6 @@ __all__ = [
     "actuator_torques",
     "bias_forces",
     "body_poses",
-    "chamber_volumes",
     "compile_chain",
     "cylinder_force",
     "cylinder_forces",
@@ -92,8 +92,5 @@ __all__ = [
     "mass_matrix",
     "moment_arm_rates",
     "moment_arms",
-    "orifice_flow",
-    "pressure_rates",
     "reach_problems",
-    "valve_flows",
 ]

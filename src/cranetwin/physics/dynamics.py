@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -29,38 +30,70 @@ F64 = npt.NDArray[np.float64]
 RneaKernels = tuple[Callable[..., None], Callable[..., None]]
 
 _log = logging.getLogger(__name__)
-_SPECIAL: dict[int, tuple[ChainParams, RneaKernels]] = {}
 
 
 def rnea_kernels(params: ChainParams, specialised: bool = True) -> RneaKernels:
-    """The batch RNEA kernels ``(rnea_batch, rnea_tau_batch)`` for a compiled machine.
+    """``(rnea_batch, rnea_tau_batch)`` of :func:`batch_kernels` (their ``rnea`` and
+    ``rnea_tau``): ``rnea_batch(q, qd, qdd, payload, tau, wrench)``, ``rnea_tau_batch(q, qd,
+    qdd, payload, tau)`` on contiguous float64 arrays."""
+    k = batch_kernels(params, specialised)
+    return k.rnea, k.rnea_tau
 
-    ``rnea_batch(q, qd, qdd, payload, tau, wrench)`` and ``rnea_tau_batch(q, qd, qdd, payload,
-    tau)`` take contiguous float64 arrays (module ``kernels`` for shapes). With ``specialised``
-    they are generated for this machine (:mod:`cranetwin.physics.codegen`, ≈ 3× faster);
-    otherwise, or if generation fails, the generic kernels bound to ``params.chain``.
+
+class BatchKernels(NamedTuple):
+    """A machine's batch kernels (loops over the rows of contiguous float64 arrays; q, qd,
+    qdd, acc (n, nj); payload (n,) [kg]; tau (n, nj); wrench (n, nj, 6); mm (n, nj, nj)):
+
+    * ``rnea(q, qd, qdd, payload, tau, wrench)``: inverse dynamics with reaction wrenches;
+    * ``rnea_tau(q, qd, qdd, payload, tau)``: joint loads only;
+    * ``rnea_payload(q, qd, qdd, tau0, tau1)``: loads without payload and with 1 kg;
+    * ``rnea_lin(q, acc, payload, rows, wrench)``: adds the wrenches' part linear in the
+      accelerations (qd = 0, no gravity) at ``acc`` on the rows where ``rows`` (n,) is true;
+    * ``mass_matrix(q, payload, mm)``: M(q).
     """
+
+    rnea: Callable[..., None]
+    rnea_tau: Callable[..., None]
+    rnea_payload: Callable[..., None]
+    rnea_lin: Callable[..., None]
+    mass_matrix: Callable[..., None]
+
+
+def generic_batch_kernels(params: ChainParams) -> BatchKernels:
+    """:class:`BatchKernels` of the generic kernels (:mod:`kernels`) bound to ``params``."""
     chain = params.chain
+    return BatchKernels(
+        rnea=lambda q, qd, qdd, pl, tau, wrench: K.rnea_batch(chain, q, qd, qdd, pl, tau, wrench),
+        rnea_tau=lambda q, qd, qdd, pl, tau: K.rnea_tau_batch(chain, q, qd, qdd, pl, tau),
+        rnea_payload=lambda q, qd, qdd, t0, t1: K.rnea_payload_batch(chain, q, qd, qdd, t0, t1),
+        rnea_lin=lambda q, acc, pl, rows, wrench: K.rnea_lin_batch(chain, q, acc, pl, rows,
+                                                                   wrench),
+        mass_matrix=lambda q, pl, mm: K.mass_matrix_batch(chain, q, pl, mm),
+    )
 
-    def generic(q: F64, qd: F64, qdd: F64, pl: F64, tau: F64, wrench: F64) -> None:
-        K.rnea_batch(chain, q, qd, qdd, pl, tau, wrench)
 
-    def generic_tau(q: F64, qd: F64, qdd: F64, pl: F64, tau: F64) -> None:
-        K.rnea_tau_batch(chain, q, qd, qdd, pl, tau)
+_BATCH: dict[int, tuple[ChainParams, BatchKernels]] = {}
 
+
+def batch_kernels(params: ChainParams, specialised: bool = True) -> BatchKernels:
+    """The machine's :class:`BatchKernels`: generated for it (straight-line code from its data,
+    :mod:`cranetwin.physics.codegen`) with ``specialised``, else, or if generation fails
+    (logged; it is an optimisation and never fails the physics), the generic ones."""
     if not specialised:
-        return generic, generic_tau
-    hit = _SPECIAL.get(id(params))
+        return generic_batch_kernels(params)
+    hit = _BATCH.get(id(params))
     if hit is not None and hit[0] is params:
         return hit[1]
     try:
-        from cranetwin.physics.codegen import specialised_kernels
+        from cranetwin.physics.codegen import specialised_module
 
-        kernels = specialised_kernels(params)
-    except Exception as exc:  # generation is an optimisation: never fail the physics on it
-        _log.warning("specialised RNEA unavailable (%s); using the generic kernel", exc)
-        kernels = (generic, generic_tau)
-    _SPECIAL[id(params)] = (params, kernels)
+        mod = specialised_module(params)
+        kernels = BatchKernels(mod.rnea_batch, mod.rnea_tau_batch, mod.rnea_payload_batch,
+                               mod.rnea_lin_batch, mod.mass_matrix_batch)
+    except Exception as exc:
+        _log.warning("specialised kernels unavailable (%s); using the generic ones", exc)
+        kernels = generic_batch_kernels(params)
+    _BATCH[id(params)] = (params, kernels)
     return kernels
 
 

@@ -29,7 +29,7 @@ from cranetwin.errors import ModelError, PhysicsError
 from cranetwin.model import WORLD, Machine
 from cranetwin.physics import kernels as K
 from cranetwin.physics.chain import (
-    axis_rotation,
+    choose_inverse_branches,
     compile_chain,
     cylinder_geometry,
     joint_frame_point,
@@ -262,24 +262,6 @@ def joints_from_cylinders(
 # poses
 
 
-def _joint_transforms(machine: Machine, q: F64) -> F64:
-    """Parent->child transforms of every joint, shape (n, n_joints, 4, 4)."""
-    n = q.shape[0]
-    out = np.zeros((n, machine.n_joints, 4, 4))
-    out[..., 3, 3] = 1.0
-    for i, j in enumerate(machine.joints):
-        r0 = rpy_matrix(j.origin_rpy_rad)
-        p0 = np.asarray(j.origin_m, dtype=np.float64)
-        a = np.asarray(j.axis, dtype=np.float64)
-        if j.kind == "revolute":
-            out[:, i, :3, :3] = r0 @ axis_rotation(a, q[:, i])
-            out[:, i, :3, 3] = p0
-        else:
-            out[:, i, :3, :3] = r0
-            out[:, i, :3, 3] = p0 + q[:, i, None] * (r0 @ a)
-    return out
-
-
 def body_poses(machine: Machine, q: npt.ArrayLike) -> F64:
     """World poses of the chain bodies (body i = child of joint i).
 
@@ -291,11 +273,8 @@ def body_poses(machine: Machine, q: npt.ArrayLike) -> F64:
         Homogeneous transforms body->world, shape (n, n_joints, 4, 4) [m].
     """
     qa = as_joint_array(machine, q)
-    rel = _joint_transforms(machine, qa)
-    out = np.empty_like(rel)
-    out[:, 0] = rel[:, 0]
-    for i in range(1, machine.n_joints):
-        out[:, i] = out[:, i - 1] @ rel[:, i]
+    out = np.empty((qa.shape[0], machine.n_joints, 4, 4))
+    K.body_poses_batch(compile_chain(machine).chain, qa, out)
     return out
 
 
@@ -430,7 +409,7 @@ def reach_problems(machine: Machine, tolerance: float = 0.005) -> list[str]:
                     f"normal to the axis of joint {joint.name!r} (axial offsets {w} m)")
                 continue
         lim = np.linspace(joint.lower, joint.upper, 2001)
-        K.choose_inverse_branches(block, lim)
+        choose_inverse_branches(block, lim)
         arr = np.concatenate(([1.0], block))
         need = f"{cyl.closed_length_m:g} … {cyl.closed_length_m + cyl.stroke_m:g} m"
         full = (np.linspace(-np.pi, np.pi, 7201) if joint.kind == "revolute"

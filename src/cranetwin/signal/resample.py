@@ -22,8 +22,19 @@ def uniform_grid(t0: float, t1: float, hz: float) -> F64:
     return t0 + np.arange(m, dtype=np.float64) / hz
 
 
-def nominal_period(t: npt.ArrayLike) -> float:
-    """Median sample spacing [s] of strictly increasing times t, shape (n,)."""
+def nominal_period(t: npt.ArrayLike, period_ns: int | None = None) -> float:
+    """The sample period [s]: the one the source carried (``period_ns`` [ns], e.g.
+    ``SampleArrays.period_ns``) when given, else the median spacing of the strictly increasing
+    times t, shape (n,) [s]. The only estimate of a sample period in ``signal`` and ``twin``.
+
+    Raises:
+        SignalError: ``period_ns`` is not positive; or, estimating, fewer than 2 times or
+            times not strictly increasing.
+    """
+    if period_ns is not None:
+        if period_ns <= 0:
+            raise SignalError(f"period_ns must be positive, got {period_ns}")
+        return period_ns * 1e-9
     ta = np.asarray(t, dtype=np.float64)
     if ta.shape[0] < 2:
         raise SignalError("need at least 2 samples to find the sample period")

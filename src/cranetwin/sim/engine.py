@@ -43,8 +43,6 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from cranetwin.physics import actuator as actuator_module
-from cranetwin.physics import chain as chain_module
 from cranetwin.physics import kernels as kernels_module
 from cranetwin.physics.actuator import eq1_cylinder_force, eq2_friction
 from cranetwin.physics.chain import CYL_BLOCK, HEADER, JOINT_BLOCK, PRISMATIC
@@ -104,9 +102,9 @@ def _drop_stale_cache() -> None:
     silently run the old code. A stamp of those sources next to the cache decides.
     """
     here = Path(__file__).resolve()
+    physics_dir = Path(kernels_module.__file__).resolve().parent
     deps = [here, here.with_name("hydraulics.py"), here.with_name("layout.py"),
-            Path(kernels_module.__file__).resolve(), Path(chain_module.__file__).resolve(),
-            Path(actuator_module.__file__).resolve()]
+            *sorted(physics_dir.rglob("*.py"))]  # every physics module the loop may inline
     digest = hashlib.sha256(b"".join(p.read_bytes() for p in deps)).hexdigest()
     cache_dirs = [here.parent / "__pycache__"]
     if os.environ.get("NUMBA_CACHE_DIR"):

@@ -3,7 +3,8 @@ payload estimation, and calibration of friction and masses."""
 
 from __future__ import annotations
 
-from cranetwin.twin.replay import ReplayOptions, TwinStream, iter_replay, replay
+from cranetwin.twin.options import ReplayOptions
+from cranetwin.twin.replay import TwinStream, iter_replay, replay
 from cranetwin.twin.result import TwinResult
 
 __all__ = ["ReplayOptions", "TwinResult", "TwinStream", "iter_replay", "replay"]

@@ -53,10 +53,13 @@ from cranetwin import physics
 from cranetwin.errors import TwinError
 from cranetwin.model import Cylinder, Machine
 from cranetwin.samples import SampleArrays
+from cranetwin.signal import nominal_period
 from cranetwin.signal.smoothing import sg_filter
 from cranetwin.twin.channels import ChannelMap
-from cranetwin.twin.replay import ReplayOptions, derivative_filter, replay
+from cranetwin.twin.options import ReplayOptions
+from cranetwin.twin.replay import replay
 from cranetwin.twin.result import TwinResult
+from cranetwin.twin.stages import derivative_filter
 
 F64 = npt.NDArray[np.float64]
 
@@ -153,7 +156,7 @@ def coulomb_column(v: F64, vc: float, sigma_v: float) -> F64:
 def velocity_noise_std(res: TwinResult, samples: SampleArrays, machine: Machine) -> F64:
     """Standard deviation of each cylinder's rod-velocity noise in a replay [m/s]:
     σ_s·‖h'‖/Δt, with σ_s the position noise the replay estimated and h' the Savitzky–Golay
-    derivative filter it used (:func:`cranetwin.twin.replay.derivative_filter`). The spline
+    derivative filter it used (:func:`cranetwin.twin.stages.derivative_filter`). The spline
     onto the grid is not counted (the fit's instants fall 1 ms after the samples; on simulated
     runs this matched the measured velocity error of the sensor noise to 1 %)."""
     cmap = ChannelMap.build(machine, samples.channels)
@@ -188,19 +191,18 @@ def _design(vc: F64, v: F64, g: F64, width: int, passes: int, sigma_v: F64) -> F
 
 def res_rate(res: TwinResult) -> float:
     """Grid rate of a replay result [Hz]."""
-    return float(1.0 / np.median(np.diff(res.t_s[:100])))
+    return 1.0 / nominal_period(res.t_s[:100])
 
 
 def sample_rate(samples: SampleArrays) -> float:
-    """Nominal sample rate [Hz]."""
-    return float(1.0 / np.median(np.diff(samples.t_s)))
+    """Nominal sample rate [Hz]: the period the samples carry, estimated only if they carry
+    none."""
+    return 1.0 / nominal_period(samples.t_s, samples.period_ns)
 
 
 def _before(y: F64, v: F64, cyls: list[Cylinder], c: int, width: int, passes: int) -> F64:
     """Low-passed force residual of cylinder ``c`` with the file's friction, no extra mass [N]."""
-    fr = cyls[c].friction
-    return _lowpass(y[:, c] - fr.coulomb * np.tanh(v[:, c] / fr.coulomb_velocity)
-                    - fr.viscous * v[:, c], width, passes)
+    return _lowpass(y[:, c] - physics.friction_force(v[:, c], cyls[c].friction), width, passes)
 
 
 def _fit(y: F64, g: F64, v: F64, vc0: F64, width: int, passes: int,

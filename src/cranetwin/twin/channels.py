@@ -25,13 +25,14 @@ class ChannelMap:
     """Column indices of the channels the twin reads, in ``machine.cylinders`` order.
 
     Attributes:
-        names: Channel names in the twin's working order: per cylinder pA, pB, s, then the slewing
-            torque (if the machine has a torque drive), then the slew angle (if sent).
+        names: Channel names in the twin's working order: per cylinder pA, pB, s, then per
+            torque drive (``machine.torque_drives`` order) its torque and its joint's angle,
+            each if sent.
         p_a: Working-order indices of the pA channels, one per cylinder.
         p_b: Working-order indices of the pB channels.
         s: Working-order indices of the rod position channels.
-        torque: Index of the slewing-torque channel or None.
-        angle: Index of the slew-angle channel or None.
+        torques: Per torque drive, the index of its torque channel or None.
+        angles: Per torque drive, the index of its joint's angle channel or None.
         resolution: Quantisation step per working channel (0 if unknown).
     """
 
@@ -39,14 +40,25 @@ class ChannelMap:
     p_a: tuple[int, ...]
     p_b: tuple[int, ...]
     s: tuple[int, ...]
-    torque: int | None
-    angle: int | None
+    torques: tuple[int | None, ...]
+    angles: tuple[int | None, ...]
     resolution: tuple[float, ...]
 
     @property
+    def torque(self) -> int | None:
+        """The first torque drive's torque channel (None if none is sent)."""
+        return self.torques[0] if self.torques else None
+
+    @property
+    def angle(self) -> int | None:
+        """The first torque drive's angle channel (None if none is sent)."""
+        return self.angles[0] if self.angles else None
+
+    @property
     def derivative_channels(self) -> tuple[int, ...]:
-        """Working indices of the channels whose rates the twin needs (rod positions, angle)."""
-        return self.s + ((self.angle,) if self.angle is not None else ())
+        """Working indices of the channels whose rates the twin needs (rod positions, then
+        the angles sent, in drive order)."""
+        return self.s + tuple(a for a in self.angles if a is not None)
 
     @property
     def choice_names(self) -> tuple[str, ...]:
@@ -74,21 +86,17 @@ class ChannelMap:
                 idx[q].append(len(names))
                 names.append(ch.name)
                 res.append(ch.resolution)
-        torque: int | None = None
-        angle: int | None = None
+        torques: list[int | None] = []
+        angles: list[int | None] = []
         for drive in machine.torque_drives:
-            ch = by_key.get((drive.name, "torque"))
-            if ch is not None:
-                torque = len(names)
-                names.append(ch.name)
-                res.append(ch.resolution)
-            joint_angle = by_key.get((drive.joint, "angle"))
-            if joint_angle is not None:
-                angle = len(names)
-                names.append(joint_angle.name)
-                res.append(joint_angle.resolution)
+            for ch, into in ((by_key.get((drive.name, "torque")), torques),
+                             (by_key.get((drive.joint, "angle")), angles)):
+                into.append(None if ch is None else len(names))
+                if ch is not None:
+                    names.append(ch.name)
+                    res.append(ch.resolution)
         return ChannelMap(tuple(names), tuple(idx["pressure_a"]), tuple(idx["pressure_b"]),
-                          tuple(idx["position"]), torque, angle, tuple(res))
+                          tuple(idx["position"]), tuple(torques), tuple(angles), tuple(res))
 
 
 def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
@@ -134,7 +142,7 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         js = cmap.s[c]
         out[js] = choose_window(cols[js], sigma=sigma.get(js),
                                 resolution=cmap.resolution[js])
-    for opt in (cmap.torque, cmap.angle):
+    for opt in cmap.torques + cmap.angles:
         if opt is not None:
             out[opt] = choose_window(cols[opt], sigma=sigma.get(opt),
                                      resolution=cmap.resolution[opt])

@@ -22,7 +22,8 @@ from cranetwin import physics
 from cranetwin.errors import TwinError
 from cranetwin.model import Machine
 from cranetwin.signal import inject_uniform_noise, nrmse
-from cranetwin.twin.replay import ReplayOptions, replay
+from cranetwin.twin.options import ReplayOptions
+from cranetwin.twin.replay import replay
 
 F64 = npt.NDArray[np.float64]
 

@@ -19,9 +19,11 @@ margin leave < 1e-20 of it), and the payload window is centred. So the streaming
 
 Where the work is done: the sample-rate stages (smoothing, the payload regression, the slew
 integration, mass matrices) run at the 100 Hz instants; every grid-rate quantity is computed
-in one compiled pass per chunk (:mod:`cranetwin.physics.gridpass`: splines, table-driven
-inverse kinematics, Eq. 1–2, the machine-specific RNEA inlined, the Eq. 3/4 correction, the
-wrenches), writing the output arrays once. The kinematics tables (quintic Hermite pieces of
+per chunk by :func:`cranetwin.twin.gridpass.grid_pass` (splines, table-driven inverse
+kinematics, Eq. 1–2, the machine's batch RNEA, the Eq. 3/4 correction, the wrenches). Free
+joints (no cylinder drives them): the one with a torque drive takes its angle from the angle
+channel, or integrates it from the torque (:mod:`cranetwin.twin.slew`); a free joint with
+neither is held at 0 (the reference pose). The kinematics tables (quintic Hermite pieces of
 the exact inverse, 2048 cells per stroke) agree with the exact inverse to 1e-11 in q and ds/dq
 and 1e-8 of the largest d²s/dq²; M_DD⁻¹ is interpolated between samples (agreement with the
 exact M(q) at every instant: 1.5e-5 of the wrench range). ``tests/test_twin_gridpass.py``
@@ -30,21 +32,17 @@ recomputes every output through the separate physics functions.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
-from dataclasses import dataclass
-from typing import Literal, Protocol
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
 from cranetwin import physics
 from cranetwin.errors import PhysicsError, TwinError
 from cranetwin.model import Machine
-from cranetwin.physics import actuator, gridpass
-from cranetwin.physics.chain import CYL_BLOCK, compile_chain
-from cranetwin.physics.dynamics import rnea_kernels
+from cranetwin.physics import actuator
+from cranetwin.physics.chain import compile_chain
+from cranetwin.physics.dynamics import batch_kernels
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import (
     ICI_WINDOWS,
@@ -58,194 +56,29 @@ from cranetwin.signal import (
     savgol_smooth,
 )
 from cranetwin.signal.smoothing import savgol_columns
+from cranetwin.twin import gridpass, kintable
+from cranetwin.twin.buffer import RowBuffer
 from cranetwin.twin.channels import ChannelMap, choose_smoothing
+from cranetwin.twin.options import END_STOP_MARGIN_M, HasSamples, ReplayOptions
 from cranetwin.twin.payload import regression_payload
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.slew import SlewState, integrate_slew
+from cranetwin.twin.stages import (
+    SampleColumns,
+    cylinder_states,
+    derivative_filter,
+    spline_layout,
+    unpack_states,
+)
 
 F64 = npt.NDArray[np.float64]
+
+__all__ = ["END_STOP_MARGIN_M", "HasSamples", "ReplayOptions", "TwinStream",
+           "derivative_filter", "iter_replay", "replay"]
 B = npt.NDArray[np.bool_]
 
-END_STOP_MARGIN_M = 0.002
-"""Rod positions this close to either end of the stroke [m] count as in the end stop: the
-wrench accelerations stay kinematic for that joint there (``wrench_acceleration``)."""
 
 
-
-@njit(cache=True, error_model="numpy")
-def _cylinder_states(sm, s_cols, v_col, a_col, pa_cols, pb_cols, stroke, table, table_ok, cyl,  # type: ignore[no-untyped-def]
-                     fpar, q, qd, qdd, cs):
-    """Per sample row of the smoothed channels ``sm``: rod positions clipped to [0, stroke],
-    the cylinder joints' q, qd, qdd through the kinematics tables (as
-    :func:`cranetwin.physics.gridpass.table_motion_batch`) into q, qd, qdd (n, n_joints), and
-    the states row cs (n, 5·n_c) = [q, qd, qdd of the cylinder joints, moment arms ds/dq,
-    forces (Eq. 1–2, as :func:`cranetwin.physics.kernels.cylinder_forces_batch` but with
-    the grid pass's :func:`~cranetwin.physics.gridpass.fast_tanh`)]; the rates
-    and accelerations are columns v_col + k, a_col + k. Returns the number of samples whose
-    position does not fit the geometry (q not finite)."""
-    nc = s_cols.shape[0]
-    bad = 0
-    for i in range(sm.shape[0]):
-        row_bad = False
-        for k in range(nc):
-            s = sm[i, s_cols[k]]
-            if s < 0.0:
-                s = 0.0
-            elif s > stroke[k]:
-                s = stroke[k]
-            ji = int(cyl[1 + k * CYL_BLOCK + 1])
-            vk = sm[i, v_col + k]
-            qj, w, acc, d1 = gridpass.joint_motion(
-                table, table_ok, cyl, k, table.shape[1] / cyl[1 + k * CYL_BLOCK + 3], s, vk,
-                sm[i, a_col + k])
-            q[i, ji] = qj
-            qd[i, ji] = w
-            qdd[i, ji] = acc
-            cs[i, k] = qj
-            cs[i, nc + k] = w
-            cs[i, 2 * nc + k] = acc
-            cs[i, 3 * nc + k] = d1
-            fr = fpar[k, 2] * gridpass.fast_tanh(vk / fpar[k, 3]) + fpar[k, 4] * vk
-            cs[i, 4 * nc + k] = (sm[i, pa_cols[k]] * fpar[k, 0] - sm[i, pb_cols[k]] * fpar[k, 1]
-                                 - fr)
-            if not math.isfinite(qj):
-                row_bad = True
-        if row_bad:
-            bad += 1
-    return bad
-
-
-@njit(cache=True)
-def _unpack_states(st, joints, theta, theta_joint, q, qd, qdd, arm, force):  # type: ignore[no-untyped-def]
-    """Rows of :func:`_cylinder_states` back into q, qd, qdd (n, n_joints; zero but the
-    cylinder joints and, if theta_joint >= 0, q of that joint = theta), arm and force
-    (n, n_c)."""
-    nc = joints.shape[0]
-    nj = q.shape[1]
-    for i in range(st.shape[0]):
-        for j in range(nj):
-            q[i, j] = 0.0
-            qd[i, j] = 0.0
-            qdd[i, j] = 0.0
-        for k in range(nc):
-            j = joints[k]
-            q[i, j] = st[i, k]
-            qd[i, j] = st[i, nc + k]
-            qdd[i, j] = st[i, 2 * nc + k]
-            arm[i, k] = st[i, 3 * nc + k]
-            force[i, k] = st[i, 4 * nc + k]
-        if theta_joint >= 0:
-            q[i, theta_joint] = theta[i]
-
-
-def derivative_filter(choice: SmoothingChoice, n_samples: int | None = None) -> tuple[int, int]:
-    """(window, polynomial order) of the Savitzky–Golay filters that give a position channel's
-    rate and acceleration from its derivative channel's smoothing choice: a window of 1 (no
-    smoothing chosen) means 5, the order is at least 3 (an acceleration needs it) and below
-    the window, and the window is cut to the largest odd length within ``n_samples``."""
-    w = choice.window if choice.window > 1 else 5
-    if n_samples is not None:
-        w = min(w, n_samples - (1 - n_samples % 2))
-    return w, min(max(choice.polyorder, 3), w - 1)
-
-
-class HasSamples(Protocol):
-    """Anything carrying sensor samples, e.g. :class:`cranetwin.sim.Recording`."""
-
-    @property
-    def samples(self) -> SampleArrays: ...
-
-
-@dataclass(frozen=True)
-class ReplayOptions:
-    """Settings of a replay.
-
-    Attributes:
-        grid_hz: Output grid rate [Hz]; must be an integer multiple of the sample rate.
-        smooth: Savitzky–Golay smoothing on (window chosen from the noise level) or off.
-        adaptive_pressures: Pressure windows adapted per sample (LPA-ICI) rather than fixed.
-        smoothing: Fixed smoothing choices per working channel (skips the automatic choice).
-        velocity: Rod velocity from the derivative of the position spline (``"spline"``) or by
-            Newton's divided-difference formula at the samples, then splined (``"newton"``).
-        payload_window_s: Length of the payload least-squares window [s].
-        chunk_samples: Samples per processing chunk (memory and cache size). Each chunk
-            recomputes a margin of ``payload window / 2 + prefilter / 2 + settle_samples``
-            samples on either side (≈ 200 at 100 Hz), so longer chunks waste less; 6000 (one
-            minute at 100 Hz, ≈ 30 MB of 1 kHz outputs) matches iter_replay's blocks.
-        settle_samples: Spline margin on each side of a chunk [samples].
-        sample_period_s: Nominal sample period [s]; the median spacing of the first data if None.
-        choose_after_s: Streaming: data collected before the smoothing windows are chosen [s].
-        theta0_initial: Slew angle at the start when it is integrated from torque [rad].
-        max_gap_s: Dropouts longer than this are flagged in ``TwinResult.gap`` (5 periods if None).
-        lookahead_s: Streaming: raw data held back for regularisation [s] (50 periods if None).
-        wrench_acceleration: Joint accelerations behind ``joint_wrench``: ``"dynamic"`` =
-            forward dynamics from the measured actuator loads, qdd = M⁻¹(tau_act − C·qd − g)
-            (paper Eq. 3/4) on every joint whose load is measured (cylinder joints; the slew
-            when the pillar torque is sent), keeping the hydraulic oscillations that the
-            smoothed kinematic accelerations lose (docs/ACCURACY.md "Joint reaction loads":
-            moment NRMSE 4–30× lower on fig3/log-loading at e = 0 and 2 %, fatigue damage of
-            the bending moments 0.66–1.04× the truth's instead of 0.00–0.6×); ``"kinematic"``
-            = the twice-differentiated positions (``qdd``). ``qdd``, ``id_torque`` and
-            ``residual`` stay kinematic either way, and so does a cylinder joint while its
-            rod is within ``END_STOP_MARGIN_M`` of an end of the stroke (the end stop takes
-            a force the pressures do not show) and during bridged dropouts.
-    """
-
-    grid_hz: float = 1000.0
-    smooth: bool = True
-    adaptive_pressures: bool = True
-    smoothing: tuple[SmoothingChoice, ...] | None = None
-    velocity: Literal["spline", "newton"] = "spline"
-    payload_window_s: float = 2.0
-    chunk_samples: int = 6000
-    settle_samples: int = 40
-    sample_period_s: float | None = None
-    choose_after_s: float = 10.0
-    theta0_initial: float = 0.0
-    max_gap_s: float | None = None
-    lookahead_s: float | None = None
-    wrench_acceleration: Literal["dynamic", "kinematic"] = "dynamic"
-
-
-class _Buf:
-    """Rows indexed by a global sample index k: rows [base, base + len), stored with spare
-    capacity so that appending does not copy the whole buffer each time."""
-
-    def __init__(self, width: int) -> None:
-        self.base = 0
-        self._data = np.empty((0, width))
-        self._n = 0
-
-    @property
-    def arr(self) -> F64:
-        return self._data[: self._n]
-
-    @property
-    def end(self) -> int:
-        return self.base + self._n
-
-    def append(self, rows: F64) -> None:
-        rows = rows.reshape(rows.shape[0], -1)
-        need = self._n + rows.shape[0]
-        if need > self._data.shape[0]:
-            grown = np.empty((max(need, 2 * self._data.shape[0]), self._data.shape[1]))
-            grown[: self._n] = self._data[: self._n]
-            self._data = grown
-        self._data[self._n : need] = rows
-        self._n = need
-
-    def get(self, k0: int, k1: int) -> F64:
-        if k0 < self.base or k1 > self.end:
-            raise TwinError(f"internal: rows {k0}..{k1} outside buffer {self.base}..{self.end}")
-        return self._data[k0 - self.base : k1 - self.base]
-
-    def trim(self, keep_from: int) -> None:
-        cut = keep_from - self.base
-        if cut > 0:
-            rest = self._n - cut
-            self._data[:rest] = self._data[cut : self._n].copy()
-            self._n = rest
-            self.base = keep_from
 
 
 def _h0(choice: SmoothingChoice) -> float:
@@ -281,24 +114,31 @@ class TwinStream:
         if self._choices is not None and len(self._choices) != n_choice:
             raise TwinError(f"smoothing: expected {n_choice} choices {self.cmap.choice_names}, "
                             f"got {len(self._choices)}")
-        self._reg = _Buf(self._nch)
-        self._gap = _Buf(1)
+        self._reg = RowBuffer(self._nch)
+        self._gap = RowBuffer(1)
         # smoothed channels | integrated theta0 | rates | accelerations of the position channels
         self._nd = len(self.cmap.derivative_channels)
-        self._sm = _Buf(self._nch + 1 + 2 * self._nd)
+        self._sm = RowBuffer(self._nch + 1 + 2 * self._nd)
         self._sm_valid = 0  # smoothed rows [.., _sm_valid) have final values
         self._theta_done = 0
         # cylinder states at the samples (q, qd, qdd of the cylinder joints, moment arms,
         # forces; 5 blocks of n_cylinders) as the slew stage computed them, reused by the
         # chunks: the same rows from the same smoothed samples (only with the rates taken from
         # the smoothed samples, velocity="spline"; the Newton rates differ)
-        self._cs = _Buf(5 * len(machine.cylinders))
+        self._cs = RowBuffer(5 * len(machine.cylinders))
         self._out_done = 0
         self._slew = SlewState(theta0=self.opt.theta0_initial)
-        self._integrate = self.cmap.angle is None
-        self._use_cs = self._integrate and self.opt.velocity == "spline"
-        self._drive = machine.torque_drives[0] if machine.torque_drives else None
-        self._slew_joint = machine.joint_index(self._drive.joint) if self._drive else None
+        # free joints (no cylinder drives them) have torque drives: a drive's joint takes its
+        # angle from its angle channel; the first one without an angle channel integrates it
+        # from its torque (twin.slew: a vertical axis); any other is held at 0
+        drives = machine.torque_drives
+        self._drive_joints = [machine.joint_index(d.joint) for d in drives]
+        no_angle = [d for d, a in enumerate(self.cmap.angles) if a is None]
+        self._integrated = no_angle[0] if no_angle else None  # drive index
+        self._integrate = self._integrated is not None
+        self._drive = drives[self._integrated] if self._integrated is not None else None
+        self._slew_joint = (self._drive_joints[self._integrated]
+                            if self._integrated is not None else None)
         self._cyl_joint = [machine.joint_index(c.joint) for c in machine.cylinders]
         self._cyl_joint_arr = np.array(self._cyl_joint, dtype=np.int64)
         self._s_cols = np.array(self.cmap.s, dtype=np.int64)
@@ -311,21 +151,31 @@ class TwinStream:
         self._stroke = np.array([c.stroke_m for c in machine.cylinders])
         self._finished = False
         params = compile_chain(machine)
-        self._chain = params.chain
         self._cyl = params.cyl
-        self._fpar = np.array([[c.area_a_m2, c.area_b_m2, c.friction.coulomb,
-                                c.friction.coulomb_velocity, c.friction.viscous]
-                               for c in machine.cylinders], dtype=np.float64)
-        fr = self._drive.friction if self._drive is not None else None
-        self._drive_fric = np.array([fr.coulomb, fr.coulomb_velocity, fr.viscous]
-                                    if fr is not None else [0.0, 1.0, 0.0])
-        self._grid = gridpass.kernel_for(params)
-        self._rnea_tau = rnea_kernels(params)[1]
-        self._payload_tau = gridpass.payload_kernel_for(params, self._rnea_tau)
-        self._mass_matrix = gridpass.mass_matrix_kernel_for(params)
-        self._table = np.empty((len(machine.cylinders), gridpass.KIN_TABLE_NODES - 1, 6))
-        self._table_ok = gridpass.kinematics_table(params.cyl, self._stroke,
-                                                   gridpass.KIN_TABLE_NODES, self._table)
+        self._fpar = actuator.cylinder_params(machine)
+        self._kernels = batch_kernels(params, self.opt.generated_kernels)
+        self._mass_matrix = self._kernels.mass_matrix
+        self._table = np.empty((len(machine.cylinders), kintable.KIN_TABLE_NODES - 1, 6))
+        self._table_ok = kintable.kinematics_table(params.cyl, self._stroke,
+                                                   kintable.KIN_TABLE_NODES, self._table)
+        self._qi = gridpass.Quantities.of(len(machine.cylinders), len(self._free))
+        drive_friction = np.zeros((len(self._free), 3))
+        drive_friction[:, 1] = 1.0
+        for d in machine.torque_drives:
+            f = d.friction
+            drive_friction[self._free.index(machine.joint_index(d.joint))] = (
+                f.coulomb, f.coulomb_velocity, f.viscous)
+        self._free_joints = gridpass.FreeJoints(np.array(self._free, dtype=np.int64),
+                                                drive_friction)
+        self._cylinders = gridpass.Cylinders(params.cyl, self._table, self._table_ok,
+                                             self._fpar, self._stroke, self._cyl_joint_arr,
+                                             END_STOP_MARGIN_M)
+        # each drive's index among the free joints (its angle and torque quantities)
+        self._drive_free = [self._free.index(j) for j in self._drive_joints]
+        # the sample-rate states of the slew stage serve the chunks when the integrated angle
+        # is the only free joint
+        self._use_cs = (self._integrate and self.opt.velocity == "spline"
+                        and len(self._free) == 1)
 
     # -- geometry of the margins -------------------------------------------------------------
     @property
@@ -385,6 +235,8 @@ class TwinStream:
         vals = np.asarray(samples.values, dtype=np.float64)
         if self._cols != list(range(vals.shape[1])):
             vals = vals[:, self._cols]
+        if self._period is None and samples.period_ns is not None:
+            self._period = nominal_period(t, samples.period_ns)
         self._raw_t = np.concatenate([self._raw_t, t])
         self._raw_v = np.concatenate([self._raw_v, vals])
         yield from self._advance(final=False)
@@ -529,9 +381,9 @@ class TwinStream:
         qd = np.zeros((n, nj))
         qdd = np.zeros((n, nj))
         cs = np.empty((n, 5 * nc))
-        bad = _cylinder_states(sm, self._s_cols, self._nch + 1, self._nch + 1 + self._nd,
-                               self._pa_cols, self._pb_cols, self._stroke, self._table,
-                               self._table_ok, self._cyl, self._fpar, q, qd, qdd, cs)
+        cols = SampleColumns(self._s_cols, self._pa_cols, self._pb_cols, self._nch + 1,
+                             self._nch + 1 + self._nd)
+        bad = cylinder_states(sm, cols, self._cylinders, q, qd, qdd, cs)
         if bad:  # the descriptive error
             self._joint_motion(self._clip_s(sm[:, self._s_cols]),
                                sm[:, self._nch + 1 : self._nch + 1 + nc],
@@ -573,10 +425,11 @@ class TwinStream:
         m00 = row[:, j0]
         others = [j for j in range(self.machine.n_joints) if j != j0]
         coupling = np.einsum("nj,nj->n", row[:, others], qd[sl][:, others])
-        if self.cmap.torque is None:
+        tc = self.cmap.torques[self._integrated] if self._integrated is not None else None
+        if tc is None:
             torque = np.zeros(m00.shape[0])
         else:
-            torque = self._sm.get(k0, k_hi)[:, self.cmap.torque]
+            torque = self._sm.get(k0, k_hi)[:, tc]
         fr = self._drive.friction
         theta, _ = integrate_slew(self._period, torque, m00, coupling, fr.coulomb,
                                   fr.coulomb_velocity, fr.viscous, self._slew)
@@ -597,7 +450,9 @@ class TwinStream:
 
     def _trim(self) -> None:
         need = self._out_done - self._wh - self.opt.settle_samples - 4
-        need = min(need, self._theta_done - self._wh - 8, self._sm_valid - 2 * self._hw - 8)
+        need = min(need, self._sm_valid - 2 * self._hw - 8)
+        if self._integrate:
+            need = min(need, self._theta_done - self._wh - 8)
         if need > 0:
             self._sm.trim(min(need, self._sm.end))
             self._reg.trim(min(need, self._reg.end))
@@ -614,7 +469,7 @@ class TwinStream:
     def _joint_motion(self, s: F64, v: F64, a: F64,
                       q_other: F64) -> tuple[F64, F64, F64, F64]:
         """q, qd, qdd (n, n_joints) and moment arms ds/dq (n, n_cylinders), one fused pass
-        through the kinematics tables (:func:`cranetwin.physics.gridpass.kinematics_table`;
+        through the kinematics tables (:func:`cranetwin.twin.kintable.kinematics_table`;
         s within the strokes)."""
         n = s.shape[0]
         nj = self.machine.n_joints
@@ -624,7 +479,7 @@ class TwinStream:
         if q_other.shape[1]:
             q[:, self._free] = q_other
         arm = np.empty((n, len(self.machine.cylinders)))
-        gridpass.table_motion_batch(self._table, self._table_ok, self._cyl,
+        kintable.table_motion_batch(self._table, self._table_ok, self._cyl,
                                     np.ascontiguousarray(s), np.ascontiguousarray(v),
                                     np.ascontiguousarray(a), q, qd, qdd, arm)
         if not np.all(np.isfinite(q[:, self._cyl_joint])):
@@ -667,7 +522,7 @@ class TwinStream:
         t0 = np.empty((q.shape[0], nj))  # joint loads without payload
         t1 = np.empty((q.shape[0], nj))  # and with 1 kg at the load point
         c = np.ascontiguousarray
-        self._payload_tau(c(q), c(qd), c(qdd), t0, t1)
+        self._kernels.rnea_payload(c(q), c(qd), c(qdd), t0, t1)
         weights, frac = self._payload_weights()
         return regression_payload(t0, t1, f, arm, self._cyl_joint_arr, weights,
                                   self._prefilter // 2, self._payload_half, frac)
@@ -676,7 +531,7 @@ class TwinStream:
     def _splines(self, knots_t: F64, sm: F64) -> tuple[F64, npt.NDArray[np.int64],
                                                        npt.NDArray[np.int64]]:
         """One natural spline over every column the grid needs and the quantity table
-        (:mod:`cranetwin.physics.gridpass`) saying which column (and derivative) is what.
+        (:mod:`cranetwin.twin.gridpass`) saying which column (and derivative) is what.
 
         Rates and accelerations are the Savitzky–Golay derivative filters at the samples,
         splined (``velocity="spline"``); or Newton's divided differences of the smoothed
@@ -684,7 +539,8 @@ class TwinStream:
         integrated slew angle takes its rate and acceleration from its own spline.
         """
         if self._layout is None:
-            self._layout = self._spline_layout()
+            self._layout = spline_layout(self.cmap, self._nch, self.opt.velocity,
+                                         self._integrated, self._qi, self._drive_free)
         pos_cols, cols, src, der = self._layout
         data = sm[:, cols]
         if self.opt.velocity == "newton":
@@ -692,61 +548,12 @@ class TwinStream:
             data = np.concatenate([data, extra], axis=1)
         return natural_pieces(knots_t, data), src, der
 
-    def _spline_layout(self) -> tuple[list[int], list[int], npt.NDArray[np.int64],
-                                      npt.NDArray[np.int64]]:
-        """(position columns, spline columns of the smoothed samples, src, der) of
-        :meth:`_splines` (fixed for a stream; with ``"newton"`` the Newton rates of the
-        position columns follow the listed columns)."""
-        nc = len(self.machine.cylinders)
-        nd = self._nd
-        cm = self.cmap
-        ang = cm.angle
-        theta_col = self._nch if self._integrate else ang
-        pos_cols = list(cm.s) + ([theta_col] if theta_col is not None else [])
-        cols: list[int] = list(pos_cols)
-        src = np.full(gridpass.n_quantities(nc), -1, dtype=np.int64)
-        der = np.zeros_like(src)
-        src[:nc] = np.arange(nc)
-        if self.opt.velocity == "newton":
-            base = len(cols) + len(cm.p_a) + len(cm.p_b) + (cm.torque is not None)
-            src[nc : 2 * nc] = base + np.arange(nc)
-            src[2 * nc : 3 * nc] = base + np.arange(nc)
-            der[2 * nc : 3 * nc] = 1
-            if theta_col is not None:
-                src[3 * nc] = nc
-                src[3 * nc + 1 : 3 * nc + 3] = base + nc
-                der[3 * nc + 2] = 1
-        else:
-            rates = [self._nch + 1 + i for i in range(nd)]
-            accs = [self._nch + 1 + nd + i for i in range(nd)]
-            src[nc : 2 * nc] = len(cols) + np.arange(nc)
-            src[2 * nc : 3 * nc] = len(cols) + nd + np.arange(nc)
-            cols += rates + accs
-            if theta_col is not None:
-                src[3 * nc] = nc
-                if ang is not None and not self._integrate:
-                    # the angle is the last derivative channel: its rate and acceleration
-                    src[3 * nc + 1] = len(pos_cols) + nd - 1
-                    src[3 * nc + 2] = len(pos_cols) + 2 * nd - 1
-                else:
-                    src[3 * nc + 1 : 3 * nc + 3] = nc
-                    der[3 * nc + 1] = 1
-                    der[3 * nc + 2] = 2
-        src[3 * nc + 3 : 4 * nc + 3] = len(cols) + np.arange(nc)
-        cols += list(cm.p_a)
-        src[4 * nc + 3 : 5 * nc + 3] = len(cols) + np.arange(nc)
-        cols += list(cm.p_b)
-        if cm.torque is not None:
-            src[5 * nc + 3] = len(cols)
-            cols.append(cm.torque)
-        return pos_cols, cols, src, der
-
     def _chunk(self, ka: int, kb: int, last: bool, ready: int) -> TwinResult:
         """Outputs at samples [ka, kb) (through kb − 1 … the end on the ``last`` chunk).
 
         Payload, its regression and the mass matrices run at the sample instants of an
         extended range (the payload window reaches ``_wh`` samples on each side); every grid
-        quantity is then computed in one compiled pass (:mod:`cranetwin.physics.gridpass`).
+        quantity is then computed by :func:`cranetwin.twin.gridpass.grid_pass`.
         """
         assert self._period is not None and self._origin is not None and self._choices is not None
         m = self.machine
@@ -755,6 +562,7 @@ class TwinStream:
         wh = self._wh
         nc = len(m.cylinders)
         nj = m.n_joints
+        qi = self._qi
         n_total = self._sm_valid if last else ready  # rows with every column final
         e0 = max(0, ka - wh)
         e1 = min(n_total - 1, kb + wh)  # inclusive
@@ -766,18 +574,22 @@ class TwinStream:
         h_last = float(knots_t[-1] - knots_t[-2])
         # -- the sample instants e0 … e1: state, actuator loads, payload ----------------------
         ne = e1 - e0 + 1
-        has_theta = bool(src[3 * nc] >= 0 and nj > nc)
+        # free joints whose angle the splines carry (from a channel or integrated)
+        thetas = [f for f in range(len(self._free)) if src[qi.free + 3 * f] >= 0]
+        rod_v, rod_a = slice(qi.v, qi.v + nc), slice(qi.a, qi.a + nc)
         # the spline at a knot is the knot's value, except the end knot (last piece at h_last)
         cached = self._use_cs and e1 < f1 and self._cs.base <= e0 and e1 < self._cs.end
+        at_samples = gridpass.Splines(coef, e0 - f0, 1, h0, h_last, src, der, qi)
+        free_q = slice(qi.free, qi.free + 3 * len(self._free))
         if cached:  # only the slew angle, its rate and acceleration are needed from the spline
-            smp = np.empty((ne, 3))
-            gridpass.spline_points(coef, e0 - f0, ne, 1, h0, h_last, src[3 * nc : 3 * nc + 3],
-                                   der[3 * nc : 3 * nc + 3], smp)
-            th = smp
+            smp = np.empty((ne, 3 * len(self._free)))
+            gridpass.spline_points(at_samples._replace(src=src[free_q], der=der[free_q]), ne,
+                                   smp)
+            theta = smp
         else:
             smp = np.empty((ne, src.shape[0]))
-            gridpass.spline_points(coef, e0 - f0, ne, 1, h0, h_last, src, der, smp)
-            th = smp[:, 3 * nc : 3 * nc + 3]
+            gridpass.spline_points(at_samples, ne, smp)
+            theta = smp[:, free_q]  # per free joint: angle, rate, acceleration
         f_s: F64 | None = None
         if cached:  # cylinder joints' motion, arms and forces as the slew stage found them
             q_s = np.empty((ne, nj))
@@ -785,20 +597,18 @@ class TwinStream:
             qdd_s = np.empty((ne, nj))
             arm_s = np.empty((ne, nc))
             f_s = np.empty((ne, nc))
-            _unpack_states(self._cs.get(e0, e1 + 1), self._cyl_joint_arr, th[:, 0],
-                           self._free[0] if has_theta else -1, q_s, qd_s, qdd_s, arm_s, f_s)
+            unpack_states(self._cs.get(e0, e1 + 1), self._cyl_joint_arr, theta[:, 0],
+                          self._free[0] if thetas else -1, q_s, qd_s, qdd_s, arm_s, f_s)
         else:
-            s_s = self._clip_s(smp[:, :nc])
+            s_s = self._clip_s(smp[:, qi.s : qi.s + nc])
             q_other = np.zeros((ne, nj - nc))
-            if has_theta:
-                q_other[:, 0] = th[:, 0]
-            q_s, qd_s, qdd_s, arm_s = self._joint_motion(s_s, smp[:, nc : 2 * nc],
-                                                         smp[:, 2 * nc : 3 * nc], q_other)
-        sj = self._slew_joint
-        has_drive = self._drive is not None and self.cmap.torque is not None
-        if has_theta and sj is not None:
-            qd_s[:, sj] = th[:, 1]
-            qdd_s[:, sj] = th[:, 2]
+            for f in thetas:
+                q_other[:, f] = theta[:, 3 * f]
+            q_s, qd_s, qdd_s, arm_s = self._joint_motion(s_s, smp[:, rod_v], smp[:, rod_a],
+                                                         q_other)
+        for f in thetas:
+            qd_s[:, self._free[f]] = theta[:, 3 * f + 1]
+            qdd_s[:, self._free[f]] = theta[:, 3 * f + 2]
         ks = slice(ka - e0, min(kb - e0 + 1, ne))  # samples ka … kb (if there)
         n_ks = ks.stop - ks.start
         if self.payload is not None:
@@ -806,13 +616,14 @@ class TwinStream:
             sk = np.zeros(n_ks)
         else:
             if f_s is None:
-                f_s = self._eq12(smp[:, 3 * nc + 3 : 4 * nc + 3],
-                                 smp[:, 4 * nc + 3 : 5 * nc + 3], smp[:, nc : 2 * nc])
+                f_s = self._eq12(smp[:, qi.pa : qi.pa + nc], smp[:, qi.pb : qi.pb + nc],
+                                 smp[:, rod_v])
             mk, sk = self._estimate_payload(q_s, qd_s, qdd_s, f_s, arm_s)
             mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
         dynamic = self.opt.wrench_acceleration == "dynamic"
-        full = list(self._cyl_joint) + ([sj] if has_drive and sj is not None else [])
-        full.sort()
+        # the joints whose loads are measured: every cylinder's, every drive's with a torque
+        full = sorted(self._cyl_joint + [j for j, t in zip(self._drive_joints, self.cmap.torques,
+                                                           strict=True) if t is not None])
         if dynamic:
             mm = np.empty((n_ks, nj, nj))
             self._mass_matrix(np.ascontiguousarray(q_s[ks]), np.nan_to_num(np.maximum(mk, 0.0)),
@@ -830,24 +641,14 @@ class TwinStream:
         gap_g = np.repeat(gap, r)[:n] if r > 1 else gap[:n]
         if gap_g.shape[0] < n:
             gap_g = np.concatenate([gap_g, np.zeros(n - gap_g.shape[0], dtype=bool)])
-        out = {name: np.empty((n, w)) for name, w in (
-            ("q", nj), ("qd", nj), ("qdd", nj), ("rod_s", nc), ("rod_v", nc), ("p_a", nc),
-            ("p_b", nc), ("cyl_force", nc), ("actuator_torque", nj), ("id_torque", nj),
-            ("residual", nj))}
-        wrench = np.empty((n, nj, 6))
-        mass_g = np.empty(n)
-        std_g = np.empty(n)
-        bad = self._grid(
-            self._chain, coef, ka - f0, r, h0, h_last, src, der,
-            self._cyl, self._table, self._table_ok, self._fpar, self._stroke, END_STOP_MARGIN_M,
-            -1 if sj is None else sj, self._drive_fric, has_drive, has_theta,
-            mk, sk, mm, minv, minv_ok, len(full), dynamic, np.ascontiguousarray(gap_g),
-            out["q"], out["qd"], out["qdd"], out["rod_s"], out["rod_v"], out["p_a"],
-            out["p_b"], out["cyl_force"], out["actuator_torque"], out["id_torque"],
-            out["residual"], wrench, mass_g, std_g, np.empty((n, nj)), np.empty((nj, 12)))
+        out = gridpass.GridOut.empty(n, nj, nc, np.ascontiguousarray(gap_g))
+        bad = gridpass.grid_pass(
+            gridpass.Splines(coef, ka - f0, r, h0, h_last, src, der, qi), self._cylinders,
+            self._free_joints, gridpass.SampleState(mk, sk, mm, minv, minv_ok, len(full), dynamic),
+            out, self._kernels)
         if bad:
-            rows = ~np.all(np.isfinite(out["q"]), axis=1)
-            self._joint_motion(out["rod_s"][rows], out["rod_v"][rows], out["rod_v"][rows],
+            rows = ~np.all(np.isfinite(out.q), axis=1)
+            self._joint_motion(out.rod_s[rows], out.rod_v[rows], out.rod_v[rows],
                                np.zeros((int(rows.sum()), nj - nc)))
             raise TwinError(f"rod positions do not fit the machine geometry at {bad} instants")
         t = np.arange(n, dtype=np.float64)  # origin + (ka + g/r)·p, in place
@@ -856,11 +657,10 @@ class TwinStream:
         t *= p
         t += self._origin
         return TwinResult(
-            t_s=t, q=out["q"], qd=out["qd"], qdd=out["qdd"], rod_s=out["rod_s"],
-            rod_v=out["rod_v"], p_a=out["p_a"], p_b=out["p_b"], cyl_force=out["cyl_force"],
-            actuator_torque=out["actuator_torque"], id_torque=out["id_torque"],
-            residual=out["residual"], joint_wrench=wrench, payload_kg=mass_g,
-            payload_std_kg=std_g, gap=gap_g,
+            t_s=t, q=out.q, qd=out.qd, qdd=out.qdd, rod_s=out.rod_s, rod_v=out.rod_v,
+            p_a=out.pa, p_b=out.pb, cyl_force=out.force, actuator_torque=out.tau_act,
+            id_torque=out.tau_id, residual=out.resid, joint_wrench=out.wrench,
+            payload_kg=out.mass, payload_std_kg=out.std, gap=gap_g,
             smoothing=dict(zip(self.cmap.choice_names, self._choices, strict=True)),
         )
 
@@ -884,7 +684,9 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
         opt = ReplayOptions(**{**opt.__dict__, "grid_hz": grid_hz})
     n = samples.t_s.shape[0]
     if opt.sample_period_s is None and n >= 2:
-        opt = ReplayOptions(**{**opt.__dict__, "sample_period_s": nominal_period(samples.t_s)})
+        opt = ReplayOptions(**{**opt.__dict__,
+                               "sample_period_s": nominal_period(samples.t_s,
+                                                                 samples.period_ns)})
     stream = TwinStream(machine, samples.channels, opt, payload)
     if opt.smoothing is None and n >= 4 and opt.sample_period_s is not None:
         cols = [samples.channels.index(c) for c in stream.cmap.names]
@@ -898,7 +700,8 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
     for i in range(0, n, block_samples):
         j = min(n, i + block_samples)
         yield from stream.push_iter(SampleArrays(samples.machine_id, samples.t_s[i:j],
-                                                 samples.channels, samples.values[i:j]))
+                                                 samples.channels, samples.values[i:j],
+                                                 samples.period_ns))
     yield from stream.flush_iter()
 
 

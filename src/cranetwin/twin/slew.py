@@ -20,6 +20,8 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from cranetwin.physics.actuator import eq2_friction
+
 F64 = npt.NDArray[np.float64]
 
 
@@ -47,7 +49,7 @@ def _integrate(dt, tau, m00, coupling, fc, vc, b, state, theta, thd):  # type: i
     p, th, vprev, tprev, started = state[0], state[1], state[2], state[3], state[4]
     for k in range(tau.shape[0]):
         if started > 0.5:
-            fr = fc * np.tanh(vprev / vc) + b * vprev
+            fr = eq2_friction(vprev, fc, vc, b)
             p = p + dt * (0.5 * (tprev + tau[k]) - fr)
             v = (p - coupling[k]) / m00[k]
             th = th + 0.5 * dt * (vprev + v)
