@@ -40,8 +40,9 @@ Faults never stop the daemon:
 Modules: configuration in :mod:`~cranetwin.ingest.config`, counters in
 :mod:`~cranetwin.ingest.metrics`, binding sockets in :mod:`~cranetwin.ingest.sockets`, the
 database side (retries through outages, block-by-block fallback, status, rollup) in
-:mod:`~cranetwin.ingest.writer`; this module is the daemon itself (event loop, decoder and writer
-threads, acks after commit, supervisor, shutdown).
+:mod:`~cranetwin.ingest.writer`, machine keys in :mod:`~cranetwin.ingest.keys`; this module is
+the daemon itself (event loop, decoder and writer threads, acks after commit, supervisor,
+shutdown).
 
 ``serve()`` owns the lifecycle: SIGTERM/SIGINT stop the socket, the queue is drained and
 written, the last acks go out and the 1-min rollup runs, in bounded time: during a database
@@ -71,6 +72,7 @@ from prometheus_client import CollectorRegistry, Histogram, start_http_server
 
 from cranetwin.errors import CraneTwinError
 from cranetwin.ingest.config import DaemonConfig, IngestConfigError, check_model, layout_of
+from cranetwin.ingest.keys import MachineKeys
 from cranetwin.ingest.metrics import COUNTERS, Metrics, SnapshotCollector
 from cranetwin.ingest.sockets import _bind, _bind_message, new_event_loop
 from cranetwin.ingest.writer import Abandoned, StorageWriter, is_unavailable
@@ -78,8 +80,6 @@ from cranetwin.protocol import (
     REFUSAL_CODES,
     TYPE_REFUSAL,
     DatagramError,
-    Layout,
-    MachineKey,
     Receiver,
     RefusedError,
     ReplayedError,
@@ -142,12 +142,8 @@ class IngestDaemon:
             registry=self.registry,
             buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 10))
         self._clock = clock_ns
-        self._keys: dict[int, MachineKey] = {}
-        self._bad_models: dict[int, str] = {}  # wire id → machine id whose model does not load
-        self._layouts: dict[str, Layout] = {}
-        self._keys_loaded = 0.0
-        self._reloading = threading.Lock()
-        self._receiver = Receiver(self._lookup, limits=self.config.limits)
+        self.keys = MachineKeys(store, self.config.key_refresh_s, self._log_once)
+        self._receiver = Receiver(self.keys.lookup, limits=self.config.limits)
         self._queue: queue.Queue[tuple[bytes, Addr, int]] = queue.Queue(self.config.queue_max)
         self._decoded: queue.Queue[list[tuple[Item, Addr]]] = queue.Queue(2)
         self._rx_lock = threading.Lock()  # the Receiver is shared by decoder and writer
@@ -189,57 +185,12 @@ class IngestDaemon:
 
     # -- keys ---------------------------------------------------------------------------------
     def reload_keys(self) -> None:
-        """Read machine keys from storage (new registrations become valid). A machine whose
-        model does not load is logged once; its datagrams are dropped as ``bad_model``.
+        """Read machine keys from storage now (:meth:`MachineKeys.reload`).
 
         Raises:
             Exception: storage could not be read (the previous keys stay in use).
         """
-        keys: dict[int, MachineKey] = {}
-        bad: dict[int, str] = {}
-        models = {m.machine_id: m.model for m in self.store.machines()}
-        for wire_id, (machine_id, secret) in self.store.machine_keys().items():
-            model = models.get(machine_id, "")
-            layout = self._layouts.get(model)
-            if layout is None:
-                try:
-                    layout = layout_of(model)
-                except Exception as exc:  # MachineFileError, or a loader bug: never fatal
-                    bad[wire_id] = machine_id
-                    self._log_once(f"bad_model:{machine_id}", None,
-                                   "machine %s: its model does not load, its datagrams are "
-                                   "dropped as bad_model until it is fixed: %s",
-                                   machine_id, " ".join(str(exc).split()))
-                    continue
-                self._layouts[model] = layout
-            keys[wire_id] = MachineKey(wire_id, machine_id, secret, layout)
-        self._keys = keys
-        self._bad_models = bad
-        self._keys_loaded = time.monotonic()
-
-    def _reload_in_background(self) -> None:
-        """Reload keys in a thread of its own (the decoder never waits for the database)."""
-        if time.monotonic() - self._keys_loaded < self.config.key_refresh_s:
-            return
-        if not self._reloading.acquire(blocking=False):
-            return
-        self._keys_loaded = time.monotonic()  # rate limit even if the reload fails
-
-        def run() -> None:
-            try:
-                self.reload_keys()
-            except Exception as exc:
-                self._log_once("reload_keys", exc, "could not reload machine keys: %s", exc)
-            finally:
-                self._reloading.release()
-
-        threading.Thread(target=run, name="ingest-keys", daemon=True).start()
-
-    def _lookup(self, wire_id: int) -> MachineKey | None:
-        key = self._keys.get(wire_id)
-        if key is None:
-            self._reload_in_background()
-        return key
+        self.keys.reload()
 
     # -- event loop side ------------------------------------------------------------------------
     def _on_datagram(self, data: bytes, addr: Addr) -> None:
@@ -295,7 +246,7 @@ class IngestDaemon:
                         replies.append((self._receiver.refusal(exc, now), addr))
             except DatagramError as exc:
                 reason = exc.reason
-                if reason == "unknown_machine" and exc.wire_id in self._bad_models:
+                if reason == "unknown_machine" and exc.wire_id in self.keys.bad_models:
                     reason = "bad_model"
                 m.drop(reason)
             except Exception as exc:  # a bug must not stop ingest: count, log once, go on
@@ -643,7 +594,7 @@ class IngestDaemon:
         if self.config.metrics_path is not None:
             log.warning("--metrics-file is deprecated and will be removed: scrape /metrics")
         log.info("ingest listening on udp %s:%d, %d machine(s), rcvbuf %d bytes, metrics %s",
-                 host, port, len(self._keys), sock.getsockopt(socket.SOL_SOCKET,
+                 host, port, len(self.keys), sock.getsockopt(socket.SOL_SOCKET,
                                                              socket.SO_RCVBUF),
                  self.metrics_url or "not served")
         self.ready.set()
