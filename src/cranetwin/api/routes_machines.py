@@ -25,14 +25,14 @@ def check_registered_model(model: str) -> None:
     bad field: 422 problem JSON with one ``errors`` entry per problem, located at
     ``body.model`` (and the path inside the machine description, when it loads but is invalid).
 
-    The same check as ``cranetwin machines add`` (:func:`cranetwin.ingest.daemon.check_model`).
+    The same check as ``cranetwin machines add`` (:func:`cranetwin.protocol.machine.check_model`).
 
     Raises:
         RequestValidationError: the model is unknown or does not load.
     """
     from cranetwin.errors import MachineFileError
-    from cranetwin.ingest.daemon import check_model
     from cranetwin.model import builtin_machines
+    from cranetwin.protocol.machine import check_model
 
     known = builtin_machines()
     if model not in known:

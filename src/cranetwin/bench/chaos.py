@@ -52,6 +52,7 @@ import typer
 
 from cranetwin.bench import emit
 from cranetwin.bench.ingest import free_udp_port, grid_values, patu_layout, start_daemon
+from cranetwin.errors import MissingExtraError
 from cranetwin.protocol import (
     DatagramError,
     MachineKey,
@@ -466,7 +467,10 @@ def _database(kind: str, pg_url: str, tmp: Path) -> Iterator[tuple[str, str, Tcp
         url = f"sqlite:///{tmp / 'chaos.db'}"
         yield url, url, None
         return
-    import psycopg
+    try:
+        import psycopg
+    except ImportError as exc:
+        raise MissingExtraError("postgres", "the PostgreSQL chaos schedule") from exc
 
     base = pg_url.replace("postgresql+psycopg://", "postgresql://", 1)
     schema = f"chaos_{uuid.uuid4().hex[:10]}"

@@ -32,6 +32,7 @@ import numpy.typing as npt
 import typer
 
 from cranetwin.bench import emit
+from cranetwin.errors import MissingExtraError
 from cranetwin.model import Machine, load_machine
 from cranetwin.physics import compile_chain, inverse_dynamics
 from cranetwin.physics.dynamics import rnea_kernels
@@ -57,9 +58,18 @@ def motion(machine: Machine, t: F64) -> tuple[F64, F64, F64, F64]:
     return q, qd, qdd, payload
 
 
+def _pin() -> Any:
+    """The ``pinocchio`` module (the baseline's library, installed by the ``dev`` extra)."""
+    try:
+        import pinocchio
+    except ImportError as exc:
+        raise MissingExtraError("dev", "the Pinocchio baseline of bench dynamics") from exc
+    return pinocchio
+
+
 def pinocchio_model(machine: Machine, payload_kg: float) -> Any:
     """The same chain in Pinocchio (tool + payload as a point inertia on the load body)."""
-    import pinocchio as pin
+    pin = _pin()
 
     model = pin.Model()
     model.gravity.linear = np.asarray(machine.machine.gravity_mps2)
@@ -85,7 +95,7 @@ def pinocchio_model(machine: Machine, payload_kg: float) -> Any:
 
 def _baseline(machine: Machine, t: F64, reps: int) -> tuple[float, float, float]:
     """(seconds per call of a Python loop of pin.rnea, max rel. error of tau, of wrenches)."""
-    import pinocchio as pin
+    pin = _pin()
 
     q, qd, qdd, payload = motion(machine, t)
     # the payload changes the model: Pinocchio needs one model per payload value, so the
@@ -114,7 +124,7 @@ def _baseline(machine: Machine, t: F64, reps: int) -> tuple[float, float, float]
 def _pinocchio_batch(machine: Machine, q: F64, qd: F64, qdd: F64, payload: float,
                      reps: int) -> float:
     """Seconds per sample of ``pinocchio.rneaInParallel`` (one thread) over the batch."""
-    import pinocchio as pin
+    pin = _pin()
 
     model = pinocchio_model(machine, payload)
     pool = pin.ModelPool(model, 1)

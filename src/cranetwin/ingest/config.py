@@ -2,57 +2,18 @@
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from cranetwin.errors import CraneTwinError, MachineFileError
-from cranetwin.model import builtin_machines, load_machine, machine_from_dict
-from cranetwin.model.schema import Machine
-from cranetwin.protocol import Layout, Limits
+from cranetwin.errors import CraneTwinError
+from cranetwin.protocol import Limits
+from cranetwin.protocol.machine import check_model, layout_of
+
+__all__ = ["DaemonConfig", "IngestConfigError", "check_model", "layout_of"]
 
 
 class IngestConfigError(CraneTwinError):
     """The daemon cannot start as configured (address in use, unresolvable host, …)."""
-
-
-# --- machine models -----------------------------------------------------------------------------
-def check_model(model: str, source: str = "machine model") -> tuple[Machine, Layout]:
-    """Load and validate a machine model as registered: a built-in name or description TOML text.
-
-    The one check used when a machine is registered (CLI and API) and when the daemon loads its
-    keys, so that what registration accepts the daemon can serve.
-
-    Returns:
-        The machine description and its wire channel layout.
-
-    Raises:
-        MachineFileError: The model does not load; ``problems`` lists ``"field.path: message"``.
-    """
-    if model in builtin_machines():
-        machine = load_machine(model)
-    else:
-        try:
-            data = tomllib.loads(model)
-        except tomllib.TOMLDecodeError as exc:
-            known = ", ".join(builtin_machines())
-            hint = "" if "\n" in model or "=" in model else f" (and not a built-in: {known})"
-            raise MachineFileError(source, [f"(file): TOML syntax error: {exc}{hint}"]) from None
-        machine = machine_from_dict(data, source)
-    try:
-        layout = Layout.from_channels(machine.channels)
-    except (CraneTwinError, ValueError, TypeError) as exc:
-        raise MachineFileError(source, [f"channels: {exc}"]) from exc
-    return machine, layout
-
-
-def layout_of(model: str) -> Layout:
-    """Channel layout of a machine model: a built-in name or machine-description TOML text.
-
-    Raises:
-        MachineFileError: The model does not load.
-    """
-    return check_model(model, "<stored model>")[1]
 
 
 # --- settings -----------------------------------------------------------------------------------

@@ -7,13 +7,14 @@ reports the normalised RMSE (NRMSE) of the twin's positions and forces against t
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import dataclasses
+from collections.abc import Iterable, Sequence
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from cranetwin.errors import SignalError
-from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
 
 F64 = npt.NDArray[np.float64]
@@ -21,9 +22,27 @@ F64 = npt.NDArray[np.float64]
 NOISY_QUANTITIES: tuple[str, ...] = ("pressure_a", "pressure_b", "position")
 
 
+class SensorChannel(Protocol):
+    """What the error model reads of a sensor channel (``cranetwin.model.Channel`` has it)."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def quantity(self) -> str: ...
+    @property
+    def full_range(self) -> float: ...
+
+
+class HasChannels(Protocol):
+    """A machine description, as far as the error model reads it: its sensor channels."""
+
+    @property
+    def channels(self) -> Sequence[SensorChannel]: ...
+
+
 def inject_uniform_noise(
     samples: SampleArrays,
-    machine: Machine,
+    machine: HasChannels,
     level: float,
     seed: int | np.random.Generator,
     quantities: Iterable[str] = NOISY_QUANTITIES,
@@ -54,8 +73,7 @@ def inject_uniform_noise(
         if ch is not None and ch.quantity in wanted:
             scale[j] = level * ch.full_range
     err = rng.uniform(-1.0, 1.0, size=samples.values.shape) * scale[None, :]
-    return SampleArrays(samples.machine_id, samples.t_s.copy(), samples.channels,
-                        samples.values + err)
+    return dataclasses.replace(samples, values=samples.values + err)
 
 
 def nrmse(estimate: npt.ArrayLike, truth: npt.ArrayLike) -> F64:

@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin import physics
-from cranetwin.errors import TwinError
+from cranetwin.errors import MissingExtraError, TwinError
 from cranetwin.model import Machine
 from cranetwin.signal import inject_uniform_noise, nrmse
 from cranetwin.twin.options import ReplayOptions
@@ -140,10 +140,13 @@ def as_json(results: list[LevelResult]) -> list[dict[str, Any]]:
 def plot(results: list[LevelResult], path: str, title: str) -> None:
     """Fig. 7-like plot: NRMSE [%] of positions (a) and forces (b) vs maximum error e [%],
     points with ±1 std over seeds and third-degree polynomial fits (as the paper)."""
-    import matplotlib
+    try:
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        raise MissingExtraError("reports", "the accuracy plot") from exc
 
     e = np.array([r.level for r in results]) * 100
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
