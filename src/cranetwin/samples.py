@@ -93,3 +93,9 @@ class SampleArrays:
     def column(self, name: str) -> F64:
         """One channel's samples, shape (n,)."""
         return self.values[:, self.channels.index(name)]
+
+    def take(self, rows: slice | npt.NDArray[np.bool_] | npt.NDArray[np.intp]) -> SampleArrays:
+        """The samples at ``rows`` (a slice, a boolean mask of shape (n,) or indices), with the
+        carried period and exact times kept."""
+        return SampleArrays(self.machine_id, self.t_s[rows], self.channels, self.values[rows],
+                            self.period_ns, None if self.t_ns is None else self.t_ns[rows])

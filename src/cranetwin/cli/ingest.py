@@ -64,9 +64,6 @@ def ingest(
         None, help="HTTP address of the Prometheus /metrics endpoint, HOST:PORT (port 0: any "
                    "free port), or 0 to serve none (default: $CRANETWIN_INGEST_METRICS_BIND, "
                    "else 127.0.0.1:9105)."),
-    metrics_file: Path | None = typer.Option(
-        None, help="Deprecated (scrape /metrics): JSON counters file, rewritten every "
-                   "--metrics-interval s."),
     metrics_interval: float = typer.Option(10.0, min=0.01,
                                            help="Seconds between metrics log lines [s]."),
     live: str | None = typer.Option(
@@ -118,7 +115,7 @@ def ingest(
     if st.ingest_metrics_bind.strip() not in ("0", "", "off"):
         mhost, mport = parse_bind(st.ingest_metrics_bind, "--metrics-bind")
     cfg = DaemonConfig(host=host, port=port, metrics_host=mhost, metrics_port=mport,
-                       metrics_path=metrics_file, metrics_interval_s=metrics_interval,
+                       metrics_interval_s=metrics_interval,
                        queue_max=st.ingest_queue_max, batch_max=st.ingest_batch_max,
                        batch_wait_s=st.ingest_batch_wait_s,
                        shutdown_timeout_s=st.ingest_shutdown_timeout_s,

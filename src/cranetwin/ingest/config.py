@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 from cranetwin.errors import CraneTwinError
 from cranetwin.protocol import Limits
@@ -31,9 +30,7 @@ class DaemonConfig:
         metrics_host, metrics_port: HTTP address of the Prometheus ``/metrics`` endpoint
             (``metrics_host`` None: not served; port 0 picks a free one, see
             ``IngestDaemon.metrics_address``).
-        metrics_path: Deprecated: JSON file of :meth:`IngestDaemon.snapshot` rewritten every
-            ``metrics_interval_s`` (None: not written). Use ``/metrics``.
-        metrics_interval_s: Period of the metrics log line (and file) [s].
+        metrics_interval_s: Period of the metrics log line [s].
         rollup_interval_s: Period of the 1-min summary rollup [s].
         key_refresh_s: Least time between reloads of machine keys after an unknown wire id [s].
         retry_min_s, retry_max_s: First and longest wait between retries of a batch while
@@ -54,7 +51,6 @@ class DaemonConfig:
     rcvbuf_bytes: int = 8 * 1024 * 1024
     metrics_host: str | None = None
     metrics_port: int = 9105
-    metrics_path: Path | None = None
     metrics_interval_s: float = 10.0
     rollup_interval_s: float = 30.0
     key_refresh_s: float = 2.0

@@ -58,7 +58,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import os
 import queue
 import signal
 import socket
@@ -482,15 +481,6 @@ class IngestDaemon:
         """Counters, queue depth and uptime as a JSON-ready dict."""
         return self.metrics.snapshot(self._queue.qsize(), self.config.queue_max, self._started)
 
-    def write_metrics(self) -> None:
-        """Deprecated: write the snapshot to ``config.metrics_path`` atomically (rename)."""
-        path = self.config.metrics_path
-        if path is None:
-            return
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(self.snapshot(), indent=1))
-        os.replace(tmp, path)
-
     async def _report(self) -> None:
         last_samples, last_t = 0, time.monotonic()
         while True:
@@ -504,10 +494,6 @@ class IngestDaemon:
                      s["received"], s["stored_blocks"], s["stored_samples"], rate,
                      s["duplicates"], s["dropped"], s["queue_depth"], s["queue_max"],
                      s["write_errors"], ", STORAGE UNAVAILABLE" if self.db.outage else "")
-            try:
-                self.write_metrics()
-            except OSError as exc:
-                log.warning("could not write metrics file: %s", exc)
 
     # -- lifecycle ------------------------------------------------------------------------------
     def _socket(self) -> socket.socket:
@@ -591,8 +577,6 @@ class IngestDaemon:
         self._start_thread("decoder")
         self._start_thread("writer")
         tasks = [asyncio.create_task(self._report()), asyncio.create_task(self._supervise())]
-        if self.config.metrics_path is not None:
-            log.warning("--metrics-file is deprecated and will be removed: scrape /metrics")
         log.info("ingest listening on udp %s:%d, %d machine(s), rcvbuf %d bytes, metrics %s",
                  host, port, len(self.keys), sock.getsockopt(socket.SOL_SOCKET,
                                                              socket.SO_RCVBUF),
@@ -656,8 +640,6 @@ class IngestDaemon:
         if self._http is not None:
             self._http.shutdown()
             self._http.server_close()
-        with contextlib.suppress(OSError):
-            self.write_metrics()
         log.info("ingest stopped in %.2f s: %s", time.monotonic() - t0,
                  json.dumps(self.snapshot()))
 

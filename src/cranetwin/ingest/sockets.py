@@ -54,7 +54,7 @@ def new_event_loop() -> asyncio.AbstractEventLoop:
     """uvloop's loop when installed (it receives ≈ 3× more datagrams/s), else asyncio's."""
     try:
         import uvloop
-    except ImportError:  # pragma: no cover - uvloop is a dependency
+    except ImportError:  # the optional "ingest" extra installs it
         return asyncio.new_event_loop()
     loop: asyncio.AbstractEventLoop = uvloop.new_event_loop()
     return loop

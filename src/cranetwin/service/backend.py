@@ -258,9 +258,7 @@ class Backend:
             if dr is None or dr[1] <= after_s:
                 return None
             s = self.read_samples(machine_id, max(after_s, dr[1] - 10.0), dr[1] + 1.0)
-        keep = s.t_s > after_s
-        return SampleArrays(s.machine_id, s.t_s[keep], s.channels, s.values[keep],
-                            period_ns=s.period_ns)
+        return s.take(s.t_s > after_s)
 
     def next_sample_time(self, machine_id: str, after_s: float) -> float | None:
         """Start of the first stored block ending at or after ``after_s`` [s], or None."""

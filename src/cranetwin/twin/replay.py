@@ -699,9 +699,7 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
         del reg
     for i in range(0, n, block_samples):
         j = min(n, i + block_samples)
-        yield from stream.push_iter(SampleArrays(samples.machine_id, samples.t_s[i:j],
-                                                 samples.channels, samples.values[i:j],
-                                                 samples.period_ns))
+        yield from stream.push_iter(samples.take(slice(i, j)))
     yield from stream.flush_iter()
 
 
