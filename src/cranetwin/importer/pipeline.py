@@ -165,6 +165,20 @@ def _iso_ns(raw: npt.NDArray[Any]) -> tuple[I64, B]:
     return out, bad
 
 
+def estimate_period_ns(t: I64, jitter: float) -> int:
+    """Nominal sample period of times ``t`` [ns]: the mean of the spacings within ``jitter`` of
+    the median spacing (float epoch seconds carry ≈ 0.24 µs steps, so one spacing is not
+    exact), rounded to a whole µs when it is within 10 ppm of one (loggers count µs)."""
+    d = np.diff(t)
+    if d.size == 0:
+        return 0
+    med = float(np.median(d))
+    regular = d[np.abs(d - med) <= jitter * med]
+    p = float(regular.mean()) if regular.size else med
+    us = round(p / 1000.0) * 1000.0
+    return int(us) if us > 0 and abs(p - us) <= 1e-5 * p else round(p)
+
+
 def position_problem(name: str, values: F64, stroke_m: float, closed_m: float,
                      unit_factor_m: float) -> str | None:
     """Why the rod positions of one cylinder cannot be stroke positions, or None.
@@ -321,8 +335,8 @@ class Pipeline:
             if tg.size < 2:
                 self._append(tg, k, miss)
                 return []
-            t_all = np.concatenate([self._t, tg])
-            self.period_ns = int(np.median(np.diff(t_all)))
+            self.period_ns = estimate_period_ns(np.concatenate([self._t, tg]),
+                                                self.mapping.jitter)
             if self.period_ns <= 0:
                 raise ImportFileError("cannot tell the sample period from the times; give "
                                       "time.period_s in the mapping")
