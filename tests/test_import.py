@@ -50,7 +50,8 @@ def _same(machine: Machine, got: SampleArrays, want: SampleArrays) -> None:
         np.testing.assert_array_equal(np.isnan(g), np.isnan(w), err_msg=name)
         ok = ~np.isnan(w)
         res = machine.channel(name).resolution
-        assert np.max(np.abs(g[ok] - w[ok]), initial=0.0) <= res / 2 + 1e-9 * np.abs(w[ok]).max(initial=0.0), name
+        err = np.max(np.abs(g[ok] - w[ok]), initial=0.0)
+        assert err <= res / 2 + 1e-9 * np.abs(w[ok]).max(initial=0.0), name
 
 
 def _write_csv(path: Path, header: list[str], cols: list[np.ndarray]) -> None:
