@@ -272,3 +272,15 @@ def test_cli_import_exit_status_and_summary(tmp_path: Path, rec: SampleArrays) -
     assert "1 refused" in r.output and "row 4" in r.output and "lift_pA" in r.output
     r = CliRunner().invoke(app, ["import", str(p), "--machine", "m1", "--db", url, "--json"])
     assert r.exit_code == 1 and '"blocks_stored": 0' in r.output
+
+
+def test_iso_times_with_zones() -> None:
+    from cranetwin.importer.mapping import mapping_from_dict as mfd
+    from cranetwin.importer.pipeline import _time_ns
+
+    m = mfd({"time": {"format": "iso8601"}}, load_machine("patu655"))
+    raw = np.array(["2026-01-01T02:00:00.010+02:00", "2026-01-01T00:00:00.020Z",
+                    "2026-01-01 00:00:00.030", "yesterday"])
+    t, bad = _time_ns(raw, m, None)
+    assert bad.tolist() == [False, False, False, True]
+    assert (t[:3] - 1_767_225_600_000_000_000).tolist() == [10_000_000, 20_000_000, 30_000_000]

@@ -143,12 +143,15 @@ def _iso_ns(raw: npt.NDArray[Any]) -> tuple[I64, B]:
     bad = np.zeros(n, dtype=bool)
     if n == 0:
         return np.zeros(0, dtype=np.int64), bad
-    zulu = np.char.endswith(s, "Z")
-    s = np.where(zulu, np.char.rstrip(s, "Z"), s)
-    try:
-        return s.astype("datetime64[ns]").astype(np.int64), bad
-    except ValueError:
-        pass
+    for utc in ("Z", "+00:00", "+0000"):  # numpy parses naive times (as UTC) only
+        s = np.where(np.char.endswith(s, utc), np.char.replace(s, utc, ""), s)
+    zoned = np.char.find(np.char.partition(s, "T")[:, 2], "+") >= 0
+    zoned |= np.char.count(np.char.partition(s, "T")[:, 2], "-") > 0
+    if not zoned.any():
+        try:
+            return s.astype("datetime64[ns]").astype(np.int64), bad
+        except ValueError:
+            pass
     import datetime as dt
 
     out = np.zeros(n, dtype=np.int64)
