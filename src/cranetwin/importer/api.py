@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import queue
+import threading
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -182,9 +184,8 @@ def import_file(path: str | Path, machine: Machine, store: Store, machine_id: st
     """
     pipe, blocks = iter_blocks(path, machine, mapping, machine_id, progress=progress)
     out = ImportSummary(pipe.report, epoch=pipe.epoch)
-    batch: list[SampleBlock] = []
 
-    def flush() -> None:
+    def record(batch: list[SampleBlock]) -> None:
         res = store.write_batch(batch)
         for b, o in zip(batch, res.outcomes, strict=True):
             if o.status == "stored":
@@ -196,12 +197,36 @@ def import_file(path: str | Path, machine: Machine, store: Store, machine_id: st
                 out.refused[str(o.reason)] += 1
                 if not out.refused_detail:
                     out.refused_detail = f"seq {b.seq}: {o.reason}: {o.detail}"
-        batch.clear()
 
-    for b in blocks:
-        batch.append(b)
-        if len(batch) >= batch_blocks:
-            flush()
-    if batch:
-        flush()
+    # one writer thread: reading and converting the next batch overlaps storage's encoding and
+    # commit of this one (batches stay in file order; one writer, as storage assumes)
+    todo: queue.Queue[list[SampleBlock] | None] = queue.Queue(maxsize=2)
+    failed: list[BaseException] = []
+
+    def writer() -> None:
+        while (batch := todo.get()) is not None:
+            if not failed:
+                try:
+                    record(batch)
+                except BaseException as exc:  # handed to the caller's thread below
+                    failed.append(exc)
+
+    th = threading.Thread(target=writer, name="cranetwin-import-writer", daemon=True)
+    th.start()
+    try:
+        batch: list[SampleBlock] = []
+        for b in blocks:
+            batch.append(b)
+            if len(batch) >= batch_blocks:
+                todo.put(batch)
+                batch = []
+                if failed:
+                    break
+        if batch and not failed:
+            todo.put(batch)
+    finally:
+        todo.put(None)
+        th.join()
+    if failed:
+        raise failed[0]
     return out

@@ -116,7 +116,7 @@ def _missing_columns(needed: list[str], names: list[str], path: Path) -> None:
 
 # -- CSV --------------------------------------------------------------------------------------
 
-_EMPTY = re.compile(r"(^|{d})(?=\s*(?:{d}|$))", re.MULTILINE)
+_EMPTY = re.compile(r"(^|{d})(?=[ \t]*(?:{d}|\r?$))", re.MULTILINE)
 
 
 def _fill_empty(text: str, delim: str) -> str:
@@ -174,13 +174,20 @@ def read_csv(path: Path, needed: list[str], time_column: str | None, time_kind: 
                 break
             done += len(data)
             text = data.decode("utf-8", errors="replace")
+            d = delimiter
+            if (d + d) in text or text.startswith(d) or (d + "\n") in text \
+                    or (d + "\r\n") in text or ("\n" + d) in text:
+                text = _fill_empty(text[:-1], d) + "\n" if text.endswith("\n") \
+                    else _fill_empty(text, d)
             lines = text.split("\n")
             if lines and lines[-1] == "":
                 lines.pop()
             n_lines = len(lines)
             line_nos = np.arange(line, line + n_lines, dtype=np.int64)
             line += n_lines
-            if any(not ln.strip() or ln.startswith("#") for ln in lines):
+            if (text.startswith(("#", "\n", "\r")) or "\n#" in text or "\n\n" in text
+                    or "\n\r" in text or "\n " in text or "\n\t" in text) \
+                    and any(not ln.strip() or ln.startswith("#") for ln in lines):
                 keep = [i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")]
                 lines = [lines[i] for i in keep]
                 line_nos = line_nos[np.asarray(keep, dtype=np.int64)]
@@ -196,20 +203,23 @@ def _csv_chunk(lines: list[str], line_nos: I64, row: int, needed: list[str], idx
                tcol: str, tidx: int, time_kind: TimeKind, delim: str, done: int,
                total: int) -> Chunk:
     n = len(lines)
-    body = "\n".join(lines)
-    if (delim + delim) in body or body.startswith(delim) or (delim + "\n") in body \
-            or body.endswith(delim) or ("\n" + delim) in body:
-        lines = _fill_empty(body, delim).split("\n")
     try:
-        vals = np.loadtxt(lines, delimiter=delim, usecols=idx, ndmin=2, dtype=np.float64,
-                          comments=None, quotechar='"') if idx else np.zeros((n, 0))
-        if time_kind == "str":
-            t: npt.NDArray[Any] = np.loadtxt(lines, delimiter=delim, usecols=[tidx], ndmin=1,
-                                             dtype=str, comments=None, quotechar='"')
+        if time_kind == "float":  # one pass for the time and the values
+            both = np.loadtxt(lines, delimiter=delim, usecols=[tidx, *idx], ndmin=2,
+                              dtype=np.float64, comments=None, quotechar='"')
+            t: npt.NDArray[Any] = both[:, 0].copy()
+            vals = both[:, 1:]
+        else:
+            vals = np.loadtxt(lines, delimiter=delim, usecols=idx, ndmin=2, dtype=np.float64,
+                              comments=None, quotechar='"') if idx else np.zeros((n, 0))
+        if time_kind == "float":
+            pass
+        elif time_kind == "str":
+            t = np.loadtxt(lines, delimiter=delim, usecols=[tidx], ndmin=1, dtype=str,
+                           comments=None, quotechar='"')
         else:
             t = np.loadtxt(lines, delimiter=delim, usecols=[tidx], ndmin=1, comments=None,
-                           quotechar='"',
-                           dtype=np.int64 if time_kind == "int" else np.float64)
+                           quotechar='"', dtype=np.int64)
         if vals.shape[0] != n or t.shape[0] != n:
             raise ValueError("row count")
     except ValueError:
