@@ -79,7 +79,8 @@ def test_csv_bar_mm_deg_pin_to_pin_iso_time(tmp_path: Path, machine: Machine,
     cyl = {c.name: c for c in machine.cylinders}
     iso = [dt.datetime.fromtimestamp(t, dt.UTC).strftime("%Y-%m-%dT%H:%M:%S.%f") + "Z"
            for t in rec.t_s]
-    header, cols, spec = ["when"], [np.asarray(iso, dtype=object)], {}
+    header, cols = ["when"], [np.asarray(iso, dtype=object)]
+    spec: dict[str, dict[str, object]] = {}
     for name in rec.channels:
         ch = machine.channel(name)
         v = rec.column(name)
@@ -200,6 +201,7 @@ def test_gaps_and_jitter_split_into_regular_runs(tmp_path: Path, machine: Machin
     assert got.report.runs == 2 and got.report.rows_refused == 0
     assert got.report.max_time_shift_ns <= 2_000_000
     np.testing.assert_allclose(got.samples.t_s, t, atol=2.5e-3, rtol=0)
+    assert got.samples.t_ns is not None
     assert np.all(np.diff(got.samples.t_ns[:200]) == got.report.period_ns)
     np.testing.assert_allclose(got.samples.values, rec.values[keep], atol=5e3, rtol=0)
 
