@@ -42,7 +42,7 @@ def test_columns_match_the_twin_result(machine: Machine, rec: SampleArrays) -> N
 
     table = replay_table(rec, machine)
     res = replay(rec, machine, grid_hz=100.0)
-    assert list(table.columns) == list(column_units(machine)) and len(table.columns) == 70
+    assert list(table.columns) == list(column_units(machine)) and len(table.columns) == 81
     np.testing.assert_array_equal(table["force.jib"], res.cyl_force[:, 1])
     np.testing.assert_array_equal(table["q.theta2"], res.q[:, 2])
     np.testing.assert_array_equal(table["wrench.theta1.mz"], res.joint_wrench[:, 1, 5])
@@ -70,7 +70,7 @@ def test_cli_replay_file_to_csv_and_store_range_to_parquet(tmp_path: Path, machi
     header = out.read_text().splitlines()[0].split(",")
     assert header == list(column_units(machine))
     data = np.loadtxt(out, delimiter=",", skiprows=1)
-    assert data.shape == (rec.t_s.size, 70)
+    assert data.shape == (rec.t_s.size, 81)
     assert np.isfinite(data[:, header.index("force.lift")]).all()
 
     pq = pytest.importorskip("pyarrow.parquet")
@@ -90,3 +90,23 @@ def test_cli_replay_file_to_csv_and_store_range_to_parquet(tmp_path: Path, machi
                                data[:, header.index("force.lift")], rtol=1e-6, atol=1.0)
     r = CliRunner().invoke(app, ["replay", "--machine", "m1", "--out", str(pout)])
     assert r.exit_code != 0
+
+
+def test_channel_flags_and_columns_in(machine: Machine, rec: SampleArrays) -> None:
+    """A dict of arrays (as a DataFrame's columns) in; per-channel missing flags out."""
+    cols = {"t_s": rec.t_s, **{c: rec.column(c).copy() for c in rec.channels}}
+    cols["jib_pA"][200] = np.nan  # a dropout of one channel
+    keep = np.r_[0:300, 303:rec.t_s.size]  # a gap of three samples in all channels
+    cols = {k: v[keep] for k, v in cols.items()}
+    table = replay_table(cols, machine)
+    t = table["t_s"]
+    flag = table["missing.jib_pA"]
+    at = int(np.argmin(np.abs(t - rec.t_s[200])))
+    assert flag[at] == 1 and flag[at - 1] == 0 and flag[at + 1] == 0
+    assert table["missing.lift_pA"][at] == 0
+    in_gap = (t > rec.t_s[299] + 0.006) & (t < rec.t_s[303] - 0.006)
+    assert in_gap.sum() >= 2
+    assert all(table[f"missing.{c}"][in_gap].all() for c in rec.channels)
+    quiet = ~in_gap
+    quiet[at] = False
+    assert not table["missing.lift_s"][quiet].any()

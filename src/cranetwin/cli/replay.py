@@ -11,7 +11,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from cranetwin.errors import TwinError
 from cranetwin.model import load_machine
-from cranetwin.samples import F64, SampleArrays
+from cranetwin.samples import F64
 
 
 def replay_cmd(
@@ -38,13 +38,18 @@ def replay_cmd(
 ) -> None:
     """Replay samples through the twin and write joint q/qd/qdd, rod s/v, pressures, cylinder
     forces, joint torques and reaction wrenches, tip position, payload ± σ and gap flags."""
-    from cranetwin.importer.replay import column_units, iter_replay_table, write_table
+    from cranetwin.importer.replay import (
+        column_units,
+        iter_replay_table,
+        load_source,
+        write_table,
+    )
 
     if file is not None:
         if t_from is not None or t_to is not None or db is not None:
             raise TwinError("give FILE, or --machine ID --from --to [--db]: not both")
         m = load_machine(machine or "patu655")
-        source: SampleArrays | Path = file
+        source = load_source(file, m, mapping)
     else:
         if machine is None or t_from is None or t_to is None:
             raise TwinError("give FILE [--mapping MAP], or --machine ID --from T0 --to T1")
@@ -61,13 +66,13 @@ def replay_cmd(
             source = store.read_samples(machine, parse_time(t_from), parse_time(t_to))
         if source.t_s.shape[0] == 0:
             raise TwinError(f"no samples of {machine!r} stored in [{t_from}, {t_to})")
-    units = column_units(m)
+    units = column_units(m, source.channels)
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[rows]}"
                   " rows"), TimeElapsedColumn(), disable=quiet) as bar:
         task = bar.add_task(f"replaying into {out.name}", total=None, rows=0)
 
         def chunks() -> Iterator[dict[str, F64]]:
-            for ch in iter_replay_table(source, m, mapping, payload=payload, grid_hz=grid_hz):
+            for ch in iter_replay_table(source, m, payload=payload, grid_hz=grid_hz):
                 bar.update(task, rows=bar.tasks[task].fields["rows"] + ch["t_s"].shape[0])
                 yield ch
 

@@ -3,7 +3,8 @@ mapping of columns, units, cylinder position convention and time (docs/IMPORT.md
 
 * :func:`import_file`: into storage through ``Store.write_batch`` (the ingest daemon's
   idempotent path: importing the same file twice stores it once);
-* :func:`read_file`: into :class:`~cranetwin.samples.SampleArrays`, as storage would return them;
+* :func:`read_file` (a file), :func:`read_columns` (a dict of arrays or a DataFrame): into
+  :class:`~cranetwin.samples.SampleArrays`, as storage would return them;
 * :func:`check_rod_positions`: the convention check on any samples (pin-to-pin lengths or
   millimetres given as stroke positions are refused with a message naming the mix-up).
 
@@ -17,6 +18,7 @@ from cranetwin.importer.api import (
     ImportSummary,
     import_file,
     iter_blocks,
+    read_columns,
     read_file,
 )
 from cranetwin.importer.checks import check_rod_positions
@@ -33,5 +35,5 @@ from cranetwin.importer.readers import Refusal
 __all__ = [
     "ChannelMap", "ImportFileError", "ImportReport", "ImportSummary", "ImportedFile", "Mapping",
     "Refusal", "check_rod_positions", "file_epoch", "import_file", "iter_blocks",
-    "load_mapping", "mapping_from_dict", "read_file",
+    "load_mapping", "mapping_from_dict", "read_columns", "read_file",
 ]

@@ -5,16 +5,17 @@ from __future__ import annotations
 import queue
 import threading
 from collections import Counter
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from cranetwin.importer.mapping import ImportFileError, Mapping, load_mapping
+from cranetwin.importer.mapping import ChannelMap, ImportFileError, Mapping, load_mapping
 from cranetwin.importer.pipeline import BLOCK_SAMPLES, ImportReport, Pipeline, file_epoch
 from cranetwin.importer.readers import (
+    Chunk,
     TimeKind,
     detect_format,
     file_columns,
@@ -64,8 +65,6 @@ def iter_blocks(path: str | Path, machine: Machine, mapping: Mapping | str | Pat
     fmt = detect_format(p)
     m = mapping if isinstance(mapping, Mapping) else load_mapping(mapping, machine)
     if fmt == "csv" and m.delimiter == "," and p.suffix.lower() == ".tsv":
-        from dataclasses import replace
-
         m = replace(m, delimiter="\t")
     if not p.is_file():
         raise ImportFileError(f"{p}: no such file")
@@ -84,8 +83,6 @@ def iter_blocks(path: str | Path, machine: Machine, mapping: Mapping | str | Pat
                               f"file has: {', '.join(sorted(names))}")
     start_s = m.start_s
     if fmt == "mdf":
-        from dataclasses import replace
-
         if m.time_format not in ("relative_s",):
             m = replace(m, time_format="relative_s")
         if start_s is None:
@@ -124,18 +121,70 @@ def read_file(path: str | Path, machine: Machine, mapping: Mapping | str | Path 
         ImportFileError: As :func:`iter_blocks`; also when no row was accepted.
     """
     pipe, blocks = iter_blocks(path, machine, mapping, machine_id, progress=progress)
+    return _collect(pipe, blocks, str(path))
+
+
+def _collect(pipe: Pipeline, blocks: Iterable[SampleBlock], what: str) -> ImportedFile:
     ts, vs = [], []
     for b in blocks:
         ts.append(b.times_ns())
         vs.append(b.values)
     if not ts:
-        raise ImportFileError(f"{path}: no row was accepted\n{pipe.report.summary()}")
+        raise ImportFileError(f"{what}: no row was accepted\n{pipe.report.summary()}")
     t_ns = np.concatenate(ts)
     values = np.concatenate(vs)
     uniform = bool(np.all(np.diff(t_ns) == pipe.report.period_ns))
     sa = SampleArrays(pipe.machine_id, t_ns.astype(np.float64) / 1e9, pipe.names, values,
                       period_ns=pipe.report.period_ns if uniform else None, t_ns=t_ns)
     return ImportedFile(sa, pipe.report)
+
+
+class Columns(Protocol):
+    """Named columns: a dict of arrays, a pandas DataFrame, a pyarrow Table's ``to_pydict()``."""
+
+    def __contains__(self, name: object, /) -> bool: ...
+
+    def __getitem__(self, name: str, /) -> Any: ...
+
+
+def read_columns(columns: Columns, machine: Machine, mapping: Mapping | str | Path | None = None,
+                 *, machine_id: str | None = None) -> ImportedFile:
+    """:func:`read_file` for columns already in memory (a dict of arrays or a DataFrame): the same
+    mapping, conversion, checks, quantisation and runs. A ``datetime64`` time column is taken as
+    UTC; numbers as the mapping's ``time.format``.
+
+    Raises:
+        ImportFileError: Missing columns, a convention mix-up, no row accepted.
+    """
+    m = mapping if isinstance(mapping, Mapping) else load_mapping(mapping, machine)
+    tcol = m.time_column or next((c for c in ("t_s", "time") if c in columns), None)
+    if tcol is None or tcol not in columns:
+        raise ImportFileError(f"no time column {tcol or 't_s'!r} in the columns given")
+    present: list[ChannelMap] = []
+    absent: list[str] = []
+    for cm in m.channels:
+        if cm.column in columns:
+            present.append(cm)
+        elif machine.channel(cm.channel).optional:
+            absent.append(cm.channel)
+        else:
+            raise ImportFileError(f"the columns lack required channel {cm.channel} (column "
+                                  f"{cm.column!r})")
+    raw_t = np.asarray(columns[tcol])
+    if raw_t.dtype.kind == "M":
+        raw_t = raw_t.astype("datetime64[ns]").astype(np.int64)
+        m = replace(m, time_format="epoch_ns")
+    elif m.time_format == "iso8601":
+        raw_t = raw_t.astype(str)
+    cols = {cm.column: np.asarray(columns[cm.column], dtype=np.float64) for cm in present}
+    n = raw_t.shape[0]
+    for c, v in cols.items():
+        if v.shape != (n,):
+            raise ImportFileError(f"column {c!r} has shape {v.shape}; the time has ({n},)")
+    pipe = Pipeline(machine, m, machine_id or machine.name, 1, present, m.start_s)
+    pipe.report.absent = tuple(absent)
+    chunk = Chunk(1, raw_t, cols, np.zeros(n, dtype=bool), [], None, n, n)
+    return _collect(pipe, [*pipe.feed(chunk), *pipe.finish()], "the columns")
 
 
 @dataclass

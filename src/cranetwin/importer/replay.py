@@ -26,12 +26,15 @@ column                             unit               what
 ``payload_kg``                     kg                 payload (given, or estimated)
 ``payload_std_kg``                 kg                 one-sigma uncertainty of the estimate
 ``gap``                            0/1                1 where a dropout was bridged
+``missing.<channel>``              0/1                1 where that input channel's sample nearest
+                                                      the instant is missing (NaN) or over 0.6
+                                                      sample periods away (a gap)
 =================================  =================  ==========================================
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +42,7 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.errors import MissingExtraError, TwinError
-from cranetwin.importer.api import read_file
+from cranetwin.importer.api import Columns, read_columns, read_file
 from cranetwin.importer.checks import check_rod_positions
 from cranetwin.importer.mapping import Mapping
 from cranetwin.model import Machine
@@ -50,8 +53,14 @@ F64 = npt.NDArray[np.float64]
 WRENCH = ("fx", "fy", "fz", "mx", "my", "mz")
 
 
-def column_units(machine: Machine) -> dict[str, str]:
-    """Every output column name, in order, with its unit (see the module docstring)."""
+def column_units(machine: Machine, channels: Sequence[str] | None = None) -> dict[str, str]:
+    """Every output column name, in order, with its unit (see the module docstring).
+
+    Args:
+        machine: The machine.
+        channels: The input channels (their ``missing.<channel>`` flags); None = every channel
+            of the machine.
+    """
     out: dict[str, str] = {"t_s": "s"}
     lin = {j.name: j.kind == "prismatic" for j in machine.joints}
 
@@ -70,7 +79,21 @@ def column_units(machine: Machine) -> dict[str, str]:
         out.update({f"wrench.{j.name}.{k}": ("N" if k[0] == "f" else "N*m") for k in WRENCH})
     out.update({"tip.x": "m", "tip.y": "m", "tip.z": "m", "payload_kg": "kg",
                 "payload_std_kg": "kg", "gap": "1"})
+    out.update({f"missing.{c.name}": "1" for c in machine.channels
+                if channels is None or c.name in channels})
     return out
+
+
+def channel_flags(samples: SampleArrays, t_s: F64, period_s: float) -> dict[str, F64]:
+    """``missing.<channel>`` per input channel at the instants ``t_s`` (see the table above)."""
+    n = samples.t_s.shape[0]
+    i = np.searchsorted(samples.t_s, t_s)
+    lo = np.clip(i - 1, 0, n - 1)
+    hi = np.clip(i, 0, n - 1)
+    near = np.where(np.abs(samples.t_s[hi] - t_s) < np.abs(t_s - samples.t_s[lo]), hi, lo)
+    far = np.abs(samples.t_s[near] - t_s) > 0.6 * period_s
+    return {f"missing.{c}": (far | np.isnan(samples.values[near, j])).astype(np.float64)
+            for j, c in enumerate(samples.channels)}
 
 
 def result_columns(res: TwinResult, machine: Machine) -> dict[str, F64]:
@@ -95,11 +118,17 @@ def result_columns(res: TwinResult, machine: Machine) -> dict[str, F64]:
     return {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in out.items()}
 
 
-def _samples(source: SampleArrays | str | Path, machine: Machine,
-             mapping: Mapping | str | Path | None) -> SampleArrays:
+Source = SampleArrays | str | Path | Columns
+
+
+def load_source(source: Source, machine: Machine,
+                mapping: Mapping | str | Path | None = None) -> SampleArrays:
+    """Samples from arrays, a file (:func:`read_file`) or columns (:func:`read_columns`)."""
     if isinstance(source, SampleArrays):
         return source
-    return read_file(source, machine, mapping).samples
+    if isinstance(source, str | Path):
+        return read_file(source, machine, mapping).samples
+    return read_columns(source, machine, mapping).samples
 
 
 def check_samples(samples: SampleArrays, machine: Machine) -> None:
@@ -114,14 +143,16 @@ def check_samples(samples: SampleArrays, machine: Machine) -> None:
                         "\n".join(f"  - {p}" for p in problems))
 
 
-def iter_replay_table(source: SampleArrays | str | Path, machine: Machine,
+def iter_replay_table(source: Source, machine: Machine,
                       mapping: Mapping | str | Path | None = None, *,
                       payload: float | None = None, grid_hz: float | None = None,
                       options: ReplayOptions | None = None) -> Iterator[dict[str, F64]]:
     """Replay samples (or a CSV/Parquet/MDF4 file read with ``mapping``) chunk by chunk.
 
     Args:
-        source: :class:`SampleArrays`, or a file path for :func:`cranetwin.importer.read_file`.
+        source: :class:`SampleArrays`, a file path (:func:`cranetwin.importer.read_file`) or
+            named columns, e.g. a dict of arrays or a pandas DataFrame
+            (:func:`cranetwin.importer.read_columns`).
         machine: The machine.
         mapping: The file's mapping (files only).
         payload: Known payload [kg], or None to estimate it.
@@ -130,26 +161,28 @@ def iter_replay_table(source: SampleArrays | str | Path, machine: Machine,
         options: Further replay settings.
 
     Yields:
-        Consecutive chunks of named columns (:func:`column_units`).
+        Consecutive chunks of named columns (:func:`column_units` of the input's channels).
 
     Raises:
         TwinError: Rod positions outside the strokes (:func:`check_samples`), missing
             channels, too few samples.
         ImportFileError: The file cannot be read as mapped.
     """
-    samples = _samples(source, machine, mapping)
+    samples = load_source(source, machine, mapping)
     check_samples(samples, machine)
     if samples.t_s.shape[0] < 4:
         raise TwinError(f"{samples.t_s.shape[0]} sample(s): too few to replay")
     opt = options or ReplayOptions()
     if opt.sample_period_s is None and samples.period_ns:
         opt = ReplayOptions(**{**opt.__dict__, "sample_period_s": samples.period_ns / 1e9})
+    period = opt.sample_period_s or float(np.median(np.diff(samples.t_s)))
     if grid_hz is None:
-        period = opt.sample_period_s or float(np.median(np.diff(samples.t_s)))
         grid_hz = float(round(1.0 / period))
     for res in iter_replay(samples, machine, grid_hz, payload, opt):
         if res.n:
-            yield result_columns(res, machine)
+            cols = result_columns(res, machine)
+            cols.update(channel_flags(samples, res.t_s, period))
+            yield cols
 
 
 @dataclass(frozen=True)
@@ -174,14 +207,15 @@ class ReplayTable:
         return int(self.columns["t_s"].shape[0])
 
 
-def replay_table(source: SampleArrays | str | Path, machine: Machine,
+def replay_table(source: Source, machine: Machine,
                  mapping: Mapping | str | Path | None = None, *, payload: float | None = None,
                  grid_hz: float | None = None,
                  options: ReplayOptions | None = None) -> ReplayTable:
     """:func:`iter_replay_table` collected into one :class:`ReplayTable`."""
-    parts = list(iter_replay_table(source, machine, mapping, payload=payload, grid_hz=grid_hz,
+    samples = load_source(source, machine, mapping)
+    parts = list(iter_replay_table(samples, machine, payload=payload, grid_hz=grid_hz,
                                    options=options))
-    units = column_units(machine)
+    units = column_units(machine, samples.channels)
     if not parts:
         raise TwinError("the replay produced no output")
     cols = {k: np.concatenate([p[k] for p in parts]) for k in units}
