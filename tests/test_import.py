@@ -286,3 +286,20 @@ def test_iso_times_with_zones() -> None:
     t, bad = _time_ns(raw, m, None)
     assert bad.tolist() == [False, False, False, True]
     assert (t[:3] - 1_767_225_600_000_000_000).tolist() == [10_000_000, 20_000_000, 30_000_000]
+
+
+def test_blank_and_comment_lines_are_skipped_rows_keep_their_numbers(
+        tmp_path: Path, machine: Machine, rec: SampleArrays) -> None:
+    p = tmp_path / "c.csv"
+    _write_csv(p, ["t_s", *rec.channels], [rec.t_s, *rec.values.T])
+    lines = p.read_text().splitlines()
+    f = lines[50].split(",")
+    f[3] = "x"  # row 50, lift_s
+    lines[50] = ",".join(f)
+    lines.insert(20, "# logger restarted")  # before row 20
+    lines.insert(10, "")  # before row 10
+    p.write_text("# exported by a logger\n" + "\n".join(lines) + "\n")
+    rep = read_file(p, machine).report
+    assert rep.rows_read == rec.t_s.size and rep.rows_refused == 1
+    (r,) = rep.first_refusals
+    assert (r.row, r.column, r.line) == (50, "lift_s", 54)

@@ -173,35 +173,25 @@ def read_csv(path: Path, needed: list[str], time_column: str | None, time_kind: 
             if not data:
                 break
             done += len(data)
-            text = data.decode("utf-8", errors="replace")
-            d = delimiter
-            if (d + d) in text or text.startswith(d) or (d + "\n") in text \
-                    or (d + "\r\n") in text or ("\n" + d) in text:
-                text = _fill_empty(text[:-1], d) + "\n" if text.endswith("\n") \
-                    else _fill_empty(text, d)
-            lines = text.split("\n")
+            lines = data.decode("utf-8", errors="replace").split("\n")
             if lines and lines[-1] == "":
                 lines.pop()
             n_lines = len(lines)
             line_nos = np.arange(line, line + n_lines, dtype=np.int64)
             line += n_lines
-            if (text.startswith(("#", "\n", "\r")) or "\n#" in text or "\n\n" in text
-                    or "\n\r" in text or "\n " in text or "\n\t" in text) \
-                    and any(not ln.strip() or ln.startswith("#") for ln in lines):
-                keep = [i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")]
-                lines = [lines[i] for i in keep]
-                line_nos = line_nos[np.asarray(keep, dtype=np.int64)]
             if lines:
-                yield _csv_chunk(lines, line_nos, row, needed, idx, tcol, tidx, time_kind,
-                                 delimiter, done, total)
-                row += len(lines)
+                chunk = _csv_chunk(lines, line_nos, row, needed, idx, tcol, tidx, time_kind,
+                                   delimiter, done, total)
+                if chunk.n:
+                    yield chunk
+                row += chunk.n
             if not buf:
                 break
 
 
-def _csv_chunk(lines: list[str], line_nos: I64, row: int, needed: list[str], idx: list[int],
-               tcol: str, tidx: int, time_kind: TimeKind, delim: str, done: int,
-               total: int) -> Chunk:
+def _csv_fast(lines: list[str], idx: list[int], tidx: int, time_kind: TimeKind,
+              delim: str) -> tuple[npt.NDArray[Any], F64] | None:
+    """numpy's C parser over the lines: (time, values), or None where it cannot parse them."""
     n = len(lines)
     try:
         if time_kind == "float":  # one pass for the time and the values
@@ -212,19 +202,34 @@ def _csv_chunk(lines: list[str], line_nos: I64, row: int, needed: list[str], idx
         else:
             vals = np.loadtxt(lines, delimiter=delim, usecols=idx, ndmin=2, dtype=np.float64,
                               comments=None, quotechar='"') if idx else np.zeros((n, 0))
-        if time_kind == "float":
-            pass
-        elif time_kind == "str":
-            t = np.loadtxt(lines, delimiter=delim, usecols=[tidx], ndmin=1, dtype=str,
-                           comments=None, quotechar='"')
-        else:
             t = np.loadtxt(lines, delimiter=delim, usecols=[tidx], ndmin=1, comments=None,
-                           quotechar='"', dtype=np.int64)
-        if vals.shape[0] != n or t.shape[0] != n:
-            raise ValueError("row count")
+                           quotechar='"', dtype=str if time_kind == "str" else np.int64)
     except ValueError:
+        return None
+    if vals.shape[0] != n or t.shape[0] != n:
+        return None
+    return t, vals
+
+
+def _csv_chunk(lines: list[str], line_nos: I64, row: int, needed: list[str], idx: list[int],
+               tcol: str, tidx: int, time_kind: TimeKind, delim: str, done: int,
+               total: int) -> Chunk:
+    """Parse one chunk of lines: the fast path first (no scan of the text when it is clean);
+    then without blank and ``#`` lines, then with empty fields as ``nan``; else row by row."""
+    got = _csv_fast(lines, idx, tidx, time_kind, delim)
+    if got is None and any(not ln.strip() or ln.startswith("#") for ln in lines):
+        keep = [i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")]
+        lines = [lines[i] for i in keep]
+        line_nos = line_nos[np.asarray(keep, dtype=np.int64)]
+        got = _csv_fast(lines, idx, tidx, time_kind, delim)
+    if got is None and lines:
+        got = _csv_fast(_fill_empty("\n".join(lines), delim).split("\n"), idx, tidx,
+                        time_kind, delim)
+    if got is None:
         return _csv_slow(lines, line_nos, row, needed, idx, tcol, tidx, time_kind, delim, done,
                          total)
+    t, vals = got
+    n = len(lines)
     cols = {c: np.ascontiguousarray(vals[:, j]) for j, c in enumerate(needed)}
     return Chunk(row, t, cols, np.zeros(n, dtype=bool), [], line_nos, done, total)
 
