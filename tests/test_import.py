@@ -215,6 +215,13 @@ def test_pin_to_pin_given_as_stroke_is_refused_loudly(tmp_path: Path, machine: M
     _write_csv(p, ["t_s", *rec.channels], [rec.t_s, *v.T])
     with pytest.raises(ImportFileError, match=r"lift_s.*pin-to-pin.*convention = \"pin_to_pin\""):
         read_file(p, machine, machine_id="m1")
+    from cranetwin.storage import Store
+
+    with Store.open(f"sqlite:///{tmp_path / 'db.sqlite'}") as store:
+        store.add_machine("m1", 1, b"k" * 32)
+        with pytest.raises(ImportFileError, match="pin-to-pin"):
+            import_file(p, machine, store, "m1")
+        assert store.stats("m1").samples == 0  # nothing stored
     msgs = check_rod_positions(SampleArrays("m1", rec.t_s, rec.channels, v), machine)
     assert len(msgs) == 1 and "pin-to-pin" in msgs[0]
     assert check_rod_positions(rec, machine) == []
