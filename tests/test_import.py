@@ -132,7 +132,10 @@ def test_parquet_psi_mpa_timestamp_and_epoch_ns(tmp_path: Path, machine: Machine
             spec[name] = {"unit": "MPa"}
         else:
             data[name] = v
-    for kind, tcol, fmt in (("timestamp", pa.array(t_ns.astype("datetime64[ns]")), "iso8601"),
+    stamps = t_ns.astype("datetime64[ns]")
+    utc_us = pa.array(stamps.astype("datetime64[us]"), pa.timestamp("us", "UTC"))
+    for kind, tcol, fmt in (("timestamp", pa.array(stamps), "iso8601"),
+                            ("timestamp-utc", utc_us, "epoch_s"),  # typed: a time, any format
                             ("ns", pa.array(t_ns), "epoch_ns")):
         p = tmp_path / f"rec_{kind}.parquet"
         pq.write_table(pa.table({"stamp": tcol, **{k: pa.array(v) for k, v in data.items()}}), p)

@@ -171,10 +171,7 @@ def read_columns(columns: Columns, machine: Machine, mapping: Mapping | str | Pa
             raise ImportFileError(f"the columns lack required channel {cm.channel} (column "
                                   f"{cm.column!r})")
     raw_t = np.asarray(columns[tcol])
-    if raw_t.dtype.kind == "M":
-        raw_t = raw_t.astype("datetime64[ns]").astype(np.int64)
-        m = replace(m, time_format="epoch_ns")
-    elif m.time_format == "iso8601":
+    if raw_t.dtype.kind != "M" and m.time_format == "iso8601":
         raw_t = raw_t.astype(str)
     cols = {cm.column: np.asarray(columns[cm.column], dtype=np.float64) for cm in present}
     n = raw_t.shape[0]

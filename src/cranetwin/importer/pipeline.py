@@ -115,7 +115,10 @@ def _time_ns(raw: npt.NDArray[Any], mapping: Mapping, start_s: float | None,
              ) -> tuple[I64, B]:
     """Raw time column → int64 ns since the epoch, and a mask of unusable entries."""
     fmt = mapping.time_format
-    if raw.dtype.kind == "i" and fmt in ("epoch_ns", "iso8601"):  # Parquet timestamps too
+    if raw.dtype.kind == "M":  # typed timestamps (Parquet, datetime64 columns): UTC
+        ts = raw.astype("datetime64[ns]")
+        return ts.astype(np.int64), np.isnat(ts)
+    if raw.dtype.kind == "i" and fmt in ("epoch_ns", "iso8601"):
         return raw.astype(np.int64), np.zeros(raw.shape[0], dtype=bool)
     if fmt == "iso8601":
         return _iso_ns(raw)

@@ -314,7 +314,8 @@ def read_parquet(path: Path, needed: list[str], time_column: str | None, time_ki
         tarr = batch.column(0)
         if pa.types.is_timestamp(tarr.type):
             tcast = pc.cast(tarr, pa.timestamp("ns", tarr.type.tz))
-            t: npt.NDArray[Any] = pc.fill_null(tcast.cast(pa.int64()), 0).to_numpy()
+            t: npt.NDArray[Any] = pc.fill_null(tcast.cast(pa.int64()), 0).to_numpy().view(
+                "datetime64[ns]")  # UTC: whatever the mapping's time.format says
         elif time_kind == "str":
             t = np.asarray(pc.fill_null(tarr.cast(pa.string()), "").to_numpy(
                 zero_copy_only=False), dtype=str)
