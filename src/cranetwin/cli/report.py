@@ -47,7 +47,13 @@ def report(
     db: str | None = typer.Option(None, "--db", help="Storage URL (default: "
                                   "CRANETWIN_DATABASE_URL or sqlite:///cranetwin.db)."),
     recording: Path | None = typer.Option(None, "--recording", help="Simulator recording "
-                                          "(.npz or .csv) to analyse instead of storage."),
+                                          "(.npz or .csv: its ground truth), or a user's "
+                                          "CSV/Parquet/MDF4 file (replayed by the twin; "
+                                          "docs/IMPORT.md) to analyse instead of storage."),
+    mapping: Path | None = typer.Option(None, "--mapping", help="Mapping TOML of a user's "
+                                        "--recording file (docs/IMPORT.md)."),
+    payload: float | None = typer.Option(None, "--payload", help="Known payload [kg] of a "
+                                         "user's --recording file (default: estimated)."),
     demo: bool = typer.Option(False, "--demo", help="Synthetic 8-hour shifts with a few "
                               "injected misuse events."),
     days: int = typer.Option(30, "--days", help="Days of --demo data."),
@@ -65,12 +71,17 @@ def report(
         check_format,
         write,
     )
+    from cranetwin.reports.sources import ImportedFileSource, is_simulator_recording
 
     fmt = fmt.lower()
     check_format(fmt)  # an unknown format or a missing extra, before any analysis
     src: Source
     if demo:
         src = DemoSource(load_machine(machine or "patu655"), days=days, rate_hz=rate_hz)
+    elif recording is not None and (mapping is not None or not is_simulator_recording(recording)):
+        src = ImportedFileSource(load_machine(machine or "patu655"), recording, mapping, payload)
+        if src.import_report.rows_refused:
+            typer.echo(src.import_report.summary(), err=True)
     elif recording is not None:
         from cranetwin.sim import Recording
 

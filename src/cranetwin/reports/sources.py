@@ -209,3 +209,66 @@ class StoreSource:
                             yield h, 0
             yield None, 1
             t = t_next
+
+
+def is_simulator_recording(path: Path) -> bool:
+    """True for the simulator's own recording files (``.npz``, or a CSV whose first line is the
+    ``# cranetwin-recording:`` header); anything else is a user's file for the importer."""
+    if path.suffix.lower() == ".npz":
+        return True
+    if path.suffix.lower() != ".csv":
+        return False
+    try:
+        with path.open(encoding="utf-8", errors="replace") as fh:
+            return fh.readline().startswith("# cranetwin-recording:")
+    except OSError:
+        return False
+
+
+@dataclass
+class ImportedFileSource:
+    """A user's recording (CSV, Parquet, MDF4; docs/IMPORT.md), read through the importer with
+    its mapping and analysed on the twin's replay of its samples (not on any truth file).
+
+    Attributes:
+        machine: The machine recorded.
+        path: The file.
+        mapping: Its mapping TOML (None: the default mapping).
+        payload_kg: Known constant payload [kg], or None to estimate it.
+        grid_hz: Replay grid [Hz], a multiple of the sample rate.
+    """
+
+    machine: Machine
+    path: Path
+    mapping: Path | None = None
+    payload_kg: float | None = None
+    grid_hz: float = 100.0
+    label: str = ""
+
+    def __post_init__(self) -> None:
+        from cranetwin.importer import read_file
+
+        got = read_file(self.path, self.machine, self.mapping)
+        self.samples = got.samples
+        self.import_report = got.report
+        self.label = self.label or (f"recording {self.path.name} ({got.report.rows_accepted} "
+                                    f"samples, {got.report.rows_refused} rows refused), "
+                                    "replayed by the twin")
+
+    def total(self) -> int:
+        return int(self.samples.t_s.shape[0])
+
+    def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
+        from cranetwin.importer.replay import check_samples
+        from cranetwin.twin import iter_replay
+
+        check_samples(self.samples, self.machine)
+        done = 0
+        for res in iter_replay(self.samples, self.machine, grid_hz=self.grid_hz,
+                               payload=self.payload_kg):
+            if not res.n:
+                continue
+            n = int(np.searchsorted(self.samples.t_s, res.t_s[-1], side="right")) - done
+            done += n
+            h = history_from_twin(self.machine, res)
+            yield (h if h.n else None), n

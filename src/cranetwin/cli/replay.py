@@ -1,0 +1,85 @@
+"""``cranetwin replay``: the twin's motion and loads of a file or a stored range, written as a
+table of documented columns (docs/IMPORT.md, :mod:`cranetwin.importer.replay`)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import typer
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+from cranetwin.errors import TwinError
+from cranetwin.model import load_machine
+from cranetwin.samples import F64
+
+
+def replay_cmd(
+    file: Path | None = typer.Argument(None, help="CSV, Parquet or MDF4 file to replay "
+                                       "(else --machine ID --from --to: a stored range)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output table: .parquet or .csv."),
+    mapping: Path | None = typer.Option(None, "--mapping", help="The file's mapping TOML "
+                                        "(docs/IMPORT.md)."),
+    machine: str | None = typer.Option(None, "--machine", "-m",
+                                       help="With FILE: built-in machine name or TOML file "
+                                            "(default patu655). Without: the machine id in "
+                                            "storage."),
+    t_from: str | None = typer.Option(None, "--from", help="Start of the stored range (epoch "
+                                      "s or ISO 8601 UTC)."),
+    t_to: str | None = typer.Option(None, "--to", help="End, exclusive."),
+    db: str | None = typer.Option(None, "--db", help="Storage URL (default: "
+                                  "CRANETWIN_DATABASE_URL or sqlite:///cranetwin.db)."),
+    payload: float | None = typer.Option(None, "--payload", help="Known payload [kg] "
+                                         "(default: estimated)."),
+    grid_hz: float | None = typer.Option(None, "--grid-hz", help="Output rate [Hz], an "
+                                         "integer multiple of the sample rate (default: the "
+                                         "sample rate)."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress display."),
+) -> None:
+    """Replay samples through the twin and write joint q/qd/qdd, rod s/v, pressures, cylinder
+    forces, joint torques and reaction wrenches, tip position, payload ± σ and gap flags."""
+    from cranetwin.importer.replay import (
+        column_units,
+        iter_replay_table,
+        load_source,
+        write_table,
+    )
+
+    if file is not None:
+        if t_from is not None or t_to is not None or db is not None:
+            raise TwinError("give FILE, or --machine ID --from --to [--db]: not both")
+        m = load_machine(machine or "patu655")
+        source = load_source(file, m, mapping)
+    else:
+        if machine is None or t_from is None or t_to is None:
+            raise TwinError("give FILE [--mapping MAP], or --machine ID --from T0 --to T1")
+        if mapping is not None:
+            raise TwinError("--mapping is for a FILE")
+        from cranetwin.cli.importer import machine_of
+        from cranetwin.cli.report import parse_time
+        from cranetwin.settings import Settings, load_settings
+        from cranetwin.storage import Store
+
+        url = load_settings(Settings, database_url=db).database_url
+        with Store.open(url) as store:
+            m = machine_of(store.get_machine(machine).model, machine)
+            source = store.read_samples(machine, parse_time(t_from), parse_time(t_to))
+        if source.t_s.shape[0] == 0:
+            raise TwinError(f"no samples of {machine!r} stored in [{t_from}, {t_to})")
+    units = column_units(m, source.channels)
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[rows]}"
+                  " rows"), TimeElapsedColumn(), disable=quiet) as bar:
+        task = bar.add_task(f"replaying into {out.name}", total=None, rows=0)
+
+        def chunks() -> Iterator[dict[str, F64]]:
+            for ch in iter_replay_table(source, m, payload=payload, grid_hz=grid_hz):
+                bar.update(task, rows=bar.tasks[task].fields["rows"] + ch["t_s"].shape[0])
+                yield ch
+
+        rows = write_table(chunks(), out, units)
+    typer.echo(f"{out}: {rows} rows × {len(units)} columns (docs/IMPORT.md lists them)")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``cranetwin replay``."""
+    app.command("replay")(replay_cmd)

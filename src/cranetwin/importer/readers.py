@@ -1,0 +1,441 @@
+"""Read a user's file in chunks of rows: CSV (numpy), Parquet (pyarrow) and ASAM MDF4 (asammdf).
+
+Each reader yields :class:`Chunk` s: the raw time column, the raw value columns the mapping
+needs (float64, NaN = missing) and the rows it could not parse, with row, column and reason.
+Memory is one chunk at a time. Conversion, checks and runs are :mod:`.pipeline`'s.
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.errors import MissingExtraError
+from cranetwin.importer.mapping import ImportFileError
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+TimeKind = Literal["float", "int", "str"]
+Format = Literal["csv", "parquet", "mdf"]
+
+CSV_CHUNK_BYTES = 8 << 20
+PARQUET_BATCH_ROWS = 1 << 17
+MDF_CHUNK_ROWS = 1 << 17
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """One value or row that was not imported.
+
+    Attributes:
+        row: Data row, 1-based (the first row after a CSV header is 1; Parquet/MDF record
+            index + 1).
+        column: Column (or ``(row)`` for the whole row, ``(time)`` context in the name).
+        reason: Why, in one line.
+        line: CSV only: the line number in the file (1-based), else None.
+    """
+
+    row: int
+    column: str
+    reason: str
+    line: int | None = None
+
+    def __str__(self) -> str:
+        where = f"row {self.row}" + (f" (line {self.line})" if self.line is not None else "")
+        return f"{where}, column {self.column!r}: {self.reason}"
+
+
+@dataclass
+class Chunk:
+    """Consecutive rows of a file.
+
+    Attributes:
+        first_row: 1-based data row number of the chunk's first row.
+        time: The raw time column, shape (n,): float64, int64 or str.
+        columns: Raw values per needed column, shape (n,) each [file units]; NaN = missing.
+        bad: Shape (n,), True where the row could not be parsed (see ``refusals``).
+        refusals: Why each bad row was refused.
+        lines: CSV: file line number per row, shape (n,); else None.
+        done: Progress units done after this chunk (bytes or rows).
+        total: Progress units of the whole file.
+    """
+
+    first_row: int
+    time: npt.NDArray[Any]
+    columns: dict[str, F64]
+    bad: npt.NDArray[np.bool_]
+    refusals: list[Refusal] = field(default_factory=list)
+    lines: I64 | None = None
+    done: int = 0
+    total: int = 0
+
+    @property
+    def n(self) -> int:
+        return int(self.bad.shape[0])
+
+
+def detect_format(path: Path) -> Format:
+    """The file's format from its suffix (``.csv``/``.txt``/``.tsv``, ``.parquet``/``.pq``,
+    ``.mf4``/``.mdf``)."""
+    suf = path.suffix.lower()
+    if suf in (".csv", ".txt", ".tsv"):
+        return "csv"
+    if suf in (".parquet", ".pq"):
+        return "parquet"
+    if suf in (".mf4", ".mdf"):
+        return "mdf"
+    raise ImportFileError(f"{path}: unknown file type {suf!r}; expected .csv, .parquet or .mf4")
+
+
+def _pick_time(names: list[str], time_column: str | None, path: Path) -> str:
+    if time_column is not None:
+        if time_column not in names:
+            raise ImportFileError(f"{path}: no time column {time_column!r}; columns: "
+                                  f"{', '.join(names)}")
+        return time_column
+    for cand in ("t_s", "time"):
+        if cand in names:
+            return cand
+    raise ImportFileError(f"{path}: no time column (looked for 't_s' and 'time'); name it in "
+                          f"the mapping's [time] column; columns: {', '.join(names)}")
+
+
+def _missing_columns(needed: list[str], names: list[str], path: Path) -> None:
+    miss = [c for c in needed if c not in names]
+    if miss:
+        raise ImportFileError(f"{path}: no column(s) {', '.join(map(repr, miss))}; the file has: "
+                              f"{', '.join(names)}")
+
+
+# -- CSV --------------------------------------------------------------------------------------
+
+_EMPTY = re.compile(r"(^|{d})(?=[ \t]*(?:{d}|\r?$))", re.MULTILINE)
+
+
+def _fill_empty(text: str, delim: str) -> str:
+    """Empty fields → ``nan`` (a dropout), so numpy parses them."""
+    d = re.escape(delim)
+    return re.sub(_EMPTY.pattern.format(d=d), r"\1nan", text, flags=re.MULTILINE)
+
+
+def csv_header(path: Path, delimiter: str) -> tuple[list[str], int, int]:
+    """Column names, the header's line number (1-based) and the byte offset after it."""
+    with path.open("rb") as fh:
+        line_no = 0
+        for raw in fh:
+            line_no += 1
+            text = raw.decode("utf-8-sig" if line_no == 1 else "utf-8", errors="replace")
+            if text.startswith("#") or not text.strip():
+                continue
+            names = [c.strip() for c in next(csv.reader([text.rstrip("\r\n")],
+                                                        delimiter=delimiter))]
+            return names, line_no, fh.tell()
+    raise ImportFileError(f"{path}: no header row (the first line that is not a # comment)")
+
+
+def read_csv(path: Path, needed: list[str], time_column: str | None, time_kind: TimeKind,
+             delimiter: str = ",", chunk_bytes: int = CSV_CHUNK_BYTES) -> Iterator[Chunk]:
+    """Chunks of a CSV file with a header row (``#`` comment lines and blank lines skipped).
+
+    Fast path: numpy's C parser per chunk; a chunk it rejects is parsed row by row to name
+    every bad row and column (text where a number belongs, too few fields).
+    """
+    names, header_line, start = csv_header(path, delimiter)
+    tcol = _pick_time(names, time_column, path)
+    _missing_columns(needed, names, path)
+    idx = [names.index(c) for c in needed]
+    tidx = names.index(tcol)
+    total = path.stat().st_size
+    row = 1
+    line = header_line + 1
+    with path.open("rb") as fh:
+        fh.seek(start)
+        done = start
+        rest = b""
+        while True:
+            buf = fh.read(chunk_bytes)
+            data = rest + buf
+            if buf:
+                cut = data.rfind(b"\n") + 1
+                if cut == 0:
+                    rest = data
+                    continue
+                data, rest = data[:cut], data[cut:]
+            else:
+                rest = b""
+            if not data:
+                break
+            done += len(data)
+            lines = data.decode("utf-8", errors="replace").split("\n")
+            if lines and lines[-1] == "":
+                lines.pop()
+            n_lines = len(lines)
+            line_nos = np.arange(line, line + n_lines, dtype=np.int64)
+            line += n_lines
+            if lines:
+                chunk = _csv_chunk(lines, line_nos, row, needed, idx, tcol, tidx, time_kind,
+                                   delimiter, done, total)
+                if chunk.n:
+                    yield chunk
+                row += chunk.n
+            if not buf:
+                break
+
+
+def _csv_fast(lines: list[str], idx: list[int], tidx: int, time_kind: TimeKind,
+              delim: str) -> tuple[npt.NDArray[Any], F64] | None:
+    """numpy's C parser over the lines: (time, values), or None where it cannot parse them."""
+    n = len(lines)
+    try:
+        if time_kind == "float":  # one pass for the time and the values
+            both = np.loadtxt(lines, delimiter=delim, usecols=[tidx, *idx], ndmin=2,
+                              dtype=np.float64, comments=None, quotechar='"')
+            t: npt.NDArray[Any] = both[:, 0].copy()
+            vals = both[:, 1:]
+        else:
+            vals = np.loadtxt(lines, delimiter=delim, usecols=idx, ndmin=2, dtype=np.float64,
+                              comments=None, quotechar='"') if idx else np.zeros((n, 0))
+            t = np.loadtxt(lines, delimiter=delim, usecols=[tidx], ndmin=1, comments=None,
+                           quotechar='"', dtype=str if time_kind == "str" else np.int64)
+    except ValueError:
+        return None
+    if vals.shape[0] != n or t.shape[0] != n:
+        return None
+    return t, vals
+
+
+def _csv_chunk(lines: list[str], line_nos: I64, row: int, needed: list[str], idx: list[int],
+               tcol: str, tidx: int, time_kind: TimeKind, delim: str, done: int,
+               total: int) -> Chunk:
+    """Parse one chunk of lines: the fast path first (no scan of the text when it is clean);
+    then without blank and ``#`` lines, then with empty fields as ``nan``; else row by row."""
+    got = _csv_fast(lines, idx, tidx, time_kind, delim)
+    if got is None and any(not ln.strip() or ln.startswith("#") for ln in lines):
+        keep = [i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")]
+        lines = [lines[i] for i in keep]
+        line_nos = line_nos[np.asarray(keep, dtype=np.int64)]
+        got = _csv_fast(lines, idx, tidx, time_kind, delim)
+    if got is None and lines:
+        got = _csv_fast(_fill_empty("\n".join(lines), delim).split("\n"), idx, tidx,
+                        time_kind, delim)
+    if got is None:
+        return _csv_slow(lines, line_nos, row, needed, idx, tcol, tidx, time_kind, delim, done,
+                         total)
+    t, vals = got
+    n = len(lines)
+    cols = {c: np.ascontiguousarray(vals[:, j]) for j, c in enumerate(needed)}
+    return Chunk(row, t, cols, np.zeros(n, dtype=bool), [], line_nos, done, total)
+
+
+def _num(text: str) -> float:
+    s = text.strip()
+    return float("nan") if s == "" else float(s)
+
+
+def _csv_slow(lines: list[str], line_nos: I64, row: int, needed: list[str], idx: list[int],
+              tcol: str, tidx: int, time_kind: TimeKind, delim: str, done: int,
+              total: int) -> Chunk:
+    """Row-by-row parse of a chunk the fast path rejected: every bad row named."""
+    n = len(lines)
+    vals = np.full((n, len(needed)), np.nan)
+    bad = np.zeros(n, dtype=bool)
+    refusals: list[Refusal] = []
+    t: list[Any] = []
+    width = max([*idx, tidx]) + 1
+    tdefault: Any = "" if time_kind == "str" else 0
+    for i, fields in enumerate(csv.reader(lines, delimiter=delim)):
+        r, ln = row + i, int(line_nos[i])
+        if len(fields) < width:
+            bad[i] = True
+            refusals.append(Refusal(r, "(row)", f"{len(fields)} fields, expected at least "
+                                    f"{width}", ln))
+            t.append(tdefault)
+            continue
+        raw_t = fields[tidx].strip()
+        try:
+            t.append(raw_t if time_kind == "str" else
+                     int(raw_t) if time_kind == "int" else float(raw_t))
+        except ValueError:
+            bad[i] = True
+            refusals.append(Refusal(r, tcol, f"{raw_t!r} is not a time", ln))
+            t.append(tdefault)
+        for j, k in enumerate(idx):
+            try:
+                vals[i, j] = _num(fields[k])
+            except ValueError:
+                if not bad[i]:
+                    refusals.append(Refusal(r, needed[j], f"{fields[k].strip()!r} is not a "
+                                            "number", ln))
+                bad[i] = True
+    tt: npt.NDArray[Any] = np.asarray(t, dtype=str if time_kind == "str" else
+                                      np.int64 if time_kind == "int" else np.float64)
+    cols = {c: np.ascontiguousarray(vals[:, j]) for j, c in enumerate(needed)}
+    return Chunk(row, tt, cols, bad, refusals, line_nos, done, total)
+
+
+# -- Parquet ----------------------------------------------------------------------------------
+
+def _pyarrow() -> Any:
+    try:
+        import pyarrow as pa
+        import pyarrow.compute as pc
+        import pyarrow.parquet as pq
+    except ImportError as exc:
+        raise MissingExtraError("import", "Parquet files") from exc
+    return pa, pc, pq
+
+
+def read_parquet(path: Path, needed: list[str], time_column: str | None, time_kind: TimeKind,
+                 batch_rows: int = PARQUET_BATCH_ROWS) -> Iterator[Chunk]:
+    """Chunks of a Parquet file (one record batch each). A timestamp-typed time column is
+    returned as int64 ns since the epoch (naive timestamps are UTC)."""
+    pa, pc, pq = _pyarrow()
+    try:
+        pf = pq.ParquetFile(path)
+    except (OSError, pa.ArrowException) as exc:
+        raise ImportFileError(f"{path}: not a readable Parquet file: {exc}") from exc
+    names = list(pf.schema_arrow.names)
+    tcol = _pick_time(names, time_column, path)
+    _missing_columns(needed, names, path)
+    total = int(pf.metadata.num_rows)
+    row = 1
+    nan = pa.scalar(float("nan"), pa.float64())
+    for batch in pf.iter_batches(batch_size=batch_rows, columns=[tcol, *needed]):
+        n = batch.num_rows
+        bad = np.zeros(n, dtype=bool)
+        refusals: list[Refusal] = []
+        tarr = batch.column(0)
+        if pa.types.is_timestamp(tarr.type):
+            tcast = pc.cast(tarr, pa.timestamp("ns", tarr.type.tz))
+            t: npt.NDArray[Any] = pc.fill_null(tcast.cast(pa.int64()), 0).to_numpy().view(
+                "datetime64[ns]")  # UTC: whatever the mapping's time.format says
+        elif time_kind == "str":
+            t = np.asarray(pc.fill_null(tarr.cast(pa.string()), "").to_numpy(
+                zero_copy_only=False), dtype=str)
+        else:
+            t = pc.fill_null(tarr, 0).cast(
+                pa.int64() if time_kind == "int" else pa.float64()).to_numpy()
+        if tarr.null_count:
+            nulls = np.asarray(tarr.is_null().to_numpy(zero_copy_only=False))
+            bad |= nulls
+            refusals += [Refusal(row + int(i), tcol, "no time (null)")
+                         for i in np.flatnonzero(nulls)]
+        cols: dict[str, F64] = {}
+        for j, c in enumerate(needed):
+            arr = batch.column(j + 1)
+            if not (pa.types.is_floating(arr.type) or pa.types.is_integer(arr.type)
+                    or pa.types.is_decimal(arr.type)):
+                raise ImportFileError(f"{path}: column {c!r} is {arr.type}, not numbers")
+            cols[c] = np.ascontiguousarray(pc.fill_null(arr.cast(pa.float64()), nan).to_numpy())
+        yield Chunk(row, t, cols, bad, refusals, None, min(row - 1 + n, total), total)
+        row += n
+
+
+# -- ASAM MDF4 --------------------------------------------------------------------------------
+
+def _asammdf() -> Any:
+    try:
+        import asammdf
+    except ImportError as exc:
+        raise MissingExtraError("import", "ASAM MDF files") from exc
+    return asammdf
+
+
+def mdf_start_s(path: Path) -> float:
+    """Epoch time of an MDF file's relative time 0 [s] (its header's start time)."""
+    mdf = _asammdf().MDF(str(path))
+    try:
+        return float(mdf.header.start_time.timestamp())
+    finally:
+        mdf.close()
+
+
+def read_mdf(path: Path, needed: list[str],
+             chunk_rows: int = MDF_CHUNK_ROWS) -> Iterator[Chunk]:
+    """Chunks of an MDF4 file. Every needed channel must be in one channel group (one master
+    time channel); the time is the master's, relative seconds since the header's start."""
+    asammdf = _asammdf()
+    try:
+        mdf = asammdf.MDF(str(path))
+    except Exception as exc:  # asammdf raises many kinds on a bad file
+        raise ImportFileError(f"{path}: not a readable MDF file: {exc}") from exc
+    try:
+        where: dict[str, tuple[int, int]] = {}
+        for c in needed:
+            entries = mdf.channels_db.get(c)
+            if not entries:
+                names = sorted(k for k in mdf.channels_db if not k.startswith("$"))
+                raise ImportFileError(f"{path}: no MDF channel {c!r}; the file has: "
+                                      f"{', '.join(names)}")
+            where[c] = entries[0]
+        groups = {g for g, _ in where.values()}
+        if len(groups) > 1:
+            raise ImportFileError(f"{path}: the mapped channels are in {len(groups)} channel "
+                                  "groups (different time bases); resample them into one group "
+                                  "first (e.g. asammdf's MDF.resample)")
+        g = next(iter(groups)) if groups else 0
+        total = int(mdf.groups[g].channel_group.cycles_nr)
+        row = 1
+        for off in range(0, total, chunk_rows):
+            cnt = min(chunk_rows, total - off)
+            t: F64 | None = None
+            cols: dict[str, F64] = {}
+            for c in needed:
+                gi, ci = where[c]
+                sig = mdf.get(c, group=gi, index=ci, record_offset=off, record_count=cnt)
+                if t is None:
+                    t = np.asarray(sig.timestamps, dtype=np.float64)
+                samples = np.asarray(sig.samples)
+                if samples.dtype.kind not in "fiu":
+                    raise ImportFileError(f"{path}: MDF channel {c!r} holds {samples.dtype}, not "
+                                          "numbers")
+                v = samples.astype(np.float64)
+                if sig.invalidation_bits is not None:
+                    v[np.asarray(sig.invalidation_bits, dtype=bool)] = np.nan
+                cols[c] = v
+            if t is None:
+                break
+            n = t.shape[0]
+            yield Chunk(row, t, cols, np.zeros(n, dtype=bool), [], None, off + cnt, total)
+            row += n
+    finally:
+        mdf.close()
+
+
+def iter_chunks(path: Path, fmt: Format, needed: list[str], time_column: str | None,
+                time_kind: TimeKind, delimiter: str) -> Iterator[Chunk]:
+    """Chunks of ``path`` in format ``fmt``."""
+    if not path.is_file():
+        raise ImportFileError(f"{path}: no such file")
+    if fmt == "csv":
+        return read_csv(path, needed, time_column, time_kind, delimiter)
+    if fmt == "parquet":
+        return read_parquet(path, needed, time_column, time_kind)
+    return read_mdf(path, needed)
+
+
+def file_columns(path: Path, fmt: Format, delimiter: str) -> list[str]:
+    """Column (channel) names of a file, for the optional channels it may lack."""
+    if fmt == "csv":
+        return csv_header(path, delimiter)[0]
+    if fmt == "parquet":
+        _, _, pq = _pyarrow()
+        try:
+            return list(pq.ParquetFile(path).schema_arrow.names)
+        except Exception as exc:
+            raise ImportFileError(f"{path}: not a readable Parquet file: {exc}") from exc
+    mdf = _asammdf().MDF(str(path))
+    try:
+        return [k for k in mdf.channels_db if not k.startswith("$")]
+    finally:
+        mdf.close()
+
+
+__all__ = ["Chunk", "Refusal", "detect_format", "file_columns", "iter_chunks"]

@@ -1,0 +1,253 @@
+"""The twin's replay of a file or of arrays as a table of named columns (docs/IMPORT.md).
+
+:func:`replay_table` (whole result in memory) and :func:`iter_replay_table` (chunk by chunk,
+bounded memory; what ``cranetwin replay --out`` writes) run
+:func:`cranetwin.twin.iter_replay` and name its outputs. Columns, in order (``<joint>`` and
+``<cyl>`` are the machine's joint and cylinder names; joint units are rad for revolute and m
+for prismatic joints, "load" units N·m or N accordingly):
+
+=================================  =================  ==========================================
+column                             unit               what
+=================================  =================  ==========================================
+``t_s``                            s (Unix epoch)     grid time
+``q.<joint>``                      rad or m           joint position
+``qd.<joint>``                     rad/s or m/s       joint velocity
+``qdd.<joint>``                    rad/s² or m/s²     joint acceleration (kinematic)
+``rod_s.<cyl>``                    m                  rod position (stroke), smoothed
+``rod_v.<cyl>``                    m/s                rod velocity
+``p_a.<cyl>``, ``p_b.<cyl>``       Pa                 piston- and rod-side pressure, smoothed
+``force.<cyl>``                    N                  cylinder force, paper Eq. 1–2
+``torque_act.<joint>``             N·m or N           actuator load on the joint
+``torque_id.<joint>``              N·m or N           inverse-dynamics load (with the payload)
+``residual.<joint>``               N·m or N           torque_act − torque_id
+``wrench.<joint>.fx|fy|fz``        N                  joint reaction force, child body frame
+``wrench.<joint>.mx|my|mz``        N·m                joint reaction moment, child body frame
+``tip.x``, ``tip.y``, ``tip.z``    m                  load point in the world frame
+``payload_kg``                     kg                 payload (given, or estimated)
+``payload_std_kg``                 kg                 one-sigma uncertainty of the estimate
+``gap``                            0/1                1 where a dropout was bridged
+``missing.<channel>``              0/1                1 where that input channel's sample nearest
+                                                      the instant is missing (NaN) or over 0.6
+                                                      sample periods away (a gap)
+=================================  =================  ==========================================
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.errors import MissingExtraError, TwinError
+from cranetwin.importer.api import Columns, read_columns, read_file
+from cranetwin.importer.checks import check_rod_positions
+from cranetwin.importer.mapping import Mapping
+from cranetwin.model import Machine
+from cranetwin.samples import SampleArrays
+from cranetwin.twin import ReplayOptions, TwinResult, iter_replay
+
+F64 = npt.NDArray[np.float64]
+WRENCH = ("fx", "fy", "fz", "mx", "my", "mz")
+
+
+def column_units(machine: Machine, channels: Sequence[str] | None = None) -> dict[str, str]:
+    """Every output column name, in order, with its unit (see the module docstring).
+
+    Args:
+        machine: The machine.
+        channels: The input channels (their ``missing.<channel>`` flags); None = every channel
+            of the machine.
+    """
+    out: dict[str, str] = {"t_s": "s"}
+    lin = {j.name: j.kind == "prismatic" for j in machine.joints}
+
+    def ju(name: str, rot: str, pri: str) -> str:
+        return pri if lin[name] else rot
+
+    for pre, rot, pri in (("q", "rad", "m"), ("qd", "rad/s", "m/s"), ("qdd", "rad/s^2", "m/s^2")):
+        out.update({f"{pre}.{j.name}": ju(j.name, rot, pri) for j in machine.joints})
+    cyls = [c.name for c in machine.cylinders]
+    for pre, unit in (("rod_s", "m"), ("rod_v", "m/s"), ("p_a", "Pa"), ("p_b", "Pa"),
+                      ("force", "N")):
+        out.update({f"{pre}.{c}": unit for c in cyls})
+    for pre in ("torque_act", "torque_id", "residual"):
+        out.update({f"{pre}.{j.name}": ju(j.name, "N*m", "N") for j in machine.joints})
+    for j in machine.joints:
+        out.update({f"wrench.{j.name}.{k}": ("N" if k[0] == "f" else "N*m") for k in WRENCH})
+    out.update({"tip.x": "m", "tip.y": "m", "tip.z": "m", "payload_kg": "kg",
+                "payload_std_kg": "kg", "gap": "1"})
+    out.update({f"missing.{c.name}": "1" for c in machine.channels
+                if channels is None or c.name in channels})
+    return out
+
+
+def channel_flags(samples: SampleArrays, t_s: F64, period_s: float) -> dict[str, F64]:
+    """``missing.<channel>`` per input channel at the instants ``t_s`` (see the table above)."""
+    n = samples.t_s.shape[0]
+    i = np.searchsorted(samples.t_s, t_s)
+    lo = np.clip(i - 1, 0, n - 1)
+    hi = np.clip(i, 0, n - 1)
+    near = np.where(np.abs(samples.t_s[hi] - t_s) < np.abs(t_s - samples.t_s[lo]), hi, lo)
+    far = np.abs(samples.t_s[near] - t_s) > 0.6 * period_s
+    return {f"missing.{c}": (far | np.isnan(samples.values[near, j])).astype(np.float64)
+            for j, c in enumerate(samples.channels)}
+
+
+def result_columns(res: TwinResult, machine: Machine) -> dict[str, F64]:
+    """A :class:`TwinResult` as named columns (see :func:`column_units`), shape (m,) each."""
+    out: dict[str, F64] = {"t_s": res.t_s}
+    joints = [j.name for j in machine.joints]
+    cyls = [c.name for c in machine.cylinders]
+    for pre, arr in (("q", res.q), ("qd", res.qd), ("qdd", res.qdd)):
+        out.update({f"{pre}.{n}": arr[:, i] for i, n in enumerate(joints)})
+    for pre, arr in (("rod_s", res.rod_s), ("rod_v", res.rod_v), ("p_a", res.p_a),
+                     ("p_b", res.p_b), ("force", res.cyl_force)):
+        out.update({f"{pre}.{n}": arr[:, i] for i, n in enumerate(cyls)})
+    for pre, arr in (("torque_act", res.actuator_torque), ("torque_id", res.id_torque),
+                     ("residual", res.residual)):
+        out.update({f"{pre}.{n}": arr[:, i] for i, n in enumerate(joints)})
+    for i, n in enumerate(joints):
+        out.update({f"wrench.{n}.{k}": res.joint_wrench[:, i, c] for c, k in enumerate(WRENCH)})
+    tip = res.tip_path(machine) if res.n else np.zeros((0, 3))
+    out.update({"tip.x": tip[:, 0], "tip.y": tip[:, 1], "tip.z": tip[:, 2],
+                "payload_kg": res.payload_kg, "payload_std_kg": res.payload_std_kg,
+                "gap": res.gap.astype(np.float64)})
+    return {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in out.items()}
+
+
+Source = SampleArrays | str | Path | Columns
+
+
+def load_source(source: Source, machine: Machine,
+                mapping: Mapping | str | Path | None = None) -> SampleArrays:
+    """Samples from arrays, a file (:func:`read_file`) or columns (:func:`read_columns`)."""
+    if isinstance(source, SampleArrays):
+        return source
+    if isinstance(source, str | Path):
+        return read_file(source, machine, mapping).samples
+    return read_columns(source, machine, mapping).samples
+
+
+def check_samples(samples: SampleArrays, machine: Machine) -> None:
+    """Refuse samples the twin would silently clip (rod positions outside the strokes).
+
+    Raises:
+        TwinError: One line per channel, naming the likely convention or unit mix-up.
+    """
+    problems = check_rod_positions(samples, machine)
+    if problems:
+        raise TwinError("rod positions are not stroke positions:\n" +
+                        "\n".join(f"  - {p}" for p in problems))
+
+
+def iter_replay_table(source: Source, machine: Machine,
+                      mapping: Mapping | str | Path | None = None, *,
+                      payload: float | None = None, grid_hz: float | None = None,
+                      options: ReplayOptions | None = None) -> Iterator[dict[str, F64]]:
+    """Replay samples (or a CSV/Parquet/MDF4 file read with ``mapping``) chunk by chunk.
+
+    Args:
+        source: :class:`SampleArrays`, a file path (:func:`cranetwin.importer.read_file`) or
+            named columns, e.g. a dict of arrays or a pandas DataFrame
+            (:func:`cranetwin.importer.read_columns`).
+        machine: The machine.
+        mapping: The file's mapping (files only).
+        payload: Known payload [kg], or None to estimate it.
+        grid_hz: Output rate [Hz], an integer multiple of the sample rate (default: the
+            sample rate).
+        options: Further replay settings.
+
+    Yields:
+        Consecutive chunks of named columns (:func:`column_units` of the input's channels).
+
+    Raises:
+        TwinError: Rod positions outside the strokes (:func:`check_samples`), missing
+            channels, too few samples.
+        ImportFileError: The file cannot be read as mapped.
+    """
+    samples = load_source(source, machine, mapping)
+    check_samples(samples, machine)
+    if samples.t_s.shape[0] < 4:
+        raise TwinError(f"{samples.t_s.shape[0]} sample(s): too few to replay")
+    opt = options or ReplayOptions()
+    if opt.sample_period_s is None and samples.period_ns:
+        opt = ReplayOptions(**{**opt.__dict__, "sample_period_s": samples.period_ns / 1e9})
+    period = opt.sample_period_s or float(np.median(np.diff(samples.t_s)))
+    if grid_hz is None:
+        grid_hz = float(round(1.0 / period))
+    for res in iter_replay(samples, machine, grid_hz, payload, opt):
+        if res.n:
+            cols = result_columns(res, machine)
+            cols.update(channel_flags(samples, res.t_s, period))
+            yield cols
+
+
+@dataclass(frozen=True)
+class ReplayTable:
+    """A whole replay as named columns.
+
+    ``pandas.DataFrame(table.columns)`` makes a DataFrame of it.
+
+    Attributes:
+        columns: Column name → values, shape (m,) each, in :func:`column_units` order.
+        units: Column name → unit.
+    """
+
+    columns: dict[str, F64]
+    units: dict[str, str]
+
+    def __getitem__(self, name: str) -> F64:
+        return self.columns[name]
+
+    @property
+    def n(self) -> int:
+        return int(self.columns["t_s"].shape[0])
+
+
+def replay_table(source: Source, machine: Machine,
+                 mapping: Mapping | str | Path | None = None, *, payload: float | None = None,
+                 grid_hz: float | None = None,
+                 options: ReplayOptions | None = None) -> ReplayTable:
+    """:func:`iter_replay_table` collected into one :class:`ReplayTable`."""
+    samples = load_source(source, machine, mapping)
+    parts = list(iter_replay_table(samples, machine, payload=payload, grid_hz=grid_hz,
+                                   options=options))
+    units = column_units(machine, samples.channels)
+    if not parts:
+        raise TwinError("the replay produced no output")
+    cols = {k: np.concatenate([p[k] for p in parts]) for k in units}
+    return ReplayTable(cols, units)
+
+
+def write_table(chunks: Iterator[dict[str, F64]], out: str | Path,
+                units: dict[str, str]) -> int:
+    """Write replay chunks to ``out`` (``.parquet``: units in each field's metadata; ``.csv``:
+    a header row of the column names), one chunk at a time. Returns the number of rows."""
+    p = Path(out)
+    suf = p.suffix.lower()
+    if suf not in (".parquet", ".csv"):
+        raise TwinError(f"{p}: output must end in .parquet or .csv")
+    rows = 0
+    if suf == ".csv":
+        with p.open("w", encoding="utf-8", newline="") as fh:
+            fh.write(",".join(units) + "\n")
+            for ch in chunks:
+                arr = np.column_stack([ch[k] for k in units])
+                np.savetxt(fh, arr, fmt="%.10g", delimiter=",")
+                rows += arr.shape[0]
+        return rows
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError as exc:
+        raise MissingExtraError("import", "Parquet output") from exc
+    schema = pa.schema([pa.field(k, pa.float64(), metadata={"unit": u})
+                        for k, u in units.items()])
+    with pq.ParquetWriter(p, schema) as w:
+        for ch in chunks:
+            w.write_table(pa.table({k: ch[k] for k in units}, schema=schema))
+            rows += int(ch["t_s"].shape[0])
+    return rows
