@@ -124,7 +124,7 @@ class ToolForceSeries(BaseModel):
     n: list[list[float | None]] = Field(
         description="estimated force on the tool at the load point, world axes, (n, 3) [N]: "
                     "what the pressures imply beyond gravity, inertia and the payload estimate "
-                    "(read the vertical component together with the payload, F_z − m·g); "
+                    "(read the vertical component together with the payload, F_z − max(m, 0)·g); "
                     "null near a singular arm pose")
     sigma_min_m: list[float] = Field(
         description="smallest singular value of the arm's tip-force lever matrix, (n,) [m]")

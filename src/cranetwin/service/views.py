@@ -53,8 +53,8 @@ def tool_force_json(machine: Machine, q: F64, residual: F64) -> dict[str, F64] |
     force the pressures imply beyond the model — gravity, inertia and the payload *estimate* —
     so while the tool is in the ground the payload estimate takes up part of it (a vertical
     force at the load point and a payload differ only by the payload's inertia): the vertical
-    tool force and the payload are to be read together (F_z − m̂·g), the horizontal component
-    alone.
+    tool force and the payload are to be read together (F_z − max(m̂, 0)·g: the dynamics use
+    a negative estimate as no payload), the horizontal component alone.
     """
     try:
         est = tool_force(machine, q, residual)
