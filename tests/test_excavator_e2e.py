@@ -103,6 +103,38 @@ def test_excavator_scene_has_meshes_for_every_body() -> None:
     assert spec.extras["linkages"]["bucket"]["child_body"] == "bucket"
 
 
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("name", ["patu655", "bobcat435"])
+def test_served_tool_force_is_zero_without_an_external_force(name: str) -> None:
+    """Exact samples of a motion with a known payload (cranetwin.testing.blocks): the twin's
+    residual holds no external force, so neither does the served tool force."""
+    from cranetwin.service.views import twin_json
+    from cranetwin.testing.blocks import kinematic_samples
+    from cranetwin.twin import replay
+
+    m = load_machine(name)
+    res = replay(kinematic_samples(m, 30.0), m, grid_hz=100.0)
+    tw = twin_json(m, res, 5.0, 25.0, 25.0)
+    force = np.asarray(tw["tool_force"]["n"], dtype=float)
+    assert force.shape == (500, 3)
+    weight = 9.81 * float(max(m.rated_load.payload_kg))
+    assert np.nanmax(np.abs(force)) < 0.02 * weight
+
+
+@pytest.mark.timeout(60)
+def test_simulated_blocks_use_the_machines_own_scenario() -> None:
+    from cranetwin.testing.blocks import default_scenario, simulated_samples, tiled_blocks
+
+    m = load_machine("bobcat435")
+    assert default_scenario("bobcat435") == "dig-cycle"
+    assert default_scenario("patu655") == "log-loading"
+    s = simulated_samples("bobcat435", 120.0)
+    assert s.channels == tuple(c.name for c in m.channels)
+    assert s.t_s[-1] == pytest.approx(18.0)    # one dig cycle, repeated by tiled_blocks
+    blocks = list(tiled_blocks("exc", m, 1795420800.0, 40.0, 1.0, base=s))
+    assert len(blocks) == 40 and blocks[0].channels == s.channels
+
+
 @pytest.mark.timeout(120)   # ≈ 25–35 s on a shared 2-core machine, numba caches warm
 def test_excavator_streamed_replayed_served_and_reported(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path / 'exc.db'}"
