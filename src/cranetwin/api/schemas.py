@@ -120,6 +120,16 @@ class PayloadSeries(BaseModel):
     std_kg: list[float | None] = Field(description="1-sigma uncertainty of the estimate [kg]")
 
 
+class ToolForceSeries(BaseModel):
+    n: list[list[float | None]] = Field(
+        description="estimated force on the tool at the load point, world axes, (n, 3) [N]: "
+                    "what the pressures imply beyond gravity, inertia and the payload estimate "
+                    "(read the vertical component together with the payload, F_z − max(m, 0)·g); "
+                    "null near a singular arm pose")
+    sigma_min_m: list[float] = Field(
+        description="smallest singular value of the arm's tip-force lever matrix, (n,) [m]")
+
+
 class TwinOut(BaseModel):
     """Replay of a window (twin output resampled to ``rate_hz``)."""
 
@@ -141,6 +151,9 @@ class TwinOut(BaseModel):
         description="joint reaction wrenches, (n, 4, 6): force xyz [N] then moment xyz [N·m], "
                     "world axes")
     payload: PayloadSeries
+    tool_force: ToolForceSeries | None = Field(
+        None, description="estimated tool force (excavator digging; any machine whose "
+                          "working arm has two or more cylinder joints), else null")
 
 
 class Series(BaseModel):

@@ -114,7 +114,9 @@ def send(
         False, "--from-journal-only", help="Produce no new samples: send what the journal holds, "
         "wait for the acks and exit."),
     scenario: str = typer.Option("log-loading", help="Simulator scenario (fig3, log-loading, "
-                                 "random, or a file), or 'synthetic' for built-in motion."),
+                                 "random for the PATU 655; one shipped for --model, e.g. "
+                                 "dig-cycle for bobcat435; or a file), or 'synthetic' for "
+                                 "built-in motion."),
     host: str = typer.Option("127.0.0.1:5005", help="Ingest daemon, HOST:PORT."),
     speed: float = typer.Option(1.0, help="Multiple of real time."),
     machines: int = typer.Option(1, min=1, help="Simulated fleet size."),

@@ -147,7 +147,8 @@ class RecordingSource:
 def simulator_source(key: MachineKey, model: Any, scenario: str, *, duration_s: float = 120.0,
                      seed: int = 0) -> tuple[F64, float]:
     """Simulate ``scenario`` on ``model`` (``cranetwin.sim``) and return its samples in the key's
-    layout order and the sample period [s].
+    layout order and the sample period [s]. ``scenario`` is a built-in name, the name of a
+    scenario shipped for the machine (``load_scenario(..., machine=model.name)``) or a file.
 
     Raises:
         SenderError: the simulator is not available or a channel of the layout is not simulated.
@@ -158,8 +159,10 @@ def simulator_source(key: MachineKey, model: Any, scenario: str, *, duration_s: 
         raise SenderError(f"the simulator is not available: {exc}") from exc
     from cranetwin.sim import BUILTIN
 
+    # a built-in (crane) scenario, one shipped for this machine (machines/scenarios/<name>/),
+    # or a file
     sc = (builtin_scenario(scenario, seed=seed, duration_s=duration_s) if scenario in BUILTIN
-          else load_scenario(scenario))
+          else load_scenario(scenario, machine=getattr(model, "name", None)))
     rec = simulate(model, sc, duration_s=min(duration_s, sc.duration_s), seed=seed,
                    wrenches=False)
     s = rec.samples

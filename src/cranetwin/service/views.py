@@ -1,4 +1,5 @@
-"""Twin output → public JSON: resampling to the requested rate, poses, pins, forces, wrenches.
+"""Twin output → public JSON: resampling to the requested rate, poses, pins, forces, wrenches,
+the estimated tool force.
 
 Pure functions of (machine, arrays); the fleet service, the warm-up and the live stream call them.
 """
@@ -13,6 +14,7 @@ import numpy.typing as npt
 from cranetwin.model import Machine
 from cranetwin.physics import body_poses, cylinder_force, cylinder_pins, joints_from_cylinders
 from cranetwin.twin.result import TwinResult
+from cranetwin.twin.toolload import tool_force
 
 F64 = npt.NDArray[np.float64]
 
@@ -39,6 +41,26 @@ def pins_json(machine: Machine, q: F64) -> dict[str, F64]:
     pins = cylinder_pins(machine, q)
     both = np.concatenate([pins.base, pins.rod], axis=2)
     return {c.name: _r(both[:, k]) for k, c in enumerate(machine.cylinders)}
+
+
+def tool_force_json(machine: Machine, q: F64, residual: F64) -> dict[str, F64] | None:
+    """The estimated tool force (:func:`cranetwin.twin.toolload.tool_force`) of the twin's
+    residual at the output instants, or None for a machine whose working arm cannot resolve one
+    (fewer than two cylinder joints up to the load body).
+
+    ``n`` is the force on the tool at the load point, world axes, (m, 3) [N] (NaN → null near a
+    singular arm pose); ``sigma_min_m`` the arm's shortest lever for it, (m,) [m]. It is the
+    force the pressures imply beyond the model — gravity, inertia and the payload *estimate* —
+    so while the tool is in the ground the payload estimate takes up part of it (a vertical
+    force at the load point and a payload differ only by the payload's inertia): the vertical
+    tool force and the payload are to be read together (F_z − max(m̂, 0)·g: the dynamics use
+    a negative estimate as no payload), the horizontal component alone.
+    """
+    try:
+        est = tool_force(machine, q, residual)
+    except ValueError:
+        return None
+    return {"n": _r(est.force_n, 1), "sigma_min_m": _r(est.sigma_min_m, 4)}
 
 
 def twin_json(machine: Machine, res: TwinResult, t0_s: float, t1_s: float,
@@ -87,6 +109,7 @@ def twin_json(machine: Machine, res: TwinResult, t0_s: float, t1_s: float,
         "wrenches": _r(w_world, 2),
         "payload": {"t": _r(t, 4), "kg": _r(res.payload_kg[idx], 2),
                     "std_kg": _r(res.payload_std_kg[idx], 2)},
+        "tool_force": tool_force_json(machine, q, res.residual[idx]) if len(idx) else None,
     }
 
 

@@ -6,8 +6,9 @@ Two sources:
   so 120 s tiles seamlessly), the joint motion from the inverse kinematics, the joint loads by
   inverse dynamics with a known payload schedule, and the pressures that produce them through
   Eq. 1–2 (friction included). A replay of these samples must give back the payload and forces.
-* :func:`simulated_samples` — the machine-side simulator's ``log-loading`` scenario (slow to
-  compute; realistic noise and hydraulics).
+* :func:`simulated_samples` — the machine-side simulator running a scenario that exists for the
+  machine: the PATU 655's ``log-loading``, or the first scenario shipped with another machine
+  (the Bobcat 435's ``dig-cycle``) (slow to compute; realistic noise and hydraulics).
 
 :func:`tiled_blocks` repeats a recording back to back to cover any duration, cut into blocks
 of ``block_s`` as the ingest daemon stores them.
@@ -101,14 +102,39 @@ def kinematic_samples(machine: Machine, duration_s: float = 120.0, rate_hz: floa
                         period_ns=int(round(1e9 / rate_hz)))
 
 
-@lru_cache(maxsize=4)
-def simulated_samples(model: str = "patu655", base_s: float = 120.0,
-                      seed: int = 0) -> SampleArrays:
-    """Sensor samples of ``base_s`` seconds of the log-loading scenario, t from 0 [s]."""
-    from cranetwin.sim import builtin_scenario, simulate
+def default_scenario(model: str) -> str:
+    """The scenario :func:`simulated_samples` runs for built-in machine ``model``: the first one
+    shipped with the machine (``machines/scenarios/<model>/``), else the built-in
+    ``log-loading`` (the PATU 655's)."""
+    from cranetwin.sim.scenario import machine_scenarios
 
-    rec = simulate(load_machine(model), builtin_scenario("log-loading"), duration_s=base_s,
-                   seed=seed)
+    own = machine_scenarios(model)
+    return own[0] if own else "log-loading"
+
+
+@lru_cache(maxsize=4)
+def simulated_samples(model: str = "patu655", base_s: float = 120.0, seed: int = 0,
+                      scenario: str | None = None) -> SampleArrays:
+    """Sensor samples of ``base_s`` seconds of a scenario of ``model``, t from 0 [s].
+
+    Args:
+        model: Built-in machine name.
+        base_s: Seconds to simulate; a scenario file of the machine (a single work cycle) is
+            simulated for at most its own duration (:func:`tiled_blocks` repeats it).
+        seed: Seed of the sensors (built-in scenarios run with their default seed, as before).
+        scenario: Scenario name (default :func:`default_scenario`).
+    """
+    from cranetwin.sim import load_scenario, simulate
+    from cranetwin.sim.scenario import BUILTIN
+
+    name = scenario if scenario is not None else default_scenario(model)
+    if name in BUILTIN:
+        sc = load_scenario(name)
+        duration = base_s
+    else:
+        sc = load_scenario(name, machine=model)
+        duration = min(base_s, sc.duration_s)
+    rec = simulate(load_machine(model), sc, duration_s=duration, seed=seed)
     return rec.samples
 
 

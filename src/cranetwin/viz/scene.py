@@ -6,8 +6,12 @@ expressed in the body frame; the browser (or an exported replay) moves the node 
 (``set_transform``, 16 floats, column-major). Hydraulic cylinders are not rigid bodies: each is a
 barrel and a rod mesh of unit length along +z (``/cranetwin/cylinders/<name>/barrel|rod``) that the
 browser stretches between the cylinder's two pins every frame (:func:`segment_matrix`). The tool
-(rotator + grapple) and the payload (a log whose size follows the payload mass) hang at the load
-point under ``/cranetwin/tool``.
+and the payload sit at the load point under ``/cranetwin/tool``: a machine whose load point carries
+a tool of its own (``load_point.tool_mass_kg`` > 0, the crane's rotator and grapple) gets that tool
+drawn and the payload as a log hanging under it; a machine whose load body is the tool
+(``tool_mass_kg`` = 0, the excavator's bucket, drawn by the body's visuals) gets no extra tool and
+the payload as a lump of soil at the load point. Either payload's size follows the payload mass
+(the spec's ``log_length_m``/``log_density_kgm3``/``tool_drop_m`` tell the browser how).
 
 The command dicts are plain JSON (lists, no msgpack extension types), so they go over HTTP or are
 embedded in an HTML file unchanged and are passed to ``viewer.handle_command(cmd)``.
@@ -40,6 +44,16 @@ LOG_LENGTH_M = 3.0
 """Length of the drawn log [m]."""
 TOOL_DROP_M = 0.55
 """Distance from the load point down to the grapple jaws [m] (drawing only)."""
+SOIL_DENSITY_KGM3 = 1600.0
+"""Density of loose soil [kg/m³], used to size the payload lump of a bucket (drawing only)."""
+SOIL_WIDTH_M = 0.5
+"""Width of the drawn soil lump across the arm's plane [m] (drawing only)."""
+
+
+def tool_is_load_body(machine: Machine) -> bool:
+    """Whether the machine's tool is its load body (no separate tool mass at the load point, e.g.
+    an excavator's bucket), so that no grapple is drawn and the payload is drawn as soil."""
+    return machine.load_point.tool_mass_kg == 0.0
 
 
 class SceneError(CraneTwinError):
@@ -325,17 +339,34 @@ def build_scene(machine: Machine, base_dir: Path | None = None,
                                   "child_body": joint.child,
                                   "coupler_m": list(cyl.linkage.coupler_pin_m)}
     tool = f"{ROOT}/tool"
-    rotator = trimesh.creation.cylinder(radius=0.06, segment=np.array([[0, 0, 0], [0, 0, -0.3]]),
-                                        sections=12)
-    cmds.append(set_object(f"{tool}/rotator", mesh_object(rotator, "#3d4b5c", name="rotator")))
-    jaws = [trimesh.creation.box(extents=(0.08, 0.5, 0.45)).apply_translation((sx, 0, -0.45))
-            for sx in (-0.22, 0.22)]
-    head = trimesh.creation.box(extents=(0.5, 0.3, 0.14)).apply_translation((0, 0, -0.28))
-    grapple = cast(trimesh.Trimesh, trimesh.util.concatenate([head, *jaws]))
-    cmds.append(set_object(f"{tool}/grapple", mesh_object(grapple, "#3d4b5c", name="grapple")))
-    log_mesh = trimesh.creation.cylinder(radius=1.0, segment=np.array([[0, -0.5, 0], [0, 0.5, 0]]),
-                                         sections=16)
-    cmds.append(set_object(f"{tool}/payload", mesh_object(log_mesh, "#8b5a2b", name="payload")))
+    if tool_is_load_body(machine):
+        # the payload lump: unit mesh of radius 1 in x and z and width 1 along y (the browser
+        # scales it like the log: radius from the mass, width = log_length_m), centred just
+        # under the load point
+        lump = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+        lump.apply_scale((1.0, 0.5, 1.0))
+        cmds.append(set_object(f"{tool}/payload", mesh_object(lump, "#6b4f2a", name="payload")))
+        drawing = {"tool_drop_m": 0.0, "log_length_m": SOIL_WIDTH_M,
+                   "log_density_kgm3": SOIL_DENSITY_KGM3, "payload_kind": "soil"}
+    else:
+        rotator = trimesh.creation.cylinder(radius=0.06,
+                                            segment=np.array([[0, 0, 0], [0, 0, -0.3]]),
+                                            sections=12)
+        cmds.append(set_object(f"{tool}/rotator", mesh_object(rotator, "#3d4b5c",
+                                                              name="rotator")))
+        jaws = [trimesh.creation.box(extents=(0.08, 0.5, 0.45)).apply_translation((sx, 0, -0.45))
+                for sx in (-0.22, 0.22)]
+        head = trimesh.creation.box(extents=(0.5, 0.3, 0.14)).apply_translation((0, 0, -0.28))
+        grapple = cast(trimesh.Trimesh, trimesh.util.concatenate([head, *jaws]))
+        cmds.append(set_object(f"{tool}/grapple", mesh_object(grapple, "#3d4b5c",
+                                                              name="grapple")))
+        log_mesh = trimesh.creation.cylinder(radius=1.0,
+                                             segment=np.array([[0, -0.5, 0], [0, 0.5, 0]]),
+                                             sections=16)
+        cmds.append(set_object(f"{tool}/payload", mesh_object(log_mesh, "#8b5a2b",
+                                                              name="payload")))
+        drawing = {"tool_drop_m": TOOL_DROP_M, "log_length_m": LOG_LENGTH_M,
+                   "log_density_kgm3": LOG_DENSITY_KGM3, "payload_kind": "log"}
     cmds.append(set_object(f"{ROOT}/trail", line_object(trail_points, "#e0457b", name="trail")))
     spec = SceneSpec(
         bodies=bodies,
@@ -346,8 +377,7 @@ def build_scene(machine: Machine, base_dir: Path | None = None,
         payload_path=f"{tool}/payload",
         trail_path=f"{ROOT}/trail",
         rated_payload_kg=float(max(machine.rated_load.payload_kg)),
-        extras={"trail_points": trail_points, "tool_drop_m": TOOL_DROP_M, "linkages": linkages,
-                "log_length_m": LOG_LENGTH_M, "log_density_kgm3": LOG_DENSITY_KGM3},
+        extras={"trail_points": trail_points, "linkages": linkages, **drawing},
     )
     return cmds, spec
 
