@@ -45,10 +45,13 @@ from cranetwin.analytics.state import (
     AnalyticsConfig,
     AnalyticsReport,
     AnalyticsState,
+    RateBasis,
     Spectrum,
     analyse,
+    assumptions,
     default_class_widths,
     load_channels,
+    rate_basis,
 )
 
 __all__ = [
@@ -68,9 +71,11 @@ __all__ = [
     "ProductivityConfig",
     "ProductivityTracker",
     "RainflowCounter",
+    "RateBasis",
     "Spectrum",
     "WorkCycle",
     "analyse",
+    "assumptions",
     "classify",
     "cycles_to_failure",
     "default_class_widths",
@@ -83,6 +88,7 @@ __all__ = [
     "miner_damage",
     "rainflow",
     "range_histogram",
+    "rate_basis",
     "spectrum_class",
     "spectrum_factor",
     "turning_points",

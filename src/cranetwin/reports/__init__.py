@@ -30,6 +30,11 @@ def build_report(source: Source, config: AnalyticsConfig | None = None,
     """Analyse every chunk of ``source`` (only instants with t0_s ≤ t < t1_s if given);
     ``progress(units)`` is called after each chunk.
 
+    Rates (remaining life, next service, class of utilisation) follow
+    :class:`cranetwin.analytics.RateBasis`: the machine's whole recorded history gives the
+    operating hours per day when the source knows it (``history_usage()``, storage), else the
+    requested range [t0_s, t1_s) does (the data span when no range is given).
+
     Raises:
         ReportError: No data in the window.
     """
@@ -46,7 +51,9 @@ def build_report(source: Source, config: AnalyticsConfig | None = None,
     if state.n_samples == 0:
         raise ReportError(f"no data from {source.label} in the window {lo} s to {hi} s "
                           "(epoch seconds); check --from/--to")
-    return state.report()
+    usage_fn = getattr(source, "history_usage", None)
+    usage = usage_fn() if callable(usage_fn) else None
+    return state.report(t0_s, t1_s, *(usage if usage is not None else (None, None)))
 
 
 __all__ = ["FORMATS", "SECTIONS", "DemoSource", "RecordingSource", "Source", "StoreSource",

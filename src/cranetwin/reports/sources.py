@@ -191,6 +191,21 @@ class StoreSource:
     def total(self) -> int:
         return int(np.ceil((self.t1_s - self.t0_s) / WINDOW_S))
 
+    def history_usage(self) -> tuple[float, float] | None:
+        """(operating s, calendar s) of the machine's whole recorded history: the twin worker's
+        operating time from the first stored sample to its progress mark; None before the
+        worker processed anything."""
+        from sqlalchemy.orm import Session
+
+        from cranetwin.storage.apikeys import get_progress
+
+        dr = self.store.data_range(self.machine_id)
+        with Session(self.store.engine) as s:
+            row = get_progress(s, self.machine_id)
+            if row is None or dr is None or not row.operating_s > 0:
+                return None
+            return float(row.operating_s), float(row.watermark_s - dr[0])
+
     def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
         from cranetwin.twin import iter_replay
 

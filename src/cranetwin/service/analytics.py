@@ -96,7 +96,22 @@ def analytics_report(backend: Any, replayer: Replayer, machine: Machine, machine
                     state.update(load_history(machine, res, k))
                     folded = True
         a = b
-    return state.report() if folded else None
+    if not folded:
+        return None
+    op, cal = history_usage(backend, machine_id)
+    return state.report(rng.t0_s, rng.t1_s, op, cal)
+
+
+def history_usage(backend: Any, machine_id: str) -> tuple[float | None, float | None]:
+    """(operating s, calendar s) of the machine's whole recorded history, the rate basis of
+    remaining life (:class:`cranetwin.analytics.RateBasis`): the twin worker's operating time
+    from the first stored sample to its progress mark; (None, None) before the worker
+    processed anything."""
+    prog = backend.progress(machine_id)
+    dr = backend.data_range(machine_id)
+    if prog is None or dr is None or not prog.operating_s > 0 or not prog.watermark_s > dr[0]:
+        return None, None
+    return float(prog.operating_s), float(prog.watermark_s - dr[0])
 
 
 def analytics_json(report: Any, rng: TimeRange) -> dict[str, Any]:
