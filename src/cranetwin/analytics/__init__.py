@@ -43,6 +43,7 @@ from cranetwin.analytics.rainflow import (
 )
 from cranetwin.analytics.state import (
     AnalyticsConfig,
+    AnalyticsPart,
     AnalyticsReport,
     AnalyticsState,
     RateBasis,
@@ -57,6 +58,7 @@ from cranetwin.analytics.state import (
 __all__ = [
     "KINDS",
     "AnalyticsConfig",
+    "AnalyticsPart",
     "AnalyticsReport",
     "AnalyticsState",
     "Classification",

@@ -20,7 +20,13 @@ from cranetwin.analytics.classification import (
     classify,
     duty_record,
 )
-from cranetwin.analytics.events import Event, EventConfig, EventDetector, relief_force_n
+from cranetwin.analytics.events import (
+    Event,
+    EventConfig,
+    EventDetector,
+    EventPart,
+    relief_force_n,
+)
 from cranetwin.analytics.fatigue import (
     LifeEstimate,
     equivalent_stress_range_mpa,
@@ -31,6 +37,7 @@ from cranetwin.analytics.history import LoadHistory
 from cranetwin.analytics.productivity import (
     DayUsage,
     ProductivityConfig,
+    ProductivityPart,
     ProductivityTracker,
     WorkCycle,
 )
@@ -239,6 +246,31 @@ class AnalyticsReport:
         return self.working_s / self.recorded_s if self.recorded_s > 0 else 0.0
 
 
+@dataclass
+class AnalyticsPart:
+    """Everything the analyses need of one stretch of history, computed from it alone, so that
+    stored parts of consecutive stretches (e.g. one per minute) fold into exactly the report of
+    the whole (:meth:`AnalyticsState.apply`): rainflow counters (closed cycles as a from-to
+    table and the open residue) per load channel, raw stretches of every event and work-cycle
+    condition with their statistics, look-back samples at both ends, recorded time per day.
+
+    Attributes:
+        t_first: First sample time [s].
+        t_last: Last sample time [s].
+        n: Samples.
+        rainflow: Counter per load channel.
+        events: Event detector part.
+        productivity: Work-cycle and time part.
+    """
+
+    t_first: float
+    t_last: float
+    n: int
+    rainflow: dict[str, RainflowCounter]
+    events: EventPart
+    productivity: ProductivityPart
+
+
 class AnalyticsState:
     """Folds :class:`LoadHistory` chunks of one machine; :meth:`report` at any time."""
 
@@ -272,6 +304,39 @@ class AnalyticsState:
             counter.update(h.load_channel(self.machine, ch))
         self.events.update(h)
         self.productivity.update(h)
+        return self
+
+    def part(self, h: LoadHistory) -> AnalyticsPart | None:
+        """The :class:`AnalyticsPart` of one stretch (this state is not changed; only its
+        machine and configuration are used); None for an empty history."""
+        if h.n == 0:
+            return None
+        rf = {}
+        for ch, counter in self.counters.items():
+            c = RainflowCounter(counter.class_width)
+            c.update(h.load_channel(self.machine, ch))
+            rf[ch] = c
+        ev = self.events.part(h)
+        pr = self.productivity.part(h)
+        assert ev is not None and pr is not None
+        return AnalyticsPart(float(h.t_s[0]), float(h.t_s[-1]), h.n, rf, ev, pr)
+
+    def apply(self, p: AnalyticsPart | None) -> AnalyticsState:
+        """Fold the part of the next stretch (must follow the previous one in time); the same
+        state as :meth:`update` with its history. Returns self."""
+        if p is None:
+            return self
+        if self.t_end is not None and not p.t_first > self.t_end:
+            raise AnalyticsError(f"part starts at {p.t_first} s, not after the previous end "
+                                 f"{self.t_end} s")
+        if self.t_start is None:
+            self.t_start = p.t_first
+        self.t_end = p.t_last
+        self.n_samples += p.n
+        for ch, counter in self.counters.items():
+            counter.absorb(p.rainflow[ch])
+        self.events.apply(p.events)
+        self.productivity.apply(p.productivity)
         return self
 
     def dumps(self) -> bytes:
