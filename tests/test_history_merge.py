@@ -96,6 +96,18 @@ def test_parts_of_random_splits_fold_into_the_direct_analysis(
     for p in parts:
         st_.apply(p)
     _assert_same(direct, st_.report())
+    # rolled up: neighbouring parts merged into one (minutes into hours), then folded
+    merged: list = []
+    for p in parts:
+        assert p is not None
+        if merged and merged[-1].n > 30 and p.n > 30 and data.draw(st.booleans(), label="roll"):
+            merged[-1] = proto.merge_parts(merged[-1], p)
+        else:
+            merged.append(p)
+    st2 = AnalyticsState(machine)
+    for p in merged:
+        st2.apply(p)
+    _assert_same(direct, st2.report())
 
 
 @pytest.mark.timeout(60)

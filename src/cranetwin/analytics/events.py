@@ -17,7 +17,8 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.analytics.history import LoadHistory
-from cranetwin.analytics.runs import Run, RunTracker, Segments, segments
+from cranetwin.analytics.runs import Run, RunTracker, Segments, concat_segments, segments
+from cranetwin.errors import AnalyticsError
 from cranetwin.model import Machine
 
 F64 = npt.NDArray[np.float64]
@@ -385,6 +386,42 @@ class EventDetector:
         sl = slice(max(ct.shape[0] - keep, 0), None)
         self._tail = (ct[sl].copy(), None if crs is None else crs[sl].copy(),
                       None if crv is None else crv[sl].copy(), cf[sl].copy())
+
+    def _head_of_next(self, tail: Arrays, p: EventPart) -> tuple[list[Event],
+                                                                 dict[str, Segments | None]]:
+        """End-stop impacts and shock stretches of ``p``'s head samples, after ``tail``."""
+        tt, trs, trv, tf = tail
+        ht, hrs, hrv, hf = p.head
+        k0 = tt.shape[0]
+        t = np.concatenate([tt, ht])
+        rs = None if trs is None or hrs is None else np.concatenate([trs, hrs])
+        rv = None if trv is None or hrv is None else np.concatenate([trv, hrv])
+        f = np.concatenate([tf, hf])
+        hd = ht.shape[0]
+        ends = self._end_stops(t, rs, rv, f, k0, k0 + hd)
+        lag = p.lag
+        first = max(k0, lag)
+        stop = k0 + min(max(lag, hd), p.n) if p.n > lag else k0 + hd
+        shock = self._shock_segments(t, f, lag, first, stop) if t.shape[0] > lag else {}
+        return ends, shock
+
+    def merge_parts(self, a: EventPart, b: EventPart) -> EventPart:
+        """One part of chunk ``a`` followed by chunk ``b`` (folding it = folding both).
+
+        Raises:
+            AnalyticsError: A part is not longer than its look-back (keep such parts apart).
+        """
+        if not (a.n > a.head[0].shape[0] and b.n > b.tail[0].shape[0]):
+            raise AnalyticsError("parts shorter than the look-back cannot be merged")
+        g = self.cfg.max_gap_s
+        ends, head_shock = self._head_of_next(a.tail, b)
+        keys = dict.fromkeys([*a.runs, *b.runs])
+        runs = {k: concat_segments(a.runs.get(k), b.runs.get(k), g) for k in keys}
+        skeys = dict.fromkeys([*a.shock, *head_shock, *b.shock])
+        shock = {k: concat_segments(concat_segments(a.shock.get(k), head_shock.get(k), g),
+                                    b.shock.get(k), g) for k in skeys}
+        return EventPart(runs, [*a.late_end_stops, *ends, *b.late_end_stops], shock, a.lag,
+                         a.head, b.tail, a.t_first, b.t_last, a.n + b.n)
 
     def update(self, h: LoadHistory) -> None:
         """Fold the next chunk (``apply(part(h))``); new events are appended to

@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.analytics.history import LoadHistory
-from cranetwin.analytics.runs import Run, RunTracker, Segments, segments
+from cranetwin.analytics.runs import Run, RunTracker, Segments, concat_segments, segments
 from cranetwin.model import Machine
 
 F64 = npt.NDArray[np.float64]
@@ -170,6 +170,20 @@ class ProductivityTracker:
         vals = (h.payload_kg, h.payload_kg / rated, h.reach_m, h.q[:, self._slew], rise)
         loaded = segments(t, h.payload_kg >= self.cfg.grab_kg, vals, self.cfg.max_gap_s)
         return ProductivityPart(float(t[0]), float(t[-1]), inner, idle, loaded, has_h)
+
+    def merge_parts(self, a: ProductivityPart, b: ProductivityPart) -> ProductivityPart:
+        """One part of chunk ``a`` followed by chunk ``b`` (folding it = folding both)."""
+        inner = dict(a.inner_recorded_s)
+        for k, v in b.inner_recorded_s.items():
+            inner[k] = inner.get(k, 0.0) + v
+        dt0 = b.t_first - a.t_last
+        if dt0 <= self.cfg.max_gap_s:
+            k = int(b.t_first // DAY_S)
+            inner[k] = inner.get(k, 0.0) + dt0
+        g = self.cfg.max_gap_s
+        return ProductivityPart(a.t_first, b.t_last, inner, concat_segments(a.idle, b.idle, g),
+                                concat_segments(a.loaded, b.loaded, g),
+                                a.has_height and b.has_height)
 
     def apply(self, p: ProductivityPart | None) -> None:
         """Fold the part of the next chunk (see :meth:`part`)."""

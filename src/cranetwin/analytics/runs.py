@@ -122,6 +122,28 @@ def segments(t: F64, mask: B, values: Sequence[F64], max_gap_s: float = 0.0) -> 
     return Segments(float(t[0]), float(t[-1]), runs, first_at_start, last_at_end)
 
 
+def concat_segments(a: Segments | None, b: Segments | None,
+                    max_gap_s: float = 0.0) -> Segments | None:
+    """The segments of chunk ``a`` followed by chunk ``b`` (as :func:`segments` of the joined
+    chunk would give): a stretch ending at a's last sample joins one starting at b's first
+    sample unless the step between them is over ``max_gap_s``."""
+    if a is None:
+        return b
+    if b is None:
+        return a
+    runs = list(a.runs)
+    rb = list(b.runs)
+    gap = max_gap_s > 0 and b.t_first - a.t_last > max_gap_s
+    if runs and rb and a.last_at_end and b.first_at_start and not gap:
+        runs[-1] = runs[-1].join(rb.pop(0))
+    runs += rb
+    first_at_start = bool(a.runs) and a.first_at_start
+    last_at_end = bool(b.runs) and b.last_at_end
+    if not b.runs and a.runs:
+        last_at_end = False
+    return Segments(a.t_first, b.t_last, runs, first_at_start, last_at_end)
+
+
 @dataclass
 class RunTracker:
     """Finds runs of a condition across chunks.

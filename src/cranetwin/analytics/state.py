@@ -339,6 +339,23 @@ class AnalyticsState:
         self.productivity.apply(p.productivity)
         return self
 
+    def merge_parts(self, a: AnalyticsPart, b: AnalyticsPart) -> AnalyticsPart:
+        """One part of stretch ``a`` followed by stretch ``b``: folding it is folding both (roll
+        minute parts up into hours and days). Neither part is changed.
+
+        Raises:
+            AnalyticsError: b does not follow a, or a part is not longer than the look-back of
+                the event detectors (a fraction of a second).
+        """
+        import copy
+
+        if not b.t_first > a.t_last:
+            raise AnalyticsError("parts out of order")
+        ev = self.events.merge_parts(a.events, b.events)
+        rf = {ch: copy.deepcopy(c).absorb(b.rainflow[ch]) for ch, c in a.rainflow.items()}
+        pr = self.productivity.merge_parts(a.productivity, b.productivity)
+        return AnalyticsPart(a.t_first, b.t_last, a.n + b.n, rf, ev, pr)
+
     def dumps(self) -> bytes:
         """The whole state as bytes, to keep between runs (e.g. in the database) and continue
         with :meth:`loads` where this one stopped.
