@@ -10,6 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cranetwin.analytics import (
+    AnalyticsPart,
     AnalyticsReport,
     AnalyticsState,
     LoadHistory,
@@ -97,7 +98,7 @@ def test_parts_of_random_splits_fold_into_the_direct_analysis(
         st_.apply(p)
     _assert_same(direct, st_.report())
     # rolled up: neighbouring parts merged into one (minutes into hours), then folded
-    merged: list = []
+    merged: list[AnalyticsPart] = []
     for p in parts:
         assert p is not None
         if merged and merged[-1].n > 30 and p.n > 30 and data.draw(st.booleans(), label="roll"):

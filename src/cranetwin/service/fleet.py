@@ -313,9 +313,9 @@ class FleetService:
         """Analytics of the range: replayed window by window into cranetwin.analytics."""
         from cranetwin.service.analytics import analytics_json, analytics_report
 
-        rng.limit(self.settings.max_analytics_range_s, "analytics")
         report = analytics_report(self.backend, self.replayer, self.backend.model_of(rec),
-                                  rec.machine_id, rng)
+                                  rec.machine_id, rng, self.settings.twin_margin_s,
+                                  self.settings.max_analytics_range_s)
         return analytics_json(report, rng)
 
     def report(self, rec: MachineRecord, rng: TimeRange, fmt: str,
@@ -325,9 +325,9 @@ class FleetService:
         this layer); a one-table stub file when the range holds no samples."""
         from cranetwin.service.analytics import analytics_json, analytics_report, render
 
-        rng.limit(self.settings.max_analytics_range_s, "a report")
         machine = self.backend.model_of(rec)
-        rep = analytics_report(self.backend, self.replayer, machine, rec.machine_id, rng)
+        rep = analytics_report(self.backend, self.replayer, machine, rec.machine_id, rng,
+                               self.settings.twin_margin_s, self.settings.max_analytics_range_s)
         if rep is None:
             body, media, name = render(analytics_json(None, rng), fmt, rec.machine_id)
         else:

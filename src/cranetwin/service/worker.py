@@ -254,6 +254,7 @@ class TwinWorker:
         prog = stored if stored is not None else Progress.empty(
             rec.machine_id, math.floor(dr[0] / win) * win)
         done = 0
+        start_wm = prog.watermark_s
         while (max_windows is None or done < max_windows) and not self.stop_requested():
             w0 = prog.watermark_s
             if w0 + win + s.worker_settle_s > dr[1]:
@@ -275,29 +276,49 @@ class TwinWorker:
                     break
                 done += 1
             prog, expected = new, new.watermark_s
+        self._roll_up(rec, start_wm, prog.watermark_s)
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
 
-    def _store_events(self, rec: MachineRecord, machine: Machine, res: object,
-                      keep: npt.NDArray[np.bool_]) -> None:
-        """Detect events in the window (cranetwin.analytics) and store them before the window's
-        commit: a redone window stores the same events, which storage ignores (unique on
-        machine, time, kind). Runs spanning a window edge are reported once per window."""
+    def _store_analytics(self, rec: MachineRecord, machine: Machine, res: object,
+                         keep: npt.NDArray[np.bool_], w0: float, w1: float) -> None:
+        """Store the window's analytics part (:mod:`cranetwin.service.history`: what any
+        range's analytics merge from) and its events, before the window's commit: a redone
+        window replaces its part, and storage ignores events stored before (unique on machine,
+        time, kind). Events of runs spanning a window edge are stored once per window (the
+        /events list); reports merge the parts, which join such runs."""
         from cranetwin.analytics import EventDetector
         from cranetwin.service.analytics import load_history, stored_events
+        from cranetwin.service.history import store_part
 
         if int(np.count_nonzero(keep)) < 2:
             return
         try:
+            h = load_history(machine, res, keep)
+            store_part(self.backend.store.engine, machine, rec.machine_id, w0, w1, h)
             det = EventDetector(machine)
-            det.update(load_history(machine, res, keep))
+            det.update(h)
             events = stored_events(rec.machine_id, det.all_events())
         except CraneTwinError as exc:
-            log.warning("machine %s: event detection failed: %s", rec.machine_id, exc)
+            log.warning("machine %s: analytics of window %.0f failed: %s", rec.machine_id, w0,
+                        exc)
             return
         if events:
             self.backend.store.add_events(events)
+
+    def _roll_up(self, rec: MachineRecord, from_s: float, to_s: float) -> None:
+        """Roll the minute parts of the hours (and days) the progress mark passed from
+        ``from_s`` to ``to_s`` up into hour (and day) parts."""
+        from cranetwin.service.history import roll_up
+
+        if math.floor(from_s / 3600) == math.floor(to_s / 3600):
+            return
+        try:
+            roll_up(self.backend.store.engine, self.backend.model_of(rec), rec.machine_id,
+                    math.floor(from_s / 86400) * 86400.0, to_s)
+        except CraneTwinError as exc:
+            log.warning("machine %s: roll-up to %.0f failed: %s", rec.machine_id, to_s, exc)
 
     def process_window(self, rec: MachineRecord, prog: Progress,
                        expected_watermark_s: float | None) -> Progress | None:
@@ -344,7 +365,7 @@ class TwinWorker:
                               1.0 / grid_hz, s.payload_lift_threshold_kg)
         if t.size:
             new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
-            self._store_events(rec, machine, res, keep)
+            self._store_analytics(rec, machine, res, keep, w0, w1)
         if not self.backend.commit_window(new, expected, names, t, values):
             return None
         if self.metrics is not None:
