@@ -83,8 +83,9 @@ def report(
                               "FILE, or --demo")
         from cranetwin.settings import Settings, load_settings
 
-        url = load_settings(Settings, database_url=db).database_url
-        src = StoreSource(url, machine, parse_time(t_from), parse_time(t_to))
+        settings = load_settings(Settings, database_url=db)
+        src = StoreSource(settings.database_url, machine, parse_time(t_from), parse_time(t_to),
+                          margin_s=settings.twin_margin_s)
     with Progress(TextColumn("{task.description}"), BarColumn(),
                   TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(),
                   TimeRemainingColumn(), disable=quiet) as bar:

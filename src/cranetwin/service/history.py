@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from cranetwin.analytics import AnalyticsPart, AnalyticsState, LoadHistory
+from cranetwin.analytics import AnalyticsConfig, AnalyticsPart, AnalyticsState, LoadHistory
 from cranetwin.errors import AnalyticsError, CraneTwinError
 from cranetwin.model import Machine
 from cranetwin.storage import analytics_windows as aw
@@ -122,7 +122,8 @@ EdgeFn = Callable[[float, float], LoadHistory | None]
 
 def range_state(engine: Any, machine: Machine, machine_id: str, t0_s: float, t1_s: float,
                 edge: EdgeFn, stored_until_s: float | None,
-                max_replay_s: float | None = None) -> AnalyticsState:
+                max_replay_s: float | None = None,
+                config: AnalyticsConfig | None = None) -> AnalyticsState:
     """The analytics state of [t0_s, t1_s): stored parts where they exist, else ``edge(w0, w1)``
     (the load history of minute window [w0, w1), cut to the range by this function).
 
@@ -131,8 +132,10 @@ def range_state(engine: Any, machine: Machine, machine_id: str, t0_s: float, t1_
             data (or could not be replayed), so they are not replayed again; None: replay every
             minute without a part.
     """
-    state = AnalyticsState(machine)
-    starts = {lv: set(aw.window_starts(engine, machine_id, lv, t0_s, t1_s)) for lv in LEVELS}
+    state = AnalyticsState(machine, config)
+    use_parts = config is None or config == AnalyticsConfig()
+    starts = {lv: set(aw.window_starts(engine, machine_id, lv, t0_s, t1_s)) if use_parts
+              else set() for lv in LEVELS}
     plan: list[tuple[str, int, float, float]] = []
     a = float(math.floor(t0_s / MINUTE_S) * MINUTE_S)
     while a < t1_s:
@@ -143,8 +146,8 @@ def range_state(engine: Any, machine: Machine, machine_id: str, t0_s: float, t1_
                 break
         else:
             b = a + MINUTE_S
-            whole_done = a >= t0_s and b <= t1_s and stored_until_s is not None \
-                and b <= stored_until_s
+            whole_done = use_parts and a >= t0_s and b <= t1_s \
+                and stored_until_s is not None and b <= stored_until_s
             if not whole_done:
                 plan.append(("replay", MINUTE_S, a, b))
             a = b
