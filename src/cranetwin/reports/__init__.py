@@ -42,17 +42,17 @@ def build_report(source: Source, config: AnalyticsConfig | None = None,
     hi = np.inf if t1_s is None else t1_s
     merged = getattr(source, "range_state", None)
     if callable(merged):  # storage: merged from stored parts, only the edges replayed
-        state = merged(config)
+        merged_state: AnalyticsState = merged(config)
         if progress is not None:
             progress(source.total())
-        if state.n_samples == 0:
+        if merged_state.n_samples == 0:
             raise ReportError(f"no data from {source.label} in the window {lo} s to {hi} s "
                               "(epoch seconds); check --from/--to")
         usage_fn = getattr(source, "history_usage", None)
         usage = usage_fn() if callable(usage_fn) else None
         r0 = t0_s if t0_s is not None else getattr(source, "t0_s", None)
         r1 = t1_s if t1_s is not None else getattr(source, "t1_s", None)
-        return state.report(r0, r1, *(usage if usage is not None else (None, None)))
+        return merged_state.report(r0, r1, *(usage if usage is not None else (None, None)))
     state = AnalyticsState(source.machine, config)
     for h, units in source.chunks():
         if h is not None and h.n:

@@ -73,11 +73,13 @@ def window_history(backend: Any, replayer: Any, machine: Machine, machine_id: st
 
 
 def store_part(engine: Any, machine: Machine, machine_id: str, w0: float, w1: float,
-               h: LoadHistory) -> None:
-    """Store the part of minute window [w0, w1) (replacing one stored before)."""
+               h: LoadHistory, operating_s: float = 0.0, idle_s: float = 0.0) -> None:
+    """Store the part of minute window [w0, w1) (replacing one stored before), with the
+    worker's operating and idle time of the window [s]."""
     part = AnalyticsState(machine).part(h)
     if part is not None:
-        aw.put_window(engine, machine_id, MINUTE_S, w0, w1, part.n, dump_part(part))
+        aw.put_window(engine, machine_id, MINUTE_S, w0, w1, part.n, dump_part(part),
+                      operating_s, idle_s)
 
 
 def roll_up(engine: Any, machine: Machine, machine_id: str, t0_s: float, t1_s: float) -> int:

@@ -30,6 +30,8 @@ def upgrade() -> None:
         sa.Column("t1_ns", sa.BigInteger(), nullable=False),
         sa.Column("n", sa.Integer(), nullable=False),
         sa.Column("data", sa.LargeBinary(), nullable=False),
+        sa.Column("operating_s", sa.Float(), nullable=False, server_default=sa.text("0")),
+        sa.Column("idle_s", sa.Float(), nullable=False, server_default=sa.text("0")),
         sa.PrimaryKeyConstraint("machine_id", "level_s", "t0_ns", name="pk_analytics_windows"),
     )
 
