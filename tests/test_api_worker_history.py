@@ -187,3 +187,41 @@ def test_last_minute_of_a_quiet_machine_is_processed(sqlite_url: str,
     assert worker.catch_up(rec) == 1  # minute 2 redone with the new samples
     assert _minutes(b)[T0 + 120] == pytest.approx(6000, abs=5)
     b.close()
+
+
+@pytest.mark.timeout(300)
+def test_aemp_api_and_cli_report_give_one_kp_and_life_used(sqlite_url: str,
+                                                           base: SampleArrays) -> None:
+    from fastapi.testclient import TestClient
+
+    from cranetwin.api import create_app
+    from cranetwin.reports import StoreSource, build_report
+
+    app = create_app(Settings(database_url=sqlite_url, worker_in_process=False))
+    with TestClient(app) as client:
+        services = app.state.services
+        key = services.backend.create_key("fleet", "test")[1]
+        services.backend.store.add_machine(MID, wire_id=9, secret=b"k" * 32)
+        _write(services.backend, base, T0, 245.0, 0)
+        worker = TwinWorker(services.backend, services.settings, services.metrics,
+                            services.fleet.replayer)
+        assert worker.catch_up(services.backend.machine(MID)) == 4
+        _write(services.backend, base, T0 + 245.0, 65.0, 1000)
+        assert worker.catch_up(services.backend.machine(MID)) == 1  # duty folded on
+        wm = services.backend.progress(MID).watermark_s
+        assert wm == T0 + 300
+        h = {"X-API-Key": key}
+        aemp = client.get(f"/api/v1/aemp/Equipment/{MID}", headers=h).json()
+        ext = aemp["Extension"]["cranetwin"]
+        api = client.get(f"/api/v1/machines/{MID}/analytics", headers=h,
+                         params={"from": T0, "to": wm}).json()
+        cli = build_report(StoreSource(sqlite_url, MID, T0, wm))
+    assert api["classification"]["cycles"] == len(cli.cycles) >= 3
+    assert cli.classification is not None and cli.duty is not None
+    kp, used = cli.classification.kp, cli.duty.used_fraction
+    assert api["classification"]["kp"] == pytest.approx(kp, rel=1e-12)
+    assert api["duty"]["used_fraction"] == pytest.approx(used, rel=1e-12)
+    # the feed rounds kp to 5 decimals and the fraction to 6 significant digits
+    assert ext["LoadSpectrumFactor"] == pytest.approx(kp, abs=5e-6)
+    assert ext["DesignLifeUsedFraction"] == pytest.approx(used, rel=1e-5)
+    assert ext["LoadSpectrumFactor"] != pytest.approx(0.0)

@@ -338,14 +338,18 @@ class FleetService:
 
     # -- AEMP -------------------------------------------------------------------------------------
     def _figures(self, rec: MachineRecord) -> aemp.EquipmentFigures:
+        from cranetwin.service.history import stored_duty
+
         p = self.backend.progress(rec.machine_id) or Progress.empty(rec.machine_id)
+        duty = stored_duty(self.backend.store.engine, rec.machine_id)
         return aemp.EquipmentFigures(
             machine_id=rec.machine_id, name=rec.name, model=rec.model,
             machine=self.backend.model_of(rec), location=rec.location,
             counters_t_s=p.watermark_s if p.windows else None,
             operating_s=p.operating_s, idle_s=p.idle_s, load_count=p.load_count,
             payload_total_kg=p.payload_total_kg, load_cube_sum=p.load_cube_sum,
-            overloads=p.overloads, max_payload_kg=p.max_payload_kg)
+            overloads=p.overloads, max_payload_kg=p.max_payload_kg,
+            duty=None if duty is None else (duty[0], duty[1]))
 
     def aemp_fleet(self, page: int, base_url: str) -> dict[str, Any]:
         """ISO 15143-3 Fleet page ``page``; 404 past the last page."""

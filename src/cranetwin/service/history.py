@@ -178,3 +178,97 @@ def range_state(engine: Any, machine: Machine, machine_id: str, t0_s: float, t1_
         if j > i:
             state.update(h.slice(int(i), int(j)))
     return state
+
+
+DUTY_LEVEL = -1
+"""``level_s`` of the row holding a machine's duty to date (:class:`DutyToDate`)."""
+
+
+class DutyToDate:
+    """The ISO 4301-1 / ISO 12482 duty of a machine's whole processed history: work cycles and
+    Σ (P_i/P_max)³, from the same work-cycle detection as every report (the parts' loaded
+    stretches folded by a :class:`~cranetwin.analytics.ProductivityTracker`), so AEMP, the API
+    analytics and the CLI report give one kp and one design life used for the same range.
+
+    Attributes:
+        until_s: End of the last minute folded [s].
+        cycles: Work cycles closed so far (the open one excluded).
+        cube_sum: Σ ratio³ of those cycles.
+    """
+
+    def __init__(self, machine: Machine) -> None:
+        self.tracker = AnalyticsState(machine).productivity
+        self.until_s = -math.inf
+        self.cycles = 0
+        self.cube_sum = 0.0
+
+    def _drain(self) -> None:
+        for c in self.tracker.cycles:
+            self.cycles += 1
+            self.cube_sum += c.load_ratio ** 3
+        self.tracker.cycles.clear()
+        self.tracker.days.clear()  # per-day usage is not needed here (bounded memory)
+
+    def fold(self, part: AnalyticsPart, until_s: float) -> None:
+        """Fold the next part (ending at ``until_s``)."""
+        self.tracker.apply(part.productivity)
+        self._drain()
+        self.until_s = until_s
+
+    def totals(self) -> tuple[int, float]:
+        """(work cycles, Σ ratio³) including the cycle open at the end (as a report closes
+        it)."""
+        open_cycles, _, _, _ = self.tracker.snapshot()
+        return (self.cycles + len(open_cycles),
+                self.cube_sum + sum(c.load_ratio ** 3 for c in open_cycles))
+
+
+def update_duty(engine: Any, machine: Machine, machine_id: str, first_s: float,
+                until_s: float) -> DutyToDate:
+    """The machine's duty to date folded up to ``until_s`` (the worker's progress mark) and
+    stored; built from the stored parts of [first minute, until_s) when none is stored (or it
+    was dropped after late data)."""
+    rows = aw.windows(engine, machine_id, DUTY_LEVEL, -1e9, 1e9)
+    duty: DutyToDate | None = None
+    if rows:
+        try:
+            obj = pickle.loads(zlib.decompress(rows[0][3][len(PART_MAGIC):]))
+            duty = obj if isinstance(obj, DutyToDate) else None
+        except Exception:  # a row of another version: rebuilt
+            duty = None
+    t0 = float(math.floor(first_s / MINUTE_S) * MINUTE_S)
+    if duty is None:
+        duty = DutyToDate(machine)
+        if until_s > t0:
+            state = range_state(engine, machine, machine_id, t0, until_s, lambda a, b: None,
+                                until_s)
+            duty.tracker = state.productivity
+            duty._drain()
+            duty.until_s = until_s
+    elif until_s > duty.until_s:
+        for _a, b, _n, data in aw.windows(engine, machine_id, MINUTE_S, duty.until_s, until_s):
+            duty.fold(load_part(data), b)
+        duty.until_s = until_s
+    blob = PART_MAGIC + zlib.compress(pickle.dumps(duty, protocol=pickle.HIGHEST_PROTOCOL), 1)
+    aw.put_window(engine, machine_id, DUTY_LEVEL, 0.0, 0.0, duty.cycles, blob)
+    return duty
+
+
+def stored_duty(engine: Any, machine_id: str) -> tuple[int, float, float] | None:
+    """(work cycles, Σ ratio³, until s) of the stored duty to date, or None."""
+    rows = aw.windows(engine, machine_id, DUTY_LEVEL, -1e9, 1e9)
+    if not rows:
+        return None
+    try:
+        duty = pickle.loads(zlib.decompress(rows[0][3][len(PART_MAGIC):]))
+    except Exception:
+        return None
+    if not isinstance(duty, DutyToDate):
+        return None
+    n, cube = duty.totals()
+    return n, cube, duty.until_s
+
+
+def drop_duty(engine: Any, machine_id: str) -> None:
+    """Forget the duty to date (late data changed the past; rebuilt on the next update)."""
+    aw.delete_windows(engine, machine_id, -1e9, 1e9, levels=(DUTY_LEVEL,))

@@ -290,6 +290,8 @@ class TwinWorker:
                 done += 1
             prog, expected = new, new.watermark_s
         self._roll_up(rec, start_wm, prog.watermark_s)
+        if done or prog.watermark_s != start_wm:
+            self._update_duty(rec, dr[0], prog.watermark_s)
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
@@ -338,7 +340,7 @@ class TwinWorker:
         the watermark mark their windows, and the windows whose replay margin reaches into
         them. Returns (progress, windows redone), None if another worker moved the watermark.
         Hour and day parts over redone windows are rolled up again."""
-        from cranetwin.service.history import roll_up
+        from cranetwin.service.history import drop_duty, roll_up
         from cranetwin.storage import analytics_windows as aw
 
         engine = self.backend.store.engine
@@ -366,6 +368,7 @@ class TwinWorker:
             done += 1
         lo, hi = min(minutes), max(minutes) + win
         aw.delete_windows(engine, rec.machine_id, lo, hi, levels=(3600, 86400))
+        drop_duty(engine, rec.machine_id)  # rebuilt from the parts at the end of the pass
         try:
             roll_up(engine, self.backend.model_of(rec), rec.machine_id,
                     math.floor(lo / 86400) * 86400.0, prog.watermark_s)
@@ -375,6 +378,17 @@ class TwinWorker:
             aw.set_block_mark(engine, rec.machine_id, top)
         log.info("machine %s: %d window(s) redone for late data", rec.machine_id, done)
         return prog, done
+
+    def _update_duty(self, rec: MachineRecord, first_s: float, until_s: float) -> None:
+        """Fold the new minutes into the machine's duty to date (AEMP's kp and design life
+        used: :class:`cranetwin.service.history.DutyToDate`)."""
+        from cranetwin.service.history import update_duty
+
+        try:
+            update_duty(self.backend.store.engine, self.backend.model_of(rec), rec.machine_id,
+                        first_s, until_s)
+        except CraneTwinError as exc:
+            log.warning("machine %s: duty to date not updated: %s", rec.machine_id, exc)
 
     def _roll_up(self, rec: MachineRecord, from_s: float, to_s: float) -> None:
         """Roll the minute parts of the hours (and days) the progress mark passed from
