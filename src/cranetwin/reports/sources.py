@@ -212,7 +212,8 @@ class StoreSource:
                                   self.margin_s)
         return range_state(self.store.engine, self.machine, self.machine_id, self.t0_s,
                            self.t1_s, edge, prog.watermark_s if prog is not None else None,
-                           config=config)
+                           config=config,
+                           next_sample=lambda t: backend.next_sample_time(self.machine_id, t))
 
     def history_usage(self) -> tuple[float, float] | None:
         """(operating s, calendar s) of the machine's whole recorded history: the twin worker's

@@ -88,7 +88,8 @@ def analytics_report(backend: Any, replayer: Replayer, machine: Machine, machine
         return window_history(backend, replayer, machine, machine_id, a, b, margin_s)
 
     state = range_state(backend.store.engine, machine, machine_id, rng.t0_s, rng.t1_s, edge,
-                        prog.watermark_s if prog is not None else None, max_replay_s)
+                        prog.watermark_s if prog is not None else None, max_replay_s,
+                        next_sample=lambda t: backend.next_sample_time(machine_id, t))
     if state.n_samples == 0:
         return None
     op, cal = history_usage(backend, machine_id)

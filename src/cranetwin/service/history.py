@@ -125,7 +125,8 @@ EdgeFn = Callable[[float, float], LoadHistory | None]
 def range_state(engine: Any, machine: Machine, machine_id: str, t0_s: float, t1_s: float,
                 edge: EdgeFn, stored_until_s: float | None,
                 max_replay_s: float | None = None,
-                config: AnalyticsConfig | None = None) -> AnalyticsState:
+                config: AnalyticsConfig | None = None,
+                next_sample: Callable[[float], float | None] | None = None) -> AnalyticsState:
     """The analytics state of [t0_s, t1_s): stored parts where they exist, else ``edge(w0, w1)``
     (the load history of minute window [w0, w1), cut to the range by this function).
 
@@ -150,6 +151,14 @@ def range_state(engine: Any, machine: Machine, machine_id: str, t0_s: float, t1_
             b = a + MINUTE_S
             whole_done = use_parts and a >= t0_s and b <= t1_s \
                 and stored_until_s is not None and b <= stored_until_s
+            if not whole_done and next_sample is not None and (
+                    stored_until_s is None or a >= stored_until_s or not use_parts):
+                nxt = next_sample(a)
+                if nxt is None or nxt >= t1_s:
+                    break
+                if nxt >= b:  # nothing stored in this minute: step to the next sample
+                    a = float(math.floor(nxt / MINUTE_S) * MINUTE_S)
+                    continue
             if not whole_done:
                 plan.append(("replay", MINUTE_S, a, b))
             a = b
