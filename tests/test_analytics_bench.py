@@ -130,3 +130,25 @@ def test_pure_python_baseline_counts_a_known_sequence() -> None:
     assert _py_rainflow([0.0, 3.0, 1.0, 2.0, 0.0, 3.0], 1.0) == 1
     assert _py_rainflow([0.0, 3.0, 1.0, 2.0, 0.0], 1.0) == 0  # 1→2 not yet closed
     assert _py_rainflow([0.0, 1.0, 2.0, 3.0], 1.0) == 0
+
+
+STORED_KEYS = {"days", "shift_h", "rate_hz", "stored_hours", "samples", "write_seconds",
+               "worker_windows", "worker_seconds", "worker_seconds_per_window",
+               "report_2d_seconds", "report_2d_cpu_seconds", "direct_range_hours",
+               "merged_range_seconds", "direct_range_seconds", "speedup_vs_direct",
+               "equal_to_direct", "work_cycles", "events", "kp", "max_damage",
+               "remaining_years_worst", "peak_rss_mib"}
+
+
+def test_stored_benchmark_merges_what_the_worker_stored() -> None:
+    r = CliRunner().invoke(app, ["bench", "analytics", "--stored", "--json", "--days", "2",
+                                 "--shift-h", "0.05", "--direct-hours", "0.02"])
+    assert r.exit_code == 0, r.output
+    j = json.loads(r.output.strip().splitlines()[-1], parse_constant=_no_nan)
+    assert set(j) == STORED_KEYS
+    assert j["equal_to_direct"] is True  # the merged report of the range equals replaying it
+    assert j["samples"] == 2 * (180 + 5) * 100  # both shifts, every sample, through the worker
+    assert j["worker_windows"] == 2 * 4
+    assert j["speedup_vs_direct"] == pytest.approx(
+        j["direct_range_seconds"] / j["merged_range_seconds"], rel=0.06, abs=0.06)
+    assert j["work_cycles"] > 0 and j["kp"] is not None

@@ -149,7 +149,7 @@ def test_csv_zip_holds_consistent_tables(machine: Machine, demo: tuple[Analytics
     with zipfile.ZipFile(out) as z:
         names = set(z.namelist())
         assert names == {"summary.csv", "usage.csv", "spectra.csv", "cycles.csv", "damage.csv",
-                         "duty.csv", "events.csv", "work_cycles.csv"}
+                         "duty.csv", "events.csv", "work_cycles.csv", "assumptions.csv"}
         read = {n: list(csv.DictReader(io.StringIO(z.read(n).decode()))) for n in names}
     assert len(read["events.csv"]) == len(rep.events) == 3
     assert Counter(r["kind"] for r in read["events.csv"]) == Counter(

@@ -43,17 +43,22 @@ from cranetwin.analytics.rainflow import (
 )
 from cranetwin.analytics.state import (
     AnalyticsConfig,
+    AnalyticsPart,
     AnalyticsReport,
     AnalyticsState,
+    RateBasis,
     Spectrum,
     analyse,
+    assumptions,
     default_class_widths,
     load_channels,
+    rate_basis,
 )
 
 __all__ = [
     "KINDS",
     "AnalyticsConfig",
+    "AnalyticsPart",
     "AnalyticsReport",
     "AnalyticsState",
     "Classification",
@@ -68,9 +73,11 @@ __all__ = [
     "ProductivityConfig",
     "ProductivityTracker",
     "RainflowCounter",
+    "RateBasis",
     "Spectrum",
     "WorkCycle",
     "analyse",
+    "assumptions",
     "classify",
     "cycles_to_failure",
     "default_class_widths",
@@ -83,6 +90,7 @@ __all__ = [
     "miner_damage",
     "rainflow",
     "range_histogram",
+    "rate_basis",
     "spectrum_class",
     "spectrum_factor",
     "turning_points",

@@ -148,6 +148,7 @@ class DutyRecord:
         design_equivalent: C_T·kp, the full-load equivalent cycles of the design working period.
         used_fraction: S / (C_T·kp).
         formula: The formula as text, for the report.
+        prior_equivalent: The part of S recorded before this record (carried in).
     """
 
     cycles: int
@@ -157,6 +158,7 @@ class DutyRecord:
     design_equivalent: float
     used_fraction: float
     formula: str = "S = Σ C_i·(P_i/P_max)³ ;  used = S / (C_T·kp)"
+    prior_equivalent: float = 0.0
 
 
 def duty_record(load_ratios: npt.ArrayLike, design_cycles: float, design_kp: float,
@@ -178,4 +180,5 @@ def duty_record(load_ratios: npt.ArrayLike, design_cycles: float, design_kp: flo
                              f"{design_cycles}, {design_kp}")
     s = prior_equivalent + float(np.sum(r**3))
     de = design_cycles * design_kp
-    return DutyRecord(int(r.size), s, design_cycles, design_kp, de, s / de)
+    return DutyRecord(int(r.size), s, design_cycles, design_kp, de, s / de,
+                      prior_equivalent=prior_equivalent)

@@ -17,7 +17,8 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.analytics.history import LoadHistory
-from cranetwin.analytics.runs import Run, RunTracker
+from cranetwin.analytics.runs import Run, RunTracker, Segments, concat_segments, segments
+from cranetwin.errors import AnalyticsError
 from cranetwin.model import Machine
 
 F64 = npt.NDArray[np.float64]
@@ -91,6 +92,38 @@ class EventConfig:
     shock_rate_per_s: float = 15.0
     shock_window_s: float = 0.05
     max_gap_s: float = 1.0
+
+
+Arrays = tuple[F64, "F64 | None", "F64 | None", F64]
+
+
+@dataclass
+class EventPart:
+    """Events of one chunk computed from the chunk alone, folded in order by
+    :meth:`EventDetector.apply` (exactly what :meth:`EventDetector.update` does).
+
+    Attributes:
+        runs: Raw stretches of every per-sample condition (tracker key → segments).
+        late_end_stops: End-stop impacts whose look-back lies inside the chunk.
+        shock: Raw stretches of the shock condition from the samples that have ``lag``
+            predecessors in the chunk.
+        lag: Samples of the force-rate difference.
+        head: (t, rod_s, rod_v, force) of the first look-back samples.
+        tail: The same of the last look-back samples.
+        t_first: First sample time [s].
+        t_last: Last sample time [s].
+        n: Samples in the chunk.
+    """
+
+    runs: dict[str, Segments | None]
+    late_end_stops: list[Event]
+    shock: dict[str, Segments | None]
+    lag: int
+    head: Arrays
+    tail: Arrays
+    t_first: float
+    t_last: float
+    n: int
 
 
 def nominal_speed_mps(machine: Machine) -> F64:
@@ -198,85 +231,202 @@ class EventDetector:
         tracker, conv = self._trackers[key]
         self.events.extend(conv(r) for r in tracker.feed(t, mask, vals))
 
+    def _feed_segments(self, key: str, seg: Segments | None) -> None:
+        tracker, conv = self._trackers[key]
+        self.events.extend(conv(r) for r in tracker.feed_segments(seg))
+
     # -- detectors ------------------------------------------------------------------------------
-    def _run_events(self, h: LoadHistory) -> None:
+    def _run_segments(self, h: LoadHistory) -> dict[str, Segments | None]:
+        """Raw stretches of every per-sample condition of a chunk (no look-back needed)."""
         c = self.cfg
+        g = c.max_gap_s
+        out: dict[str, Segments | None] = {}
         rated = self.machine.rated_load.payload_at(h.reach_m)
         ratio = h.payload_kg / rated
         loaded = h.payload_kg >= c.min_payload_kg
-        self._feed("overload", h.t_s, loaded & (ratio > c.overload_ratio),
-                   (ratio, h.payload_kg, h.reach_m, rated))
+        out["overload"] = segments(h.t_s, loaded & (ratio > c.overload_ratio),
+                                   (ratio, h.payload_kg, h.reach_m, rated), g)
         pr = h.payload_kg / self._max_rated
-        self._feed("payload", h.t_s, pr > 1.0, (pr, h.payload_kg, h.reach_m))
+        out["payload"] = segments(h.t_s, pr > 1.0, (pr, h.payload_kg, h.reach_m), g)
         if self._slew is not None:
             w = np.abs(h.qd[:, self._slew])
             lim = self.machine.joints[self._slew].velocity_limit * (1 + c.overspeed_tolerance)
-            self._feed("overspeed", h.t_s, w > lim, (w,))
+            out["overspeed"] = segments(h.t_s, w > lim, (w,), g)
         if h.p_a is not None and h.p_b is not None and self._relief_p is not None:
             lim = self._relief_p * (1 + c.pressure_tolerance)
             for i in range(len(self.machine.cylinders)):
                 for side, p in (("A", h.p_a[:, i]), ("B", h.p_b[:, i])):
-                    self._feed(f"p:{i}:{side}", h.t_s, p > lim, (p,))
+                    out[f"p:{i}:{side}"] = segments(h.t_s, p > lim, (p,), g)
+        return out
 
-    def _overlap_events(self, t: F64, rod_s: F64 | None, rod_v: F64 | None, f: F64,
-                        k0: int) -> None:
-        """End-stop impacts and shock loads, which look back in time. Arrays are the carried
-        tail followed by the new chunk; samples from index ``k0`` on are new."""
+    def _end_stops(self, t: F64, rod_s: F64 | None, rod_v: F64 | None, f: F64, e_lo: int,
+                   e_hi: int) -> list[Event]:
+        """End-stop impacts at entries with index in [e_lo, e_hi) of the arrays (which may
+        start with a carried tail: the look-back reaches into it)."""
         c = self.cfg
-        if rod_s is not None and rod_v is not None:
-            for i, cyl in enumerate(self.machine.cylinders):
-                s, v = rod_s[:, i], rod_v[:, i]
-                lo, hi = s <= c.end_zone_m, s >= cyl.stroke_m - c.end_zone_m
-                for zone, end, sign in ((lo, 0.0, -1.0), (hi, 1.0, 1.0)):
-                    entry = np.flatnonzero(zone[1:] & ~zone[:-1]) + 1
-                    for e in entry[entry >= k0].tolist():
-                        w0 = int(np.searchsorted(t, t[e] - c.end_stop_window_s))
-                        toward = float(np.max(sign * v[w0:e + 1]))
-                        ratio = toward / float(self._speed[i])
-                        if ratio > c.end_stop_speed_fraction:
-                            self.events.append(Event(
-                                "end_stop_impact", float(t[e]), float(t[e]),
-                                _severity(ratio, 2 * c.end_stop_speed_fraction), cyl.name,
-                                toward, float(c.end_stop_speed_fraction * self._speed[i]),
-                                "m/s", {"speed_ratio_to_nominal": ratio, "rod_s_m": float(s[e]),
-                                        "end_extended": end, "force_n": float(f[e, i])}))
-        n = t.shape[0]
-        if n < 2:
-            return
-        dt = float(np.median(np.diff(t[: min(n, 100)])))
-        lag = max(int(round(c.shock_window_s / dt)), 1)
-        if n <= lag:
-            return
-        first = max(k0, lag)
-        tt = t[first:]
-        rate = np.abs(f[first:] - f[first - lag:n - lag]) / (tt - t[first - lag:n - lag])[:, None]
+        out: list[Event] = []
+        if rod_s is None or rod_v is None:
+            return out
+        for i, cyl in enumerate(self.machine.cylinders):
+            s, v = rod_s[:, i], rod_v[:, i]
+            lo, hi = s <= c.end_zone_m, s >= cyl.stroke_m - c.end_zone_m
+            for zone, end, sign in ((lo, 0.0, -1.0), (hi, 1.0, 1.0)):
+                entry = np.flatnonzero(zone[1:] & ~zone[:-1]) + 1
+                for e in entry[(entry >= e_lo) & (entry < e_hi)].tolist():
+                    w0 = int(np.searchsorted(t, t[e] - c.end_stop_window_s))
+                    toward = float(np.max(sign * v[w0:e + 1]))
+                    ratio = toward / float(self._speed[i])
+                    if ratio > c.end_stop_speed_fraction:
+                        out.append(Event(
+                            "end_stop_impact", float(t[e]), float(t[e]),
+                            _severity(ratio, 2 * c.end_stop_speed_fraction), cyl.name,
+                            toward, float(c.end_stop_speed_fraction * self._speed[i]),
+                            "m/s", {"speed_ratio_to_nominal": ratio, "rod_s_m": float(s[e]),
+                                    "end_extended": end, "force_n": float(f[e, i])}))
+        return out
+
+    def _shock_segments(self, t: F64, f: F64, lag: int, first: int,
+                        stop: int) -> dict[str, Segments | None]:
+        """Raw stretches of the shock condition at samples [first, stop) (first ≥ lag)."""
+        out: dict[str, Segments | None] = {}
+        if stop <= first:
+            return out
+        c = self.cfg
+        tt = t[first:stop]
+        rate = (np.abs(f[first:stop] - f[first - lag:stop - lag])
+                / (tt - t[first - lag:stop - lag])[:, None])
         for i in range(len(self.machine.cylinders)):
             lim = c.shock_rate_per_s * float(self._relief_f[i])
-            self._feed(f"shock:{i}", tt, rate[:, i] > lim,
-                       (rate[:, i], f[first:, i]))
+            out[f"shock:{i}"] = segments(tt, rate[:, i] > lim, (rate[:, i], f[first:stop, i]),
+                                         c.max_gap_s)
+        return out
+
+    def _keep(self, dt: float) -> int:
+        """Samples of look-back carried between chunks."""
+        return int(np.ceil(max(self.cfg.end_stop_window_s, self.cfg.shock_window_s)
+                           / max(dt, 1e-6))) + 2
+
+    def _lag(self, dt: float) -> int:
+        return max(int(round(self.cfg.shock_window_s / dt)), 1)
 
     # -- public ---------------------------------------------------------------------------------
-    def update(self, h: LoadHistory) -> None:
-        """Fold the next chunk; new events are appended to :attr:`events`."""
+    def part(self, h: LoadHistory) -> EventPart | None:
+        """What :meth:`apply` needs of one chunk, computed from the chunk alone (to store per
+        window and merge later); None for an empty chunk.
+
+        Look-back detectors are evaluated here only where the chunk's own samples suffice
+        (end-stop entries from ``head`` samples on, force rates from ``lag`` on); the first
+        samples (``head``) are kept and re-evaluated by :meth:`apply` with the previous chunk's
+        tail. Exact for a constant sample period (the twin's grid)."""
         if h.n == 0:
+            return None
+        t, f = h.t_s, h.cyl_force
+        dt = float(np.median(np.diff(t[: min(t.shape[0], 100)]))) if t.shape[0] > 1 else 1.0
+        keep, lag = self._keep(dt), self._lag(dt)
+        n = t.shape[0]
+        hd = min(keep, n)
+        late = self._end_stops(t, h.rod_s, h.rod_v, f, hd, n)
+        shock = self._shock_segments(t, f, lag, min(max(lag, hd), n), n) if n > lag else {}
+
+        def cut(a: F64 | None, sl: slice) -> F64 | None:
+            return None if a is None else a[sl].copy()
+        head, tail = slice(0, hd), slice(max(n - keep, 0), None)
+        return EventPart(
+            runs=self._run_segments(h), late_end_stops=late, shock=shock, lag=lag,
+            head=(t[head].copy(), cut(h.rod_s, head), cut(h.rod_v, head), f[head].copy()),
+            tail=(t[tail].copy(), cut(h.rod_s, tail), cut(h.rod_v, tail), f[tail].copy()),
+            t_first=float(t[0]), t_last=float(t[-1]), n=n)
+
+    def apply(self, p: EventPart | None) -> None:
+        """Fold the part of the next chunk (see :meth:`part`); events found are appended to
+        :attr:`events`."""
+        if p is None:
             return
-        self._run_events(h)
+        for key, seg in p.runs.items():
+            self._feed_segments(key, seg)
+        ht, hrs, hrv, hf = p.head
         if self._tail is None:
-            t, rs, rv, f, k0 = h.t_s, h.rod_s, h.rod_v, h.cyl_force, 0
+            t, rs, rv, f, k0 = ht, hrs, hrv, hf, 0
         else:
             tt, trs, trv, tf = self._tail
             k0 = tt.shape[0]
-            t = np.concatenate([tt, h.t_s])
-            rs = None if trs is None or h.rod_s is None else np.concatenate([trs, h.rod_s])
-            rv = None if trv is None or h.rod_v is None else np.concatenate([trv, h.rod_v])
-            f = np.concatenate([tf, h.cyl_force])
-        self._overlap_events(t, rs, rv, f, k0)
-        dt = float(np.median(np.diff(t[: min(t.shape[0], 100)]))) if t.shape[0] > 1 else 1.0
-        keep = int(np.ceil(max(self.cfg.end_stop_window_s, self.cfg.shock_window_s)
-                           / max(dt, 1e-6))) + 2
-        cut = slice(max(t.shape[0] - keep, 0), None)
-        self._tail = (t[cut].copy(), None if rs is None else rs[cut].copy(),
-                      None if rv is None else rv[cut].copy(), f[cut].copy())
+            t = np.concatenate([tt, ht])
+            rs = None if trs is None or hrs is None else np.concatenate([trs, hrs])
+            rv = None if trv is None or hrv is None else np.concatenate([trv, hrv])
+            f = np.concatenate([tf, hf])
+        hd = ht.shape[0]
+        self.events.extend(self._end_stops(t, rs, rv, f, k0, k0 + hd))
+        self.events.extend(p.late_end_stops)
+        # force rates of the head samples the part could not compute alone (the lag from the
+        # carried samples too, as update() did, when the chunk alone is one sample)
+        lag = p.lag
+        if p.n < 2 and t.shape[0] > 1:
+            lag = self._lag(float(np.median(np.diff(t[: min(t.shape[0], 100)]))))
+        first = max(k0, lag)
+        stop = k0 + min(max(lag, hd), p.n) if p.n > lag else k0 + hd
+        head_shock = self._shock_segments(t, f, lag, first, stop) if t.shape[0] > lag else {}
+        for i in range(len(self.machine.cylinders)):
+            key = f"shock:{i}"
+            self._feed_segments(key, head_shock.get(key))
+            self._feed_segments(key, p.shock.get(key))
+        # carried look-back: the last `keep` samples of (tail, chunk)
+        pt, prs, prv, pf = p.tail
+        if self._tail is None:
+            ct, crs, crv, cf = pt, prs, prv, pf
+        elif p.n > pt.shape[0]:
+            ct, crs, crv, cf = pt, prs, prv, pf
+        else:  # the chunk is shorter than the look-back: keep some of the previous tail
+            tt, trs, trv, tf = self._tail
+            ct = np.concatenate([tt, pt])
+            crs = None if trs is None or prs is None else np.concatenate([trs, prs])
+            crv = None if trv is None or prv is None else np.concatenate([trv, prv])
+            cf = np.concatenate([tf, pf])
+        dt = float(np.median(np.diff(ct[: min(ct.shape[0], 100)]))) if ct.shape[0] > 1 else 1.0
+        keep = self._keep(dt)
+        sl = slice(max(ct.shape[0] - keep, 0), None)
+        self._tail = (ct[sl].copy(), None if crs is None else crs[sl].copy(),
+                      None if crv is None else crv[sl].copy(), cf[sl].copy())
+
+    def _head_of_next(self, tail: Arrays, p: EventPart) -> tuple[list[Event],
+                                                                 dict[str, Segments | None]]:
+        """End-stop impacts and shock stretches of ``p``'s head samples, after ``tail``."""
+        tt, trs, trv, tf = tail
+        ht, hrs, hrv, hf = p.head
+        k0 = tt.shape[0]
+        t = np.concatenate([tt, ht])
+        rs = None if trs is None or hrs is None else np.concatenate([trs, hrs])
+        rv = None if trv is None or hrv is None else np.concatenate([trv, hrv])
+        f = np.concatenate([tf, hf])
+        hd = ht.shape[0]
+        ends = self._end_stops(t, rs, rv, f, k0, k0 + hd)
+        lag = p.lag
+        first = max(k0, lag)
+        stop = k0 + min(max(lag, hd), p.n) if p.n > lag else k0 + hd
+        shock = self._shock_segments(t, f, lag, first, stop) if t.shape[0] > lag else {}
+        return ends, shock
+
+    def merge_parts(self, a: EventPart, b: EventPart) -> EventPart:
+        """One part of chunk ``a`` followed by chunk ``b`` (folding it = folding both).
+
+        Raises:
+            AnalyticsError: A part is not longer than its look-back (keep such parts apart).
+        """
+        if not (a.n > a.head[0].shape[0] and b.n > b.tail[0].shape[0]):
+            raise AnalyticsError("parts shorter than the look-back cannot be merged")
+        g = self.cfg.max_gap_s
+        ends, head_shock = self._head_of_next(a.tail, b)
+        keys = dict.fromkeys([*a.runs, *b.runs])
+        runs = {k: concat_segments(a.runs.get(k), b.runs.get(k), g) for k in keys}
+        skeys = dict.fromkeys([*a.shock, *head_shock, *b.shock])
+        shock = {k: concat_segments(concat_segments(a.shock.get(k), head_shock.get(k), g),
+                                    b.shock.get(k), g) for k in skeys}
+        return EventPart(runs, [*a.late_end_stops, *ends, *b.late_end_stops], shock, a.lag,
+                         a.head, b.tail, a.t_first, b.t_last, a.n + b.n)
+
+    def update(self, h: LoadHistory) -> None:
+        """Fold the next chunk (``apply(part(h))``); new events are appended to
+        :attr:`events`."""
+        self.apply(self.part(h))
 
     def all_events(self) -> list[Event]:
         """Events so far, including runs still open at the end of the record, by start time."""

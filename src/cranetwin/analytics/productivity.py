@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.analytics.history import LoadHistory
-from cranetwin.analytics.runs import Run, RunTracker
+from cranetwin.analytics.runs import Run, RunTracker, Segments, concat_segments, segments
 from cranetwin.model import Machine
 
 F64 = npt.NDArray[np.float64]
@@ -77,6 +77,29 @@ class DayUsage:
     payload_kg: float = 0.0
 
 
+@dataclass
+class ProductivityPart:
+    """Productivity of one chunk computed from the chunk alone, to be folded in order by
+    :meth:`ProductivityTracker.apply` (exactly what :meth:`ProductivityTracker.update` does).
+
+    Attributes:
+        t_first: First sample time [s].
+        t_last: Last sample time [s].
+        inner_recorded_s: Recorded time between the chunk's samples per UTC day (day number →
+            s); the step from the previous chunk is added when folding.
+        idle: Raw stretches of "not moving".
+        loaded: Raw stretches of "loaded" with (payload, ratio, reach, slew angle, rise).
+        has_height: The history carried the height of the load point.
+    """
+
+    t_first: float
+    t_last: float
+    inner_recorded_s: dict[int, float]
+    idle: Segments | None
+    loaded: Segments | None
+    has_height: bool
+
+
 class ProductivityTracker:
     """Incremental work-cycle detection and time accounting."""
 
@@ -122,35 +145,71 @@ class ProductivityTracker:
             self.day(t0).working_s -= part
             t0, dur = end_day, dur - part
 
-    def update(self, h: LoadHistory) -> None:
-        """Fold the next chunk."""
+    def part(self, h: LoadHistory) -> ProductivityPart | None:
+        """What :meth:`apply` needs of one chunk, computed from the chunk alone (to store per
+        window and merge later); None for an empty chunk."""
         if h.n == 0:
-            return
+            return None
         t = h.t_s
-        prev = t[0] if self._last_t is None else self._last_t
-        dt = np.diff(t, prepend=prev)
+        dt = np.diff(t)
         dt[dt > self.cfg.max_gap_s] = 0.0
-        self._last_t = float(t[-1])
-        self.recorded_s += float(dt.sum())
-        # recorded time per day; working = recorded minus idle runs credited later
-        d0, d1 = int(t[0] // DAY_S), int(t[-1] // DAY_S)
-        cut = np.searchsorted(t, np.arange(d0 + 1, d1 + 1) * DAY_S)
-        for dkey, part in zip(range(d0, d1 + 1), np.split(dt, cut), strict=True):
-            du = self.days.setdefault(dkey, DayUsage())
-            du.recorded_s += float(part.sum())
-            du.working_s += float(part.sum())
+        inner: dict[int, float] = {}
+        if dt.size:
+            day = (t[1:] // DAY_S).astype(np.int64)
+            d0, d1 = int(day[0]), int(day[-1])
+            cut = np.searchsorted(t[1:], np.arange(d0 + 1, d1 + 1) * DAY_S)
+            for dkey, part in zip(range(d0, d1 + 1), np.split(dt, cut), strict=True):
+                inner[dkey] = float(part.sum())
         moving = np.abs(h.qd[:, 0]) > self.cfg.moving_fraction * self._vlim[0]
         for j in range(1, h.qd.shape[1]):
             moving |= np.abs(h.qd[:, j]) > self.cfg.moving_fraction * self._vlim[j]
-        for r in self._idle.feed(t, ~moving, (t,)):
-            self._idle_run(r)
+        idle = segments(t, ~moving, (t,), self.cfg.max_gap_s)
         rated = self.machine.rated_load.payload_at(h.reach_m)
         has_h = h.height_m is not None
         rise = h.height_m if h.height_m is not None else h.q[:, self._lift_joint]
         vals = (h.payload_kg, h.payload_kg / rated, h.reach_m, h.q[:, self._slew], rise)
-        for r in self._loaded.feed(t, h.payload_kg >= self.cfg.grab_kg, vals):
-            self.cycles.append(self._cycle(r, has_h))
-        self._has_height = has_h
+        loaded = segments(t, h.payload_kg >= self.cfg.grab_kg, vals, self.cfg.max_gap_s)
+        return ProductivityPart(float(t[0]), float(t[-1]), inner, idle, loaded, has_h)
+
+    def merge_parts(self, a: ProductivityPart, b: ProductivityPart) -> ProductivityPart:
+        """One part of chunk ``a`` followed by chunk ``b`` (folding it = folding both)."""
+        inner = dict(a.inner_recorded_s)
+        for k, v in b.inner_recorded_s.items():
+            inner[k] = inner.get(k, 0.0) + v
+        dt0 = b.t_first - a.t_last
+        if dt0 <= self.cfg.max_gap_s:
+            k = int(b.t_first // DAY_S)
+            inner[k] = inner.get(k, 0.0) + dt0
+        g = self.cfg.max_gap_s
+        return ProductivityPart(a.t_first, b.t_last, inner, concat_segments(a.idle, b.idle, g),
+                                concat_segments(a.loaded, b.loaded, g),
+                                a.has_height and b.has_height)
+
+    def apply(self, p: ProductivityPart | None) -> None:
+        """Fold the part of the next chunk (see :meth:`part`)."""
+        if p is None:
+            return
+        dt0 = 0.0 if self._last_t is None else p.t_first - self._last_t
+        if dt0 > self.cfg.max_gap_s:
+            dt0 = 0.0
+        self._last_t = p.t_last
+        self.recorded_s += dt0 + sum(p.inner_recorded_s.values())
+        first = self.days.setdefault(int(p.t_first // DAY_S), DayUsage())
+        first.recorded_s += dt0
+        first.working_s += dt0
+        for dkey, v in p.inner_recorded_s.items():
+            du = self.days.setdefault(dkey, DayUsage())
+            du.recorded_s += v
+            du.working_s += v
+        for r in self._idle.feed_segments(p.idle):
+            self._idle_run(r)
+        for r in self._loaded.feed_segments(p.loaded):
+            self.cycles.append(self._cycle(r, p.has_height))
+        self._has_height = p.has_height
+
+    def update(self, h: LoadHistory) -> None:
+        """Fold the next chunk (``apply(part(h))``)."""
+        self.apply(self.part(h))
 
     def snapshot(self) -> tuple[list[WorkCycle], float, float, dict[int, DayUsage]]:
         """(work cycles, recorded s, idle s, per-day usage) including runs open at the end."""

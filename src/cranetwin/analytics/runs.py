@@ -67,6 +67,84 @@ class Run:
 
 
 @dataclass
+class Segments:
+    """The raw stretches of a condition in one chunk: maximal runs of the mask, split at data
+    gaps, before any joining across chunks, merging or minimum duration. Stored per window, they
+    let :meth:`RunTracker.feed_segments` find the runs of any sequence of windows exactly.
+
+    Attributes:
+        t_first: Time of the chunk's first sample [s].
+        t_last: Time of its last sample [s].
+        runs: Stretches in time order.
+        first_at_start: The first stretch starts at the chunk's first sample.
+        last_at_end: The last stretch ends at the chunk's last sample.
+    """
+
+    t_first: float
+    t_last: float
+    runs: list[Run]
+    first_at_start: bool
+    last_at_end: bool
+
+
+def segments(t: F64, mask: B, values: Sequence[F64], max_gap_s: float = 0.0) -> Segments | None:
+    """Raw stretches of ``mask`` in one chunk (see :class:`Segments`); None for no samples.
+
+    Args:
+        t: Times, shape (n,) [s].
+        mask: The condition, shape (n,).
+        values: Statistics columns, each shape (n,) (column 0 is the one whose peak is timed).
+        max_gap_s: A time step longer than this splits a stretch (0: never).
+    """
+    n = t.shape[0]
+    if n == 0:
+        return None
+    m = np.asarray(mask, dtype=bool)
+    runs: list[Run] = []
+    first_at_start = last_at_end = False
+    if m.any():
+        brk = np.zeros(n + 1, dtype=bool)  # brk[i]: a new stretch starts at sample i
+        brk[0] = brk[n] = True
+        if max_gap_s > 0 and n > 1:
+            brk[1:n] = np.diff(t) > max_gap_s
+        prev = np.concatenate([[False], m[:-1]])
+        nxt = np.concatenate([m[1:], [False]])
+        starts = np.flatnonzero(m & (~prev | brk[:n]))
+        ends = np.flatnonzero(m & (~nxt | brk[1:])) + 1  # exclusive
+        for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
+            seg = np.column_stack([v[s:e] for v in values])
+            i_pk = int(np.argmax(seg[:, 0]))
+            runs.append(Run(float(t[s]), float(t[e - 1]), e - s, seg[0].copy(), seg[-1].copy(),
+                            seg.max(axis=0), seg.min(axis=0), seg.sum(axis=0),
+                            float(t[s + i_pk]), seg[i_pk].copy()))
+        first_at_start = bool(starts[0] == 0)
+        last_at_end = bool(ends[-1] == n)
+    return Segments(float(t[0]), float(t[-1]), runs, first_at_start, last_at_end)
+
+
+def concat_segments(a: Segments | None, b: Segments | None,
+                    max_gap_s: float = 0.0) -> Segments | None:
+    """The segments of chunk ``a`` followed by chunk ``b`` (as :func:`segments` of the joined
+    chunk would give): a stretch ending at a's last sample joins one starting at b's first
+    sample unless the step between them is over ``max_gap_s``."""
+    if a is None:
+        return b
+    if b is None:
+        return a
+    runs = list(a.runs)
+    rb = list(b.runs)
+    gap = max_gap_s > 0 and b.t_first - a.t_last > max_gap_s
+    if runs and rb and a.last_at_end and b.first_at_start and not gap:
+        runs[-1] = runs[-1].join(rb.pop(0))
+    runs += rb
+    first_at_start = bool(a.runs) and a.first_at_start
+    last_at_end = bool(b.runs) and b.last_at_end
+    if not b.runs and a.runs:
+        last_at_end = False
+    return Segments(a.t_first, b.t_last, runs, first_at_start, last_at_end)
+
+
+@dataclass
 class RunTracker:
     """Finds runs of a condition across chunks.
 
@@ -104,43 +182,33 @@ class RunTracker:
         Returns:
             Runs closed (and released past the merge gap) by this chunk.
         """
+        return self.feed_segments(segments(t, mask, values, self.max_gap_s))
+
+    def feed_segments(self, seg: Segments | None) -> list[Run]:
+        """Fold the raw stretches of the next chunk (:func:`segments`); :meth:`feed` is
+        ``feed_segments(segments(...))``, so stored segments of consecutive chunks give the same
+        runs as the samples."""
         out: list[Run] = []
-        n = t.shape[0]
-        if n == 0:
+        if seg is None:
             return out
-        m = np.asarray(mask, dtype=bool)
-        if not m.any():
-            starts = ends = np.empty(0, dtype=np.int64)
-        else:
-            brk = np.zeros(n + 1, dtype=bool)  # brk[i]: a new stretch starts at sample i
-            brk[0] = brk[n] = True
-            if self.max_gap_s > 0 and n > 1:
-                brk[1:n] = np.diff(t) > self.max_gap_s
-            prev = np.concatenate([[False], m[:-1]])
-            nxt = np.concatenate([m[1:], [False]])
-            starts = np.flatnonzero(m & (~prev | brk[:n]))
-            ends = np.flatnonzero(m & (~nxt | brk[1:])) + 1  # exclusive
+        runs = seg.runs
         gap_before = (self._open is not None and self.max_gap_s > 0
-                      and float(t[0]) - self._open.t_end > self.max_gap_s)
-        if self._open is not None and (starts.size == 0 or starts[0] != 0 or gap_before):
+                      and seg.t_first - self._open.t_end > self.max_gap_s)
+        if self._open is not None and (not runs or not seg.first_at_start or gap_before):
             # the open run ended just before this chunk
             self._emit(self._open, out)
             self._open = None
-        for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
-            seg = np.column_stack([v[s:e] for v in values])
-            i_pk = int(np.argmax(seg[:, 0]))
-            run = Run(float(t[s]), float(t[e - 1]), e - s, seg[0].copy(), seg[-1].copy(),
-                      seg.max(axis=0), seg.min(axis=0), seg.sum(axis=0), float(t[s + i_pk]),
-                      seg[i_pk].copy())
-            if s == 0 and self._open is not None:
+        last = len(runs) - 1
+        for i, run in enumerate(runs):
+            if i == 0 and seg.first_at_start and self._open is not None:
                 run = self._open.join(run)
                 self._open = None
-            if e == n:
+            if i == last and seg.last_at_end:
                 self._open = run
             else:
                 self._emit(run, out)
-        if self._pending is not None and self._open is None and n and \
-                float(t[-1]) - self._pending.t_end >= self.merge_gap_s:
+        if self._pending is not None and self._open is None and \
+                seg.t_last - self._pending.t_end >= self.merge_gap_s:
             if self._pending.duration_s >= self.min_duration_s:
                 out.append(self._pending)
             self._pending = None

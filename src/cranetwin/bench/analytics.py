@@ -181,14 +181,123 @@ def run(days: int = 30, rate_hz: float = 100.0, baseline_hours: float = 0.25,
     }
 
 
+def run_stored(days: int = 30, shift_h: float = 1.0, rate_hz: float = 100.0,
+               direct_hours: float = 2.0, url: str | None = None) -> dict[str, Any]:
+    """The stored-data benchmark (``--stored``): reports of any range from what the twin
+    worker stored.
+
+    Data through the real pipeline: ``days`` daily shifts of ``shift_h`` hours (06:00 UTC on)
+    of exact sensor samples (:func:`cranetwin.testing.blocks.kinematic_samples`, 120 s of
+    motion with lifts, tiled) written as sample blocks with ``Store.write_blocks`` (what the
+    ingest writer calls), then processed by :class:`~cranetwin.service.worker.TwinWorker` (each
+    minute replayed, derived summaries, events and the minute's analytics part stored, hours
+    and days rolled up). Timed: ``write_seconds`` and ``worker_seconds`` (not part of a
+    report); ``report_<days>d_seconds`` — the API's analytics of the whole span
+    (:func:`cranetwin.service.analytics.analytics_report`: stored parts merged); over
+    ``direct_hours`` of the first shift (from 06:17:30, or a quarter into a shorter shift, so
+    both edges are partial minutes),
+    the same merged report (``merged_range_seconds``) and the direct baseline that replays
+    every minute of the range (``direct_range_seconds``), ``speedup_vs_direct`` their ratio
+    and ``equal_to_direct`` whether they agree (spectra, damage, events, work cycles).
+    """
+    from cranetwin.service.analytics import analytics_report, direct_report
+    from cranetwin.service.backend import Backend
+    from cranetwin.service.replayer import Replayer
+    from cranetwin.service.timerange import TimeRange
+    from cranetwin.service.worker import TwinWorker
+    from cranetwin.settings import Settings
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
+
+    machine = load_machine("patu655")
+    t0 = 1795392000.0  # 2026-11-22 00:00 UTC
+    mid = "bench-crane"
+    with tempfile.TemporaryDirectory() as d:
+        b = Backend.open(url or f"sqlite:///{d}/bench.db")
+        b.store.add_machine(mid, wire_id=4242, secret=b"b" * 32)
+        base = kinematic_samples(machine, 120.0, rate_hz)
+        w_s = 0.0
+        seq = 0
+        for day in range(days):
+            start = t0 + day * 86400.0 + 6 * 3600.0
+            blocks = list(tiled_blocks(mid, machine, start, shift_h * 3600.0 + 5.0, 1.0,
+                                       base=base, seq0=seq, origin_s=t0))
+            seq += len(blocks)
+            a = time.perf_counter()
+            b.store.write_blocks(blocks)
+            w_s += time.perf_counter() - a
+        replayer = Replayer()
+        worker = TwinWorker(b, Settings(database_url="unused", worker_in_process=False),
+                            replayer=replayer, quiet_s=0.0)
+        a = time.perf_counter()
+        windows = 0
+        while True:
+            n = worker.catch_up(b.machine(mid))
+            windows += n
+            if n == 0:
+                break
+        worker_s = time.perf_counter() - a
+        rng = TimeRange(t0, t0 + days * 86400.0)
+        a, c = time.perf_counter(), time.process_time()
+        rep = analytics_report(b, replayer, machine, mid, rng)
+        rep_s, rep_cpu = time.perf_counter() - a, time.process_time() - c
+        off = 6 * 3600.0 + min(1050.0, shift_h * 900.0 + 0.5)  # inside a minute
+        short = TimeRange(t0 + off, t0 + off + direct_hours * 3600.0)
+        a = time.perf_counter()
+        merged = analytics_report(b, replayer, machine, mid, short)
+        merged_s = time.perf_counter() - a
+        a = time.perf_counter()
+        direct = direct_report(b, replayer, machine, mid, short)
+        direct_s = time.perf_counter() - a
+        b.close()
+    assert rep is not None and merged is not None and direct is not None
+    same = (all(np.array_equal(x.cycles.count, y.cycles.count)
+                and np.array_equal(x.cycles.lower, y.cycles.lower)
+                for x, y in zip(merged.spectra, direct.spectra, strict=True))
+            and bool(np.allclose([e.damage for e in merged.life],
+                                 [e.damage for e in direct.life], rtol=1e-12, atol=0.0))
+            and [(e.kind, e.t_start) for e in merged.events]
+            == [(e.kind, e.t_start) for e in direct.events]
+            and [(c.t_grab, c.t_release) for c in merged.cycles]
+            == [(c.t_grab, c.t_release) for c in direct.cycles])
+    worst = max(rep.life, key=lambda e: e.damage)
+    return {
+        "days": days, "shift_h": shift_h, "rate_hz": rate_hz,
+        "stored_hours": round(days * shift_h, 3), "samples": rep.n_samples,
+        "write_seconds": round(w_s, 3), "worker_windows": windows,
+        "worker_seconds": round(worker_s, 3),
+        "worker_seconds_per_window": round(worker_s / max(windows, 1), 4),
+        f"report_{days}d_seconds": round(rep_s, 3),
+        f"report_{days}d_cpu_seconds": round(rep_cpu, 3),
+        "direct_range_hours": direct_hours,
+        "merged_range_seconds": round(merged_s, 3),
+        "direct_range_seconds": round(direct_s, 3),
+        "speedup_vs_direct": round(direct_s / merged_s, 1),
+        "equal_to_direct": bool(same),
+        "work_cycles": len(rep.cycles), "events": len(rep.events),
+        "kp": round(rep.classification.kp, 4) if rep.classification else None,
+        "max_damage": worst.damage,
+        "remaining_years_worst": (None if not np.isfinite(worst.remaining_days)
+                                  else round(worst.remaining_days / 365.25, 2)),
+        "peak_rss_mib": round(_peak_rss_mib(), 1),
+    }
+
+
 def bench_analytics(
-    days: int = typer.Option(30, help="Days of 8-hour shifts."),
+    days: int = typer.Option(30, help="Days of 8-hour shifts (--stored: of shifts of "
+                             "--shift-h hours)."),
     rate_hz: float = typer.Option(100.0, help="Sample rate [Hz]."),
     baseline_hours: float = typer.Option(0.25, help="Hours of data the baselines run on."),
     pdf: bool = typer.Option(True, help="Also time writing the PDF report."),
+    stored: bool = typer.Option(False, "--stored", help="Reports from stored data written "
+                                "through the store and the twin worker (see run_stored)."),
+    shift_h: float = typer.Option(1.0, help="--stored: hours of data per day."),
+    direct_hours: float = typer.Option(2.0, help="--stored: range of the direct baseline [h]."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
 ) -> None:
     """Time a 30-day load-history analysis (rainflow, damage, events, productivity)."""
+    if stored:
+        emit(run_stored(days, shift_h, rate_hz, direct_hours), as_json)
+        return
     res = run(days, rate_hz, baseline_hours, pdf)
     emit(res, as_json)
 

@@ -63,6 +63,7 @@ def report(
     """Write a load-history report: usage, load spectra, damage and remaining life, duty class,
     events, productivity."""
     from cranetwin.reports import (
+        SECTIONS,
         DemoSource,
         RecordingSource,
         Source,
@@ -93,8 +94,9 @@ def report(
                               "FILE, or --demo")
         from cranetwin.settings import Settings, load_settings
 
-        url = load_settings(Settings, database_url=db).database_url
-        src = StoreSource(url, machine, parse_time(t_from), parse_time(t_to))
+        settings = load_settings(Settings, database_url=db)
+        src = StoreSource(settings.database_url, machine, parse_time(t_from), parse_time(t_to),
+                          margin_s=settings.twin_margin_s)
     with Progress(TextColumn("{task.description}"), BarColumn(),
                   TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(),
                   TimeRemainingColumn(), disable=quiet) as bar:
@@ -104,9 +106,9 @@ def report(
         rep = build_report(src, progress=lambda n: bar.advance(task, n), t0_s=window[0],
                            t1_s=window[1])
         bar.update(task, completed=src.total())
-        wtask = bar.add_task(f"writing {fmt}", total=7)
+        wtask = bar.add_task(f"writing {fmt}", total=len(SECTIONS))
         path = write(rep, src.machine, fmt, out, src.label, progress=lambda: bar.advance(wtask))
-        bar.update(wtask, completed=7)
+        bar.update(wtask, completed=len(SECTIONS))
     typer.echo(f"{path}: {len(rep.cycles)} work cycles, {len(rep.events)} events, "
                f"{rep.n_samples:,} samples")
 

@@ -30,12 +30,30 @@ def build_report(source: Source, config: AnalyticsConfig | None = None,
     """Analyse every chunk of ``source`` (only instants with t0_s ≤ t < t1_s if given);
     ``progress(units)`` is called after each chunk.
 
+    Rates (remaining life, next service, class of utilisation) follow
+    :class:`cranetwin.analytics.RateBasis`: the machine's whole recorded history gives the
+    operating hours per day when the source knows it (``history_usage()``, storage), else the
+    requested range [t0_s, t1_s) does (the data span when no range is given).
+
     Raises:
         ReportError: No data in the window.
     """
-    state = AnalyticsState(source.machine, config)
     lo = -np.inf if t0_s is None else t0_s
     hi = np.inf if t1_s is None else t1_s
+    merged = getattr(source, "range_state", None)
+    if callable(merged):  # storage: merged from stored parts, only the edges replayed
+        merged_state: AnalyticsState = merged(config)
+        if progress is not None:
+            progress(source.total())
+        if merged_state.n_samples == 0:
+            raise ReportError(f"no data from {source.label} in the window {lo} s to {hi} s "
+                              "(epoch seconds); check --from/--to")
+        usage_fn = getattr(source, "history_usage", None)
+        usage = usage_fn() if callable(usage_fn) else None
+        r0 = t0_s if t0_s is not None else getattr(source, "t0_s", None)
+        r1 = t1_s if t1_s is not None else getattr(source, "t1_s", None)
+        return merged_state.report(r0, r1, *(usage if usage is not None else (None, None)))
+    state = AnalyticsState(source.machine, config)
     for h, units in source.chunks():
         if h is not None and h.n:
             a, b = np.searchsorted(h.t_s, [lo, hi], side="left")
@@ -46,7 +64,9 @@ def build_report(source: Source, config: AnalyticsConfig | None = None,
     if state.n_samples == 0:
         raise ReportError(f"no data from {source.label} in the window {lo} s to {hi} s "
                           "(epoch seconds); check --from/--to")
-    return state.report()
+    usage_fn = getattr(source, "history_usage", None)
+    usage = usage_fn() if callable(usage_fn) else None
+    return state.report(t0_s, t1_s, *(usage if usage is not None else (None, None)))
 
 
 __all__ = ["FORMATS", "SECTIONS", "DemoSource", "RecordingSource", "Source", "StoreSource",

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from cranetwin.analytics import LoadHistory
+from cranetwin.analytics import AnalyticsConfig, AnalyticsState, LoadHistory
 from cranetwin.errors import CraneTwinError, ReportError
 from cranetwin.model import Machine, load_machine
 from cranetwin.testing.histories import Misuse, SyntheticCrane
@@ -155,7 +155,9 @@ class RecordingSource:
 
 @dataclass
 class StoreSource:
-    """Samples of a registered machine read from storage day by day and replayed by the twin."""
+    """A registered machine's range from storage: merged from the twin worker's stored analytics
+    parts (:meth:`range_state`, what :func:`cranetwin.reports.build_report` uses), or replayed
+    four hours at a time by :meth:`chunks` (the direct path)."""
 
     url: str
     machine_id: str
@@ -163,6 +165,8 @@ class StoreSource:
     t1_s: float
     grid_hz: float = 100.0
     label: str = ""
+    margin_s: float = 2.0
+    """Samples read either side of a replayed minute [s] (the worker's ``twin_margin_s``)."""
 
     def __post_init__(self) -> None:
         try:
@@ -190,6 +194,41 @@ class StoreSource:
 
     def total(self) -> int:
         return int(np.ceil((self.t1_s - self.t0_s) / WINDOW_S))
+
+    def range_state(self, config: AnalyticsConfig | None = None) -> AnalyticsState:
+        """The analysis of [t0_s, t1_s) merged from the analytics parts the twin worker stored
+        (:func:`cranetwin.service.history.range_state`); minutes without a part (the edges, not
+        processed yet) are replayed the way the worker replays them."""
+        from cranetwin.service.backend import Backend
+        from cranetwin.service.history import range_state, window_history
+        from cranetwin.service.replayer import Replayer
+
+        backend = Backend(self.store)
+        replayer = Replayer()
+        prog = backend.progress(self.machine_id)
+
+        def edge(a: float, b: float) -> LoadHistory | None:
+            return window_history(backend, replayer, self.machine, self.machine_id, a, b,
+                                  self.margin_s)
+        return range_state(self.store.engine, self.machine, self.machine_id, self.t0_s,
+                           self.t1_s, edge, prog.watermark_s if prog is not None else None,
+                           config=config,
+                           next_sample=lambda t: backend.next_sample_time(self.machine_id, t))
+
+    def history_usage(self) -> tuple[float, float] | None:
+        """(operating s, calendar s) of the machine's whole recorded history: the twin worker's
+        operating time from the first stored sample to its progress mark; None before the
+        worker processed anything."""
+        from sqlalchemy.orm import Session
+
+        from cranetwin.storage.apikeys import get_progress
+
+        dr = self.store.data_range(self.machine_id)
+        with Session(self.store.engine) as s:
+            row = get_progress(s, self.machine_id)
+            if row is None or dr is None or not row.operating_s > 0:
+                return None
+            return float(row.operating_s), float(row.watermark_s - dr[0])
 
     def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
         from cranetwin.twin import iter_replay

@@ -35,10 +35,15 @@ def when(t_s: float) -> str:
         return "beyond 9999"
 
 
+def _range_end(rep: AnalyticsReport) -> float:
+    """End of the requested range (dates of the projections count from it)."""
+    return rep.basis.range_t1_s if rep.basis is not None else rep.t_end
+
+
 def _date_after(rep: AnalyticsReport, days: float) -> str:
     if not np.isfinite(days):
         return "never at this rate"
-    return when(rep.t_end + days * 86400.0)[:10]
+    return when(_range_end(rep) + days * 86400.0)[:10]
 
 
 def fmt(x: float, digits: int = 3) -> str:
@@ -55,7 +60,10 @@ def summary(rep: AnalyticsReport, machine: Machine, source: str) -> Table:
     rows: list[Row] = [
         ["Machine", machine.name],
         ["Data source", source],
-        ["Period (UTC)", f"{when(rep.t_start)} to {when(rep.t_end)}"],
+        ["Requested range (UTC)",
+         f"{when(rep.basis.range_t0_s)} to {when(rep.basis.range_t1_s)} (end exclusive)"
+         if rep.basis is not None else "whole source"],
+        ["Data (UTC)", f"{when(rep.t_start)} to {when(rep.t_end)}"],
         ["Samples analysed", f"{rep.n_samples:,}"],
         ["Recorded / working / idle time [h]",
          f"{rep.recorded_s / 3600:.1f} / {rep.working_s / 3600:.1f} / {rep.idle_s / 3600:.1f}"],
@@ -71,7 +79,21 @@ def summary(rep: AnalyticsReport, machine: Machine, source: str) -> Table:
         rows.append(["Next service (earliest damage step)",
                      f"{_date_after(rep, soon.next_service_days)} ({soon.name}, "
                      f"D = {soon.next_service_damage:.2g})"])
+    if rep.basis is not None:
+        rows.append(["Rate basis (remaining life, next service, U class)",
+                     rep.basis.description])
+    priors = [a for a in rep.assumptions if a.startswith("Prior")]
+    rows.append(["Prior damage / prior equivalent cycles",
+                 "taken as zero (no earlier record)" if all("taken as zero" in a for a in priors)
+                 else "carried in from earlier records (see Assumptions)"])
     return Table("Summary", ["item", "value"], rows)
+
+
+def assumptions(rep: AnalyticsReport) -> Table:
+    """Every assumption the figures rest on (fatigue details, prior damage, design class,
+    rate basis)."""
+    return Table("Assumptions", ["#", "assumption"],
+                 [[i + 1, a] for i, a in enumerate(rep.assumptions)])
 
 
 def usage(rep: AnalyticsReport) -> Table:
@@ -149,7 +171,9 @@ def duty(rep: AnalyticsReport) -> Table:
                  ["Design kp", fmt(d.design_kp)],
                  ["C_T·kp", f"{d.design_equivalent:,.0f}"],
                  ["Used design working period S/(C_T·kp)", f"{100 * d.used_fraction:.4g} %"]]
-        rate = d.equivalent_cycles / max(rep.observed_days, 1e-9)
+        rate = (rep.basis.per_day(d.equivalent_cycles - d.prior_equivalent)
+                if rep.basis is not None
+                else d.equivalent_cycles / max(rep.observed_days, 1e-9))
         if rate > 0:
             rows.append(["Design working period reached (at this rate)",
                          _date_after(rep, (d.design_equivalent - d.equivalent_cycles) / rate)])

@@ -1,7 +1,8 @@
 """Report writers: PDF (reportlab), self-contained HTML (inline PNG), CSV (directory or zip).
 
 Sections (PDF pages, HTML sections): Summary, Usage, Load spectrum, Damage and remaining life,
-Duty record, Events, Productivity. CSV files: ``summary.csv``, ``usage.csv``, ``spectra.csv``,
+Duty record, Events, Productivity, Assumptions. CSV files: ``summary.csv``, ``usage.csv``,
+``spectra.csv``, ``assumptions.csv``,
 ``cycles.csv`` (rainflow from-to table), ``damage.csv``, ``duty.csv``, ``events.csv``,
 ``work_cycles.csv``; written into a directory, or a ``.zip`` if the output name ends in .zip.
 """
@@ -25,7 +26,7 @@ FORMATS = ("pdf", "html", "csv")
 MAX_EVENT_ROWS = 200  # in the PDF and HTML; the CSV has all
 
 SECTIONS = ("Summary", "Usage", "Load spectrum", "Damage and remaining life", "Duty record",
-            "Events", "Productivity")
+            "Events", "Productivity", "Assumptions")
 
 
 def _sections(rep: AnalyticsReport, machine: Machine, source: str,
@@ -44,7 +45,8 @@ def _sections(rep: AnalyticsReport, machine: Machine, source: str,
          figs.get("spectrum")),
         ("Damage and remaining life", "Palmgren-Miner sum D = Σ n_i/N_i with "
          "N = 2·10⁶·(Δσc/Δσ)^m (EN 13001-3-1). Remaining life and the next service (next "
-         "multiple of the inspection step of D) at the damage rate of this period.",
+         "multiple of the inspection step of D) at the damage rate of the rate basis (see the "
+         "Summary and Assumptions), counted from the end of the requested range.",
          [T.damage(rep, machine)], figs.get("damage")),
         ("Duty record", "Crane classification per ISO 4301-1 / FEM 1.001 and the used design "
          "working period per ISO 12482 (recording method a).", [T.duty(rep)], None),
@@ -53,6 +55,8 @@ def _sections(rep: AnalyticsReport, machine: Machine, source: str,
          [ev], figs.get("events")),
         ("Productivity", "Work cycles: grab (payload above 50 kg) → lift → swing → release.",
          [T.productivity(rep)], figs.get("productivity")),
+        ("Assumptions", "Every figure of this report rests on these assumptions; results scale "
+         "with the fatigue details and the design class.", [T.assumptions(rep)], None),
     ]
 
 
@@ -208,7 +212,8 @@ def csv_tables(rep: AnalyticsReport, machine: Machine, source: str) -> dict[str,
     return {"summary.csv": T.summary(rep, machine, source), "usage.csv": T.usage(rep),
             "spectra.csv": T.spectra(rep), "cycles.csv": T.cycle_rows(rep),
             "damage.csv": T.damage(rep, machine), "duty.csv": T.duty(rep),
-            "events.csv": T.events(rep), "work_cycles.csv": T.work_cycles(rep)}
+            "events.csv": T.events(rep), "work_cycles.csv": T.work_cycles(rep),
+            "assumptions.csv": T.assumptions(rep)}
 
 
 def _csv_text(tab: T.Table) -> str:

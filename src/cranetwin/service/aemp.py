@@ -17,10 +17,12 @@ Elements without an observation are omitted (the standard makes every element op
 
 Extension (not part of ISO 15143-3; consumers that do not know it ignore it): each equipment
 has ``"Extension": {"cranetwin": {...}}`` with ``datetime``, ``MaxPayload_kg``,
-``LoadSpectrumFactor`` (kp = Σ (m_i / m_rated)³ / N over the lifts, ISO 4301-1),
+``LoadSpectrumFactor`` (kp = Σ (P_i/P_max)³ / C over the work cycles, ISO 4301-1, with P_i the
+mean payload of work cycle i and P_max the rated payload at its reach — the same work cycles and
+ratios as every report, from the twin worker's stored analytics),
 ``OverloadCount`` (lifts whose peak payload exceeded the rated load), ``RatedLoad_kg`` and
-``DesignLifeUsedFraction`` (N·kp / (C_t·kp_design), from the machine's classification; null
-when the machine has none).
+``DesignLifeUsedFraction`` (ISO 12482 S/(C_T·kp_design) with S = Σ (P_i/P_max)³, prior use
+taken as zero; null when the machine has no classification).
 """
 
 from __future__ import annotations
@@ -54,6 +56,9 @@ class EquipmentFigures:
         load_cube_sum: Σ (peak / rated)³ over the lifts.
         overloads: Lifts above the rated load.
         max_payload_kg: Largest lift peak [kg].
+        duty: (work cycles, Σ (P_i/P_max)³) of the machine's processed history from the same
+            work-cycle detection as the reports (:class:`cranetwin.service.history.DutyToDate`),
+            or None (then kp and design life used are null).
     """
 
     machine_id: str
@@ -69,6 +74,7 @@ class EquipmentFigures:
     load_cube_sum: float
     overloads: int
     max_payload_kg: float
+    duty: tuple[int, float] | None = None
 
 
 def rated_load_kg(machine: Machine) -> float:
@@ -93,11 +99,14 @@ def equipment(fig: EquipmentFigures) -> dict[str, Any]:
         out["CumulativeLoadCount"] = {"datetime": when, "Count": int(fig.load_count)}
         out["CumulativePayloadTotals"] = {"datetime": when, "PayloadUnits": "metric tonne",
                                           "Payload": round(fig.payload_total_kg / 1000.0, 4)}
-        kp = fig.load_cube_sum / fig.load_count if fig.load_count else None
-        cls = fig.machine.classification
-        used = None
-        if cls is not None and kp is not None:
-            used = fig.load_count * kp / (cls.design_total_cycles * cls.design_spectrum_factor)
+        # kp and design life used from the reports' work cycles (one answer: the API analytics
+        # and the CLI report of [first minute, counters time) give the same figures)
+        kp = used = None
+        if fig.duty is not None and fig.duty[0] > 0:
+            kp = fig.duty[1] / fig.duty[0]
+            cls = fig.machine.classification
+            if cls is not None:
+                used = fig.duty[1] / (cls.design_total_cycles * cls.design_spectrum_factor)
         out["Extension"] = {"cranetwin": {
             "datetime": when,
             "RatedLoad_kg": rated_load_kg(fig.machine),

@@ -1,7 +1,8 @@
 """Analytics and reports of a stored range: replay → :mod:`cranetwin.analytics` → JSON or file.
 
-The range (at most ``Settings.max_analytics_range_s``) is replayed window by window at the
-sample rate, each window folded into an :class:`cranetwin.analytics.AnalyticsState` (rainflow
+The range is merged from the analytics parts the twin worker stored per minute, hour and day
+(:mod:`cranetwin.service.history`); only minutes without a part are replayed. The result is
+an :class:`cranetwin.analytics.AnalyticsState` (rainflow
 spectra per load channel, Miner damage and remaining life per fatigue detail, ISO 4301 duty
 classification, events, work cycles and productivity), and the report is returned as JSON, or
 rendered as CSV / HTML / PDF.
@@ -18,12 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from cranetwin.errors import AnalyticsError, CraneTwinError, MissingExtraError
+from cranetwin.errors import AnalyticsError, MissingExtraError
 from cranetwin.model import Machine
-from cranetwin.service.replayer import Replayer, sample_rate_hz
+from cranetwin.service.replayer import Replayer
 from cranetwin.service.timerange import TimeRange, iso
 
-WINDOW_S = 60.0
 MARGIN_S = 2.0
 
 
@@ -73,30 +73,61 @@ def stored_events(machine_id: str, events: list[Any]) -> list[Any]:
 
 
 def analytics_report(backend: Any, replayer: Replayer, machine: Machine, machine_id: str,
-                     rng: TimeRange) -> Any:
-    """The :class:`cranetwin.analytics.AnalyticsReport` of [from, to), or None without data."""
+                     rng: TimeRange, margin_s: float = MARGIN_S,
+                     max_replay_s: float | None = None) -> Any:
+    """The :class:`cranetwin.analytics.AnalyticsReport` of [from, to), or None without data.
+
+    Merged from the parts the twin worker stored (:func:`cranetwin.service.history.range_state`);
+    only minutes without a stored part are replayed, the way the worker replays a minute
+    (``margin_s``: the worker's ``twin_margin_s``)."""
+    from cranetwin.service.history import range_state, window_history
+
+    prog = backend.progress(machine_id)
+
+    def edge(a: float, b: float) -> Any:
+        return window_history(backend, replayer, machine, machine_id, a, b, margin_s)
+
+    state = range_state(backend.store.engine, machine, machine_id, rng.t0_s, rng.t1_s, edge,
+                        prog.watermark_s if prog is not None else None, max_replay_s,
+                        next_sample=lambda t: backend.next_sample_time(machine_id, t))
+    if state.n_samples == 0:
+        return None
+    op, cal = history_usage(backend, machine_id)
+    return state.report(rng.t0_s, rng.t1_s, op, cal)
+
+
+def direct_report(backend: Any, replayer: Replayer, machine: Machine, machine_id: str,
+                  rng: TimeRange, margin_s: float = MARGIN_S) -> Any:
+    """The same report by replaying every minute of the range (no stored part used): the
+    baseline the merged report must equal, and the benchmark's direct figure."""
     from cranetwin.analytics import AnalyticsState
+    from cranetwin.service.history import MINUTE_S, window_history
 
     state = AnalyticsState(machine)
-    a = rng.t0_s
-    folded = False
+    a = math.floor(rng.t0_s / MINUTE_S) * MINUTE_S
     while a < rng.t1_s:
-        b = min(rng.t1_s, a + WINDOW_S)
-        samples = backend.read_samples(machine_id, a - MARGIN_S, b + MARGIN_S)
-        inside = (samples.t_s >= a) & (samples.t_s < b)
-        if int(inside.sum()) >= 8 and samples.t_s.shape[0] >= 16:
-            try:
-                grid_hz = sample_rate_hz(samples)
-                res = replayer.replay(machine_id, machine, samples, grid_hz)
-            except CraneTwinError:
-                res = None
-            if res is not None:
-                k = (res.t_s >= a) & (res.t_s < b)
-                if int(k.sum()) >= 2:
-                    state.update(load_history(machine, res, k))
-                    folded = True
-        a = b
-    return state.report() if folded else None
+        h = window_history(backend, replayer, machine, machine_id, a, a + MINUTE_S, margin_s)
+        if h is not None:
+            i, j = np.searchsorted(h.t_s, [rng.t0_s, rng.t1_s])
+            if j > i:
+                state.update(h.slice(int(i), int(j)))
+        a += MINUTE_S
+    if state.n_samples == 0:
+        return None
+    op, cal = history_usage(backend, machine_id)
+    return state.report(rng.t0_s, rng.t1_s, op, cal)
+
+
+def history_usage(backend: Any, machine_id: str) -> tuple[float | None, float | None]:
+    """(operating s, calendar s) of the machine's whole recorded history, the rate basis of
+    remaining life (:class:`cranetwin.analytics.RateBasis`): the twin worker's operating time
+    from the first stored sample to its progress mark; (None, None) before the worker
+    processed anything."""
+    prog = backend.progress(machine_id)
+    dr = backend.data_range(machine_id)
+    if prog is None or dr is None or not prog.operating_s > 0 or not prog.watermark_s > dr[0]:
+        return None, None
+    return float(prog.operating_s), float(prog.watermark_s - dr[0])
 
 
 def analytics_json(report: Any, rng: TimeRange) -> dict[str, Any]:

@@ -313,9 +313,9 @@ class FleetService:
         """Analytics of the range: replayed window by window into cranetwin.analytics."""
         from cranetwin.service.analytics import analytics_json, analytics_report
 
-        rng.limit(self.settings.max_analytics_range_s, "analytics")
         report = analytics_report(self.backend, self.replayer, self.backend.model_of(rec),
-                                  rec.machine_id, rng)
+                                  rec.machine_id, rng, self.settings.twin_margin_s,
+                                  self.settings.max_analytics_range_s)
         return analytics_json(report, rng)
 
     def report(self, rec: MachineRecord, rng: TimeRange, fmt: str,
@@ -325,9 +325,9 @@ class FleetService:
         this layer); a one-table stub file when the range holds no samples."""
         from cranetwin.service.analytics import analytics_json, analytics_report, render
 
-        rng.limit(self.settings.max_analytics_range_s, "a report")
         machine = self.backend.model_of(rec)
-        rep = analytics_report(self.backend, self.replayer, machine, rec.machine_id, rng)
+        rep = analytics_report(self.backend, self.replayer, machine, rec.machine_id, rng,
+                               self.settings.twin_margin_s, self.settings.max_analytics_range_s)
         if rep is None:
             body, media, name = render(analytics_json(None, rng), fmt, rec.machine_id)
         else:
@@ -338,14 +338,18 @@ class FleetService:
 
     # -- AEMP -------------------------------------------------------------------------------------
     def _figures(self, rec: MachineRecord) -> aemp.EquipmentFigures:
+        from cranetwin.service.history import stored_duty
+
         p = self.backend.progress(rec.machine_id) or Progress.empty(rec.machine_id)
+        duty = stored_duty(self.backend.store.engine, rec.machine_id)
         return aemp.EquipmentFigures(
             machine_id=rec.machine_id, name=rec.name, model=rec.model,
             machine=self.backend.model_of(rec), location=rec.location,
             counters_t_s=p.watermark_s if p.windows else None,
             operating_s=p.operating_s, idle_s=p.idle_s, load_count=p.load_count,
             payload_total_kg=p.payload_total_kg, load_cube_sum=p.load_cube_sum,
-            overloads=p.overloads, max_payload_kg=p.max_payload_kg)
+            overloads=p.overloads, max_payload_kg=p.max_payload_kg,
+            duty=None if duty is None else (duty[0], duty[1]))
 
     def aemp_fleet(self, page: int, base_url: str) -> dict[str, Any]:
         """ISO 15143-3 Fleet page ``page``; 404 past the last page."""

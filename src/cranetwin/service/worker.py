@@ -31,6 +31,8 @@ import asyncio
 import logging
 import math
 import threading
+import time
+from collections.abc import Callable
 from dataclasses import replace as dc_replace
 from typing import TYPE_CHECKING
 
@@ -164,7 +166,8 @@ class TwinWorker:
     """
 
     def __init__(self, backend: Backend, settings: Settings, metrics: Metrics | None = None,
-                 replayer: Replayer | None = None, max_windows_per_pass: int = 30) -> None:
+                 replayer: Replayer | None = None, max_windows_per_pass: int = 30,
+                 quiet_s: float = 60.0, clock: Callable[[], float] = time.monotonic) -> None:
         from cranetwin.service.replayer import Replayer
 
         self.replayer = replayer if replayer is not None else Replayer()
@@ -172,6 +175,11 @@ class TwinWorker:
         self.settings = settings
         self.metrics = metrics
         self.max_windows_per_pass = max_windows_per_pass
+        self.quiet_s = quiet_s
+        """A machine whose newest sample has not changed for this long [s of ``clock``] is
+        quiet: its last window is processed without samples past its end."""
+        self.clock = clock
+        self._last_sample: dict[str, tuple[float, float]] = {}
         self.stop_event = threading.Event()
         """Set to stop: checked between windows, so the window being replayed is finished and
         committed first (a second or so)."""
@@ -254,9 +262,15 @@ class TwinWorker:
         prog = stored if stored is not None else Progress.empty(
             rec.machine_id, math.floor(dr[0] / win) * win)
         done = 0
+        redone = self._redo_late(rec, prog)  # the first pass only sets the block mark
+        if redone is None:
+            return 0
+        prog, done = redone
+        start_wm = prog.watermark_s
+        quiet = self._quiet(rec.machine_id, dr[1])
         while (max_windows is None or done < max_windows) and not self.stop_requested():
             w0 = prog.watermark_s
-            if w0 + win + s.worker_settle_s > dr[1]:
+            if w0 + win + s.worker_settle_s > dr[1] and not (quiet and w0 <= dr[1]):
                 break
             nxt = self.backend.next_sample_time(rec.machine_id, w0)
             if nxt is None:
@@ -275,32 +289,123 @@ class TwinWorker:
                     break
                 done += 1
             prog, expected = new, new.watermark_s
+        self._roll_up(rec, start_wm, prog.watermark_s)
+        if done or prog.watermark_s != start_wm:
+            self._update_duty(rec, dr[0], prog.watermark_s)
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
 
-    def _store_events(self, rec: MachineRecord, machine: Machine, res: object,
-                      keep: npt.NDArray[np.bool_]) -> None:
-        """Detect events in the window (cranetwin.analytics) and store them before the window's
-        commit: a redone window stores the same events, which storage ignores (unique on
-        machine, time, kind). Runs spanning a window edge are reported once per window."""
+    def _store_analytics(self, rec: MachineRecord, machine: Machine, res: object,
+                         keep: npt.NDArray[np.bool_], w0: float, w1: float,
+                         times: tuple[float, float] = (0.0, 0.0)) -> None:
+        """Store the window's analytics part (:mod:`cranetwin.service.history`: what any
+        range's analytics merge from) and its events, before the window's commit: a redone
+        window replaces its part, and storage ignores events stored before (unique on machine,
+        time, kind). Events of runs spanning a window edge are stored once per window (the
+        /events list); reports merge the parts, which join such runs."""
         from cranetwin.analytics import EventDetector
         from cranetwin.service.analytics import load_history, stored_events
+        from cranetwin.service.history import store_part
 
         if int(np.count_nonzero(keep)) < 2:
             return
         try:
+            h = load_history(machine, res, keep)
+            store_part(self.backend.store.engine, machine, rec.machine_id, w0, w1, h, *times)
             det = EventDetector(machine)
-            det.update(load_history(machine, res, keep))
+            det.update(h)
             events = stored_events(rec.machine_id, det.all_events())
         except CraneTwinError as exc:
-            log.warning("machine %s: event detection failed: %s", rec.machine_id, exc)
+            log.warning("machine %s: analytics of window %.0f failed: %s", rec.machine_id, w0,
+                        exc)
             return
         if events:
             self.backend.store.add_events(events)
 
+    def _quiet(self, machine_id: str, last_sample_s: float) -> bool:
+        """Whether the machine's newest sample has stayed the same for ``quiet_s`` of this
+        worker's clock: its last window is then processed without waiting for samples past its
+        end (samples arriving later into it are late data, redone by :meth:`_redo_late`)."""
+        now = self.clock()
+        seen = self._last_sample.get(machine_id)
+        if seen is None or seen[0] != last_sample_s:
+            self._last_sample[machine_id] = (last_sample_s, now)
+            return False
+        return now - seen[1] >= self.quiet_s
+
+    def _redo_late(self, rec: MachineRecord, prog: Progress) -> tuple[Progress, int] | None:
+        """Redo the windows behind the watermark that received samples since the last pass
+        (late data, backfills): blocks stored after the machine's block mark that start before
+        the watermark mark their windows, and the windows whose replay margin reaches into
+        them. Returns (progress, windows redone), None if another worker moved the watermark.
+        Hour and day parts over redone windows are rolled up again."""
+        from cranetwin.service.history import drop_duty, roll_up
+        from cranetwin.storage import analytics_windows as aw
+
+        engine = self.backend.store.engine
+        win, m = self.settings.worker_window_s, self.settings.twin_margin_s
+        mark = aw.block_mark(engine, rec.machine_id)
+        top, late = aw.new_blocks_before(engine, rec.machine_id, mark, prog.watermark_s)
+        if not late:
+            if top is not None and top != mark:
+                aw.set_block_mark(engine, rec.machine_id, top)
+            return prog, 0
+        minutes: set[float] = set()
+        for a, b in late:
+            w = math.floor((a - m) / win) * win
+            while w < min(b + m, prog.watermark_s):
+                minutes.add(float(w))
+                w += win
+        done = 0
+        for w0 in sorted(minutes):
+            if self.stop_requested():
+                return prog, done  # the mark stays: the rest is found again next pass
+            new = self.process_window(rec, prog, prog.watermark_s, redo_w0=w0)
+            if new is None:
+                return None
+            prog = new
+            done += 1
+        lo, hi = min(minutes), max(minutes) + win
+        aw.delete_windows(engine, rec.machine_id, lo, hi, levels=(3600, 86400))
+        drop_duty(engine, rec.machine_id)  # rebuilt from the parts at the end of the pass
+        try:
+            roll_up(engine, self.backend.model_of(rec), rec.machine_id,
+                    math.floor(lo / 86400) * 86400.0, prog.watermark_s)
+        except CraneTwinError as exc:
+            log.warning("machine %s: roll-up after late data failed: %s", rec.machine_id, exc)
+        if top is not None:
+            aw.set_block_mark(engine, rec.machine_id, top)
+        log.info("machine %s: %d window(s) redone for late data", rec.machine_id, done)
+        return prog, done
+
+    def _update_duty(self, rec: MachineRecord, first_s: float, until_s: float) -> None:
+        """Fold the new minutes into the machine's duty to date (AEMP's kp and design life
+        used: :class:`cranetwin.service.history.DutyToDate`)."""
+        from cranetwin.service.history import update_duty
+
+        try:
+            update_duty(self.backend.store.engine, self.backend.model_of(rec), rec.machine_id,
+                        first_s, until_s)
+        except CraneTwinError as exc:
+            log.warning("machine %s: duty to date not updated: %s", rec.machine_id, exc)
+
+    def _roll_up(self, rec: MachineRecord, from_s: float, to_s: float) -> None:
+        """Roll the minute parts of the hours (and days) the progress mark passed from
+        ``from_s`` to ``to_s`` up into hour (and day) parts."""
+        from cranetwin.service.history import roll_up
+
+        if math.floor(from_s / 3600) == math.floor(to_s / 3600):
+            return
+        try:
+            roll_up(self.backend.store.engine, self.backend.model_of(rec), rec.machine_id,
+                    math.floor(from_s / 86400) * 86400.0, to_s)
+        except CraneTwinError as exc:
+            log.warning("machine %s: roll-up to %.0f failed: %s", rec.machine_id, to_s, exc)
+
     def process_window(self, rec: MachineRecord, prog: Progress,
-                       expected_watermark_s: float | None) -> Progress | None:
+                       expected_watermark_s: float | None,
+                       redo_w0: float | None = None) -> Progress | None:
         """Replay [watermark, watermark + window), commit its summaries and progress together.
 
         Args:
@@ -308,6 +413,10 @@ class TwinWorker:
             prog: Its progress before the window.
             expected_watermark_s: The stored watermark the commit is conditional on (None: no
                 progress row stored yet).
+            redo_w0: Redo the past window starting here instead (late data behind the
+                watermark): the watermark stays; the window's derived summaries, analytics part
+                and events are written again; the cumulative counters take the window in only
+                when it had no analytics part before (a backfill into an empty window).
 
         Returns:
             The new progress, or None when another worker committed the window first (nothing
@@ -319,10 +428,19 @@ class TwinWorker:
         expected = expected_watermark_s
         s = self.settings
         machine = self.backend.model_of(rec)
-        w0, w1 = prog.watermark_s, prog.watermark_s + s.worker_window_s
+        w0 = prog.watermark_s if redo_w0 is None else redo_w0
+        w1 = w0 + s.worker_window_s
         m = s.twin_margin_s
         samples = self.backend.read_samples(rec.machine_id, w0 - m, w1 + m)
         new = dc_replace(prog, watermark_s=w1, windows=prog.windows + 1)
+        count = True
+        old: tuple[float, float] | None = None
+        if redo_w0 is not None:
+            from cranetwin.storage import analytics_windows as aw
+
+            old = aw.window_times(self.backend.store.engine, rec.machine_id, 60, w0)
+            count = old is None
+            new = prog if not count else dc_replace(prog, windows=prog.windows + 1)
         n_in = int(np.count_nonzero((samples.t_s >= w0) & (samples.t_s < w1)))
         try:
             if n_in < 8:
@@ -335,16 +453,24 @@ class TwinWorker:
                         exc)
             if self.metrics is not None:
                 self.metrics.worker_errors.labels(rec.machine_id).inc()
+            if redo_w0 is not None:
+                return prog
             return new if self.backend.save_progress(new, expected) else None
         keep = (res.t_s >= w0) & (res.t_s < w1)
         names, values = derive(machine, res, keep)
         t = res.t_s[keep]
         reach = horizontal_reach(machine, res.q[keep]) if t.size else np.zeros(0)
-        new = update_counters(new, machine, t, res.payload_kg[keep], reach, values[:, -1],
-                              1.0 / grid_hz, s.payload_lift_threshold_kg)
+        times = (t.size / grid_hz, float(np.sum(values[:, -1] < 0.5)) / grid_hz)
+        if count:
+            new = update_counters(new, machine, t, res.payload_kg[keep], reach, values[:, -1],
+                                  1.0 / grid_hz, s.payload_lift_threshold_kg)
+        elif old is not None:  # a redone window replaces its share of the operating time
+            new = dc_replace(new, operating_s=new.operating_s - old[0] + times[0],
+                             idle_s=new.idle_s - old[1] + times[1])
         if t.size:
-            new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
-            self._store_events(rec, machine, res, keep)
+            if redo_w0 is None:
+                new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
+            self._store_analytics(rec, machine, res, keep, w0, w1, times)
         if not self.backend.commit_window(new, expected, names, t, values):
             return None
         if self.metrics is not None:

@@ -1,0 +1,137 @@
+"""Stored analytics parts: per machine and window, what the analyses need to merge exactly.
+
+One row per (machine, level, window start): ``level`` is the window length in seconds (60 for
+the twin worker's minutes, 3600 and 86400 for roll-ups), ``data`` the serialised
+:class:`cranetwin.analytics.AnalyticsPart` (the service writes and reads it; see
+:mod:`cranetwin.service.history`), ``n`` the samples it covers. Writing a window again (a redone
+window) replaces it. Plain functions over an engine, so the storage core is not touched.
+"""
+
+from __future__ import annotations
+
+from sqlalchemy import BigInteger, Engine, Float, Integer, LargeBinary, String, delete, select
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.orm import Mapped, Session, mapped_column
+
+from cranetwin.storage.base import Base
+
+SEC = 1_000_000_000
+
+
+class AnalyticsWindowRow(Base):
+    """The analytics part of one window of one machine."""
+
+    __tablename__ = "analytics_windows"
+
+    machine_id: Mapped[str] = mapped_column(String(128), primary_key=True)
+    level_s: Mapped[int] = mapped_column(Integer, primary_key=True)
+    t0_ns: Mapped[int] = mapped_column(BigInteger, primary_key=True)
+    t1_ns: Mapped[int] = mapped_column(BigInteger)
+    n: Mapped[int] = mapped_column(Integer)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+    operating_s: Mapped[float] = mapped_column(Float, default=0.0)
+    idle_s: Mapped[float] = mapped_column(Float, default=0.0)
+
+
+def _ns(t_s: float) -> int:
+    return int(round(t_s * SEC))
+
+
+def put_window(engine: Engine, machine_id: str, level_s: int, t0_s: float, t1_s: float, n: int,
+               data: bytes, operating_s: float = 0.0, idle_s: float = 0.0) -> None:
+    """Store (or replace) the part of window [t0_s, t1_s) of ``level_s``, with the operating
+    and idle time the twin worker counted for it (so a redone window replaces its share of the
+    cumulative counters instead of adding it again)."""
+    row = {"machine_id": machine_id, "level_s": level_s, "t0_ns": _ns(t0_s), "t1_ns": _ns(t1_s),
+           "n": n, "data": data, "operating_s": operating_s, "idle_s": idle_s}
+    ins = (postgresql.insert(AnalyticsWindowRow) if engine.dialect.name == "postgresql"
+           else sqlite.insert(AnalyticsWindowRow))
+    stmt = ins.values(**row).on_conflict_do_update(
+        index_elements=["machine_id", "level_s", "t0_ns"],
+        set_={"t1_ns": row["t1_ns"], "n": n, "data": data, "operating_s": operating_s,
+              "idle_s": idle_s})
+    with Session(engine) as s, s.begin():
+        s.execute(stmt)
+
+
+def windows(engine: Engine, machine_id: str, level_s: int, t0_s: float,
+            t1_s: float) -> list[tuple[float, float, int, bytes]]:
+    """Windows of ``level_s`` inside [t0_s, t1_s): ``(t0 s, t1 s, n, data)``, oldest first."""
+    w = AnalyticsWindowRow
+    stmt = (select(w.t0_ns, w.t1_ns, w.n, w.data)
+            .where(w.machine_id == machine_id, w.level_s == level_s, w.t0_ns >= _ns(t0_s),
+                   w.t1_ns <= _ns(t1_s)).order_by(w.t0_ns))
+    with Session(engine) as s:
+        return [(a / SEC, b / SEC, int(n), bytes(d)) for a, b, n, d in s.execute(stmt)]
+
+
+def window_times(engine: Engine, machine_id: str, level_s: int,
+                 t0_s: float) -> tuple[float, float] | None:
+    """(operating s, idle s) stored with the window of ``level_s`` starting at ``t0_s``, or None
+    when no such window is stored."""
+    w = AnalyticsWindowRow
+    with Session(engine) as s:
+        r = s.execute(select(w.operating_s, w.idle_s).where(
+            w.machine_id == machine_id, w.level_s == level_s, w.t0_ns == _ns(t0_s))).first()
+        return None if r is None else (float(r[0]), float(r[1]))
+
+
+def window_starts(engine: Engine, machine_id: str, level_s: int, t0_s: float,
+                  t1_s: float) -> list[float]:
+    """Start times of the stored windows of ``level_s`` inside [t0_s, t1_s) [s]."""
+    w = AnalyticsWindowRow
+    stmt = (select(w.t0_ns).where(w.machine_id == machine_id, w.level_s == level_s,
+                                  w.t0_ns >= _ns(t0_s), w.t1_ns <= _ns(t1_s)).order_by(w.t0_ns))
+    with Session(engine) as s:
+        return [a / SEC for a in s.scalars(stmt)]
+
+
+def delete_windows(engine: Engine, machine_id: str, t0_s: float, t1_s: float,
+                   levels: tuple[int, ...] = (60, 3600, 86400)) -> int:
+    """Drop the windows of ``levels`` that overlap [t0_s, t1_s) (their data changed)."""
+    w = AnalyticsWindowRow
+    with Session(engine) as s, s.begin():
+        res = s.execute(delete(w).where(w.machine_id == machine_id, w.t0_ns < _ns(t1_s),
+                                        w.t1_ns > _ns(t0_s), w.level_s.in_(levels)))
+        return int(getattr(res, "rowcount", 0) or 0)
+
+
+MARK_LEVEL = 0
+"""``level_s`` of the row that keeps a machine's block mark (``t1_ns``: the largest sample block
+id the analytics have seen)."""
+
+
+def block_mark(engine: Engine, machine_id: str) -> int | None:
+    """The largest block id seen by :func:`new_blocks_before`, or None before the first call."""
+    w = AnalyticsWindowRow
+    with Session(engine) as s:
+        v = s.scalar(select(w.t1_ns).where(w.machine_id == machine_id, w.level_s == MARK_LEVEL))
+        return None if v is None else int(v)
+
+
+def set_block_mark(engine: Engine, machine_id: str, mark: int) -> None:
+    """Store the block mark of a machine."""
+    put_window(engine, machine_id, MARK_LEVEL, 0.0, mark / SEC, 0, b"")
+
+
+def new_blocks_before(engine: Engine, machine_id: str, after_id: int | None,
+                      before_s: float) -> tuple[int | None, list[tuple[float, float]]]:
+    """Blocks stored after block id ``after_id`` that start before ``before_s`` (late data and
+    backfills behind the twin worker's progress mark): ``(largest id seen, [(t_start s, t_end s),
+    ...])``. With ``after_id`` None only the largest id is returned (the first call)."""
+    from sqlalchemy import func
+
+    from cranetwin.storage.blocks import BlockRow
+    from cranetwin.storage.machines import MachineRow
+
+    with Session(engine) as s:
+        pk = s.scalar(select(MachineRow.id).where(MachineRow.machine_id == machine_id))
+        if pk is None:
+            return after_id, []
+        top = s.scalar(select(func.max(BlockRow.id)).where(BlockRow.machine_pk == pk))
+        if after_id is None or top is None:
+            return (None if top is None else int(top)), []
+        rows = s.execute(select(BlockRow.t_start_ns, BlockRow.t_end_ns).where(
+            BlockRow.machine_pk == pk, BlockRow.id > after_id,
+            BlockRow.t_start_ns < _ns(before_s))).all()
+        return int(top), [(a / SEC, b / SEC) for a, b in rows]
