@@ -79,7 +79,8 @@ class Settings(BaseSettings):
     twin_margin_s: float = Field(
         2.0, ge=0, description="extra samples read either side of a twin window [s] (spline ends)")
     max_analytics_range_s: float = Field(
-        3600.0, gt=0, description="longest range of one analytics/report request [s] (replayed)")
+        3600.0, gt=0, description="most time replayed per analytics/report request [s]: the "
+        "minutes the worker has not processed yet (stored minutes are merged, not replayed)")
     max_samples_limit: int = Field(10_000, ge=1, description="most samples per samples page")
     nominal_rate_hz: float = Field(100.0, gt=0, description="expected sensor sample rate [Hz]")
     twin_cache_entries: int = Field(64, ge=0, description="replay results kept in the LRU cache")
