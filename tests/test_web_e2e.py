@@ -73,7 +73,7 @@ def test_demo_simulator_udp_daemon_db_api_websocket_page(browser: Any,
     proc = subprocess.Popen(
         [sys.executable, "-c", "from cranetwin.cli import main; main()", "fleetdemo",
          "--machines", "1", "--port", str(port), "--udp-port", str(udp), "--db", f"sqlite:///{db}",
-         "--cycle-seconds", "40"],
+         "--sim-hours", "1"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
     try:
         url = None
