@@ -129,15 +129,62 @@ def test_fleet_page_lists_machines(page: Any, server: Service) -> None:
     assert not page.errors
 
 
-def test_missing_key_asks_for_one(browser: Any, server: Service) -> None:
+@pytest.mark.timeout(60)
+def test_sign_in_once_then_cookie_only(browser: Any, server: Service) -> None:
+    """No key: the sign-in dialog. A wrong key says why and keeps the dialog; the right one
+    becomes an HttpOnly, SameSite=Strict cookie that pages, REST calls and the live websocket
+    carry (no key in any URL, in localStorage or readable by scripts); sign-out ends it."""
     ctx = browser.new_context()
     pg = ctx.new_page()
+    urls: list[str] = []
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.on("request", lambda r: urls.append(r.url))
+    pg.on("websocket", lambda ws: urls.append(ws.url))
     pg.goto(f"{server.url}/")
     pg.wait_for_selector("#key-dialog[open]", timeout=10000)
+    pg.fill("#key-input", server.viewer[:-4] + "XXXX")
+    pg.click("#key-form button")
+    pg.wait_for_selector("#key-error:not([hidden])", timeout=10000)
+    assert "not accepted" in pg.inner_text("#key-error")
+    assert pg.locator("#key-dialog[open]").count() == 1
     pg.fill("#key-input", server.viewer)
     pg.click("#key-form button")
     pg.wait_for_function("window.cranetwin.ready === true", timeout=10000)
     assert pg.locator("#rows tr").count() == 3
+    pg.wait_for_function("document.getElementById('who').textContent.includes('viewer')")
+    cookie = {c["name"]: c for c in ctx.cookies()}["cranetwin_session"]
+    assert cookie["httpOnly"] and cookie["sameSite"] == "Strict"
+    assert server.viewer not in cookie["value"]
+    assert "cranetwin_session" not in pg.evaluate("document.cookie")
+    assert pg.evaluate("JSON.stringify(Object.assign({}, localStorage))") == "{}"
+    # another page of the site, live: the websocket is authenticated by the cookie
+    pg.goto(f"{server.url}/machines/crane-1?mode=live")
+    pg.wait_for_function("window.cranetwin && window.cranetwin.mode === 'live'"
+                         " && window.cranetwin.sceneMs !== null", timeout=30000)
+    pg.wait_for_function("document.getElementById('who').textContent.includes('viewer')")
+    assert any("/live" in u and u.startswith("ws") for u in urls), urls
+    assert pg.locator("#key-dialog[open]").count() == 0
+    assert not [u for u in urls if "key=" in u or server.viewer in u], urls
+    # sign out: the cookie is gone, the next page asks again
+    pg.click("#sign-out")
+    pg.wait_for_selector("#key-dialog[open]", timeout=10000)
+    assert "Signed out" in pg.inner_text("#key-note")
+    assert "cranetwin_session" not in {c["name"] for c in ctx.cookies()}
+    pg.goto(f"{server.url}/")
+    pg.wait_for_selector("#key-dialog[open]", timeout=10000)
+    assert not errors
+    ctx.close()
+
+
+@pytest.mark.timeout(30)
+def test_a_key_in_an_old_link_is_exchanged_and_removed(browser: Any, server: Service) -> None:
+    ctx = browser.new_context()
+    pg = ctx.new_page()
+    pg.goto(f"{server.url}/?key={server.viewer}")
+    pg.wait_for_function("window.cranetwin.ready === true", timeout=10000)
+    assert "key=" not in pg.url
+    assert "cranetwin_session" in {c["name"] for c in ctx.cookies()}
     ctx.close()
 
 

@@ -9,8 +9,10 @@ commands a deployment runs, see ``docker-compose.yml``):
    (a second of CPU per machine-minute) never compete with the API's requests for the
    interpreter, a crash of one leaves the other running, and the demo exercises the same
    two-process path (progress marks in the database) that production runs;
-3. an admin key (to register machines) and a viewer key (printed in the URL) via
-   ``cranetwin keys create``; machines registered with ``POST /api/v1/machines``;
+3. an admin key (to register machines) and a fleet key (printed beside the URL, to sign in once
+   in the browser: the page keeps a session cookie, no key travels in a URL; fleet so that the
+   Report button works) via ``cranetwin keys create``; machines registered with
+   ``POST /api/v1/machines``;
 4. one ``cranetwin send`` per crane, streaming the simulator's ``log-loading`` work cycles with its
    own log mass (a scenario file per crane) over UDP, in real time, simulated continuously (a
    simulator session advanced as the sender needs samples: no replayed loop that jumps the crane
@@ -200,7 +202,7 @@ class FleetDemo:
                  progress: Callable[[str], None] | None = None) -> None:
         self.config = config
         self.children: list[tuple[str, subprocess.Popen[bytes]]] = []
-        self.viewer_key: str | None = None
+        self.browser_key: str | None = None
         self.machine_ids: list[str] = []
         self.progress = progress or log.info
         from cranetwin.settings import Settings, load_settings
@@ -338,7 +340,8 @@ class FleetDemo:
 
     # --- the demo ----------------------------------------------------------------------------
     def start(self) -> str:
-        """Start everything; returns the URL to open (with the viewer key)."""
+        """Start everything; returns the URL to open (the key to sign in with is
+        :attr:`browser_key`)."""
         c = self.config
         db = ["--db", c.db_url] if c.db_url else []
         if not c.attach:
@@ -347,6 +350,7 @@ class FleetDemo:
             if db_path is not None and db_path.exists():
                 self.progress(f"continuing the existing demo database {db_path} (delete it "
                               "for a fresh start)")
+            self._migrate()
             # its Prometheus endpoint on a free port: the default 9105 may be taken
             self._spawn("ingest", ["ingest", "--bind", c.ingest, "--metrics-bind", "127.0.0.1:0",
                                    *db])
@@ -355,8 +359,8 @@ class FleetDemo:
             self._spawn("worker", ["worker", "--metrics-bind", "0", *db])
         self.wait_healthy()
         admin = self._run_cli(["keys", "create", "--role", "admin", "--name", "fleet demo", *db])
-        self.viewer_key = self._run_cli(["keys", "create", "--role", "viewer",
-                                         "--name", "fleet demo viewer", *db])
+        self.browser_key = self._run_cli(["keys", "create", "--role", "fleet",
+                                          "--name", "fleet demo browser", *db])
         existing = {m["machine_id"]: m for m in self._request("GET", "/api/v1/machines",
                                                               admin)}
         k = 0
@@ -396,9 +400,9 @@ class FleetDemo:
                                         "--position", f"{lat!r},{lon!r}"])
             self.machine_ids.append(mid)
         public = c.public_url or c.api
-        url = f"{public}/?key={self.viewer_key}"
+        url = f"{public}/"
         try:
-            READY_FILE.write_text(url)
+            READY_FILE.write_text(url)  # never the key: /tmp is readable by every user
         except OSError:
             pass
         return url
@@ -432,6 +436,28 @@ class FleetDemo:
         path.touch(mode=0o600)
         path.write_text(str(created["secret"]), "utf-8")
         return path
+
+    def _migrate(self) -> None:
+        """Bring the database's schema up to date once, before the daemon, API and worker start:
+        on a new database the three would otherwise race to create it (one fails with "table
+        alembic_version already exists").
+
+        Raises:
+            DemoError: the database cannot be opened or migrated.
+        """
+        from cranetwin.settings import Settings, load_settings
+        from cranetwin.storage.engine import display_url, make_engine, migrate
+
+        url = self.config.db_url or load_settings(Settings).database_url
+        self.progress(f"preparing the database {display_url(url)}")
+        try:
+            engine = make_engine(url)
+            try:
+                migrate(engine)
+            finally:
+                engine.dispose()
+        except CraneTwinError as exc:
+            raise DemoError(f"the database {display_url(url)} cannot be prepared: {exc}") from exc
 
     def _sqlite_path(self) -> Path | None:
         url = self.config.db_url or ""
@@ -471,7 +497,7 @@ class FleetDemo:
     def live_machines(self) -> set[str]:
         """The demo's cranes the API lists as ``live`` (empty when it cannot tell)."""
         try:
-            listed = self._request("GET", "/api/v1/machines", self.viewer_key)
+            listed = self._request("GET", "/api/v1/machines", self.browser_key)
         except (DemoError, OSError, ValueError):
             return set()
         return {m["machine_id"] for m in listed

@@ -111,6 +111,14 @@ class Settings(BaseSettings):
     payload_lift_threshold_kg: float = Field(
         50.0, ge=0, description="payload above which the crane is holding a load (load count) [kg]")
 
+    # -- browser sign-in (``POST /api/v1/session``) --------------------------------------------
+    session_ttl_s: float = Field(
+        12 * 3600.0, gt=0, le=30 * 86400.0,
+        description="lifetime of a browser session cookie after sign-in [s]")
+    session_secret: str = Field(
+        "", description="extra secret mixed into the session cookies' signatures (the same on "
+                        "every API process); empty: signed with the API key's stored hash only")
+
     # -- machine side (``cranetwin send``) -----------------------------------------------------
     state_dir: Path | None = Field(
         None, description="folder of `cranetwin send`'s durable journals (<state_dir>/send); "

@@ -1,5 +1,5 @@
 // Fleet page: every machine with status, last seen, payload and alarms; refreshed every 5 s.
-import { ApiError, getJSON, relTime, resetKey } from "./api.js";
+import { ApiError, askSignIn, getJSON, relTime, setupSignIn } from "./api.js";
 
 const $ = (id) => document.getElementById(id);
 let machines = [];
@@ -49,8 +49,7 @@ async function refresh() {
     document.body.dataset.ready = "1";
   } catch (err) {
     if (err instanceof ApiError && err.status === 401) {
-      $("key-form").onsubmit = (ev) => { ev.preventDefault(); resetKey($("key-input").value.trim()); $("key-dialog").close(); refresh(); };
-      if (!$("key-dialog").open) $("key-dialog").showModal();
+      askSignIn(err.title === "Signed out" ? "Your session has ended. Enter a key to sign in again." : null);
       return;
     }
     banner(`Cannot reach the service (${err.message}). Showing the last list; retrying.`, "error");
@@ -58,5 +57,6 @@ async function refresh() {
 }
 
 $("filter").oninput = render;
+setupSignIn(() => refresh());
 refresh();
 setInterval(refresh, 5000);

@@ -36,7 +36,8 @@ class Services:
         self.fleet = fleet
         self.backend: Backend = fleet.backend
         self.metrics: Metrics = fleet.metrics
-        self.keys = KeyVerifier(fleet.backend.key_lookup)
+        self.keys = KeyVerifier(fleet.backend.key_lookup,
+                                session_secret=settings.session_secret)
         self.live = LiveHub(bus)
 
     @classmethod

@@ -63,6 +63,8 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"cranetwin demo running: {machines} crane(s) streaming over UDP to "
                        f"{config.ingest}; logs in {demo.logdir}/")
             typer.echo(f"open  {url}")
+            typer.echo(f"key   {demo.browser_key}   (role fleet; paste it into the page's "
+                       "sign-in dialog once)")
             typer.echo("Ctrl-C stops everything.")
             demo.watch(t0)
         except KeyboardInterrupt:
