@@ -242,3 +242,37 @@ def test_demo_lock_is_released_when_its_holder_dies(tmp_path: Path) -> None:
     lock = DemoLock(path)
     lock.acquire("x")  # a killed demo leaves no stale lock
     lock.release()
+
+
+@pytest.mark.timeout(60)
+def test_units_in_brackets_survive_every_help_text() -> None:
+    """Units written as "[kg]", "[s]", "[h]" in option help appear in ``--help`` (Rich markup
+    used to swallow them as tags: "Payload on the hook .")."""
+    import re
+
+    import typer
+    from typer.testing import CliRunner
+
+    from cranetwin.cli import app
+
+    root = typer.main.get_command(app)
+    checked = 0
+
+    def walk(cmd: Any, path: list[str]) -> None:
+        nonlocal checked
+        if hasattr(cmd, "commands"):  # typer's groups are not click.Group subclasses
+            for name, sub in cmd.commands.items():
+                walk(sub, [*path, name])
+            return
+        units = {u for p in cmd.params for u in re.findall(r"\[[^\]\s]{1,8}\]",
+                                                            getattr(p, "help", None) or "")}
+        if not units:
+            return
+        out = CliRunner().invoke(app, [*path, "--help"], terminal_width=200).output
+        flat = " ".join(out.split())
+        for u in units:
+            assert u in flat, f"cranetwin {' '.join(path)} --help lost {u}"
+        checked += 1
+
+    walk(root, [])
+    assert checked >= 5

@@ -13,6 +13,7 @@ from cranetwin import __version__
 from cranetwin.api import (
     routes_aemp,
     routes_data,
+    routes_docs,
     routes_live,
     routes_machines,
     routes_ops,
@@ -110,8 +111,10 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
             await services.close()
             app.state.services = None
 
+    # FastAPI's own /docs and /redoc load their assets from a CDN (blank without internet):
+    # routes_docs serves Swagger UI from the installed swagger-ui-bundle package instead
     app = FastAPI(title="cranetwin", version=__version__, description=DESCRIPTION,
-                  lifespan=lifespan)
+                  lifespan=lifespan, docs_url=None, redoc_url=None)
     app.state.settings = cfg
     app.state.services = None
     install_error_handlers(app)
@@ -132,6 +135,7 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
         log.warning("web routes not available: %s", exc)
     else:
         app.include_router(routes_web.router)
+    app.include_router(routes_docs.router)
     _register_problem_schema(app)
     return app
 

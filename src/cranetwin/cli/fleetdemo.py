@@ -16,14 +16,15 @@ def register(app: typer.Typer) -> None:
     @app.command("fleetdemo")
     def fleetdemo(
         machines: int = typer.Option(3, min=1, max=50, help="Number of simulated cranes."),
-        port: int = typer.Option(8000, help="TCP port of the API and web UI."),
-        udp_port: int = typer.Option(5005, help="UDP port of the ingest daemon."),
+        port: int = typer.Option(8000, min=1, max=65535, help="TCP port of the API and web UI."),
+        udp_port: int = typer.Option(5005, min=1, max=65535,
+                                     help="UDP port of the ingest daemon."),
         host: str = typer.Option("127.0.0.1", help="Bind address of the API."),
         db: str = typer.Option("sqlite:///cranetwin-demo.db",
                                help="Database URL; an existing demo database is continued, "
                                "never deleted (delete the file for a fresh start)."),
-        speed: float = typer.Option(1.0, min=0.1, max=20.0, help="Simulation speed (1 = real "
-                                    "time)."),
+        speed: float = typer.Option(1.0, min=0.1, max=20.0, help="Simulation speed [× real "
+                                    "time]."),
         attach: bool = typer.Option(False, help="Only register cranes and stream, to a service "
                                     "and daemon that run elsewhere (docker-compose)."),
         api: str | None = typer.Option(None, help="API base URL when attached."),
@@ -35,8 +36,8 @@ def register(app: typer.Typer) -> None:
         start_timeout: float = typer.Option(600.0, min=5.0, help="Longest wait for the API to "
                                             "start [s] (the wait reports what it waits for)."),
     ) -> None:
-        """Run the demo: daemon and service on SQLite, a viewer key, cranes streaming
-        log-loading cycles over UDP. Prints the URL to open; Ctrl-C stops everything."""
+        """Run the demo: daemon and service on SQLite, cranes streaming log-loading cycles
+        over UDP. Prints the URL to open and a key to sign in with; Ctrl-C stops everything."""
         from cranetwin.demo import DemoConfig, DemoError, FleetDemo
 
         logging.basicConfig(level=logging.INFO, format="%(message)s")
