@@ -12,6 +12,7 @@ from fastapi import FastAPI
 from cranetwin import __version__
 from cranetwin.api import (
     routes_aemp,
+    routes_alarms,
     routes_data,
     routes_docs,
     routes_live,
@@ -127,7 +128,7 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
         return await count_request(services.metrics, request, call_next)
 
     for module in (routes_ops, routes_session, routes_machines, routes_data, routes_aemp,
-                   routes_live):
+                   routes_alarms, routes_live):
         app.include_router(module.router)
     try:
         from cranetwin.api import routes_web
