@@ -384,3 +384,49 @@ def test_no_data_message_survives_a_slow_scene(page: Any, server: Service) -> No
     page.wait_for_function("document.getElementById('banner').textContent.includes('No data')",
                            timeout=20000)
     assert not page.errors
+
+
+@pytest.mark.timeout(60)
+def test_alarms_acknowledge_and_clear_in_the_fleet_page(browser: Any, server: Service) -> None:
+    """The fleet page lists alarms; a viewer is told it needs a fleet key; a fleet user
+    acknowledges (who and when shown) and clears (gone from the active list, shown under
+    'cleared')."""
+    from cranetwin.storage import Event
+
+    t = END - 30.0
+    server.app.state.services.backend.store.add_events([Event(
+        "crane-2", t, "overload", "critical",
+        {"value": 2.84e4, "limit": 2.0e4, "unit": "N*m", "component": "load"})])
+    ctx = browser.new_context()
+    pg = ctx.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.goto(f"{server.url}/?key={server.viewer}")
+    pg.wait_for_function("window.cranetwin.alarmsReady === true", timeout=15000)
+    pg.select_option("#f-machine", "crane-2")
+    row = pg.locator("#alarm-rows tr", has_text="28.4 kN·m")
+    row.wait_for(timeout=10000)
+    assert "overload on load: 28.4 kN·m (limit 20 kN·m, 142 % of it)" in row.inner_text()
+    assert "new" in row.locator(".state").inner_text()
+    state = f"#alarm-rows tr[data-alarm-id='{row.get_attribute('data-alarm-id')}'] .state"
+    row.locator("button.ack").click()
+    pg.wait_for_selector("#alarm-note:not([hidden])", timeout=10000)
+    assert "fleet or admin key" in pg.inner_text("#alarm-note")
+    # sign in again with a fleet key
+    pg.click("#sign-out")
+    pg.wait_for_selector("#key-dialog[open]", timeout=10000)
+    pg.fill("#key-input", server.fleet)
+    pg.click("#key-form button")
+    pg.wait_for_function("document.getElementById('who').textContent.includes('fleet')")
+    row.locator("button.ack").click()
+    pg.wait_for_function(f"document.querySelector(\"{state}\").textContent"
+                         ".includes('acknowledged by web tests (fleet)')", timeout=10000)
+    assert row.locator("button.ack").count() == 0
+    row.locator("button.clear").click()
+    pg.wait_for_function(f"!document.querySelector(\"{state}\")", timeout=10000)
+    pg.select_option("#f-state", "cleared")
+    pg.wait_for_function(f"(document.querySelector(\"{state}\") || {{}}).textContent"
+                         "?.includes('cleared by web tests (fleet)')", timeout=10000)
+    _shot(pg, "alarms.png")
+    assert not errors
+    ctx.close()

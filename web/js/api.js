@@ -152,6 +152,21 @@ export async function getJSON(path, params = {}) {
   return resp.json();
 }
 
+// POST without a body (actions such as acknowledging an alarm); resolves to the JSON answer.
+export async function postJSON(path) {
+  await ready;
+  let resp;
+  try {
+    resp = await fetch(new URL(path, window.location.origin), {
+      method: "POST", credentials: "same-origin", headers: { Accept: "application/json" },
+    });
+  } catch (_) {
+    throw new ApiError(0, "Service unreachable", "the cranetwin service does not answer; check the network");
+  }
+  if (!resp.ok) throw await problem(resp, "Request failed");
+  return resp.json();
+}
+
 // Downloads a file (the session cookie authenticates it; no key in a URL that logs would keep).
 export async function download(path, filename) {
   await ready;

@@ -1,9 +1,10 @@
 // Fleet page: every machine with status, last seen, payload and alarms; refreshed every 5 s.
 import { ApiError, askSignIn, getJSON, relTime, setupSignIn } from "./api.js";
+import { initAlarms, refreshAlarms, setMachines } from "./alarms.js";
 
 const $ = (id) => document.getElementById(id);
 let machines = [];
-window.cranetwin = { ready: false, refreshes: 0 };
+window.cranetwin = { ready: false, refreshes: 0, alarmsReady: false };
 
 function banner(text, kind = "info") {
   const b = $("banner");
@@ -44,6 +45,8 @@ async function refresh() {
     banner(null);
     $("updated").textContent = `updated ${new Date().toLocaleTimeString()}`;
     render();
+    setMachines(machines);
+    await refreshAlarms();
     window.cranetwin.ready = true;
     window.cranetwin.refreshes += 1;
     document.body.dataset.ready = "1";
@@ -57,6 +60,7 @@ async function refresh() {
 }
 
 $("filter").oninput = render;
+initAlarms();
 setupSignIn(() => refresh());
 refresh();
 setInterval(refresh, 5000);
