@@ -93,6 +93,7 @@ ROUTES: list[tuple[str, str, str, dict[str, Any] | None]] = [
     ("GET", f"/api/v1/machines/{MID}/report?{R}&format=csv", "fleet", None),
     ("GET", "/api/v1/aemp/Fleet/1", "fleet", None),
     ("GET", f"/api/v1/aemp/Equipment/{MID}", "fleet", None),
+    ("GET", "/api/v1/fleet/figures", "viewer", None),
 ]
 RANK = {"viewer": 0, "fleet": 1, "admin": 2}
 

@@ -134,3 +134,27 @@ def test_offline_and_data_gap_events_after_their_timeouts(ctx: Any) -> None:
     store.write_blocks(list(tiled_blocks("crane-2", machine, T0 + 118, 2.0, 1.0, base=base,
                                          seq0=2000)))
     assert alarms.check_connectivity(now_s=T0 + 121) == 0
+
+
+@pytest.mark.timeout(60)
+def test_fleet_figures(ctx: Any) -> None:
+    import time
+
+    from cranetwin.service.backend import Progress
+
+    client, keys, services = ctx
+    from dataclasses import replace
+
+    p = replace(Progress.empty("crane-1"), operating_s=7200.0, load_count=12,
+                payload_total_kg=4500.0)
+    assert services.backend.save_progress(p, None)
+    now = time.time()
+    services.backend.store.add_events([Event("crane-2", now - 10, "overload", "critical", {}),
+                                       Event("crane-2", now - 5, "data_gap", "info", {})])
+    r = client.get("/api/v1/fleet/figures", headers=keys["viewer"])
+    assert r.status_code == 200, r.text
+    f = r.json()
+    assert f["machines"]["crane-1"] == {"operating_h": 2.0, "lifts": 12.0, "tonnes": 4.5}
+    assert f["machines"]["crane-2"]["lifts"] == 0
+    assert f["total"]["tonnes"] == 4.5
+    assert f["total"]["alarms_today"] == 1 and f["total"]["critical_today"] == 1

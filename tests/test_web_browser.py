@@ -430,3 +430,42 @@ def test_alarms_acknowledge_and_clear_in_the_fleet_page(browser: Any, server: Se
     _shot(pg, "alarms.png")
     assert not errors
     ctx.close()
+
+
+@pytest.mark.timeout(60)
+def test_fleet_table_sorts_filters_and_shows_fleet_figures(page: Any, server: Service) -> None:
+    from dataclasses import replace
+
+    from cranetwin.service.backend import Progress
+
+    backend = server.app.state.services.backend
+    for mid, hours, lifts, kg in (("crane-1", 1.0, 30, 9000.0), ("crane-3", 5.0, 4, 1500.0)):
+        if backend.progress(mid) is None:
+            backend.save_progress(replace(Progress.empty(mid), operating_s=hours * 3600,
+                                          load_count=lifts, payload_total_kg=kg), None)
+    page.goto(f"{server.url}/?key={server.viewer}")
+    _wait_ready(page)
+    assert page.inner_text("#fig-machines") == "3"
+    assert "offline" in page.inner_text("#fig-status")
+    assert page.inner_text("#fig-lifts") != "–" and page.inner_text("#fig-tonnes").endswith(" t")
+
+    def order() -> list[str]:
+        return page.eval_on_selector_all("#rows tr", "rs => rs.map(r => r.dataset.machineId)")
+
+    page.click("th[data-sort=lifts] button")
+    assert page.get_attribute("th[data-sort=lifts]", "aria-sort") == "ascending"
+    asc = order()
+    assert asc.index("crane-3") < asc.index("crane-1")  # 4 lifts before 30
+    page.click("th[data-sort=lifts] button")
+    assert page.get_attribute("th[data-sort=lifts]", "aria-sort") == "descending"
+    assert order() == asc[::-1]
+    page.click("th[data-sort=name] button")
+    assert order() == ["crane-1", "crane-2", "crane-3"]
+    page.select_option("#status-filter", "offline")
+    classes = page.eval_on_selector_all("#rows tr", "rs => rs.map(r => r.className)")
+    assert "crane-3" in order() and all("offline" in c for c in classes), classes
+    page.select_option("#status-filter", "")
+    page.fill("#filter", "Crane 2")
+    assert order() == ["crane-2"]
+    _shot(page, "fleet-figures.png")
+    assert not page.errors

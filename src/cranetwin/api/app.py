@@ -137,6 +137,7 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
     else:
         app.include_router(routes_web.router)
     app.include_router(routes_docs.router)
+    app.include_router(routes_alarms.fleet_router)
     _register_problem_schema(app)
     return app
 

@@ -70,3 +70,17 @@ def acknowledge(event_id: EventId, key: FleetKey, services: ServicesDep) -> dict
 def clear(event_id: EventId, key: FleetKey, services: ServicesDep) -> dict[str, Any]:
     """Marks the event cleared (and acknowledged, if it was not) by the caller now."""
     return services.alarms.act(event_id, "clear", _user(key))
+
+
+fleet_router = APIRouter(prefix="/api/v1/fleet", tags=["alarms"])
+
+
+@fleet_router.get("/figures", summary="Fleet-wide figures: working hours, lifts, tonnes, "
+                  "today's alarms",
+                  responses={k: v for k, v in PROBLEM_RESPONSES.items() if k in (401,)})
+def fleet_figures(key: CurrentKey, services: ServicesDep) -> dict[str, Any]:
+    """Per machine and in total: working hours [h], lifts, tonnes lifted [t] (the twin worker's
+    counters); in total also today's warning and critical events (since 00:00 UTC)."""
+    from cranetwin.service.fleetfigures import fleet_figures as figures
+
+    return figures(services.backend)
