@@ -70,13 +70,14 @@ class Services:
             self._alarm_task = asyncio.create_task(self._check_alarms())
 
     async def _check_alarms(self) -> None:
-        """Raise machine_offline / data_gap events every ``alarm_check_interval_s``."""
+        """Raise machine_offline / data_gap events every ``alarm_check_interval_s``, the first
+        one interval after the start (not competing with the first page loads)."""
         while True:
+            await asyncio.sleep(self.settings.alarm_check_interval_s)
             try:
                 await asyncio.to_thread(self.alarms.check_connectivity)
             except Exception as exc:  # noqa: BLE001 - a failed check must not stop the next
                 log.warning("alarm check failed: %s", exc)
-            await asyncio.sleep(self.settings.alarm_check_interval_s)
 
     async def close(self) -> None:
         """Stop the live followers, the worker, and close the store."""
