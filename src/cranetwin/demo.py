@@ -358,9 +358,8 @@ class FleetDemo:
                                 *db])
             self._spawn("worker", ["worker", "--metrics-bind", "0", *db])
         self.wait_healthy()
-        admin = self._run_cli(["keys", "create", "--role", "admin", "--name", "fleet demo", *db])
-        self.browser_key = self._run_cli(["keys", "create", "--role", "fleet",
-                                          "--name", "fleet demo browser", *db])
+        admin = self._create_key("admin", "fleet demo")
+        self.browser_key = self._create_key("fleet", "fleet demo browser")
         existing = {m["machine_id"]: m for m in self._request("GET", "/api/v1/machines",
                                                               admin)}
         k = 0
@@ -437,6 +436,32 @@ class FleetDemo:
         path.write_text(str(created["secret"]), "utf-8")
         return path
 
+    def _create_key(self, role: str, name: str) -> str:
+        """A new API key: in this process when the demo runs its own database (no second
+        interpreter start, seconds on a busy machine), else with ``cranetwin keys create``."""
+        c = self.config
+        if c.attach:
+            db = ["--db", c.db_url] if c.db_url else []
+            return self._run_cli(["keys", "create", "--role", role, "--name", name, *db])
+        from sqlalchemy.exc import SQLAlchemyError
+        from sqlalchemy.orm import Session
+
+        from cranetwin.service.keys import new_key
+        from cranetwin.settings import Settings, load_settings
+        from cranetwin.storage import apikeys
+        from cranetwin.storage.engine import make_engine
+
+        engine = make_engine(c.db_url or load_settings(Settings).database_url)
+        try:
+            key_id, token, digest = new_key()
+            with Session(engine) as s, s.begin():
+                apikeys.add_key(s, key_id, digest, role, name)
+        except (CraneTwinError, SQLAlchemyError) as exc:
+            raise DemoError(f"cannot create the demo's {role} key: {exc}") from exc
+        finally:
+            engine.dispose()
+        return token
+
     def _migrate(self) -> None:
         """Bring the database's schema up to date once, before the daemon, API and worker start:
         on a new database the three would otherwise race to create it (one fails with "table
@@ -445,6 +470,7 @@ class FleetDemo:
         Raises:
             DemoError: the database cannot be opened or migrated.
         """
+        logging.getLogger("alembic").setLevel(logging.WARNING)  # not its plugin list
         from cranetwin.settings import Settings, load_settings
         from cranetwin.storage.engine import display_url, make_engine, migrate
 
