@@ -129,15 +129,62 @@ def test_fleet_page_lists_machines(page: Any, server: Service) -> None:
     assert not page.errors
 
 
-def test_missing_key_asks_for_one(browser: Any, server: Service) -> None:
+@pytest.mark.timeout(60)
+def test_sign_in_once_then_cookie_only(browser: Any, server: Service) -> None:
+    """No key: the sign-in dialog. A wrong key says why and keeps the dialog; the right one
+    becomes an HttpOnly, SameSite=Strict cookie that pages, REST calls and the live websocket
+    carry (no key in any URL, in localStorage or readable by scripts); sign-out ends it."""
     ctx = browser.new_context()
     pg = ctx.new_page()
+    urls: list[str] = []
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.on("request", lambda r: urls.append(r.url))
+    pg.on("websocket", lambda ws: urls.append(ws.url))
     pg.goto(f"{server.url}/")
     pg.wait_for_selector("#key-dialog[open]", timeout=10000)
+    pg.fill("#key-input", server.viewer[:-4] + "XXXX")
+    pg.click("#key-form button")
+    pg.wait_for_selector("#key-error:not([hidden])", timeout=10000)
+    assert "not accepted" in pg.inner_text("#key-error")
+    assert pg.locator("#key-dialog[open]").count() == 1
     pg.fill("#key-input", server.viewer)
     pg.click("#key-form button")
     pg.wait_for_function("window.cranetwin.ready === true", timeout=10000)
     assert pg.locator("#rows tr").count() == 3
+    pg.wait_for_function("document.getElementById('who').textContent.includes('viewer')")
+    cookie = {c["name"]: c for c in ctx.cookies()}["cranetwin_session"]
+    assert cookie["httpOnly"] and cookie["sameSite"] == "Strict"
+    assert server.viewer not in cookie["value"]
+    assert "cranetwin_session" not in pg.evaluate("document.cookie")
+    assert pg.evaluate("JSON.stringify(Object.assign({}, localStorage))") == "{}"
+    # another page of the site, live: the websocket is authenticated by the cookie
+    pg.goto(f"{server.url}/machines/crane-1?mode=live")
+    pg.wait_for_function("window.cranetwin && window.cranetwin.mode === 'live'"
+                         " && window.cranetwin.sceneMs !== null", timeout=30000)
+    pg.wait_for_function("document.getElementById('who').textContent.includes('viewer')")
+    assert any("/live" in u and u.startswith("ws") for u in urls), urls
+    assert pg.locator("#key-dialog[open]").count() == 0
+    assert not [u for u in urls if "key=" in u or server.viewer in u], urls
+    # sign out: the cookie is gone, the next page asks again
+    pg.click("#sign-out")
+    pg.wait_for_selector("#key-dialog[open]", timeout=10000)
+    assert "Signed out" in pg.inner_text("#key-note")
+    assert "cranetwin_session" not in {c["name"] for c in ctx.cookies()}
+    pg.goto(f"{server.url}/")
+    pg.wait_for_selector("#key-dialog[open]", timeout=10000)
+    assert not errors
+    ctx.close()
+
+
+@pytest.mark.timeout(30)
+def test_a_key_in_an_old_link_is_exchanged_and_removed(browser: Any, server: Service) -> None:
+    ctx = browser.new_context()
+    pg = ctx.new_page()
+    pg.goto(f"{server.url}/?key={server.viewer}")
+    pg.wait_for_function("window.cranetwin.ready === true", timeout=10000)
+    assert "key=" not in pg.url
+    assert "cranetwin_session" in {c["name"] for c in ctx.cookies()}
     ctx.close()
 
 
@@ -336,4 +383,89 @@ def test_no_data_message_survives_a_slow_scene(page: Any, server: Service) -> No
     page.goto(f"{server.url}/machines/crane-2?key={server.viewer}&mode=replay&from={a}&to={b}")
     page.wait_for_function("document.getElementById('banner').textContent.includes('No data')",
                            timeout=20000)
+    assert not page.errors
+
+
+@pytest.mark.timeout(60)
+def test_alarms_acknowledge_and_clear_in_the_fleet_page(browser: Any, server: Service) -> None:
+    """The fleet page lists alarms; a viewer is told it needs a fleet key; a fleet user
+    acknowledges (who and when shown) and clears (gone from the active list, shown under
+    'cleared')."""
+    from cranetwin.storage import Event
+
+    t = END - 30.0
+    server.app.state.services.backend.store.add_events([Event(
+        "crane-2", t, "overload", "critical",
+        {"value": 2.84e4, "limit": 2.0e4, "unit": "N*m", "component": "load"})])
+    ctx = browser.new_context()
+    pg = ctx.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.goto(f"{server.url}/?key={server.viewer}")
+    pg.wait_for_function("window.cranetwin.alarmsReady === true", timeout=15000)
+    pg.select_option("#f-machine", "crane-2")
+    row = pg.locator("#alarm-rows tr", has_text="28.4 kN·m")
+    row.wait_for(timeout=10000)
+    assert "overload on load: 28.4 kN·m (limit 20 kN·m, 142 % of it)" in row.inner_text()
+    assert "new" in row.locator(".state").inner_text()
+    state = f"#alarm-rows tr[data-alarm-id='{row.get_attribute('data-alarm-id')}'] .state"
+    row.locator("button.ack").click()
+    pg.wait_for_selector("#alarm-note:not([hidden])", timeout=10000)
+    assert "fleet or admin key" in pg.inner_text("#alarm-note")
+    # sign in again with a fleet key
+    pg.click("#sign-out")
+    pg.wait_for_selector("#key-dialog[open]", timeout=10000)
+    pg.fill("#key-input", server.fleet)
+    pg.click("#key-form button")
+    pg.wait_for_function("document.getElementById('who').textContent.includes('fleet')")
+    row.locator("button.ack").click()
+    pg.wait_for_function(f"document.querySelector(\"{state}\").textContent"
+                         ".includes('acknowledged by web tests (fleet)')", timeout=10000)
+    assert row.locator("button.ack").count() == 0
+    row.locator("button.clear").click()
+    pg.wait_for_function(f"!document.querySelector(\"{state}\")", timeout=10000)
+    pg.select_option("#f-state", "cleared")
+    pg.wait_for_function(f"(document.querySelector(\"{state}\") || {{}}).textContent"
+                         "?.includes('cleared by web tests (fleet)')", timeout=10000)
+    _shot(pg, "alarms.png")
+    assert not errors
+    ctx.close()
+
+
+@pytest.mark.timeout(60)
+def test_fleet_table_sorts_filters_and_shows_fleet_figures(page: Any, server: Service) -> None:
+    from dataclasses import replace
+
+    from cranetwin.service.backend import Progress
+
+    backend = server.app.state.services.backend
+    for mid, hours, lifts, kg in (("crane-1", 1.0, 30, 9000.0), ("crane-3", 5.0, 4, 1500.0)):
+        if backend.progress(mid) is None:
+            backend.save_progress(replace(Progress.empty(mid), operating_s=hours * 3600,
+                                          load_count=lifts, payload_total_kg=kg), None)
+    page.goto(f"{server.url}/?key={server.viewer}")
+    _wait_ready(page)
+    assert page.inner_text("#fig-machines") == "3"
+    assert "offline" in page.inner_text("#fig-status")
+    assert page.inner_text("#fig-lifts") != "–" and page.inner_text("#fig-tonnes").endswith(" t")
+
+    def order() -> list[str]:
+        return page.eval_on_selector_all("#rows tr", "rs => rs.map(r => r.dataset.machineId)")
+
+    page.click("th[data-sort=lifts] button")
+    assert page.get_attribute("th[data-sort=lifts]", "aria-sort") == "ascending"
+    asc = order()
+    assert asc.index("crane-3") < asc.index("crane-1")  # 4 lifts before 30
+    page.click("th[data-sort=lifts] button")
+    assert page.get_attribute("th[data-sort=lifts]", "aria-sort") == "descending"
+    assert order() == asc[::-1]
+    page.click("th[data-sort=name] button")
+    assert order() == ["crane-1", "crane-2", "crane-3"]
+    page.select_option("#status-filter", "offline")
+    classes = page.eval_on_selector_all("#rows tr", "rs => rs.map(r => r.className)")
+    assert "crane-3" in order() and all("offline" in c for c in classes), classes
+    page.select_option("#status-filter", "")
+    page.fill("#filter", "Crane 2")
+    assert order() == ["crane-2"]
+    _shot(page, "fleet-figures.png")
     assert not page.errors

@@ -73,28 +73,38 @@ def test_demo_simulator_udp_daemon_db_api_websocket_page(browser: Any,
     proc = subprocess.Popen(
         [sys.executable, "-c", "from cranetwin.cli import main; main()", "fleetdemo",
          "--machines", "1", "--port", str(port), "--udp-port", str(udp), "--db", f"sqlite:///{db}",
-         "--cycle-seconds", "40"],
+         "--sim-hours", "1"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=tmp_path)
     try:
-        url = None
-        deadline = time.time() + 120
+        url = key = None
+        t_start = time.time()
+        deadline = t_start + 120
         lines = []
         assert proc.stdout is not None
-        while url is None and time.time() < deadline:
+        while key is None and time.time() < deadline:
             line = proc.stdout.readline()
             if not line:
                 break
             lines.append(line)
             if line.startswith("open  "):
                 url = line.split()[1]
-        assert url, "".join(lines)
-        key = url.split("key=")[1]
+            if line.startswith("key   "):
+                key = line.split()[1]
+        assert url and key, "".join(lines)
+        assert "key=" not in url and key not in url  # no key in the printed URL
         ctx = browser.new_context(viewport={"width": 1280, "height": 860})
         page = ctx.new_page()
-        page.goto(f"http://127.0.0.1:{port}/machines/crane-1?key={key}&mode=live")
-        # the sender simulates first (JIT + 40 s of crane at > 20x real time), then streams
+        page.goto(url)  # a first visit: sign in once with the printed key
+        page.wait_for_selector("#key-dialog[open]", timeout=30000)
+        page.fill("#key-input", key)
+        page.click("#key-form button")
+        page.wait_for_function("window.cranetwin && window.cranetwin.ready === true",
+                               timeout=30000)
+        page.goto(f"http://127.0.0.1:{port}/machines/crane-1?mode=live")
+        # the sender simulates continuously from its first sample: frames come at once
         page.wait_for_function("window.cranetwin && window.cranetwin.liveFrames > 5",
                                timeout=150_000)
+        print(f"demo: command to first live frames on the page {time.time() - t_start:.1f} s")
         page.wait_for_selector("#charts .main-svg", timeout=30000)
         page.wait_for_timeout(1500)
         page.evaluate("window.cranetwin.liveLatencyMs = []")

@@ -112,6 +112,25 @@ class Settings(BaseSettings):
     payload_lift_threshold_kg: float = Field(
         50.0, ge=0, description="payload above which the crane is holding a load (load count) [kg]")
 
+    # -- alarms (``cranetwin.service.alarms``) ----------------------------------------------------
+    alarm_offline_s: float = Field(
+        120.0, gt=0, description="a machine without a new sample for this long gets a "
+                                 "machine_offline event [s]")
+    alarm_gap_s: float = Field(
+        30.0, gt=0, description="a silence this long inside a machine's stream is a data_gap "
+                                "event when the stream resumes [s]")
+    alarm_check_interval_s: float = Field(
+        5.0, ge=0, description="how often the API checks for offline machines and data gaps "
+                               "[s]; 0 = never")
+
+    # -- browser sign-in (``POST /api/v1/session``) --------------------------------------------
+    session_ttl_s: float = Field(
+        12 * 3600.0, gt=0, le=30 * 86400.0,
+        description="lifetime of a browser session cookie after sign-in [s]")
+    session_secret: str = Field(
+        "", description="extra secret mixed into the session cookies' signatures (the same on "
+                        "every API process); empty: signed with the API key's stored hash only")
+
     # -- machine side (``cranetwin send``) -----------------------------------------------------
     state_dir: Path | None = Field(
         None, description="folder of `cranetwin send`'s durable journals (<state_dir>/send); "

@@ -1,5 +1,5 @@
 // Machine page: 3D crane, live and replay modes, charts on one time cursor, events, share/export.
-import { ApiError, download, getJSON, wsURL, isoSeconds, parseTime, relTime, resetKey } from "./api.js";
+import { ApiError, askSignIn, download, getJSON, setupSignIn, wsURL, isoSeconds, parseTime, relTime } from "./api.js";
 import { Crane3D } from "./crane3d.js";
 import { ReplayStore } from "./replay.js";
 import { Charts, chartGroups } from "./charts.js";
@@ -116,6 +116,7 @@ async function start() {
   window.__crane = state.crane;
   metrics.sceneMs = performance.now() - t0;
   buildForceRows();
+  if (!embed) setupSignIn(() => window.location.reload());
   if (embed) { $("mode-live").disabled = true; $("share").hidden = true; $("export").hidden = true; $("report").hidden = true; $("report-fmt").hidden = true; $("back-link").hidden = true; }
   wireControls();
   requestAnimationFrame(loop);
@@ -159,16 +160,15 @@ function planReplay(machine) {
 
 function fail(err) {
   metrics.errors.push(String(err));
-  if (err instanceof ApiError && err.status === 401) { askKey(); return; }
+  if (err instanceof ApiError && err.status === 401) { askKey(err); return; }
   if (err instanceof ApiError && err.status === 404) { banner(`Unknown machine “${machineId}”. ${err.detail || ""}`, "error"); return; }
   if (err instanceof ApiError && err.status === 403) { banner(`This key may not view this machine (${err.detail || "forbidden"}).`, "error"); return; }
   banner(`Could not load the machine: ${err.message}`, "error");
 }
 
-function askKey() {
-  const d = $("key-dialog");
-  $("key-form").onsubmit = (ev) => { ev.preventDefault(); resetKey($("key-input").value.trim()); d.close(); window.location.reload(); };
-  d.showModal();
+function askKey(err) {
+  setupSignIn(() => window.location.reload());
+  askSignIn(err && err.title === "Signed out" ? "Your session has ended. Enter a key to sign in again." : null);
 }
 
 function setStatus(machine) {

@@ -10,7 +10,16 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from cranetwin import __version__
-from cranetwin.api import routes_aemp, routes_data, routes_live, routes_machines, routes_ops
+from cranetwin.api import (
+    routes_aemp,
+    routes_alarms,
+    routes_data,
+    routes_docs,
+    routes_live,
+    routes_machines,
+    routes_ops,
+    routes_session,
+)
 from cranetwin.api.errors import install_error_handlers
 from cranetwin.api.metrics import count_request
 from cranetwin.api.services import Services
@@ -24,7 +33,8 @@ machine's physics (positions, cylinder forces, joint loads, payload), load histo
 ISO 15143-3 fleet snapshots.
 
 **Keys.** Every route except `/healthz` needs an API key (`cranetwin keys create --role viewer`)
-in `X-API-Key`, as `Authorization: Bearer <key>`, or as `?key=` (browser links, websockets).
+in `X-API-Key`, as `Authorization: Bearer <key>`, or as `?key=` (API clients). Browsers sign in
+once (`POST /api/v1/session`) and then carry only an HttpOnly session cookie.
 Roles: viewer < fleet < admin. No key → 401, lower role → 403.
 
 **Units.** SI throughout: time [s since the Unix epoch] (parameters `from`/`to` also accept
@@ -102,8 +112,10 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
             await services.close()
             app.state.services = None
 
+    # FastAPI's own /docs and /redoc load their assets from a CDN (blank without internet):
+    # routes_docs serves Swagger UI from the installed swagger-ui-bundle package instead
     app = FastAPI(title="cranetwin", version=__version__, description=DESCRIPTION,
-                  lifespan=lifespan)
+                  lifespan=lifespan, docs_url=None, redoc_url=None)
     app.state.settings = cfg
     app.state.services = None
     install_error_handlers(app)
@@ -115,7 +127,8 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
             return await call_next(request)
         return await count_request(services.metrics, request, call_next)
 
-    for module in (routes_ops, routes_machines, routes_data, routes_aemp, routes_live):
+    for module in (routes_ops, routes_session, routes_machines, routes_data, routes_aemp,
+                   routes_alarms, routes_live):
         app.include_router(module.router)
     try:
         from cranetwin.api import routes_web
@@ -123,6 +136,8 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
         log.warning("web routes not available: %s", exc)
     else:
         app.include_router(routes_web.router)
+    app.include_router(routes_docs.router)
+    app.include_router(routes_alarms.fleet_router)
     _register_problem_schema(app)
     return app
 

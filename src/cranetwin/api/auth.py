@@ -3,12 +3,22 @@
 A key is ``ctk_<key_id>_<secret>``; only ``sha256(secret)`` is stored, compared in constant time
 (:mod:`cranetwin.service.keys`). Roles are ordered ``viewer < fleet < admin``; a route needing
 ``fleet`` accepts ``fleet`` and ``admin`` keys. A key is read from ``X-API-Key``,
-``Authorization: Bearer``, or the ``key`` query parameter (browser links and websockets), in that
-order.
+``Authorization: Bearer``, or the ``key`` query parameter (API clients), in that order; without
+one, from the browser's session cookie.
+
+**Browser sessions.** ``POST /api/v1/session`` with a key sets an HttpOnly, ``SameSite=Strict``
+cookie (:data:`SESSION_COOKIE`) holding a signed token ``v1.<key_id>.<expiry>.<nonce>.<mac>``:
+the MAC is HMAC-SHA256 under a key derived from the API key's stored hash (and the optional
+``session_secret`` setting), so nothing is stored per session, every API process can check it,
+it cannot be forged without the database, and revoking the key ends its sessions. Pages,
+REST calls and websockets of the web UI carry only the cookie; no key travels in a URL.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
+import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -49,6 +59,10 @@ query_scheme = APIKeyQuery(name="key", auto_error=False,
                            description="API key in the query (browser links, websockets)")
 
 
+SESSION_COOKIE = "cranetwin_session"
+"""Name of the browser session cookie."""
+
+
 def presented_token(conn: HTTPConnection) -> str | None:
     """The key a request or websocket presents, if any."""
     token = conn.headers.get("x-api-key")
@@ -75,10 +89,11 @@ class KeyVerifier:
             working within this time.
     """
 
-    def __init__(self, lookup: KeyLookup, ttl_s: float = 10.0) -> None:
+    def __init__(self, lookup: KeyLookup, ttl_s: float = 10.0, session_secret: str = "") -> None:
         self._lookup = lookup
         self._ttl_s = ttl_s
         self._cache: dict[str, tuple[float, ApiKey]] = {}
+        self._session_secret = session_secret.encode()
 
     def check(self, token: str | None) -> ApiKey:
         """The key of ``token``; raise 401 :class:`ApiError` when missing or unknown."""
@@ -103,6 +118,76 @@ class KeyVerifier:
         self._cache[token] = (now, key)
         return key
 
+    def _session_mac(self, secret_sha256: str, body: str) -> str:
+        mac_key = hmac.new(self._session_secret, secret_sha256.encode(), hashlib.sha256).digest()
+        return hmac.new(mac_key, body.encode(), hashlib.sha256).hexdigest()
+
+    def issue_session(self, token: str | None, ttl_s: float,
+                      now: float | None = None) -> tuple[ApiKey, str, float]:
+        """Sign in with the key ``token``: (its key, the cookie value, expiry [s since epoch]).
+
+        Raises:
+            ApiError: 401 for a missing, malformed, unknown or revoked key.
+        """
+        if not token or not token.strip():
+            raise ApiError(401, "API key required", "enter an API key (it starts with "
+                           f"{KEY_PREFIX}; `cranetwin keys create --role viewer` makes one)")
+        key = self.check(token.strip())
+        row = self._lookup(key.key_id)
+        if row is None:  # revoked between the two reads
+            raise ApiError(401, "Invalid API key", "the key was revoked")
+        expires = int((time.time() if now is None else now) + ttl_s)
+        body = f"v1.{key.key_id}.{expires}.{secrets.token_urlsafe(12)}"
+        return key, f"{body}.{self._session_mac(row[0], body)}", float(expires)
+
+    def check_session(self, cookie: str, now: float | None = None) -> ApiKey:
+        """The key a session cookie was issued for.
+
+        Raises:
+            ApiError: 401 when the cookie is malformed, forged, expired, or its key revoked.
+        """
+        ended = ApiError(401, "Signed out", "your session has ended (expired, signed out or its "
+                         "key revoked); sign in again with an API key",
+                         headers={"WWW-Authenticate": "Bearer"})
+        t_now = time.time() if now is None else now
+        hit = self._cache.get("session:" + cookie)
+        if hit is not None and time.monotonic() - hit[0] < self._ttl_s:
+            expires_s = float(cookie.split(".")[2])
+            if expires_s > t_now:
+                return hit[1]
+        parts = cookie.split(".")
+        if len(parts) != 5 or parts[0] != "v1":
+            raise ended
+        body, mac = ".".join(parts[:4]), parts[4]
+        try:
+            expires = int(parts[2])
+        except ValueError:
+            raise ended from None
+        if expires <= t_now:
+            raise ended
+        row = self._lookup(parts[1])
+        if row is None or not hmac.compare_digest(self._session_mac(row[0], body), mac):
+            raise ended
+        key = ApiKey(key_id=parts[1], name=row[1], role=row[2])
+        if len(self._cache) > 10_000:
+            self._cache.clear()
+        self._cache["session:" + cookie] = (time.monotonic(), key)
+        return key
+
+    def authenticate(self, conn: HTTPConnection) -> ApiKey:
+        """The caller of a request or websocket: its presented key, else its session cookie.
+
+        Raises:
+            ApiError: 401 (no key and no valid session, or an invalid key).
+        """
+        token = presented_token(conn)
+        if token:
+            return self.check(token)
+        cookie = conn.cookies.get(SESSION_COOKIE)
+        if cookie:
+            return self.check_session(cookie)
+        return self.check(None)
+
     def forget(self) -> None:
         """Drop the cache (after a key was revoked)."""
         self._cache.clear()
@@ -116,5 +201,5 @@ def authorise(key: ApiKey, role: Role) -> ApiKey:
     return key
 
 
-__all__ = ["KEY_PREFIX", "ROLES", "ApiKey", "KeyVerifier", "Role", "authorise", "new_key",
-           "presented_token"]
+__all__ = ["KEY_PREFIX", "ROLES", "SESSION_COOKIE", "ApiKey", "KeyVerifier", "Role", "authorise",
+           "new_key", "presented_token"]

@@ -13,7 +13,6 @@ from cranetwin.api.auth import (
     authorise,
     bearer_scheme,
     header_scheme,
-    presented_token,
     query_scheme,
 )
 from cranetwin.settings import Settings
@@ -51,7 +50,8 @@ def require_role(role: Role):  # type: ignore[no-untyped-def]
     """Dependency admitting keys of at least ``role``: no/unknown key → 401, lower role → 403.
 
     The three ``Security`` parameters only document the accepted key locations in OpenAPI; the
-    key is read by :func:`~cranetwin.api.auth.presented_token`.
+    key is read by :meth:`~cranetwin.api.auth.KeyVerifier.authenticate` (a presented key, else the
+    browser's session cookie).
     """
 
     async def dependency(
@@ -61,7 +61,7 @@ def require_role(role: Role):  # type: ignore[no-untyped-def]
         _query: Annotated[str | None, Security(query_scheme)] = None,
     ) -> ApiKey:
         services = get_services(request)
-        return authorise(services.keys.check(presented_token(request)), role)
+        return authorise(services.keys.authenticate(request), role)
 
     dependency.__name__ = f"require_{role}"
     return dependency

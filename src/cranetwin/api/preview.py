@@ -25,6 +25,8 @@ from cranetwin.model import Machine, load_machine
 from cranetwin.testing.views import synthetic_frame, synthetic_history, synthetic_twin
 
 PREVIEW_KEY = "viewer-key"
+PREVIEW_SESSION = "preview-session"
+"""The preview's session cookie value after signing in with :data:`PREVIEW_KEY`."""
 Time = Annotated[str | None, Query()]
 From = Annotated[str | None, Query(alias="from")]
 
@@ -68,11 +70,15 @@ def _problem(status: int, title: str, detail: str) -> JSONResponse:
                         media_type="application/problem+json")
 
 
-def _key(request: Request) -> str | None:
+def _key(request: Request | WebSocket) -> str | None:
+    """The presented key, else the key of a preview session cookie."""
+    from cranetwin.api.auth import SESSION_COOKIE
+
     auth = request.headers.get("authorization", "")
+    session = PREVIEW_KEY if request.cookies.get(SESSION_COOKIE) == PREVIEW_SESSION else None
     return (request.headers.get("x-api-key") or
             (auth[7:] if auth.lower().startswith("bearer ") else None) or
-            request.query_params.get("key"))
+            request.query_params.get("key") or session)
 
 
 def _t(v: str | None, default: float) -> float:
@@ -114,7 +120,8 @@ def create_preview_app(machines: list[PreviewMachine] | None = None, *,
     @app.middleware("http")
     async def auth(request: Request, call_next: Any) -> Response:
         path = request.url.path
-        if path.startswith("/api/") and not path.startswith("/api/v1/_preview"):
+        if (path.startswith("/api/") and not path.startswith("/api/v1/_preview")
+                and not (path == "/api/v1/session" and request.method in ("POST", "DELETE"))):
             key = _key(request)
             if not key:
                 return _problem(401, "Unauthorized", "an API key is required (X-API-Key)")
@@ -194,9 +201,38 @@ def create_preview_app(machines: list[PreviewMachine] | None = None, *,
             k += 1
         return out
 
+    @app.post("/api/v1/session")
+    async def sign_in(request: Request) -> Response:
+        from cranetwin.api.auth import SESSION_COOKIE
+
+        try:
+            key = str((await request.json()).get("key", "")).strip()
+        except (ValueError, AttributeError):
+            key = ""
+        if key != PREVIEW_KEY:
+            return _problem(401, "Invalid API key", f"the preview's key is {PREVIEW_KEY!r}")
+        resp = JSONResponse({"key_id": "preview", "name": "preview viewer", "role": "viewer",
+                             "expires": None})
+        resp.set_cookie(SESSION_COOKIE, PREVIEW_SESSION, httponly=True, samesite="strict",
+                        path="/")
+        return resp
+
+    @app.get("/api/v1/session")
+    async def who() -> dict[str, Any]:
+        return {"key_id": "preview", "name": "preview viewer", "role": "viewer",
+                "expires": None}
+
+    @app.delete("/api/v1/session")
+    async def sign_out() -> Response:
+        from cranetwin.api.auth import SESSION_COOKIE
+
+        resp = Response(status_code=204)
+        resp.delete_cookie(SESSION_COOKIE, path="/")
+        return resp
+
     @app.websocket("/api/v1/machines/{mid}/live")
     async def live(ws: WebSocket, mid: str) -> None:
-        if ws.query_params.get("key") != PREVIEW_KEY:
+        if _key(ws) != PREVIEW_KEY:
             await ws.close(code=1008)
             return
         m = get(mid)

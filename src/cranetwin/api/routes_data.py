@@ -64,7 +64,11 @@ def get_history(
 def get_events(key: CurrentKey, machine: MachineDep, services: ServicesDep,
                rng: RangeDep) -> list[EventOut]:
     """Stored events (overload, end-stop impact, over-pressure, …) in [from, to), oldest first."""
-    return [EventOut(**e) for e in services.fleet.events(machine, rng)]
+    from cranetwin.service.events import readable_message
+
+    return [EventOut(**{**e, "message": readable_message(e["kind"], e.get("evidence") or {},
+                                                        str(e.get("message", "")))})
+            for e in services.fleet.events(machine, rng)]
 
 
 @router.get("/find", response_model=FindOut, summary="Find the moment a condition held")

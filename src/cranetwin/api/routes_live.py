@@ -2,7 +2,8 @@
 
 Protocol: JSON text frames. The first is ``{"type": "hello", "machine_id", "model",
 "rate_hz"}``; then frames ``{t, q, poses, cylinder_pins, cylinder_forces, utilisation,
-payload_kg, pressures}`` (see docs/API.md). Authentication as for REST (``?key=`` for browsers).
+payload_kg, pressures}`` (see docs/API.md). Authentication as for REST (the browser's session
+cookie, or a key).
 On a bad key or unknown machine the server sends ``{"type": "error", status, title, detail}``
 and closes with code 4000 + status (4401, 4403, 4404).
 """
@@ -14,7 +15,7 @@ import contextlib
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from cranetwin.api.auth import authorise, presented_token
+from cranetwin.api.auth import authorise
 from cranetwin.api.errors import ApiError, http_status
 from cranetwin.api.services import Services
 from cranetwin.service.errors import ServiceError
@@ -28,7 +29,7 @@ async def live(websocket: WebSocket, machine_id: str) -> None:
     services: Services = websocket.app.state.services
     await websocket.accept()
     try:
-        authorise(services.keys.check(presented_token(websocket)), "viewer")
+        authorise(services.keys.authenticate(websocket), "viewer")
         rec = await asyncio.to_thread(services.backend.machine, machine_id)
         follower_factory = services.follower_factory(rec)
     except (ApiError, ServiceError) as exc:

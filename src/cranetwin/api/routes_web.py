@@ -187,7 +187,7 @@ ViewerDep = Depends(require_viewer)
 
 def _auth_headers(request: Request) -> dict[str, str]:
     headers = {"accept": "application/json"}
-    for name in ("x-api-key", "authorization"):
+    for name in ("x-api-key", "authorization", "cookie"):
         if name in request.headers:
             headers[name] = request.headers[name]
     key = request.query_params.get("key")

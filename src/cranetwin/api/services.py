@@ -9,17 +9,23 @@ the service's plain results into the public schemas.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import logging
 from typing import Any
 
 from cranetwin.api.auth import KeyVerifier
 from cranetwin.api.live import Follower, LiveHub
 from cranetwin.api.schemas import DataRange, Location, MachineDetail, MachinePublic
+from cranetwin.service.alarms import AlarmService
 from cranetwin.service.backend import Backend, MachineRecord
 from cranetwin.service.fleet import FleetService, MachineStatus
 from cranetwin.service.live_payload import public_kg
 from cranetwin.service.metrics import Metrics
 from cranetwin.service.timerange import iso
 from cranetwin.settings import Settings
+
+log = logging.getLogger(__name__)
 
 
 class Services:
@@ -36,8 +42,11 @@ class Services:
         self.fleet = fleet
         self.backend: Backend = fleet.backend
         self.metrics: Metrics = fleet.metrics
-        self.keys = KeyVerifier(fleet.backend.key_lookup)
+        self.keys = KeyVerifier(fleet.backend.key_lookup,
+                                session_secret=settings.session_secret)
         self.live = LiveHub(bus)
+        self.alarms = AlarmService(fleet.backend, settings.alarm_offline_s, settings.alarm_gap_s)
+        self._alarm_task: asyncio.Task[None] | None = None
 
     @classmethod
     def open(cls, settings: Settings, bus: Any = None) -> Services:
@@ -57,9 +66,25 @@ class Services:
     async def start(self) -> None:
         """Warm up and start the in-process worker, as the settings ask."""
         await self.fleet.start()
+        if self.settings.alarm_check_interval_s > 0:
+            self._alarm_task = asyncio.create_task(self._check_alarms())
+
+    async def _check_alarms(self) -> None:
+        """Raise machine_offline / data_gap events every ``alarm_check_interval_s``, the first
+        one interval after the start (not competing with the first page loads)."""
+        while True:
+            await asyncio.sleep(self.settings.alarm_check_interval_s)
+            try:
+                await asyncio.to_thread(self.alarms.check_connectivity)
+            except Exception as exc:  # noqa: BLE001 - a failed check must not stop the next
+                log.warning("alarm check failed: %s", exc)
 
     async def close(self) -> None:
         """Stop the live followers, the worker, and close the store."""
+        if self._alarm_task is not None:
+            self._alarm_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._alarm_task
         await self.live.close()
         await self.fleet.close()
 

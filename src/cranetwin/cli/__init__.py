@@ -24,6 +24,8 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    # plain help texts: with Rich markup, units in brackets ("Payload [kg]") vanish as tags
+    rich_markup_mode=None,
 )
 bench_app = typer.Typer(help="Benchmarks: print measured figures (and ratios to a baseline).",
                         no_args_is_help=True)

@@ -127,7 +127,14 @@ def send(
                                         "stays in the journal). Ctrl-C/SIGTERM do not wait."),
     model: str = typer.Option("patu655", help="Machine description (built-in name or TOML)."),
     batch: int = typer.Option(50, help="Samples per datagram."),
-    sim_seconds: float = typer.Option(120.0, help="Simulated seconds, replayed cyclically."),
+    sim_seconds: float | None = typer.Option(
+        None, help="Length of a built-in scenario [s]: by default 86400 s simulated "
+        "continuously (the machine holds still afterwards); with --loop 120 s replayed "
+        "cyclically. A scenario file keeps its own length.", show_default=False),
+    loop: bool = typer.Option(False, "--loop", help="Simulate --sim-seconds once and replay "
+                              "them cyclically (starts no faster, and each restart jumps the "
+                              "machine back to its first pose) instead of simulating "
+                              "continuously."),
     seed: int = typer.Option(0, help="Seed of the simulated sensors."),
     position: str = typer.Option("61.0,25.0", help="GPS position reported in the status "
                                  "datagrams, LAT,LON [deg] (the location the machine was "
@@ -148,6 +155,7 @@ def send(
         parse_host,
         run_fleet,
         simulator_source,
+        simulator_stream,
     )
     from cranetwin.model import load_machine
     from cranetwin.protocol import Layout, MachineKey
@@ -178,11 +186,20 @@ def send(
         sources = [None] * len(keys)
     elif scenario == "synthetic":
         sources = [SyntheticSource(k, period_s, seed=seed + i) for i, k in enumerate(keys)]
-    else:
-        values, period_s = simulator_source(keys[0], m, scenario, duration_s=sim_seconds,
-                                            seed=seed)
+    elif loop:
+        values, period_s = simulator_source(keys[0], m, scenario,
+                                            duration_s=sim_seconds or 120.0, seed=seed)
         step = max(1, values.shape[0] // machines)
         sources = [RecordingSource(values, offset=i * step) for i in range(machines)]
+    else:
+        from cranetwin.sim import prepare
+
+        prep = prepare(m)
+        sources = []
+        for i, k in enumerate(keys):
+            stream, period_s = simulator_stream(k, prep, scenario,
+                                                duration_s=sim_seconds or 86400.0, seed=seed + i)
+            sources.append(stream)
 
     async def main() -> list[dict[str, object]]:
         stop = asyncio.Event()

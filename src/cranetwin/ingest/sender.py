@@ -55,7 +55,8 @@ F64 = npt.NDArray[np.float64]
 
 __all__ = [
     "RecordingSource", "SampleSource", "SenderError", "SenderStats", "SyntheticSource",
-    "journal_owner", "parse_host", "resume_row", "run_fleet", "run_sender", "simulator_source",
+    "SimulatorStream", "journal_owner", "parse_host", "resume_row", "run_fleet", "run_sender",
+    "simulator_source", "simulator_stream",
 ]
 
 
@@ -142,6 +143,91 @@ class RecordingSource:
         idx = (self.offset + i0 + np.arange(m)) % self.values.shape[0]
         out: F64 = self.values[idx]
         return out
+
+
+class SimulatorStream:
+    """A simulator :class:`~cranetwin.sim.Session` advanced as rows are read: continuous,
+    physically possible motion for as long as the scenario lasts (its commands hold their last
+    values afterwards), never a jump back to the start as a replayed loop makes.
+
+    The first row read is the session's t = 0; later reads must not go back further than the
+    ``keep`` newest rows (the sender re-reads only its last row, for status datagrams). A read
+    ahead of what was produced simulates through the gap.
+
+    Args:
+        session: The simulation (its sample period is ``period_s``).
+        columns: Column of each layout channel in the session's samples.
+        period_s: Sample period of the session's sensors [s].
+        keep: Rows kept for re-reading.
+    """
+
+    def __init__(self, session: Any, columns: Sequence[int], period_s: float = 0.01,
+                 keep: int = 1024) -> None:
+        self.session = session
+        self.columns = list(columns)
+        self.period_s = period_s
+        self.keep = max(1, keep)
+        self._row0: int | None = None  # absolute row of self._buf[0]
+        self._buf: F64 = np.zeros((0, len(self.columns)))
+
+    def read(self, i0: int, m: int) -> F64:
+        if self._row0 is None:
+            self._row0 = i0
+        if i0 < self._row0:
+            raise SenderError(f"row {i0} is older than the {self.keep} rows kept by the "
+                              "simulator stream")
+        end = i0 + m
+        parts = [self._buf]
+        have = self._row0 + self._buf.shape[0]
+        while have < end:
+            # at least 0.1 s per call: the compiled loop's overhead stays small
+            n = max(end - have, int(round(0.1 / self.period_s)))
+            got = self.session.advance(n * self.period_s).values[:, self.columns]
+            parts.append(got)
+            have += got.shape[0]
+        buf = np.concatenate(parts) if len(parts) > 1 else self._buf
+        out: F64 = buf[i0 - self._row0:end - self._row0].copy()
+        drop = max(0, buf.shape[0] - self.keep)
+        self._buf = buf[drop:]
+        self._row0 += drop
+        return out
+
+
+def simulator_stream(key: MachineKey, model: Any, scenario: str, *,
+                     duration_s: float = 86400.0, seed: int = 0) -> tuple[SimulatorStream, float]:
+    """A :class:`SimulatorStream` of ``scenario`` on ``model`` in the key's layout order, and its
+    sample period [s]. A built-in scenario is made ``duration_s`` long; a file keeps its own
+    length. ``model`` is a machine description or its :func:`cranetwin.sim.prepare` result
+    (compiled once for a fleet of senders).
+
+    Raises:
+        SenderError: the simulator is not available or a channel of the layout is not simulated.
+    """
+    try:
+        from cranetwin.sim import (
+            BUILTIN,
+            Prepared,
+            SensorModel,
+            Session,
+            builtin_scenario,
+            load_scenario,
+            prepare,
+        )
+    except ImportError as exc:  # pragma: no cover - the simulator ships with cranetwin
+        raise SenderError(f"the simulator is not available: {exc}") from exc
+
+    sc = (builtin_scenario(scenario, seed=seed, duration_s=duration_s) if scenario in BUILTIN
+          else load_scenario(scenario))
+    sensors = SensorModel()
+    prep = model if isinstance(model, Prepared) else prepare(model)
+    session = Session(prep, sc, sensors=sensors, seed=seed, keep_truth=False)
+    try:
+        cols = [session.channels.index(n) for n in key.layout.names]
+    except ValueError as exc:
+        raise SenderError(f"simulated channels {session.channels} lack one of "
+                          f"{key.layout.names}") from exc
+    period = 1.0 / sensors.rate_hz
+    return SimulatorStream(session, cols, period), period
 
 
 def simulator_source(key: MachineKey, model: Any, scenario: str, *, duration_s: float = 120.0,
