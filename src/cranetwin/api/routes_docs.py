@@ -39,7 +39,7 @@ def swagger_ui_dir() -> Path | None:
     ``swagger-ui-bundle-v2`` package), or None when it is not installed or older than
     :data:`MIN_SWAGGER_UI`."""
     try:
-        from swagger_ui_bundle import swagger_ui_path  # type: ignore[import-not-found,unused-ignore]
+        from swagger_ui_bundle import swagger_ui_path  # type: ignore[import-not-found,import-untyped,unused-ignore]
     except ImportError:
         return None
     path = Path(str(swagger_ui_path))
