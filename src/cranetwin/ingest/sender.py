@@ -216,10 +216,12 @@ def simulator_stream(key: MachineKey, model: Any, scenario: str, *,
     except ImportError as exc:  # pragma: no cover - the simulator ships with cranetwin
         raise SenderError(f"the simulator is not available: {exc}") from exc
 
-    sc = (builtin_scenario(scenario, seed=seed, duration_s=duration_s) if scenario in BUILTIN
-          else load_scenario(scenario))
-    sensors = SensorModel()
     prep = model if isinstance(model, Prepared) else prepare(model)
+    # a built-in (crane) scenario, one shipped for this machine (machines/scenarios/<name>/),
+    # or a file
+    sc = (builtin_scenario(scenario, seed=seed, duration_s=duration_s) if scenario in BUILTIN
+          else load_scenario(scenario, machine=prep.machine.name))
+    sensors = SensorModel()
     session = Session(prep, sc, sensors=sensors, seed=seed, keep_truth=False)
     try:
         cols = [session.channels.index(n) for n in key.layout.names]
