@@ -152,7 +152,8 @@ def test_excavator_streamed_replayed_served_and_reported(tmp_path: Path) -> None
     try:
         sent = subprocess.run(
             _cli("send", "--machine", MID, "--wire-id", str(WIRE_ID), "--model", "bobcat435",
-                 "--scenario", "dig-cycle", "--loop", "--sim-seconds", "18", "--host", f"127.0.0.1:{port}",
+                 "--scenario", "dig-cycle", "--loop", "--sim-seconds", "18",
+                 "--host", f"127.0.0.1:{port}",
                  "--speed", str(SPEED), "--duration", str(STREAM_S), "--batch", "50",
                  "--journal", str(tmp_path / "journal"), "--json", "--log-level", "WARNING"),
             env=env, capture_output=True, text=True, timeout=90)
