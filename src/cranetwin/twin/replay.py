@@ -55,7 +55,7 @@ from cranetwin.signal import (
     regularize,
     savgol_smooth,
 )
-from cranetwin.signal.smoothing import savgol_columns
+from cranetwin.signal.savgol import savgol_columns
 from cranetwin.twin import gridpass, kintable
 from cranetwin.twin.buffer import RowBuffer
 from cranetwin.twin.channels import ChannelMap, choose_smoothing
