@@ -15,12 +15,16 @@ slew-angle channel is used whenever the machine sends one.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 from numba import njit
 
 from cranetwin.physics.actuator import eq2_friction
+
+if TYPE_CHECKING:
+    from cranetwin.twin.plan import ReplayPlan
 
 F64 = npt.NDArray[np.float64]
 
@@ -100,3 +104,33 @@ def integrate_slew(
     state.momentum, state.theta0, state.velocity, state.torque = (float(x) for x in st[:4])
     state.started = True
     return theta, thd
+
+
+def integrate_free_joints(plan: ReplayPlan, dt: float, motion: tuple[F64, F64], mm: F64,
+                          torques: F64, states: list[SlewState]) -> F64:
+    """Angles of the integrated free joints (``plan.integrated``) over consecutive samples.
+
+    Args:
+        plan: The replay plan.
+        dt: Sample period [s].
+        motion: (q, qd) at the samples, (n, n_j), the integrated joints' entries 0.
+        mm: Mass matrices at the samples, (n, n_j, n_j) [kg·m², kg·m, kg].
+        torques: Drive torque of each integrated joint (n, n_int) [N·m] (0 where not sent).
+        states: One integrator state per integrated joint, updated in place.
+
+    Returns:
+        Angles, shape (n, n_int) [rad].
+    """
+    _, qd = motion
+    nj = plan.machine.n_joints
+    theta = np.empty((qd.shape[0], plan.n_int))
+    for i, d in enumerate(plan.integrated):
+        j0 = plan.drive_joints[d]
+        # column j0 of M (= row j0, M symmetric)
+        row = mm[:, :, j0]
+        others = [j for j in range(nj) if j != j0]
+        coupling = np.einsum("nj,nj->n", row[:, others], qd[:, others])
+        fr = plan.machine.torque_drives[d].friction
+        theta[:, i], _ = integrate_slew(dt, torques[:, i], row[:, j0], coupling, fr.coulomb,
+                                        fr.coulomb_velocity, fr.viscous, states[i])
+    return theta
