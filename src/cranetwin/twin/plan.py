@@ -90,9 +90,8 @@ class ReplayPlan:
         nd = len(cmap.derivative_channels)
         drives = machine.torque_drives
         drive_joints = tuple(machine.joint_index(d.joint) for d in drives)
-        # the first drive without an angle channel is integrated from its torque; any other
-        # such drive's joint is held at 0
-        integrated = tuple(d for d, a in enumerate(cmap.angles) if a is None)[:1]
+        # every drive without an angle channel: its joint is integrated from its torque
+        integrated = tuple(d for d, a in enumerate(cmap.angles) if a is None)
         cyl_joint = [machine.joint_index(c.joint) for c in machine.cylinders]
         free = tuple(j for j in range(machine.n_joints) if j not in cyl_joint)
         n_int = len(integrated)

@@ -25,9 +25,10 @@ regression (:mod:`cranetwin.twin.payload`), the free-joint integration
 payload and mass matrices at the samples) and :func:`cranetwin.twin.gridpass.grid_pass`
 (table-driven inverse kinematics, Eq. 1–2, the machine's batch RNEA, the Eq. 3/4
 correction, the wrenches) at every grid instant. Free
-joints (no cylinder drives them): the one with a torque drive takes its angle from the angle
-channel, or integrates it from the torque (:mod:`cranetwin.twin.slew`); a free joint with
-neither is held at 0 (the reference pose). The kinematics tables (quintic Hermite pieces of
+joints (no cylinder drives them): each one with a torque drive takes its angle from its angle
+channel, or, without one, integrates it from its torque (:mod:`cranetwin.twin.slew`, in drive
+order; the first starts at ``theta0_initial``, any other at 0); a free joint with neither a
+drive nor an angle is held at 0 (the reference pose). The kinematics tables (quintic Hermite pieces of
 the exact inverse, 2048 cells per stroke) agree with the exact inverse to 1e-11 in q and ds/dq
 and 1e-8 of the largest d²s/dq²; M_DD⁻¹ is interpolated between samples (agreement with the
 exact M(q) at every instant: 1.5e-5 of the wrench range). ``tests/test_twin_gridpass.py``
@@ -107,7 +108,9 @@ class TwinStream:
         # computed them, reused by the chunks when plan.use_cs
         self._cs = RowBuffer(5 * len(machine.cylinders))
         self._out_done = 0
-        self._slew = [SlewState(theta0=self.opt.theta0_initial) for _ in self.plan.integrated]
+        # the first integrated joint (the slew) starts at theta0_initial, any other at 0
+        self._slew = [SlewState(theta0=self.opt.theta0_initial if i == 0 else 0.0)
+                      for i in range(self.plan.n_int)]
         self._pw_cache: tuple[tuple[SmoothingChoice, ...], F64, F64] | None = None
         self._finished = False
 

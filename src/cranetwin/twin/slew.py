@@ -110,6 +110,18 @@ def integrate_free_joints(plan: ReplayPlan, dt: float, motion: tuple[F64, F64], 
                           torques: F64, states: list[SlewState]) -> F64:
     """Angles of the integrated free joints (``plan.integrated``) over consecutive samples.
 
+    Each joint j is integrated as the slew above (:func:`integrate_slew`): its momentum
+    p_j = Σ_k M_jk·qd_k obeys dp_j/dt = tau_j − F_fr,j, and qd_j = (p_j − Σ_{k≠j} M_jk·qd_k) /
+    M_jj with its own diagonal inertia M_jj and coupling. The joints are integrated one after
+    the other in drive order, and each one's velocities enter the couplings of the joints
+    after it. Neglected: the coupling M_jk·qd_k of a joint j to the integrated joints k after
+    it, and to free joints whose angle is sent (their rates are 0 in ``motion``); M is taken
+    with every free joint at 0. Exact for a vertical slew axis alone (gravity does no work on
+    it and M does not depend on its angle); for another joint, exact only if its axis is
+    vertical or its bodies' centre of mass lies on it, and if M does not depend on its angle.
+    Put the heavy joint first: its M_jj dwarfs the couplings to light joints after it
+    (a tip rotator), while theirs to it is kept.
+
     Args:
         plan: The replay plan.
         dt: Sample period [s].
@@ -121,7 +133,7 @@ def integrate_free_joints(plan: ReplayPlan, dt: float, motion: tuple[F64, F64], 
     Returns:
         Angles, shape (n, n_int) [rad].
     """
-    _, qd = motion
+    qd = motion[1].copy() if plan.n_int > 1 else motion[1]
     nj = plan.machine.n_joints
     theta = np.empty((qd.shape[0], plan.n_int))
     for i, d in enumerate(plan.integrated):
@@ -131,6 +143,8 @@ def integrate_free_joints(plan: ReplayPlan, dt: float, motion: tuple[F64, F64], 
         others = [j for j in range(nj) if j != j0]
         coupling = np.einsum("nj,nj->n", row[:, others], qd[:, others])
         fr = plan.machine.torque_drives[d].friction
-        theta[:, i], _ = integrate_slew(dt, torques[:, i], row[:, j0], coupling, fr.coulomb,
-                                        fr.coulomb_velocity, fr.viscous, states[i])
+        theta[:, i], rate = integrate_slew(dt, torques[:, i], row[:, j0], coupling, fr.coulomb,
+                                           fr.coulomb_velocity, fr.viscous, states[i])
+        if i + 1 < plan.n_int:
+            qd[:, j0] = rate
     return theta
