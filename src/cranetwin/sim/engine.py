@@ -26,9 +26,11 @@ and free joints with neither (end stops at their limits only). Array layouts:
 Truth is recorded every ``truth_every`` steps (state, qdd, forces as the step used them), sensor
 snapshots at precomputed step indices (see :mod:`cranetwin.sim.sensors`).
 
-Arguments travel as two tuples: ``model`` = (chain, cyl, hc, hg, hs, hf, dj, fj, lay) — the
-compiled chain and cylinders (``physics.chain``), the cylinder, circuit, drive and free-joint
-tables (:mod:`cranetwin.sim.hydraulics`), drive and free joint indices, sizes — and ``sched``
+Arguments travel as two tuples: ``model`` = (chain, cyl, hc, hg, hs, hf, dj, fj, lay, lk) —
+the compiled chain and cylinders (``physics.chain``), the cylinder, circuit, drive and
+free-joint tables (:mod:`cranetwin.sim.hydraulics`), drive and free joint indices, sizes, and
+the passive joints (``Joint.fixed_value``: locked, qdd = 0, the forward dynamics solved for
+the other joints) — and ``sched``
 = the scenario's tables (:class:`cranetwin.sim.scenario.ScenarioTables`, in field order).
 """
 
@@ -270,7 +272,7 @@ def _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, 
     flow (4·nc,) = [QA, QB, gA, gB] per cylinder (valve + relief, into the chamber, and their
     −∂/∂p), dtorque (nd,) the drives' dT/dt [N·m/s].
     """
-    chain, cyl, hc, hg, hs, hf, dj, fj, lay = model
+    chain, cyl, hc, hg, hs, hf, dj, fj, lay, lk = model
     mm, hb, lo, wr, work, e, zero, rhs = scr
     nj = lay[L_NJ]
     nc = lay[L_NC]
@@ -361,6 +363,13 @@ def _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, 
     else:
         for j in range(nj):
             rhs[j] = tau[j] - hb[j]
+    for m in range(lk.shape[0]):  # passive joints are locked: qdd = 0, the rest reduced
+        j = lk[m]
+        for i in range(nj):
+            mm[i, j] = 0.0
+            mm[j, i] = 0.0
+        mm[j, j] = 1.0
+        rhs[j] = 0.0
     _solve_spd(mm, rhs, qdd, lo)
 
 
@@ -368,7 +377,7 @@ def _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, 
 def _deriv(model, x, payload, fext, u_cmd, flags, dx, s, dsdq, v, force, tau, tau_ext, qdd,  # type: ignore[no-untyped-def]
            flow, dtorque, scr):
     """dx/dt of the whole state (for the RK4 scheme)."""
-    _, _, hc, hg, hs, _, _, _, lay = model
+    _, _, hc, hg, hs, _, _, _, lay, _ = model
     nj = lay[L_NJ]
     nc = lay[L_NC]
     nd = lay[L_ND]
@@ -398,7 +407,7 @@ def run_steps(model, sched, flags, dt, x, i0, i1, n_steps, truth_every, truth, s
     """Advance the state ``x`` in place over steps i0 … i1−1 (global step indices).
 
     Args:
-        model: (chain, cyl, hc, hg, hs, hf, dj, fj, lay) (module docstring).
+        model: (chain, cyl, hc, hg, hs, hf, dj, fj, lay, lk) (module docstring).
         sched: Scenario tables (u_t, u_v, u_n, r_t, r_v, r_n, gain, umax, pay_t, pay_m, f_t,
             f_v, f_n).
         flags: ``F_*`` switches. dt: Step [s]. x: State (n_x,) (:mod:`~cranetwin.sim.layout`).
@@ -410,7 +419,7 @@ def run_steps(model, sched, flags, dt, x, i0, i1, n_steps, truth_every, truth, s
     (the final state) when i1 == n_steps. Raises nothing: a non-finite state stops the loop
     and leaves ``idx[2] = 1`` (checked by the caller).
     """
-    chain, cyl, hc, hg, hs, hf, dj, fj, lay = model
+    chain, cyl, hc, hg, hs, hf, dj, fj, lay, lk = model
     nj = lay[L_NJ]
     nc = lay[L_NC]
     nd = lay[L_ND]

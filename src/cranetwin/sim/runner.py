@@ -79,7 +79,7 @@ class Prepared:
         """The loop's ``model`` tuple (:mod:`cranetwin.sim.engine`)."""
         h = self.hyd
         return (self.chain.chain, self.chain.cyl, h.cyl, h.glob, h.drives, h.free,
-                h.drive_joint, h.free_joint, self.layout.array())
+                h.drive_joint, h.free_joint, self.layout.array(), passive_joints(self.machine))
 
 
 def prepare(machine: Machine, options: SimOptions | None = None) -> Prepared:
@@ -133,9 +133,17 @@ def check_scenario(machine: Machine, scenario: Scenario) -> None:
         raise ScenarioFileError(scenario.name, problems)
 
 
+def passive_joints(machine: Machine) -> npt.NDArray[np.int64]:
+    """Indices of the passive joints (no actuator, held at ``fixed_value``)."""
+    return np.array([i for i, j in enumerate(machine.joints) if j.fixed_value is not None],
+                    dtype=np.int64)
+
+
 def default_pose(machine: Machine) -> F64:
-    """Every cylinder's rod at mid-stroke, every other joint at 0 clipped into its limits."""
-    q = np.array([min(max(0.0, j.lower), j.upper) for j in machine.joints])
+    """Every cylinder's rod at mid-stroke, a passive joint at its fixed value, every other
+    joint at 0 clipped into its limits."""
+    q = np.array([j.fixed_value if j.fixed_value is not None else min(max(0.0, j.lower), j.upper)
+                  for j in machine.joints])
     chain = compile_chain(machine)
     for k, c in enumerate(machine.cylinders):
         ji = int(chain.cylinder_joint[k])
@@ -146,7 +154,8 @@ def default_pose(machine: Machine) -> F64:
 def initial_state(prep: Prepared, scenario: Scenario, options: SimOptions) -> F64:
     """State in the scenario's initial pose and velocities, with the chamber pressures (and
     drive torques) that balance the bias forces h(q, qd), so the machine starts unaccelerated
-    (free joints are not held: they start as the dynamics take them).
+    (free joints are not held: they start as the dynamics take them; passive joints are at
+    their fixed value, at rest).
 
     Raises:
         ScenarioError: a rod of the initial pose is outside its stroke.
@@ -164,6 +173,11 @@ def initial_state(prep: Prepared, scenario: Scenario, options: SimOptions) -> F6
                                 f"outside its stroke [0, {c.stroke_m}] m")
     qd0 = (np.asarray(scenario.initial.qd, dtype=np.float64) if scenario.initial.qd is not None
            else np.zeros(nj))
+    q0 = np.array(q0, dtype=np.float64)
+    qd0 = np.array(qd0, dtype=np.float64)
+    for j in passive_joints(prep.machine):  # held at its fixed value, whatever the scenario
+        q0[j] = prep.machine.joints[j].fixed_value
+        qd0[j] = 0.0
     h = np.empty(nj)
     bias(prep.chain.chain, q0, qd0, scenario.initial.payload_kg, h)
     x = np.zeros(lay.n_x)

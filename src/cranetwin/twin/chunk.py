@@ -130,7 +130,7 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
         smp = np.empty((ne, src.shape[0]))
         gridpass.spline_points(at_samples, ne, smp)
         theta = smp[:, free_q]  # per free joint: angle, rate, acceleration
-        q_other = np.zeros((ne, nj - nc))
+        q_other = np.tile(plan.free_joints.hold, (ne, 1))
         for f in thetas:
             q_other[:, f] = theta[:, 3 * f]
         q_s, qd_s, qdd_s, arm_s = joint_motion(plan, clip_rods(plan, smp[:, qi.s : qi.s + nc]),
@@ -181,7 +181,7 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
     if bad:
         bad_rows = ~np.all(np.isfinite(out.q), axis=1)
         joint_motion(plan, out.rod_s[bad_rows], out.rod_v[bad_rows], out.rod_v[bad_rows],
-                     np.zeros((int(bad_rows.sum()), nj - nc)))
+                     np.tile(plan.free_joints.hold, (int(bad_rows.sum()), 1)))
         raise TwinError(f"rod positions do not fit the machine geometry at {bad} instants")
     t = np.arange(n, dtype=np.float64)  # origin + (ka + g/r)·p, in place
     t /= r

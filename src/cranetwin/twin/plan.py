@@ -31,6 +31,12 @@ F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
 
+def hold_values(machine: Machine, free: tuple[int, ...]) -> F64:
+    """Per free joint the value it is held at when its angle is neither sent nor integrated
+    [rad or m]: a passive joint's ``fixed_value``, else 0 (the reference pose)."""
+    return np.array([machine.joints[j].fixed_value or 0.0 for j in free])
+
+
 @dataclass(frozen=True)
 class ReplayPlan:
     """Constants of a replay (module docstring).
@@ -120,7 +126,8 @@ class ReplayPlan:
             cylinders=gridpass.Cylinders(params.cyl, table, table_ok,
                                          actuator.cylinder_params(machine), stroke,
                                          cyl_joint_arr, END_STOP_MARGIN_M),
-            free_joints=gridpass.FreeJoints(np.array(free, dtype=np.int64), drive_friction),
+            free_joints=gridpass.FreeJoints(np.array(free, dtype=np.int64), drive_friction,
+                                            hold_values(machine, free)),
             kernels=batch_kernels(params, opt.generated_kernels),
             use_cs=n_int == 1 and opt.velocity == "spline" and len(free) == 1,
             layout=spline_layout(cmap, nch, opt.velocity, integrated, qi, drive_free))

@@ -27,9 +27,9 @@ payload and mass matrices at the samples) and :func:`cranetwin.twin.gridpass.gri
 correction, the wrenches) at every grid instant. Free
 joints (no cylinder drives them): each one with a torque drive takes its angle from its angle
 channel, or, without one, integrates it from its torque (:mod:`cranetwin.twin.slew`, in drive
-order; the first starts at ``theta0_initial``, any other at 0); a free joint with neither a
-drive nor an angle is held at 0 (the reference pose). The kinematics tables (quintic Hermite pieces of
-the exact inverse, 2048 cells per stroke) agree with the exact inverse to 1e-11 in q and ds/dq
+order; the first starts at ``theta0_initial``, any other at 0); a passive joint (no
+actuator) is held at its ``fixed_value``. The kinematics tables (quintic Hermite pieces of the
+exact inverse, 2048 cells per stroke) agree with the exact inverse to 1e-11 in q and ds/dq
 and 1e-8 of the largest d²s/dq²; M_DD⁻¹ is interpolated between samples (agreement with the
 exact M(q) at every instant: 1.5e-5 of the wrench range). ``tests/test_twin_gridpass.py``
 recomputes every output through the separate physics functions.

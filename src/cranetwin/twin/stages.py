@@ -295,9 +295,9 @@ def eq12(plan: ReplayPlan, pa: F64, pb: F64, v: F64) -> F64:
 
 
 def sample_states(plan: ReplayPlan, sm: F64) -> tuple[F64, F64, F64, F64, F64, F64]:
-    """q, qd, qdd (n, n_j; free joints at 0), cylinder forces, moment arms (n, n_c) and the
-    cylinder states rows (:func:`cylinder_states`, (n, 5·n_c)) from smoothed rows ``sm``, in
-    one compiled pass."""
+    """q, qd, qdd (n, n_j; free joints at 0, passive ones at their fixed value), cylinder
+    forces, moment arms (n, n_c) and the cylinder states rows (:func:`cylinder_states`,
+    (n, 5·n_c)) from smoothed rows ``sm``, in one compiled pass."""
     n = sm.shape[0]
     nj = plan.machine.n_joints
     nc = len(plan.machine.cylinders)
@@ -305,6 +305,9 @@ def sample_states(plan: ReplayPlan, sm: F64) -> tuple[F64, F64, F64, F64, F64, F
     qd = np.zeros((n, nj))
     qdd = np.zeros((n, nj))
     cs = np.empty((n, 5 * nc))
+    fj = plan.free_joints
+    if np.any(fj.hold):
+        q[:, fj.joint] = fj.hold
     col = plan.sample_cols
     if cylinder_states(sm, col, plan.cylinders, q, qd, qdd, cs):  # the descriptive error
         joint_motion(plan, clip_rods(plan, sm[:, col.s]), sm[:, col.v0 : col.v0 + nc],
