@@ -75,11 +75,12 @@ class Prepared:
     actuators: tuple[str, ...]
 
     @property
-    def model(self) -> tuple[object, ...]:
-        """The loop's ``model`` tuple (:mod:`cranetwin.sim.engine`)."""
+    def model(self) -> E.SimModel:
+        """The loop's ``model`` record (:class:`cranetwin.sim.engine.SimModel`)."""
         h = self.hyd
-        return (self.chain.chain, self.chain.cyl, h.cyl, h.glob, h.drives, h.free,
-                h.drive_joint, h.free_joint, self.layout.array(), passive_joints(self.machine))
+        return E.SimModel(self.chain.chain, self.chain.cyl, h.cyl, h.glob, h.drives, h.free,
+                          h.drive_joint, h.free_joint, self.layout.array(),
+                          passive_joints(self.machine))
 
 
 def prepare(machine: Machine, options: SimOptions | None = None) -> Prepared:
@@ -292,8 +293,9 @@ class Session:
         truth = np.full((n_truth, lay.n_t), np.nan)
         snaps = np.full((steps.shape[0], lay.n_snap), np.nan)
         idx = np.zeros(3, dtype=np.int64)
-        E.run_steps(self._model, self._sched, self._flags, self.options.step_s, self.x, i0, i1,
-                    i1 if final else -1, self.every, truth, steps, snaps, idx, self._cur)
+        E.run_steps(self._model, self._sched, self._flags, self.options.step_s, self.x,
+                    (i0, i1, i1 if final else -1),
+                    E.Records(self.every, truth, steps, snaps, idx), self._cur)
         if idx[2]:
             raise SimulationError(
                 f"integration unstable before t = {i1 * self.options.step_s:.4f} s (non-finite "
