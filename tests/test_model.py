@@ -79,3 +79,27 @@ def test_field_errors_and_reference_errors_reported_together(tmp_path: Path) -> 
     problems = info.value.problems
     assert any(p.startswith("bodies.0.mass_kg:") for p in problems)
     assert any(p.startswith("load_point.body:") and "nowhere" in p for p in problems)
+
+
+def test_a_joint_without_an_actuator_needs_a_fixed_value() -> None:
+    import tomllib
+    from pathlib import Path
+
+    from cranetwin.model import machine_from_dict
+
+    path = Path(__file__).parents[1] / "src/cranetwin/machines/patu655.toml"
+    data = tomllib.loads(path.read_text())
+    data["torque_drives"] = []
+    data["channels"] = [c for c in data["channels"] if c["source"] not in ("slew", "theta0")]
+    with pytest.raises(Exception, match="fixed_value"):
+        machine_from_dict(data, "no actuator")
+    data["joints"][0]["fixed_value"] = 0.2
+    m = machine_from_dict(data, "passive")
+    assert m.joints[0].fixed_value == 0.2
+    data["joints"][0]["fixed_value"] = 99.0
+    with pytest.raises(Exception, match="within the limits"):
+        machine_from_dict(data, "outside")
+    data["joints"][0]["fixed_value"] = None
+    data["joints"][1]["fixed_value"] = 0.5  # the lift has a cylinder
+    with pytest.raises(Exception, match="only a passive joint"):
+        machine_from_dict(data, "actuated and fixed")

@@ -327,7 +327,7 @@ def test_savgol_bank_equals_scipy_interp_mode_values_and_derivatives(n: int) -> 
 def test_savgol_columns_equal_savgol_bank_per_column() -> None:
     """Per-column filter lists through one batched FFT pair equal savgol_bank column by
     column (FFT and direct windows, values and derivatives, a copy for window 1)."""
-    from cranetwin.signal.smoothing import savgol_columns
+    from cranetwin.signal.savgol import savgol_columns
 
     rng = np.random.default_rng(13)
     n = 1500
@@ -400,7 +400,7 @@ def test_ici_smooth_pair_equals_stacked_ici_on_random_data(n: int, polyorder: in
 def test_compiled_median_and_rank_pair_are_exact_order_statistics(n: int) -> None:
     """The histogram selections against sorting: continuous values, heavy ties, far
     outliers (nearly every value in one bucket), adjacent ranks in different buckets."""
-    from cranetwin.signal.smoothing import _median, _rank_pair
+    from cranetwin.signal.noise_level import _median, _rank_pair
 
     rng = np.random.default_rng(n)
     cases = [rng.normal(size=n), rng.integers(0, 4, n).astype(float),
@@ -428,7 +428,7 @@ def _old_noise_std(y: np.ndarray, resolution: float = 0.0, order: int = 4) -> fl
 def _old_choose_window(y: np.ndarray, sigma: float) -> tuple[int, int, float]:
     """choose_window by direct convolution per candidate (reference for the FFT version)."""
     from cranetwin.signal import sg_filter
-    from cranetwin.signal.smoothing import DEFAULT_POLYORDERS, DEFAULT_WINDOWS
+    from cranetwin.signal.window import DEFAULT_POLYORDERS, DEFAULT_WINDOWS
 
     n = y.shape[0]
     wmax = max((w for w in DEFAULT_WINDOWS if w <= n // 2), default=1)

@@ -56,3 +56,30 @@ def test_crane_without_a_slewing_joint_runs() -> None:
     rec = simulate(m, sc, seed=2)
     assert rec.truth.q.shape == (2001, 3) and rec.samples.values.shape == (201, 9)
     assert rec.truth.q[-1, 0] > rec.truth.q[0, 0] + 0.05
+
+
+def _passive_slew(value: float) -> dict[str, object]:
+    data = tomllib.loads(PATU.read_text())
+    data["torque_drives"] = []
+    data["channels"] = [c for c in data["channels"] if c["source"] not in ("slew", "theta0")]
+    data["joints"][0]["fixed_value"] = value
+    return data
+
+
+def test_a_passive_joint_is_held_at_its_fixed_value_by_simulator_and_twin() -> None:
+    from cranetwin.twin import replay
+
+    m = machine_from_dict(_passive_slew(0.4), "passive-slew")
+    sc = Scenario(name="lift", duration_s=3.0, initial=InitialState(q=(0.0, 0.6, -1.6, 0.3)),
+                  actuators={"lift": ActuatorProgram(voltage=[(0.0, 0.0), (0.5, 6.0)]),
+                             "extension": ActuatorProgram(voltage=[(0.0, 0.0), (1.0, 8.0)])})
+    rec = simulate(m, sc, seed=3, wrenches=False)
+    tr = rec.truth
+    assert np.all(tr.q[:, 0] == 0.4) and np.all(tr.qd[:, 0] == 0.0)
+    assert tr.q[-1, 1] > tr.q[0, 1] + 0.05  # the lift moved
+    res = replay(rec, m, grid_hz=100, payload=float(tr.payload_kg[0]))
+    assert np.all(res.q[:, 0] == 0.4)
+    assert np.all(np.isnan(res.actuator_torque[:, 0]))  # its load is a reaction, not measured
+    t = np.interp(res.t_s, tr.t_s, tr.q[:, 1])
+    assert np.abs(res.q[20:-20, 1] - t[20:-20]).max() < 5e-3
+    assert np.all(np.isfinite(res.joint_wrench))

@@ -355,3 +355,52 @@ def test_replay_of_a_machine_with_two_free_joints(machine: Machine) -> None:
                   options=ReplayOptions(grid_hz=100, theta0_initial=float(q[0, 0])))
     np.testing.assert_allclose(res2.q[inner, 4], q[inner, 4], atol=1e-3)
     assert np.abs(res2.q[inner, 0] - q[inner, 0]).max() < 0.05
+
+
+def test_replay_integrates_every_free_joint_without_an_angle(machine: Machine) -> None:
+    """Neither the slew's nor the rotator's angle sent: both are integrated from their
+    torques (the rotator after the slew, with the slew's rate in its coupling)."""
+    from cranetwin import physics
+    from cranetwin.testing.recordings import motion
+
+    rot = _with_rotator(machine)
+    t = np.arange(1201) / 100.0
+    q4, qd4, qdd4 = motion(t, 0.5)
+    w = 2 * np.pi * 0.2
+    q = np.column_stack([q4, 0.6 * (1.0 - np.cos(w * t))])
+    qd = np.column_stack([qd4, 0.6 * w * np.sin(w * t)])
+    qdd = np.column_stack([qdd4, 0.6 * w * w * np.cos(w * t)])
+    tau = physics.joint_torques(rot, q, qd, qdd, np.full(t.shape, 150.0))
+    s, arm = physics.cylinder_kinematics(rot, q)
+    force = tau[:, 1:4] / arm
+    cols: dict[str, F64] = {}
+    for c, cyl in enumerate(rot.cylinders):
+        v = arm[:, c] * qd[:, c + 1]
+        by_q = {ch.quantity: ch.name for ch in rot.channels if ch.source == cyl.name}
+        cols[by_q["pressure_a"]] = (force[:, c] + physics.friction_force(v, cyl.friction)
+                                    + 2.0e6 * cyl.area_b_m2) / cyl.area_a_m2
+        cols[by_q["pressure_b"]] = np.full(t.shape, 2.0e6)
+        cols[by_q["position"]] = s[:, c]
+    for d in rot.torque_drives:
+        j = rot.joint_index(d.joint)
+        cols[f"{d.name}_torque"] = tau[:, j] + physics.friction_force(qd[:, j], d.friction)
+    samples = SampleArrays("rot", t, tuple(cols), np.column_stack(list(cols.values())))
+    res = replay(samples, rot, grid_hz=100, payload=150.0,
+                 options=ReplayOptions(grid_hz=100, theta0_initial=float(q[0, 0])))
+    inner = slice(100, -100)
+    assert np.abs(res.q[inner, 0] - q[inner, 0]).max() < 0.05
+    assert np.abs(res.q[inner, 4] - q[inner, 4]).max() < 0.05
+    assert np.abs(res.q[inner, 4]).max() > 0.5  # it moved, and was not held at 0
+    assert np.all(np.isfinite(res.joint_wrench))
+    # streaming equals batch
+    stream = TwinStream(rot, samples.channels,
+                        ReplayOptions(grid_hz=100, theta0_initial=float(q[0, 0]),
+                                      smoothing=tuple(res.smoothing.values()),
+                                      sample_period_s=0.01),
+                        150.0)
+    parts = [stream.push(SampleArrays("rot", t[i:i + 291], samples.channels,
+                                      samples.values[i:i + 291]))
+             for i in range(0, t.shape[0], 291)]
+    parts.append(stream.flush())
+    got = TwinResult.concat([p for p in parts if p is not None])
+    np.testing.assert_allclose(got.q, res.q, rtol=1e-9, atol=1e-9)

@@ -111,7 +111,7 @@ def test_generic_pass_equals_specialised(machine: Machine, monkeypatch: pytest.M
     spec = replay(noisy, machine, 1000.0)
     monkeypatch.setattr(dynamics, "batch_kernels",
                         lambda params, specialised=True: dynamics.generic_batch_kernels(params))
-    monkeypatch.setattr(importlib.import_module("cranetwin.twin.replay"), "batch_kernels",
+    monkeypatch.setattr(importlib.import_module("cranetwin.twin.plan"), "batch_kernels",
                         dynamics.batch_kernels)
     gen = replay(noisy, machine, 1000.0)
     for name in ("q", "qdd", "cyl_force", "id_torque", "residual", "joint_wrench", "payload_kg"):

@@ -81,6 +81,9 @@ class Joint(_Frozen):
     upper: float = Field(description="upper limit [rad or m]")
     velocity_limit: float = Field(1.0, gt=0, description="[rad/s or m/s]")
     unit: str = ""
+    fixed_value: float | None = Field(
+        None, description="passive joint (no actuator): held at this value [rad or m], within "
+        "[lower, upper]; required on a joint without an actuator, not allowed with one")
 
     @field_validator("axis")
     @classmethod
@@ -96,6 +99,9 @@ class Joint(_Frozen):
     def _limits(self) -> Joint:
         if not self.lower < self.upper:
             raise ValueError(f"lower limit {self.lower} must be below upper limit {self.upper}")
+        if self.fixed_value is not None and not self.lower <= self.fixed_value <= self.upper:
+            raise ValueError(f"fixed_value {self.fixed_value} must lie within the limits "
+                             f"[{self.lower}, {self.upper}]")
         return self
 
 
@@ -390,9 +396,14 @@ def reference_problems(data: dict[str, object]) -> list[str]:
             elif joint in actuated:
                 problems.append(f"{kind}.{i}.joint: joint {joint!r} already has an actuator")
             actuated.add(str(joint))
-    for i, name in enumerate(joint_names):
-        if name not in actuated:
-            problems.append(f"joints.{i}: joint {name!r} has no actuator")
+    for i, (name, j) in enumerate(zip(joint_names, joints, strict=True)):
+        fixed = j.get("fixed_value") is not None
+        if name not in actuated and not fixed:
+            problems.append(f"joints.{i}: joint {name!r} has no actuator; a passive joint "
+                            "declares the value it is held at (fixed_value)")
+        elif name in actuated and fixed:
+            problems.append(f"joints.{i}.fixed_value: joint {name!r} has an actuator; only a "
+                            "passive joint (no actuator) is held at a fixed value")
     channels_raw = data.get("channels")
     channels = [c for c in channels_raw if isinstance(c, dict)] if isinstance(
         channels_raw, list) else []

@@ -6,23 +6,13 @@ Only numpy and scipy (plus the machine model for channel ranges)."""
 from __future__ import annotations
 
 from cranetwin.signal.differentiate import newton_derivative
+from cranetwin.signal.ici import ICI_WINDOWS, ici_select, ici_smooth, ici_smooth_pair
 from cranetwin.signal.noise import NOISY_QUANTITIES, inject_uniform_noise, nrmse
+from cranetwin.signal.noise_level import estimate_noise_std
 from cranetwin.signal.resample import Regular, nominal_period, regularize, uniform_grid
-from cranetwin.signal.smoothing import (
-    ICI_WINDOWS,
-    SmoothingChoice,
-    centre_weight,
-    choose_derivative_window,
-    choose_window,
-    estimate_noise_std,
-    ici_select,
-    ici_smooth,
-    ici_smooth_pair,
-    savgol_bank,
-    savgol_smooth,
-    sg_filter,
-)
+from cranetwin.signal.savgol import centre_weight, savgol_bank, savgol_smooth, sg_filter
 from cranetwin.signal.spline import NaturalCubicSpline, natural_pieces
+from cranetwin.signal.window import SmoothingChoice, choose_derivative_window, choose_window
 
 __all__ = [
     "ICI_WINDOWS",

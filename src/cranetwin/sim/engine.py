@@ -26,10 +26,13 @@ and free joints with neither (end stops at their limits only). Array layouts:
 Truth is recorded every ``truth_every`` steps (state, qdd, forces as the step used them), sensor
 snapshots at precomputed step indices (see :mod:`cranetwin.sim.sensors`).
 
-Arguments travel as two tuples: ``model`` = (chain, cyl, hc, hg, hs, hf, dj, fj, lay) — the
-compiled chain and cylinders (``physics.chain``), the cylinder, circuit, drive and free-joint
-tables (:mod:`cranetwin.sim.hydraulics`), drive and free joint indices, sizes — and ``sched``
-= the scenario's tables (:class:`cranetwin.sim.scenario.ScenarioTables`, in field order).
+Arguments travel as records (named tuples, which numba passes as plain structs):
+:class:`SimModel` — the compiled chain and cylinders (``physics.chain``), the cylinder,
+circuit, drive and free-joint tables (:mod:`cranetwin.sim.hydraulics`), drive and free joint
+indices, sizes, and the passive joints (``Joint.fixed_value``: locked, qdd = 0, the forward
+dynamics solved for the other joints); :class:`StepBuffers`, what one evaluation writes;
+:class:`Records`, the truth rows and sensor snapshots; and ``sched`` = the scenario's tables
+(:class:`cranetwin.sim.scenario.ScenarioTables`, in field order).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ import hashlib
 import math
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -92,6 +96,60 @@ from cranetwin.sim.layout import L_NC, L_ND, L_NJ
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
+
+
+class SimModel(NamedTuple):
+    """The machine as the loop reads it (module docstring)."""
+
+    chain: F64
+    """Compiled chain (``physics.chain``)."""
+    cyl: F64
+    """Compiled cylinders (``physics.chain``)."""
+    hc: F64
+    """Cylinder table (n_c, ``C_*``) (:mod:`cranetwin.sim.hydraulics`)."""
+    hg: F64
+    """Circuit constants (``G_*``)."""
+    hs: F64
+    """Drive table (n_d, ``S_*``)."""
+    hf: F64
+    """Free joints' end stops (n_free, ``S_*``)."""
+    dj: I64
+    """Joint of each drive (n_d,)."""
+    fj: I64
+    """Free joints (n_free,)."""
+    lay: I64
+    """Sizes (:mod:`cranetwin.sim.layout`)."""
+    lk: I64
+    """Passive joints, locked (n_passive,)."""
+
+
+class StepBuffers(NamedTuple):
+    """What :func:`_eval` writes for one state: rod positions s, moment arms dsdq, rod
+    velocities v, cylinder forces (n_c,) [m, m/rad or m/m, m/s, N]; actuator loads tau,
+    contact loads tau_ext, accelerations qdd (n_j,); flow (4·n_c,) = [QA, QB, gA, gB] per
+    cylinder; dtorque (n_d,) the drives' dT/dt [N·m/s]."""
+
+    s: F64
+    dsdq: F64
+    v: F64
+    force: F64
+    tau: F64
+    tau_ext: F64
+    qdd: F64
+    flow: F64
+    dtorque: F64
+
+
+class Records(NamedTuple):
+    """Where :func:`run_steps` writes: truth rows every ``truth_every`` steps into ``truth``
+    (m, n_t), sensor snapshots at the steps ``snap_steps`` into ``snaps`` (m', n_snap);
+    ``idx`` = [next truth row, next snapshot, failed flag]."""
+
+    truth_every: int
+    truth: F64
+    snap_steps: I64
+    snaps: F64
+    idx: I64
 
 
 def _drop_stale_cache() -> None:
@@ -255,8 +313,7 @@ def _solve_spd(m: F64, b: F64, out: F64, lo: F64) -> None:
 
 
 @njit(cache=True, inline="always")
-def _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, flow,  # type: ignore[no-untyped-def]
-          dtorque, scr, kin_ready):
+def _eval(model, x, payload, fext, flags, buf, scr, kin_ready):  # type: ignore[no-untyped-def]
     """Everything the state implies: kinematics, forces, accelerations, chamber flows.
 
     ``kin_ready``: s and dsdq already hold the kinematics of x (skip recomputing them).
@@ -265,13 +322,14 @@ def _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, 
     the former fixed-size 4-joint loop.
     ``scr`` = (mm, hb, lo, wr, work, e, zero, rhs): scratch of the forward dynamics.
 
-    Writes s, dsdq, v, force (nc,), tau (actuator loads), tau_ext (J_pᵀ·F_c, only while the
-    contact force is not zero), qdd (nj,),
+    Writes the :class:`StepBuffers` ``buf``: s, dsdq, v, force (nc,), tau (actuator loads),
+    tau_ext (J_pᵀ·F_c, only while the contact force is not zero), qdd (nj,),
     flow (4·nc,) = [QA, QB, gA, gB] per cylinder (valve + relief, into the chamber, and their
     −∂/∂p), dtorque (nd,) the drives' dT/dt [N·m/s].
     """
-    chain, cyl, hc, hg, hs, hf, dj, fj, lay = model
+    chain, cyl, hc, hg, hs, hf, dj, fj, lay, lk = model
     mm, hb, lo, wr, work, e, zero, rhs = scr
+    s, dsdq, v, force, tau, tau_ext, qdd, flow, dtorque = buf
     nj = lay[L_NJ]
     nc = lay[L_NC]
     nd = lay[L_ND]
@@ -361,14 +419,21 @@ def _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, 
     else:
         for j in range(nj):
             rhs[j] = tau[j] - hb[j]
+    for m in range(lk.shape[0]):  # passive joints are locked: qdd = 0, the rest reduced
+        j = lk[m]
+        for i in range(nj):
+            mm[i, j] = 0.0
+            mm[j, i] = 0.0
+        mm[j, j] = 1.0
+        rhs[j] = 0.0
     _solve_spd(mm, rhs, qdd, lo)
 
 
 @njit(cache=True)
-def _deriv(model, x, payload, fext, u_cmd, flags, dx, s, dsdq, v, force, tau, tau_ext, qdd,  # type: ignore[no-untyped-def]
-           flow, dtorque, scr):
-    """dx/dt of the whole state (for the RK4 scheme)."""
-    _, _, hc, hg, hs, _, _, _, lay = model
+def _deriv(model, x, payload, fext, u_cmd, flags, dx, buf, scr):  # type: ignore[no-untyped-def]
+    """dx/dt of the whole state (for the RK4 scheme) into dx; ``buf``: :class:`StepBuffers`."""
+    _, _, hc, hg, hs, _, _, _, lay, _ = model
+    s, _, v, _, _, _, qdd, flow, dtorque = buf
     nj = lay[L_NJ]
     nc = lay[L_NC]
     nd = lay[L_ND]
@@ -376,8 +441,7 @@ def _deriv(model, x, payload, fext, u_cmd, flags, dx, s, dsdq, v, force, tau, ta
     x_pb = x_pa + nc
     x_u = x_pb + nc
     x_ts = x_u + nd + nc
-    _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, flow, dtorque,
-          scr, False)
+    _eval(model, x, payload, fext, flags, buf, scr, False)
     for j in range(nj):
         dx[j] = x[nj + j]
         dx[nj + j] = qdd[j]
@@ -393,24 +457,25 @@ def _deriv(model, x, payload, fext, u_cmd, flags, dx, s, dsdq, v, force, tau, ta
 
 
 @njit(cache=True)
-def run_steps(model, sched, flags, dt, x, i0, i1, n_steps, truth_every, truth, snap_steps,  # type: ignore[no-untyped-def]
-              snaps, idx, cur):
+def run_steps(model, sched, flags, dt, x, span, rec, cur):  # type: ignore[no-untyped-def]
     """Advance the state ``x`` in place over steps i0 … i1−1 (global step indices).
 
     Args:
-        model: (chain, cyl, hc, hg, hs, hf, dj, fj, lay) (module docstring).
+        model: :class:`SimModel` (module docstring).
         sched: Scenario tables (u_t, u_v, u_n, r_t, r_v, r_n, gain, umax, pay_t, pay_m, f_t,
             f_v, f_n).
         flags: ``F_*`` switches. dt: Step [s]. x: State (n_x,) (:mod:`~cranetwin.sim.layout`).
-        truth: Truth rows (m, n_t); snap_steps: step index of each sensor snapshot;
-        snaps: Snapshot rows (m', n_snap); cur: Scenario cursors (2·na + 2,).
+        span: (i0, i1, n_steps). rec: :class:`Records` (truth rows, sensor snapshots).
+        cur: Scenario cursors (2·na + 2,).
 
     Records truth rows at every step index divisible by ``truth_every`` and sensor snapshots
     at ``snap_steps`` (``idx`` = [next truth row, next snapshot]), including step ``n_steps``
     (the final state) when i1 == n_steps. Raises nothing: a non-finite state stops the loop
     and leaves ``idx[2] = 1`` (checked by the caller).
     """
-    chain, cyl, hc, hg, hs, hf, dj, fj, lay = model
+    chain, cyl, hc, hg, hs, hf, dj, fj, lay, lk = model
+    i0, i1, n_steps = span
+    truth_every, truth, snap_steps, snaps, idx = rec
     nj = lay[L_NJ]
     nc = lay[L_NC]
     nd = lay[L_ND]
@@ -447,6 +512,7 @@ def run_steps(model, sched, flags, dt, x, i0, i1, n_steps, truth_every, truth, s
     qdd = np.empty(nj)
     flow = np.empty(4 * nc)
     dtorque = np.empty(nd)
+    buf = StepBuffers(s, dsdq, v, force, tau, tau_ext, qdd, flow, dtorque)
     scr = (np.empty((nj, nj)), np.empty(nj), np.zeros((nj, nj)), np.empty((nj, 6)),
            np.empty((nj, 12)), np.empty(nj), np.zeros(nj), np.empty(nj))
     u_cmd = np.empty(na)
@@ -466,8 +532,7 @@ def run_steps(model, sched, flags, dt, x, i0, i1, n_steps, truth_every, truth, s
     for i in range(i0, last):
         t = i * dt
         payload = _commands(t, x, s, dj, nd, sched, cur, u_cmd, fext)
-        _eval(model, x, payload, fext, flags, s, dsdq, v, force, tau, tau_ext, qdd, flow,
-              dtorque, scr, True)
+        _eval(model, x, payload, fext, flags, buf, scr, True)
         ok = True
         for j in range(nj):
             if not math.isfinite(qdd[j]):
@@ -511,20 +576,16 @@ def run_steps(model, sched, flags, dt, x, i0, i1, n_steps, truth_every, truth, s
         if i == n_steps:
             break
         if rk4:
-            _deriv(model, x, payload, fext, u_cmd, flags, k1, s, dsdq, v, force, tau, tau_ext,
-                   qdd, flow, dtorque, scr)
+            _deriv(model, x, payload, fext, u_cmd, flags, k1, buf, scr)
             for m in range(n_x):
                 xt[m] = x[m] + 0.5 * dt * k1[m]
-            _deriv(model, xt, payload, fext, u_cmd, flags, k2, s, dsdq, v, force, tau, tau_ext,
-                   qdd, flow, dtorque, scr)
+            _deriv(model, xt, payload, fext, u_cmd, flags, k2, buf, scr)
             for m in range(n_x):
                 xt[m] = x[m] + 0.5 * dt * k2[m]
-            _deriv(model, xt, payload, fext, u_cmd, flags, k3, s, dsdq, v, force, tau, tau_ext,
-                   qdd, flow, dtorque, scr)
+            _deriv(model, xt, payload, fext, u_cmd, flags, k3, buf, scr)
             for m in range(n_x):
                 xt[m] = x[m] + dt * k3[m]
-            _deriv(model, xt, payload, fext, u_cmd, flags, k4, s, dsdq, v, force, tau, tau_ext,
-                   qdd, flow, dtorque, scr)
+            _deriv(model, xt, payload, fext, u_cmd, flags, k4, buf, scr)
             for m in range(n_x):
                 x[m] += dt / 6.0 * (k1[m] + 2.0 * k2[m] + 2.0 * k3[m] + k4[m])
             for k in range(nc):

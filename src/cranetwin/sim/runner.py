@@ -75,11 +75,12 @@ class Prepared:
     actuators: tuple[str, ...]
 
     @property
-    def model(self) -> tuple[object, ...]:
-        """The loop's ``model`` tuple (:mod:`cranetwin.sim.engine`)."""
+    def model(self) -> E.SimModel:
+        """The loop's ``model`` record (:class:`cranetwin.sim.engine.SimModel`)."""
         h = self.hyd
-        return (self.chain.chain, self.chain.cyl, h.cyl, h.glob, h.drives, h.free,
-                h.drive_joint, h.free_joint, self.layout.array())
+        return E.SimModel(self.chain.chain, self.chain.cyl, h.cyl, h.glob, h.drives, h.free,
+                          h.drive_joint, h.free_joint, self.layout.array(),
+                          passive_joints(self.machine))
 
 
 def prepare(machine: Machine, options: SimOptions | None = None) -> Prepared:
@@ -133,9 +134,17 @@ def check_scenario(machine: Machine, scenario: Scenario) -> None:
         raise ScenarioFileError(scenario.name, problems)
 
 
+def passive_joints(machine: Machine) -> npt.NDArray[np.int64]:
+    """Indices of the passive joints (no actuator, held at ``fixed_value``)."""
+    return np.array([i for i, j in enumerate(machine.joints) if j.fixed_value is not None],
+                    dtype=np.int64)
+
+
 def default_pose(machine: Machine) -> F64:
-    """Every cylinder's rod at mid-stroke, every other joint at 0 clipped into its limits."""
-    q = np.array([min(max(0.0, j.lower), j.upper) for j in machine.joints])
+    """Every cylinder's rod at mid-stroke, a passive joint at its fixed value, every other
+    joint at 0 clipped into its limits."""
+    q = np.array([j.fixed_value if j.fixed_value is not None else min(max(0.0, j.lower), j.upper)
+                  for j in machine.joints])
     chain = compile_chain(machine)
     for k, c in enumerate(machine.cylinders):
         ji = int(chain.cylinder_joint[k])
@@ -146,7 +155,8 @@ def default_pose(machine: Machine) -> F64:
 def initial_state(prep: Prepared, scenario: Scenario, options: SimOptions) -> F64:
     """State in the scenario's initial pose and velocities, with the chamber pressures (and
     drive torques) that balance the bias forces h(q, qd), so the machine starts unaccelerated
-    (free joints are not held: they start as the dynamics take them).
+    (free joints are not held: they start as the dynamics take them; passive joints are at
+    their fixed value, at rest).
 
     Raises:
         ScenarioError: a rod of the initial pose is outside its stroke.
@@ -164,6 +174,11 @@ def initial_state(prep: Prepared, scenario: Scenario, options: SimOptions) -> F6
                                 f"outside its stroke [0, {c.stroke_m}] m")
     qd0 = (np.asarray(scenario.initial.qd, dtype=np.float64) if scenario.initial.qd is not None
            else np.zeros(nj))
+    q0 = np.array(q0, dtype=np.float64)
+    qd0 = np.array(qd0, dtype=np.float64)
+    for j in passive_joints(prep.machine):  # held at its fixed value, whatever the scenario
+        q0[j] = prep.machine.joints[j].fixed_value
+        qd0[j] = 0.0
     h = np.empty(nj)
     bias(prep.chain.chain, q0, qd0, scenario.initial.payload_kg, h)
     x = np.zeros(lay.n_x)
@@ -278,8 +293,9 @@ class Session:
         truth = np.full((n_truth, lay.n_t), np.nan)
         snaps = np.full((steps.shape[0], lay.n_snap), np.nan)
         idx = np.zeros(3, dtype=np.int64)
-        E.run_steps(self._model, self._sched, self._flags, self.options.step_s, self.x, i0, i1,
-                    i1 if final else -1, self.every, truth, steps, snaps, idx, self._cur)
+        E.run_steps(self._model, self._sched, self._flags, self.options.step_s, self.x,
+                    (i0, i1, i1 if final else -1),
+                    E.Records(self.every, truth, steps, snaps, idx), self._cur)
         if idx[2]:
             raise SimulationError(
                 f"integration unstable before t = {i1 * self.options.step_s:.4f} s (non-finite "

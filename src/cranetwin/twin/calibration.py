@@ -54,7 +54,7 @@ from cranetwin.errors import TwinError
 from cranetwin.model import Cylinder, Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import nominal_period
-from cranetwin.signal.smoothing import sg_filter
+from cranetwin.signal.savgol import sg_filter
 from cranetwin.twin.channels import ChannelMap
 from cranetwin.twin.options import ReplayOptions
 from cranetwin.twin.replay import replay

@@ -27,8 +27,9 @@ by :class:`Quantities` (nc cylinders, nf free joints, i.e. joints no cylinder dr
     pa, pb [Pa]                    nc each       chamber pressures
     torque [N·m]                   1 per free joint: measured drive torque
 
-A free joint whose angle is absent is held at 0 (the reference pose); one whose torque is
-absent has an unknown actuator load (NaN) and keeps its kinematic acceleration.
+A free joint whose angle is absent is held at 0 (the reference pose), a passive joint at its
+fixed value (``FreeJoints.hold``); one whose torque is absent has an unknown actuator load
+(NaN) and keeps its kinematic acceleration.
 """
 
 from __future__ import annotations
@@ -119,10 +120,12 @@ class Cylinders(NamedTuple):
 
 class FreeJoints(NamedTuple):
     """Joints no cylinder drives. ``joint`` (n_f,) their indices; ``friction`` (n_f, 3): Fc
-    [N·m], vc [rad/s], b [N·m·s/rad] of each one's drive (Eq. 2)."""
+    [N·m], vc [rad/s], b [N·m·s/rad] of each one's drive (Eq. 2); ``hold`` (n_f,) [rad or m]
+    added to each one's angle: a passive joint's fixed value (its angle is absent, 0), else 0."""
 
     joint: I64
     friction: F64
+    hold: F64
 
 
 class SampleState(NamedTuple):
@@ -277,7 +280,7 @@ def state_pass(sp, cy, fj, st, out):  # type: ignore[no-untyped-def]
             bad += 1
         for m in range(nf):
             j = fj.joint[m]
-            out.q[g, j] = val[qi.free + 3 * m]
+            out.q[g, j] = val[qi.free + 3 * m] + fj.hold[m]
             w = val[qi.free + 3 * m + 1]
             out.qd[g, j] = w
             out.qdd[g, j] = val[qi.free + 3 * m + 2]

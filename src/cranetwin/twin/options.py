@@ -39,7 +39,8 @@ class ReplayOptions:
         settle_samples: Spline margin on each side of a chunk [samples].
         sample_period_s: Nominal sample period [s]; the median spacing of the first data if None.
         choose_after_s: Streaming: data collected before the smoothing windows are chosen [s].
-        theta0_initial: Slew angle at the start when it is integrated from torque [rad].
+        theta0_initial: Slew angle at the start when it is integrated from torque [rad] (the
+            first integrated free joint; any other integrated joint starts at 0).
         max_gap_s: Dropouts longer than this are flagged in ``TwinResult.gap`` (5 periods if None).
         lookahead_s: Streaming: raw data held back for regularisation [s] (50 periods if None).
         wrench_acceleration: Joint accelerations behind ``joint_wrench``: ``"dynamic"`` =

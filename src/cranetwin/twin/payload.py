@@ -18,6 +18,8 @@ variance reduction), because interpolated and smoothed samples are correlated.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import numpy.typing as npt
 from numba import njit
@@ -25,6 +27,29 @@ from numba import njit
 from cranetwin.errors import TwinError
 
 F64 = npt.NDArray[np.float64]
+
+
+class JointLoads(NamedTuple):
+    """The regression's inputs at k instants: inverse-dynamics joint loads with 0 and 1 kg of
+    payload ``tau0``, ``tau1`` (k, n_joints) [N·m or N], cylinder forces ``force`` (k, n_c) [N]
+    and moment arms ``arm`` ds/dq (k, n_c) [m/rad or m/m]."""
+
+    tau0: F64
+    tau1: F64
+    force: F64
+    arm: F64
+
+
+class PayloadWindow(NamedTuple):
+    """The regression's settings: each cylinder's joint index ``joints`` (n_c,), weights 1/σ²
+    per cylinder joint (n_c,), the prefilter's and the fit's half windows [instants] and the
+    independent errors per instant summed over the joints ``frac_sum``."""
+
+    joints: npt.NDArray[np.int64]
+    weights: F64
+    prefilter_half: int
+    half_window: int
+    frac_sum: float
 
 
 @njit(cache=True)
@@ -93,12 +118,14 @@ def _windowed_payload(g, r, weights, pf, half, frac_sum, m_out, std_out):  # typ
 
 
 @njit(cache=True)
-def _regression_payload(t0, t1, force, arm, joints, weights, pf, half, frac_sum,  # type: ignore[no-untyped-def]
-                        m_out, std_out):
-    """g = (t1 − t0)/arm and r = (force·arm − t0)/arm at the cylinder joints, then
+def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-def]
+    """g = (t1 − t0)/arm and r = (force·arm − t0)/arm at the cylinder joints (:class:`JointLoads`
+    ``loads``, :class:`PayloadWindow` ``win``), then
     :func:`_windowed_payload` (the same operations in the same order, so the same result):
     the running sums of g and r are formed with them, the per-instant window sums with the
     running sums of those, so the data are passed over twice."""
+    t0, t1, force, arm = loads
+    joints, weights, pf, half, frac_sum = win
     n, k = arm.shape
     keep = n if pf == 0 else 0  # g, r themselves only without the prefilter
     g = np.empty((keep, k))
@@ -204,9 +231,10 @@ def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
     m = np.empty(arm.shape[0])
     std = np.empty(arm.shape[0])
     c = np.ascontiguousarray
-    _regression_payload(c(tau0, dtype=np.float64), c(tau1, dtype=np.float64),
-                        c(force, dtype=np.float64), c(arm, dtype=np.float64),
-                        c(joints, dtype=np.int64), c(weights, dtype=np.float64),
+    loads = JointLoads(c(tau0, dtype=np.float64), c(tau1, dtype=np.float64),
+                       c(force, dtype=np.float64), c(arm, dtype=np.float64))
+    win = PayloadWindow(c(joints, dtype=np.int64), c(weights, dtype=np.float64),
                         int(prefilter_half), int(half_window),
-                        float(np.sum(independent_fraction)), m, std)
+                        float(np.sum(independent_fraction)))
+    _regression_payload(loads, win, m, std)
     return m, std

@@ -15,12 +15,16 @@ slew-angle channel is used whenever the machine sends one.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 from numba import njit
 
 from cranetwin.physics.actuator import eq2_friction
+
+if TYPE_CHECKING:
+    from cranetwin.twin.plan import ReplayPlan
 
 F64 = npt.NDArray[np.float64]
 
@@ -100,3 +104,47 @@ def integrate_slew(
     state.momentum, state.theta0, state.velocity, state.torque = (float(x) for x in st[:4])
     state.started = True
     return theta, thd
+
+
+def integrate_free_joints(plan: ReplayPlan, dt: float, motion: tuple[F64, F64], mm: F64,
+                          torques: F64, states: list[SlewState]) -> F64:
+    """Angles of the integrated free joints (``plan.integrated``) over consecutive samples.
+
+    Each joint j is integrated as the slew above (:func:`integrate_slew`): its momentum
+    p_j = Σ_k M_jk·qd_k obeys dp_j/dt = tau_j − F_fr,j, and qd_j = (p_j − Σ_{k≠j} M_jk·qd_k) /
+    M_jj with its own diagonal inertia M_jj and coupling. The joints are integrated one after
+    the other in drive order, and each one's velocities enter the couplings of the joints
+    after it. Neglected: the coupling M_jk·qd_k of a joint j to the integrated joints k after
+    it, and to free joints whose angle is sent (their rates are 0 in ``motion``); M is taken
+    with every free joint at 0. Exact for a vertical slew axis alone (gravity does no work on
+    it and M does not depend on its angle); for another joint, exact only if its axis is
+    vertical or its bodies' centre of mass lies on it, and if M does not depend on its angle.
+    Put the heavy joint first: its M_jj dwarfs the couplings to light joints after it
+    (a tip rotator), while theirs to it is kept.
+
+    Args:
+        plan: The replay plan.
+        dt: Sample period [s].
+        motion: (q, qd) at the samples, (n, n_j), the integrated joints' entries 0.
+        mm: Mass matrices at the samples, (n, n_j, n_j) [kg·m², kg·m, kg].
+        torques: Drive torque of each integrated joint (n, n_int) [N·m] (0 where not sent).
+        states: One integrator state per integrated joint, updated in place.
+
+    Returns:
+        Angles, shape (n, n_int) [rad].
+    """
+    qd = motion[1].copy() if plan.n_int > 1 else motion[1]
+    nj = plan.machine.n_joints
+    theta = np.empty((qd.shape[0], plan.n_int))
+    for i, d in enumerate(plan.integrated):
+        j0 = plan.drive_joints[d]
+        # column j0 of M (= row j0, M symmetric)
+        row = mm[:, :, j0]
+        others = [j for j in range(nj) if j != j0]
+        coupling = np.einsum("nj,nj->n", row[:, others], qd[:, others])
+        fr = plan.machine.torque_drives[d].friction
+        theta[:, i], rate = integrate_slew(dt, torques[:, i], row[:, j0], coupling, fr.coulomb,
+                                           fr.coulomb_velocity, fr.viscous, states[i])
+        if i + 1 < plan.n_int:
+            qd[:, j0] = rate
+    return theta

@@ -1,0 +1,197 @@
+"""The replay's chunk stage: every output at the grid instants of samples [ka, kb).
+
+Per chunk, as a pure function of the plan and the buffered rows the stream hands over:
+natural splines of the smoothed rows (values, rates, accelerations; :func:`splines`), the
+state at the sample instants of an extended range (the payload window reaches ``wh`` samples
+on each side), the payload estimate and mass matrices there, then every grid quantity by
+:func:`cranetwin.twin.gridpass.grid_pass`. Shapes: n grid rows, n_j joints, n_c cylinders.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.errors import TwinError
+from cranetwin.signal import SmoothingChoice, natural_pieces, newton_derivative
+from cranetwin.twin import gridpass
+from cranetwin.twin.plan import ReplayPlan
+from cranetwin.twin.result import TwinResult
+from cranetwin.twin.stages import (
+    clip_rods,
+    eq12,
+    estimate_payload,
+    joint_motion,
+    unpack_states,
+)
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+
+class ChunkRows(NamedTuple):
+    """What the stream's buffers hold for one chunk.
+
+    Attributes:
+        ka, kb: Output samples [ka, kb) (through kb − 1 … the end if ``last``).
+        last: The stream's last chunk.
+        f0: Index of the first smoothed row (the splines' first knot).
+        e0, e1: Sample instants (inclusive) of the payload and mass-matrix stage.
+        sm: Smoothed rows f0 … (:mod:`cranetwin.twin.plan` layout).
+        cs: Cylinder states rows e0 … e1 the integration computed, or None.
+        gap: Rows ka … kb − 1 of the gap flags, (kb − ka,) > 0 inside a bridged dropout.
+    """
+
+    ka: int
+    kb: int
+    last: bool
+    f0: int
+    e0: int
+    e1: int
+    sm: F64
+    cs: F64 | None
+    gap: F64
+
+
+class Timing(NamedTuple):
+    """Sample period [s], time of sample 0 [s], grid points per sample."""
+
+    period: float
+    origin: float
+    r: int
+
+
+class PayloadSetting(NamedTuple):
+    """A known payload [kg] (or None: estimated) and the regression's weights (n_c,),
+    independent fractions (n_c,), prefilter half and half window [samples]."""
+
+    known: float | None
+    weights: F64
+    frac: F64
+    prefilter_half: int
+    half_window: int
+
+
+def splines(plan: ReplayPlan, knots_t: F64, sm: F64) -> tuple[F64, I64, I64]:
+    """One natural spline over every column the grid needs and the quantity table
+    (:mod:`cranetwin.twin.gridpass`) saying which column (and derivative) is what.
+
+    Rates and accelerations are the Savitzky–Golay derivative filters at the samples, splined
+    (``velocity="spline"``); or Newton's divided differences of the smoothed positions,
+    splined, and that spline's derivative (``"newton"``, the paper's way). An integrated
+    angle takes its rate and acceleration from its own spline.
+    """
+    pos_cols, cols, src, der = plan.layout
+    data = sm[:, cols]
+    if plan.opt.velocity == "newton":
+        extra = newton_derivative(knots_t, sm[:, pos_cols], 2 if sm.shape[0] >= 5 else 1)
+        data = np.concatenate([data, extra], axis=1)
+    return natural_pieces(knots_t, data), src, der
+
+
+def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSetting,
+          choices: tuple[SmoothingChoice, ...]) -> TwinResult:
+    """Outputs at samples [ka, kb) of ``rows`` (module docstring)."""
+    m = plan.machine
+    ka, kb, last, f0, e0, e1 = rows.ka, rows.kb, rows.last, rows.f0, rows.e0, rows.e1
+    r, p = timing.r, timing.period
+    nc = len(m.cylinders)
+    nj = m.n_joints
+    nfree = len(plan.free)
+    qi = plan.qi
+    knots_t: F64 = np.arange(f0, f0 + rows.sm.shape[0], dtype=np.float64) * p
+    coef, src, der = splines(plan, knots_t, rows.sm)
+    h0 = float(knots_t[1] - knots_t[0])
+    h_last = float(knots_t[-1] - knots_t[-2])
+    # -- the sample instants e0 … e1: state, actuator loads, payload --------------------------
+    ne = e1 - e0 + 1
+    # free joints whose angle the splines carry (from a channel or integrated)
+    thetas = [f for f in range(nfree) if src[qi.free + 3 * f] >= 0]
+    rod_v, rod_a = slice(qi.v, qi.v + nc), slice(qi.a, qi.a + nc)
+    # the spline at a knot is the knot's value, except the end knot (last piece at h_last)
+    at_samples = gridpass.Splines(coef, e0 - f0, 1, h0, h_last, src, der, qi)
+    free_q = slice(qi.free, qi.free + 3 * nfree)
+    f_s: F64 | None = None
+    if rows.cs is not None:  # cylinder joints' motion, arms and forces as integrated
+        theta = np.empty((ne, 3 * nfree))  # only the free joints' angles from the spline
+        gridpass.spline_points(at_samples._replace(src=src[free_q], der=der[free_q]), ne,
+                               theta)
+        q_s = np.empty((ne, nj))
+        qd_s = np.empty((ne, nj))
+        qdd_s = np.empty((ne, nj))
+        arm_s = np.empty((ne, nc))
+        f_s = np.empty((ne, nc))
+        unpack_states(rows.cs, plan.cyl_joint, theta[:, 0], plan.free[0] if thetas else -1,
+                      q_s, qd_s, qdd_s, arm_s, f_s)
+        smp = theta
+    else:
+        smp = np.empty((ne, src.shape[0]))
+        gridpass.spline_points(at_samples, ne, smp)
+        theta = smp[:, free_q]  # per free joint: angle, rate, acceleration
+        q_other = np.tile(plan.free_joints.hold, (ne, 1))
+        for f in thetas:
+            q_other[:, f] = theta[:, 3 * f]
+        q_s, qd_s, qdd_s, arm_s = joint_motion(plan, clip_rods(plan, smp[:, qi.s : qi.s + nc]),
+                                               smp[:, rod_v], smp[:, rod_a], q_other)
+    for f in thetas:
+        qd_s[:, plan.free[f]] = theta[:, 3 * f + 1]
+        qdd_s[:, plan.free[f]] = theta[:, 3 * f + 2]
+    ks = slice(ka - e0, min(kb - e0 + 1, ne))  # samples ka … kb (if there)
+    n_ks = ks.stop - ks.start
+    if payload.known is not None:
+        mk = np.full(n_ks, float(payload.known))
+        sk = np.zeros(n_ks)
+    else:
+        if f_s is None:
+            f_s = eq12(plan, smp[:, qi.pa : qi.pa + nc], smp[:, qi.pb : qi.pb + nc],
+                       smp[:, rod_v])
+        mk, sk = estimate_payload(plan, (q_s, qd_s, qdd_s), f_s, arm_s,
+                                  (payload.weights, payload.frac, payload.prefilter_half,
+                                   payload.half_window))
+        mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
+    dynamic = plan.opt.wrench_acceleration == "dynamic"
+    # the joints whose loads are measured: every cylinder's, every drive's with a torque
+    full = sorted(plan.cyl_joint.tolist()
+                  + [j for j, t in zip(plan.drive_joints, plan.cmap.torques, strict=True)
+                     if t is not None])
+    if dynamic:
+        mm = np.empty((n_ks, nj, nj))
+        plan.kernels.mass_matrix(np.ascontiguousarray(q_s[ks]),
+                                 np.nan_to_num(np.maximum(mk, 0.0)), mm)
+        minv = np.empty((mm.shape[0], len(full), len(full)))
+        minv_ok = np.empty(mm.shape[0], dtype=bool)
+        gridpass.dd_inverse_batch(mm, np.array(full, dtype=np.int64), minv, minv_ok)
+    else:
+        mm = np.zeros((1, nj, nj))
+        minv = np.zeros((1, len(full), len(full)))
+        minv_ok = np.zeros(1, dtype=bool)
+    # -- the grid ---------------------------------------------------------------------------
+    n = (kb - 1 - ka) * r + 1 if last else (kb - ka) * r
+    gap = rows.gap > 0
+    gap_g = np.repeat(gap, r)[:n] if r > 1 else gap[:n]
+    if gap_g.shape[0] < n:
+        gap_g = np.concatenate([gap_g, np.zeros(n - gap_g.shape[0], dtype=bool)])
+    out = gridpass.GridOut.empty(n, nj, nc, np.ascontiguousarray(gap_g))
+    bad = gridpass.grid_pass(
+        gridpass.Splines(coef, ka - f0, r, h0, h_last, src, der, qi), plan.cylinders,
+        plan.free_joints, gridpass.SampleState(mk, sk, mm, minv, minv_ok, len(full), dynamic),
+        out, plan.kernels)
+    if bad:
+        bad_rows = ~np.all(np.isfinite(out.q), axis=1)
+        joint_motion(plan, out.rod_s[bad_rows], out.rod_v[bad_rows], out.rod_v[bad_rows],
+                     np.tile(plan.free_joints.hold, (int(bad_rows.sum()), 1)))
+        raise TwinError(f"rod positions do not fit the machine geometry at {bad} instants")
+    t = np.arange(n, dtype=np.float64)  # origin + (ka + g/r)·p, in place
+    t /= r
+    t += ka
+    t *= p
+    t += timing.origin
+    return TwinResult(
+        t_s=t, q=out.q, qd=out.qd, qdd=out.qdd, rod_s=out.rod_s, rod_v=out.rod_v,
+        p_a=out.pa, p_b=out.pb, cyl_force=out.force, actuator_torque=out.tau_act,
+        id_torque=out.tau_id, residual=out.resid, joint_wrench=out.wrench,
+        payload_kg=out.mass, payload_std_kg=out.std, gap=gap_g,
+        smoothing=dict(zip(plan.cmap.choice_names, choices, strict=True)),
+    )
