@@ -404,3 +404,20 @@ def test_replay_integrates_every_free_joint_without_an_angle(machine: Machine) -
     parts.append(stream.flush())
     got = TwinResult.concat([p for p in parts if p is not None])
     np.testing.assert_allclose(got.q, res.q, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.timeout(120)
+def test_pin_to_pin_lengths_given_as_strokes_are_refused_not_clipped(machine: Machine,
+                                                                     syn: Synthetic) -> None:
+    s = syn.samples
+    cyl = machine.cylinders[1]
+    col = s.channels.index(next(c.name for c in machine.channels
+                                if c.quantity == "position" and c.source == cyl.name))
+    lengths = s.values.copy()
+    lengths[:, col] += cyl.closed_length_m  # pin-to-pin length = stroke + closed length
+    with pytest.raises(TwinError, match="pin-to-pin"):
+        replay(SampleArrays(s.machine_id, s.t_s, s.channels, lengths), machine, grid_hz=100)
+    # the same data as stroke positions, even with 10 % of full range uniform error on every
+    # rod (rods resting at an end of the stroke then read outside it half of the time), replays
+    noisy = inject_uniform_noise(s, machine, 0.10, seed=5)
+    assert replay(noisy, machine, grid_hz=100).n > 0

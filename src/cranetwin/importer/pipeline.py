@@ -30,6 +30,7 @@ from cranetwin.importer.mapping import ChannelMap, ImportFileError, Mapping
 from cranetwin.importer.readers import Chunk, Refusal
 from cranetwin.model import Machine
 from cranetwin.samples import SampleBlock
+from cranetwin.twin.checks import rod_position_problem
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -38,7 +39,6 @@ B = npt.NDArray[np.bool_]
 BLOCK_SAMPLES = 6000
 MAX_BLOCK_SPAN_NS = 6 * 3600 * 10**9  # storage's limit per block
 KEEP_REFUSALS = 50
-POSITION_TOLERANCE = 0.01
 """Share of the stroke a rod position may lie outside [0, stroke] before it is refused."""
 
 
@@ -187,11 +187,9 @@ def estimate_period_ns(t: I64, jitter: float) -> int:
 
 def position_problem(name: str, values: F64, stroke_m: float, closed_m: float,
                      unit_factor_m: float) -> str | None:
-    """Why the rod positions of one cylinder cannot be stroke positions, or None.
-
-    More than half of the finite values outside [−tol, stroke + tol] (tol = 1 % of the
-    stroke) is a convention or unit mix-up, not a few bad samples; the message names the
-    likely one (pin-to-pin lengths, millimetres).
+    """Why the rod positions of one cylinder cannot be stroke positions, or None: the twin's
+    check (:func:`cranetwin.twin.checks.rod_position_problem`, more than half outside the
+    stroke) with what to declare in the mapping.
 
     Args:
         name: Channel name (for the message).
@@ -199,24 +197,16 @@ def position_problem(name: str, values: F64, stroke_m: float, closed_m: float,
         stroke_m: Stroke [m]; closed_m: pin-to-pin length at zero stroke [m].
         unit_factor_m: Metres per channel unit.
     """
-    v = values[np.isfinite(values)] * unit_factor_m
-    if v.size == 0:
+    problem = rod_position_problem(name, values * unit_factor_m, stroke_m, closed_m)
+    if problem is None:
         return None
-    tol = POSITION_TOLERANCE * stroke_m
-    out = (v < -tol) | (v > stroke_m + tol)
-    if out.mean() <= 0.5:
-        return None
-    lo, hi = float(v.min()), float(v.max())
-    msg = (f"{name}: {int(out.sum())} of {v.size} rod positions lie outside the stroke "
-           f"[0, {stroke_m:g}] m (they span {lo:.4g} … {hi:.4g} m)")
-    if lo >= closed_m - tol and hi <= closed_m + stroke_m + tol:
-        return (msg + f": these look like pin-to-pin lengths (closed length {closed_m:g} m, "
-                f"so stroke = length − {closed_m:g} m); declare convention = \"pin_to_pin\" "
-                f"(with offset = the length at zero stroke) for {name} in the mapping")
-    if -tol <= lo / 1000 and hi / 1000 <= stroke_m + tol:
-        return msg + ": these look like millimetres; declare unit = \"mm\" in the mapping"
-    return (msg + "; check the unit, the convention (stroke or pin-to-pin) and the offset "
-            "in the mapping")
+    if problem.likely == "pin_to_pin":
+        return problem.message + (f"; declare convention = \"pin_to_pin\" (with offset = the "
+                                  f"length at zero stroke) for {name} in the mapping")
+    if problem.likely == "millimetres":
+        return problem.message + "; declare unit = \"mm\" in the mapping"
+    return problem.message + ("; check the unit, the convention (stroke or pin-to-pin) and the "
+                              "offset in the mapping")
 
 
 class Pipeline:

@@ -48,6 +48,7 @@ from cranetwin.samples import SampleArrays
 from cranetwin.signal import SmoothingChoice, nominal_period, regularize
 from cranetwin.twin.buffer import RowBuffer
 from cranetwin.twin.channels import choose_smoothing
+from cranetwin.twin.checks import rod_position_problem
 from cranetwin.twin.chunk import ChunkRows, PayloadSetting, Timing, chunk
 from cranetwin.twin.options import END_STOP_MARGIN_M, HasSamples, ReplayOptions
 from cranetwin.twin.plan import ReplayPlan
@@ -63,6 +64,9 @@ from cranetwin.twin.stages import (
 )
 
 F64 = npt.NDArray[np.float64]
+
+ROD_CHECK_SAMPLES = 200
+"""Samples the rod-position convention check looks at (:meth:`TwinStream._check_rods`)."""
 
 __all__ = ["END_STOP_MARGIN_M", "HasSamples", "ReplayOptions", "TwinStream",
            "derivative_filter", "iter_replay", "replay"]
@@ -113,6 +117,7 @@ class TwinStream:
                       for i in range(self.plan.n_int)]
         self._pw_cache: tuple[tuple[SmoothingChoice, ...], F64, F64] | None = None
         self._finished = False
+        self._rods_checked = False
 
     # -- geometry of the margins -------------------------------------------------------------
     def _margins(self) -> tuple[int, int, int]:
@@ -173,12 +178,32 @@ class TwinStream:
             self._period = nominal_period(t, samples.period_ns)
         self._raw_t = np.concatenate([self._raw_t, t])
         self._raw_v = np.concatenate([self._raw_v, vals])
+        if self._raw_t.shape[0] >= ROD_CHECK_SAMPLES:
+            self._check_rods()
         yield from self._advance(final=False)
+
+    def _check_rods(self) -> None:
+        """Refuse rod positions that are no stroke positions (:mod:`cranetwin.twin.checks`),
+        once, on the first ``ROD_CHECK_SAMPLES`` samples (or all, if the stream is shorter):
+        nearly all of them outside the stroke is a convention or unit mix-up, which clipping
+        would hide."""
+        if self._rods_checked:
+            return
+        self._rods_checked = True
+        for k, cyl in enumerate(self.machine.cylinders):
+            col = self.plan.cmap.s[k]
+            problem = rod_position_problem(self.plan.cmap.names[col], self._raw_v[:, col],
+                                           cyl.stroke_m, cyl.closed_length_m, min_share=0.9)
+            if problem is not None:
+                raise TwinError(problem.message + "; the twin needs stroke positions "
+                                "(s = pin-to-pin length − closed length, in metres)")
 
     def flush_iter(self) -> Iterator[TwinResult]:
         """Like :meth:`flush`, one chunk at a time."""
         if self._finished:
             return
+        if self._raw_t.shape[0]:
+            self._check_rods()
         yield from self._advance(final=True)
         self._finished = True
 
