@@ -1,4 +1,4 @@
-"""Rates that do not move with the report window (issue 18, finding 1): the remaining life,
+"""Rates that do not move with the report window: the remaining life,
 next service and class of utilisation of a repeated daily duty are the same in reports of 1 day,
 1 week and 30 days; every assumption is printed."""
 

@@ -1,4 +1,4 @@
-"""Analytics of any range merged from the parts the twin worker stores (issue 18): the same
+"""Analytics of any range merged from the parts the twin worker stores: the same
 report as replaying every minute of the range, on SQLite and PostgreSQL; hours rolled up."""
 
 from __future__ import annotations

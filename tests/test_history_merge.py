@@ -1,5 +1,5 @@
 """Analytics as stored, mergeable state: parts of any split of a history fold into exactly the
-report of the whole (issue 18). Rainflow residues are re-counted with the next part's, runs of
+report of the whole. Rainflow residues are re-counted with the next part's, runs of
 events and work cycles join across parts, look-back detectors use the previous part's tail."""
 
 from __future__ import annotations
