@@ -306,16 +306,20 @@ def _with_rotator(machine: Machine) -> Machine:
     return machine_from_dict(data, "patu655 with a rotator")
 
 
-def test_replay_of_a_machine_with_two_free_joints(machine: Machine) -> None:
+def _rotator_recording(rot: Machine, angles: bool) -> tuple[F64, F64, F64, F64, SampleArrays]:
+    """Exact samples of the crane with a tip rotator: the synthetic boom motion plus a rotator
+    swing from rest (the slew's integration assumes the machine at rest), payload 150 kg.
+
+    Returns:
+        (t (n,) [s], q (n, 5), joint torques tau (n, 5), cylinder forces (n, 3) [N], samples
+        with both drives' torques and, if ``angles``, the slew and rotator angles).
+    """
     from cranetwin import physics
     from cranetwin.testing.recordings import motion
 
-    rot = _with_rotator(machine)
-    assert rot.n_joints == 5 and len(rot.torque_drives) == 2
     t = np.arange(1201) / 100.0
     q4, qd4, qdd4 = motion(t, 0.5)
     w = 2 * np.pi * 0.2
-    # the rotator starts at rest too (the slew's integration assumes the machine at rest)
     q = np.column_stack([q4, 0.6 * (1.0 - np.cos(w * t))])
     qd = np.column_stack([qd4, 0.6 * w * np.sin(w * t)])
     qdd = np.column_stack([qdd4, 0.6 * w * w * np.cos(w * t)])
@@ -333,9 +337,17 @@ def test_replay_of_a_machine_with_two_free_joints(machine: Machine) -> None:
     for d in rot.torque_drives:
         j = rot.joint_index(d.joint)
         cols[f"{d.name}_torque"] = tau[:, j] + physics.friction_force(qd[:, j], d.friction)
-    cols["slew_angle"] = q[:, 0]
-    cols["rotator_angle"] = q[:, 4]
+    if angles:
+        cols["slew_angle"] = q[:, 0]
+        cols["rotator_angle"] = q[:, 4]
     samples = SampleArrays("rot", t, tuple(cols), np.column_stack(list(cols.values())))
+    return t, q, tau, force, samples
+
+
+def test_replay_of_a_machine_with_two_free_joints(machine: Machine) -> None:
+    rot = _with_rotator(machine)
+    assert rot.n_joints == 5 and len(rot.torque_drives) == 2
+    t, q, tau, force, samples = _rotator_recording(rot, angles=True)
     res = replay(samples, rot, grid_hz=100, payload=150.0)
     inner = slice(100, -100)
     np.testing.assert_allclose(res.q[inner], q[inner], atol=1e-3)
@@ -360,31 +372,8 @@ def test_replay_of_a_machine_with_two_free_joints(machine: Machine) -> None:
 def test_replay_integrates_every_free_joint_without_an_angle(machine: Machine) -> None:
     """Neither the slew's nor the rotator's angle sent: both are integrated from their
     torques (the rotator after the slew, with the slew's rate in its coupling)."""
-    from cranetwin import physics
-    from cranetwin.testing.recordings import motion
-
     rot = _with_rotator(machine)
-    t = np.arange(1201) / 100.0
-    q4, qd4, qdd4 = motion(t, 0.5)
-    w = 2 * np.pi * 0.2
-    q = np.column_stack([q4, 0.6 * (1.0 - np.cos(w * t))])
-    qd = np.column_stack([qd4, 0.6 * w * np.sin(w * t)])
-    qdd = np.column_stack([qdd4, 0.6 * w * w * np.cos(w * t)])
-    tau = physics.joint_torques(rot, q, qd, qdd, np.full(t.shape, 150.0))
-    s, arm = physics.cylinder_kinematics(rot, q)
-    force = tau[:, 1:4] / arm
-    cols: dict[str, F64] = {}
-    for c, cyl in enumerate(rot.cylinders):
-        v = arm[:, c] * qd[:, c + 1]
-        by_q = {ch.quantity: ch.name for ch in rot.channels if ch.source == cyl.name}
-        cols[by_q["pressure_a"]] = (force[:, c] + physics.friction_force(v, cyl.friction)
-                                    + 2.0e6 * cyl.area_b_m2) / cyl.area_a_m2
-        cols[by_q["pressure_b"]] = np.full(t.shape, 2.0e6)
-        cols[by_q["position"]] = s[:, c]
-    for d in rot.torque_drives:
-        j = rot.joint_index(d.joint)
-        cols[f"{d.name}_torque"] = tau[:, j] + physics.friction_force(qd[:, j], d.friction)
-    samples = SampleArrays("rot", t, tuple(cols), np.column_stack(list(cols.values())))
+    t, q, tau, force, samples = _rotator_recording(rot, angles=False)
     res = replay(samples, rot, grid_hz=100, payload=150.0,
                  options=ReplayOptions(grid_hz=100, theta0_initial=float(q[0, 0])))
     inner = slice(100, -100)
