@@ -92,7 +92,7 @@ from cranetwin.sim.hydraulics import (
     spool_step,
     valve_flows,
 )
-from cranetwin.sim.layout import L_NC, L_ND, L_NJ
+from cranetwin.sim.layout import L_NC, L_ND, L_NJ, state_offsets
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -333,10 +333,7 @@ def _eval(model, x, payload, fext, flags, buf, scr, kin_ready):  # type: ignore[
     nj = lay[L_NJ]
     nc = lay[L_NC]
     nd = lay[L_ND]
-    x_pa = 2 * nj
-    x_pb = x_pa + nc
-    x_u = x_pb + nc
-    x_ts = x_u + nd + nc
+    x_pa, x_pb, x_u, x_ts, _ = state_offsets(lay)
     q = x[0:nj]
     qd = x[nj:2 * nj]
     if not kin_ready:
@@ -437,10 +434,7 @@ def _deriv(model, x, payload, fext, u_cmd, flags, dx, buf, scr):  # type: ignore
     nj = lay[L_NJ]
     nc = lay[L_NC]
     nd = lay[L_ND]
-    x_pa = 2 * nj
-    x_pb = x_pa + nc
-    x_u = x_pb + nc
-    x_ts = x_u + nd + nc
+    x_pa, x_pb, x_u, x_ts, _ = state_offsets(lay)
     _eval(model, x, payload, fext, flags, buf, scr, False)
     for j in range(nj):
         dx[j] = x[nj + j]
@@ -480,11 +474,7 @@ def run_steps(model, sched, flags, dt, x, span, rec, cur):  # type: ignore[no-un
     nc = lay[L_NC]
     nd = lay[L_ND]
     na = nd + nc
-    x_pa = 2 * nj
-    x_pb = x_pa + nc
-    x_u = x_pb + nc
-    x_ts = x_u + na
-    n_x = x_ts + nd
+    x_pa, x_pb, x_u, x_ts, n_x = state_offsets(lay)
     # truth columns (layout.Layout.truth_blocks)
     t_q = 1
     t_qd = t_q + nj

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from numba import njit
 
 from cranetwin.model import Machine
 
@@ -135,6 +136,20 @@ class Layout:
         out = np.zeros(N_LAY, dtype=np.int64)
         out[L_NJ], out[L_NC], out[L_ND] = self.nj, self.nc, self.nd
         return out
+
+
+@njit(cache=True, nogil=True)
+def state_offsets(lay):  # type: ignore[no-untyped-def]
+    """Offsets in the state vector of the compiled loop, from :meth:`Layout.array` ``lay``:
+    ``(x_pa, x_pb, x_u, x_ts, n_x)``, as :class:`Layout`'s properties of the same names."""
+    nj = lay[L_NJ]
+    nc = lay[L_NC]
+    nd = lay[L_ND]
+    x_pa = 2 * nj
+    x_pb = x_pa + nc
+    x_u = x_pb + nc
+    x_ts = x_u + nd + nc
+    return x_pa, x_pb, x_u, x_ts, x_ts + nd
 
 
 def layout_of(machine: Machine) -> Layout:
