@@ -199,6 +199,15 @@ def _centred_prefix(y, c, start, length, mid, s):  # type: ignore[no-untyped-def
 
 
 @njit(cache=True, fastmath=True, inline="always")
+def _intersect(k, e, g, lo, hi):  # type: ignore[no-untyped-def]
+    """The ICI rule's running intersection after window k: [e − g, e + g] for the first
+    window, else its intersection with [lo, hi] (empty when lo > hi: stop)."""
+    if k == 0:
+        return e - g, e + g
+    return max(lo, e - g), min(hi, e + g)
+
+
+@njit(cache=True, fastmath=True, inline="always")
 def _window_sum(s, k, win, r, q, x):  # type: ignore[no-untyped-def]
     """Centre-filter estimate of window k from the :class:`Centred` sums ``s`` between prefix
     indices q and r (x = sample − block middle): e0·Σz + e1·Σj²z + c·Σh, with
@@ -410,43 +419,28 @@ def _ici_near_end(sig, i, x, win, blk, ends, out):  # type: ignore[no-untyped-de
             s2 += float(jj * jj) * yy
         ring = h
         e = win.e0[k] * s0 + win.e1[k] * s2
-        if k == 0:
-            lo = e - win.gs[k]
-            hi = e + win.gs[k]
-        else:
-            lo = max(lo, e - win.gs[k])
-            hi = min(hi, e + win.gs[k])
-            if lo > hi:
-                stopped = True
-                break
+        lo, hi = _intersect(k, e, win.gs[k], lo, hi)
+        if lo > hi:
+            stopped = True
+            break
         kk = k
         k += 1
     if not stopped:
         while k < kin:
             h = halves[k]
             e = _window_sum(blk.f, k, win, U(i + h + 1 - blk.start), U(i - h - blk.start), x)
-            if k == 0:
-                lo = e - win.gs[k]
-                hi = e + win.gs[k]
-            else:
-                lo = max(lo, e - win.gs[k])
-                hi = min(hi, e + win.gs[k])
-                if lo > hi:
-                    stopped = True
-                    break
+            lo, hi = _intersect(k, e, win.gs[k], lo, hi)
+            if lo > hi:
+                stopped = True
+                break
             kk = k
             k += 1
     if not stopped:
         while k < nw:
             e = _end_poly(ends.lf if i < halves[k] else ends.rf, k, i, halves[k], n)
-            if k == 0:
-                lo = e - win.gs[k]
-                hi = e + win.gs[k]
-            else:
-                lo = max(lo, e - win.gs[k])
-                hi = min(hi, e + win.gs[k])
-                if lo > hi:
-                    break
+            lo, hi = _intersect(k, e, win.gs[k], lo, hi)
+            if lo > hi:
+                break
             kk = k
             k += 1
     h = halves[kk]
