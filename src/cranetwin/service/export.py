@@ -312,7 +312,7 @@ def export_series(fleet: FleetService, rec: MachineRecord, rng: TimeRange, serie
 
     def chunks() -> Iterator[Columns]:
         if series == "raw":
-            return raw_chunks(backend, machine, mid, rng, s.nominal_rate_hz)
+            return raw_chunks(backend, machine, mid, rng, s.nominal_rate_hz, CHUNK_SAMPLES)
         if series == "cycles":
             from cranetwin.service.analytics import analytics_report
 
