@@ -300,7 +300,7 @@ def test_events_lists_stored_events(ctx: Ctx) -> None:
 
 
 def test_aemp_equipment_counts_lifts_and_hours(ctx: Ctx) -> None:
-    j = ctx.get(f"/api/v1/aemp/Equipment/{MID}", role="fleet").json()
+    j = ctx.get(f"/api/v1/aemp/Equipment/{MID}", role="fleet", format="json").json()
     assert j["EquipmentHeader"]["EquipmentID"] == MID
     assert j["CumulativeOperatingHours"]["Hour"] == pytest.approx(180 / 3600, abs=1e-3)
     assert j["CumulativeLoadCount"]["Count"] == 2  # lifts at 30–60 s and 90–120 s ended
@@ -312,7 +312,7 @@ def test_aemp_equipment_counts_lifts_and_hours(ctx: Ctx) -> None:
 
 
 def test_aemp_fleet_pages_and_links(ctx: Ctx) -> None:
-    j = ctx.get("/api/v1/aemp/Fleet/1", role="fleet").json()
+    j = ctx.get("/api/v1/aemp/Fleet/1", role="fleet", format="json").json()
     rels = {link["rel"]: link["href"] for link in j["Links"]}
     assert rels["self"].endswith("/Fleet/1") and rels["last"].endswith("/Fleet/1")
     assert "next" not in rels and "prev" not in rels
