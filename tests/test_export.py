@@ -305,3 +305,62 @@ def test_machines_paging_and_filters(ctx: Ctx) -> None:
     for bad in ({"status": "sleeping"}, {"bbox": "1,2,3"}, {"bbox": "30,0,20,1"},
                 {"limit": 0}):
         assert ctx.get(path, "viewer", **bad).status_code == 422, bad
+
+
+# --- streaming: the read-ahead thread ---------------------------------------------------------
+@pytest.mark.timeout(30)
+def test_prefetch_stops_when_the_consumer_goes_away() -> None:
+    import threading
+
+    made: list[int] = []
+
+    def endless() -> Iterator[dict[str, Any]]:
+        k = 0
+        while True:
+            made.append(k)
+            yield {"t_s": np.array([float(k)])}
+            k += 1
+
+    before = threading.active_count()
+    it = ex.prefetched(endless(), depth=2)
+    assert [next(it)["t_s"][0] for _ in range(3)] == [0.0, 1.0, 2.0]
+    it.close()  # what the server does when a client disconnects
+    assert threading.active_count() == before
+    n = len(made)
+    assert n <= 3 + 2 + 1  # read ahead at most ``depth`` (+1 in hand), then stopped
+    assert len(made) == n
+
+
+@pytest.mark.timeout(30)
+def test_prefetch_hands_on_a_producer_error() -> None:
+    def failing() -> Iterator[dict[str, Any]]:
+        yield {"t_s": np.zeros(1)}
+        raise ValueError("disk gone")
+
+    it = ex.prefetched(failing())
+    next(it)
+    with pytest.raises(ValueError, match="disk gone"):
+        next(it)
+
+
+# --- CLI --------------------------------------------------------------------------------------
+def test_cli_export_writes_the_same_file(ctx: Ctx, tmp_path: Any,
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    from typer.testing import CliRunner
+
+    from cranetwin.cli import app
+
+    monkeypatch.setenv("CRANETWIN_DATABASE_URL", ctx.services.settings.database_url)
+    out = tmp_path / "raw.parquet"
+    args = ["export", "--machine", MID, "--from", str(T0 + 1.5), "--to", str(T0 + 100.0),
+            "--out", str(out), "-q"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    tab = pq.read_table(out)
+    ref = ctx.services.backend.read_samples(MID, T0 + 1.5, T0 + 100.0)
+    np.testing.assert_array_equal(tab["t_ns"].to_numpy(), ref.t_ns)
+    np.testing.assert_array_equal(tab["lift_pA"].to_numpy(), ref.column("lift_pA"))
+    bad = CliRunner().invoke(app, [*args[:-3], "--out", str(tmp_path / "x.xlsx")])
+    assert bad.exit_code != 0 and not (tmp_path / "x.xlsx").exists()
+    missing = CliRunner().invoke(app, [*args[:-3], "--out", str(tmp_path / "no" / "x.csv")])
+    assert missing.exit_code != 0
