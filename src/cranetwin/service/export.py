@@ -143,8 +143,9 @@ def raw_chunks(backend: Any, machine: Machine, machine_id: str, rng: TimeRange,
                 out: Columns = {"t_ns": t_ns, "t_s": s.t_s}
                 idx = {c: j for j, c in enumerate(s.channels)}
                 nan = np.full(s.t_s.shape[0], np.nan)
+                cols = np.asfortranarray(s.values)  # contiguous columns: no copy per column
                 for n in names:
-                    out[n] = s.values[:, idx[n]] if n in idx else nan
+                    out[n] = cols[:, idx[n]] if n in idx else nan
                 yield out
             start = end
 

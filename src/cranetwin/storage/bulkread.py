@@ -50,8 +50,10 @@ def _decode_group(bodies: list[bytes], width: int, n: int, c: int,
     nb = len(bodies)
     nplane = n * c * width
     raw = np.frombuffer(b"".join(bodies), dtype=np.uint8).reshape(nb, -1)
-    planes = raw[:, :nplane].reshape(nb, width, n * c)
-    z = np.ascontiguousarray(planes.transpose(0, 2, 1)).view(_UINT[width]).reshape(nb, c, n)
+    planes = raw[:, :nplane].reshape(nb, width, c, n)
+    z = planes[:, 0].astype(_UINT[width])  # byte planes joined without a transpose
+    for b in range(1, width):
+        z |= planes[:, b].astype(_UINT[width]) << (8 * b)
     # a zigzag value of w bytes holds a delta of w signed bytes: undo it at that width
     d = (z >> 1).view(_INT[width]) ^ -(z & 1).view(_INT[width])
     k = np.cumsum(d, axis=2, dtype=np.int64).transpose(0, 2, 1)  # (B, n, c)
