@@ -63,8 +63,8 @@ def _random_blocks(rng: np.random.Generator, machine_id: str) -> list[SampleBloc
 
 
 @pytest.mark.timeout(120)
-def test_bulk_read_equals_read_samples(tmp_path: Any) -> None:
-    store = Store.open(f"sqlite:///{tmp_path / 'b.db'}")
+def test_bulk_read_equals_read_samples(db_url: str) -> None:
+    store = Store.open(db_url)
     store.add_machine("m", wire_id=1, secret=b"s" * 32)
     rng = np.random.default_rng(7)
     res = store.write_batch(_random_blocks(rng, "m"))
