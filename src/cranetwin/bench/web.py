@@ -67,7 +67,8 @@ def demo_first_live(timeout_s: float = 300.0) -> float | None:
 
     with tempfile.TemporaryDirectory(prefix="cranetwin-bench-demo-") as d:
         env = {**os.environ, "CRANETWIN_DEMO_LOGS": os.path.join(d, "logs")}
-        cmd = [sys.executable, "-c", "from cranetwin.cli import main; main()", "fleetdemo", "--machines", "1",
+        cmd = [sys.executable, "-c", "from cranetwin.cli import main; main()", "fleetdemo",
+               "--machines", "1",
                "--port", str(_free_port(socket.SOCK_STREAM)),
                "--udp-port", str(_free_port(socket.SOCK_DGRAM)),
                "--db", f"sqlite:///{d}/demo.db", "--start-timeout", str(timeout_s)]
