@@ -334,4 +334,7 @@ def _history_channels(model: dict[str, Any]) -> list[str]:
     out += [f"force:{c['name']}" for c in model.get("cylinders", [])]
     out.append("payload")
     out += [f"moment:{j['name']}" for j in model.get("joints", []) if j.get("kind") == "revolute"]
+    out += [f"torque:{j['name']}" for j in model.get("joints", [])]
+    out += [str(c["name"]) for c in model.get("channels", [])
+            if c.get("quantity") in ("position", "angle", "torque")]
     return out
