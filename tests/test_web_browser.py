@@ -357,7 +357,8 @@ def test_unknown_machine_says_so(page: Any, server: Service) -> None:
 
 def test_exported_file_replays_offline(page: Any, server: Service, tmp_path: Path) -> None:
     r = httpx.get(f"{server.url}/api/v1/machines/crane-2/export.html",
-                  params={"from": END - 60, "to": END}, headers={"X-API-Key": server.viewer})
+                  params={"from": END - 60, "to": END}, headers={"X-API-Key": server.viewer},
+                  timeout=60.0)
     assert r.status_code == 200
     f = tmp_path / "replay.html"
     f.write_bytes(r.content)

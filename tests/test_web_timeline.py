@@ -315,3 +315,58 @@ def test_live_charts_include_joint_loads(page: Any, server: Service) -> None:
         feeder.stop.set()
         feeder.thread.join(5)
     assert not page.errors
+
+
+@pytest.mark.timeout(90)  # the first test also starts the module's server
+def test_envelope_utilisation_and_camera_follow(page: Any, server: Service) -> None:
+    """The 3D view's rated-load figures equal the machine's chart at the twin's reach and
+    payload; the envelope lies in the slew plane of the load; Follow keeps the orbit target on
+    the load."""
+    import numpy as np
+
+    from cranetwin.model import load_machine
+
+    t = END - 100
+    _open(page, server, t)
+    page.wait_for_function("window.cranetwin.envelope && window.cranetwin.envelope.rated_kg > 0")
+    env = page.evaluate("window.cranetwin.envelope")
+    twin = page.request.get(f"{server.url}/api/v1/machines/crane-2/twin",
+                            params={"from": t - 0.5, "to": t + 0.5, "rate_hz": 25}).json()
+    i = int(np.argmin(np.abs(np.asarray(twin["t"]) - t)))
+    tip = np.asarray(twin["tip"][i])
+    kg = float(np.interp(t, twin["payload"]["t"], twin["payload"]["kg"]))
+    machine = load_machine("patu655")
+    reach = float(np.hypot(tip[0], tip[1]))  # patu655: vertical slew axis through the origin
+    rated = float(machine.rated_load.payload_at(np.array([reach]))[0])
+    assert abs(env["reach_m"] - reach) < 0.02, (env, reach)
+    assert abs(env["rated_kg"] - rated) < 0.01 * rated, (env, rated)
+    assert abs(env["utilisation"] - max(kg, 0) / rated) < 0.02, (env, kg / rated)
+    assert f"{round(100 * env['utilisation'])} % of rated" in page.inner_text("#now-util")
+    # the marker and curve lie in the vertical plane through the slew axis and the load
+    pts = page.evaluate("(() => { const e = window.__crane.envelope; const p = e.curve.attributes"
+                        ".position.array; return {m: e.marker.position.toArray(), c: Array.from(p),"
+                        " visible: e.group.visible}; })()")
+    assert pts["visible"]
+    d = tip[:2] / np.linalg.norm(tip[:2])
+    curve = np.asarray(pts["c"]).reshape(-1, 3)
+    cross = curve[:, 0] * d[1] - curve[:, 1] * d[0]
+    assert np.abs(cross).max() < 0.01  # [m]: at most 1 cm off the plane at 7 m reach
+    assert abs(np.asarray(pts["m"])[:2] @ d - reach) < 0.02
+    # the curve's height follows the chart: the largest rated payload at the shortest reach
+    heights = curve[:, 2]
+    assert heights.max() == pytest.approx(2.5, abs=1e-3)
+    # camera follow: the orbit target is on the load after a seek (it was not before)
+    before = np.asarray(page.evaluate("window.__crane.viewer.controls.target.toArray()"))
+    assert np.linalg.norm(before - [tip[0], tip[2], -tip[1]]) > 0.5
+    page.click("#follow")
+    page.locator("#slider").focus()
+    page.keyboard.press("PageDown")
+    page.wait_for_function(f"Math.abs(window.cranetwin.drawnT - {t + 10}) < 0.01")
+    target = page.evaluate("window.__crane.viewer.controls.target.toArray()")
+    twin2 = page.request.get(f"{server.url}/api/v1/machines/crane-2/twin",
+                             params={"from": t + 9.5, "to": t + 10.5, "rate_hz": 25}).json()
+    j = int(np.argmin(np.abs(np.asarray(twin2["t"]) - (t + 10))))
+    p = np.asarray(twin2["tip"][j])
+    # (the page interpolates its own 60 s chunk: within millimetres of this 1 s window's tip)
+    assert np.allclose(target, [p[0], p[2], -p[1]], atol=0.01), (target, p)
+    assert not page.errors

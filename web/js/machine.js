@@ -568,8 +568,18 @@ function readout(f) {
     : `live · ${Math.max(0, Math.round(Date.now() - f.t * 1000))} ms behind`;
   const kg = f.payload_kg;
   $("now-payload").textContent = kg === null || kg === undefined ? "unknown" : `${Math.round(kg)} kg`;
-  const rated = state.crane.spec.rated_payload_kg;
+  const env = state.crane.envelopeState;
+  const rated = env ? env.rated_kg : state.crane.spec.rated_payload_kg;
   $("payload-bar").style.width = `${Math.min(100, 100 * (kg || 0) / rated)}%`;
+  if (env) {
+    metrics.envelope = env;
+    $("now-reach").textContent = `${env.reach_m.toFixed(2)} m`;
+    $("now-rated").textContent = `${Math.round(env.rated_kg)} kg`;
+    const u = $("now-util");
+    u.textContent = kg === null || kg === undefined ? "–" : `${Math.round(100 * env.utilisation)} % of rated`;
+    u.className = env.utilisation > 1 ? "over" : env.utilisation > 0.8 ? "high" : "";
+    $("readout").textContent = kg === null || kg === undefined ? "" : `load ${Math.round(kg)} kg · ${Math.round(100 * env.utilisation)} % of the rated ${Math.round(env.rated_kg)} kg at ${env.reach_m.toFixed(1)} m`;
+  }
   for (const c of state.crane.spec.cylinders) {
     const F = (f.cylinder_forces || {})[c];
     const u = (f.utilisation || {})[c];
@@ -685,6 +695,18 @@ function wireControls() {
     setTimeout(() => banner(null), 4000);
   };
   $("help-btn").onclick = () => $("help").showModal();
+  $("follow").onclick = () => {
+    const on = $("follow").getAttribute("aria-pressed") !== "true";
+    $("follow").setAttribute("aria-pressed", String(on));
+    state.crane.setFollow(on);
+    metrics.follow = on;
+    state.needsFrame = true; state.liveDirty = true;
+  };
+  $("envelope").onclick = () => {
+    const on = $("envelope").getAttribute("aria-pressed") !== "true";
+    $("envelope").setAttribute("aria-pressed", String(on));
+    state.crane.setEnvelopeVisible(on);
+  };
   $("export").onclick = async (ev) => {
     ev.preventDefault();
     if (state.mode !== "replay" || state.from === null) { banner("Export needs a replay range: switch to Replay (R) and choose one.", "warn"); return; }
@@ -740,6 +762,8 @@ function wireControls() {
       case "l": case "L": if (!embed) setMode("live"); break;
       case "r": case "R": $("mode-replay").click(); break;
       case "s": case "S": if (!embed) $("share").click(); break;
+      case "f": case "F": $("follow").click(); break;
+      case "e": case "E": $("envelope").click(); break;
       case "?": $("help").showModal(); break;
       case "Escape": if (!embed && !document.querySelector("dialog[open]")) window.location.href = "/"; break;
       default: break;
