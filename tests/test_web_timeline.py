@@ -1,4 +1,5 @@
-"""Browser tests of the machine page's timeline, channel picker, live joint loads and 3D aids.
+"""Browser tests of the machine page's timeline, channel picker, live joint loads and 3D aids,
+and of the fleet map.
 
 ``create_app`` on a temporary SQLite database; crane-2 has two stretches of stored samples with a
 200 s silence between them ([END-600, END-400] and [END-200, END]), the twin worker's derived
@@ -53,9 +54,10 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
         services = app.state.services
         viewer = services.backend.create_key("viewer", "timeline tests")[1]
         admin = services.backend.create_key("admin", "timeline tests")[1]
-        for i in (1, 2):
+        for i, (lat, lon) in ((1, (62.24, 25.75)), (2, (61.50, 23.79))):  # Jyväskylä, Tampere
             r = httpx.post(f"{srv.url}/api/v1/machines", headers={"X-API-Key": admin},
-                           json={"machine_id": f"crane-{i}", "model": "patu655"})
+                           json={"machine_id": f"crane-{i}", "model": "patu655",
+                                 "location": {"lat": lat, "lon": lon}})
             assert r.status_code == 201, r.text
         base = kinematic_samples(machine, 120.0)
         store = services.backend.store
@@ -369,4 +371,42 @@ def test_envelope_utilisation_and_camera_follow(page: Any, server: Service) -> N
     p = np.asarray(twin2["tip"][j])
     # (the page interpolates its own 60 s chunk: within millimetres of this 1 s window's tip)
     assert np.allclose(target, [p[0], p[2], -p[1]], atol=0.01), (target, p)
+    assert not page.errors
+
+
+@pytest.mark.timeout(90)  # the first test also starts the module's server
+def test_fleet_map_places_machines_offline_and_follows_the_filter(page: Any,
+                                                                  server: Service) -> None:
+    requests: list[str] = []
+    page.on("request", lambda r: requests.append(r.url))
+    page.goto(f"{server.url}/")
+    page.wait_for_function("window.cranetwin.mapReady === true && window.cranetwin.mapMarkers"
+                           " === 2", timeout=30000)
+    assert page.locator("#map path[data-country]").count() > 150
+    # each marker sits inside Finland's outline (bounding box of its path on the map)
+    fin = page.evaluate("(() => { const b = document.querySelector('#map path[data-country="
+                        "\"Finland\"]').getBBox(); return [b.x, b.y, b.x + b.width,"
+                        " b.y + b.height]; })()")
+    for mid in ("crane-1", "crane-2"):
+        c = page.locator(f".map-machine[data-machine-id='{mid}'] circle")
+        x, y = float(c.get_attribute("cx")), float(c.get_attribute("cy"))
+        assert fin[0] < x < fin[2] and fin[1] < y < fin[3], (mid, x, y, fin)
+    # Jyväskylä is north-east of Tampere
+    c1 = page.locator(".map-machine[data-machine-id='crane-1'] circle")
+    c2 = page.locator(".map-machine[data-machine-id='crane-2'] circle")
+    assert float(c1.get_attribute("cx")) > float(c2.get_attribute("cx"))
+    assert float(c1.get_attribute("cy")) < float(c2.get_attribute("cy"))
+    # the table's filter filters the map
+    page.fill("#filter", "crane-1")
+    page.wait_for_function("document.querySelectorAll('.map-machine').length === 1")
+    assert page.locator("#rows tr").count() == 1
+    page.hover("#rows tr[data-machine-id='crane-1']")
+    assert page.locator(".map-machine.hl[data-machine-id='crane-1']").count() == 1
+    page.fill("#filter", "")
+    page.wait_for_function("document.querySelectorAll('.map-machine').length === 2")
+    # nothing came from another host (basemap and its decoder are served with the page)
+    assert all(u.startswith(server.url) for u in requests), [u for u in requests
+                                                            if not u.startswith(server.url)]
+    page.click(".map-machine[data-machine-id='crane-2'] circle")
+    page.wait_for_url("**/machines/crane-2**")
     assert not page.errors
