@@ -23,12 +23,14 @@ the pages are opened with the session cookie only, never with a key in their URL
 from __future__ import annotations
 
 import os
+import queue
 import re
 import signal
 import socket
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from typing import Any
 
@@ -66,7 +68,8 @@ def demo_first_live(timeout_s: float = 300.0) -> float | None:
     import tempfile
 
     with tempfile.TemporaryDirectory(prefix="cranetwin-bench-demo-") as d:
-        env = {**os.environ, "CRANETWIN_DEMO_LOGS": os.path.join(d, "logs")}
+        env = {**os.environ, "CRANETWIN_DEMO_LOGS": os.path.join(d, "logs"),
+               "PYTHONUNBUFFERED": "1"}  # its progress lines as they are printed
         cmd = [sys.executable, "-c", "from cranetwin.cli import main; main()", "fleetdemo",
                "--machines", "1",
                "--port", str(_free_port(socket.SOCK_STREAM)),
@@ -75,15 +78,23 @@ def demo_first_live(timeout_s: float = 300.0) -> float | None:
         t0 = time.monotonic()
         proc = subprocess.Popen(cmd, cwd=d, env=env, stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, text=True, start_new_session=True)
-        found: float | None = None
-        try:
+        lines: queue.Queue[str] = queue.Queue()
+
+        def _read() -> None:
             assert proc.stdout is not None
             for line in proc.stdout:
+                lines.put(line)
+
+        threading.Thread(target=_read, daemon=True).start()
+        found: float | None = None
+        try:
+            while found is None and time.monotonic() - t0 < timeout_s and proc.poll() is None:
+                try:
+                    line = lines.get(timeout=0.2)
+                except queue.Empty:
+                    continue
                 if LIVE_LINE.search(line):
                     found = time.monotonic() - t0
-                    break
-                if time.monotonic() - t0 > timeout_s:
-                    break
         finally:
             proc.send_signal(signal.SIGINT)
             try:
