@@ -15,7 +15,7 @@ the sending command documents, never from argv.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 from pydantic import Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -140,6 +140,23 @@ class Settings(BaseSettings):
     demo_logs: Path | None = Field(
         None, description="folder of the demo's child-process logs, scenario and secret files "
                           "(default: cranetwin-demo-<uid> in the temporary folder)")
+
+    # -- webhook notification of new alarms (``cranetwin.service.webhooks``) -------------------
+    alarm_webhook_url: str = Field(
+        "", description="URL that receives an HMAC-signed JSON POST for every new event of "
+                        "alarm_webhook_severity and above; empty = no webhook")
+    alarm_webhook_secret: str = Field(
+        "", description="HMAC-SHA256 key of the X-Cranetwin-Signature header (environment "
+                        "only; never logged); required with alarm_webhook_url")
+    alarm_webhook_severity: Literal["info", "warning", "critical"] = Field(
+        "critical", description="lowest severity sent to the webhook")
+    alarm_webhook_retries: int = Field(
+        5, ge=0, le=20, description="retries of a failed delivery (connection error, timeout, "
+                                    "HTTP 429 or 5xx), after 1, 2, 4 … × the backoff")
+    alarm_webhook_backoff_s: float = Field(
+        1.0, gt=0, le=60, description="first retry delay of a webhook delivery [s]")
+    alarm_webhook_timeout_s: float = Field(
+        5.0, gt=0, le=60, description="timeout of one webhook request [s]")
 
 
 S = TypeVar("S", bound=Settings)
