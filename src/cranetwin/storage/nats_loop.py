@@ -150,12 +150,21 @@ class NatsLoop:
                 return
             self._closed = True
         nc = self.nc
-        if nc is not None and not nc.is_closed:
-            fut = asyncio.run_coroutine_threadsafe(nc.close(), self._loop)
-            try:
-                fut.result(timeout_s)
-            except Exception as exc:  # closing a broken connection: nothing left to save
-                log.debug("nats close: %s", exc)
+
+        async def shutdown() -> None:
+            if nc is not None and not nc.is_closed:
+                await nc.close()
+            me = asyncio.current_task()
+            rest = [t for t in asyncio.all_tasks() if t is not me]
+            for t in rest:
+                t.cancel()
+            await asyncio.gather(*rest, return_exceptions=True)
+
+        fut = asyncio.run_coroutine_threadsafe(shutdown(), self._loop)
+        try:
+            fut.result(timeout_s)
+        except Exception as exc:  # closing a broken connection: nothing left to save
+            log.debug("nats close: %s", exc)
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(timeout_s)
         if not self._thread.is_alive():
