@@ -1,10 +1,12 @@
 """The storage writer: durable JetStream consumers of the fleet bus writing into the database.
 
 ``cranetwin store-writer`` runs one :class:`StoreWriter`. For each partition it owns it binds
-the durable pull consumer ``store-writer-<p>`` (created if missing: explicit acks, ``ack_wait``
-from :class:`~cranetwin.bus.subjects.BusConfig`), fetches batches, and::
+the durable consumer ``store-writer-<p>`` (created if missing: push to
+``_cranetwin.deliver.<stream>.<p>`` in the queue group of the same name, explicit acks,
+``ack_wait`` from :class:`~cranetwin.bus.subjects.BusConfig`, at most ``batch_max`` messages
+unacknowledged, which bounds what a writer holds) and::
 
-    fetch (per partition) ─► bounded queue ─► decode ─► Store.write_batch (one transaction)
+    delivered messages ─► batch (≤ batch_max) ─► decode ─► Store.write_batch (one transaction)
                                                           │ unavailable → retried with backoff,
                                                           │ messages kept in progress, none acked
                                                           ▼
@@ -21,8 +23,12 @@ that is not a block (:class:`~cranetwin.bus.blockcodec.BlockCodecError`) likewis
 
 One writer per partition at a time: storage's overlap check assumes a single writer per machine
 (:mod:`cranetwin.storage.writes`). Two writers bound to one consumer still never lose or double
-a block (each message goes to one of them, and writes are idempotent), they only lose the
-overlap check's guarantee.
+a block (the queue group gives each message to one of them, and writes are idempotent), they
+only lose the overlap check's guarantee.
+
+Why push, not pull: nats-py's ``fetch`` spends about 160 µs of CPU per message (a task and a
+timeout per message); a plain subscription on the deliver subject, acked with a plain publish
+of ``+ACK`` to the message's reply subject, about 40 µs (measured on this machine).
 """
 
 from __future__ import annotations
@@ -35,13 +41,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from cranetwin.bus.blockcodec import BlockCodecError, decode_block
-from cranetwin.bus.subjects import BusConfig, durable_name, ensure_stream, partition_filter
+from cranetwin.bus.blockcodec import BlockCodecError, decode_blocks
+from cranetwin.bus.subjects import (
+    BusConfig,
+    deliver_subject,
+    durable_name,
+    ensure_stream,
+    partition_filter,
+)
 from cranetwin.errors import StorageUnavailableError
 from cranetwin.samples import SampleBlock
 from cranetwin.storage import Store, WriteResult, dberrors
 from cranetwin.storage.live import LiveBus
-from cranetwin.storage.nats_loop import is_unavailable as nats_unavailable
 from cranetwin.storage.nats_loop import nats_module, redact
 
 log = logging.getLogger(__name__)
@@ -52,8 +63,9 @@ class WriterConfig:
     """Settings of one storage writer.
 
     Attributes:
-        batch_max: Messages fetched per request and written per transaction at most.
-        fetch_wait_s: Longest wait of one fetch request for messages [s].
+        batch_max: Messages written per transaction at most; also the most messages each
+            partition's consumer leaves unacknowledged with this writer.
+        fetch_wait_s: Longest wait for messages before the loop checks for a stop [s].
         retry_min_s, retry_max_s: First and longest wait between retries of a batch while the
             database is unavailable [s].
         rollup_interval_s: Period of the 1-min summary rollup [s].
@@ -127,6 +139,9 @@ class StoreWriter:
         self._logged: set[str] = set()
         self._stop = asyncio.Event()
         self._nats = nats_module()
+        self._nc: Any = None
+        self._pending: list[Any] = []
+        self._arrived = asyncio.Event()
 
     def stop(self) -> None:
         """Ask :meth:`run` to finish the batch in hand and return (call on its loop)."""
@@ -171,45 +186,39 @@ class StoreWriter:
             self._log_once("rollup", "summary rollup failed: %s", exc)
 
     # -- bus side (event loop) ------------------------------------------------------------------
-    async def _fetch(self, sub: Any, out: asyncio.Queue[list[Any]]) -> None:
-        timeout_error = self._nats.errors.TimeoutError
-        while not self._stop.is_set():
-            try:
-                msgs = await sub.fetch(self.config.batch_max, timeout=self.config.fetch_wait_s)
-            except (TimeoutError, timeout_error):
-                continue
-            except Exception as exc:
-                if not nats_unavailable(exc, self._nats):
-                    raise
-                await asyncio.sleep(0.5)  # reconnecting
-                continue
-            if msgs:
-                await out.put(msgs)
+    async def _on_msg(self, msg: Any) -> None:
+        self._pending.append(msg)
+        self._arrived.set()
+
+    async def _reply(self, msg: Any, what: bytes) -> None:
+        """``+ACK``, ``+TERM`` or ``+WPI`` (in progress) to the message's reply subject."""
+        if msg.reply:
+            await self._nc.publish(msg.reply, what)
 
     async def _keep_in_progress(self, msgs: list[Any]) -> None:
-        """Tell JetStream the batch is being worked on (a long database outage) so it is not
-        delivered again meanwhile."""
+        """Tell JetStream the batch in hand and the messages waiting behind it are being worked
+        on (a long database outage), so they are not delivered again meanwhile."""
         while True:
             await asyncio.sleep(max(self.bus.ack_wait_s / 3, 0.1))
-            for m in msgs:
+            for m in [*msgs, *self._pending]:
                 with contextlib.suppress(Exception):
-                    await m.in_progress()
+                    await self._reply(m, b"+WPI")
 
     async def _handle(self, msgs: list[Any]) -> None:
         c = self.counters
         c.messages += len(msgs)
         blocks: list[SampleBlock] = []
         kept: list[Any] = []
-        for m in msgs:
-            try:
-                blocks.append(decode_block(m.data))
-                kept.append(m)
-            except BlockCodecError as exc:
+        for m, got in zip(msgs, decode_blocks([m.data for m in msgs]), strict=True):
+            if isinstance(got, BlockCodecError):
                 c.bad_messages += 1
                 self._log_once("bad_message", "message on %s is not a block, terminated: %s",
-                               m.subject, exc)
+                               m.subject, got)
                 with contextlib.suppress(Exception):
-                    await m.term()
+                    await self._reply(m, b"+TERM")
+            else:
+                blocks.append(got)
+                kept.append(m)
         if not blocks:
             return
         keep = asyncio.create_task(self._keep_in_progress(kept))
@@ -228,7 +237,7 @@ class StoreWriter:
                 self._log_once(f"refused:{reason}", "block of %s (epoch %d, seq %d) refused by "
                                "storage after its machine was acknowledged (%s): %s",
                                b.machine_id, b.epoch, b.seq, reason, o.detail)
-                await m.term()
+                await self._reply(m, b"+TERM")
                 continue
             if o.status == "stored":
                 new.append(b)
@@ -236,7 +245,7 @@ class StoreWriter:
                 c.stored_samples += b.n
             else:
                 c.duplicates += 1
-            await m.ack()
+            await self._reply(m, b"+ACK")
         if self.live is not None and new:
             live = self.live
             try:
@@ -269,7 +278,6 @@ class StoreWriter:
         """
         nats = self._nats
         api = nats.js.api
-
         try:
             nc = await nats.connect(servers=[self.bus.url], name="cranetwin-store-writer",
                                     connect_timeout=5, allow_reconnect=True,
@@ -277,35 +285,45 @@ class StoreWriter:
         except Exception as exc:
             raise StorageUnavailableError(
                 f"NATS at {redact(self.bus.url)} unreachable: {exc}") from exc
+        self._nc = nc
         tasks: list[asyncio.Task[None]] = []
+        subs: list[Any] = []
         try:
             js = nc.jetstream(timeout=5)
             await ensure_stream(js, self.bus)
-            queue: asyncio.Queue[list[Any]] = asyncio.Queue(maxsize=2)
+            jsm = nc.jsm(timeout=5)
             for p in self.partitions:
-                cc = api.ConsumerConfig(
-                    durable_name=durable_name(self.bus, p), ack_policy=api.AckPolicy.EXPLICIT,
-                    ack_wait=self.bus.ack_wait_s, deliver_policy=api.DeliverPolicy.ALL,
-                    max_deliver=-1, max_ack_pending=20 * self.config.batch_max)
-                sub = await js.pull_subscribe(partition_filter(self.bus, p),
-                                              durable=durable_name(self.bus, p),
-                                              stream=self.bus.stream, config=cc)
-                tasks.append(asyncio.create_task(self._fetch(sub, queue)))
+                name = durable_name(self.bus, p)
+                try:
+                    await jsm.consumer_info(self.bus.stream, name)
+                except nats.js.errors.NotFoundError:
+                    await jsm.add_consumer(self.bus.stream, api.ConsumerConfig(
+                        durable_name=name, deliver_subject=deliver_subject(self.bus, p),
+                        deliver_group=name, filter_subject=partition_filter(self.bus, p),
+                        ack_policy=api.AckPolicy.EXPLICIT, ack_wait=self.bus.ack_wait_s,
+                        deliver_policy=api.DeliverPolicy.ALL, max_deliver=-1,
+                        max_ack_pending=self.config.batch_max))
+                subs.append(await nc.subscribe(deliver_subject(self.bus, p), queue=name,
+                                               cb=self._on_msg))
             tasks.append(asyncio.create_task(self._report()))
             tasks.append(asyncio.create_task(self._rollups()))
             self.ready.set()
-            while not (self._stop.is_set() and queue.empty()):
+            while not self._stop.is_set():
                 for t in tasks:
                     if t.done() and not t.cancelled() and t.exception() is not None:
                         raise t.exception()  # type: ignore[misc]
-                try:
-                    msgs = await asyncio.wait_for(queue.get(), 0.2)
-                except TimeoutError:
+                if not self._pending:
+                    self._arrived.clear()
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(self._arrived.wait(), self.config.fetch_wait_s)
                     continue
-                while len(msgs) < self.config.batch_max and not queue.empty():
-                    msgs.extend(queue.get_nowait())
+                msgs = self._pending[:self.config.batch_max]
+                del self._pending[:self.config.batch_max]
                 await self._handle(msgs)
         finally:
+            for sub in subs:  # no more deliveries; what is not acked is delivered again
+                with contextlib.suppress(Exception):
+                    await sub.unsubscribe()
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)

@@ -26,6 +26,8 @@ import logging
 from collections.abc import Sequence
 from typing import Any
 
+import orjson
+
 from cranetwin.bus.blockcodec import encode_blocks
 from cranetwin.bus.subjects import BusConfig, ensure_stream, msg_id_of, subject_of
 from cranetwin.errors import StorageUnavailableError
@@ -42,6 +44,11 @@ log = logging.getLogger(__name__)
 class JetStreamPublisher:
     """Publishes block messages to the fleet bus and waits for their PubAcks.
 
+    Each message is a plain NATS publish with a reply subject under one inbox of this
+    publisher (the PubAck comes back there), so a batch of messages is in flight at once and
+    costs one round trip; nats-py's ``publish_async`` does the same with about twice the CPU
+    per message.
+
     Args:
         cfg: The bus settings.
         name: Client name shown by the NATS server.
@@ -50,17 +57,33 @@ class JetStreamPublisher:
     def __init__(self, cfg: BusConfig, name: str = "cranetwin-ingest") -> None:
         self.cfg = cfg
         self.conn = NatsLoop(cfg.url, name=name, connect_timeout_s=cfg.publish_timeout_s)
-        self._js: Any = None
+        self._nc: Any = None
+        self._stream_ok = False
+        self._prefix = ""
+        self._futs: dict[str, asyncio.Future[bytes]] = {}
+        self._next = 0
         self._max_payload = 1 << 20
 
-    async def _context(self, nc: Any) -> Any:
-        if self._js is None:
-            js = nc.jetstream(timeout=self.cfg.publish_timeout_s,
-                              publish_async_max_pending=100_000)
-            await ensure_stream(js, self.cfg)
+    async def _on_reply(self, msg: Any) -> None:
+        fut = self._futs.pop(msg.subject[len(self._prefix):], None)
+        if fut is None or fut.done():
+            return
+        status = msg.headers.get("Status") if msg.headers else None
+        if status is not None and not msg.data:  # 503: no stream takes the subject
+            fut.set_exception(StorageUnavailableError(f"JetStream answered status {status} "
+                                                      "(no stream for the subject)"))
+        else:
+            fut.set_result(msg.data)
+
+    async def _setup(self, nc: Any) -> None:
+        if self._nc is not nc:  # one reply subscription per connection (kept on reconnects)
+            self._prefix = nc.new_inbox() + "."
+            await nc.subscribe(self._prefix + "*", cb=self._on_reply)
+            self._nc = nc
+        if not self._stream_ok:
+            await ensure_stream(nc.jetstream(timeout=self.cfg.publish_timeout_s), self.cfg)
             self._max_payload = int(nc.max_payload or self._max_payload)
-            self._js = js
-        return self._js
+            self._stream_ok = True
 
     def publish(self, items: Sequence[tuple[str, str, bytes]]) -> list[bool]:
         """Publish ``(subject, message id, body)`` items; returns once every PubAck is in.
@@ -71,32 +94,49 @@ class JetStreamPublisher:
 
         Raises:
             StorageUnavailableError: NATS or JetStream did not acknowledge every item within
-                ``publish_timeout_s`` (some may be in the stream: publishing again is safe).
+                ``publish_timeout_s``, or refused one (stream full, …); some may be in the
+                stream: publishing them again is safe.
         """
         if not items:
             return []
-        stream = self.cfg.stream
 
         async def pub(nc: Any) -> list[bool]:
-            js = await self._context(nc)
-            futs = [await js.publish_async(subject, body, headers={"Nats-Msg-Id": mid},
-                                           stream=stream)
-                    for subject, mid, body in items]
+            await self._setup(nc)
+            loop = asyncio.get_running_loop()
+            toks: list[str] = []
+            futs: list[asyncio.Future[bytes]] = []
             try:
-                acks = await asyncio.wait_for(asyncio.gather(*futs), self.cfg.publish_timeout_s)
-            except BaseException:
+                for subject, mid, body in items:
+                    self._next += 1
+                    tok = str(self._next)
+                    fut: asyncio.Future[bytes] = loop.create_future()
+                    self._futs[tok] = fut
+                    toks.append(tok)
+                    futs.append(fut)
+                    await nc.publish(subject, body, reply=self._prefix + tok,
+                                     headers={"Nats-Msg-Id": mid})
+                replies = await asyncio.wait_for(asyncio.gather(*futs),
+                                                 self.cfg.publish_timeout_s)
+            finally:
+                for tok in toks:
+                    self._futs.pop(tok, None)
                 for f in futs:
                     f.cancel()
-                raise
-            return [bool(a.duplicate) for a in acks]
+            dups: list[bool] = []
+            for data in replies:
+                ack = orjson.loads(data)
+                if "error" in ack:
+                    raise StorageUnavailableError(f"JetStream refused a block: {ack['error']}")
+                dups.append(bool(ack.get("duplicate")))
+            return dups
 
         try:
             return self.conn.run(pub, self.cfg.publish_timeout_s + 1.0)
         except StorageUnavailableError:
-            self._js = None  # the stream may have to be created again (server restarted empty)
+            self._stream_ok = False  # the server may have restarted without the stream
             raise
         except Exception as exc:  # a JetStream API error: nothing to do but retry later
-            self._js = None
+            self._stream_ok = False
             raise StorageUnavailableError(f"JetStream refused the batch: {type(exc).__name__}: "
                                           f"{exc}") from exc
 
@@ -147,7 +187,7 @@ class JetStreamStore(Store):
                 outcomes[i] = refused("unstorable", why)
             else:
                 ok.append(i)
-        bodies = encode_blocks([blocks[i] for i in ok])
+        bodies = encode_blocks([blocks[i] for i in ok], self.publisher.cfg.level)
         cfg = self.publisher.cfg
         items: list[tuple[str, str, bytes]] = []
         where: list[int] = []

@@ -44,6 +44,8 @@ class BusConfig:
             counts as not written (the daemon retries it, nothing acked).
         ack_wait_s: A message delivered to a storage writer and not acked within this time is
             delivered again (after a crash of the writer) [s].
+        level: zlib level of the samples in a message (0: stored uncompressed, the
+            delta/zigzag byte planes only; see :func:`cranetwin.bus.blockcodec.encode_blocks`).
     """
 
     url: str = "nats://127.0.0.1:4222"
@@ -54,6 +56,7 @@ class BusConfig:
     max_bytes: int = 1 << 30
     publish_timeout_s: float = 2.0
     ack_wait_s: float = 30.0
+    level: int = 0
 
     def __post_init__(self) -> None:
         if not 1 <= self.partitions <= 4096:
@@ -98,6 +101,12 @@ def msg_id_of(machine_id: str, epoch: int, seq: int) -> str:
 def durable_name(cfg: BusConfig, partition: int) -> str:
     """Durable consumer name of the storage writer of ``partition``."""
     return f"store-writer-{partition}"
+
+
+def deliver_subject(cfg: BusConfig, partition: int) -> str:
+    """Where the storage writer consumer of ``partition`` delivers (outside the stream's
+    subjects)."""
+    return f"_cranetwin.deliver.{cfg.stream}.{partition}"
 
 
 async def ensure_stream(js: Any, cfg: BusConfig) -> None:
