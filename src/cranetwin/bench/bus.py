@@ -10,12 +10,15 @@ PostgreSQL database given, or a fresh SQLite file):
   ``cranetwin store-writer`` consumes into the database (acks on the bus after commit). The
   run ends when every sample is in the database.
 
-CPU time (user + system, from ``/proc``) of the daemon, of the storage writer and, when the
-bench starts its own ``nats-server`` (no ``--bus`` given), of the NATS server are read at the end
-of each run. ``samples_per_cpu_second`` is the samples stored over the CPU seconds of the
-cranetwin processes of the path (daemon; daemon + storage writer); ``per_core_ratio_vs_direct``
-is bus over direct, and ``per_core_ratio_with_nats`` counts the NATS server's CPU too. The
-database server's CPU is in neither. Every sample is read back and compared exactly.
+CPU time (user + system) of the daemon and of the storage writer is counted from the moment
+each is ready (start-up imports excluded, read from ``/proc``) to its exit after SIGTERM
+(``getrusage`` of the reaped child), so the final summary rollup each does at shutdown is in
+both paths; the CPU of the NATS server, when the bench starts its own (no ``--bus`` given), is
+read from ``/proc`` once every sample is stored. ``*_samples_per_cpu_second`` is the samples
+stored over the CPU seconds of the cranetwin processes of the path (daemon; daemon + storage
+writer); ``per_core_ratio_vs_direct`` is bus over direct, and ``per_core_ratio_with_nats``
+counts the NATS server's CPU too. The database server's CPU is in neither. Every sample is
+read back and compared exactly.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import contextlib
 import json
 import multiprocessing as mp
 import os
+import resource
 import select
 import shutil
 import signal
@@ -33,7 +37,7 @@ import sys
 import tempfile
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -165,6 +169,21 @@ def _check(db_url: str, machines: int, samples: int) -> dict[str, int]:
     return {"stored": stored, "lost": lost, "duplicated": dup, "machines_mismatched": mismatched}
 
 
+def _children_cpu() -> float:
+    """User + system CPU of the reaped child processes so far [s]."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _reaped_cpu(pid: int, stop: Callable[[], object], at_ready: float) -> float:
+    """CPU a child used from its ready line to its exit [s]: ``stop()`` (which must wait for
+    it; no other child may be reaped meanwhile), lifetime CPU from ``getrusage``, minus the CPU
+    it had used by then (``at_ready``: start-up imports)."""
+    before = _children_cpu()
+    stop()
+    return _children_cpu() - before - at_ready
+
+
 def _run_direct(db_url: str, machines: int, samples: int, processes: int, speed: float,
                 batch_samples: int, workdir: Path) -> dict[str, Any]:
     _register(db_url, machines)
@@ -173,8 +192,7 @@ def _run_direct(db_url: str, machines: int, samples: int, processes: int, speed:
     try:
         cpu0 = _cpu_seconds(daemon.pid) or 0.0
         res = _send(machines, samples, processes, port, speed, batch_samples)
-        cpu = (_cpu_seconds(daemon.pid) or 0.0) - cpu0
-        daemon.stop(timeout_s=120)
+        cpu = _reaped_cpu(daemon.pid, lambda: daemon.stop(timeout_s=120), cpu0)
     finally:
         if daemon.poll() is None:
             daemon.kill()
@@ -206,12 +224,17 @@ def _run_bus(db_url: str, bus_url: str, nats_pid: int | None, machines: int, sam
             while store.stats().samples < total and time.monotonic() < end:
                 time.sleep(0.05)
         t_stored = time.time()
-        cpu_daemon = (_cpu_seconds(daemon.pid) or 0.0) - cpu0["daemon"]
-        cpu_writer = (_cpu_seconds(writer.pid) or 0.0) - cpu0["writer"]
         cpu_nats = ((_cpu_seconds(nats_pid) or 0.0) - cpu0["nats"]) if nats_pid else None
-        daemon.stop(timeout_s=120)
+        cpu_daemon = _reaped_cpu(daemon.pid, lambda: daemon.stop(timeout_s=120),
+                                 cpu0["daemon"])
         writer.send_signal(signal.SIGTERM)
-        out, _ = writer.communicate(timeout=120)
+        out = b""
+
+        def stop_writer() -> None:
+            nonlocal out
+            out = writer.communicate(timeout=120)[0]
+
+        cpu_writer = _reaped_cpu(writer.pid, stop_writer, cpu0["writer"])
     finally:
         for p in (daemon.proc, writer):
             if p.poll() is None:

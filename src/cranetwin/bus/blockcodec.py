@@ -178,9 +178,17 @@ def decode_blocks(bodies: Sequence[bytes]) -> list[SampleBlock | BlockCodecError
             except BlockCodecError as exc:
                 out[i] = exc
         return out
+    res_cache: dict[tuple[float, ...], npt.NDArray[np.float64]] = {}
     for (i, head), (k, mask) in zip(heads, ints, strict=True):
-        try:
-            out[i] = _block(head, k, mask)
-        except BlockCodecError as exc:
-            out[i] = exc
+        machine_id, epoch, seq, t0, period, channels, resolution, _ = head
+        if k.shape[1] != len(channels):
+            out[i] = BlockCodecError(f"block message has {k.shape[1]} columns for "
+                                     f"{len(channels)} channels")
+            continue
+        res = res_cache.get(resolution)
+        if res is None:
+            res = res_cache[resolution] = np.asarray(resolution, dtype=np.float64)
+        values = intcodec.dequantise(k, mask if mask.any() else None, res)
+        out[i] = SampleBlock(machine_id, seq, t0, period, channels, resolution, values,
+                             epoch=epoch, steps=k)
     return out

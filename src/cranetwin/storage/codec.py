@@ -116,7 +116,8 @@ def decode_ints(blob: bytes) -> tuple[I64, npt.NDArray[np.bool_]]:
 def decode_ints_many(blobs: Sequence[bytes]) -> list[tuple[I64, npt.NDArray[np.bool_]]]:
     """:func:`decode_ints` of many blobs, vectorised over blobs of equal shape and width (the
     inverse of :func:`encode_many`; a stream of small blocks decodes at a fraction of the cost
-    of one call each).
+    of one call each). The arrays returned may be views of a shared buffer, and masks of
+    blocks without missing samples one shared read-only array: copy before writing.
 
     Raises:
         CodecError: A blob is truncated, corrupt or of an unknown version (nothing decoded).
@@ -144,14 +145,17 @@ def decode_ints_many(blobs: Sequence[bytes]) -> list[tuple[I64, npt.NDArray[np.b
         le = np.dtype(f"<u{width}")
         z = np.ascontiguousarray(planes.transpose(0, 2, 1)).view(le).reshape(
             len(items), c, n).astype(np.uint64)
-        k = np.cumsum(intcodec.unzigzag_array(z), axis=2).transpose(0, 2, 1)  # (B, n, c)
+        k = np.ascontiguousarray(  # (B, n, c); each k[j] a contiguous view
+            np.cumsum(intcodec.unzigzag_array(z), axis=2).transpose(0, 2, 1))
+        none = np.zeros((n, c), dtype=bool)
+        none.flags.writeable = False  # shared by the blocks without missing samples
         for j, (i, body, nmask) in enumerate(items):
             if nmask:
                 bits = np.frombuffer(body, dtype=np.uint8, offset=nplane)
                 mask = np.unpackbits(bits, count=n * c).astype(bool).reshape(c, n).T
             else:
-                mask = np.zeros((n, c), dtype=bool)
-            out[i] = (np.ascontiguousarray(k[j]), mask)
+                mask = none
+            out[i] = (k[j], mask)
     return out
 
 
