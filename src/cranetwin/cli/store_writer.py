@@ -69,6 +69,8 @@ def store_writer(
                                     "redis://… or postgresql://… (default: "
                                     "$CRANETWIN_LIVE_BUS_URL, else none)."),
     batch_max: int = typer.Option(1000, min=1, help="Blocks per transaction at most."),
+    rollup_interval: float = typer.Option(30.0, min=0.1, help="Seconds between 1-min summary "
+                                          "rollups [s] (one more at shutdown)."),
     log_level: str = typer.Option("INFO", help="Logging level."),
 ) -> None:
     """Store the blocks of the fleet bus (JetStream) in the database; ack after commit.
@@ -90,7 +92,8 @@ def store_writer(
     live_bus = open_bus(st.live_bus_url) if st.live_bus_url else None
     store = Store.open(st.database_url)
     try:
-        writer = StoreWriter(store, cfg, parts, live_bus, WriterConfig(batch_max=batch_max))
+        writer = StoreWriter(store, cfg, parts, live_bus, WriterConfig(batch_max=batch_max,
+                                                                   rollup_interval_s=rollup_interval))
 
         async def main() -> dict[str, object]:
             loop = asyncio.get_running_loop()
