@@ -89,6 +89,8 @@ def ingest(
     shutdown_timeout: float | None = typer.Option(
         None, help="Longest flush of queued datagrams on SIGTERM while the database is "
                    "writable [s] (default 60); during an outage the daemon exits in ~5 s."),
+    rollup_interval: float = typer.Option(  # fleet bus work: benchmarks set it beyond the run
+        30.0, min=0.1, help="Seconds between 1-min summary rollups [s] (one more at shutdown)."),
     bus: str | None = typer.Option(  # fleet bus (docs/BUS.md)
         None, "--bus", help="Publish blocks to the NATS JetStream fleet bus nats://HOST:PORT "
                             "instead of writing them to the database (acked after the PubAck; "
@@ -120,7 +122,7 @@ def ingest(
     if st.ingest_metrics_bind.strip() not in ("0", "", "off"):
         mhost, mport = parse_bind(st.ingest_metrics_bind, "--metrics-bind")
     cfg = DaemonConfig(host=host, port=port, metrics_host=mhost, metrics_port=mport,
-                       metrics_interval_s=metrics_interval,
+                       metrics_interval_s=metrics_interval, rollup_interval_s=rollup_interval,
                        queue_max=st.ingest_queue_max, batch_max=st.ingest_batch_max,
                        batch_wait_s=st.ingest_batch_wait_s,
                        shutdown_timeout_s=st.ingest_shutdown_timeout_s,
