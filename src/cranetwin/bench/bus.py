@@ -257,8 +257,10 @@ def run_bench(db_url: str | None, bus_url: str | None, machines: int, samples: i
     total = machines * samples
     d_cpu = direct["daemon_cpu_seconds"]
     b_cpu = bus["daemon_cpu_seconds"] + bus["store_writer_cpu_seconds"]
-    d_rate = total / d_cpu if d_cpu > 0 else float("nan")
-    b_rate = total / b_cpu if b_cpu > 0 else float("nan")
+    if d_cpu <= 0 or b_cpu <= 0:
+        raise RuntimeError("no CPU time measured: run more samples")
+    d_rate = total / d_cpu
+    b_rate = total / b_cpu
     n_cpu = bus["nats_server_cpu_seconds"]
     return {
         "database": dialect, "machines": machines, "samples_per_machine": samples,
