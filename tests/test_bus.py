@@ -354,3 +354,76 @@ def test_nats_live_bus_without_a_server_raises_unavailable() -> None:
             bus.subscribe()
     finally:
         bus.close()
+
+
+# --- faults the storage writer and the stream absorb ----------------------------------------------
+class FlakyStore(Store):
+    """The database is unavailable until ``until`` (monotonic time)."""
+
+    until = 0.0
+    attempts = 0
+
+    def write_batch(self, blocks: Any) -> Any:
+        import time
+
+        self.attempts += 1
+        if time.monotonic() < self.until:
+            raise StorageUnavailableError("database down (test)")
+        return super().write_batch(blocks)
+
+
+def test_writer_holds_messages_through_a_database_outage_without_redelivery(
+        bus: BusConfig, sqlite_url: str) -> None:
+    """Database down for 3 × ack_wait: nothing stored or acked meanwhile, the messages are kept
+    in progress (not delivered again: no duplicate writes), all stored once afterwards."""
+    import time
+
+    sink = _store(sqlite_url, bus)
+    sent = [block(f"crane-{1 + s % 3}", s) for s in range(60)]
+    try:
+        assert all(o.status == "stored" for o in sink.write_batch(sent).outcomes)
+    finally:
+        sink.close()
+    store = FlakyStore.open(sqlite_url)
+    store.until = time.monotonic() + 3 * bus.ack_wait_s
+    try:
+        counters = run_writer(store, bus, until=lambda: len(stored_keys(
+            store, ["crane-1", "crane-2", "crane-3"])) >= 60, timeout_s=30)
+        assert isinstance(counters, dict)
+        assert store.attempts > 2 and counters["write_retries"] > 0  # the outage was hit
+        assert counters["stored_blocks"] == 60 and counters["duplicates"] == 0
+        keys = stored_keys(store, ["crane-1", "crane-2", "crane-3"])
+        assert len(keys) == len(set(keys)) == 60
+    finally:
+        store.close()
+
+
+def test_full_stream_refuses_publishing_until_a_writer_drains_it(sqlite_url: str) -> None:
+    """``max_msgs`` reached: the sink raises unavailable (the daemon stops acknowledging)
+    instead of the stream dropping anything; once the writer has drained it, publishing
+    works again and every block acknowledged is stored. (With ``max_bytes`` instead, nats-server
+    2.9.10 dropped old acknowledged messages here: 147 acknowledged, 77 kept.)"""
+    reason = nats_unreachable_reason()
+    if reason:
+        pytest.skip(reason)
+    cfg = fresh_bus(partitions=2, max_msgs=60, ack_wait_s=1.0)
+    sink = _store(sqlite_url, cfg)
+    acked: list[SampleBlock] = []
+    try:
+        with pytest.raises(StorageUnavailableError, match="maximum messages"):
+            for s in range(200):
+                b = block(f"crane-{1 + s % 3}", s, n=50)
+                sink.write_batch([b])
+                acked.append(b)
+        assert len(acked) == 60
+        store = Store.open(sqlite_url)
+        try:
+            counters = run_writer(store, cfg, until=lambda: store.stats().blocks >= len(acked))
+            assert store.stats().blocks == len(acked), counters
+            nxt = block("crane-1", 1000, n=50)
+            assert sink.write_batch([nxt]).outcomes[0].status == "stored"
+        finally:
+            store.close()
+    finally:
+        sink.close()
+        delete_stream(cfg)

@@ -56,8 +56,8 @@ class Settings(BaseSettings):
                                 description="partitions of the fleet bus (machines by hash)")
     bus_duplicate_window_s: float = Field(
         120.0, gt=0, description="JetStream deduplication window of block messages [s]")
-    bus_max_bytes: int = Field(1 << 30, ge=1 << 20,
-                               description="stream size limit [bytes]; full: publishes refused")
+    bus_max_msgs: int = Field(2_000_000, ge=1,
+                              description="stream size limit [blocks]; full: publishes refused")
     bus_publish_timeout_s: float = Field(
         2.0, gt=0, description="longest wait for a batch's PubAcks before it is retried [s]")
     bus_ack_wait_s: float = Field(

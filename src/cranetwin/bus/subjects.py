@@ -5,7 +5,7 @@ A block of machine ``m`` (sender epoch ``e``, sequence ``s``) is published to su
 processes, hosts and Python versions) and header ``Nats-Msg-Id: m/e/s`` (:func:`msg_id_of`),
 so JetStream drops a retransmission within the stream's duplicate window. The stream is a
 work queue on file storage: a message is deleted once its partition's storage writer has acked
-it (after the database commit), and when the stream is full (``max_bytes``) a publish is refused
+it (after the database commit), and when the stream is full (``max_msgs``) a publish is refused
 rather than an old message dropped, so a stalled storage writer holds the daemons back (they stop
 acknowledging and the machines keep their data) instead of losing data. See ``docs/BUS.md``.
 """
@@ -38,8 +38,10 @@ class BusConfig:
             is dropped (PubAck ``duplicate``). Must exceed the time over which a daemon may
             publish the same block again (see docs/BUS.md; storage's (machine, epoch, seq)
             uniqueness catches anything older).
-        max_bytes: Stream size limit [bytes]; when full, publishes are refused (the daemons stop
-            acknowledging) — nothing is ever discarded.
+        max_msgs: Stream size limit [messages = blocks]; when full, publishes are refused (the
+            daemons stop acknowledging) — nothing is ever discarded. A count, not bytes: on
+            nats-server 2.9.10, ``max_bytes`` with ``discard: new`` was seen to drop old,
+            acknowledged messages instead of refusing new ones (``tests/test_bus.py``).
         publish_timeout_s: Longest wait for the PubAcks of one batch [s]; past it the batch
             counts as not written (the daemon retries it, nothing acked).
         ack_wait_s: A message delivered to a storage writer and not acked within this time is
@@ -53,7 +55,7 @@ class BusConfig:
     prefix: str = "cranetwin.blocks"
     partitions: int = 16
     duplicate_window_s: float = 120.0
-    max_bytes: int = 1 << 30
+    max_msgs: int = 2_000_000
     publish_timeout_s: float = 2.0
     ack_wait_s: float = 30.0
     level: int = 0
@@ -126,7 +128,7 @@ async def ensure_stream(js: Any, cfg: BusConfig) -> None:
         await js.add_stream(api.StreamConfig(
             name=cfg.stream, subjects=[f"{cfg.prefix}.>"],
             retention=api.RetentionPolicy.WORK_QUEUE, storage=api.StorageType.FILE,
-            discard=api.DiscardPolicy.NEW, max_bytes=cfg.max_bytes,
+            discard=api.DiscardPolicy.NEW, max_msgs=cfg.max_msgs,
             duplicate_window=cfg.duplicate_window_s,
             description="cranetwin sample blocks, one message per block"))
     except nats.js.errors.BadRequestError:  # created meanwhile by another process

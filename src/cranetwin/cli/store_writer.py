@@ -54,7 +54,7 @@ def bus_config(st: Settings) -> BusConfig:
     assert st.bus_url is not None
     return BusConfig(url=st.bus_url, stream=st.bus_stream, prefix=st.bus_prefix,
                      partitions=st.bus_partitions,
-                     duplicate_window_s=st.bus_duplicate_window_s, max_bytes=st.bus_max_bytes,
+                     duplicate_window_s=st.bus_duplicate_window_s, max_msgs=st.bus_max_msgs,
                      publish_timeout_s=st.bus_publish_timeout_s, ack_wait_s=st.bus_ack_wait_s)
 
 
