@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import SECRET
-from cranetwin.bus.blockcodec import BlockCodecError, decode_block, encode_blocks
+from cranetwin.bus.blockcodec import BlockCodecError, decode_block, decode_blocks, encode_blocks
 from cranetwin.bus.consumer import StoreWriter, WriterConfig
 from cranetwin.bus.sink import JetStreamStore
 from cranetwin.bus.subjects import (
@@ -125,6 +125,23 @@ def test_block_message_round_trips_exactly(machine: str, seq: int, epoch: int, n
     assert got.steps is not None and np.array_equal(got.steps, b.steps if with_steps else
                                                     np.rint(np.nan_to_num(b.values)
                                                             / np.asarray(RES)))
+
+
+@settings(max_examples=30, deadline=None)
+@given(shapes=st.lists(st.tuples(st.integers(1, 40), st.booleans()), min_size=1, max_size=12),
+       corrupt=st.integers(0, 20))
+def test_messages_decoded_together_equal_each_decoded_alone(
+        shapes: list[tuple[int, bool]], corrupt: int) -> None:
+    blocks = [block(f"m-{i % 3}", i, n, nan=nan) for i, (n, nan) in enumerate(shapes)]
+    bodies = [b for b in encode_blocks(blocks) if isinstance(b, bytes)]
+    if corrupt < len(bodies):  # one broken message fails alone
+        bodies[corrupt] = bodies[corrupt][:-3]
+    got = decode_blocks(bodies)
+    for i, (body, g) in enumerate(zip(bodies, got, strict=True)):
+        if i == corrupt:
+            assert isinstance(g, BlockCodecError)
+            continue
+        assert isinstance(g, SampleBlock) and same(g, decode_block(body)) and same(g, blocks[i])
 
 
 def test_block_message_that_is_cut_or_foreign_is_refused() -> None:

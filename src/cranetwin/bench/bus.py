@@ -53,6 +53,7 @@ from cranetwin.bench.ingest import (
     patu_layout,
     start_daemon,
 )
+from cranetwin.errors import MissingExtraError
 
 SECRET = b"bench-secret-0123456789abcdef"
 
@@ -95,7 +96,10 @@ def _fresh_db(db_url: str | None, tag: str, workdir: Path) -> Iterator[str]:
     if db_url is None or db_url.startswith("sqlite"):
         yield f"sqlite:///{workdir / f'{tag}.db'}"
         return
-    import psycopg
+    try:
+        import psycopg
+    except ImportError as exc:
+        raise MissingExtraError("postgres", "cranetwin bench bus on PostgreSQL") from exc
 
     conninfo = db_url.replace("postgresql+psycopg://", "postgresql://", 1)
     schema = f"bench_{tag}_{uuid.uuid4().hex[:8]}"
