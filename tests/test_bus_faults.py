@@ -215,7 +215,8 @@ def test_daemon_acks_only_after_the_pubAck_and_acked_blocks_survive_a_nats_crash
                     partitions=2, publish_timeout_s=0.5, ack_wait_s=1.0)
     sink = JetStreamStore.open_bus(sqlite_url, cfg)
     sink.add_machine("crane-1", 1, SECRET)
-    values = grid_values(600, 1)
+    sink.add_machine("crane-2", 2, SECRET)
+    values, values2 = grid_values(600, 1), grid_values(400, 2)
     sender = make_sender(1, values, batch_samples=50)
     with running_daemon(sink, retry_max_s=0.3, retry_min_s=0.05) as daemon:
         # NATS down before anything is sent: the daemon retries, acknowledges nothing
@@ -228,15 +229,24 @@ def test_daemon_acks_only_after_the_pubAck_and_acked_blocks_survive_a_nats_crash
         private_nats.start()
         assert drive([sender], daemon.address, timeout_s=60.0)
         assert sender.acked_samples == 600 and not daemon.storage_outage
+        # down again while connected (nats-py reconnecting): no ack until it is back
+        acks = daemon.snapshot()["acks_sent"]
+        private_nats.stop()
+        second = make_sender(2, values2, batch_samples=50)
+        assert not drive([second], daemon.address, timeout_s=4.0)
+        assert second.acked_samples == 0 and daemon.snapshot()["acks_sent"] == acks
+        private_nats.start()
+        assert drive([second], daemon.address, timeout_s=60.0)
+        assert second.acked_samples == 400
     sink.close()
     # the server dies hard after the acks: the acknowledged blocks are in its file store
     private_nats.stop(signal.SIGKILL)
     private_nats.start()
     store = Store.open(sqlite_url)
     try:
-        run_writer(store, cfg, until=lambda: store.stats().samples >= 600, timeout_s=60)
-        got = store.read_samples("crane-1", 0, 4e9)
-        assert np.array_equal(got.values, values)
-        assert store.stats().samples == 600
+        run_writer(store, cfg, until=lambda: store.stats().samples >= 1000, timeout_s=60)
+        assert np.array_equal(store.read_samples("crane-1", 0, 4e9).values, values)
+        assert np.array_equal(store.read_samples("crane-2", 0, 4e9).values, values2)
+        assert store.stats().samples == 1000
     finally:
         store.close()
