@@ -45,6 +45,24 @@ class Settings(BaseSettings):
         None, description="live fan-out between the ingest daemon and the API (memory://, "
                           "postgresql://…, redis://host:port); unset: the live view polls "
                           "the store")
+    # -- fleet bus (NATS JetStream; docs/BUS.md) --------------------------------------------
+    bus_url: str | None = Field(
+        None, description="NATS server of the fleet bus (nats://host:port); set: `cranetwin "
+                          "ingest` publishes blocks to JetStream instead of writing them to the "
+                          "database, and `cranetwin store-writer` stores them")
+    bus_stream: str = Field("CRANETWIN_BLOCKS", description="JetStream stream of the blocks")
+    bus_prefix: str = Field("cranetwin.blocks", description="subject prefix of the blocks")
+    bus_partitions: int = Field(16, ge=1, le=4096,
+                                description="partitions of the fleet bus (machines by hash)")
+    bus_duplicate_window_s: float = Field(
+        120.0, gt=0, description="JetStream deduplication window of block messages [s]")
+    bus_max_msgs: int = Field(2_000_000, ge=1,
+                              description="stream size limit [blocks]; full: publishes refused")
+    bus_publish_timeout_s: float = Field(
+        2.0, gt=0, description="longest wait for a batch's PubAcks before it is retried [s]")
+    bus_ack_wait_s: float = Field(
+        30.0, gt=0, description="a block not acked by its storage writer within this time is "
+                                "delivered again [s]")
     ingest_bind: str = Field("127.0.0.1:5005", description="UDP HOST:PORT of `cranetwin ingest`")
     ingest_metrics_bind: str = Field(
         "127.0.0.1:9105", description="HOST:PORT of the ingest daemon's Prometheus /metrics "
