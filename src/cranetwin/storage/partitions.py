@@ -2,7 +2,11 @@
 
 On PostgreSQL (revision ``0004p``) ``sample_blocks`` is a declaratively partitioned table,
 ``PARTITION BY RANGE (t_start_ns)``: one partition per UTC day, ISO week (from Monday) or
-calendar month of block start times, named ``sample_blocks_pYYYYMMDD`` after the day it starts.
+calendar month of block start times, named ``sample_blocks_pYYYYMMDD`` after the day it starts,
+over [0, :data:`~cranetwin.storage.blocks.T_LIMIT_NS`). Rows outside that range (stored before
+the write path checked times; no writer stores them now) live in ``sample_blocks_default``,
+whose CHECK constraint keeps every other row out of it (and spares PostgreSQL a scan of it when
+a partition is created).
 The interval in force is recorded in the table's comment (``cranetwin partition interval:
 month``); :func:`set_interval` changes it for partitions created from then on (existing ones
 keep their range; a new one is clipped to the gap between its neighbours, so ranges never
@@ -73,7 +77,8 @@ def _ns(d: dt.date) -> int:
 
 def aligned(t_ns: int, interval: Interval) -> tuple[int, int]:
     """The [lo, hi) range [ns] of ``interval`` (UTC day, ISO week from Monday, calendar month)
-    that holds ``t_ns`` (0 ≤ t_ns < 2**63); hi is capped at 2**63 − 1."""
+    that holds ``t_ns`` (0 ≤ t_ns < :data:`~cranetwin.storage.blocks.T_LIMIT_NS`); hi is
+    capped at that limit (times past it belong to the default partition)."""
     d = _day(t_ns)
     if interval == "day":
         lo, hi = d, d + dt.timedelta(days=1)
@@ -85,7 +90,7 @@ def aligned(t_ns: int, interval: Interval) -> tuple[int, int]:
         hi = lo + dt.timedelta(days=calendar.monthrange(lo.year, lo.month)[1])
     else:
         raise StorageError(f"partition interval {interval!r}; expected one of {INTERVALS}")
-    return _ns(lo), min(_ns(hi), INT63)
+    return _ns(lo), min(_ns(hi), T_LIMIT_NS)
 
 
 def name_of(lo_ns: int) -> str:
@@ -119,6 +124,8 @@ def list_partitions(conn: Connection) -> list[Partition]:
         (PARENT,)).all()
     out = []
     for name, bound in rows:
+        if str(bound) == "DEFAULT":
+            continue
         m = _BOUND.search(str(bound))
         if m is None:
             raise StorageError(f"partition {name} of {PARENT} has an unexpected bound {bound}")
@@ -170,7 +177,8 @@ def _new_range(parts: list[Partition], t_ns: int, interval: Interval) -> tuple[i
 
 def create_covering(conn: Connection, times_ns: Iterable[int],
                     interval: Interval | None = None) -> list[Partition]:
-    """Create the partitions missing for block start times ``times_ns``, inside the caller's
+    """Create the partitions missing for block start times ``times_ns`` (those in
+    [0, :data:`~cranetwin.storage.blocks.T_LIMIT_NS`); others are ignored), inside the caller's
     transaction (which should commit soon: it holds the parent's lock until then).
 
     Returns:
@@ -181,7 +189,7 @@ def create_covering(conn: Connection, times_ns: Iterable[int],
     parts = list_partitions(conn)
     iv = interval if interval is not None else get_interval(conn)
     for t in sorted(set(times_ns)):
-        if _covering(parts, t) is not None:
+        if not 0 <= t < T_LIMIT_NS or _covering(parts, t) is not None:
             continue
         lo, hi = _new_range(parts, t, iv)
         name = name_of(lo)
@@ -190,6 +198,20 @@ def create_covering(conn: Connection, times_ns: Iterable[int],
         log.info("created partition %s [%s, %s)", name, _day(lo), _day(hi))
         parts = sorted([*parts, Partition(lo, hi, name)])
     return parts
+
+
+DEFAULT_PARTITION = f"{PARENT}_default"
+NO_PARTITION = ("no partition of relation", f'relation "{DEFAULT_PARTITION}" violates check')
+"""Texts of the database errors of a row whose time partition does not exist."""
+
+
+def create_default(conn: Connection) -> None:
+    """Create the default partition for rows outside [0, T_LIMIT_NS) (migration)."""
+    conn.exec_driver_sql(
+        f'CREATE TABLE "{DEFAULT_PARTITION}" PARTITION OF {PARENT} DEFAULT')
+    conn.exec_driver_sql(
+        f'ALTER TABLE "{DEFAULT_PARTITION}" ADD CONSTRAINT ck_{DEFAULT_PARTITION}_outside '
+        f"CHECK (t_start_ns < 0 OR t_start_ns >= {T_LIMIT_NS})")
 
 
 @dataclass
@@ -316,7 +338,7 @@ def maintain(engine: Engine, now_s: float, *, ahead: int = 2, interval: str | No
         for _ in range(ahead + 1):
             times.append(t)
             t = aligned(t, iv)[1]
-        create_covering(conn, [x for x in times if x < INT63], iv)
+        create_covering(conn, times, iv)
     if keep_days is None:
         return RetentionResult([], [])
     return drop_expired(engine, keep_days, now_s, margin_s)

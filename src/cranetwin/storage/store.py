@@ -233,7 +233,8 @@ class Store:
         if part is None:
             return res
         lost = [i for i, o in enumerate(res.outcomes)
-                if o.reason == "unstorable" and "no partition of relation" in o.detail]
+                if o.reason == "unstorable"
+                and any(t in o.detail for t in partitions_mod.NO_PARTITION)]
         if not lost:
             return res
         # a partition this process knew was dropped meanwhile (retention): create it again

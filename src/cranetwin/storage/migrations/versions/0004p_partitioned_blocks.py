@@ -3,7 +3,7 @@
 The old table is renamed (with its constraints and indexes), the partitioned table is created
 with the same columns, ``PARTITION BY RANGE (t_start_ns)``, primary key (id, t_start_ns) and
 unique key (machine_pk, epoch, seq, t_start_ns) (the partition column must be in every unique
-key), the partitions covering the stored rows are created (monthly, see
+key), the partitions covering the stored rows are created (monthly, and a default partition for rows outside the times a writer accepts, see
 :mod:`cranetwin.storage.partitions`), the rows are copied with their ids, the id sequence is
 handed to the new table, and the old table is dropped. Everything runs in the migration's one
 transaction: a failure leaves the old table as it was. The copy holds an exclusive lock on the
@@ -74,8 +74,10 @@ def _swap(partitioned: bool, renames: tuple[tuple[str, str, str], ...]) -> None:
     op.execute(f"ALTER SEQUENCE {seq} OWNED BY sample_blocks.id")
     if partitioned:
         partitions.set_interval(conn, partitions.DEFAULT_INTERVAL)
+        partitions.create_default(conn)  # rows outside [0, T_LIMIT_NS), if any
         starts = [int(t) for (t,) in conn.exec_driver_sql(
-            "SELECT DISTINCT t_start_ns - mod(t_start_ns, 86400000000000) FROM sample_blocks_old")]
+            "SELECT DISTINCT t_start_ns - mod(t_start_ns, 86400000000000) FROM sample_blocks_old "
+            "WHERE t_start_ns >= 0 AND t_start_ns < %s", (partitions.T_LIMIT_NS,))]
         partitions.create_covering(conn, starts)
     op.execute(f"INSERT INTO sample_blocks ({_COLS}) SELECT {_COLS} FROM sample_blocks_old")
     op.execute("DROP TABLE sample_blocks_old")
