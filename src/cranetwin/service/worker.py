@@ -23,6 +23,14 @@ watermark and catches up; empty stretches (machine off) are skipped in one step.
 conditional on the watermark the window started from, so a second worker on the same machine
 (two processes by mistake, or during a hand-over) finds the window done and rolls its own
 replay back instead of counting it twice.
+
+Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
+--partitions …``) a worker processes only the machines of the partitions it owns, re-checked
+between passes, and reports per partition the lag (newest sample − watermark, the largest of its
+machines) and the watermark age (now − the oldest watermark). The worker owning partition 0 (or
+a worker without partitions) also keeps the PostgreSQL time partitions of the raw samples: made
+ahead, and dropped by retention once processed (``storage_*`` settings,
+:mod:`cranetwin.storage.partitions`).
 """
 
 from __future__ import annotations
@@ -45,6 +53,7 @@ from cranetwin.model import Machine
 if TYPE_CHECKING:
     from cranetwin.service.backend import Backend, MachineRecord, Progress
     from cranetwin.service.metrics import Metrics
+    from cranetwin.service.ownership import Ownership
     from cranetwin.service.replayer import Replayer
     from cranetwin.settings import Settings
 
@@ -167,7 +176,8 @@ class TwinWorker:
 
     def __init__(self, backend: Backend, settings: Settings, metrics: Metrics | None = None,
                  replayer: Replayer | None = None, max_windows_per_pass: int = 30,
-                 quiet_s: float = 60.0, clock: Callable[[], float] = time.monotonic) -> None:
+                 quiet_s: float = 60.0, clock: Callable[[], float] = time.monotonic,
+                 ownership: Ownership | None = None) -> None:
         from cranetwin.service.replayer import Replayer
 
         self.replayer = replayer if replayer is not None else Replayer()
@@ -179,7 +189,11 @@ class TwinWorker:
         """A machine whose newest sample has not changed for this long [s of ``clock``] is
         quiet: its last window is processed without samples past its end."""
         self.clock = clock
+        self.ownership = ownership
+        """Partitions owned (None: every machine)."""
         self._last_sample: dict[str, tuple[float, float]] = {}
+        self._marks: dict[str, tuple[float, float]] = {}  # machine → (newest sample, watermark)
+        self._next_upkeep = clock()
         self.stop_event = threading.Event()
         """Set to stop: checked between windows, so the window being replayed is finished and
         committed first (a second or so)."""
@@ -235,14 +249,68 @@ class TwinWorker:
             Windows processed (0 = every machine is caught up).
         """
         total = 0
+        own = self.ownership
+        if own is not None:
+            own.refresh()
         # the ingest daemon rolls 1-min summaries up every 30 s; do it here too so that a
         # service fed by another writer still answers long history queries from 1-min rows
         self.backend.store.rollup()
         for rec in self.backend.list_machines():
             if self.stop_requested():
                 break
+            if own is not None and not own.owns(rec.machine_id):
+                self._marks.pop(rec.machine_id, None)
+                continue
             total += self.catch_up(rec, self.max_windows_per_pass)
+        self._partition_metrics()
+        if own is None or 0 in own.owned:
+            self._upkeep()
         return total
+
+    def _partition_metrics(self) -> None:
+        """Per owned partition: lag and watermark age (gauges), from this pass's machines."""
+        own, m = self.ownership, self.metrics
+        if own is None or m is None:
+            return
+        from cranetwin.service.ownership import partition_of
+
+        now = time.time()
+        lag: dict[int, float] = dict.fromkeys(own.owned, 0.0)
+        oldest: dict[int, float] = {}
+        for mid, (newest, wm) in self._marks.items():
+            p = partition_of(mid, own.spec.count)
+            if p in lag:
+                lag[p] = max(lag[p], newest - wm)
+                oldest[p] = min(oldest.get(p, wm), wm)
+        for p in range(own.spec.count):
+            if p in lag:
+                m.worker_partition_lag.labels(str(p)).set(max(0.0, lag[p]))
+                m.worker_partition_age.labels(str(p)).set(max(0.0, now - oldest.get(p, now)))
+            else:
+                for g in (m.worker_partition_lag, m.worker_partition_age):
+                    try:
+                        g.remove(str(p))
+                    except KeyError:
+                        pass
+        m.worker_partitions_owned.set(len(own.owned))
+
+    def _upkeep(self) -> None:
+        """Every ``storage_maintenance_interval_s``: time partitions ahead, and retention."""
+        s = self.settings
+        if self.clock() < self._next_upkeep:
+            return
+        self._next_upkeep = self.clock() + s.storage_maintenance_interval_s
+        try:
+            res = self.backend.store.maintain_partitions(
+                time.time(), ahead=s.storage_partitions_ahead,
+                interval=s.storage_partition_interval,
+                keep_days=s.storage_retention_days or None, margin_s=s.twin_margin_s)
+        except CraneTwinError as exc:
+            log.warning("partition maintenance failed: %s", exc)
+            return
+        if res.dropped or res.kept:
+            log.info("retention: dropped %s, kept %d expired partition(s) not yet processed",
+                     res.dropped, len(res.kept))
 
     def catch_up(self, rec: MachineRecord, max_windows: int | None = None) -> int:
         """Process the ready windows of one machine, oldest first; returns how many.
@@ -292,6 +360,7 @@ class TwinWorker:
         self._roll_up(rec, start_wm, prog.watermark_s)
         if done or prog.watermark_s != start_wm:
             self._update_duty(rec, dr[0], prog.watermark_s)
+        self._marks[rec.machine_id] = (dr[1], prog.watermark_s)
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done

@@ -47,7 +47,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Literal, cast, get_args
 
-from sqlalchemy import Connection, Engine, text
+from sqlalchemy import Connection, Engine
 
 from cranetwin.errors import StorageError
 from cranetwin.storage.blocks import MAX_SPAN_NS, T_LIMIT_NS

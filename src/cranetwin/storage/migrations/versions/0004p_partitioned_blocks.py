@@ -3,11 +3,13 @@
 The old table is renamed (with its constraints and indexes), the partitioned table is created
 with the same columns, ``PARTITION BY RANGE (t_start_ns)``, primary key (id, t_start_ns) and
 unique key (machine_pk, epoch, seq, t_start_ns) (the partition column must be in every unique
-key), the partitions covering the stored rows are created (monthly, and a default partition for rows outside the times a writer accepts, see
-:mod:`cranetwin.storage.partitions`), the rows are copied with their ids, the id sequence is
-handed to the new table, and the old table is dropped. Everything runs in the migration's one
+key), the partitions covering the stored rows are created (monthly, and a default partition
+for rows outside the times a writer accepts, see :mod:`cranetwin.storage.partitions`), the
+rows are copied with their ids, the id sequence is handed to the new table, and the old table
+is dropped. Everything runs in the migration's one
 transaction: a failure leaves the old table as it was. The copy holds an exclusive lock on the
-table for its duration (stop the writers for a large table; about 1 s per 10^5 blocks here).
+table for its duration (stop the writers for a large table; measured here: 1.1 s for 10^4
+blocks of 100 samples, 15 MB, on a loaded 2-core host).
 
 SQLite keeps its one table: nothing to do.
 
@@ -54,11 +56,13 @@ def _create(partitioned: bool, seq: str) -> None:
         + (" PARTITION BY RANGE (t_start_ns)" if partitioned else ""))
     op.execute("CREATE INDEX ix_sample_blocks_machine_t_start "
                "ON sample_blocks (machine_pk, t_start_ns)")
-    op.execute("CREATE INDEX ix_sample_blocks_machine_t_end ON sample_blocks (machine_pk, t_end_ns)")
+    op.execute("CREATE INDEX ix_sample_blocks_machine_t_end "
+               "ON sample_blocks (machine_pk, t_end_ns)")
 
 
 def _swap(partitioned: bool, renames: tuple[tuple[str, str, str], ...]) -> None:
     from cranetwin.storage import partitions
+    from cranetwin.storage.blocks import T_LIMIT_NS
 
     conn = op.get_bind()
     seq = conn.exec_driver_sql("SELECT pg_get_serial_sequence('sample_blocks', 'id')").scalar()
@@ -77,7 +81,7 @@ def _swap(partitioned: bool, renames: tuple[tuple[str, str, str], ...]) -> None:
         partitions.create_default(conn)  # rows outside [0, T_LIMIT_NS), if any
         starts = [int(t) for (t,) in conn.exec_driver_sql(
             "SELECT DISTINCT t_start_ns - mod(t_start_ns, 86400000000000) FROM sample_blocks_old "
-            "WHERE t_start_ns >= 0 AND t_start_ns < %s", (partitions.T_LIMIT_NS,))]
+            "WHERE t_start_ns >= 0 AND t_start_ns < %s", (T_LIMIT_NS,))]
         partitions.create_covering(conn, starts)
     op.execute(f"INSERT INTO sample_blocks ({_COLS}) SELECT {_COLS} FROM sample_blocks_old")
     op.execute("DROP TABLE sample_blocks_old")
