@@ -10,16 +10,16 @@ release). ``cranetwin worker --partitions …`` chooses what a worker asks for
 * ``I/P``, ``0,3,5`` (with ``--of P``) or ``all``: exactly these partitions.
 
 On PostgreSQL each partition is owned through a session advisory lock
-(:class:`cranetwin.storage.locks.SessionLocks`), held for the worker's life on one connection, so
-at most one worker processes a partition; when a worker dies its session ends and its partitions
-are free for the others at their next poll. Workers in ``auto`` mode also hold a membership lock,
-so every worker can count the live auto workers ``A`` and the partitions ``F`` held by fixed-list
-workers, and aims at ``ceil((P − F) / A)`` partitions: a worker above that releases its highest
-partitions between passes (a worker joined), one below it takes free ones (a worker left or
-died). Fixed-list workers take their partitions as they become free and keep them. Rebalancing
-only happens between passes, and a window's commit is conditional on the watermark it started
-from (:mod:`cranetwin.service.worker`), so even a hand-over that overlaps (a lost connection
-noticed late) never counts a window twice.
+(:class:`cranetwin.storage.locks.SessionLocks`), held for the worker's life on one connection,
+so at most one worker processes a partition; when a worker dies its session ends and its
+partitions are free for the others at their next poll. Workers in ``auto`` mode also hold a
+membership lock, so every worker can count the live auto workers ``A`` and the partitions ``F``
+held by fixed-list workers, and aims at ``ceil((P − F) / A)`` partitions: a worker above that
+releases its highest partitions between passes (a worker joined), one below it takes free ones
+(a worker left or died). Fixed-list workers take their partitions as they become free and keep
+them. Rebalancing only happens between machines (never inside a window), and a window's commit
+is conditional on the watermark it started from (:mod:`cranetwin.service.worker`), so even a
+hand-over that overlaps (a lost connection noticed late) never counts a window twice.
 
 On SQLite (one worker by design) the worker owns its partitions without locks.
 """
@@ -134,7 +134,7 @@ class Ownership:
 
     def refresh(self) -> set[int]:
         """Re-check the session, then take or release partitions toward this worker's share;
-        returns the partitions owned (call between passes)."""
+        returns the partitions owned (call between machines, never inside a window)."""
         lk = self._locks
         if lk is None:
             return self.owned

@@ -26,11 +26,11 @@ replay back instead of counting it twice.
 
 Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
 --partitions …``) a worker processes only the machines of the partitions it owns, re-checked
-between passes, and reports per partition the lag (newest sample − watermark, the largest of its
-machines) and the watermark age (now − the oldest watermark). The worker owning partition 0 (or
-a worker without partitions) also keeps the PostgreSQL time partitions of the raw samples: made
-ahead, and dropped by retention once processed (``storage_*`` settings,
-:mod:`cranetwin.storage.partitions`).
+between machines at most every ``worker_interval_s`` (never inside a window), and reports per
+partition the lag (newest sample − watermark, the largest of its machines) and the watermark age
+(now − the oldest watermark). The worker owning partition 0 (or a worker without partitions)
+also keeps the PostgreSQL time partitions of the raw samples: made ahead, and dropped by
+retention once processed (``storage_*`` settings, :mod:`cranetwin.storage.partitions`).
 """
 
 from __future__ import annotations
@@ -252,15 +252,20 @@ class TwinWorker:
         own = self.ownership
         if own is not None:
             own.refresh()
+            due = self.clock() + self.settings.worker_interval_s
         # the ingest daemon rolls 1-min summaries up every 30 s; do it here too so that a
         # service fed by another writer still answers long history queries from 1-min rows
         self.backend.store.rollup()
         for rec in self.backend.list_machines():
             if self.stop_requested():
                 break
-            if own is not None and not own.owns(rec.machine_id):
-                self._marks.pop(rec.machine_id, None)
-                continue
+            if own is not None:
+                if self.clock() >= due:  # between machines too: a joiner waits no whole pass
+                    own.refresh()
+                    due = self.clock() + self.settings.worker_interval_s
+                if not own.owns(rec.machine_id):
+                    self._marks.pop(rec.machine_id, None)
+                    continue
             total += self.catch_up(rec, self.max_windows_per_pass)
         self._partition_metrics()
         if own is None or 0 in own.owned:
