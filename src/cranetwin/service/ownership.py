@@ -15,7 +15,7 @@ so at most one worker processes a partition; when a worker dies its session ends
 partitions are free for the others at their next poll. Workers in ``auto`` mode also hold a
 membership lock, so every worker can count the live auto workers ``A`` and the partitions ``F``
 held by fixed-list workers, and aims at ``ceil((P − F) / A)`` partitions: a worker above that
-releases its highest partitions between passes (a worker joined), one below it takes free ones
+releases its highest partitions (a worker joined), one below it takes free ones
 (a worker left or died). Fixed-list workers take their partitions as they become free and keep
 them. Rebalancing only happens between machines (never inside a window), and a window's commit
 is conditional on the watermark it started from (:mod:`cranetwin.service.worker`), so even a
