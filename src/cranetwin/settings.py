@@ -126,6 +126,26 @@ class Settings(BaseSettings):
     worker_metrics_bind: str = Field(
         "0", description="HOST:PORT of `cranetwin worker`'s Prometheus /metrics (HTTP); "
                          "0 = not served")
+    worker_quiet_s: float = Field(
+        60.0, gt=0, description="a machine whose newest sample has not changed for this long "
+                                "gets its last window processed without samples past it [s]")
+    worker_partitions: str | None = Field(
+        None, description="machine partitions `cranetwin worker` owns: auto, all, I/P or I,J,… "
+                          "(with worker_partition_count); unset: every machine, no locks")
+    worker_partition_count: int = Field(
+        16, ge=1, le=65536, description="number of machine partitions P of the twin workers")
+
+    # -- time partitions of raw samples on PostgreSQL (``cranetwin.storage.partitions``) ------
+    storage_partition_interval: Literal["day", "week", "month"] = Field(
+        "month", description="range of one time partition of sample_blocks (new partitions)")
+    storage_partitions_ahead: int = Field(
+        2, ge=0, le=366, description="partitions the twin worker creates ahead of the current")
+    storage_retention_days: float = Field(
+        0.0, ge=0, description="drop raw-sample partitions older than this, once processed "
+                               "by the twin worker [days]; 0 = keep forever")
+    storage_maintenance_interval_s: float = Field(
+        3600.0, gt=0, description="how often the twin worker makes partitions ahead and "
+                                  "applies retention [s]")
     summary_interval_s: float = Field(1.0, gt=0, description="derived summary interval [s]")
     payload_lift_threshold_kg: float = Field(
         50.0, ge=0, description="payload above which the crane is holding a load (load count) [kg]")
