@@ -13,12 +13,12 @@ acknowledging and the machines keep their data) instead of losing data. See ``do
 from __future__ import annotations
 
 import re
-import zlib
 from dataclasses import dataclass
 from typing import Any
 
 from cranetwin.errors import StorageError
 from cranetwin.storage.nats_loop import nats_module
+from cranetwin.storage.sharding import partition_of
 
 _TOKEN_OK = re.compile(r"[A-Za-z0-9_-]+")
 
@@ -69,11 +69,6 @@ class BusConfig:
         if not _TOKEN_OK.fullmatch(self.stream):
             raise StorageError(f"bus stream name {self.stream!r}: letters, digits, _ and - "
                                "expected")
-
-
-def partition_of(machine_id: str, partitions: int) -> int:
-    """The partition of a machine: CRC-32 of its UTF-8 id modulo ``partitions``."""
-    return zlib.crc32(machine_id.encode()) % partitions
 
 
 def subject_token(machine_id: str) -> str:

@@ -1,9 +1,9 @@
 """Which machines a twin worker processes: machine partitions owned exclusively.
 
 Machines are spread over ``P`` partitions by a stable hash of their id
-(:func:`partition_of`: BLAKE2b of the UTF-8 id, modulo P; the same in every process and
-release). ``cranetwin worker --partitions …`` chooses what a worker asks for
-(:func:`parse_partitions`):
+(:func:`cranetwin.storage.sharding.partition_of`: CRC-32 of the UTF-8 id, modulo P, the same
+function as the fleet bus's subjects, in every process and release). ``cranetwin worker
+--partitions …`` chooses what a worker asks for (:func:`parse_partitions`):
 
 * ``auto`` (with ``--of P``, default 16): a share of the partitions, rebalanced as workers come
   and go;
@@ -26,7 +26,6 @@ On SQLite (one worker by design) the worker owns its partitions without locks.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
 from dataclasses import dataclass
@@ -35,6 +34,7 @@ from sqlalchemy import Engine
 
 from cranetwin.errors import CraneTwinError
 from cranetwin.storage.locks import SessionLocks
+from cranetwin.storage.sharding import partition_of
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +44,6 @@ MAX_PARTITIONS = 65536
 
 class PartitionSpecError(CraneTwinError):
     """A ``--partitions`` / ``--of`` value that cannot be understood."""
-
-
-def partition_of(machine_id: str, count: int) -> int:
-    """Partition of ``machine_id`` among ``count`` (stable across processes and releases)."""
-    h = hashlib.blake2b(machine_id.encode(), digest_size=8).digest()
-    return int.from_bytes(h, "big") % count
 
 
 @dataclass(frozen=True)
