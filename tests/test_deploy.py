@@ -111,3 +111,74 @@ def test_dockerfile_copies_what_the_app_needs() -> None:
     assert "HEALTHCHECK" in text and "/healthz" in text
     assert re.search(r'^CMD \["cranetwin", "serve"\]', text, re.MULTILINE)
     assert "serve" in _cli_commands()
+
+
+# --- the distributed topology (docs/SCALING.md) --------------------------------------------------
+FLEET = ROOT / "docker-compose.fleet.yml"
+
+
+def _fleet() -> dict:  # type: ignore[type-arg]
+    data = yaml.safe_load(FLEET.read_text())
+    assert isinstance(data, dict)
+    return data
+
+
+def test_fleet_compose_config_resolves() -> None:
+    cmd = _compose_command()
+    if cmd is None:
+        pytest.skip("neither `docker compose` nor `docker-compose` installed: config not checked")
+    res = subprocess.run([*cmd, "-f", str(FLEET), "config", "--quiet"],
+                         capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr
+
+
+def test_fleet_compose_has_each_role_twice_behind_one_proxy() -> None:
+    services = _fleet()["services"]
+    for role in ("ingest", "worker", "api"):
+        assert {f"{role}-1", f"{role}-2"} <= set(services), role
+    assert {"db", "nats", "proxy", "store-writer-a", "store-writer-b"} <= set(services)
+    for name, svc in services.items():
+        assert svc.get("healthcheck", {}).get("test"), f"{name} has no health check"
+    # only the proxy is published: UDP for machines, HTTP for people and fleet tools
+    published = {n for n, s in services.items() if s.get("ports")}
+    assert published == {"proxy"}
+    assert {"8000:8000", "5005:5005/udp"} == {str(p) for p in services["proxy"]["ports"]}
+    conf = (ROOT / "deploy" / "nginx-fleet.conf").read_text()
+    for target in ("api-1:8000", "api-2:8000", "ingest-1:5005", "ingest-2:5005"):
+        assert target in conf, target
+    assert "listen 5005 udp" in conf and "hash $remote_addr consistent" in conf
+
+
+def test_fleet_compose_commands_and_options_exist() -> None:
+    """Every cranetwin command and option the topology uses exists, and the bus and worker
+    partition counts agree (the same machine → partition function lines them up)."""
+    from typer.testing import CliRunner
+
+    from cranetwin.cli import app
+
+    services = _fleet()["services"]
+    known = _cli_commands()
+    writer_parts: list[str] = []
+    for name, svc in services.items():
+        cmd = svc.get("command")
+        if not cmd or cmd[0] != "cranetwin":
+            continue
+        assert cmd[1] in known, f"{name} runs unknown command `cranetwin {cmd[1]}`"
+        res = CliRunner().invoke(app, [cmd[1], "--help"], terminal_width=200)
+        assert res.exit_code == 0, res.output
+        for opt in [a for a in cmd[2:] if a.startswith("--")]:
+            assert opt in res.output, f"`cranetwin {cmd[1]}` has no option {opt}"
+        env = svc["environment"]
+        assert env["CRANETWIN_BUS_URL"] == "nats://nats:4222"
+        assert env["CRANETWIN_DATABASE_URL"].startswith("postgresql+psycopg://")
+        if cmd[1] == "store-writer":
+            writer_parts.append(cmd[cmd.index("--partitions") + 1])
+        if cmd[1] == "worker":
+            assert cmd[cmd.index("--of") + 1] == env["CRANETWIN_BUS_PARTITIONS"]
+    # the two store-writers cover every bus partition exactly once
+    covered: list[int] = []
+    for spec in writer_parts:
+        lo, hi = (int(x) for x in spec.split("-"))
+        covered += range(lo, hi + 1)
+    n = int(services["store-writer-a"]["environment"]["CRANETWIN_BUS_PARTITIONS"])
+    assert sorted(covered) == list(range(n))
