@@ -11,13 +11,14 @@ from cranetwin.signal.noise import NOISY_QUANTITIES, inject_uniform_noise, nrmse
 from cranetwin.signal.noise_level import estimate_noise_std
 from cranetwin.signal.resample import Regular, nominal_period, regularize, uniform_grid
 from cranetwin.signal.savgol import centre_weight, savgol_bank, savgol_smooth, sg_filter
-from cranetwin.signal.spline import NaturalCubicSpline, natural_pieces
+from cranetwin.signal.spline import NaturalCubicSpline, knot_pieces, natural_pieces
 from cranetwin.signal.window import SmoothingChoice, choose_derivative_window, choose_window
 
 __all__ = [
     "ICI_WINDOWS",
     "NOISY_QUANTITIES",
     "NaturalCubicSpline",
+    "knot_pieces",
     "natural_pieces",
     "Regular",
     "SmoothingChoice",

@@ -126,6 +126,36 @@ def natural_pieces(x: F64, y: F64) -> F64:
     return coef
 
 
+def knot_pieces(x: F64, y: F64, splined: list[int]) -> F64:
+    """Pieces (n, 4, k) that give the natural spline through knots x (n,) and values y (n, k)
+    AT THE KNOTS ONLY, for a grid that is the knots themselves (one grid row per sample).
+
+    Columns ``splined`` are read with their derivatives: they get the natural spline's pieces
+    (:func:`natural_pieces`), plus an n-th piece at the end knot (the last piece re-centred
+    there: value, slope, curvature of the spline at x_{n-1}). Every other column is read at
+    the knots only: piece i is (y_i, 0, 0, 0). Evaluated at dx = 0 on piece i, both give the
+    spline's value (and derivatives) at knot i, as :func:`natural_pieces` does, without
+    solving for columns whose derivatives no one reads.
+
+    Raises:
+        SignalError: non-finite values.
+    """
+    n, k = y.shape
+    if not np.isfinite(y).all():
+        raise SignalError("spline knots and values must be finite (drop NaN samples first)")
+    coef = np.zeros((n, 4, k))
+    coef[:, 0, :] = y
+    if splined and n >= 2:
+        sp = natural_pieces(x, y[:, splined])
+        h = float(x[-1] - x[-2])
+        b, c, d = sp[-1, 1], sp[-1, 2], sp[-1, 3]
+        coef[: n - 1, 1:, splined] = sp[:, 1:]
+        coef[n - 1, 1, splined] = b + h * (2.0 * c + 3.0 * d * h)
+        coef[n - 1, 2, splined] = c + 3.0 * d * h
+        coef[n - 1, 3, splined] = d
+    return coef
+
+
 class NaturalCubicSpline:
     """Natural cubic spline through knots (x, y), y of one or many channels.
 

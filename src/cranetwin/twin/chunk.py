@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.errors import TwinError
-from cranetwin.signal import SmoothingChoice, natural_pieces, newton_derivative
+from cranetwin.signal import SmoothingChoice, knot_pieces, natural_pieces, newton_derivative
 from cranetwin.twin import gridpass
 from cranetwin.twin.plan import ReplayPlan
 from cranetwin.twin.result import TwinResult
@@ -74,20 +74,25 @@ class PayloadSetting(NamedTuple):
     half_window: int
 
 
-def splines(plan: ReplayPlan, knots_t: F64, sm: F64) -> tuple[F64, I64, I64]:
+def splines(plan: ReplayPlan, knots_t: F64, sm: F64, r: int) -> tuple[F64, I64, I64]:
     """One natural spline over every column the grid needs and the quantity table
     (:mod:`cranetwin.twin.gridpass`) saying which column (and derivative) is what.
 
     Rates and accelerations are the Savitzky–Golay derivative filters at the samples, splined
     (``velocity="spline"``); or Newton's divided differences of the smoothed positions,
     splined, and that spline's derivative (``"newton"``, the paper's way). An integrated
-    angle takes its rate and acceleration from its own spline.
+    angle takes its rate and acceleration from its own spline. With one grid row per sample
+    (r = 1, the worker's grid) the grid reads the splines at their knots only: only the
+    columns read with a derivative are solved for (:func:`cranetwin.signal.knot_pieces`).
     """
     pos_cols, cols, src, der = plan.layout
     data = sm[:, cols]
     if plan.opt.velocity == "newton":
         extra = newton_derivative(knots_t, sm[:, pos_cols], 2 if sm.shape[0] >= 5 else 1)
         data = np.concatenate([data, extra], axis=1)
+    if r == 1:
+        splined = sorted({int(c) for c, d in zip(src, der, strict=True) if c >= 0 and d > 0})
+        return knot_pieces(knots_t, data, splined), src, der
     return natural_pieces(knots_t, data), src, der
 
 
@@ -102,7 +107,7 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
     nfree = len(plan.free)
     qi = plan.qi
     knots_t: F64 = np.arange(f0, f0 + rows.sm.shape[0], dtype=np.float64) * p
-    coef, src, der = splines(plan, knots_t, rows.sm)
+    coef, src, der = splines(plan, knots_t, rows.sm, r)
     h0 = float(knots_t[1] - knots_t[0])
     h_last = float(knots_t[-1] - knots_t[-2])
     # -- the sample instants e0 … e1: state, actuator loads, payload --------------------------
