@@ -279,11 +279,14 @@ class DaemonProcess:
         proc: The process.
         metrics_url: Its Prometheus ``/metrics`` URL (from its ready line).
         stderr_path: File that receives its log.
+        info: Its ready line (with ``--processes N``: ``children``, each index, pid, metrics;
+            ``metrics_url`` is then the first child's).
     """
 
     proc: subprocess.Popen[bytes]
     metrics_url: str
     stderr_path: Path
+    info: dict[str, Any] = field(default_factory=dict)
 
     @property
     def pid(self) -> int:
@@ -371,7 +374,10 @@ def start_daemon(db_url: str, port: int, workdir: Path, *extra: str) -> DaemonPr
             proc.wait(10)
             raise RuntimeError(f"ingest daemon did not start: {log.read_text()[-2000:]}")
     info = json.loads(buf.split(b"\n", 1)[0])
-    return DaemonProcess(proc, str(info.get("metrics") or ""), log)
+    metrics = info.get("metrics")
+    if isinstance(metrics, list):
+        metrics = metrics[0] if metrics else None
+    return DaemonProcess(proc, str(metrics or ""), log, info)
 
 
 # --- the benchmark ----------------------------------------------------------------------------

@@ -198,7 +198,10 @@ class IngestDaemon(Pipeline):
                 in use or needs privileges.
         """
         cfg = self.config
-        sock = _bind(cfg.host, cfg.port, socket.SOCK_DGRAM, "UDP", "--bind")
+        if cfg.socket_fd is not None:  # a member of the parent's SO_REUSEPORT group
+            sock = socket.socket(fileno=cfg.socket_fd)
+        else:
+            sock = _bind(cfg.host, cfg.port, socket.SOCK_DGRAM, "UDP", "--bind")
         with contextlib.suppress(OSError):
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, cfg.rcvbuf_bytes)
         sock.setblocking(False)
