@@ -4,10 +4,12 @@ SIGKILL mid-stream is restarted on its socket and nothing acknowledged is lost o
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
 import struct
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -24,6 +26,7 @@ from cranetwin.bench.ingest import (
 from cranetwin.ingest.steering import bind_group, steer
 from cranetwin.protocol import Sender
 from cranetwin.storage import Store
+from test_ingest_faults import run_main
 from test_ingest_reliability import LAYOUT, assert_stored_exactly, key, registered
 
 
@@ -159,3 +162,45 @@ def test_machines_stay_on_their_process_when_their_source_port_changes(
     assert by_child[0]["stored_blocks"] == sum(store.stats(f"crane-{w}").blocks for w in even)
     assert by_child[1]["stored_blocks"] == store.stats("crane-3").blocks
     assert by_child[1]["received"] > 0 and final["restarts"] == 0
+
+
+def _gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    # a zombie (not reaped yet by its new parent) has stopped serving too
+    with contextlib.suppress(OSError):
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    return True
+
+
+@pytest.mark.timeout(120)
+def test_a_child_whose_parent_is_killed_exits(sqlite_url: str, tmp_path: Path) -> None:
+    registered(sqlite_url, [1]).close()
+    proc = start_daemon(sqlite_url, free_udp_port(), tmp_path, "--processes", "2")
+    pids = [int(c["pid"]) for c in proc.info["children"]]
+    try:
+        assert not any(_gone(p) for p in pids)
+        proc.kill()  # SIGKILL: the parent cannot forward anything
+        deadline = time.monotonic() + 60
+        while not all(_gone(p) for p in pids) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert all(_gone(p) for p in pids), "a child outlived its parent"
+    finally:
+        for p in pids:
+            with contextlib.suppress(OSError):
+                os.kill(p, signal.SIGKILL)
+
+
+@pytest.mark.timeout(60)
+def test_processes_port_in_use_is_one_line_exit_2(
+        sqlite_url: str, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:  # no SO_REUSEPORT
+        busy.bind(("127.0.0.1", 0))
+        port = busy.getsockname()[1]
+        code, _, err = run_main(monkeypatch, capsys, "ingest", "--bind", f"127.0.0.1:{port}",
+                                "--db", sqlite_url, "--metrics-bind", "0", "--processes", "2")
+    assert code == 2, err
+    assert err.count("\n") == 1 and "Traceback" not in err and "already in use" in err, err

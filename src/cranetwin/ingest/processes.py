@@ -10,10 +10,11 @@ object on its stdin, never in argv. The parent reads nothing from the sockets it
 
 * **A child dies** (``kill -9``, a crash): nothing acknowledged is lost — a child acks only after
   its commit. Its socket stays in the group at index ``i`` (the parent holds it), so the kernel
-  keeps steering machine ``i``'s datagrams to it and queues them in the socket's receive buffer;
-  the parent restarts the child on the same socket (after 0.2 s, doubling to 5 s while it keeps
-  dying at start), which reads them. What was queued or in flight and not acked is retransmitted
-  by the machines and deduplicated by storage. No other machine moves.
+  keeps steering the datagrams of its machines (``wire_id % N == i``) to it and queues them in
+  the socket's receive buffer; the parent restarts the child on the same socket (after 0.2 s;
+  while it keeps dying within 10 s of its start, after twice the previous wait, up to 5 s),
+  which reads them. What was queued or in flight and not acked is retransmitted by the machines
+  and deduplicated by storage. No other machine moves.
 * **Stop**: SIGTERM/SIGINT to the parent is forwarded once to every child (each flushes, acks
   and exits as a single daemon does); a second signal is forwarded too (children give up their
   unwritten batches at once). Children run in their own session, so a terminal's Ctrl-C
@@ -45,7 +46,7 @@ from types import FrameType
 from typing import Any
 
 from cranetwin.ingest.config import DaemonConfig, IngestConfigError
-from cranetwin.ingest.steering import bind_group, steer
+from cranetwin.ingest.steering import bind_group
 
 __all__ = ["ProcessGroup", "child_spec", "merge_counters"]
 
@@ -63,7 +64,7 @@ class _Child:
     proc: subprocess.Popen[bytes] | None = None
     info: dict[str, Any] = field(default_factory=dict)
     started: float = 0.0
-    delay_s: float = RESTART_MIN_S
+    delay_s: float = RESTART_MIN_S / 2  # doubled before each restart after a short life
     due: float = 0.0  # monotonic time of the next (re)start while it is down
     final: dict[str, Any] = field(default_factory=dict)
 
@@ -198,10 +199,6 @@ class ProcessGroup:
                 "processes": self.n,
                 "children": [{"index": c.index, "pid": c.proc.pid if c.proc else None,
                               "metrics": c.info.get("metrics")} for c in self._children]}
-
-    def index_of(self, wire_id: int) -> int:
-        """The child that serves machine ``wire_id``."""
-        return steer(wire_id, self.n)
 
     def supervise_once(self) -> None:
         """Restart every child that exited (on its own socket), with backoff while one keeps
