@@ -86,6 +86,7 @@ def _stored_seqs(store: Store, wire_id: int) -> list[int]:
             "WHERE m.wire_id = :w ORDER BY b.seq"), {"w": wire_id})]
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_a_child_killed_mid_stream_loses_and_doubles_nothing(db_url: str, tmp_path: Path) -> None:
     wire_ids = [1, 2, 3, 4, 5, 6]
@@ -129,6 +130,7 @@ def test_a_child_killed_mid_stream_loses_and_doubles_nothing(db_url: str, tmp_pa
     assert 0 < by_child[1]["stored_blocks"] < odd_blocks  # the rest came before the kill
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_machines_stay_on_their_process_when_their_source_port_changes(
         sqlite_url: str, tmp_path: Path) -> None:
@@ -175,6 +177,7 @@ def _gone(pid: int) -> bool:
     return True
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(120)
 def test_a_child_whose_parent_is_killed_exits(sqlite_url: str, tmp_path: Path) -> None:
     registered(sqlite_url, [1]).close()
