@@ -37,6 +37,7 @@ import logging
 import os
 import select
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -126,7 +127,7 @@ class ProcessGroup:
         self.start_timeout_s = start_timeout_s
         self.restarts = 0
         self.address: tuple[str, int] | None = None
-        self._socks: list[Any] = []
+        self._socks: list[socket.socket] = []
         self._children: list[_Child] = []
         self._signals = 0
         self._forwarded = 0
