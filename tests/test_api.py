@@ -77,6 +77,7 @@ def ctx(base: SampleArrays, tmp_path_factory: pytest.TempPathFactory) -> Iterato
 # --- auth: every route, every role ------------------------------------------------------------
 
 R = f"from={T0}&to={T0 + 60}"
+TS = f"CumulativeOperatingHours/{T0}/{T0 + 60}/1"
 ROUTES: list[tuple[str, str, str, dict[str, Any] | None]] = [
     ("GET", "/metrics", "viewer", None),
     ("GET", "/api/v1/machines", "viewer", None),
@@ -93,6 +94,9 @@ ROUTES: list[tuple[str, str, str, dict[str, Any] | None]] = [
     ("GET", f"/api/v1/machines/{MID}/report?{R}&format=csv", "fleet", None),
     ("GET", "/api/v1/aemp/Fleet/1", "fleet", None),
     ("GET", f"/api/v1/aemp/Equipment/{MID}", "fleet", None),
+    ("GET", f"/api/v1/aemp/Fleet/Equipment/ID/{MID}", "fleet", None),
+    ("GET", f"/api/v1/aemp/Fleet/Equipment/ID/{MID}/{TS}", "fleet", None),
+    ("GET", f"/api/v1/machines/{MID}/export?{R}&series=raw", "fleet", None),
     ("GET", "/api/v1/fleet/figures", "viewer", None),
 ]
 RANK = {"viewer": 0, "fleet": 1, "admin": 2}
@@ -104,8 +108,8 @@ def test_routes_table_covers_every_api_route(ctx: Ctx) -> None:
                   # sign-in needs no key (test_api_session.py covers it); alarms: test_api_alarms
                   if not p.endswith(("/scene", "/export.html", "/api/v1/session"))
                   and not p.startswith("/api/v1/alarms")}
-    tested = {(m, p.split("?")[0].replace(MID, "{machine_id}").replace("Fleet/1", "Fleet/{page}"))
-              for m, p, _, _ in ROUTES}
+    tested = {(m, p.split("?")[0].replace(MID, "{machine_id}").replace("Fleet/1", "Fleet/{page}")
+               .replace(TS, "{element}/{start}/{end}/{page}")) for m, p, _, _ in ROUTES}
     assert documented - {("GET", "/healthz")} == tested
 
 
@@ -300,7 +304,7 @@ def test_events_lists_stored_events(ctx: Ctx) -> None:
 
 
 def test_aemp_equipment_counts_lifts_and_hours(ctx: Ctx) -> None:
-    j = ctx.get(f"/api/v1/aemp/Equipment/{MID}", role="fleet").json()
+    j = ctx.get(f"/api/v1/aemp/Equipment/{MID}", role="fleet", format="json").json()
     assert j["EquipmentHeader"]["EquipmentID"] == MID
     assert j["CumulativeOperatingHours"]["Hour"] == pytest.approx(180 / 3600, abs=1e-3)
     assert j["CumulativeLoadCount"]["Count"] == 2  # lifts at 30–60 s and 90–120 s ended
@@ -312,7 +316,7 @@ def test_aemp_equipment_counts_lifts_and_hours(ctx: Ctx) -> None:
 
 
 def test_aemp_fleet_pages_and_links(ctx: Ctx) -> None:
-    j = ctx.get("/api/v1/aemp/Fleet/1", role="fleet").json()
+    j = ctx.get("/api/v1/aemp/Fleet/1", role="fleet", format="json").json()
     rels = {link["rel"]: link["href"] for link in j["Links"]}
     assert rels["self"].endswith("/Fleet/1") and rels["last"].endswith("/Fleet/1")
     assert "next" not in rels and "prev" not in rels

@@ -149,7 +149,8 @@ def test_happy_path_on_each_database(db_url: str, base: SampleArrays) -> None:
                           params={**p, "channel": "payload", "op": "gt",
                                   "value": PAYLOAD_KG / 2}).json()
         assert find["t"] == pytest.approx(T0 + 30, abs=1.0)
-        aemp = client.get(f"/api/v1/aemp/Equipment/{MID}", headers=h).json()
+        aemp = client.get(f"/api/v1/aemp/Equipment/{MID}", headers=h,
+                          params={"format": "json"}).json()
         assert aemp["CumulativeLoadCount"]["Count"] == 1  # the 2nd lift ends at the watermark
 
 

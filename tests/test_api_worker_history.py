@@ -214,7 +214,8 @@ def test_aemp_api_and_cli_report_give_one_kp_and_life_used(sqlite_url: str,
         wm = services.backend.progress(MID).watermark_s
         assert wm == T0 + 300
         h = {"X-API-Key": key}
-        aemp = client.get(f"/api/v1/aemp/Equipment/{MID}", headers=h).json()
+        aemp = client.get(f"/api/v1/aemp/Equipment/{MID}", headers=h,
+                          params={"format": "json"}).json()
         ext = aemp["Extension"]["cranetwin"]
         api = client.get(f"/api/v1/machines/{MID}/analytics", headers=h,
                          params={"from": T0, "to": wm}).json()

@@ -57,6 +57,7 @@ def store(db_url: str) -> Iterator[Store]:
     s = Store.open(db_url)
     s.add_machine("crane-1", 1, SECRET)
     s.add_machine("crane-2", 2, SECRET[::-1])
+    s.maintain_partitions(T0_NS / 1e9)  # PostgreSQL: T0's time partition made ahead (a commit)
     yield s
     s.close()
 

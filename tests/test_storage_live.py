@@ -95,7 +95,7 @@ def test_broker_bus_delivers_notes_across_connections(url: str) -> None:
 
 def test_unknown_bus_url_is_rejected() -> None:
     with pytest.raises(StorageError, match="unknown live bus"):
-        open_bus("nats://127.0.0.1:4222")
+        open_bus("kafka://127.0.0.1:9092")
 
 
 def _free_port() -> int:

@@ -84,9 +84,17 @@ def browser() -> Iterator[Any]:
         b.close()
 
 
+def _sign_in(ctx: Any, server: Service, key: str | None = None) -> None:
+    """The browser context signs in once (POST /api/v1/session); pages carry only the cookie."""
+    from cranetwin.bench.web import sign_in
+
+    sign_in(ctx, server.url, key or server.viewer)
+
+
 @pytest.fixture()
-def page(browser: Any) -> Iterator[Any]:
+def page(browser: Any, server: Service) -> Iterator[Any]:
     ctx = browser.new_context(viewport={"width": 1280, "height": 860})
+    _sign_in(ctx, server)
     pg = ctx.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
@@ -112,7 +120,7 @@ def _boom_pixels(img: Any) -> Any:
 
 
 def test_fleet_page_lists_machines(page: Any, server: Service) -> None:
-    page.goto(f"{server.url}/?key={server.viewer}")
+    page.goto(f"{server.url}/")
     _wait_ready(page)
     rows = page.locator("#rows tr")
     assert rows.count() == 3
@@ -177,6 +185,61 @@ def test_sign_in_once_then_cookie_only(browser: Any, server: Service) -> None:
     ctx.close()
 
 
+@pytest.mark.timeout(90)
+def test_address_bar_share_link_and_export_never_hold_the_key(browser: Any, server: Service,
+                                                              tmp_path: Path) -> None:
+    """Signed in through the dialog, a user goes fleet → machine → replay → seek → share →
+    export → back: every address the page shows (each navigation and history entry), every
+    request, the share link and the exported file (its text and the data it embeds) are free of
+    the key."""
+    ctx = browser.new_context(accept_downloads=True)
+    pg = ctx.new_page()
+    addresses: list[str] = []
+    requests: list[str] = []
+    pg.on("framenavigated", lambda f: addresses.append(f.url))
+    pg.on("request", lambda r: requests.append(r.url))
+    pg.on("websocket", lambda ws: requests.append(ws.url))
+    pg.goto(f"{server.url}/")
+    pg.wait_for_selector("#key-dialog[open]", timeout=10000)
+    pg.fill("#key-input", server.fleet)
+    pg.click("#key-form button")
+    pg.wait_for_function("window.cranetwin.ready === true", timeout=15000)
+    addresses.append(pg.url)
+    pg.locator("tr[data-machine-id=crane-2] a").click()
+    pg.wait_for_url("**/machines/crane-2**")
+    pg.goto(f"{server.url}/machines/crane-2?mode=replay&from={END - 600}&to={END}"
+            f"&t={END - 300}")
+    _wait_ready(pg)
+    pg.keyboard.press("PageDown")
+    pg.wait_for_function(f"Math.abs(window.cranetwin.cursor - {END - 290}) < 0.01")
+    addresses.append(pg.url)  # the replaced (replaceState) address
+    pg.click("#share")
+    pg.wait_for_function("document.getElementById('banner').textContent.includes('/machines/')")
+    share = pg.inner_text("#banner")
+    with pg.expect_download(timeout=60000) as info:
+        pg.click("#export")
+    path = tmp_path / "export.html"
+    info.value.save_as(str(path))
+    html = path.read_text()
+    pg.go_back()
+    addresses.append(pg.url)
+    history = pg.evaluate("performance.getEntriesByType('navigation').map(e => e.name)")
+    # the exported file: its text and its embedded (compressed) data
+    off = ctx.new_page()
+    off.goto(path.as_uri())
+    off.wait_for_function("window.cranetwin && window.cranetwin.ready === true", timeout=30000)
+    embedded = off.evaluate("JSON.stringify(window.CRANETWIN_EMBED)")
+    assert "crane-2" in embedded and len(embedded) > 10000
+    for what, texts in (("address", addresses), ("request", requests), ("history", history),
+                        ("share link", [share]), ("export", [html, embedded])):
+        for text in texts:
+            assert server.fleet not in text and server.viewer not in text, (what, text[:200])
+            assert "key=" not in text, (what, text[:200])
+            assert "ctk_" not in text, (what, text[:200])
+    assert len(addresses) >= 4 and any("t=" in a for a in addresses), addresses
+    ctx.close()
+
+
 @pytest.mark.timeout(30)
 def test_a_key_in_an_old_link_is_exchanged_and_removed(browser: Any, server: Service) -> None:
     ctx = browser.new_context()
@@ -189,7 +252,9 @@ def test_a_key_in_an_old_link_is_exchanged_and_removed(browser: Any, server: Ser
 
 
 def _replay(page: Any, server: Service, t: float, key: str | None = None) -> None:
-    page.goto(f"{server.url}/machines/crane-2?key={key or server.viewer}&mode=replay"
+    if key is not None:
+        _sign_in(page.context, server, key)
+    page.goto(f"{server.url}/machines/crane-2?mode=replay"
               f"&from={END - 600}&to={END}&t={t}")
     _wait_ready(page)
     page.wait_for_function(f"Math.abs(window.cranetwin.drawnT - {t}) < 0.01")
@@ -212,8 +277,8 @@ def test_slider_moves_the_boom(page: Any, server: Service) -> None:
     a = _shot(page.locator("#view3d"), "slider-a.png")
     slider = page.locator("#slider")
     slider.focus()
-    # keyboard: move 10 s forward (Shift+→), the boom moves
-    page.keyboard.press("Shift+ArrowRight")
+    # keyboard: move 10 s forward (PageDown), the boom moves
+    page.keyboard.press("PageDown")
     page.wait_for_function(f"Math.abs(window.cranetwin.drawnT - {END - 590}) < 0.01")
     page.wait_for_timeout(300)
     b = _shot(page.locator("#view3d"), "slider-b.png")
@@ -256,7 +321,7 @@ def test_live_updates_within_a_second(page: Any, server: Service) -> None:
     machine = load_machine("patu655")
     base = kinematic_samples(machine, 120.0)
     store = server.app.state.services.backend.store
-    page.goto(f"{server.url}/machines/crane-1?key={server.viewer}&mode=live")
+    page.goto(f"{server.url}/machines/crane-1?mode=live")
     page.wait_for_function("window.cranetwin && window.cranetwin.mode === 'live'"
                            " && window.cranetwin.sceneMs !== null", timeout=30000)
     page.wait_for_timeout(1000)
@@ -286,13 +351,14 @@ def test_live_updates_within_a_second(page: Any, server: Service) -> None:
 
 
 def test_unknown_machine_says_so(page: Any, server: Service) -> None:
-    page.goto(f"{server.url}/machines/nope?key={server.viewer}")
+    page.goto(f"{server.url}/machines/nope")
     page.wait_for_function("document.getElementById('banner').textContent.includes('Unknown')")
 
 
 def test_exported_file_replays_offline(page: Any, server: Service, tmp_path: Path) -> None:
     r = httpx.get(f"{server.url}/api/v1/machines/crane-2/export.html",
-                  params={"from": END - 60, "to": END}, headers={"X-API-Key": server.viewer})
+                  params={"from": END - 60, "to": END}, headers={"X-API-Key": server.viewer},
+                  timeout=60.0)
     assert r.status_code == 200
     f = tmp_path / "replay.html"
     f.write_bytes(r.content)
@@ -302,7 +368,7 @@ def test_exported_file_replays_offline(page: Any, server: Service, tmp_path: Pat
     _wait_ready(page)
     img = _shot(page.locator("#view3d"), "export-3d.png")
     assert _boom_pixels(img).mean() > 0.005
-    page.keyboard.press("Shift+ArrowRight")
+    page.keyboard.press("PageDown")
     page.wait_for_function(f"Math.abs(window.cranetwin.drawnT - {END - 50}) < 0.01")
     page.wait_for_selector("#charts .main-svg", timeout=20000)
     assert not page.errors
@@ -310,7 +376,7 @@ def test_exported_file_replays_offline(page: Any, server: Service, tmp_path: Pat
 
 def test_range_without_data_says_so(page: Any, server: Service) -> None:
     a, b = END - 7200, END - 6600  # an hour before the stored data
-    page.goto(f"{server.url}/machines/crane-2?key={server.viewer}&mode=replay&from={a}&to={b}")
+    page.goto(f"{server.url}/machines/crane-2?mode=replay&from={a}&to={b}")
     page.wait_for_function("document.getElementById('banner').textContent.includes('No data')",
                            timeout=20000)
     page.wait_for_function("document.getElementById('charts-msg').textContent"
@@ -380,7 +446,7 @@ def test_no_data_message_survives_a_slow_scene(page: Any, server: Service) -> No
 
     page.route("**/scene*", slow_scene)
     a, b = END - 7200, END - 6600
-    page.goto(f"{server.url}/machines/crane-2?key={server.viewer}&mode=replay&from={a}&to={b}")
+    page.goto(f"{server.url}/machines/crane-2?mode=replay&from={a}&to={b}")
     page.wait_for_function("document.getElementById('banner').textContent.includes('No data')",
                            timeout=20000)
     assert not page.errors
@@ -398,10 +464,11 @@ def test_alarms_acknowledge_and_clear_in_the_fleet_page(browser: Any, server: Se
         "crane-2", t, "overload", "critical",
         {"value": 2.84e4, "limit": 2.0e4, "unit": "N*m", "component": "load"})])
     ctx = browser.new_context()
+    _sign_in(ctx, server)
     pg = ctx.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
-    pg.goto(f"{server.url}/?key={server.viewer}")
+    pg.goto(f"{server.url}/")
     pg.wait_for_function("window.cranetwin.alarmsReady === true", timeout=15000)
     pg.select_option("#f-machine", "crane-2")
     row = pg.locator("#alarm-rows tr", has_text="28.4 kN·m")
@@ -443,7 +510,7 @@ def test_fleet_table_sorts_filters_and_shows_fleet_figures(page: Any, server: Se
         if backend.progress(mid) is None:
             backend.save_progress(replace(Progress.empty(mid), operating_s=hours * 3600,
                                           load_count=lifts, payload_total_kg=kg), None)
-    page.goto(f"{server.url}/?key={server.viewer}")
+    page.goto(f"{server.url}/")
     _wait_ready(page)
     assert page.inner_text("#fig-machines") == "3"
     assert "offline" in page.inner_text("#fig-status")

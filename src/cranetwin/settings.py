@@ -15,7 +15,7 @@ the sending command documents, never from argv.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 from pydantic import Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -45,6 +45,24 @@ class Settings(BaseSettings):
         None, description="live fan-out between the ingest daemon and the API (memory://, "
                           "postgresql://…, redis://host:port); unset: the live view polls "
                           "the store")
+    # -- fleet bus (NATS JetStream; docs/BUS.md) --------------------------------------------
+    bus_url: str | None = Field(
+        None, description="NATS server of the fleet bus (nats://host:port); set: `cranetwin "
+                          "ingest` publishes blocks to JetStream instead of writing them to the "
+                          "database, and `cranetwin store-writer` stores them")
+    bus_stream: str = Field("CRANETWIN_BLOCKS", description="JetStream stream of the blocks")
+    bus_prefix: str = Field("cranetwin.blocks", description="subject prefix of the blocks")
+    bus_partitions: int = Field(16, ge=1, le=4096,
+                                description="partitions of the fleet bus (machines by hash)")
+    bus_duplicate_window_s: float = Field(
+        120.0, gt=0, description="JetStream deduplication window of block messages [s]")
+    bus_max_msgs: int = Field(2_000_000, ge=1,
+                              description="stream size limit [blocks]; full: publishes refused")
+    bus_publish_timeout_s: float = Field(
+        2.0, gt=0, description="longest wait for a batch's PubAcks before it is retried [s]")
+    bus_ack_wait_s: float = Field(
+        30.0, gt=0, description="a block not acked by its storage writer within this time is "
+                                "delivered again [s]")
     ingest_bind: str = Field("127.0.0.1:5005", description="UDP HOST:PORT of `cranetwin ingest`")
     ingest_metrics_bind: str = Field(
         "127.0.0.1:9105", description="HOST:PORT of the ingest daemon's Prometheus /metrics "
@@ -108,6 +126,26 @@ class Settings(BaseSettings):
     worker_metrics_bind: str = Field(
         "0", description="HOST:PORT of `cranetwin worker`'s Prometheus /metrics (HTTP); "
                          "0 = not served")
+    worker_quiet_s: float = Field(
+        60.0, gt=0, description="a machine whose newest sample has not changed for this long "
+                                "gets its last window processed without samples past it [s]")
+    worker_partitions: str | None = Field(
+        None, description="machine partitions `cranetwin worker` owns: auto, all, I/P or I,J,… "
+                          "(with worker_partition_count); unset: every machine, no locks")
+    worker_partition_count: int = Field(
+        16, ge=1, le=65536, description="number of machine partitions P of the twin workers")
+
+    # -- time partitions of raw samples on PostgreSQL (``cranetwin.storage.partitions``) ------
+    storage_partition_interval: Literal["day", "week", "month"] = Field(
+        "month", description="range of one time partition of sample_blocks (new partitions)")
+    storage_partitions_ahead: int = Field(
+        2, ge=0, le=366, description="partitions the twin worker creates ahead of the current")
+    storage_retention_days: float = Field(
+        0.0, ge=0, description="drop raw-sample partitions older than this, once processed "
+                               "by the twin worker [days]; 0 = keep forever")
+    storage_maintenance_interval_s: float = Field(
+        3600.0, gt=0, description="how often the twin worker makes partitions ahead and "
+                                  "applies retention [s]")
     summary_interval_s: float = Field(1.0, gt=0, description="derived summary interval [s]")
     payload_lift_threshold_kg: float = Field(
         50.0, ge=0, description="payload above which the crane is holding a load (load count) [kg]")
@@ -140,6 +178,23 @@ class Settings(BaseSettings):
     demo_logs: Path | None = Field(
         None, description="folder of the demo's child-process logs, scenario and secret files "
                           "(default: cranetwin-demo-<uid> in the temporary folder)")
+
+    # -- webhook notification of new alarms (``cranetwin.service.webhooks``) -------------------
+    alarm_webhook_url: str = Field(
+        "", description="URL that receives an HMAC-signed JSON POST for every new event of "
+                        "alarm_webhook_severity and above; empty = no webhook")
+    alarm_webhook_secret: str = Field(
+        "", description="HMAC-SHA256 key of the X-Cranetwin-Signature header (environment "
+                        "only; never logged); required with alarm_webhook_url")
+    alarm_webhook_severity: Literal["info", "warning", "critical"] = Field(
+        "critical", description="lowest severity sent to the webhook")
+    alarm_webhook_retries: int = Field(
+        5, ge=0, le=20, description="retries of a failed delivery (connection error, timeout, "
+                                    "HTTP 429 or 5xx), after 1, 2, 4 … × the backoff")
+    alarm_webhook_backoff_s: float = Field(
+        1.0, gt=0, le=60, description="first retry delay of a webhook delivery [s]")
+    alarm_webhook_timeout_s: float = Field(
+        5.0, gt=0, le=60, description="timeout of one webhook request [s]")
 
 
 S = TypeVar("S", bound=Settings)

@@ -4,24 +4,62 @@
 
 const PALETTE = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#17becf", "#e377c2"];
 
-export function chartGroups(model) {
-  const ch = (model.channels || []);
-  const pressures = ch.filter((c) => c.quantity === "pressure_a" || c.quantity === "pressure_b").map((c) => c.name);
-  const cyls = (model.cylinders || []).map((c) => c.name);
-  const joints = (model.joints || []).filter((j) => j.kind === "revolute").map((j) => j.name);
-  return [
-    { key: "pressure", title: "Pressure [bar]", scale: 1e-5, channels: pressures, label: (n) => n },
-    { key: "force", title: "Cylinder force [kN]", scale: 1e-3, channels: cyls.map((c) => `force:${c}`), label: (n) => n.slice(6) },
-    { key: "payload", title: "Payload [kg]", scale: 1, channels: ["payload"], label: () => "payload" },
-    { key: "moment", title: "Joint moment [kN·m]", scale: 1e-3, channels: joints.map((j) => `moment:${j}`), label: (n) => n.slice(7) },
-  ];
+// Every channel the charts can show: raw ones of the machine description (pressures, rod
+// positions, angles, drive torques) and the twin worker's derived ones (cylinder forces, payload,
+// joint reaction moments, joint torques). {name, label, kind, title, scale, live}: `kind` groups
+// channels sharing a chart (one unit), `live` says whether the live stream carries it.
+const KINDS = {
+  pressure: { title: "Pressure [bar]", scale: 1e-5 },
+  position: { title: "Rod position [mm]", scale: 1e3 },
+  angle: { title: "Angle [°]", scale: 180 / Math.PI },
+  drive: { title: "Drive torque [kN·m]", scale: 1e-3 },
+  force: { title: "Cylinder force [kN]", scale: 1e-3 },
+  payload: { title: "Payload [kg]", scale: 1 },
+  moment: { title: "Joint reaction moment [kN·m]", scale: 1e-3 },
+  torque: { title: "Joint torque [kN·m]", scale: 1e-3 },
+  torqueP: { title: "Joint force (prismatic) [kN]", scale: 1e-3 },
+};
+export const DEFAULT_KINDS = ["pressure", "force", "payload", "moment", "torque"];
+
+export function channelCatalog(model) {
+  const out = [];
+  const add = (name, label, kind, live) => out.push({ name, label, kind, live, ...KINDS[kind] });
+  const raw = { pressure_a: "pressure", pressure_b: "pressure", position: "position", angle: "angle", torque: "drive" };
+  for (const c of model.channels || []) {
+    const kind = raw[c.quantity];
+    if (kind) add(c.name, c.name, kind, kind === "pressure");
+  }
+  for (const c of model.cylinders || []) add(`force:${c.name}`, c.name, "force", true);
+  add("payload", "payload", "payload", true);
+  for (const j of model.joints || []) if (j.kind === "revolute") add(`moment:${j.name}`, j.name, "moment", false);
+  for (const j of model.joints || []) add(`torque:${j.name}`, j.name, j.kind === "revolute" ? "torque" : "torqueP", true);
+  return out;
+}
+
+// Chart groups (one chart per kind, in catalogue order) of the selected channel names.
+export function chartGroups(catalog, selected) {
+  const sel = new Set(selected);
+  const groups = [];
+  for (const c of catalog) {
+    if (!sel.has(c.name)) continue;
+    let g = groups.find((x) => x.key === c.kind);
+    if (!g) { g = { key: c.kind, title: c.title, scale: c.scale, channels: [], labels: {} }; groups.push(g); }
+    g.channels.push(c.name);
+    g.labels[c.name] = c.label;
+  }
+  for (const g of groups) g.label = (n) => g.labels[n] || n;
+  return groups;
 }
 
 export class Charts {
-  constructor(div, groups, onSeek) {
+  // onSeek(t): a click on a chart; onView(a, b): a range brushed on a chart (null, null: reset)
+  constructor(div, groups, onSeek, onView) {
     this.div = div;
     this.groups = groups;
     this.onSeek = onSeek;
+    this.onView = onView;
+    this.xRange = null;
+    this.fitHeight();
     this.cursor = document.createElement("div");
     this.cursor.className = "chart-cursor";
     this.cursor.setAttribute("aria-hidden", "true");
@@ -31,7 +69,7 @@ export class Charts {
   }
 
   layout(events) {
-    const n = this.groups.length;
+    const n = Math.max(this.groups.length, 1);
     const gap = 0.04;
     const h = (1 - gap * (n - 1)) / n;
     const layout = {
@@ -41,14 +79,18 @@ export class Charts {
       paper_bgcolor: "rgba(0,0,0,0)",
       plot_bgcolor: "#fff",
       font: { size: 11 },
-      xaxis: { type: "date", anchor: "free", position: 0, showgrid: true, gridcolor: "#eee" },
+      // the x axis shows the timeline's view (not just where data are), so the chart cursor
+      // and the slider line up; a drag on a chart brushes the x range only
+      xaxis: { type: "date", anchor: "free", position: 0, showgrid: true, gridcolor: "#eee",
+        ...(this.xRange ? { range: this.xRange.map((t) => t * 1000), autorange: false } : {}) },
+      dragmode: "zoom",
       shapes: [],
       annotations: [],
     };
     this.groups.forEach((g, k) => {
       const name = k === 0 ? "yaxis" : `yaxis${k + 1}`;
       const top = 1 - k * (h + gap);
-      layout[name] = { domain: [top - h, top], title: { text: g.title, font: { size: 10 } }, gridcolor: "#eee", zeroline: false };
+      layout[name] = { domain: [top - h, top], title: { text: g.title, font: { size: 10 } }, gridcolor: "#eee", zeroline: false, fixedrange: true };
       // one small legend per chart, in its top-right corner
       layout[legendId(k)] = { x: 1, xanchor: "right", y: top, yanchor: "top", orientation: "h",
         bgcolor: "rgba(255,255,255,0.7)", font: { size: 10 }, itemclick: "toggle" };
@@ -95,14 +137,45 @@ export class Charts {
       });
     });
     this.liveMode = true;
-    this.draw(traces, this.layout([]));
+    const keep = this.xRange;
+    this.xRange = null; // live: the rolling window's own range
+    const layout = this.layout([]);
+    this.xRange = keep;
+    this.draw(traces, layout);
+  }
+
+  setGroups(groups) { this.groups = groups; this.fitHeight(); }
+
+  // about 95 px per chart (at least 300 px)
+  fitHeight() {
+    const h = `${Math.max(300, 95 * this.groups.length + 40)}px`;
+    if (this.div.style.height !== h) this.div.style.height = h;
+  }
+
+  // Shows [a, b] on the x axis (the timeline's view); cheap: a relayout, no new data.
+  setXRange(a, b) {
+    this.xRange = a === null ? null : [a, b];
+    if (!this.ready || !this.div._fullLayout) return;
+    this.ignoreRelayout = true;
+    const upd = this.xRange ? { "xaxis.range": this.xRange.map((t) => t * 1000), "xaxis.autorange": false } : { "xaxis.autorange": true };
+    Promise.resolve(Plotly.relayout(this.div, upd)).finally(() => { this.ignoreRelayout = false; });
   }
 
   draw(traces, layout) {
-    const config = { displaylogo: false, responsive: true, modeBarButtonsToRemove: ["lasso2d", "select2d"] };
-    Plotly.react(this.div, traces, layout, config);
+    const config = { displaylogo: false, responsive: true, scrollZoom: false, doubleClick: "reset",
+      modeBarButtonsToRemove: ["lasso2d", "select2d", "zoomIn2d", "zoomOut2d", "autoScale2d"] };
+    this.ignoreRelayout = true;
+    Promise.resolve(Plotly.react(this.div, traces, layout, config)).finally(() => { this.ignoreRelayout = false; });
     if (!this.ready) {
       this.ready = true;
+      this.div.on("plotly_relayout", (ev) => {
+        if (this.ignoreRelayout || this.liveMode || !this.onView) return;
+        const r0 = ev["xaxis.range[0]"] ?? (ev["xaxis.range"] || [])[0];
+        const r1 = ev["xaxis.range[1]"] ?? (ev["xaxis.range"] || [])[1];
+        const ms = (x) => (typeof x === "number" ? x : Date.parse(String(x).replace(" ", "T") + "Z"));
+        if (r0 !== undefined && r1 !== undefined) this.onView(ms(r0) / 1000, ms(r1) / 1000);
+        else if (ev["xaxis.autorange"]) this.onView(null, null);
+      });
       this.div.on("plotly_click", (ev) => {
         if (!ev.points || ev.points.length === 0 || this.liveMode) return;
         const x = ev.points[0].x;

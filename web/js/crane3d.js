@@ -62,6 +62,31 @@ export function softwareGL(gl) {
   }
 }
 
+// Rated payload [kg] at horizontal reach r [m]: linear in between, held beyond the chart's ends
+// (as RatedLoad.payload_at on the server).
+export function ratedAt(chart, r) {
+  const xs = chart.reach_m, ys = chart.payload_kg;
+  if (r <= xs[0]) return ys[0];
+  if (r >= xs[xs.length - 1]) return ys[ys.length - 1];
+  let i = 1;
+  while (xs[i] < r) i++;
+  const a = (r - xs[i - 1]) / (xs[i] - xs[i - 1]);
+  return ys[i - 1] + a * (ys[i] - ys[i - 1]);
+}
+
+// Reach [m] of point p from the slew axis, and the unit horizontal direction to it.
+export function reachOf(axis, p) {
+  const o = axis.origin_m, n = axis.axis;
+  const d = [p[0] - o[0], p[1] - o[1], p[2] - o[2]];
+  const along = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
+  const perp = [d[0] - along * n[0], d[1] - along * n[1], d[2] - along * n[2]];
+  const r = Math.hypot(perp[0], perp[1], perp[2]);
+  return { r, dir: r > 1e-9 ? perp.map((x) => x / r) : [1, 0, 0] };
+}
+
+export const ENVELOPE_HEIGHT_M = 2.5; // the chart's largest rated payload drawn this high [m]
+const ENVELOPE_N = 48;
+
 export class Crane3D {
   constructor(element, sceneData) {
     // Our own renderer: no multisampling (software WebGL, e.g. SwiftShader in headless Chromium,
@@ -109,6 +134,8 @@ export class Crane3D {
     }
     this.element = element;
     this.resize();
+    this.follow = false;
+    this.buildEnvelope();
     // parked pose until data arrives (no log on the grapple)
     if (this.spec.rest_frame) this.apply(this.spec.rest_frame);
   }
@@ -180,8 +207,103 @@ export class Crane3D {
       const L = r > 0.005 ? this.spec.log_length_m : 0;
       const rr = L > 0 ? r : 0;
       this.payload.set_transform([rr, 0, 0, 0, 0, L, 0, 0, 0, 0, rr, 0, 0, 0, -this.spec.tool_drop_m - rr, 1]);
+      this.envelopeState = this.updateEnvelope(tip, frame.payload_kg);
+      this.followTo(tip);
     }
     this.viewer.set_dirty();
+  }
+
+  // The rated-load envelope in the vertical plane through the slew axis and the load: the chart
+  // drawn as a curve whose height is the rated payload (ENVELOPE_HEIGHT_M for the largest), on a
+  // base line along the reach, and a marker at (current reach, current payload): inside the
+  // curve = within rating. Green where the current payload is allowed at that reach, red where not.
+  buildEnvelope() {
+    const chart = this.spec.rated_load, axis = this.spec.slew_axis;
+    this.envelope = null;
+    if (!chart || !axis) return;
+    const THREE = MeshCat.THREE;
+    const root = this.viewer.scene_tree.find(["cranetwin"]).object; // z-up like the crane
+    const group = new THREE.Group();
+    group.name = "rated-load-envelope";
+    const n = ENVELOPE_N;
+    const curve = new THREE.BufferGeometry();
+    curve.setAttribute("position", new THREE.BufferAttribute(new Float32Array(3 * n), 3));
+    curve.setAttribute("color", new THREE.BufferAttribute(new Float32Array(3 * n), 3));
+    const curveLine = new THREE.Line(curve, new THREE.LineBasicMaterial({ vertexColors: true, depthTest: false, transparent: true }));
+    const baseGeo = new THREE.BufferGeometry();
+    baseGeo.setAttribute("position", new THREE.BufferAttribute(new Float32Array(3 * 2 * (n + 1)), 3));
+    const base = new THREE.LineSegments(baseGeo, new THREE.LineBasicMaterial({ color: 0x35506b, depthTest: false, transparent: true }));
+    const marker = new THREE.Mesh(new THREE.SphereGeometry(0.09, 12, 8), new THREE.MeshBasicMaterial({ color: 0x1e9e4a, depthTest: false, transparent: true }));
+    const stemGeo = new THREE.BufferGeometry();
+    stemGeo.setAttribute("position", new THREE.BufferAttribute(new Float32Array(6), 3));
+    const stem = new THREE.Line(stemGeo, new THREE.LineBasicMaterial({ color: 0x1c2430, depthTest: false, transparent: true }));
+    for (const o of [curveLine, base, marker, stem]) { o.renderOrder = 10; o.frustumCulled = false; group.add(o); }
+    root.add(group);
+    this.envelope = { group, curve, baseGeo, marker, stemGeo, chart, axis, state: null };
+  }
+
+  setEnvelopeVisible(v) { if (this.envelope) { this.envelope.group.visible = v; this.viewer.set_dirty(); } }
+
+  // Updates the envelope for the load at `tip` (world [m]) carrying `payloadKg`; returns
+  // {reach_m, rated_kg, payload_kg, utilisation, slew_rad} or null.
+  updateEnvelope(tip, payloadKg) {
+    const e = this.envelope;
+    if (!e || !tip) return null;
+    const { r, dir } = reachOf(e.axis, tip);
+    const o = e.axis.origin_m, up = e.axis.axis;
+    const xs = e.chart.reach_m;
+    const r0 = 0, r1 = xs[xs.length - 1] * 1.1;
+    const maxKg = Math.max(...e.chart.payload_kg);
+    const k = ENVELOPE_HEIGHT_M / maxKg;
+    const kg = Math.max(payloadKg || 0, 0);
+    const at = (rr, h) => [0, 1, 2].map((i) => o[i] + rr * dir[i] + h * up[i]);
+    const pos = e.curve.attributes.position.array, col = e.curve.attributes.color.array;
+    const bpos = e.baseGeo.attributes.position.array;
+    for (let i = 0; i < ENVELOPE_N; i++) {
+      const rr = r0 + ((r1 - r0) * i) / (ENVELOPE_N - 1);
+      const rated = ratedAt(e.chart, Math.max(rr, xs[0]));
+      const p = at(rr, rated * k);
+      pos.set(p, 3 * i);
+      const ok = rated >= kg;
+      col.set(ok ? [0.12, 0.62, 0.29] : [0.86, 0.15, 0.12], 3 * i);
+    }
+    for (let i = 0; i <= ENVELOPE_N; i++) {
+      // the base line, dashed: every other piece
+      const a = r0 + ((r1 - r0) * i) / (ENVELOPE_N + 1);
+      const b = a + (r1 - r0) / (2 * (ENVELOPE_N + 1));
+      bpos.set(at(a, 0), 6 * i);
+      bpos.set(at(b, 0), 6 * i + 3);
+    }
+    e.curve.attributes.position.needsUpdate = true;
+    e.curve.attributes.color.needsUpdate = true;
+    e.baseGeo.attributes.position.needsUpdate = true;
+    const rated = ratedAt(e.chart, r);
+    const u = kg / rated;
+    const m = at(r, kg * k);
+    e.marker.position.set(m[0], m[1], m[2]);
+    const rgb = utilisationColor(u);
+    e.marker.material.color.setRGB(rgb[0], rgb[1], rgb[2]);
+    e.stemGeo.attributes.position.array.set([...at(r, 0), ...m]);
+    e.stemGeo.attributes.position.needsUpdate = true;
+    e.state = { reach_m: r, rated_kg: rated, payload_kg: kg, utilisation: u, slew_rad: Math.atan2(dir[1], dir[0]), dir };
+    return e.state;
+  }
+
+  // Camera follow: the orbit target moves with the load (the camera keeps its offset, so the
+  // user can still turn and zoom around it).
+  setFollow(on) { this.follow = !!on; this.lastFollow = null; }
+
+  followTo(tip) {
+    if (!this.follow || !tip) return;
+    const v = this.viewer;
+    const t = [tip[0], tip[2], -tip[1]]; // z-up -> meshcat's y-up world
+    const c = v.controls.target;
+    const d = [t[0] - c.x, t[1] - c.y, t[2] - c.z];
+    if (Math.abs(d[0]) + Math.abs(d[1]) + Math.abs(d[2]) < 1e-6) return;
+    v.controls.target.set(t[0], t[1], t[2]);
+    v.camera.position.set(v.camera.position.x + d[0], v.camera.position.y + d[1], v.camera.position.z + d[2]);
+    v.controls.update();
+    v.set_dirty();
   }
 
   tipFromPoses(poses) {

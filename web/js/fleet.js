@@ -1,12 +1,14 @@
 // Fleet page: every machine with status, last seen, payload and alarms; refreshed every 5 s.
 import { ApiError, askSignIn, getJSON, relTime, setupSignIn } from "./api.js";
 import { initAlarms, refreshAlarms, setMachines } from "./alarms.js";
+import { FleetMap } from "./fleetmap.js";
 
 const $ = (id) => document.getElementById(id);
 let machines = [];
 let figures = { machines: {}, total: null };
 const sort = { key: "status", dir: 1 };
 const STATUS_ORDER = { live: 0, idle: 1, offline: 2 };
+const map = new FleetMap($("map"));
 
 function figure(m, k) { return (figures.machines[m.machine_id] || {})[k] ?? null; }
 
@@ -82,8 +84,13 @@ function render() {
     tr.children[8].textContent = String(m.alarms ?? 0);
     if (m.alarms > 0) tr.children[8].classList.add("alarm");
     tr.onclick = (ev) => { if (ev.target.tagName !== "A") window.location.href = link; };
+    tr.onmouseenter = () => map.highlight(m.machine_id);
+    tr.onmouseleave = () => map.highlight(null);
     rows.appendChild(tr);
   }
+  // the map shows what the table shows
+  map.update(shown).then((n) => { window.cranetwin.mapMarkers = n; window.cranetwin.mapReady = true; })
+    .catch((err) => { window.cranetwin.mapError = String(err); });
   $("empty").hidden = machines.length > 0;
 }
 

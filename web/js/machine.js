@@ -2,13 +2,16 @@
 import { ApiError, askSignIn, download, getJSON, setupSignIn, wsURL, isoSeconds, parseTime, relTime } from "./api.js";
 import { Crane3D } from "./crane3d.js";
 import { ReplayStore } from "./replay.js";
-import { Charts, chartGroups } from "./charts.js";
+import { Charts, channelCatalog, chartGroups, DEFAULT_KINDS } from "./charts.js";
+import { Timeline, coverageFromHistory, nextCovered } from "./timeline.js";
 
 const $ = (id) => document.getElementById(id);
 const SPEEDS = [0.25, 0.5, 1, 2, 4, 8, 16];
 const REPLAY_RATE_HZ = 25;
 const LIVE_WINDOW_S = 60;
 const TRAIL_S = 20;
+const FRAME_S = 1 / REPLAY_RATE_HZ; // one frame step [s]
+const GAP_SKIP_S = 2; // play jumps over silences longer than this [s]
 
 // Measurements read by the browser tests and benchmarks.
 const metrics = window.cranetwin = {
@@ -71,10 +74,11 @@ const source = embed ? embeddedSource(embed) : apiSource(machineId);
 const params = new URLSearchParams(window.location.search);
 const state = {
   machine: null, model: null, crane: null, charts: null, groups: null,
-  mode: null, from: null, to: null, cursor: null, playing: false,
+  mode: null, from: null, to: null, cursor: null, playing: false, view: null, coverage: [],
+  catalog: [], selected: [], timeline: null,
   speed: Math.min(16, Math.max(0.25, parseFloat(params.get("speed")) || 1)),
   store: null, events: [], live: null, liveFrame: null, liveDirty: false,
-  liveBuffer: { t: [], series: {} }, liveTrail: [], lastWall: null, lastUrlUpdate: 0,
+  liveBuffer: { t: [], series: {} }, liveTrail: [], lastWall: null, lastUrlUpdate: 0, historyAsk: 0,
 };
 
 function banner(text, kind = "info") {
@@ -116,6 +120,11 @@ async function start() {
   window.__crane = state.crane;
   metrics.sceneMs = performance.now() - t0;
   buildForceRows();
+  state.catalog = channelCatalog(model);
+  const wanted = (params.get("ch") || "").split(",").filter((n) => state.catalog.some((c) => c.name === n));
+  state.selected = wanted.length ? wanted : state.catalog.filter((c) => DEFAULT_KINDS.includes(c.kind)).map((c) => c.name);
+  buildChannelPicker();
+  state.timeline = new Timeline($("timeline"), { onView: (a, b) => setView(a, b, "timeline"), onSeek: (t) => { state.playing = false; updatePlayButton(); seek(t, true); } });
   if (!embed) setupSignIn(() => window.location.reload());
   if (embed) { $("mode-live").disabled = true; $("share").hidden = true; $("export").hidden = true; $("report").hidden = true; $("report-fmt").hidden = true; $("back-link").hidden = true; }
   wireControls();
@@ -123,8 +132,14 @@ async function start() {
   // plotly (4.6 MB to parse) is loaded once the crane is drawn, so it never delays that paint
   const afterPaint = Promise.race([firstFrame, new Promise((r) => setTimeout(r, 3000))]);
   const chartsReady = afterPaint.then(() => (embed ? null : loadScript("/static/vendor/plotly.min.js"))).then(() => {
-    state.groups = chartGroups(model);
-    state.charts = new Charts($("charts"), state.groups, (t) => { if (state.mode === "replay") seek(t, true); });
+    state.groups = chartGroups(state.catalog, state.selected);
+    state.charts = new Charts($("charts"), state.groups, (t) => { if (state.mode === "replay") seek(t, true); },
+      (a, b) => { if (state.mode === "replay") setView(a ?? state.from, b ?? state.to, "chart"); });
+    if (state.view) state.charts.setXRange(state.view.a, state.view.b);
+    $("charts").addEventListener("wheel", (ev) => {
+      if (state.mode !== "replay" || !state.timeline || state.from === null) return;
+      state.timeline.wheel(ev);
+    }, { passive: false });
   }).catch((err) => { $("charts-msg").hidden = false; $("charts-msg").textContent = `Charts unavailable: ${err.message}`; });
   state.chartsReady = chartsReady;
   const plan = state.plan;
@@ -211,9 +226,13 @@ function startReplay(from, to, t) {
   state.from = from; state.to = to;
   $("from").value = toLocalInput(from);
   $("to").value = toLocalInput(to);
-  const slider = $("slider");
-  slider.disabled = false; $("play").disabled = false;
-  slider.min = "0"; slider.max = String(to - from); slider.step = "0.02";
+  $("slider").disabled = false; $("play").disabled = false;
+  for (const id of ["frame-back", "frame-fwd", "zoom-out"]) $(id).disabled = false;
+  state.coverage = [];
+  state.timeline.setRange(from, to);
+  const vf = parseTime(params.get("vfrom")), vt = parseTime(params.get("vto"));
+  params.delete("vfrom"); params.delete("vto"); // only the first range of the page
+  setView(vf !== null && vt !== null && vt > vf ? vf : from, vf !== null && vt !== null && vt > vf ? vt : to, "range");
   if (!state.store || state.store.from !== from || state.store.to !== to) {
     state.store = new ReplayStore(source, from, to, REPLAY_RATE_HZ);
     if (!source.embedded) state.store.prime(t ?? from);
@@ -230,19 +249,104 @@ function startReplay(from, to, t) {
   const i0 = state.store.chunkIndex(t0);
   const settled = state.store.chunks.get(i0);
   if (settled && settled.state !== "loading") state.store.onLoaded(i0, settled);
-  source.events(from, to).then((events) => { state.events = events || []; renderEvents(); })
+  source.events(from, to).then((events) => { state.events = events || []; state.timeline.setEvents(state.events); renderEvents(); })
     .catch(() => { state.events = []; renderEvents(); });
   state.chartsReady.then(() => loadHistory(from, to));
+  loadCoverage(from, to);
+}
+
+// The zoomed part of the replay range [a, b]: slider, timeline window and the charts' x axis.
+// `by` says who asked ("timeline", "chart", "range", "follow", "keys"): the others follow.
+function setView(a, b, by) {
+  if (state.from === null || !state.timeline) return;
+  [a, b] = state.timeline.setView(a, b);
+  state.view = { a, b };
+  const slider = $("slider");
+  slider.min = "0"; slider.max = String(b - a); slider.step = String(FRAME_S);
+  if (state.cursor !== null) slider.value = String(Math.min(Math.max(state.cursor, a), b) - a);
+  $("zoom-out").setAttribute("aria-disabled", String(!state.timeline.zoomed()));
+  $("view-label").textContent = state.timeline.zoomed() ? `zoom ${fmtDuration(b - a)} of ${fmtDuration(state.to - state.from)}` : "";
+  metrics.view = [a, b];
+  if (state.charts) state.charts.setXRange(a, b);
+  // a cursor outside the view moves into it (a pan or brush is where the user wants to look)
+  if (state.cursor !== null && by !== "follow" && (state.cursor < a || state.cursor > b)) seek(a, false);
+  // finer history for a zoomed view, once the user stops
+  clearTimeout(state.viewTimer);
+  if (by !== "range") state.viewTimer = setTimeout(() => loadHistory(a, b), 250);
+  updateUrl(false);
+}
+
+function fmtDuration(s) {
+  if (s < 90) return `${s.toFixed(s < 10 ? 1 : 0)} s`;
+  if (s < 5400) return `${(s / 60).toFixed(s < 600 ? 1 : 0).replace(/\.0$/, "")} min`;
+  return `${(s / 3600).toFixed(1).replace(/\.0$/, "")} h`;
+}
+
+// Where data exist in the range (for the timeline and for play to skip silences).
+async function loadCoverage(from, to) {
+  try {
+    const ch = state.catalog.find((c) => c.kind === "pressure") || state.catalog[0];
+    const hist = await source.history(from, to, [ch ? ch.name : "payload"], 600);
+    if (state.from !== from || state.to !== to) return;
+    state.coverage = coverageFromHistory(hist);
+    metrics.coverage = state.coverage;
+    state.timeline.setCoverage(state.coverage);
+  } catch (_) { state.coverage = []; }
+}
+
+function buildChannelPicker() {
+  const box = $("channel-list");
+  box.innerHTML = "";
+  const kinds = [];
+  for (const c of state.catalog) if (!kinds.includes(c.kind)) kinds.push(c.kind);
+  for (const k of kinds) {
+    const fs = document.createElement("fieldset");
+    const chans = state.catalog.filter((c) => c.kind === k);
+    fs.innerHTML = `<legend>${chans[0].title}</legend>`;
+    for (const c of chans) {
+      const label = document.createElement("label");
+      const input = document.createElement("input");
+      input.type = "checkbox";
+      input.value = c.name;
+      input.dataset.channel = c.name;
+      input.checked = state.selected.includes(c.name);
+      input.onchange = () => pickChannels();
+      label.append(input, ` ${c.label}${c.live ? "" : " (not live)"}`);
+      fs.appendChild(label);
+    }
+    box.appendChild(fs);
+  }
+  $("channel-count").textContent = String(state.selected.length);
+}
+
+function pickChannels() {
+  state.selected = [...document.querySelectorAll("#channel-list input:checked")].map((i) => i.value);
+  $("channel-count").textContent = String(state.selected.length);
+  metrics.channels = state.selected.slice();
+  if (!state.charts) return;
+  state.groups = chartGroups(state.catalog, state.selected);
+  state.charts.setGroups(state.groups);
+  if (state.mode === "replay") loadHistory(state.view ? state.view.a : state.from, state.view ? state.view.b : state.to);
+  else state.charts.setLive(state.liveBuffer);
+  updateUrl(true);
 }
 
 async function loadHistory(from, to) {
   if (!state.charts) return;
   const channels = state.groups.flatMap((g) => g.channels);
   const msg = $("charts-msg");
+  if (channels.length === 0) {
+    state.charts.setHistory({ channels: {} }, state.events);
+    msg.hidden = false; msg.textContent = "No channel chosen: pick some under Channels.";
+    return;
+  }
+  const ask = ++state.historyAsk;
   try {
     const maxPoints = Math.min(2000, Math.max(200, Math.round($("charts").clientWidth * 1.5)));
     const hist = await source.history(from, to, channels, maxPoints);
+    if (ask !== state.historyAsk) return; // a newer view or channel choice asked meanwhile
     const any = state.charts.setHistory(hist, state.events);
+    metrics.historyLoads = (metrics.historyLoads || 0) + 1;
     msg.hidden = any;
     if (!any) msg.textContent = "No load history in this range.";
   } catch (err) {
@@ -266,21 +370,42 @@ function renderEvents() {
     li.appendChild(b);
     ol.appendChild(li);
   }
-  if (state.charts && state.mode === "replay") loadHistory(state.from, state.to);
+  if (state.charts && state.mode === "replay") loadHistory(state.view ? state.view.a : state.from, state.view ? state.view.b : state.to);
 }
 
 function seek(t, userAction) {
   if (state.from === null) return;
   state.cursor = metrics.cursor = Math.min(Math.max(t, state.from), state.to);
-  $("slider").value = String(state.cursor - state.from);
+  followCursor();
+  $("slider").value = String(state.cursor - state.view.a);
+  state.timeline.setCursor(state.cursor);
   state.needsFrame = true;
   if (userAction) updateUrl(true);
 }
 
 // ---- live ---------------------------------------------------------------------------------------
+// Keeps the cursor inside the view: the view moves on by its width when the cursor leaves it.
+function followCursor() {
+  const v = state.view;
+  if (!v || (state.cursor >= v.a && state.cursor <= v.b)) return;
+  const w = v.b - v.a;
+  const a = state.cursor > v.b ? state.cursor : state.cursor - w;
+  setView(a, a + w, "follow");
+}
+
+// One frame (1/25 s) forward or back, on the twin's frame grid; pauses play.
+function frameStep(dir) {
+  if (state.mode !== "replay" || state.from === null) return;
+  state.playing = false;
+  updatePlayButton();
+  const k = Math.round((state.cursor - state.from) / FRAME_S);
+  seek(state.from + (k + dir) * FRAME_S, true);
+}
+
 function startLive() {
   $("slider").disabled = true;
   $("play").disabled = true;
+  for (const id of ["frame-back", "frame-fwd", "zoom-out"]) $(id).disabled = true;
   state.liveBuffer = { t: [], series: {} };
   state.liveTrail = [];
   let backoff = 500;
@@ -338,6 +463,7 @@ function pushLive(f) {
   const add = (name, v) => { (b.series[name] ||= []).push(v ?? null); };
   for (const [k, v] of Object.entries(f.pressures || {})) add(k, v);
   for (const [k, v] of Object.entries(f.cylinder_forces || {})) add(`force:${k}`, v);
+  for (const [k, v] of Object.entries(f.joint_torques || {})) add(`torque:${k}`, v);
   add("payload", f.payload_kg);
   while (b.t.length > 0 && b.t[0] < f.t - LIVE_WINDOW_S) {
     b.t.shift();
@@ -368,16 +494,34 @@ function loop(now) {
   }
   if (state.mode !== "replay" || !state.store) return;
   if (state.playing) {
-    const next = state.cursor + dt * state.speed;
+    let next = state.cursor + dt * state.speed;
+    // silences (no data) are skipped, not played through in real time
+    const cov = nextCovered(state.coverage, next);
+    if (state.coverage.length && (cov === null || cov - next > GAP_SKIP_S)) {
+      next = cov === null ? state.to : cov;
+      metrics.gapsSkipped = (metrics.gapsSkipped || 0) + 1;
+    }
     const f = state.store.frameAt(next);
     if (f && typeof f === "object") {
+      if (f.gapTo !== undefined && f.gapTo - next > GAP_SKIP_S) { next = f.gapTo; metrics.gapsSkipped = (metrics.gapsSkipped || 0) + 1; }
       state.cursor = metrics.cursor = Math.min(next, state.to);
-      if (now - (state.lastSliderPaint || 0) > 100) { state.lastSliderPaint = now; $("slider").value = String(state.cursor - state.from); }
+      followCursor();
+      if (now - (state.lastSliderPaint || 0) > 100) {
+        state.lastSliderPaint = now;
+        $("slider").value = String(state.cursor - state.view.a);
+        state.timeline.setCursor(state.cursor);
+      }
       state.needsFrame = true;
       if (state.cursor >= state.to) { state.playing = false; updatePlayButton(); updateUrl(true); }
     } else if (f === "empty" || f === "error") {
-      state.cursor = Math.min(next, state.to);
-      $("slider").value = String(state.cursor - state.from);
+      // a whole chunk without data: on to the next chunk at once
+      const i = state.store.chunkIndex(next);
+      state.cursor = metrics.cursor = Math.min(state.store.from + (i + 1) * 60, state.to);
+      followCursor();
+      $("slider").value = String(state.cursor - state.view.a);
+      state.timeline.setCursor(state.cursor);
+      $("time-label").textContent = `${fmtTime(state.cursor).slice(11)} (skipping a stretch without data)`;
+      if (state.cursor >= state.to) { state.playing = false; updatePlayButton(); }
     }
   }
   if (state.needsFrame) drawReplayFrame();
@@ -424,8 +568,18 @@ function readout(f) {
     : `live · ${Math.max(0, Math.round(Date.now() - f.t * 1000))} ms behind`;
   const kg = f.payload_kg;
   $("now-payload").textContent = kg === null || kg === undefined ? "unknown" : `${Math.round(kg)} kg`;
-  const rated = state.crane.spec.rated_payload_kg;
+  const env = state.crane.envelopeState;
+  const rated = env ? env.rated_kg : state.crane.spec.rated_payload_kg;
   $("payload-bar").style.width = `${Math.min(100, 100 * (kg || 0) / rated)}%`;
+  if (env) {
+    metrics.envelope = env;
+    $("now-reach").textContent = `${env.reach_m.toFixed(2)} m`;
+    $("now-rated").textContent = `${Math.round(env.rated_kg)} kg`;
+    const u = $("now-util");
+    u.textContent = kg === null || kg === undefined ? "–" : `${Math.round(100 * env.utilisation)} % of rated`;
+    u.className = env.utilisation > 1 ? "over" : env.utilisation > 0.8 ? "high" : "";
+    $("readout").textContent = kg === null || kg === undefined ? "" : `load ${Math.round(kg)} kg · ${Math.round(100 * env.utilisation)} % of the rated ${Math.round(env.rated_kg)} kg at ${env.reach_m.toFixed(1)} m`;
+  }
   for (const c of state.crane.spec.cylinders) {
     const F = (f.cylinder_forces || {})[c];
     const u = (f.utilisation || {})[c];
@@ -466,9 +620,15 @@ function shareURL() {
   if (state.mode === "replay" && state.from !== null) {
     url.searchParams.set("from", isoSeconds(state.from));
     url.searchParams.set("to", isoSeconds(state.to));
-    url.searchParams.set("t", state.cursor.toFixed(2));
+    if (state.cursor !== null) url.searchParams.set("t", state.cursor.toFixed(2));
     url.searchParams.set("speed", String(state.speed));
+    if (state.timeline && state.timeline.zoomed()) {
+      url.searchParams.set("vfrom", state.view.a.toFixed(2));
+      url.searchParams.set("vto", state.view.b.toFixed(2));
+    }
   }
+  const defaults = state.catalog.filter((c) => DEFAULT_KINDS.includes(c.kind)).map((c) => c.name).join(",");
+  if (state.selected.length && state.selected.join(",") !== defaults) url.searchParams.set("ch", state.selected.join(","));
   return url.toString();
 }
 
@@ -501,7 +661,10 @@ function wireControls() {
     setMode("replay");
   };
   $("play").onclick = togglePlay;
-  $("slider").oninput = () => { state.playing = false; updatePlayButton(); seek(state.from + parseFloat($("slider").value), false); };
+  $("slider").oninput = () => { state.playing = false; updatePlayButton(); seek(state.view.a + parseFloat($("slider").value), false); };
+  $("frame-back").onclick = () => frameStep(-1);
+  $("frame-fwd").onclick = () => frameStep(1);
+  $("zoom-out").onclick = () => setView(state.from, state.to, "keys");
   $("slider").onchange = () => updateUrl(true);
   $("speed").onchange = () => setSpeed(parseFloat($("speed").value));
   $("range-form").onsubmit = (ev) => {
@@ -515,8 +678,14 @@ function wireControls() {
     const v = $("preset").value;
     const r = state.machine.data_range || {};
     const end = parseTime(r.to) ?? Date.now() / 1000;
-    if (v === "all") setMode("replay", parseTime(r.from) ?? end - 600, end, null);
-    else if (v) setMode("replay", end - parseFloat(v), end, null);
+    const start = parseTime(r.from) ?? end - 600;
+    // a preset never reaches before the first stored sample
+    if (v === "all") setMode("replay", start, end, null);
+    else if (v) {
+      const want = parseFloat(v);
+      setMode("replay", Math.max(start, end - want), end, null);
+      if (end - start < want) banner(`Only ${fmtDuration(end - start)} of data stored: showing all of it.`, "info");
+    }
     $("preset").value = "";
   };
   $("share").onclick = async () => {
@@ -526,6 +695,18 @@ function wireControls() {
     setTimeout(() => banner(null), 4000);
   };
   $("help-btn").onclick = () => $("help").showModal();
+  $("follow").onclick = () => {
+    const on = $("follow").getAttribute("aria-pressed") !== "true";
+    $("follow").setAttribute("aria-pressed", String(on));
+    state.crane.setFollow(on);
+    metrics.follow = on;
+    state.needsFrame = true; state.liveDirty = true;
+  };
+  $("envelope").onclick = () => {
+    const on = $("envelope").getAttribute("aria-pressed") !== "true";
+    $("envelope").setAttribute("aria-pressed", String(on));
+    state.crane.setEnvelopeVisible(on);
+  };
   $("export").onclick = async (ev) => {
     ev.preventDefault();
     if (state.mode !== "replay" || state.from === null) { banner("Export needs a replay range: switch to Replay (R) and choose one.", "warn"); return; }
@@ -563,11 +744,15 @@ function wireControls() {
   document.addEventListener("keydown", (ev) => {
     if (ev.target instanceof HTMLInputElement && ev.target.type !== "range") return;
     if (ev.target instanceof HTMLSelectElement || ev.ctrlKey || ev.metaKey || ev.altKey) return;
-    const step = ev.shiftKey ? 10 : 1;
+    const step = ev.shiftKey ? 1 : 10;
     switch (ev.key) {
       case " ": ev.preventDefault(); togglePlay(); break;
-      case "ArrowRight": if (state.mode === "replay") { ev.preventDefault(); seek(state.cursor + step, true); } break;
-      case "ArrowLeft": if (state.mode === "replay") { ev.preventDefault(); seek(state.cursor - step, true); } break;
+      case "ArrowRight": if (state.mode === "replay") { ev.preventDefault(); if (ev.shiftKey) seek(state.cursor + 1, true); else frameStep(1); } break;
+      case "ArrowLeft": if (state.mode === "replay") { ev.preventDefault(); if (ev.shiftKey) seek(state.cursor - 1, true); else frameStep(-1); } break;
+      case "PageDown": if (state.mode === "replay") { ev.preventDefault(); seek(state.cursor + step, true); } break;
+      case "PageUp": if (state.mode === "replay") { ev.preventDefault(); seek(state.cursor - step, true); } break;
+      case "z": case "Z": if (state.mode === "replay" && state.timeline) state.timeline.zoomBy(ev.key === "z" ? 0.5 : 2, state.cursor); break;
+      case "0": if (state.mode === "replay" && state.from !== null) setView(state.from, state.to, "keys"); break;
       case "Home": if (state.mode === "replay") { ev.preventDefault(); seek(state.from, true); } break;
       case "End": if (state.mode === "replay") { ev.preventDefault(); seek(state.to, true); } break;
       case "+": case "=": setSpeed(SPEEDS[Math.min(SPEEDS.length - 1, SPEEDS.indexOf(state.speed) + 1)] || 1); break;
@@ -577,6 +762,8 @@ function wireControls() {
       case "l": case "L": if (!embed) setMode("live"); break;
       case "r": case "R": $("mode-replay").click(); break;
       case "s": case "S": if (!embed) $("share").click(); break;
+      case "f": case "F": $("follow").click(); break;
+      case "e": case "E": $("envelope").click(); break;
       case "?": $("help").showModal(); break;
       case "Escape": if (!embed && !document.querySelector("dialog[open]")) window.location.href = "/"; break;
       default: break;

@@ -70,6 +70,10 @@ export class ReplayStore {
     const a = span > 0 ? Math.min(Math.max((t - d.t[i]) / span, 0), 1) : 0;
     const f = this.frame;
     f.t = t;
+    // inside a silence of the data (or before the chunk's first sample): where data resume
+    if (t < d.t[0]) f.gapTo = d.t[0];
+    else if (t > d.t[i] && j > i && span > 4 / this.rateHz) f.gapTo = d.t[j];
+    else f.gapTo = undefined;
     f.index = i;
     f.chunk = entry;
     for (const body in d.poses) f.poses[body] = lerpArr(d.poses[body][i], d.poses[body][j], a, f.poses[body]);

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Query
-from fastapi.responses import Response
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import Response, StreamingResponse
 
 from cranetwin.api.deps import CurrentKey, FleetKey, MachineDep, ServicesDep
 from cranetwin.api.errors import PROBLEM_RESPONSES
@@ -60,15 +60,59 @@ def get_history(
     return Response(services.fleet.history(machine, rng, channels, max_points), media_type=JSON)
 
 
-@router.get("/events", response_model=list[EventOut], summary="Events in a range")
-def get_events(key: CurrentKey, machine: MachineDep, services: ServicesDep,
-               rng: RangeDep) -> list[EventOut]:
-    """Stored events (overload, end-stop impact, over-pressure, …) in [from, to), oldest first."""
+@router.get("/events", response_model=list[EventOut], summary="Events in a range (paged)",
+            responses={200: {"headers": {"Link": {
+                "description": 'next page: `<url>; rel="next"` (absent on the last)',
+                "schema": {"type": "string"}}}}})
+def get_events(
+    key: CurrentKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
+    request: Request, response: Response,
+    severity: Annotated[str | None, Query(max_length=100, description="keep these "
+                                          "severities, comma-separated: info, warning, "
+                                          "critical", examples=["critical"])] = None,
+    kind: Annotated[str | None, Query(max_length=1000, description="keep these kinds, "
+                                      "comma-separated", examples=["overload"])] = None,
+    limit: Annotated[int, Query(ge=1, le=10_000, description="events per page")] = 1000,
+    cursor: Annotated[str | None, Query(max_length=64, description="continue after the "
+                                        "previous page (from its `Link: rel=next`)")] = None,
+) -> list[EventOut]:
+    """Stored events (overload, end-stop impact, over-pressure, …) in [from, to), oldest first,
+    filtered by severity and kind, ``limit`` per page; the ``Link`` header names the next."""
     from cranetwin.service.events import readable_message
+    from cranetwin.service.queries import events_page
 
+    def names(text: str | None) -> list[str] | None:
+        return None if text is None else [n.strip() for n in text.split(",") if n.strip()]
+
+    page = events_page(services.backend, machine.machine_id, rng, kinds=names(kind),
+                       severities=names(severity), limit=limit, cursor=cursor)
+    if page.next_cursor is not None:
+        nxt = request.url.remove_query_params(["cursor", "key"]).include_query_params(
+            cursor=page.next_cursor)
+        response.headers["Link"] = f'<{nxt}>; rel="next"'
     return [EventOut(**{**e, "message": readable_message(e["kind"], e.get("evidence") or {},
                                                         str(e.get("message", "")))})
-            for e in services.fleet.events(machine, rng)]
+            for e in page.events]
+
+
+@router.get("/export", summary="Export raw or derived series as CSV or Parquet (fleet)",
+            responses={200: {"content": {"text/csv": {}, "application/vnd.apache.parquet": {}},
+                             "description": "the series as a file, streamed"}},
+            response_class=StreamingResponse)
+def export_series(
+    key: FleetKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
+    series: Annotated[Literal["raw", "forces", "joint_loads", "payload", "cycles", "events"],
+                      Query(description="raw samples, twin series (cylinder forces, joint "
+                                        "loads, payload), work cycles or events")] = "raw",
+    format: Annotated[Literal["csv", "parquet"], Query(description="file format")] = "csv",
+) -> StreamingResponse:
+    """Any range of one series as CSV or Parquet, produced chunk by chunk while it is sent
+    (never the whole range in memory). Columns: docs/API.md "Export"."""
+    from cranetwin.service.export import export_series as run
+
+    exp = run(services.fleet, machine, rng, series, format)
+    return StreamingResponse(exp.body, media_type=exp.media_type, headers={
+        "Content-Disposition": f'attachment; filename="{exp.filename}"'})
 
 
 @router.get("/find", response_model=FindOut, summary="Find the moment a condition held")

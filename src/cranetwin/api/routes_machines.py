@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, status
+from fastapi import APIRouter, Body, Query, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 
 from cranetwin.api.deps import AdminKey, CurrentKey, MachineDep, MachineIdPath, ServicesDep
@@ -50,10 +50,65 @@ def check_registered_model(model: str) -> None:
         raise RequestValidationError(errors) from exc
 
 
-@router.get("", response_model=list[MachinePublic], summary="All machines with their status")
-def list_machines(key: CurrentKey, services: ServicesDep) -> list[MachinePublic]:
-    """Every registered machine: status (live/idle/offline), last seen, payload, alarms, GPS."""
-    return [services.machine_public(rec) for rec in services.backend.list_machines()]
+def _names(text: str | None, what: str, allowed: tuple[str, ...] | None = None
+           ) -> tuple[str, ...] | None:
+    """Comma-separated names as a tuple (None: no filter); 422 for a name not in ``allowed``."""
+    if text is None:
+        return None
+    names = tuple(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
+    bad = [n for n in names if allowed is not None and n not in allowed]
+    if not names or bad:
+        raise RequestValidationError([{
+            "loc": ("query", what), "type": "value_error",
+            "msg": f"{what}={text!r}: expected comma-separated "
+                   f"{', '.join(allowed) if allowed else 'names'}"}])
+    return names
+
+
+@router.get("", response_model=list[MachinePublic], summary="Machines with their status",
+            responses={200: {"headers": {
+                "Link": {"description": 'next page: `<url>; rel="next"` (absent on the last)',
+                         "schema": {"type": "string"}},
+                "X-Total-Count": {"description": "machines the filters keep (absent with a "
+                                  "status filter or a cursor)", "schema": {"type": "integer"}},
+            }}})
+def list_machines(
+    key: CurrentKey, services: ServicesDep, request: Request, response: Response,
+    limit: Annotated[int | None, Query(ge=1, le=1000, description="machines per page "
+                                       "(default: all)")] = None,
+    offset: Annotated[int, Query(ge=0, le=1_000_000, description="machines to skip (after "
+                                 "the filters)")] = 0,
+    cursor: Annotated[str | None, Query(max_length=128, description="continue after this "
+                                        "machine id (the `Link: rel=next` of the previous "
+                                        "page carries it)")] = None,
+    status: Annotated[str | None, Query(max_length=64, description="keep these statuses, "
+                                        "comma-separated: live, idle, offline",
+                                        examples=["live,idle"])] = None,
+    model: Annotated[str | None, Query(max_length=1000, description="keep these machine "
+                                       "description names, comma-separated",
+                                       examples=["patu655"])] = None,
+    bbox: Annotated[str | None, Query(max_length=200, description="location box "
+                                      "min_lon,min_lat,max_lon,max_lat [deg]; machines "
+                                      "without a location are left out",
+                                      examples=["25.0,62.0,26.0,62.5"])] = None,
+) -> list[MachinePublic]:
+    """Registered machines by id: status (live/idle/offline), last seen, payload, alarms, GPS;
+    filtered by status, model and location box, ``limit`` per page from ``offset`` or
+    ``cursor``. Only the machines of the page are looked at in full."""
+    from cranetwin.api.services import public
+    from cranetwin.service.queries import MachineFilter, machines_page, parse_bbox
+
+    flt = MachineFilter(status=_names(status, "status", ("live", "idle", "offline")),
+                        model=_names(model, "model"), bbox=parse_bbox(bbox))
+    page = machines_page(services.backend.list_machines(), services.fleet.machine_status, flt,
+                         limit, offset, cursor)
+    if page.next_cursor is not None:
+        nxt = request.url.remove_query_params(["offset", "cursor", "key"]).include_query_params(
+            cursor=page.next_cursor)
+        response.headers["Link"] = f'<{nxt}>; rel="next"'
+    if page.total is not None:
+        response.headers["X-Total-Count"] = str(page.total)
+    return [public(st) for st in page.items]
 
 
 @router.post("", response_model=MachineCreated, status_code=status.HTTP_201_CREATED,

@@ -23,11 +23,13 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import httpx
+import numpy as np
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
 
 from cranetwin.errors import CraneTwinError, MissingExtraError
-from cranetwin.model import load_machine, machine_from_dict
+from cranetwin.model import Machine, load_machine, machine_from_dict
+from cranetwin.physics.frames import rpy_matrix
 from cranetwin.settings import Settings, load_settings
 from cranetwin.viz.export import EXPORT_MAX_SECONDS, export_rate_hz, render_export
 from cranetwin.viz.poses import rest_frame
@@ -228,12 +230,26 @@ async def _scene_for(request: Request, machine_id: str) -> dict[str, Any]:
         "spec": {**spec.to_json(),
                  "load_point": {"body": machine.load_point.body,
                                 "point_m": list(machine.load_point.point_m)},
-                 "rest_frame": rest_frame(machine)},
+                 "rest_frame": rest_frame(machine),
+                 **_envelope_spec(machine)},
     }
     if len(_SCENE_CACHE) > 32:
         _SCENE_CACHE.clear()
     _SCENE_CACHE[key] = scene
     return scene
+
+
+def _envelope_spec(machine: Machine) -> dict[str, Any]:
+    """What the 3D view needs to draw the rated-load envelope and the utilisation: the chart
+    (payload [kg] at horizontal reach [m], linear in between and held beyond its ends, as
+    ``RatedLoad.payload_at``) and the slew axis (the first joint's origin [m] and unit axis in
+    the base frame), from which the reach is measured."""
+    j0 = machine.joints[0]
+    axis = rpy_matrix(j0.origin_rpy_rad) @ np.asarray(j0.axis, dtype=float)
+    return {"rated_load": {"reach_m": list(machine.rated_load.reach_m),
+                           "payload_kg": list(machine.rated_load.payload_kg)},
+            "slew_axis": {"origin_m": [float(x) for x in j0.origin_m],
+                          "axis": [float(x) for x in axis / np.linalg.norm(axis)]}}
 
 
 @router.get("/api/v1/machines/{machine_id}/scene", dependencies=[ViewerDep])
@@ -334,4 +350,7 @@ def _history_channels(model: dict[str, Any]) -> list[str]:
     out += [f"force:{c['name']}" for c in model.get("cylinders", [])]
     out.append("payload")
     out += [f"moment:{j['name']}" for j in model.get("joints", []) if j.get("kind") == "revolute"]
+    out += [f"torque:{j['name']}" for j in model.get("joints", [])]
+    out += [str(c["name"]) for c in model.get("channels", [])
+            if c.get("quantity") in ("position", "angle", "torque")]
     return out

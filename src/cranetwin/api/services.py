@@ -47,6 +47,7 @@ class Services:
         self.live = LiveHub(bus)
         self.alarms = AlarmService(fleet.backend, settings.alarm_offline_s, settings.alarm_gap_s)
         self._alarm_task: asyncio.Task[None] | None = None
+        self.webhook: Any = None
 
     @classmethod
     def open(cls, settings: Settings, bus: Any = None) -> Services:
@@ -66,6 +67,19 @@ class Services:
     async def start(self) -> None:
         """Warm up and start the in-process worker, as the settings ask."""
         await self.fleet.start()
+        cfg = self.settings
+        if cfg.alarm_webhook_url:
+            from cranetwin.service.webhooks import WebhookNotifier
+
+            if not cfg.alarm_webhook_secret:
+                log.warning("CRANETWIN_ALARM_WEBHOOK_URL is set without "
+                            "CRANETWIN_ALARM_WEBHOOK_SECRET: webhook off (its requests are signed)")
+            else:
+                self.webhook = WebhookNotifier(
+                    cfg.alarm_webhook_url, cfg.alarm_webhook_secret, cfg.alarm_webhook_retries,
+                    cfg.alarm_webhook_backoff_s, cfg.alarm_webhook_timeout_s)
+                await asyncio.to_thread(self.alarms.set_notifier, self.webhook,
+                                        cfg.alarm_webhook_severity)
         if self.settings.alarm_check_interval_s > 0:
             self._alarm_task = asyncio.create_task(self._check_alarms())
 
@@ -78,6 +92,11 @@ class Services:
                 await asyncio.to_thread(self.alarms.check_connectivity)
             except Exception as exc:  # noqa: BLE001 - a failed check must not stop the next
                 log.warning("alarm check failed: %s", exc)
+            if self.webhook is not None:
+                try:  # hands new events to the webhook's thread; never waits for a delivery
+                    await asyncio.to_thread(self.alarms.notify_new)
+                except Exception as exc:  # noqa: BLE001
+                    log.warning("webhook check failed: %s", exc)
 
     async def close(self) -> None:
         """Stop the live followers, the worker, and close the store."""
@@ -85,6 +104,8 @@ class Services:
             self._alarm_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._alarm_task
+        if self.webhook is not None:
+            await asyncio.to_thread(self.webhook.close)
         await self.live.close()
         await self.fleet.close()
 

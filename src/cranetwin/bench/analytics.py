@@ -198,7 +198,8 @@ def run_stored(days: int = 30, shift_h: float = 1.0, rate_hz: float = 100.0,
     both edges are partial minutes),
     the same merged report (``merged_range_seconds``) and the direct baseline that replays
     every minute of the range (``direct_range_seconds``), ``speedup_vs_direct`` their ratio
-    and ``equal_to_direct`` whether they agree (spectra, damage, events, work cycles).
+    and ``equal_to_direct`` whether they agree (spectra, damage, events, work cycles);
+    the raw-sample export rates of the whole span (:func:`_export_rates`).
     """
     from cranetwin.service.analytics import analytics_report, direct_report
     from cranetwin.service.backend import Backend
@@ -248,6 +249,7 @@ def run_stored(days: int = 30, shift_h: float = 1.0, rate_hz: float = 100.0,
         a = time.perf_counter()
         direct = direct_report(b, replayer, machine, mid, short)
         direct_s = time.perf_counter() - a
+        exp = _export_rates(b, machine, mid, rng, short)
         b.close()
     assert rep is not None and merged is not None and direct is not None
     same = (all(np.array_equal(x.cycles.count, y.cycles.count)
@@ -278,7 +280,77 @@ def run_stored(days: int = 30, shift_h: float = 1.0, rate_hz: float = 100.0,
         "max_damage": worst.damage,
         "remaining_years_worst": (None if not np.isfinite(worst.remaining_days)
                                   else round(worst.remaining_days / 365.25, 2)),
+        **exp,
         "peak_rss_mib": round(_peak_rss_mib(), 1),
+    }
+
+
+def _export_rates(backend: Any, machine: Machine, mid: str, whole: Any,
+                  short: Any) -> dict[str, Any]:
+    """Raw-sample export rates (:mod:`cranetwin.service.export`, as the API runs it: chunks
+    read in a prefetch thread) of the whole stored span:
+    ``export_samples_per_second`` (Parquet, what a bulk consumer takes),
+    ``export_csv_samples_per_second`` and ``export_read_samples_per_second`` (reading and
+    decoding alone); baseline in the same run over the ``short`` range: the same Parquet
+    writer fed by ``Store.read_samples`` (block by block), and the paged JSON samples route's
+    service call (``samples_page``, 10000 samples a page) as it serves them."""
+    import orjson
+
+    from cranetwin.service import export as ex
+    from cranetwin.service.queries import samples_page
+
+    def run(fmt: str | None, rng: Any, reader: Any = None) -> tuple[int, float, float]:
+        a, c = time.perf_counter(), time.process_time()
+        n = 0
+        chunks = reader(rng) if reader is not None else ex.prefetched(ex.raw_chunks(
+            backend, machine, mid, rng, 100.0))
+
+        def counted() -> Any:
+            nonlocal n
+            for ch in chunks:
+                n += int(ch["t_s"].shape[0])
+                yield ch
+
+        if fmt is None:
+            for _ in counted():
+                pass
+        else:
+            for _ in ex.encode(counted(), ex.schema("raw", machine), fmt):
+                pass
+        return n, time.perf_counter() - a, time.process_time() - c
+
+    def per_block(rng: Any) -> Any:
+        names = [ch.name for ch in machine.channels]
+        t = rng.t0_s
+        while t < rng.t1_s:
+            s = backend.read_samples(mid, t, min(rng.t1_s, t + 1000.0))
+            if s.t_s.shape[0]:
+                idx = {c: j for j, c in enumerate(s.channels)}
+                yield {"t_ns": s.t_ns, "t_s": s.t_s, **{k: s.values[:, idx[k]] for k in names}}
+            t += 1000.0
+
+    n_pq, w_pq, c_pq = run("parquet", whole)
+    n_csv, w_csv, _ = run("csv", whole)
+    n_rd, w_rd, _ = run(None, whole)
+    n_b, w_b, _ = run("parquet", short, per_block)
+    a = time.perf_counter()
+    n_json, cursor = 0, None
+    while True:
+        page = samples_page(backend, mid, short, 10_000, cursor, 100.0)
+        orjson.dumps({"t": page.t, "values": page.values})
+        n_json += len(page.t)
+        cursor = page.next_cursor
+        if cursor is None:
+            break
+    w_json = time.perf_counter() - a
+    return {
+        "export_samples": n_pq,
+        "export_samples_per_second": round(n_pq / w_pq),
+        "export_cpu_samples_per_second": round(n_pq / max(c_pq, 1e-9)),
+        "export_csv_samples_per_second": round(n_csv / w_csv),
+        "export_read_samples_per_second": round(n_rd / w_rd),
+        "baseline_export_per_block_read_samples_per_second": round(n_b / w_b),
+        "baseline_json_pages_samples_per_second": round(n_json / w_json),
     }
 
 

@@ -93,6 +93,13 @@ def ingest(
     shutdown_timeout: float | None = typer.Option(
         None, help="Longest flush of queued datagrams on SIGTERM while the database is "
                    "writable [s] (default 60); during an outage the daemon exits in ~5 s."),
+    rollup_interval: float = typer.Option(  # fleet bus work: benchmarks set it beyond the run
+        30.0, min=0.1, help="Seconds between 1-min summary rollups [s] (one more at shutdown)."),
+    bus: str | None = typer.Option(  # fleet bus (docs/BUS.md)
+        None, "--bus", help="Publish blocks to the NATS JetStream fleet bus nats://HOST:PORT "
+                            "instead of writing them to the database (acked after the PubAck; "
+                            "`cranetwin store-writer` stores them) (default: $CRANETWIN_BUS_URL, "
+                            "else none)."),
     log_level: str = typer.Option("INFO", help="Logging level."),
     processes: int = typer.Option(
         1, min=1, max=64, help="Daemon processes sharing the UDP address (SO_REUSEPORT; each "
@@ -118,14 +125,14 @@ def ingest(
                        ingest_queue_max=queue_max, ingest_batch_max=batch_max,
                        ingest_batch_wait_s=batch_wait, ingest_max_past_s=max_past,
                        ingest_max_future_s=max_future, ingest_range_margin=range_margin,
-                       ingest_shutdown_timeout_s=shutdown_timeout)
+                       ingest_shutdown_timeout_s=shutdown_timeout, bus_url=bus)
     host, port = parse_bind(st.ingest_bind)
     mhost: str | None = None
     mport = 0
     if st.ingest_metrics_bind.strip() not in ("0", "", "off"):
         mhost, mport = parse_bind(st.ingest_metrics_bind, "--metrics-bind")
     cfg = DaemonConfig(host=host, port=port, metrics_host=mhost, metrics_port=mport,
-                       metrics_interval_s=metrics_interval,
+                       metrics_interval_s=metrics_interval, rollup_interval_s=rollup_interval,
                        queue_max=st.ingest_queue_max, batch_max=st.ingest_batch_max,
                        batch_wait_s=st.ingest_batch_wait_s,
                        shutdown_timeout_s=st.ingest_shutdown_timeout_s,
@@ -145,8 +152,16 @@ def ingest(
                                      "pid": os.getpid()}) + "\n")
         sys.stdout.flush()
 
-    final = serve(st.database_url, cfg, open_bus(st.live_bus_url) if st.live_bus_url else None,
-                  on_ready=ready, busy_timeout_s=st.ingest_busy_timeout_s)
+    live_bus = open_bus(st.live_bus_url) if st.live_bus_url else None
+    if st.bus_url:  # fleet bus (docs/BUS.md): blocks to JetStream, the database for keys/status
+        from cranetwin.cli.store_writer import bus_config
+        from cranetwin.ingest.bus_serve import serve_to_bus
+
+        final = serve_to_bus(st.database_url, bus_config(st), cfg, live_bus, on_ready=ready,
+                             busy_timeout_s=st.ingest_busy_timeout_s)
+    else:
+        final = serve(st.database_url, cfg, live_bus, on_ready=ready,
+                      busy_timeout_s=st.ingest_busy_timeout_s)
     sys.stdout.write(json.dumps({"event": "stopped", **final}) + "\n")
     sys.stdout.flush()
 

@@ -7,6 +7,8 @@ recording (``--recording rec.npz``, its ground truth) or synthetic (``--demo``).
 from __future__ import annotations
 
 import datetime as dt
+import functools
+import os
 from pathlib import Path
 
 import typer
@@ -33,10 +35,48 @@ def parse_time(text: str) -> float:
     return t.timestamp()
 
 
+SUFFIX = {"pdf": ".pdf", "html": ".html", "csv": ".zip"}
+
+
+def output_paths(formats: str, out: Path) -> dict[str, Path]:
+    """Where each of the comma-separated ``formats`` is written, checked before any analysis.
+
+    One format: ``out`` as given (CSV: a directory, or a zip if it ends ``.zip``). Several:
+    ``out`` without its suffix plus ``.pdf``, ``.html`` and ``.zip`` (CSV tables).
+
+    Raises:
+        ReportError: No format, a format twice, or an output that cannot be written (its
+            directory missing or not writable, a file where a directory is needed or the
+            reverse).
+    """
+    names = [f.strip().lower() for f in formats.split(",") if f.strip()]
+    if not names or len(set(names)) != len(names):
+        raise ReportError(f"--format {formats!r}: give pdf, html or csv, each at most once "
+                          "(comma-separated)")
+    if len(names) == 1:
+        targets = {names[0]: out}
+    else:
+        stem = out.with_suffix("") if out.suffix.lower() in (".pdf", ".html", ".zip") else out
+        targets = {f: stem.with_name(stem.name + SUFFIX.get(f, "")) for f in names}
+    for f, path in targets.items():
+        csv_dir = f == "csv" and path.suffix.lower() != ".zip"
+        parent = path if csv_dir and path.is_dir() else path.parent
+        if csv_dir and path.exists() and not path.is_dir():
+            raise ReportError(f"{path} exists and is not a directory; CSV output is a "
+                              "directory (or give a .zip)")
+        if not csv_dir and path.is_dir():
+            raise ReportError(f"{path} is a directory; give a file name for {f}")
+        if not parent.is_dir() or not os.access(parent, os.W_OK):
+            raise ReportError(f"cannot write {path}: {parent} is not a writable directory")
+    return targets
+
+
 def report(
     out: Path = typer.Option(..., "--out", "-o", help="Output file (.pdf, .html) or CSV "
-                             "directory / .zip."),
-    fmt: str = typer.Option("pdf", "--format", "-f", help="pdf | html | csv"),
+                             "directory / .zip; with several formats, the path without suffix "
+                             "(STEM.pdf, STEM.html, STEM.zip for csv)."),
+    fmt: str = typer.Option("pdf", "--format", "-f", help="pdf | html | csv, or several "
+                            "comma-separated (csv,pdf,html): one analysis, every file."),
     machine: str | None = typer.Option(None, "--machine", "-m",
                                        help="Machine id in storage (or, with --recording/--demo, "
                                             "a built-in machine or TOML file)."),
@@ -74,8 +114,9 @@ def report(
     )
     from cranetwin.reports.sources import ImportedFileSource, is_simulator_recording
 
-    fmt = fmt.lower()
-    check_format(fmt)  # an unknown format or a missing extra, before any analysis
+    targets = output_paths(fmt, out)
+    for f in targets:
+        check_format(f)  # an unknown format or a missing extra, before any analysis
     src: Source
     if demo:
         src = DemoSource(load_machine(machine or "patu655"), days=days, rate_hz=rate_hz)
@@ -106,11 +147,14 @@ def report(
         rep = build_report(src, progress=lambda n: bar.advance(task, n), t0_s=window[0],
                            t1_s=window[1])
         bar.update(task, completed=src.total())
-        wtask = bar.add_task(f"writing {fmt}", total=len(SECTIONS))
-        path = write(rep, src.machine, fmt, out, src.label, progress=lambda: bar.advance(wtask))
-        bar.update(wtask, completed=len(SECTIONS))
-    typer.echo(f"{path}: {len(rep.cycles)} work cycles, {len(rep.events)} events, "
-               f"{rep.n_samples:,} samples")
+        paths = []
+        for f, target in targets.items():
+            wtask = bar.add_task(f"writing {f}", total=len(SECTIONS))
+            paths.append(write(rep, src.machine, f, target, src.label,
+                               progress=functools.partial(bar.advance, wtask)))
+            bar.update(wtask, completed=len(SECTIONS))
+    typer.echo(f"{', '.join(map(str, paths))}: {len(rep.cycles)} work cycles, "
+               f"{len(rep.events)} events, {rep.n_samples:,} samples")
 
 
 def register(app: typer.Typer) -> None:

@@ -18,7 +18,8 @@ def register(app: typer.Typer) -> None:
 
         from cranetwin.api.preview import PREVIEW_KEY, create_preview_app
 
-        typer.echo(f"open  http://{host}:{port}/?key={PREVIEW_KEY}   (synthetic data, Ctrl-C "
-                   "stops)")
+        typer.echo(f"open  http://{host}:{port}/   (synthetic data, Ctrl-C stops)")
+        typer.echo(f"key   {PREVIEW_KEY}   (paste it into the page's sign-in dialog once; it "
+                   "becomes a session cookie, never part of a link)")
         uvicorn.run(create_preview_app(), host=host, port=port, log_level="warning",
                     ws="websockets-sansio")

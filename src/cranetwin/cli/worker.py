@@ -5,9 +5,15 @@ and progress counters (:mod:`cranetwin.service.worker`), on the database every p
 deployment shares. Options left out fall back to the one settings object
 (:class:`cranetwin.settings.Settings`, ``CRANETWIN_…``).
 
+Scale-out: ``--partitions auto --of 16`` (or a fixed ``I/P``, ``0,3,5 --of 8``, ``all``) makes it
+one of several workers, each processing only the machines of the partitions it owns through a
+PostgreSQL advisory lock (:mod:`cranetwin.service.ownership`); the metrics endpoint then serves
+per-partition lag. Without ``--partitions`` it processes every machine, without locks.
+
 Lifecycle: prints ``cranetwin worker ready …`` once the store is open; SIGTERM or SIGINT ends it
 after the window being replayed is committed (each window is one transaction, so a kill instead
-loses nothing: the window is done again by the next run); exit status 0.
+loses nothing: the window is done again by the next run, or by the worker that takes over the
+partition); exit status 0.
 """
 
 from __future__ import annotations
@@ -34,17 +40,38 @@ def worker(
     interval: float | None = typer.Option(
         None, min=0.01, help="Seconds between passes when caught up (default: "
                              "$CRANETWIN_WORKER_INTERVAL_S, else 1)."),
+    partitions: str | None = typer.Option(
+        None, help="Machine partitions to own: auto (a rebalanced share), all, I/P, or I,J,… "
+                   "with --of (default: $CRANETWIN_WORKER_PARTITIONS, else every machine, "
+                   "no locks)."),
+    of: int | None = typer.Option(
+        None, "--of", min=1, max=65536,
+        help="Number of partitions P (default: $CRANETWIN_WORKER_PARTITION_COUNT, else 16)."),
+    quiet_s: float | None = typer.Option(
+        None, "--quiet-s", min=0.001,
+        help="A machine silent this long gets its last window processed [s] (default: "
+             "$CRANETWIN_WORKER_QUIET_S, else 60)."),
     log_level: str = typer.Option("info", help="Log level."),
 ) -> None:
     """Run the twin worker: replay stored samples window by window into derived summaries,
     events and counters, until SIGTERM/SIGINT."""
     from cranetwin.service.backend import Backend
     from cranetwin.service.metrics import Metrics
+    from cranetwin.service.ownership import Ownership, PartitionSpecError, parse_partitions
     from cranetwin.service.worker import TwinWorker
     from cranetwin.storage.engine import display_url
 
     settings = load_settings(Settings, database_url=db, worker_metrics_bind=metrics_bind,
-                             worker_interval_s=interval)
+                             worker_interval_s=interval, worker_partitions=partitions,
+                             worker_partition_count=of, worker_quiet_s=quiet_s)
+    spec = None
+    if settings.worker_partitions:
+        try:
+            given = "worker_partition_count" in settings.model_fields_set  # option or env
+            spec = parse_partitions(settings.worker_partitions,
+                                    settings.worker_partition_count if given else None)
+        except PartitionSpecError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--partitions") from exc
     logging.basicConfig(level=log_level.upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     metrics = Metrics()
@@ -57,8 +84,10 @@ def worker(
         host, port = parse_bind(bind, "--metrics-bind")
         start_http_server(port, addr=host, registry=metrics.registry)
     backend = Backend.open(settings.database_url)
+    own = None if spec is None else Ownership(spec, backend.store.engine)
     try:
-        tw = TwinWorker(backend, settings, metrics)
+        tw = TwinWorker(backend, settings, metrics, quiet_s=settings.worker_quiet_s,
+                        ownership=own)
 
         def _stop(signum: int, frame: FrameType | None) -> None:
             log.info("%s: stopping after the current window", signal.Signals(signum).name)
@@ -66,10 +95,15 @@ def worker(
 
         signal.signal(signal.SIGTERM, _stop)
         signal.signal(signal.SIGINT, _stop)
+        part = "" if spec is None else (
+            f", partitions {'auto' if spec.fixed is None else ','.join(map(str, spec.fixed))} "
+            f"of {spec.count}" + ("" if own is not None and own.locked else " (no locks)"))
         typer.echo(f"cranetwin worker ready: {display_url(settings.database_url)}, windows of "
-                   f"{settings.worker_window_s:g} s")
+                   f"{settings.worker_window_s:g} s{part}")
         windows = tw.run()
     finally:
+        if own is not None:
+            own.close()
         backend.close()
     typer.echo(f"cranetwin worker stopped: {windows} window(s) replayed")
 

@@ -469,16 +469,17 @@ def mass_matrix(chain, q, payload_kg, out):  # type: ignore[no-untyped-def]
     mass_matrix_into(chain, q, payload_kg, out, np.empty((nj, 12)), np.empty((nj, 22)))
 
 
-@njit(cache=True, nogil=True)
-def mass_matrix_rnea(chain, q, payload_kg, out):  # type: ignore[no-untyped-def]
-    """M(q) column by column, RNEA(q, 0, e_j) without gravity: a slower cross-check of
-    :func:`mass_matrix`."""
+@njit(cache=True, nogil=True, inline="always")
+def mass_matrix_rnea_into(chain, q, payload_kg, out, scratch):  # type: ignore[no-untyped-def]
+    """M(q) column by column into ``out`` (nj, nj): column j is RNEA(q, 0, e_j) without
+    gravity, then the rounding symmetrised (the exact matrix is symmetric). The simulator's
+    forward dynamics uses it (each column is the same RNEA its bias forces use); a slower
+    cross-check of :func:`mass_matrix`.
+
+    ``scratch`` = (zero (nj,) all 0, e (nj,), tau (nj,), wr (nj, 6), work (nj, 12)).
+    """
+    zero, e, tau, wr, work = scratch
     nj = int(chain[N_JOINTS])
-    zero = np.zeros(nj)
-    e = np.empty(nj)
-    tau = np.empty(nj)
-    wr = np.empty((nj, 6))
-    work = np.empty((nj, 12))
     for j in range(nj):
         for i in range(nj):
             e[i] = 0.0
@@ -486,12 +487,20 @@ def mass_matrix_rnea(chain, q, payload_kg, out):  # type: ignore[no-untyped-def]
         rnea_into(chain, q, zero, e, payload_kg, 0.0, tau, wr, work)
         for i in range(nj):
             out[i, j] = tau[i]
-    # symmetrise the rounding (the exact matrix is symmetric)
     for i in range(nj):
         for j in range(i + 1, nj):
             m = 0.5 * (out[i, j] + out[j, i])
             out[i, j] = m
             out[j, i] = m
+
+
+@njit(cache=True, nogil=True)
+def mass_matrix_rnea(chain, q, payload_kg, out):  # type: ignore[no-untyped-def]
+    """:func:`mass_matrix_rnea_into` allocating its scratch."""
+    nj = int(chain[N_JOINTS])
+    mass_matrix_rnea_into(chain, q, payload_kg, out,
+                          (np.zeros(nj), np.empty(nj), np.empty(nj), np.empty((nj, 6)),
+                           np.empty((nj, 12))))
 
 
 @njit(cache=True, nogil=True)

@@ -8,6 +8,12 @@ tool is expected to raise by itself:
 * ``data_gap`` (info): the stream resumed after a silence longer than ``alarm_gap_s`` [s];
   stamped at the last sample before the silence, evidence ``from``, ``to``, ``gap_s``.
 
+New events of a chosen severity and above can be sent to a webhook
+(:mod:`cranetwin.service.webhooks`): :meth:`AlarmService.notify_new`, run after each check,
+offers the events stored since the last call (every process's: the twin worker's, the ingest
+daemon's and these) to the notifier's thread, which signs, sends and retries them; nothing here
+waits for the receiver. Events older than the service's start are not sent.
+
 :class:`AlarmService` holds no HTTP; the API's ``routes_alarms`` calls it, and ``Services`` runs
 :meth:`AlarmService.check_connectivity` every ``alarm_check_interval_s``. A gap is seen by
 comparing each machine's newest sample between two checks (one gap per check interval at
@@ -53,6 +59,53 @@ class AlarmService:
         self.gap_s = gap_s
         self._last: dict[str, float] = {}
         self._lock = threading.Lock()
+        self.notifier: Any = None  # a service.webhooks.WebhookNotifier, when configured
+        self.notify_severities: list[str] = ["critical"]
+        self._notified: int | None = None  # newest event id offered to the notifier
+
+    # -- webhook notification -----------------------------------------------------------------
+    def set_notifier(self, notifier: Any, min_severity: str = "critical") -> None:
+        """Send new events of ``min_severity`` and above to ``notifier`` (``offer(alarm)``),
+        starting after the newest event stored now."""
+        order = ["info", "warning", "critical"]
+        self.notify_severities = order[order.index(min_severity):]
+        self.notifier = notifier
+        self._notified = self._newest_id()
+
+    def _newest_id(self) -> int:
+        from sqlalchemy import func, select
+
+        from cranetwin.storage.events import EventRow
+
+        with self.backend.session() as s:
+            return int(s.scalar(select(func.max(EventRow.id))) or 0)
+
+    def notify_new(self) -> int:
+        """Offer the events stored since the last call (of the notified severities) to the
+        notifier, in the order they were stored; returns how many. Never waits for a
+        delivery."""
+        if self.notifier is None:
+            return 0
+        from sqlalchemy import func, select
+
+        from cranetwin.storage.alarms import get_alarm
+        from cranetwin.storage.events import EventRow
+
+        with self._lock:
+            last = self._notified or 0
+            with self.backend.session() as s:
+                top = int(s.scalar(select(func.max(EventRow.id))) or 0)
+                ids = list(s.scalars(select(EventRow.id).where(
+                    EventRow.id > last, EventRow.id <= top,
+                    EventRow.severity.in_(self.notify_severities))
+                    .order_by(EventRow.id).limit(500)))
+                found = [get_alarm(s, i) for i in ids]
+            for a in found:
+                if a is not None:
+                    self.notifier.offer(as_json(a))
+            # the watermark passes every event seen, whatever its severity (ids only grow)
+            self._notified = ids[-1] if len(ids) == 500 else top
+        return len(ids)
 
     # -- listing and actions ------------------------------------------------------------------
     def list(self, *, machine_ids: list[str] | None = None, severities: list[str] | None = None,

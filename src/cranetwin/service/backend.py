@@ -197,7 +197,10 @@ class Backend:
             raise ConflictError("Wire id taken", f"wire_id {wire_id} is used by another machine")
         wid = wire_id if wire_id is not None else (max(wire_ids, default=0) + 1)
         secret = secrets.token_bytes(32)
-        meta: dict[str, Any] = {"name": name or machine_id}
+        now = time.time()
+        meta: dict[str, Any] = {"name": name or machine_id, "registered_t_s": now}
+        if location is not None:
+            meta["location_t_s"] = now  # the position's time: when it was registered
         try:
             self.store.add_machine(machine_id, wire_id=wid, model=model, secret=secret,
                                    metadata=meta)

@@ -337,22 +337,49 @@ class FleetService:
         return ReportFile(body, media, name)
 
     # -- AEMP -------------------------------------------------------------------------------------
-    def _figures(self, rec: MachineRecord) -> aemp.EquipmentFigures:
+    def _figures(self, recs: list[MachineRecord]) -> list[aemp.EquipmentFigures]:
+        """AEMP figures of ``recs``: worker counters, duty to date, the reported hour meter,
+        install time and identifiers (one metadata query for all)."""
         from cranetwin.service.history import stored_duty
+        from cranetwin.storage.aempreads import status_rows
 
-        p = self.backend.progress(rec.machine_id) or Progress.empty(rec.machine_id)
-        duty = stored_duty(self.backend.store.engine, rec.machine_id)
-        return aemp.EquipmentFigures(
-            machine_id=rec.machine_id, name=rec.name, model=rec.model,
-            machine=self.backend.model_of(rec), location=rec.location,
-            counters_t_s=p.watermark_s if p.windows else None,
-            operating_s=p.operating_s, idle_s=p.idle_s, load_count=p.load_count,
-            payload_total_kg=p.payload_total_kg, load_cube_sum=p.load_cube_sum,
-            overloads=p.overloads, max_payload_kg=p.max_payload_kg,
-            duty=None if duty is None else (duty[0], duty[1]))
+        engine = self.backend.store.engine
+        status = status_rows(engine, [r.machine_id for r in recs])
+        out = []
+        for rec in recs:
+            p = self.backend.progress(rec.machine_id) or Progress.empty(rec.machine_id)
+            duty = stored_duty(engine, rec.machine_id)
+            st = status.get(rec.machine_id)
+            meta = st.metadata if st is not None else {}
+            meter = (st.operating_hours, st.status_s) if st is not None and \
+                st.operating_hours is not None and st.status_s is not None else None
+            install = meta.get("registered_t_s")
+            if install is None:
+                dr = self.backend.data_range(rec.machine_id)
+                install = dr[0] if dr is not None else None
+            loc = None
+            if rec.location is not None:
+                times = [t for t in (meta.get("location_t_s"), st.status_s if st else None)
+                         if t is not None]
+                when = max(times) if times else install
+                if when is not None:
+                    loc = (rec.location[0], rec.location[1], float(when))
+            out.append(aemp.EquipmentFigures(
+                machine_id=rec.machine_id, name=rec.name, model=rec.model,
+                machine=self.backend.model_of(rec), location=loc,
+                counters_t_s=p.watermark_s if p.windows else None,
+                operating_s=p.operating_s, idle_s=p.idle_s, load_count=p.load_count,
+                payload_total_kg=p.payload_total_kg, load_cube_sum=p.load_cube_sum,
+                overloads=p.overloads, max_payload_kg=p.max_payload_kg,
+                duty=None if duty is None else (duty[0], duty[1]), hour_meter=meter,
+                install_t_s=None if install is None else float(install),
+                serial_number=meta.get("serial_number"), pin=meta.get("pin"),
+                oem_name=str(meta.get("oem_name") or "cranetwin")))
+        return out
 
     def aemp_fleet(self, page: int, base_url: str) -> dict[str, Any]:
-        """ISO 15143-3 Fleet page ``page``; 404 past the last page."""
+        """ISO 15143-3 Fleet page ``page`` (``base_url``: absolute URL of ``…/Fleet``); 404 past
+        the last page."""
         recs = self.backend.list_machines()
         n_total = len(recs)
         last = max(1, math.ceil(n_total / aemp.PAGE_SIZE))
@@ -361,14 +388,38 @@ class FleetService:
                                 f"page(s) of {aemp.PAGE_SIZE}")
         recs = sorted(recs, key=lambda r: r.machine_id)
         recs = recs[(page - 1) * aemp.PAGE_SIZE: page * aemp.PAGE_SIZE]
-        figs = [self._figures(r) for r in recs]
-        return aemp.fleet_page(figs, page, n_total, base_url, time.time())
+        return aemp.fleet_page(self._figures(recs), page, n_total, base_url, time.time())
 
-    def aemp_equipment(self, machine_id: str) -> dict[str, Any]:
-        """ISO 15143-3 snapshot of one machine."""
+    def aemp_equipment(self, machine_id: str, self_url: str = "") -> dict[str, Any]:
+        """ISO 15143-3 snapshot of one machine (``self_url``: its absolute URL)."""
         rec = self.backend.machine(machine_id)
-        return {"Version": "2", "SnapshotTime": iso(time.time()),
-                **aemp.equipment(self._figures(rec))}
+        return aemp.equipment_document(self._figures([rec])[0], self_url, time.time())
+
+    def aemp_series(self, machine_id: str, element: str, rng: TimeRange, page: int,
+                    base_url: str) -> dict[str, Any]:
+        """ISO 15143-3 time series ``element`` of one machine over [start, end], page ``page``
+        (``base_url``: absolute URL without the page number); 404 for an element not served
+        or a page past the last."""
+        from cranetwin.storage.aempreads import minute_times, times_until
+
+        rec = self.backend.machine(machine_id)
+        if element not in aemp.SERIES:
+            raise NotFoundError("No such time series", f"{element!r}: served are "
+                                f"{', '.join(aemp.SERIES)}")
+        engine = self.backend.store.engine
+        minutes = minute_times(engine, machine_id, rng.t0_s, rng.t1_s)
+        before = times_until(engine, machine_id, rng.t0_s)
+        offset = 0.0
+        fig = self._figures([rec])[0]
+        if element == "CumulativeOperatingHours" and fig.hour_meter is not None:
+            counted, _ = times_until(engine, machine_id, fig.hour_meter[1])
+            offset = fig.hour_meter[0] - counted / 3600.0
+        points = aemp.hourly_points(minutes, element, before, offset)
+        last = max(1, math.ceil(len(points) / aemp.PAGE_SIZE))
+        if page > last:
+            raise NotFoundError("No such page", f"page {page} requested; the series has "
+                                f"{last} page(s) of {aemp.PAGE_SIZE}")
+        return aemp.series_document(element, points, page, base_url, time.time())
 
 
 def _empty_twin(machine: Machine) -> dict[str, Any]:

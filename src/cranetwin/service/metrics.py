@@ -31,6 +31,16 @@ class Metrics:
         self.worker_lag = Gauge("cranetwin_worker_lag_seconds",
                                 "newest sample minus the worker's watermark [s]", ["machine"],
                                 registry=r)
+        self.worker_partition_lag = Gauge(
+            "cranetwin_worker_partition_lag_seconds",
+            "largest newest-sample-minus-watermark of the partition's machines [s]",
+            ["partition"], registry=r)
+        self.worker_partition_age = Gauge(
+            "cranetwin_worker_partition_watermark_age_seconds",
+            "now minus the oldest watermark of the partition's machines [s]", ["partition"],
+            registry=r)
+        self.worker_partitions_owned = Gauge("cranetwin_worker_partitions_owned",
+                                             "machine partitions this worker owns", registry=r)
         self.worker_errors = Counter("cranetwin_worker_errors",
                                      "windows the twin worker could not process", ["machine"],
                                      registry=r)

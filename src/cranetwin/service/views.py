@@ -13,6 +13,7 @@ import numpy.typing as npt
 
 from cranetwin.model import Machine
 from cranetwin.physics import body_poses, cylinder_force, cylinder_pins, joints_from_cylinders
+from cranetwin.physics.actuator import actuator_torques
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.toolload import tool_force
 
@@ -117,7 +118,10 @@ class LiveKinematics:
     """Per-sample state for the live stream, from raw channel values (no smoothing, no lag).
 
     q from the rod positions (and slew angle if sent) through the inverse kinematics; forces
-    from Eq. 1–2 with the rod velocity by backward difference over the last two samples.
+    from Eq. 1–2 with the rod velocity by backward difference over the last two samples; joint
+    torques (``joint_torques`` {joint: N·m or N}) of the actuators, τ = F·ds/dq plus the measured
+    drive torques (the live counterpart of the stored ``torque:<joint>`` channel, without the
+    inertia and payload terms of the inverse dynamics).
 
     Args:
         machine: Machine description.
@@ -141,6 +145,8 @@ class LiveKinematics:
         driven = {c.joint for c in cyl}
         self.free = [j.name for j in machine.joints if j.name not in driven]
         self.i_angle = [by_source.get(("angle", j)) for j in self.free]
+        self.i_drive = [by_source.get(("torque", d.name), by_source.get(("torque", d.joint)))
+                        for d in machine.torque_drives]
         self.pressure_cols = [(name, i) for i, name in enumerate(channels)
                               if name in {c.name for c in machine.channels
                                           if c.quantity in ("pressure_a", "pressure_b")}]
@@ -196,6 +202,9 @@ class LiveKinematics:
         cm = np.swapaxes(poses, -1, -2).reshape(n, m.n_joints, 16)
         pins = cylinder_pins(m, q)
         util = np.abs(forces) / self.relief
+        drives = np.column_stack([np.nan_to_num(values[:, i]) if i is not None else np.zeros(n)
+                                  for i in self.i_drive]) if self.i_drive else None
+        tau = actuator_torques(m, q, forces, drives)
         out = []
         for i in range(n):
             out.append({
@@ -211,6 +220,8 @@ class LiveKinematics:
                 "utilisation": {c.name: round(float(util[i, k]), 4)
                                 for k, c in enumerate(m.cylinders)},
                 "pressures": {name: _num(values[i, j]) for name, j in self.pressure_cols},
+                "joint_torques": {j.name: round(float(tau[i, b]), 1)
+                                  for b, j in enumerate(m.joints)},
             })
         return out
 

@@ -23,6 +23,14 @@ watermark and catches up; empty stretches (machine off) are skipped in one step.
 conditional on the watermark the window started from, so a second worker on the same machine
 (two processes by mistake, or during a hand-over) finds the window done and rolls its own
 replay back instead of counting it twice.
+
+Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
+--partitions …``) a worker processes only the machines of the partitions it owns, re-checked
+between machines at most every ``worker_interval_s`` (never inside a window), and reports per
+partition the lag (newest sample − watermark, the largest of its machines) and the watermark age
+(now − the oldest watermark). The worker owning partition 0 (or a worker without partitions)
+also keeps the PostgreSQL time partitions of the raw samples: made ahead, and dropped by
+retention once processed (``storage_*`` settings, :mod:`cranetwin.storage.partitions`).
 """
 
 from __future__ import annotations
@@ -41,10 +49,18 @@ import numpy.typing as npt
 
 from cranetwin.errors import CraneTwinError
 from cranetwin.model import Machine
+from cranetwin.service.derived import (
+    MOVING_M_S,
+    MOVING_RAD_S,
+    derive,
+    derived_channels,
+    update_counters,
+)
 
 if TYPE_CHECKING:
     from cranetwin.service.backend import Backend, MachineRecord, Progress
     from cranetwin.service.metrics import Metrics
+    from cranetwin.service.ownership import Ownership
     from cranetwin.service.replayer import Replayer
     from cranetwin.settings import Settings
 
@@ -52,101 +68,8 @@ log = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
 
-MOVING_RAD_S = 0.02
-MOVING_M_S = 0.01
-
-
-def derived_channels(machine: Machine) -> list[str]:
-    """Names of the derived channels the worker stores for ``machine``."""
-    out = [f"force:{c.name}" for c in machine.cylinders]
-    out.append("payload")
-    out += [f"moment:{j.name}" for j in machine.joints if j.kind == "revolute"]
-    out += [f"torque:{j.name}" for j in machine.joints]
-    out.append("working")
-    return out
-
-
-def derive(machine: Machine, res: object, keep: npt.NDArray[np.bool_]) -> tuple[list[str], F64]:
-    """Derived channel values at the kept instants of a replay result.
-
-    Args:
-        machine: Machine description.
-        res: :class:`~cranetwin.twin.TwinResult`.
-        keep: Which grid instants to use, shape (m,).
-
-    Returns:
-        (channel names, values of shape (k, n_channels)) in :func:`derived_channels` order.
-    """
-    from cranetwin.twin import TwinResult
-
-    assert isinstance(res, TwinResult)
-    cols: list[F64] = [res.cyl_force[keep, k] for k in range(len(machine.cylinders))]
-    cols.append(res.payload_kg[keep])
-    w = res.joint_wrench[keep]
-    for i, j in enumerate(machine.joints):
-        if j.kind == "revolute":
-            cols.append(np.linalg.norm(w[:, i, 3:], axis=1))
-    cols += [res.id_torque[keep, i] for i in range(machine.n_joints)]
-    limits = np.array([MOVING_RAD_S if j.kind == "revolute" else MOVING_M_S
-                       for j in machine.joints])
-    moving = np.any(np.abs(res.qd[keep]) > limits, axis=1)
-    cols.append(moving.astype(np.float64))
-    return derived_channels(machine), np.column_stack(cols)
-
-
-def update_counters(prog: Progress, machine: Machine, t_s: F64, payload_kg: F64,
-                    reach_m: F64, working: F64, period_s: float, threshold_kg: float) -> Progress:
-    """Cumulative counters after one window.
-
-    Operating time = samples × period; idle = the part with ``working`` = 0. Lifts are detected
-    on 1-s means of the payload with hysteresis (start above ``threshold_kg``, end below half of
-    it); at a lift's end it is counted, its peak added to the payload total, (peak/rated)³ to the
-    spectrum sum, and it is an overload when the peak exceeded the rated load at its reach.
-
-    Args:
-        prog: Progress before the window.
-        machine: Machine description (rated-load chart).
-        t_s: Grid times of the window, shape (k,) [s].
-        payload_kg: Payload estimate, shape (k,) [kg].
-        reach_m: Horizontal reach of the load point, shape (k,) [m].
-        working: 1 moving / 0 still, shape (k,).
-        period_s: Grid period [s].
-        threshold_kg: Lift threshold [kg].
-    """
-    rated_max = float(max(machine.rated_load.payload_kg))
-    op = prog.operating_s + len(t_s) * period_s
-    idle = prog.idle_s + float(np.sum(working < 0.5)) * period_s
-    in_lift, peak, ratio = prog.in_lift, prog.lift_peak_kg, prog.lift_peak_ratio
-    count, total, cube, over = prog.load_count, prog.payload_total_kg, prog.load_cube_sum, \
-        prog.overloads
-    mx = prog.max_payload_kg
-    last = prog.last_payload_kg
-    if len(t_s):
-        sec = np.floor(t_s).astype(np.int64)
-        starts = np.concatenate(([0], np.flatnonzero(np.diff(sec)) + 1))
-        pl = np.where(np.isfinite(payload_kg), payload_kg, 0.0)
-        means = np.add.reduceat(pl, starts) / np.diff(np.append(starts, len(t_s)))
-        rated_at = machine.rated_load.payload_at(reach_m[starts])
-        for m, r in zip(means.tolist(), rated_at.tolist(), strict=True):
-            if not in_lift and m > threshold_kg:
-                in_lift, peak, ratio = True, m, m / r
-            elif in_lift:
-                if m > peak:
-                    peak = m
-                ratio = max(ratio, m / r)
-                if m < threshold_kg / 2:
-                    count += 1
-                    total += peak
-                    cube += (peak / rated_max) ** 3
-                    over += int(ratio > 1.0)
-                    mx = max(mx, peak)
-                    in_lift, peak, ratio = False, 0.0, 0.0
-        finite = payload_kg[np.isfinite(payload_kg)]
-        last = float(finite[-1]) if finite.size else last
-    return dc_replace(prog, operating_s=op, idle_s=idle, in_lift=in_lift, lift_peak_kg=peak,
-                      lift_peak_ratio=ratio, load_count=count, payload_total_kg=total,
-                      load_cube_sum=cube, overloads=over, max_payload_kg=mx,
-                      last_payload_kg=last)
+__all__ = ["MOVING_M_S", "MOVING_RAD_S", "TwinWorker", "derive", "derived_channels",
+           "update_counters"]
 
 
 class TwinWorker:
@@ -167,7 +90,8 @@ class TwinWorker:
 
     def __init__(self, backend: Backend, settings: Settings, metrics: Metrics | None = None,
                  replayer: Replayer | None = None, max_windows_per_pass: int = 30,
-                 quiet_s: float = 60.0, clock: Callable[[], float] = time.monotonic) -> None:
+                 quiet_s: float = 60.0, clock: Callable[[], float] = time.monotonic,
+                 ownership: Ownership | None = None) -> None:
         from cranetwin.service.replayer import Replayer
 
         self.replayer = replayer if replayer is not None else Replayer()
@@ -179,7 +103,11 @@ class TwinWorker:
         """A machine whose newest sample has not changed for this long [s of ``clock``] is
         quiet: its last window is processed without samples past its end."""
         self.clock = clock
+        self.ownership = ownership
+        """Partitions owned (None: every machine)."""
         self._last_sample: dict[str, tuple[float, float]] = {}
+        self._marks: dict[str, tuple[float, float]] = {}  # machine → (newest sample, watermark)
+        self._next_upkeep = clock()
         self.stop_event = threading.Event()
         """Set to stop: checked between windows, so the window being replayed is finished and
         committed first (a second or so)."""
@@ -235,14 +163,73 @@ class TwinWorker:
             Windows processed (0 = every machine is caught up).
         """
         total = 0
+        own = self.ownership
+        if own is not None:
+            own.refresh()
+            due = self.clock() + self.settings.worker_interval_s
         # the ingest daemon rolls 1-min summaries up every 30 s; do it here too so that a
         # service fed by another writer still answers long history queries from 1-min rows
         self.backend.store.rollup()
         for rec in self.backend.list_machines():
             if self.stop_requested():
                 break
+            if own is not None:
+                if self.clock() >= due:  # between machines too: a joiner waits no whole pass
+                    own.refresh()
+                    due = self.clock() + self.settings.worker_interval_s
+                if not own.owns(rec.machine_id):
+                    self._marks.pop(rec.machine_id, None)
+                    continue
             total += self.catch_up(rec, self.max_windows_per_pass)
+        self._partition_metrics()
+        if own is None or 0 in own.owned:
+            self._upkeep()
         return total
+
+    def _partition_metrics(self) -> None:
+        """Per owned partition: lag and watermark age (gauges), from this pass's machines."""
+        own, m = self.ownership, self.metrics
+        if own is None or m is None:
+            return
+        from cranetwin.service.ownership import partition_of
+
+        now = time.time()
+        lag: dict[int, float] = dict.fromkeys(own.owned, 0.0)
+        oldest: dict[int, float] = {}
+        for mid, (newest, wm) in self._marks.items():
+            p = partition_of(mid, own.spec.count)
+            if p in lag:
+                lag[p] = max(lag[p], newest - wm)
+                oldest[p] = min(oldest.get(p, wm), wm)
+        for p in range(own.spec.count):
+            if p in lag:
+                m.worker_partition_lag.labels(str(p)).set(max(0.0, lag[p]))
+                m.worker_partition_age.labels(str(p)).set(max(0.0, now - oldest.get(p, now)))
+            else:
+                for g in (m.worker_partition_lag, m.worker_partition_age):
+                    try:
+                        g.remove(str(p))
+                    except KeyError:
+                        pass
+        m.worker_partitions_owned.set(len(own.owned))
+
+    def _upkeep(self) -> None:
+        """Every ``storage_maintenance_interval_s``: time partitions ahead, and retention."""
+        s = self.settings
+        if self.clock() < self._next_upkeep:
+            return
+        self._next_upkeep = self.clock() + s.storage_maintenance_interval_s
+        try:
+            res = self.backend.store.maintain_partitions(
+                time.time(), ahead=s.storage_partitions_ahead,
+                interval=s.storage_partition_interval,
+                keep_days=s.storage_retention_days or None, margin_s=s.twin_margin_s)
+        except CraneTwinError as exc:
+            log.warning("partition maintenance failed: %s", exc)
+            return
+        if res.dropped or res.kept:
+            log.info("retention: dropped %s, kept %d expired partition(s) not yet processed",
+                     res.dropped, len(res.kept))
 
     def catch_up(self, rec: MachineRecord, max_windows: int | None = None) -> int:
         """Process the ready windows of one machine, oldest first; returns how many.
@@ -292,6 +279,7 @@ class TwinWorker:
         self._roll_up(rec, start_wm, prog.watermark_s)
         if done or prog.watermark_s != start_wm:
             self._update_duty(rec, dr[0], prog.watermark_s)
+        self._marks[rec.machine_id] = (dr[1], prog.watermark_s)
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done

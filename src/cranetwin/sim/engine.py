@@ -12,9 +12,9 @@ and free joints with neither (end stops at their limits only). Array layouts:
 3. Cylinder forces (paper Eq. 1–2, ``physics.actuator.eq1_cylinder_force``, + end stops) and
    the drive torques give the actuator loads tau_j = Σ F_k·ds_k/dq_j + (T_d − F_fr,d(ω)) (virtual
    work); the contact force adds J_p(q)ᵀ·F_c (J_p the load point's translational Jacobian).
-4. Forward dynamics ``M(q)·qdd = tau + J_pᵀ·F_c − h(q, qd)`` with M and h from
-   ``physics.kernels.rnea_into`` (unit-acceleration columns for M, zero acceleration for h;
-   Paper Eq. 4 solved for qdd).
+4. Forward dynamics ``M(q)·qdd = tau + J_pᵀ·F_c − h(q, qd)`` with M from
+   ``physics.rnea.mass_matrix_rnea_into`` (unit-acceleration columns) and h from
+   ``physics.kernels.rnea_into`` (zero acceleration); Paper Eq. 4 solved for qdd.
 5. Update. ``semi-implicit`` (default, 1e-4 s as in the paper): symplectic Euler for the
    mechanics (qd += dt·qdd, then q += dt·qd); chamber pressures follow the rod displacement of
    that step through the exact closed-chamber law p − p0 = −B_oil·ln(Ve/Ve0) (so the oil spring
@@ -51,6 +51,7 @@ from cranetwin.physics import kernels as kernels_module
 from cranetwin.physics.actuator import eq1_cylinder_force, eq2_friction
 from cranetwin.physics.chain import CYL_BLOCK, HEADER, JOINT_BLOCK, PRISMATIC
 from cranetwin.physics.kernels import cylinder_kinematics, joint_transforms, rnea_into
+from cranetwin.physics.rnea import mass_matrix_rnea_into
 from cranetwin.sim.hydraulics import (
     C_A1,
     C_A2,
@@ -397,18 +398,7 @@ def _eval(model, x, payload, fext, flags, buf, scr, kin_ready):  # type: ignore[
     if contact:      # tau_ext is only read (below) when there is contact
         _contact_loads(chain, q, fext, work, tau_ext)
     # forward dynamics: M qdd = tau + J_pᵀ F_c − h   (Eq. 4)
-    for j in range(nj):
-        for i in range(nj):
-            e[i] = 0.0
-        e[j] = 1.0
-        rnea_into(chain, q, zero, e, payload, 0.0, hb, wr, work)
-        for i in range(nj):
-            mm[i, j] = hb[i]
-    for i in range(nj):
-        for j in range(i + 1, nj):
-            a = 0.5 * (mm[i, j] + mm[j, i])
-            mm[i, j] = a
-            mm[j, i] = a
+    mass_matrix_rnea_into(chain, q, payload, mm, (zero, e, hb, wr, work))
     rnea_into(chain, q, qd, zero, payload, 1.0, hb, wr, work)
     if contact:
         for j in range(nj):

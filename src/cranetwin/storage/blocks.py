@@ -5,9 +5,12 @@ machine) as the run the wire carried: t0, period, channel layout and the integer
 (``SampleBlock.steps`` when the block has them, as decoded from the datagram; otherwise ``values``
 quantised once), compressed by :mod:`cranetwin.storage.codec`, plus its per-second summary
 (count, min, max, sum of the steps per channel for every whole second the block touches), so that
-1-s load history never decodes raw samples. Rows are unique on (machine, epoch, seq), and
-inserted with ``ON CONFLICT DO NOTHING`` on both dialects, so writing a block twice (a
-retransmission, a replayed batch after a crash) stores it once.
+1-s load history never decodes raw samples. Rows are unique on (machine, epoch, seq) (on
+PostgreSQL, where the table is partitioned by t_start_ns, on (machine, epoch, seq, t_start_ns):
+:mod:`cranetwin.storage.partitions`), and inserted with ``ON CONFLICT DO NOTHING`` on both
+dialects, so writing a block twice (a retransmission, a replayed batch after a crash: the same
+seq and the same t_start) stores it once. Range reads also bound t_start from below by the
+longest block span, so PostgreSQL reads only the partitions that can hold a match.
 
 What a row may hold (:func:`check_block`, :func:`block_rows`; anything else is refused before it
 reaches the database): sample times 0 ≤ t0 ≤ t_end < :data:`T_LIMIT_NS` (2262-04-10, one day
@@ -69,7 +72,12 @@ _STEP_LIMIT = 2**52
 
 
 class BlockRow(Base):
-    """A compressed run of samples of one machine (one datagram's worth)."""
+    """A compressed run of samples of one machine (one datagram's worth).
+
+    The mapping is SQLite's table; on PostgreSQL the table is partitioned by ``t_start_ns``
+    with primary key (id, t_start_ns) and unique key (machine_pk, epoch, seq, t_start_ns)
+    (migration ``0004p``). Queries use the same columns on both.
+    """
 
     __tablename__ = "sample_blocks"
     __table_args__ = (
@@ -284,9 +292,11 @@ def insert_new(session: Session, rows: Sequence[tuple[object, ...]]) -> set[Key]
     Returns:
         The (machine_pk, epoch, seq) keys that were newly inserted.
     """
-    got = bulk.insert_rows(session.connection(), BlockRow.__tablename__, COLUMNS, rows,
-                           "ON CONFLICT (machine_pk, epoch, seq) DO NOTHING "
-                           "RETURNING machine_pk, epoch, seq")
+    conn = session.connection()
+    target = ("machine_pk, epoch, seq, t_start_ns" if conn.dialect.name == "postgresql"
+              else "machine_pk, epoch, seq")
+    got = bulk.insert_rows(conn, BlockRow.__tablename__, COLUMNS, rows,
+                           f"ON CONFLICT ({target}) DO NOTHING RETURNING machine_pk, epoch, seq")
     return {(int(a), int(b), int(c)) for a, b, c in got}
 
 
@@ -325,7 +335,8 @@ _PROBE_PG = (
     "%b::bigint[]) AS v(i, pk, epoch, seq, t0, t1) "
     "LEFT JOIN sample_blocks k ON k.machine_pk = v.pk AND k.epoch = v.epoch AND k.seq = v.seq "
     "LEFT JOIN LATERAL (SELECT b.epoch, b.seq, b.t_start_ns FROM sample_blocks b "
-    "WHERE b.machine_pk = v.pk AND b.t_end_ns >= v.t0 ORDER BY b.t_end_ns LIMIT 1) o "
+    "WHERE b.machine_pk = v.pk AND b.t_end_ns >= v.t0 "
+    f"AND b.t_start_ns >= v.t0 - {MAX_SPAN_NS} ORDER BY b.t_end_ns LIMIT 1) o "
     "ON o.t_start_ns <= v.t1 "
     "WHERE k.id IS NOT NULL OR o.seq IS NOT NULL")
 _PROBE_SQLITE = (
@@ -423,7 +434,8 @@ def read_range(session: Session, machine_pk: int, t0_ns: int, t1_ns: int) -> lis
     stmt = (select(BlockRow.seq, BlockRow.t_start_ns, BlockRow.period_ns, BlockRow.channels,
                    BlockRow.resolution, BlockRow.data)
             .where(BlockRow.machine_pk == machine_pk, BlockRow.t_start_ns <= clamp_ns(t1_ns),
-                   BlockRow.t_end_ns >= clamp_ns(t0_ns))
+                   BlockRow.t_end_ns >= clamp_ns(t0_ns),
+                   BlockRow.t_start_ns >= clamp_ns(clamp_ns(t0_ns) - MAX_SPAN_NS))
             .order_by(BlockRow.t_start_ns, BlockRow.epoch, BlockRow.seq))
     out = []
     for seq, t0, period, chans, res, data in session.execute(stmt):
@@ -467,7 +479,8 @@ def read_second_aggregates(session: Session, machine_pk: int, t0_s: int, t1_s: i
     stmt = (select(BlockRow.id, BlockRow.t_start_ns, BlockRow.channels, BlockRow.resolution,
                    BlockRow.summary)
             .where(BlockRow.machine_pk == machine_pk, BlockRow.t_start_ns < clamp_ns(t1_s * SEC),
-                   BlockRow.t_end_ns >= clamp_ns(t0_s * SEC)))
+                   BlockRow.t_end_ns >= clamp_ns(t0_s * SEC),
+                   BlockRow.t_start_ns >= clamp_ns(clamp_ns(t0_s * SEC) - MAX_SPAN_NS)))
     for row_id, t0, chans, res, blob in session.execute(stmt):
         try:
             k = codec.decode_plain(blob)

@@ -8,6 +8,8 @@ One small interface, :class:`LiveBus` (``publish`` from the ingest daemon after 
 * ``postgresql://…`` — :class:`PostgresBus`, ``NOTIFY``/``LISTEN`` on the database server.
 * ``redis://host:port`` — :class:`RedisBus`, Redis ``PUBLISH``/``SUBSCRIBE`` (redis-py, the
   ``redis`` extra).
+* ``nats://host:port`` — :class:`~cranetwin.storage.live_nats.NatsBus`, core NATS subjects
+  (nats-py, the ``nats`` extra).
 
 Across processes only a :class:`BlockNote` travels (machine, seq, time span, sample count); the
 subscriber reads the samples from storage. A slow subscriber never slows ingest: its queue is
@@ -332,7 +334,8 @@ class RedisBus:
 
 
 def open_bus(url: str = "memory://") -> LiveBus:
-    """The bus for ``url``: ``memory://``, ``postgresql[+psycopg]://…`` or ``redis://host:port``.
+    """The bus for ``url``: ``memory://``, ``postgresql[+psycopg]://…``, ``redis://host:port``
+    or ``nats://host:port``.
 
     Raises:
         StorageError: Unknown scheme.
@@ -346,5 +349,9 @@ def open_bus(url: str = "memory://") -> LiveBus:
     if scheme == "redis":
         u = urlsplit(url)
         return RedisBus(u.hostname or "127.0.0.1", u.port or 6379)
-    raise StorageError(f"unknown live bus {url!r}; expected memory://, postgresql://… or "
-                       "redis://host:port")
+    if scheme == "nats":
+        from cranetwin.storage.live_nats import NatsBus
+
+        return NatsBus(url)
+    raise StorageError(f"unknown live bus {url!r}; expected memory://, postgresql://…, "
+                       "redis://host:port or nats://host:port")

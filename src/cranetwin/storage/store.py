@@ -22,6 +22,7 @@ from cranetwin.samples import F64, SampleArrays, SampleBlock
 from cranetwin.storage import blocks as blocks_mod
 from cranetwin.storage import events as events_mod
 from cranetwin.storage import machines as machines_mod
+from cranetwin.storage import partitions as partitions_mod
 from cranetwin.storage import summaries as summaries_mod
 from cranetwin.storage import writes as writes_mod
 from cranetwin.storage.dberrors import is_unavailable, unavailable
@@ -70,6 +71,8 @@ class Store:
         """Machine-minutes :meth:`rollup` could not roll up and dropped (since open)."""
         self.corrupt_summaries = 0
         """Block rows whose per-second summary :meth:`rollup` could not decode (since open)."""
+        self._partitioner: partitions_mod.Partitioner | None = None
+        self._partitioned: bool | None = None
 
     @classmethod
     def open(cls, url: str = DEFAULT_URL, *, echo: bool = False,
@@ -221,7 +224,64 @@ class Store:
         if not blocks:
             return WriteResult((), ())
         pks = self._machine_pks({b.machine_id for b in blocks if isinstance(b.machine_id, str)})
-        return writes_mod.write(self._session, blocks, pks)
+        return self._write(blocks, pks)
+
+    def _write(self, blocks: Sequence[SampleBlock], pks: dict[str, int]) -> WriteResult:
+        """:func:`cranetwin.storage.writes.write`, with the time partitions made first."""
+        part = self._ensure_partitions(blocks)
+        res = writes_mod.write(self._session, blocks, pks)
+        if part is None:
+            return res
+        lost = [i for i, o in enumerate(res.outcomes)
+                if o.reason == "unstorable"
+                and any(t in o.detail for t in partitions_mod.NO_PARTITION)]
+        if not lost:
+            return res
+        # a partition this process knew was dropped meanwhile (retention): create it again
+        part.forget()
+        sub = [blocks[i] for i in lost]
+        self._ensure_partitions(sub)
+        again = writes_mod.write(self._session, sub, pks)
+        outcomes = list(res.outcomes)
+        for i, o in zip(lost, again.outcomes, strict=True):
+            outcomes[i] = o
+        return WriteResult(res.blocks, tuple(outcomes))
+
+    def maintain_partitions(self, now_s: float, *, ahead: int = 2, interval: str | None = None,
+                            keep_days: float | None = None,
+                            margin_s: float = 0.0) -> partitions_mod.RetentionResult:
+        """PostgreSQL: create the time partitions ahead, apply retention
+        (:func:`cranetwin.storage.partitions.maintain`); a no-op on SQLite."""
+        try:
+            res = partitions_mod.maintain(self.engine, now_s, ahead=ahead, interval=interval,
+                                          keep_days=keep_days, margin_s=margin_s)
+        except SQLAlchemyError as exc:
+            if is_unavailable(exc):
+                raise unavailable("partition maintenance", exc) from exc
+            raise StorageError(f"partition maintenance failed: {exc}".splitlines()[0]) from exc
+        if res.dropped and self._partitioner is not None:
+            self._partitioner.forget()
+        return res
+
+    def _ensure_partitions(self, blocks: Sequence[SampleBlock]
+                           ) -> partitions_mod.Partitioner | None:
+        """PostgreSQL: create the time partitions the blocks need (usually none: cached);
+        returns the partitioner, None on SQLite."""
+        try:
+            if self._partitioned is None:
+                with self.engine.connect() as c:
+                    self._partitioned = partitions_mod.is_partitioned(c)
+                if self._partitioned:
+                    self._partitioner = partitions_mod.Partitioner(self.engine)
+            if self._partitioner is not None:
+                self._partitioner.ensure(int(b.t0_ns) for b in blocks
+                                         if isinstance(b.t0_ns, int | np.integer))
+        except SQLAlchemyError as exc:
+            if is_unavailable(exc):
+                raise unavailable(f"storing {len(blocks)} block(s)", exc) from exc
+            raise StorageError(f"could not create the partitions of {len(blocks)} block(s), "
+                               f"nothing stored: {exc}".splitlines()[0]) from exc
+        return self._partitioner
 
     def write_blocks(self, blocks: Sequence[SampleBlock]) -> int:
         """Like :meth:`store_blocks`, returning the number of blocks newly stored."""
@@ -244,7 +304,7 @@ class Store:
         if unknown:
             raise UnknownMachineError(f"no machine {unknown[0]!r} is registered; add it first "
                                       "(cranetwin machines add)")
-        res = writes_mod.write(self._session, blocks, pks)
+        res = self._write(blocks, pks)
         bad = res.refused
         if bad:
             b, o = bad[0]
@@ -344,8 +404,10 @@ class Store:
         b = blocks_mod.BlockRow
         with self._session() as s:
             pk = self._machine_pk(s, machine_id)
+            t = _ns(after_s)
             r = s.execute(select(func.min(b.t_start_ns)).where(
-                b.machine_pk == pk, b.t_end_ns >= _ns(after_s))).scalar()
+                b.machine_pk == pk, b.t_end_ns >= t,
+                b.t_start_ns >= blocks_mod.clamp_ns(t - blocks_mod.MAX_SPAN_NS))).scalar()
         return None if r is None else int(r) / 1e9
 
     def stats(self, machine_id: str | None = None) -> StorageStats:
