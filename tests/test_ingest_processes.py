@@ -207,3 +207,13 @@ def test_processes_port_in_use_is_one_line_exit_2(
                                 "--db", sqlite_url, "--metrics-bind", "0", "--processes", "2")
     assert code == 2, err
     assert err.count("\n") == 1 and "Traceback" not in err and "already in use" in err, err
+
+
+@pytest.mark.timeout(60)
+def test_processes_with_the_fleet_bus_is_refused_in_one_line(
+        sqlite_url: str, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = run_main(monkeypatch, capsys, "ingest", "--bind", "127.0.0.1:0", "--db",
+                            sqlite_url, "--metrics-bind", "0", "--processes", "2",
+                            "--bus", "nats://127.0.0.1:4222")
+    assert code == 2 and err.count("\n") == 1 and "--processes with --bus" in err, err

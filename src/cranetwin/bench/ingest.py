@@ -53,6 +53,7 @@ T0_NS = (time.time_ns() // DAY_NS - 1) * DAY_NS
 """Start of the bench's sample clock: midnight (UTC) before last, so that every sample is within
 the daemon's accepted window around its clock (and the same in every process of one run)."""
 PERIOD_NS = 10_000_000  # 100 Hz
+_cpu_seconds = cpu_seconds  # the name bench.bus imports (now in bench.ingest_daemon)
 
 
 # --- a lossy link (in-process shim) -------------------------------------------------------------

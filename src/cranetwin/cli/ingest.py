@@ -141,6 +141,9 @@ def ingest(
                                      range_margin=st.ingest_range_margin))
 
     if processes > 1:
+        if st.bus_url:
+            raise CliError("--processes with --bus is not supported yet: run one "
+                           "`cranetwin ingest --bus` per address")
         _run_group(st.database_url, cfg, processes, st.live_bus_url, st.ingest_busy_timeout_s,
                    log_level)
         return
