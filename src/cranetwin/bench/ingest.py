@@ -15,16 +15,11 @@ of 11 values per sample), as an ingest without blocks would do.
 
 from __future__ import annotations
 
-import contextlib
-import json
 import multiprocessing as mp
 import os
 import random
 import select
-import signal
 import socket
-import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -37,6 +32,10 @@ import numpy.typing as npt
 import typer
 
 from cranetwin.bench import emit
+from cranetwin.bench.ingest_daemon import DaemonProcess as DaemonProcess
+from cranetwin.bench.ingest_daemon import cpu_seconds
+from cranetwin.bench.ingest_daemon import free_udp_port as free_udp_port
+from cranetwin.bench.ingest_daemon import start_daemon as start_daemon
 from cranetwin.protocol import (
     DatagramError,
     Journal,
@@ -54,6 +53,7 @@ T0_NS = (time.time_ns() // DAY_NS - 1) * DAY_NS
 """Start of the bench's sample clock: midnight (UTC) before last, so that every sample is within
 the daemon's accepted window around its clock (and the same in every process of one run)."""
 PERIOD_NS = 10_000_000  # 100 Hz
+_cpu_seconds = cpu_seconds  # the name bench.bus imports (now in bench.ingest_daemon)
 
 
 # --- a lossy link (in-process shim) -------------------------------------------------------------
@@ -264,116 +264,6 @@ def make_sender(key: MachineKey, values: F64, *, first_seq: int = 1, rto_s: floa
     return s
 
 
-def free_udp_port() -> int:
-    """A UDP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@dataclass
-class DaemonProcess:
-    """A ``cranetwin ingest`` child process (see :func:`start_daemon`).
-
-    Attributes:
-        proc: The process.
-        metrics_url: Its Prometheus ``/metrics`` URL (from its ready line).
-        stderr_path: File that receives its log.
-    """
-
-    proc: subprocess.Popen[bytes]
-    metrics_url: str
-    stderr_path: Path
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    def counters(self, timeout_s: float = 5.0) -> dict[str, Any]:
-        """The daemon's counters now, scraped from ``/metrics``: ``{name: value}`` without the
-        ``cranetwin_ingest_`` prefix and ``_total`` suffix, ``dropped`` as ``{reason: n}``;
-        ``{}`` if it does not answer."""
-        import urllib.request
-
-        from prometheus_client.parser import text_string_to_metric_families
-
-        try:
-            text = urllib.request.urlopen(self.metrics_url, timeout=timeout_s).read().decode()
-        except OSError:
-            return {}
-        out: dict[str, Any] = {"dropped": {}}
-        for fam in text_string_to_metric_families(text):
-            for smp in fam.samples:
-                name = smp.name.removeprefix("cranetwin_ingest_")
-                if name.startswith("dropped"):
-                    out["dropped"][smp.labels.get("reason", "?")] = int(smp.value)
-                elif name.endswith("_total"):
-                    out[name.removesuffix("_total")] = smp.value
-        return out
-
-    def stop(self, timeout_s: float = 60.0) -> dict[str, Any]:
-        """SIGTERM, wait, and return the final counters of its ``stopped`` line ({} if none)."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        self.proc.wait(timeout_s)
-        return self._last_line("stopped")
-
-    def kill(self) -> None:
-        """SIGKILL (no flush, no goodbye) and reap."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(10)
-
-    def poll(self) -> int | None:
-        return self.proc.poll()
-
-    def _last_line(self, event: str) -> dict[str, Any]:
-        assert self.proc.stdout is not None
-        rest = self.proc.stdout.read().decode(errors="replace")
-        for line in reversed(rest.splitlines()):
-            with contextlib.suppress(ValueError):
-                d = json.loads(line)
-                if isinstance(d, dict) and d.get("event") == event:
-                    return d
-        return {}
-
-
-def start_daemon(db_url: str, port: int, workdir: Path, *extra: str) -> DaemonProcess:
-    """``cranetwin ingest`` in a subprocess on 127.0.0.1:``port``, its Prometheus endpoint on a
-    free port; returns once its ``ready`` line says it is listening (≤ 60 s).
-
-    Its log goes to a file in ``workdir``, never to a pipe nobody reads; stdout (two lines: ready,
-    stopped) is read with a deadline, so a daemon that hangs at start cannot hang the caller.
-
-    Raises:
-        RuntimeError: it exited or did not get ready in time (its log attached).
-    """
-    workdir.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-c", "from cranetwin.cli import main; main()", "ingest",
-           "--bind", f"127.0.0.1:{port}", "--db", db_url, "--metrics-bind", "127.0.0.1:0",
-           "--log-level", "WARNING", *extra]
-    log = workdir / f"ingest-{port}.stderr"
-    with open(log, "ab") as err:
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err)
-    assert proc.stdout is not None
-    end = time.monotonic() + 60
-    buf = b""
-    while b"\n" not in buf:
-        left = end - time.monotonic()
-        ready, _, _ = select.select([proc.stdout], [], [], max(0.0, min(left, 0.5)))
-        if ready:
-            chunk = os.read(proc.stdout.fileno(), 4096)
-            buf += chunk
-            if chunk:
-                continue
-        if proc.poll() is not None or left <= 0:
-            proc.kill()
-            proc.wait(10)
-            raise RuntimeError(f"ingest daemon did not start: {log.read_text()[-2000:]}")
-    info = json.loads(buf.split(b"\n", 1)[0])
-    return DaemonProcess(proc, str(info.get("metrics") or ""), log)
-
-
 # --- the benchmark ----------------------------------------------------------------------------
 def _sender_proc(wire_ids: list[int], secret: bytes, samples: int, server: tuple[str, int],
                  speed: float, batch_samples: int, start: Any, result: Any) -> None:
@@ -395,13 +285,11 @@ def _sender_proc(wire_ids: list[int], secret: bytes, samples: int, server: tuple
     fleet.close()
 
 
-def _cpu_seconds(pid: int) -> float | None:
-    """User + system CPU time of a process so far [s] (Linux /proc), or None."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return None
+def _group_cpu_seconds(daemon: DaemonProcess) -> float | None:
+    """CPU time of the daemon and of its ``--processes`` children so far [s], or None."""
+    pids = [daemon.pid, *(int(c["pid"]) for c in daemon.info.get("children", []))]
+    times = [cpu_seconds(p) for p in pids]
+    return None if any(t is None for t in times) else sum(t for t in times if t is not None)
 
 
 def _baseline(db_url: str, n: int) -> float:
@@ -434,8 +322,10 @@ def _baseline(db_url: str, n: int) -> float:
 
 def run_bench(db_url: str, machines: int, samples: int, processes: int,
               baseline_samples: int, speed: float = 1.0,
-              batch_samples: int = 100) -> dict[str, Any]:
-    """Run the benchmark; returns the figures (see module docstring)."""
+              batch_samples: int = 100, daemon_processes: int = 1) -> dict[str, Any]:
+    """Run the benchmark; returns the figures (see module docstring). ``daemon_processes`` > 1
+    runs ``cranetwin ingest --processes N``; its CPU time is the parent's plus the children's.
+    """
     from cranetwin.storage import Store
 
     secret = b"bench-secret-0123456789abcdef"
@@ -449,7 +339,8 @@ def run_bench(db_url: str, machines: int, samples: int, processes: int,
         raise typer.BadParameter("the database already holds bench samples; use a fresh one")
     port = free_udp_port()
     with tempfile.TemporaryDirectory() as tmp:
-        daemon = start_daemon(db_url, port, Path(tmp))
+        daemon = start_daemon(db_url, port, Path(tmp), *(
+            ("--processes", str(daemon_processes)) if daemon_processes > 1 else ()))
         try:
             ctx = mp.get_context("spawn")
             start, result = ctx.Event(), ctx.Queue()
@@ -465,7 +356,7 @@ def run_bench(db_url: str, machines: int, samples: int, processes: int,
             res = [result.get(timeout=900) for _ in procs]
             for p in procs:
                 p.join()
-            daemon_cpu = _cpu_seconds(daemon.pid)
+            daemon_cpu = _group_cpu_seconds(daemon)
             stats = daemon.stop(timeout_s=120)
         finally:
             if daemon.poll() is None:
@@ -490,7 +381,8 @@ def run_bench(db_url: str, machines: int, samples: int, processes: int,
     base = _baseline(db_url, baseline_samples)
     return {
         "database": dialect, "machines": machines, "samples_per_machine": samples,
-        "sender_processes": processes, "speed": speed, "batch_samples": batch_samples,
+        "sender_processes": processes, "daemon_processes": daemon_processes, "speed": speed,
+        "batch_samples": batch_samples,
         "offered_samples_per_second": round(machines * 100 * speed) if speed > 0 else None,
         "samples_sent": sent, "samples_stored": stored,
         "lost": lost, "duplicated": dup, "machines_mismatched": mismatched,
@@ -501,6 +393,7 @@ def run_bench(db_url: str, machines: int, samples: int, processes: int,
         "daemon_cpu_seconds": daemon_cpu,
         "daemon_cpu_us_per_sample": None if daemon_cpu is None else round(daemon_cpu / sent * 1e6,
                                                                            2),
+        "samples_per_daemon_cpu_second": None if not daemon_cpu else round(sent / daemon_cpu),
         "load_average_1min": os.getloadavg()[0],
         "datagrams_sent": sum(r["sent"] for r in res),
         "retransmissions": sum(r["retransmissions"] for r in res),
@@ -522,6 +415,8 @@ def ingest(
     speed: float = typer.Option(1.0, help="Time scale of the senders (1 = real time, 100 Hz per "
                                 "machine; 0 = as fast as possible)."),
     batch_samples: int = typer.Option(100, help="Samples per datagram (1 s at 100 Hz)."),
+    daemon_processes: int = typer.Option(1, min=1, max=64,
+                                         help="Daemon processes (cranetwin ingest --processes)."),
     baseline_samples: int = typer.Option(100_000, help="Samples for the row-per-sample baseline."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
 ) -> None:
@@ -529,7 +424,7 @@ def ingest(
     with tempfile.TemporaryDirectory() as tmp:
         url = db or f"sqlite:///{Path(tmp) / 'bench.db'}"
         out = run_bench(url, machines, samples, processes, baseline_samples, speed,
-                        batch_samples)
+                        batch_samples, daemon_processes)
         if db is None:
             out["db_file_bytes_per_sample"] = round(
                 sum(f.stat().st_size for f in Path(tmp).glob("bench.db*")) / out["samples_sent"],

@@ -15,11 +15,15 @@ import secrets
 import stat
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from cranetwin.errors import CraneTwinError
 from cranetwin.settings import Settings, load_settings
+
+if TYPE_CHECKING:
+    from cranetwin.ingest.config import DaemonConfig
 
 machines_app = typer.Typer(help="Register machines (wire id and HMAC secret) and list them.",
                            no_args_is_help=True)
@@ -97,12 +101,18 @@ def ingest(
                             "`cranetwin store-writer` stores them) (default: $CRANETWIN_BUS_URL, "
                             "else none)."),
     log_level: str = typer.Option("INFO", help="Logging level."),
+    processes: int = typer.Option(
+        1, min=1, max=64, help="Daemon processes sharing the UDP address (SO_REUSEPORT; each "
+                               "machine always served by process wire_id % N; a dead one is "
+                               "restarted). Linux only. Metrics of process i on PORT + i."),
 ) -> None:
     """Receive machine datagrams over UDP and store them (ack after commit; SIGTERM flushes).
 
     Prints one JSON line on stdout once listening: {"event": "ready", "udp": "HOST:PORT",
     "metrics": "http://HOST:PORT/metrics" or null, "pid": N}, and one after a graceful stop:
-    {"event": "stopped", <final counters>}. Logs go to stderr.
+    {"event": "stopped", <final counters>}. Logs go to stderr. With --processes N > 1 the
+    ready line has "metrics" as a list and "children" (index, pid, metrics) and the stopped
+    line the summed counters, "restarts" and per child its own under "children".
     """
     from cranetwin.ingest.daemon import DaemonConfig, IngestDaemon, serve
     from cranetwin.protocol import Limits
@@ -130,6 +140,14 @@ def ingest(
                                      max_future_s=st.ingest_max_future_s,
                                      range_margin=st.ingest_range_margin))
 
+    if processes > 1:
+        if st.bus_url:
+            raise CliError("--processes with --bus is not supported yet: run one "
+                           "`cranetwin ingest --bus` per address")
+        _run_group(st.database_url, cfg, processes, st.live_bus_url, st.ingest_busy_timeout_s,
+                   log_level)
+        return
+
     def ready(d: IngestDaemon) -> None:
         h, p = d.address or (host, port)
         udp = f"{h}:{p}" if ":" not in h else f"[{h}]:{p}"
@@ -147,6 +165,24 @@ def ingest(
     else:
         final = serve(st.database_url, cfg, live_bus, on_ready=ready,
                       busy_timeout_s=st.ingest_busy_timeout_s)
+    sys.stdout.write(json.dumps({"event": "stopped", **final}) + "\n")
+    sys.stdout.flush()
+
+
+def _run_group(db_url: str, cfg: DaemonConfig, processes: int, live_url: str | None,
+               busy_timeout_s: float, log_level: str) -> None:
+    """``--processes N``: the parent of N daemon processes (blocking until SIGTERM/SIGINT)."""
+    from cranetwin.ingest.processes import ProcessGroup
+
+    def ready(g: ProcessGroup) -> None:
+        info = g.ready_info()
+        sys.stdout.write(json.dumps({"event": "ready", **info, "metrics": [
+            c["metrics"] for c in info["children"]]}) + "\n")
+        sys.stdout.flush()
+
+    group = ProcessGroup(db_url, cfg, processes, live_url=live_url,
+                         busy_timeout_s=busy_timeout_s, log_level=log_level)
+    final = group.run(on_ready=ready)
     sys.stdout.write(json.dumps({"event": "stopped", **final}) + "\n")
     sys.stdout.flush()
 

@@ -41,6 +41,8 @@ class DaemonConfig:
         supervise_interval_s: Period of the check that restarts a dead decoder/writer thread [s].
         limits: What is accepted from authenticated machines: datagram size, time window
             around the server clock [s], sensor range margin (:class:`~cranetwin.protocol.Limits`).
+        socket_fd: A bound UDP socket inherited from the parent of ``--processes``
+            (:mod:`~cranetwin.ingest.processes`), used instead of binding ``host``/``port``.
     """
 
     host: str = "127.0.0.1"
@@ -60,3 +62,4 @@ class DaemonConfig:
     stall_timeout_s: float = 5.0
     supervise_interval_s: float = 0.2
     limits: Limits = field(default_factory=Limits)
+    socket_fd: int | None = None

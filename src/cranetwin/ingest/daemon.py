@@ -37,12 +37,13 @@ Faults never stop the daemon:
 * a machine registered with a model that does not load is logged once and its datagrams are
   dropped as ``bad_model``; the other machines are served.
 
-Modules: configuration in :mod:`~cranetwin.ingest.config`, counters in
-:mod:`~cranetwin.ingest.metrics`, binding sockets in :mod:`~cranetwin.ingest.sockets`, the
-database side (retries through outages, block-by-block fallback, status, rollup) in
-:mod:`~cranetwin.ingest.writer`, machine keys in :mod:`~cranetwin.ingest.keys`; this module is
-the daemon itself (event loop, decoder and writer threads, acks after commit, supervisor,
-shutdown).
+Modules: the datagram path (decoding through the Receiver, acks and refusals) in
+:mod:`~cranetwin.ingest.datagrams`, the decoder and writer threads and their supervisor in
+:mod:`~cranetwin.ingest.pipeline`, the database side (retries through outages, block-by-block
+fallback, status, rollup) in :mod:`~cranetwin.ingest.writer`, configuration in
+:mod:`~cranetwin.ingest.config`, counters in :mod:`~cranetwin.ingest.metrics`, binding sockets in
+:mod:`~cranetwin.ingest.sockets`, machine keys in :mod:`~cranetwin.ingest.keys`; this module is the
+daemon's lifecycle (socket, threads started, metrics served, shutdown).
 
 ``serve()`` owns the lifecycle: SIGTERM/SIGINT stop the socket, the queue is drained and
 written, the last acks go out and the 1-min rollup runs, in bounded time: during a database
@@ -64,27 +65,18 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from functools import partial
 from typing import Any
 
 from prometheus_client import CollectorRegistry, Histogram, start_http_server
 
-from cranetwin.errors import CraneTwinError
 from cranetwin.ingest.config import DaemonConfig, IngestConfigError, check_model, layout_of
+from cranetwin.ingest.datagrams import Addr, Item
 from cranetwin.ingest.keys import MachineKeys
 from cranetwin.ingest.metrics import COUNTERS, Metrics, SnapshotCollector
+from cranetwin.ingest.pipeline import Pipeline, drain
 from cranetwin.ingest.sockets import _bind, _bind_message, new_event_loop
-from cranetwin.ingest.writer import Abandoned, StorageWriter, is_unavailable
-from cranetwin.protocol import (
-    REFUSAL_CODES,
-    TYPE_REFUSAL,
-    DatagramError,
-    Receiver,
-    RefusedError,
-    ReplayedError,
-)
-from cranetwin.protocol.status import StatusReport
-from cranetwin.samples import SampleBlock
+from cranetwin.ingest.writer import StorageWriter, is_unavailable
+from cranetwin.protocol import Receiver
 from cranetwin.storage import Store
 from cranetwin.storage.live import LiveBus
 
@@ -92,14 +84,6 @@ __all__ = ["COUNTERS", "DaemonConfig", "IngestConfigError", "IngestDaemon", "Met
            "check_model", "is_unavailable", "layout_of", "new_event_loop", "serve"]
 
 log = logging.getLogger(__name__)
-
-Addr = tuple[Any, ...]
-Item = SampleBlock | StatusReport
-
-
-def _is_refusal(datagram: bytes) -> bool:
-    """Whether a datagram the daemon sends is a refusal (else an ack): its type byte."""
-    return len(datagram) > 3 and datagram[3] == TYPE_REFUSAL
 
 
 # --- the daemon ---------------------------------------------------------------------------------
@@ -114,7 +98,7 @@ class _IngestProtocol(asyncio.DatagramProtocol):
         self.daemon.metrics.drop("socket_error")
 
 
-class IngestDaemon:
+class IngestDaemon(Pipeline):
     """UDP ingest into a :class:`~cranetwin.storage.Store`.
 
     Args:
@@ -169,19 +153,6 @@ class IngestDaemon:
         write succeeds)."""
         return self.db.outage
 
-    # -- logging ------------------------------------------------------------------------------
-    def _log_once(self, kind: str, exc: BaseException | None, msg: str, *args: Any) -> None:
-        """Log ``msg`` the first time ``kind`` (plus the exception's type) happens; afterwards
-        the counters say how often it recurs."""
-        key = f"{kind}:{type(exc).__name__}" if exc is not None else kind
-        with self._log_lock:
-            if key in self._logged:
-                return
-            self._logged.add(key)
-        expected = exc is None or isinstance(exc, CraneTwinError) or is_unavailable(exc)
-        log.error(msg + " (logged once; see the counters for repeats)", *args,
-                  exc_info=None if expected else exc)
-
     # -- keys ---------------------------------------------------------------------------------
     def reload_keys(self) -> None:
         """Read machine keys from storage now (:meth:`MachineKeys.reload`).
@@ -190,283 +161,6 @@ class IngestDaemon:
             Exception: storage could not be read (the previous keys stay in use).
         """
         self.keys.reload()
-
-    # -- event loop side ------------------------------------------------------------------------
-    def _on_datagram(self, data: bytes, addr: Addr) -> None:
-        m = self.metrics
-        m.received += 1
-        m.received_bytes += len(data)
-        if self._stopping:  # arrived after shutdown began: not acked, so the sender retries
-            m.drop("shutdown")
-            return
-        try:
-            self._queue.put_nowait((data, addr, self._clock()))
-        except queue.Full:
-            m.drop("queue_full")
-
-    # -- protocol (the only place that knows the Receiver's API) --------------------------------
-    def _rx_receive(self, data: bytes, now: int) -> Item:
-        with self._rx_lock:
-            return self._receiver.receive(data, now)
-
-    def _rx_mark_durable(self, item: Item) -> None:
-        self._receiver.mark_durable(item.machine_id, item.epoch, item.seq)
-
-    def _rx_ack(self, machine_id: str, epoch: int, now: int) -> bytes:
-        return self._receiver.ack(machine_id, epoch, now)
-
-    def _rx_refusal(self, machine_id: str, epoch: int, seq: int, reason: str, now: int) -> bytes:
-        return self._receiver.refuse(machine_id, epoch, seq, reason, now)
-
-    def _decode(self, raw: list[tuple[bytes, Addr, int]]) -> list[tuple[Item, Addr]]:
-        """Decoder thread: authenticate and decode; bad datagrams are counted and dropped.
-
-        Only an authenticated datagram is ever answered, and only in two ways: a replay of a
-        durable one with an ack for its epoch (one per machine, epoch and address and batch: its
-        earlier ack was probably lost), a refused one (out of range, bad time, oversize, bad
-        seq) with its refusal. Anything else — forged, unknown machine, garbage, bad layout —
-        gets nothing, whatever its header claims.
-        """
-        m = self.metrics
-        items: list[tuple[Item, Addr]] = []
-        reack: dict[tuple[str, int, Addr], None] = {}
-        replies: list[tuple[bytes, Addr]] = []
-        for data, addr, now in raw:
-            try:
-                items.append((self._rx_receive(data, now), addr))
-            except ReplayedError as exc:
-                m.drop(exc.reason)
-                if exc.authenticated and exc.machine_id is not None:
-                    reack[(exc.machine_id, exc.epoch, addr)] = None
-            except RefusedError as exc:
-                m.drop(exc.reason)
-                if exc.authenticated:
-                    with contextlib.suppress(KeyError, ValueError), self._rx_lock:
-                        replies.append((self._receiver.refusal(exc, now), addr))
-            except DatagramError as exc:
-                reason = exc.reason
-                if reason == "unknown_machine" and exc.wire_id in self.keys.bad_models:
-                    reason = "bad_model"
-                m.drop(reason)
-            except Exception as exc:  # a bug must not stop ingest: count, log once, go on
-                m.drop("internal_error")
-                self._log_once("decode", exc, "unexpected error decoding a datagram "
-                               "(counted as internal_error, dropped): %s", exc)
-        now_ns = self._clock()
-        for machine_id, epoch, addr in reack:
-            with contextlib.suppress(KeyError), self._rx_lock:
-                replies.append((self._rx_ack(machine_id, epoch, now_ns), addr))
-        for data, addr in replies:
-            self._sendto(data, addr, "refusals_sent" if _is_refusal(data) else "acks_sent")
-        m.add("accepted", len(items))
-        return items
-
-    def _sendto(self, data: bytes, addr: Addr, counter: str) -> None:
-        if self._sock is None:
-            return
-        try:
-            self._sock.sendto(data, addr)
-            self.metrics.add(counter)
-        except OSError:  # full buffer or unreachable: the sender retransmits and is acked then
-            self.metrics.drop("ack_send_error")
-
-    # -- decoder thread -------------------------------------------------------------------------
-    def _decoder(self) -> None:
-        """Decoder thread: raw datagrams → decoded batches (overlaps the writer's database
-        round trips, which release the GIL). Returns once draining and the queue is empty."""
-        cfg = self.config
-        while True:
-            try:
-                first = self._queue.get(timeout=0.1)
-            except queue.Empty:
-                if self._draining.is_set():
-                    self._decoder_done.set()
-                    return
-                continue
-            try:
-                items = [first]
-                deadline = time.monotonic() + (0.0 if self._draining.is_set()
-                                               else cfg.batch_wait_s)
-                while len(items) < cfg.batch_max:
-                    try:
-                        items.append(self._queue.get(
-                            timeout=max(0.0, deadline - time.monotonic())))
-                    except queue.Empty:
-                        break
-                batch = self._decode(items)
-                while batch:  # blocks while the writer is behind: back-pressure
-                    if self._abandon.is_set():
-                        self.metrics.drop("unwritten_at_shutdown", len(batch))
-                        break
-                    try:
-                        self._decoded.put(batch, timeout=0.2)
-                        break
-                    except queue.Full:
-                        continue
-            except Exception as exc:
-                self.metrics.drop("internal_error")
-                self._log_once("decoder", exc, "unexpected error in the decoder loop "
-                               "(the loop goes on): %s", exc)
-
-    # -- writer thread --------------------------------------------------------------------------
-    def _writer(self) -> None:
-        """Writer thread: decoded batches → one batch write each (merging any that queued up
-        meanwhile) → acks. Returns once draining and everything decoded is written (or
-        abandoned)."""
-        while True:
-            self.db.progress = time.monotonic()
-            if self._abandon.is_set():
-                self._discard_decoded()
-                return
-            try:
-                first = self._decoded.get(timeout=0.1)
-            except queue.Empty:
-                if self._draining.is_set() and self._decoder_done.is_set():
-                    return
-                if not self._draining.is_set():
-                    self.db.maybe_rollup()
-                continue
-            items = list(first)
-            while len(items) < self.config.batch_max:
-                try:
-                    items.extend(self._decoded.get_nowait())
-                except queue.Empty:
-                    break
-            self._in_hand = len(items)
-            try:
-                self._write(items)
-            except Abandoned:
-                self.metrics.drop("unwritten_at_shutdown", len(items))
-            except Exception as exc:  # a bug must not kill the writer: nothing acked, retried
-                self.metrics.add("write_errors")
-                self._log_once("write", exc, "unexpected error writing %d item(s); not "
-                               "acknowledged (senders retransmit): %s", len(items), exc)
-            self._in_hand = 0
-            if not self._draining.is_set():
-                self.db.maybe_rollup()
-
-    def _discard_decoded(self) -> None:
-        while True:
-            try:
-                batch = self._decoded.get_nowait()
-            except queue.Empty:
-                return
-            self.metrics.drop("unwritten_at_shutdown", len(batch))
-
-    def _write(self, items: list[tuple[Item, Addr]]) -> None:
-        """Write one batch; ack what is durable, refuse what storage refused.
-
-        Raises:
-            Abandoned: shutdown gave up while storage was unavailable (nothing acked).
-        """
-        if not items:
-            return
-        m = self.metrics
-        t = time.perf_counter()
-        block_items = [(i, a) for i, a in items if isinstance(i, SampleBlock)]
-        blocks = [i for i, _ in block_items]
-        outcomes = self.db.write_blocks(blocks)
-        durable: list[tuple[Item, Addr]] = []
-        refused: list[tuple[Item, Addr, str]] = []
-        new: list[SampleBlock] = []
-        for (b, addr), (kind, reason) in zip(block_items, outcomes, strict=True):
-            if kind == "stored":
-                new.append(b)
-                durable.append((b, addr))
-            elif kind == "duplicate":
-                m.add("duplicates")
-                durable.append((b, addr))
-            elif kind == "refused":
-                refused.append((b, addr, reason))
-            else:
-                m.drop(reason)
-        for item, addr in items:
-            if isinstance(item, StatusReport):
-                try:
-                    self.db.retry("status", partial(self.db.write_status, item))
-                except Abandoned:
-                    raise
-                except Exception as exc:
-                    m.drop("write_error")
-                    self._log_once("write_status", exc, "status report of %s could not be "
-                                   "written (not acknowledged): %s", item.machine_id, exc)
-                    continue
-                durable.append((item, addr))
-        dt = time.perf_counter() - t
-        m.write_seconds += dt
-        self.write_latency.observe(dt)
-        m.add("batches")
-        m.add("stored_blocks", len(new))
-        m.add("stored_samples", sum(b.n for b in new))
-        self._after_commit(durable, refused)
-        if self.bus is not None and new:
-            try:
-                self.bus.publish(new)
-            except Exception as exc:  # fan-out is best effort; storage is the truth
-                m.drop("publish_error")
-                self._log_once("publish", exc, "live fan-out failed: %s", exc)
-
-    def _after_commit(self, durable: list[tuple[Item, Addr]],
-                      refused: list[tuple[Item, Addr, str]]) -> None:
-        """Writer thread, after commit: mark durable, then one ack per (machine, epoch,
-        address); one refusal per refused block."""
-        dest: dict[tuple[str, int, Addr], None] = {}
-        out: list[tuple[bytes, Addr, str]] = []
-        now = self._clock()
-        with self._rx_lock:
-            for item, addr in durable:
-                self._rx_mark_durable(item)
-                dest[(item.machine_id, item.epoch, addr)] = None
-            for machine_id, epoch, addr in dest:
-                with contextlib.suppress(KeyError):
-                    out.append((self._rx_ack(machine_id, epoch, now), addr, "acks_sent"))
-            for item, addr, reason in refused:
-                self.metrics.drop(reason)
-                reply: bytes | None = None
-                wire_reason = reason if reason in REFUSAL_CODES else "unstorable"
-                with contextlib.suppress(KeyError, ValueError):
-                    reply = self._rx_refusal(item.machine_id, item.epoch, item.seq, wire_reason,
-                                             now)
-                if reply is not None:  # (a version-1 sender gets an ack: it has no refusals)
-                    out.append((reply, addr,
-                                "refusals_sent" if _is_refusal(reply) else "acks_sent"))
-        for data, addr, counter in out:
-            self._sendto(data, addr, counter)
-
-    # -- threads and supervision ----------------------------------------------------------------
-    def _run_thread(self, name: str, target: Callable[[], None]) -> None:
-        try:
-            target()
-        except BaseException as exc:  # noqa: BLE001 - reported; the supervisor restarts it
-            log.critical("ingest %s thread died (restarted by the supervisor): %r", name, exc,
-                         exc_info=exc)
-            return
-        self._finished.add(name)
-
-    def _start_thread(self, name: str) -> None:
-        target = {"decoder": self._decoder, "writer": self._writer}[name]
-        t = threading.Thread(target=self._run_thread, args=(name, target),
-                             name=f"ingest-{name}", daemon=True)
-        self._threads[name] = t
-        t.start()
-
-    def _supervise_once(self) -> None:
-        """Restart a decoder or writer thread that died (counted)."""
-        if self._abandon.is_set():
-            return
-        for name, t in list(self._threads.items()):
-            if not t.is_alive() and name not in self._finished:
-                self.metrics.add(f"{name}_restarts")
-                log.error("restarting the ingest %s thread", name)
-                self._start_thread(name)
-
-    async def _supervise(self) -> None:
-        while True:
-            await asyncio.sleep(self.config.supervise_interval_s)
-            try:
-                self._supervise_once()
-            except Exception as exc:  # pragma: no cover - thread start failing
-                self._log_once("supervise", exc, "supervisor failed: %s", exc)
 
     # -- metrics --------------------------------------------------------------------------------
     @property
@@ -504,7 +198,10 @@ class IngestDaemon:
                 in use or needs privileges.
         """
         cfg = self.config
-        sock = _bind(cfg.host, cfg.port, socket.SOCK_DGRAM, "UDP", "--bind")
+        if cfg.socket_fd is not None:  # a member of the parent's SO_REUSEPORT group
+            sock = socket.socket(fileno=cfg.socket_fd)
+        else:
+            sock = _bind(cfg.host, cfg.port, socket.SOCK_DGRAM, "UDP", "--bind")
         with contextlib.suppress(OSError):
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, cfg.rcvbuf_bytes)
         sock.setblocking(False)
@@ -622,7 +319,7 @@ class IngestDaemon:
         clean = not self._abandon.is_set()
         if not clean:  # the writer leaves its backoff at once; a call stuck in C is not waited
             await self._wait_threads(1.0)
-            dropped = self._queue.qsize() + sum(len(b) for b in _drain(self._decoded))
+            dropped = self._queue.qsize() + sum(len(b) for b in drain(self._decoded))
             writer = self._threads.get("writer")
             if writer is not None and writer.is_alive():  # stuck in a database call
                 dropped += self._in_hand
@@ -668,16 +365,6 @@ class IngestDaemon:
                 log.warning("%s did not finish in %.1f s: not waited for", what, timeout_s)
                 return
             await asyncio.sleep(0.02)
-
-
-def _drain(q: queue.Queue[list[tuple[Item, Addr]]]) -> list[list[tuple[Item, Addr]]]:
-    out = []
-    while True:
-        try:
-            out.append(q.get_nowait())
-        except queue.Empty:
-            return out
-
 
 
 def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None = None,

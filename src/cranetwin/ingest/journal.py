@@ -34,8 +34,11 @@ keeps the longest valid prefix)::
 
 Modules: the record format, segment indexing and reading, and file helpers are
 :mod:`~cranetwin.ingest.journal_files`; the ``state`` file and the dead letters of
-``rejected.log`` are :mod:`~cranetwin.ingest.journal_state`; this module is the journal itself
-(appending, syncing, rolling, releasing, recovery on open).
+``rejected.log`` are :mod:`~cranetwin.ingest.journal_state`; the active segment, reading back,
+the atomic state write and deleting released segments are :mod:`~cranetwin.ingest.journal_disk`;
+opening and recovery (lock, state, torn tails) are :mod:`~cranetwin.ingest.journal_recovery`;
+this module is the journal's interface (appending, syncing, reading, releasing, rejecting,
+closing).
 
 Files are created 0600 and directories 0700. One process at a time: a second
 :class:`FileJournal` on the same directory raises :class:`SenderError` (two senders sharing an
@@ -45,9 +48,6 @@ epoch would reuse sequence numbers).
 from __future__ import annotations
 
 import bisect
-import contextlib
-import errno
-import fcntl
 import logging
 import os
 import time
@@ -56,30 +56,16 @@ from pathlib import Path
 from types import TracebackType
 
 from cranetwin.ingest.journal_files import (
-    FILE_MODE,
     MAX_RECORD,
     MAX_SEQ,
     REC,
-    SEG_RE,
     Cursor,
     Segment,
     SenderError,
     encode_record,
-    index_records,
-    make_dirs,
-    read_records,
-    seg_name,
-    write_all,
-    write_file,
 )
-from cranetwin.ingest.journal_state import (
-    STATE_FORMAT,
-    load_rejected,
-    new_epoch,
-    read_state,
-    rejected_line,
-    state_body,
-)
+from cranetwin.ingest.journal_recovery import JournalRecovery
+from cranetwin.ingest.journal_state import STATE_FORMAT, rejected_line
 
 __all__ = ["MAX_RECORD", "MAX_SEQ", "SEGMENT_BYTES", "SEGMENT_RECORDS", "STATE_FORMAT",
            "STATE_INTERVAL_S", "FileJournal", "SenderError", "encode_record"]
@@ -92,7 +78,7 @@ STATE_INTERVAL_S = 5.0
 _WRITE_OUT = 1 << 20  # buffered bytes written to the OS (not synced) beyond this
 
 
-class FileJournal:
+class FileJournal(JournalRecovery):
     """Durable, crash-safe log of a sender's datagrams in ``directory`` (see the module doc).
 
     Args:
@@ -327,11 +313,6 @@ class FileJournal:
 
     # --- lifecycle -----------------------------------------------------------------------------
     @property
-    def rejected_path(self) -> Path:
-        """The dead-letter file of refused datagrams (exists once one was refused)."""
-        return self.directory / "rejected.log"
-
-    @property
     def closed(self) -> bool:
         """True after :meth:`close`."""
         return self._closed
@@ -370,153 +351,6 @@ class FileJournal:
         return (f"FileJournal({str(self.directory)!r}, epoch={self._epoch}, start={self._start}, "
                 f"end={self._end})")
 
-    # --- opening -------------------------------------------------------------------------------
-    def _open(self, owner: str | None) -> None:
-        d = self.directory
-        try:
-            make_dirs(d)
-            self._dir_fd = os.open(d, os.O_RDONLY | os.O_DIRECTORY)
-        except OSError as exc:
-            raise SenderError(f"cannot use {d} as the send journal: {exc}") from exc
-        self._lock()
-        try:
-            names = set(os.listdir(d))
-        except OSError as exc:
-            raise SenderError(f"cannot list the send journal {d}: {exc}") from exc
-        names.discard("lock")
-        if "state.tmp" in names:  # a state write interrupted before its rename
-            names.discard("state.tmp")
-            with contextlib.suppress(OSError):
-                os.unlink(d / "state.tmp")
-        segs = sorted((int(m.group(1)), n) for n in names if (m := SEG_RE.fullmatch(n)))
-        if "state" not in names:
-            if segs or "rejected.log" in names:
-                raise SenderError(
-                    f"the send journal {d} holds data but no state file (its epoch is unknown); "
-                    "restore the state file or move the directory away to start a new journal")
-            self._epoch = new_epoch()
-            self._released = 0
-            self._owner = owner
-            self._write_state()
-            log.info("journal %s: new, epoch %d", d, self._epoch)
-        else:
-            self._epoch, self._released, self._owner = read_state(d)
-            if owner is not None and self._owner is not None and owner != self._owner:
-                raise SenderError(
-                    f"the send journal {d} belongs to {self._owner!r}, not {owner!r}: its "
-                    "datagrams were signed with another key; use another --journal directory "
-                    "(or move this one away once its data is no longer needed)")
-            if owner is not None and self._owner is None:
-                self._owner = owner
-                self._state_dirty = True
-        self._load_segments(segs)
-        self._load_rejected()
-        self._last_state = self._clock()
-        self._advance(self._start)
-        if self._segments:
-            log.info("journal %s: epoch %d, %d datagram(s) pending (seq %d … %d)", d,
-                     self._epoch, len(self), self._start, self._end - 1)
-
-    def _lock(self) -> None:
-        path = self.directory / "lock"
-        try:
-            self._lock_fd = os.open(path, os.O_RDWR | os.O_CREAT, FILE_MODE)
-        except OSError as exc:
-            raise SenderError(f"cannot create {path}: {exc}") from exc
-        try:
-            fcntl.flock(self._lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                raise SenderError(f"cannot lock {path}: {exc}") from exc
-            try:
-                other = os.pread(self._lock_fd, 32, 0).decode(errors="replace").strip()
-            except OSError:
-                other = "?"
-            raise SenderError(f"the send journal {self.directory} is in use by another sender "
-                              f"(pid {other or '?'})") from None
-        with contextlib.suppress(OSError):
-            os.ftruncate(self._lock_fd, 0)
-            os.pwrite(self._lock_fd, f"{os.getpid()}\n".encode(), 0)
-
-    def _write_state(self) -> None:
-        """Persist epoch and watermark atomically: temp file, fsync, rename, directory fsync."""
-        d = self.directory
-        tmp, path = d / "state.tmp", d / "state"
-        body = state_body(self._epoch, self._released, self._owner)
-        try:
-            self._write_file(tmp, body, os.O_TRUNC)
-            os.replace(tmp, path)
-            self._fsync_dir()
-        except OSError as exc:
-            raise self._fail(f"cannot write the journal state {path}: {exc}") from exc
-        self._state_dirty = False
-        self._last_state = self._clock()
-
-    def _load_segments(self, segs: list[tuple[int, str]]) -> None:
-        d = self.directory
-        watermark = self._released
-        # segments followed by one that starts at or below the watermark hold released data only
-        while len(segs) > 1 and segs[1][0] <= watermark:
-            self._unlink(d / segs.pop(0)[1])
-        loaded: list[Segment] = []
-        for k, (first, name) in enumerate(segs):
-            seg = self._scan(Segment(first, d / name, end=first), last=k == len(segs) - 1)
-            if loaded and seg.first != loaded[-1].end and seg.first > max(watermark,
-                                                                          loaded[0].first):
-                raise SenderError(
-                    f"the send journal {d} lacks datagrams {loaded[-1].end} … {seg.first - 1} "
-                    f"(between {loaded[-1].path.name} and {name}); was a segment removed?")
-            loaded.append(seg)
-        self._segments = loaded
-        self._firsts = [s.first for s in loaded]
-        last_end = loaded[-1].end if loaded else 0
-        first = loaded[0].first if loaded else watermark
-        if watermark > last_end:
-            log.warning("journal %s: release watermark %d beyond the last record %d; "
-                        "continuing at the watermark", d, watermark, last_end)
-        self._end = max(last_end, watermark)
-        self._start = min(max(watermark, first), self._end)
-        self._synced_end = self._end
-        if loaded:
-            try:
-                self._fd = os.open(loaded[-1].path, os.O_WRONLY | os.O_APPEND)
-            except OSError as exc:
-                raise SenderError(f"cannot open {loaded[-1].path}: {exc}") from exc
-
-    def _scan(self, seg: Segment, *, last: bool) -> Segment:
-        """Index the records of ``seg``; cut a torn or corrupt tail if it is the newest."""
-        try:
-            with open(seg.path, "rb") as f:
-                data = f.read()
-        except OSError as exc:
-            raise SenderError(f"cannot read {seg.path}: {exc}") from exc
-        pos, size = index_records(seg, data), len(data)
-        if pos < size:
-            if not last:
-                raise SenderError(
-                    f"{seg.path} is damaged at byte {pos} (record seq {seg.end}); it was sealed "
-                    "and synced, so this is not a torn write. Move the file away to continue "
-                    "without its datagrams")
-            log.warning("journal %s: cutting %d byte(s) of a torn or corrupt tail after seq %d "
-                        "(never synced, never sent)", seg.path, size - pos, seg.end - 1)
-            try:
-                fd = os.open(seg.path, os.O_WRONLY)
-                try:
-                    os.ftruncate(fd, pos)
-                    if self.fsync:
-                        os.fsync(fd)
-                        self.fsyncs += 1
-                finally:
-                    os.close(fd)
-            except OSError as exc:
-                raise SenderError(f"cannot truncate {seg.path}: {exc}") from exc
-            self.truncated_bytes += size - pos
-        return seg
-
-    def _load_rejected(self) -> None:
-        """Seqs of this epoch at or above the watermark that the server refused before."""
-        self._rejected |= load_rejected(self.rejected_path, self._epoch, self._start, self._end)
-
     # --- internals -----------------------------------------------------------------------------
     def _check_open(self) -> None:
         if self._closed:
@@ -525,105 +359,3 @@ class FileJournal:
             raise SenderError(f"the journal {self.directory} is unusable after an earlier error "
                               f"({self._broken}); restart the sender: it resumes from what is "
                               "on disk")
-
-    def _fail(self, message: str) -> SenderError:
-        """A write or sync failed: what reached the disk is unknown (and a retried fsync may
-        report success for data it lost), so every further call fails and :meth:`close`
-        only lets go of the files. Reopening recovers the synced prefix."""
-        self._broken = message
-        return SenderError(message)
-
-    def _advance(self, below: int) -> None:
-        """Set start to ``below`` (then past refused seqs) and delete released segments."""
-        start = below
-        while start in self._rejected:
-            start += 1
-        if start != self._start or below > self._released:
-            self._start = start
-            self._released = max(self._released, start)
-            self._state_dirty = True
-        self._rejected = {s for s in self._rejected if s >= start}
-        while len(self._segments) > 1 and self._segments[1].first <= start:
-            seg = self._segments.pop(0)
-            self._firsts.pop(0)
-            if self._rfd is not None and self._rfd[0] == seg.first:
-                os.close(self._rfd[1])
-                self._rfd = None
-            self._unlink(seg.path)
-        if self._state_dirty and self._clock() - self._last_state >= self.state_interval_s:
-            self._write_state()
-
-    def _roll(self, seq: int) -> Segment:
-        """Seal the active segment (write + fsync) and start ``seg-<seq>.log``."""
-        if self._fd is not None:
-            self._write_out()
-            try:
-                if self.fsync and self._synced_end < self._segments[-1].end:
-                    os.fsync(self._fd)
-                    self.fsyncs += 1
-                os.close(self._fd)
-            except OSError as exc:
-                raise self._fail(f"cannot seal {self._segments[-1].path}: {exc}") from exc
-            self._fd = None
-            self._synced_end = max(self._synced_end, self._segments[-1].end)
-        path = self.directory / seg_name(seq)
-        try:
-            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND,
-                               FILE_MODE)
-        except OSError as exc:
-            raise self._fail(f"cannot create {path}: {exc}") from exc
-        seg = Segment(seq, path, end=seq)
-        self._segments.append(seg)
-        self._firsts.append(seq)
-        self._dir_dirty = True
-        return seg
-
-    def _write_out(self) -> None:
-        if not self._buf:
-            return
-        assert self._fd is not None
-        try:
-            write_all(self._fd, self._buf)
-        except OSError as exc:
-            raise self._fail(f"cannot write to {self._segments[-1].path}: {exc}") from exc
-        self._buf.clear()
-        self._tail.clear()
-
-    def _read_segment(self, seg: Segment, seq: int, n: int) -> list[bytes]:
-        """``n`` datagrams from ``seq`` in ``seg`` (all of them on disk, not in the buffer)."""
-        if self._rfd is None or self._rfd[0] != seg.first:
-            if self._rfd is not None:
-                os.close(self._rfd[1])
-                self._rfd = None
-            try:
-                self._rfd = (seg.first, os.open(seg.path, os.O_RDONLY))
-            except OSError as exc:
-                raise SenderError(f"cannot open {seg.path}: {exc}") from exc
-        out, self._cursor = read_records(self._rfd[1], seg, seq, n, self._cursor)
-        return out
-
-    def _write_file(self, path: Path, data: bytes, mode_flag: int) -> None:
-        """Write ``data`` to ``path`` (created 0600; ``os.O_APPEND`` or ``os.O_TRUNC``) and
-        fsync it when the journal syncs. Raises OSError."""
-        self.fsyncs += write_file(path, data, mode_flag, self.fsync)
-
-    def _fsync_dir(self) -> None:
-        if self.fsync:
-            os.fsync(self._dir_fd)
-            self.fsyncs += 1
-
-    def _unlink(self, path: Path) -> None:
-        try:
-            os.unlink(path)
-        except FileNotFoundError:
-            pass
-        except OSError as exc:
-            log.warning("journal: cannot delete %s: %s", path, exc)
-
-    def _release_fds(self) -> None:
-        for fd in (self._fd, None if self._rfd is None else self._rfd[1], self._dir_fd,
-                   self._lock_fd):
-            if fd is not None and fd >= 0:
-                with contextlib.suppress(OSError):
-                    os.close(fd)
-        self._fd, self._rfd, self._dir_fd, self._lock_fd = None, None, -1, -1

@@ -1,0 +1,228 @@
+"""The daemon's two worker threads and their supervisor: the decoder (raw datagrams → decoded
+batches, back-pressured by a queue of two) and the writer (one batch write each, then the acks),
+restarted by a supervisor on the event loop when one dies.
+
+:class:`Pipeline` sits between :class:`~cranetwin.ingest.datagrams.DatagramPath` (decoding, acks)
+and :class:`~cranetwin.ingest.daemon.IngestDaemon` (lifecycle); the database side itself is
+:class:`~cranetwin.ingest.writer.StorageWriter`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from functools import partial
+
+from prometheus_client import Histogram
+
+from cranetwin.ingest.datagrams import Addr, DatagramPath, Item
+from cranetwin.ingest.writer import Abandoned, StorageWriter
+from cranetwin.protocol.status import StatusReport
+from cranetwin.samples import SampleBlock
+from cranetwin.storage.live import LiveBus
+
+__all__ = ["Pipeline", "drain"]
+
+log = logging.getLogger("cranetwin.ingest.daemon")  # one logger for the daemon's messages
+
+
+class Pipeline(DatagramPath):
+    """Decoder and writer threads and their supervisor (base of the daemon; its state is set by
+    the daemon's ``__init__``)."""
+
+    bus: LiveBus | None
+    db: StorageWriter
+    write_latency: Histogram
+    _decoded: queue.Queue[list[tuple[Item, Addr]]]
+    _draining: threading.Event
+    _abandon: threading.Event
+    _decoder_done: threading.Event
+    _threads: dict[str, threading.Thread]
+    _finished: set[str]
+    _in_hand: int
+
+    # -- decoder thread -------------------------------------------------------------------------
+    def _decoder(self) -> None:
+        """Decoder thread: raw datagrams → decoded batches (overlaps the writer's database
+        round trips, which release the GIL). Returns once draining and the queue is empty."""
+        cfg = self.config
+        while True:
+            try:
+                first = self._queue.get(timeout=0.1)
+            except queue.Empty:
+                if self._draining.is_set():
+                    self._decoder_done.set()
+                    return
+                continue
+            try:
+                items = [first]
+                deadline = time.monotonic() + (0.0 if self._draining.is_set()
+                                               else cfg.batch_wait_s)
+                while len(items) < cfg.batch_max:
+                    try:
+                        items.append(self._queue.get(
+                            timeout=max(0.0, deadline - time.monotonic())))
+                    except queue.Empty:
+                        break
+                batch = self._decode(items)
+                while batch:  # blocks while the writer is behind: back-pressure
+                    if self._abandon.is_set():
+                        self.metrics.drop("unwritten_at_shutdown", len(batch))
+                        break
+                    try:
+                        self._decoded.put(batch, timeout=0.2)
+                        break
+                    except queue.Full:
+                        continue
+            except Exception as exc:
+                self.metrics.drop("internal_error")
+                self._log_once("decoder", exc, "unexpected error in the decoder loop "
+                               "(the loop goes on): %s", exc)
+
+    # -- writer thread --------------------------------------------------------------------------
+    def _writer(self) -> None:
+        """Writer thread: decoded batches → one batch write each (merging any that queued up
+        meanwhile) → acks. Returns once draining and everything decoded is written (or
+        abandoned)."""
+        while True:
+            self.db.progress = time.monotonic()
+            if self._abandon.is_set():
+                self._discard_decoded()
+                return
+            try:
+                first = self._decoded.get(timeout=0.1)
+            except queue.Empty:
+                if self._draining.is_set() and self._decoder_done.is_set():
+                    return
+                if not self._draining.is_set():
+                    self.db.maybe_rollup()
+                continue
+            items = list(first)
+            while len(items) < self.config.batch_max:
+                try:
+                    items.extend(self._decoded.get_nowait())
+                except queue.Empty:
+                    break
+            self._in_hand = len(items)
+            try:
+                self._write(items)
+            except Abandoned:
+                self.metrics.drop("unwritten_at_shutdown", len(items))
+            except Exception as exc:  # a bug must not kill the writer: nothing acked, retried
+                self.metrics.add("write_errors")
+                self._log_once("write", exc, "unexpected error writing %d item(s); not "
+                               "acknowledged (senders retransmit): %s", len(items), exc)
+            self._in_hand = 0
+            if not self._draining.is_set():
+                self.db.maybe_rollup()
+
+    def _discard_decoded(self) -> None:
+        while True:
+            try:
+                batch = self._decoded.get_nowait()
+            except queue.Empty:
+                return
+            self.metrics.drop("unwritten_at_shutdown", len(batch))
+
+    def _write(self, items: list[tuple[Item, Addr]]) -> None:
+        """Write one batch; ack what is durable, refuse what storage refused.
+
+        Raises:
+            Abandoned: shutdown gave up while storage was unavailable (nothing acked).
+        """
+        if not items:
+            return
+        m = self.metrics
+        t = time.perf_counter()
+        block_items = [(i, a) for i, a in items if isinstance(i, SampleBlock)]
+        blocks = [i for i, _ in block_items]
+        outcomes = self.db.write_blocks(blocks)
+        durable: list[tuple[Item, Addr]] = []
+        refused: list[tuple[Item, Addr, str]] = []
+        new: list[SampleBlock] = []
+        for (b, addr), (kind, reason) in zip(block_items, outcomes, strict=True):
+            if kind == "stored":
+                new.append(b)
+                durable.append((b, addr))
+            elif kind == "duplicate":
+                m.add("duplicates")
+                durable.append((b, addr))
+            elif kind == "refused":
+                refused.append((b, addr, reason))
+            else:
+                m.drop(reason)
+        for item, addr in items:
+            if isinstance(item, StatusReport):
+                try:
+                    self.db.retry("status", partial(self.db.write_status, item))
+                except Abandoned:
+                    raise
+                except Exception as exc:
+                    m.drop("write_error")
+                    self._log_once("write_status", exc, "status report of %s could not be "
+                                   "written (not acknowledged): %s", item.machine_id, exc)
+                    continue
+                durable.append((item, addr))
+        dt = time.perf_counter() - t
+        m.write_seconds += dt
+        self.write_latency.observe(dt)
+        m.add("batches")
+        m.add("stored_blocks", len(new))
+        m.add("stored_samples", sum(b.n for b in new))
+        self._after_commit(durable, refused)
+        if self.bus is not None and new:
+            try:
+                self.bus.publish(new)
+            except Exception as exc:  # fan-out is best effort; storage is the truth
+                m.drop("publish_error")
+                self._log_once("publish", exc, "live fan-out failed: %s", exc)
+
+    # -- threads and supervision ----------------------------------------------------------------
+    def _run_thread(self, name: str, target: Callable[[], None]) -> None:
+        try:
+            target()
+        except BaseException as exc:  # noqa: BLE001 - reported; the supervisor restarts it
+            log.critical("ingest %s thread died (restarted by the supervisor): %r", name, exc,
+                         exc_info=exc)
+            return
+        self._finished.add(name)
+
+    def _start_thread(self, name: str) -> None:
+        target = {"decoder": self._decoder, "writer": self._writer}[name]
+        t = threading.Thread(target=self._run_thread, args=(name, target),
+                             name=f"ingest-{name}", daemon=True)
+        self._threads[name] = t
+        t.start()
+
+    def _supervise_once(self) -> None:
+        """Restart a decoder or writer thread that died (counted)."""
+        if self._abandon.is_set():
+            return
+        for name, t in list(self._threads.items()):
+            if not t.is_alive() and name not in self._finished:
+                self.metrics.add(f"{name}_restarts")
+                log.error("restarting the ingest %s thread", name)
+                self._start_thread(name)
+
+    async def _supervise(self) -> None:
+        while True:
+            await asyncio.sleep(self.config.supervise_interval_s)
+            try:
+                self._supervise_once()
+            except Exception as exc:  # pragma: no cover - thread start failing
+                self._log_once("supervise", exc, "supervisor failed: %s", exc)
+
+
+def drain(q: queue.Queue[list[tuple[Item, Addr]]]) -> list[list[tuple[Item, Addr]]]:
+    """Everything in ``q`` now, without waiting."""
+    out = []
+    while True:
+        try:
+            out.append(q.get_nowait())
+        except queue.Empty:
+            return out
+
