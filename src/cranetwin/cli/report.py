@@ -111,6 +111,8 @@ def report(
         bar.update(wtask, completed=len(SECTIONS))
     typer.echo(f"{path}: {len(rep.cycles)} work cycles, {len(rep.events)} events, "
                f"{rep.n_samples:,} samples")
+    for line in getattr(src, "warnings", []):
+        typer.echo(f"warning: {line}", err=True)
 
 
 def register(app: typer.Typer) -> None:

@@ -201,6 +201,10 @@ class Channel(_Frozen):
     min: float
     max: float
     resolution: float = Field(gt=0, description="quantisation step, in ``unit``")
+    accuracy: float | None = Field(
+        None, gt=0, description="stated accuracy of the sensor, ± bound in ``unit`` (e.g. "
+        "0.5 % of the full range); None: not stated (the twin then uses the noise it "
+        "estimates from the data)")
     optional: bool = False
 
     @model_validator(mode="after")
