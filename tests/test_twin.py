@@ -186,7 +186,7 @@ def test_regression_payload_equals_windowed_payload_of_its_inputs() -> None:
 def test_windowed_payload_equals_direct_window_sums() -> None:
     """The compiled payload window against the definition (twin.payload's docstring): moving
     averages, then weighted least squares over each centred window, summed directly; σ the
-    larger of the residual scatter over n_c·(1 + N/L) independent errors and the raw noise
+    larger of the residual scatter over 1 + n_c·N/L independent errors and the raw noise
     propagated through both moving averages (the weight of each raw sample, summed)."""
 
     rng = np.random.default_rng(5)
@@ -218,7 +218,7 @@ def _check_window_sums(g: np.ndarray, r: np.ndarray, w: np.ndarray, frac: np.nda
         srr = float(np.sum(w * ra[sl] ** 2))
         m_ref = sgr / sgg
         cnt = ga[sl].shape[0]
-        n_eff = g.shape[1] * (1.0 + cnt / (p + 1.0 / frac.min() - 1.0))
+        n_eff = 1.0 + g.shape[1] * cnt / (p + 1.0 / frac.min() - 1.0)
         var_r = max(srr - m_ref * sgr, 0.0) / max(n_eff - 1.0, 1.0) / sgg
         # the raw noise: weight of each raw sample k on the estimate, u_k = Σ_window box_p/p
         u = np.convolve(np.ones(cnt), np.ones(p) / p)

@@ -20,14 +20,16 @@ over many samples, so neither is the textbook σ²/(N−1)):
   matter) gives ``σ_p² = κ(N, P)·Σ w_c²·g_c²·σ_c² / (Σ w_c·g_c²)²`` with
   κ = Σ_k u_k² / N, u = box(N) ∗ box(P)/P the estimator's weight on each raw sample;
 * the residual scatter of the window, ``σ_r² = Σ w_c·(r_c − m̂·g_c)² / (n_eff − 1) /
-  Σ w_c·g_c²``, over the independent errors it contains: n_eff = n_c·(1 + N/L), L = P + L_s − 1
+  Σ w_c·g_c²``, over the independent errors it contains: n_eff = 1 + n_c·N/L, L = P + L_s − 1
   the correlation length of the smoothed, prefiltered errors (L_s = σ_c²/risk_c, the pressure
-  smoother's variance-equivalent length). This is what carries errors other than pressure
-  noise: accelerations smoothed over a long derivative window (position noise), model errors.
+  smoother's variance-equivalent length): N/L per joint in a long window, and one when the
+  window lies within a correlation length (the joints' errors then share their cause, the
+  accelerations). This is what carries errors other than pressure noise: accelerations
+  smoothed over a long derivative window (position noise), model errors.
 
-Measured on simulated lifts (docs/ACCURACY.md "Payload uncertainty"): RMS of error/σ 0.8–1.4
-at 1, 2, 5 % uniform and Gaussian sensor error, where the previous σ (the window's scatter
-over N·Σ risk_c/σ_c² samples) was 3–9× too small.
+Measured on simulated lifts (docs/ACCURACY.md "Payload uncertainty"): see there for the RMS
+of error/σ at 1, 2, 5 % sensor error; the previous σ (the window's scatter over
+N·Σ risk_c/σ_c² samples) was 3–9× too small.
 """
 
 from __future__ import annotations
@@ -107,7 +109,7 @@ def _window_estimate(sums, cnt, n_c, p, smooth_len):  # type: ignore[no-untyped-
         return np.nan, np.inf
     m = sgr / sgg
     rss = max(sums[2] - m * sgr, 0.0)
-    n_eff = n_c * (1.0 + cnt / (p + smooth_len - 1.0))
+    n_eff = 1.0 + n_c * cnt / (p + smooth_len - 1.0)
     var_r = rss / max(n_eff - 1.0, 1.0) / sgg
     var_p = box_gain(cnt, float(p)) * sums[3] / (sgg * sgg)
     return m, np.sqrt(max(var_r, var_p))
