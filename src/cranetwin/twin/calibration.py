@@ -342,23 +342,24 @@ def _fit(y: F64, g: F64, v: F64, vc0: F64, filt: tuple[int, int], sigma_v: F64,
     return x, r, vc, inv
 
 
-def _vc_flat(y: F64, g: F64, v: F64, vc: F64, filt: tuple[int, int], sigma_v: F64,
-             lay: Layout, fixed: Fixed, c: int, threshold: float) -> bool:
-    """True when the residual at vc/2 and at 2·vc (the other parameters re-solved) rises by
-    less than ``threshold`` [N²] on either side: the data do not determine vc."""
+def _vc_rises(y: F64, g: F64, v: F64, vc: F64, filt: tuple[int, int], sigma_v: F64,
+              lay: Layout, c: int, trials: tuple[float, ...]) -> list[float]:
+    """How much the residual sum of squares [N²] rises when cylinder ``c``'s vc is moved from
+    its fit to each of ``trials`` [m/s] (the linear parameters re-solved, every other vc
+    held)."""
+    hold = Fixed({}, np.ones(v.shape[1], dtype=bool))
+    out = []
     base = None
-    rises = []
-    for f in (1.0, 0.5, 2.0):
+    for val in (float(vc[c]), *trials):
         trial = vc.copy()
-        trial[c] = vc[c] * f
-        hold = Fixed(fixed.cols, np.ones_like(fixed.vc))
+        trial[c] = val
         _, r, _, _ = _fit(y, g, v, trial, filt, sigma_v, lay, hold)
-        val = float(np.dot(r, r))
+        sse = float(np.dot(r, r))
         if base is None:
-            base = val
+            base = sse
         else:
-            rises.append(val - base)
-    return min(rises) < threshold
+            out.append(sse - base)
+    return out
 
 
 def _segments(res: TwinResult, t: F64, sample_period: float,
@@ -569,14 +570,24 @@ def _identify(x: F64, r: F64, vc: F64, data: tuple[F64, F64, F64, F64],
                 notes[c].append(f"{name} = {val:.4g} ± {err:.2g} not determined by the data "
                                 f"(standard error > {100 * REL_SE_MAX:.0f} %; condition "
                                 f"number {cond:.2g}): file value {prior:g} kept")
+        vc_file = cyl.friction.coulomb_velocity
         if k0 in cols:
             hold_vc[c] = True
             notes[c].append("vc: file value kept (Fc not determined)")
-        elif _vc_flat(y, g, v, vc, filt, sigma_v, lay, Fixed({}, hold_vc), c,
-                      4.0 * sigma2 * tau):
+            continue
+        # a likelihood-ratio test: one standard error of vc raises the residual sum of
+        # squares by σ²·τ (τ: the residuals' correlation time)
+        at_file, half, double = _vc_rises(y, g, v, vc, filt, sigma_v, lay, c,
+                                          (vc_file, 0.5 * vc[c], 2.0 * vc[c]))
+        unit = sigma2 * tau
+        if at_file < unit:
             hold_vc[c] = True
-            notes[c].append(f"vc = {1e3 * vc[c]:.3g} mm/s not determined (the residual hardly "
-                            "changes between vc/2 and 2·vc): file value kept")
+            notes[c].append(f"vc: the data do not reject the file value {1e3 * vc_file:.3g} "
+                            f"mm/s (fit {1e3 * vc[c]:.3g} mm/s): file value kept")
+        elif min(half, double) < unit:
+            notes[c].append(f"vc = {1e3 * vc[c]:.3g} mm/s weakly determined (vc/2 or 2·vc "
+                            "within one standard error), but the file value "
+                            f"{1e3 * vc_file:.3g} mm/s is rejected")
     return Fixed(cols, hold_vc), notes
 
 
