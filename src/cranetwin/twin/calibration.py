@@ -77,7 +77,8 @@ WIDE_FILTER_RATIO = 0.01
 # largest velocity-noise / vc ratio the Coulomb column is corrected for (module docstring)
 MAX_NOISE_RATIO = 0.5
 # a friction parameter is identified when its standard error is at most this share of its value
-REL_SE_MAX = 0.3
+# (the value at least two standard errors from zero)
+REL_SE_MAX = 0.5
 # rod positions within this share of the stroke (and at least END_STOP_MARGIN_M) of either end
 # count as end-stop contact: the stop takes a force Eq. 1–2 does not know
 END_STOP_SHARE = 0.01
@@ -342,6 +343,11 @@ def _fit(y: F64, g: F64, v: F64, vc0: F64, filt: tuple[int, int], sigma_v: F64,
     return x, r, vc, inv
 
 
+def log_dist(vc: float) -> float:
+    """Distance of vc from the nearer end of ``VC_GRID`` in log units."""
+    return float(min(np.log(vc / VC_GRID[0]), np.log(VC_GRID[-1] / vc)))
+
+
 def _vc_rises(y: F64, g: F64, v: F64, vc: F64, filt: tuple[int, int], sigma_v: F64,
               lay: Layout, c: int, trials: tuple[float, ...]) -> list[float]:
     """How much the residual sum of squares [N²] rises when cylinder ``c``'s vc is moved from
@@ -577,17 +583,22 @@ def _identify(x: F64, r: F64, vc: F64, data: tuple[F64, F64, F64, F64],
             continue
         # a likelihood-ratio test: one standard error of vc raises the residual sum of
         # squares by σ²·τ (τ: the residuals' correlation time)
-        at_file, half, double = _vc_rises(y, g, v, vc, filt, sigma_v, lay, c,
-                                          (vc_file, 0.5 * vc[c], 2.0 * vc[c]))
+        half, double = _vc_rises(y, g, v, vc, filt, sigma_v, lay, c,
+                                 (0.5 * vc[c], 2.0 * vc[c]))
         unit = sigma2 * tau
-        if at_file < unit:
+        edge = log_dist(vc[c]) < float(np.log(VC_GRID[1] / VC_GRID[0]))
+        # the standard errors here come out several times the actual errors on simulated runs
+        # (the residuals are mostly smoothing error, not noise), and holding a weakly
+        # determined vc at a wrong file value biased b by 10 %: so only a vc at the end of the
+        # search range (no minimum inside it) keeps the file value; a flat one is reported
+        if edge:
             hold_vc[c] = True
-            notes[c].append(f"vc: the data do not reject the file value {1e3 * vc_file:.3g} "
-                            f"mm/s (fit {1e3 * vc[c]:.3g} mm/s): file value kept")
+            notes[c].append(f"vc = {1e3 * vc[c]:.3g} mm/s not determined (at the end of the "
+                            f"search range, {1e3 * VC_GRID[0]:g}–{1e3 * VC_GRID[-1]:g} mm/s): "
+                            f"file value {1e3 * vc_file:.3g} mm/s kept")
         elif min(half, double) < unit:
             notes[c].append(f"vc = {1e3 * vc[c]:.3g} mm/s weakly determined (vc/2 or 2·vc "
-                            "within one standard error), but the file value "
-                            f"{1e3 * vc_file:.3g} mm/s is rejected")
+                            "within one standard error)")
     return Fixed(cols, hold_vc), notes
 
 
