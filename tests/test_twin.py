@@ -185,9 +185,9 @@ def test_regression_payload_equals_windowed_payload_of_its_inputs() -> None:
 
 def test_windowed_payload_equals_direct_window_sums() -> None:
     """The compiled payload window against the definition (twin.payload's docstring): moving
-    averages, then weighted least squares over each centred window, summed directly; σ the
-    larger of the residual scatter over 1 + n_c·N/L independent errors and the raw noise
-    propagated through both moving averages (the weight of each raw sample, summed)."""
+    averages, then weighted least squares over each centred window, summed directly; σ² the
+    raw noise propagated through both moving averages (the weight of each raw sample, summed)
+    plus the residual scatter beyond that noise over 1 + n_c·N/P independent errors."""
 
     rng = np.random.default_rng(5)
     n, nc, pf, half = 120, 3, 4, 9
@@ -218,12 +218,13 @@ def _check_window_sums(g: np.ndarray, r: np.ndarray, w: np.ndarray, frac: np.nda
         srr = float(np.sum(w * ra[sl] ** 2))
         m_ref = sgr / sgg
         cnt = ga[sl].shape[0]
-        n_eff = 1.0 + g.shape[1] * cnt / (p + 1.0 / frac.min() - 1.0)
-        var_r = max(srr - m_ref * sgr, 0.0) / max(n_eff - 1.0, 1.0) / sgg
+        n_eff = 1.0 + g.shape[1] * cnt / p
+        excess = max(srr - m_ref * sgr - cnt * float(np.sum(w * noise**2)) / p, 0.0)
+        var_e = excess / max(n_eff - 1.0, 1.0) / sgg
         # the raw noise: weight of each raw sample k on the estimate, u_k = Σ_window box_p/p
         u = np.convolve(np.ones(cnt), np.ones(p) / p)
         var_p = (u @ u) / cnt * float(np.sum(w**2 * ga[sl] ** 2 * noise**2)) / sgg**2
-        std_ref = np.sqrt(max(var_r, var_p))
+        std_ref = np.sqrt(var_e + var_p)
         assert m[i] == pytest.approx(m_ref, rel=1e-12)
         assert std[i] == pytest.approx(std_ref, rel=1e-9)
     assert abs(np.median(m) - 150.0) < 2.0

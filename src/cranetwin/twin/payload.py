@@ -12,20 +12,20 @@ centred window of N instants with weights w_c::
 
     m̂ = Σ w_c·g_c·r_c / Σ w_c·g_c²,      r = tau_act − tau_0
 
-Its standard error is the larger of two honest estimates (the smoothed errors are correlated
-over many samples, so neither is the textbook σ²/(N−1)):
+Its standard error has two parts (the smoothed errors are correlated over many samples, so
+neither is the textbook σ²/(N−1))::
 
-* the pressure noise propagated through the estimator: raw force noise σ_c (white, before
-  any smoothing; the pressure smoother keeps the mean, so only the two moving averages
-  matter) gives ``σ_p² = κ(N, P)·Σ w_c²·g_c²·σ_c² / (Σ w_c·g_c²)²`` with
-  κ = Σ_k u_k² / N, u = box(N) ∗ box(P)/P the estimator's weight on each raw sample;
-* the residual scatter of the window, ``σ_r² = Σ w_c·(r_c − m̂·g_c)² / (n_eff − 1) /
-  Σ w_c·g_c²``, over the independent errors it contains: n_eff = 1 + n_c·N/L, L = P + L_s − 1
-  the correlation length of the smoothed, prefiltered errors (L_s = σ_c²/risk_c, the pressure
-  smoother's variance-equivalent length): N/L per joint in a long window, and one when the
-  window lies within a correlation length (the joints' errors then share their cause, the
-  accelerations). This is what carries errors other than pressure noise: accelerations
-  smoothed over a long derivative window (position noise), model errors.
+    σ_m̂² = σ_p² + σ_e²
+
+* σ_p, the pressure noise propagated through the estimator: raw force noise σ_c (white,
+  before any smoothing; the pressure smoother keeps the mean, so only the two moving averages
+  matter) gives ``σ_p² = κ(N, P)·Σ w_c²·g_c²·σ_c² / (Σ w_c·g_c²)²`` with κ = Σ_k u_k² / N,
+  u = box(N) ∗ box(P)/P the estimator's weight on each raw sample;
+* σ_e, every other error, from the window's residual scatter beyond what that noise explains:
+  ``σ_e² = max(RSS − N·Σ w_c·σ_c²/P, 0) / (n_eff − 1) / Σ w_c·g_c²``, RSS = Σ w_c·(r_c −
+  m̂·g_c)², over n_eff = 1 + n_c·N/P independent errors: N/P per joint in a long window, and
+  one when the window lies within the prefilter (the joints' errors then share their cause,
+  the accelerations smoothed over the long derivative window that position noise brings).
 
 Measured on simulated lifts (docs/ACCURACY.md "Payload uncertainty"): see there for the RMS
 of error/σ at 1, 2, 5 % sensor error; the previous σ (the window's scatter over
@@ -59,16 +59,13 @@ class JointLoads(NamedTuple):
 class PayloadWindow(NamedTuple):
     """The regression's settings: each cylinder's joint index ``joints`` (n_c,), weights 1/σ²
     per cylinder joint (n_c,) [1/N²], the raw force noise ``noise_var`` σ_c² per cylinder
-    (n_c,) [N²], the prefilter's and the fit's half windows [instants] and the correlation
-    length of the smoothed errors before the prefilter ``smooth_len`` (L_s, module
-    docstring) [instants]."""
+    (n_c,) [N²], the prefilter's and the fit's half windows [instants]."""
 
     joints: npt.NDArray[np.int64]
     weights: F64
     noise_var: F64
     prefilter_half: int
     half_window: int
-    smooth_len: float
 
 
 @njit(cache=True)
@@ -99,24 +96,26 @@ def box_gain(n, p):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def _window_estimate(sums, cnt, n_c, p, smooth_len):  # type: ignore[no-untyped-def]
+def _window_estimate(sums, cnt, n_c, p, wsig):  # type: ignore[no-untyped-def]
     """Payload [kg] and its standard error (module docstring) from one window's weighted sums
     ``sums`` = (Σ w·g², Σ w·g·r, Σ w·r², Σ w²·g²·σ²) over ``cnt`` instants of ``n_c`` joints
-    after a ``p``-point prefilter (NaN and inf when the window has no excitation, Σg² = 0)."""
+    after a ``p``-point prefilter, ``wsig`` = Σ w_c·σ_c² (NaN and inf when the window has no
+    excitation, Σg² = 0)."""
     sgg = sums[0]
     sgr = sums[1]
     if not sgg > 0.0:
         return np.nan, np.inf
     m = sgr / sgg
     rss = max(sums[2] - m * sgr, 0.0)
-    n_eff = 1.0 + n_c * cnt / (p + smooth_len - 1.0)
-    var_r = rss / max(n_eff - 1.0, 1.0) / sgg
+    excess = max(rss - cnt * wsig / p, 0.0)
+    n_eff = 1.0 + n_c * cnt / p
+    var_e = excess / max(n_eff - 1.0, 1.0) / sgg
     var_p = box_gain(cnt, float(p)) * sums[3] / (sgg * sgg)
-    return m, np.sqrt(max(var_r, var_p))
+    return m, np.sqrt(var_e + var_p)
 
 
 @njit(cache=True)
-def _window_sums(per, half, pf, n_c, smooth_len, m_out, std_out):  # type: ignore[no-untyped-def]
+def _window_sums(per, half, pf, n_c, wsig, m_out, std_out):  # type: ignore[no-untyped-def]
     """The estimate at every instant from the per-instant sums ``per`` (n, 4)."""
     n = per.shape[0]
     cp = np.zeros((n + 1, 4))
@@ -130,11 +129,11 @@ def _window_sums(per, half, pf, n_c, smooth_len, m_out, std_out):  # type: ignor
         for j in range(4):
             sums[j] = cp[hi, j] - cp[lo, j]
         m_out[i], std_out[i] = _window_estimate(sums, float(hi - lo), float(n_c),
-                                                2 * pf + 1, smooth_len)
+                                                2 * pf + 1, wsig)
 
 
 @njit(cache=True)
-def _windowed_payload(g, r, weights, noise_var, pf, half, smooth_len, m_out, std_out):  # type: ignore[no-untyped-def]
+def _windowed_payload(g, r, weights, noise_var, pf, half, m_out, std_out):  # type: ignore[no-untyped-def]
     n, k = g.shape
     if pf > 0:  # centred moving average of both sides over [i − pf, i + pf]
         gs = np.empty((n, k))
@@ -165,7 +164,7 @@ def _windowed_payload(g, r, weights, noise_var, pf, half, smooth_len, m_out, std
         per[i, 1] = b
         per[i, 2] = c
         per[i, 3] = d
-    _window_sums(per, half, pf, k, smooth_len, m_out, std_out)
+    _window_sums(per, half, pf, k, np.sum(weights * noise_var), m_out, std_out)
 
 
 @njit(cache=True)
@@ -176,7 +175,7 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
     the running sums of g and r are formed with them, the per-instant window sums with the
     running sums of those, so the data are passed over twice."""
     t0, t1, force, arm = loads
-    joints, weights, noise_var, pf, half, smooth_len = win
+    joints, weights, noise_var, pf, half = win
     n, k = arm.shape
     keep = n if pf == 0 else 0  # g, r themselves only without the prefilter
     g = np.empty((keep, k))
@@ -222,14 +221,7 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
         per[i, 1] = sb
         per[i, 2] = sc
         per[i, 3] = sd
-    _window_sums(per, half, pf, k, smooth_len, m_out, std_out)
-
-
-def smooth_length(independent_fraction: F64) -> float:
-    """L_s [instants]: the longest variance-equivalent length 1/fraction of the pressure
-    smoothers (module docstring)."""
-    f = np.asarray(independent_fraction, dtype=np.float64)
-    return float(1.0 / np.min(f)) if f.size else 1.0
+    _window_sums(per, half, pf, k, np.sum(weights * noise_var), m_out, std_out)
 
 
 def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_window: int,
@@ -247,7 +239,7 @@ def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_win
         prefilter_half: Half width of the moving average [instants]; 0 for none.
         half_window: Half window of the fit [instants].
         independent_fraction: The pressure smoothers' variance gain risk/σ² per joint, shape
-            (n_c,), in (0, 1].
+            (n_c,), in (0, 1]; checked, not used by the σ any more (module docstring).
         noise_std: Raw (unsmoothed) noise of r per joint, shape (n_c,) [N·m or N]; None: 0
             (σ from the residual scatter alone).
 
@@ -256,14 +248,15 @@ def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_win
     """
     if g.shape != r.shape or g.ndim != 2:
         raise TwinError(f"g {g.shape} and r {r.shape} must both be (k, n_c)")
+    if np.shape(independent_fraction) != (g.shape[1],):
+        raise TwinError(f"independent_fraction must have shape ({g.shape[1]},)")
     m = np.empty(g.shape[0])
     std = np.empty(g.shape[0])
     nv = np.zeros(g.shape[1]) if noise_std is None else np.asarray(noise_std, np.float64) ** 2
     _windowed_payload(np.ascontiguousarray(g, dtype=np.float64),
                       np.ascontiguousarray(r, dtype=np.float64),
                       np.ascontiguousarray(weights, dtype=np.float64),
-                      np.ascontiguousarray(nv), int(prefilter_half), int(half_window),
-                      smooth_length(independent_fraction), m, std)
+                      np.ascontiguousarray(nv), int(prefilter_half), int(half_window), m, std)
     return m, std
 
 
@@ -296,7 +289,6 @@ def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
     loads = JointLoads(c(tau0, dtype=np.float64), c(tau1, dtype=np.float64),
                        c(force, dtype=np.float64), c(arm, dtype=np.float64))
     win = PayloadWindow(c(joints, dtype=np.int64), c(weights, dtype=np.float64), c(nv),
-                        int(prefilter_half), int(half_window),
-                        smooth_length(independent_fraction))
+                        int(prefilter_half), int(half_window))
     _regression_payload(loads, win, m, std)
     return m, std
