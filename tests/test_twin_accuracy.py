@@ -116,21 +116,22 @@ def test_lift_detection_on_a_synthetic_ramp() -> None:
 @pytest.mark.timeout(900)
 def test_small_cylinder_force_is_flagged_not_observable() -> None:
     """The telescope (extension) cylinder sees a force range of ~6 kN behind 0–250 bar
-    sensors: at 2 % uniform error of full range its per-sample force error (~660 N) is more
+    sensors: at 3 % uniform error of full range its per-sample force error (~990 N) is more
     than 10 % of that range and it is flagged, naming the cylinder and the numbers; the lift
-    and jib cylinders (60–100 kN ranges) are not. Without error nothing is flagged."""
+    and jib cylinders (60–100 kN ranges) are not. Without error nothing is flagged (at 2 %
+    the extension sits on the limit: 658 N against 6.6 kN, 9.98 %)."""
     from cranetwin.twin.observability import RESOLVABLE_SHARE, unobservable
 
     m, _ = _loading()
     clean, _ = _replayed(0.0, 0)
     assert all(v.observable for v in clean.force_observability(m))
-    res, _ = _replayed(0.02, 0)
+    res, _ = _replayed(0.03, 0)
     verdicts = {v.cylinder: v for v in res.force_observability(m)}
     ext = verdicts["extension"]
     assert not ext.observable and ext.source == "estimated noise"
-    # σ_F = σ_p·sqrt(A_A² + A_B²), σ_p = 2 % × 250 bar / √3 (uniform)
+    # σ_F = σ_p·sqrt(A_A² + A_B²), σ_p = 3 % × 250 bar / √3 (uniform)
     cyl = m.cylinder("extension")
-    expect = 0.02 * 25e6 / np.sqrt(3) * np.hypot(cyl.area_a_m2, cyl.area_b_m2)
+    expect = 0.03 * 25e6 / np.sqrt(3) * np.hypot(cyl.area_a_m2, cyl.area_b_m2)
     assert ext.sigma_n == pytest.approx(expect, rel=0.1)
     assert 4000 < ext.range_n < 9000 and ext.share > RESOLVABLE_SHARE
     assert verdicts["lift"].observable and verdicts["jib"].observable
@@ -164,11 +165,11 @@ def test_force_observability_reaches_the_replay_table_and_the_api_object() -> No
     from cranetwin.sim.sensor_error import inject_error
 
     m, rec = _loading()
-    noisy = inject_error(rec.samples, m, 0.02, 0)
+    noisy = inject_error(rec.samples, m, 0.03, 0)
     notes = ReplayNotes.empty()
     for _ in iter_replay_table(noisy, m, grid_hz=100.0, notes=notes):
         pass
-    res, _ = _replayed(0.02, 0)
+    res, _ = _replayed(0.03, 0)
     assert notes.force_observability(m) == res.force_observability(m)
     obj = twin_json(m, res, float(res.t_s[0]), float(res.t_s[-1]), 10.0)
     flags = {f["cylinder"]: f["observable"] for f in obj["force_observability"]}
