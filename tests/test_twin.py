@@ -175,17 +175,19 @@ def test_regression_payload_equals_windowed_payload_of_its_inputs() -> None:
     frac = np.array([0.5, 0.25, 1.0])
     g = (tau1 - tau0)[:, joints] / arm
     r = (force * arm - tau0[:, joints]) / arm
+    noise = np.array([300.0, 100.0, 50.0])
     for pf in (0, 4):
-        m, std = regression_payload(tau0, tau1, force, arm, joints, w, pf, 9, frac)
-        m_ref, std_ref = windowed_payload(g, r, w, pf, 9, frac)
+        m, std = regression_payload(tau0, tau1, force, arm, joints, w, pf, 9, frac, noise)
+        m_ref, std_ref = windowed_payload(g, r, w, pf, 9, frac, noise)
         np.testing.assert_array_equal(m, m_ref)
         np.testing.assert_array_equal(std, std_ref)
 
 
 def test_windowed_payload_equals_direct_window_sums() -> None:
-    """The compiled payload window against the definition: moving averages, then weighted
-    least squares over each centred window, summed directly."""
-    from cranetwin.twin.payload import windowed_payload
+    """The compiled payload window against the definition (twin.payload's docstring): moving
+    averages, then weighted least squares over each centred window, summed directly; σ² the
+    raw noise propagated through both moving averages (the weight of each raw sample, summed)
+    plus the residual scatter beyond that noise over 1 + n_c·N/P independent errors."""
 
     rng = np.random.default_rng(5)
     n, nc, pf, half = 120, 3, 4, 9
@@ -193,20 +195,36 @@ def test_windowed_payload_equals_direct_window_sums() -> None:
     r = 150.0 * g + rng.normal(0.0, 5.0, (n, nc))
     w = np.array([1.0, 0.5, 2.0])
     frac = np.array([0.5, 0.25, 1.0])
-    m, std = windowed_payload(g, r, w, pf, half, frac)
+    for noise in (np.zeros(3), np.array([30.0, 10.0, 50.0])):
+        _check_window_sums(g, r, w, frac, noise, pf, half)
+
+
+def _check_window_sums(g: np.ndarray, r: np.ndarray, w: np.ndarray, frac: np.ndarray,
+                       noise: np.ndarray, pf: int, half: int) -> None:
+    from cranetwin.twin.payload import windowed_payload
+
+    n = g.shape[0]
+    m, std = windowed_payload(g, r, w, pf, half, frac, noise)
 
     def avg(x: np.ndarray) -> np.ndarray:
         return np.array([x[max(0, i - pf) : i + pf + 1].mean(axis=0) for i in range(n)])
 
     ga, ra = avg(g), avg(r)
+    p = 2 * pf + 1
     for i in (0, 5, 60, n - 1):
         sl = slice(max(0, i - half), i + half + 1)
         sgg = float(np.sum(w * ga[sl] ** 2))
         sgr = float(np.sum(w * ga[sl] * ra[sl]))
         srr = float(np.sum(w * ra[sl] ** 2))
         m_ref = sgr / sgg
-        n_eff = ga[sl].shape[0] * frac.sum()
-        std_ref = np.sqrt(max(srr - m_ref * sgr, 0.0) / max(n_eff - 1.0, 1.0) / sgg)
+        cnt = ga[sl].shape[0]
+        n_eff = 1.0 + g.shape[1] * cnt / p
+        excess = max(srr - m_ref * sgr - cnt * float(np.sum(w * noise**2)) / p, 0.0)
+        var_e = excess / max(n_eff - 1.0, 1.0) / sgg
+        # the raw noise: weight of each raw sample k on the estimate, u_k = Σ_window box_p/p
+        u = np.convolve(np.ones(cnt), np.ones(p) / p)
+        var_p = (u @ u) / cnt * float(np.sum(w**2 * ga[sl] ** 2 * noise**2)) / sgg**2
+        std_ref = np.sqrt(var_e + var_p)
         assert m[i] == pytest.approx(m_ref, rel=1e-12)
         assert std[i] == pytest.approx(std_ref, rel=1e-9)
     assert abs(np.median(m) - 150.0) < 2.0

@@ -130,6 +130,19 @@ class ToolForceSeries(BaseModel):
         description="smallest singular value of the arm's tip-force lever matrix, (n,) [m]")
 
 
+class ForceObservabilityOut(BaseModel):
+    """Whether the pressures resolve one cylinder's force in the replayed window."""
+
+    cylinder: str
+    sigma_n: float = Field(description="per-sample force error from the pressure sensors "
+                                       "(1σ, unsmoothed) [N]")
+    source: str = Field(description="'stated accuracy' (the channels' `accuracy`) or "
+                                    "'estimated noise' (from the data)")
+    range_n: float = Field(description="range of the replayed force in the window [N]")
+    share: float | None = Field(description="sigma_n / range_n (null for a constant force)")
+    observable: bool = Field(description="share ≤ 0.1; false: the force is mostly sensor error")
+
+
 class TwinOut(BaseModel):
     """Replay of a window (twin output resampled to ``rate_hz``)."""
 
@@ -154,6 +167,10 @@ class TwinOut(BaseModel):
     tool_force: ToolForceSeries | None = Field(
         None, description="estimated tool force (excavator digging; any machine whose "
                           "working arm has two or more cylinder joints), else null")
+    force_observability: list[ForceObservabilityOut] = Field(
+        default_factory=list,
+        description="per cylinder: can the pressures resolve its force in the replayed window "
+                    "(docs/ACCURACY.md, 'Unobservable forces')")
 
 
 class Series(BaseModel):

@@ -13,39 +13,76 @@ from rich.table import Table
 from cranetwin.model import load_machine
 
 
+def _fmt(value: float, std: float, scale: float = 1.0, digits: int = 0) -> str:
+    if std == std:  # not NaN
+        return f"{value * scale:.{digits}f} ± {std * scale:.{digits}f}"
+    return f"{value * scale:.{digits}f}"
+
+
 def register(app: typer.Typer) -> None:
     @app.command("calibrate")
     def calibrate_cmd(
-        recording: Path = typer.Argument(..., help="Recording (.npz or .csv from `simulate`)."),
+        recording: Path = typer.Argument(..., help="Recording: the simulator's .npz or .csv, "
+                                         "or a CSV, Parquet or MDF4 file of your own "
+                                         "(with --mapping, docs/IMPORT.md)."),
         machine: str = typer.Option("patu655", help="Built-in machine name or TOML file."),
+        mapping: Path | None = typer.Option(None, "--mapping", help="Mapping TOML of your "
+                                            "own file (docs/IMPORT.md)."),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     ) -> None:
         """Estimate cylinder friction (Fc, vc, b; Eq. 2) and the payload/tool mass by least
-        squares, and report the force residual before and after."""
-        from cranetwin.sim import Recording
+        squares, and report the force residual before and after; say per parameter whether
+        the recording determines it (else the machine file's value is kept)."""
+        from cranetwin.reports.sources import is_simulator_recording
         from cranetwin.twin.calibration import calibrate
 
         m = load_machine(machine)
-        rec = Recording.load(recording)
-        cal = calibrate(rec.samples, m)
+        if mapping is None and is_simulator_recording(recording):
+            from cranetwin.sim import Recording
+
+            samples = Recording.load(recording).samples
+        else:
+            from cranetwin.importer import read_file
+
+            samples = read_file(recording, m, mapping).samples
+        cal = calibrate(samples, m)
         if as_json:
             typer.echo(json.dumps(asdict(cal)))
             return
         con = Console()
         t = Table(title=f"Friction (Eq. 2) from {recording.name}")
         for col in ("cylinder", "Fc file → fit [N]", "vc file → fit [mm/s]",
-                    "b file → fit [N·s/m]", "offset [N]", "RMS residual before → after [N]"):
+                    "b file → fit [N·s/m]", "offset [N]", "RMS residual before → after [N]",
+                    "kept from the file"):
             t.add_column(col)
         for f, off in zip(cal.cylinders, cal.offsets_n, strict=True):
-            t.add_row(f.name, f"{f.coulomb_file:.0f} → {f.coulomb:.0f}",
+            t.add_row(f.name, f"{f.coulomb_file:.0f} → {_fmt(f.coulomb, f.coulomb_std)}",
                       f"{f.coulomb_velocity_file * 1e3:.2f} → {f.coulomb_velocity * 1e3:.2f}",
-                      f"{f.viscous_file:.0f} → {f.viscous:.0f}", f"{off:.0f}",
-                      f"{f.rms_before_n:.0f} → {f.rms_after_n:.0f}")
+                      f"{f.viscous_file:.0f} → {_fmt(f.viscous, f.viscous_std)}", f"{off:.0f}",
+                      f"{f.rms_before_n:.0f} → {f.rms_after_n:.0f}", ", ".join(f.prior) or "–")
         con.print(t)
-        con.print(f"Mass at the load point beyond the file's tool mass "
-                  f"({cal.tool_mass_file_kg:g} kg): {cal.extra_mass_kg:.2f} ± "
-                  f"{cal.extra_mass_std_kg:.2f} kg statistical ({cal.samples_used} instants; "
-                  f"model error adds ≈ 0.1–0.3 kg on simulated runs, docs/ACCURACY.md)")
+        for f in cal.cylinders:
+            for note in f.notes:
+                con.print(f"[yellow]{f.name}: {note}[/yellow]")
+        if len(cal.segments) > 1:
+            con.print(f"The payload changes {len(cal.segments) - 1} time(s): one mass per "
+                      f"segment, friction shared (transitions left out):")
+            for s in cal.segments:
+                val = (f"{s.extra_mass_kg:.1f} ± {s.std_kg:.1f} kg" if s.identified
+                       else f"not identified: {s.note}")
+                con.print(f"  {s.t0_s:.1f} … {s.t1_s:.1f} s: {val}")
+        if cal.mass_note:
+            con.print(f"[yellow]Mass at the load point not identified: {cal.mass_note}"
+                      "[/yellow]")
+        else:
+            con.print(f"Mass at the load point beyond the file's tool mass "
+                      f"({cal.tool_mass_file_kg:g} kg): {cal.extra_mass_kg:.2f} ± "
+                      f"{cal.extra_mass_std_kg:.2f} kg statistical ({cal.samples_used} "
+                      f"instants; model error adds ≈ 0.1–0.3 kg on simulated runs, "
+                      f"docs/ACCURACY.md)")
+        left = ", ".join(f"{v:.1f} s {k}" for k, v in cal.excluded_s.items() if v > 0)
+        if left:
+            con.print(f"Left out before the fit: {left}.")
         for f in cal.cylinders:
             bad = [name for name, val in (("Fc", f.coulomb), ("vc", f.coulomb_velocity),
                                           ("b", f.viscous)) if not val > 0.0]

@@ -39,6 +39,7 @@ def replay_cmd(
     """Replay samples through the twin and write joint q/qd/qdd, rod s/v, pressures, cylinder
     forces, joint torques and reaction wrenches, tip position, payload ± σ and gap flags."""
     from cranetwin.importer.replay import (
+        ReplayNotes,
         column_units,
         iter_replay_table,
         load_source,
@@ -67,17 +68,23 @@ def replay_cmd(
         if source.t_s.shape[0] == 0:
             raise TwinError(f"no samples of {machine!r} stored in [{t_from}, {t_to})")
     units = column_units(m, source.channels)
+    notes = ReplayNotes.empty()
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[rows]}"
                   " rows"), TimeElapsedColumn(), disable=quiet) as bar:
         task = bar.add_task(f"replaying into {out.name}", total=None, rows=0)
 
         def chunks() -> Iterator[dict[str, F64]]:
-            for ch in iter_replay_table(source, m, payload=payload, grid_hz=grid_hz):
+            for ch in iter_replay_table(source, m, payload=payload, grid_hz=grid_hz,
+                                        notes=notes):
                 bar.update(task, rows=bar.tasks[task].fields["rows"] + ch["t_s"].shape[0])
                 yield ch
 
         rows = write_table(chunks(), out, units)
     typer.echo(f"{out}: {rows} rows × {len(units)} columns (docs/IMPORT.md lists them)")
+    from cranetwin.twin.observability import unobservable
+
+    for line in unobservable(notes.force_observability(m)):
+        typer.echo(f"warning: {line}", err=True)
 
 
 def register(app: typer.Typer) -> None:

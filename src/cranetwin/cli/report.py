@@ -155,6 +155,8 @@ def report(
             bar.update(wtask, completed=len(SECTIONS))
     typer.echo(f"{', '.join(map(str, paths))}: {len(rep.cycles)} work cycles, "
                f"{len(rep.events)} events, {rep.n_samples:,} samples")
+    for line in getattr(src, "warnings", []):
+        typer.echo(f"warning: {line}", err=True)
 
 
 def register(app: typer.Typer) -> None:

@@ -47,7 +47,9 @@ from cranetwin.importer.checks import check_rod_positions
 from cranetwin.importer.mapping import Mapping
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
+from cranetwin.signal import SmoothingChoice
 from cranetwin.twin import ReplayOptions, TwinResult, iter_replay
+from cranetwin.twin.observability import ForceObservability, ForceRange
 
 F64 = npt.NDArray[np.float64]
 WRENCH = ("fx", "fy", "fz", "mx", "my", "mz")
@@ -143,10 +145,34 @@ def check_samples(samples: SampleArrays, machine: Machine) -> None:
                         "\n".join(f"  - {p}" for p in problems))
 
 
+@dataclass
+class ReplayNotes:
+    """What a chunked replay learns about its whole window, filled as the chunks pass:
+    the range of each cylinder's force and the smoothing choices, for the force
+    observability verdicts (:mod:`cranetwin.twin.observability`)."""
+
+    forces: ForceRange
+    smoothing: dict[str, SmoothingChoice]
+
+    @staticmethod
+    def empty() -> ReplayNotes:
+        return ReplayNotes(ForceRange(), {})
+
+    def add(self, res: TwinResult) -> None:
+        self.forces.add(res.cyl_force)
+        if not self.smoothing:
+            self.smoothing.update(res.smoothing)
+
+    def force_observability(self, machine: Machine) -> tuple[ForceObservability, ...]:
+        """Per cylinder, whether the pressures resolve its force over the replayed window."""
+        return self.forces.assess(machine, self.smoothing)
+
+
 def iter_replay_table(source: Source, machine: Machine,
                       mapping: Mapping | str | Path | None = None, *,
                       payload: float | None = None, grid_hz: float | None = None,
-                      options: ReplayOptions | None = None) -> Iterator[dict[str, F64]]:
+                      options: ReplayOptions | None = None,
+                      notes: ReplayNotes | None = None) -> Iterator[dict[str, F64]]:
     """Replay samples (or a CSV/Parquet/MDF4 file read with ``mapping``) chunk by chunk.
 
     Args:
@@ -159,6 +185,8 @@ def iter_replay_table(source: Source, machine: Machine,
         grid_hz: Output rate [Hz], an integer multiple of the sample rate (default: the
             sample rate).
         options: Further replay settings.
+        notes: Filled with the window's force ranges and smoothing choices as the chunks
+            pass (:class:`ReplayNotes`: which cylinder forces are observable).
 
     Yields:
         Consecutive chunks of named columns (:func:`column_units` of the input's channels).
@@ -180,6 +208,8 @@ def iter_replay_table(source: Source, machine: Machine,
         grid_hz = float(round(1.0 / period))
     for res in iter_replay(samples, machine, grid_hz, payload, opt):
         if res.n:
+            if notes is not None:
+                notes.add(res)
             cols = result_columns(res, machine)
             cols.update(channel_flags(samples, res.t_s, period))
             yield cols

@@ -5,7 +5,9 @@ parent body's frame (rotated by ``origin_rpy_rad``, roll-pitch-yaw, XYZ fixed ax
 body's frame equals the joint frame moved by the joint coordinate q (rotation by q [rad] about
 ``axis`` for revolute, translation by q [m] along ``axis`` for prismatic). Joints form a serial
 chain from the world (``parent = "world"``) to the tip body. Inertia tensors are about the body's
-centre of mass, in the body frame [kg·m²].
+centre of mass, in the body frame's axes [kg·m²] (``Body.inertia_frame`` = "com", the default;
+"origin" states them about the body frame's origin); point masses on a body are folded into it
+at load (parallel-axis theorem).
 """
 
 from __future__ import annotations
@@ -41,15 +43,96 @@ class Visual(_Frozen):
     color: str = "#f2b01e"
 
 
+class PointMass(_Frozen):
+    """A mass attached to a body (bracket, valve block, rotator): ``mass_kg`` [kg] at
+    ``position_m`` [m] in the body frame, with its own ``inertia_kgm2`` about its centre in
+    the body's axes [kg·m²] (zero: a point)."""
+
+    name: str = ""
+    mass_kg: float = Field(gt=0)
+    position_m: Vec3
+    inertia_kgm2: Mat3 = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+
+
+InertiaFrame = Literal["com", "origin"]
+
+
+def fold_point_masses(mass: float, com: np.ndarray, inertia: np.ndarray,
+                      points: list[PointMass]) -> tuple[float, np.ndarray, np.ndarray]:
+    """A body with point masses as one body: total mass [kg], centre of mass (3,) [m] and
+    inertia about that centre (3, 3) [kg·m²] (parallel-axis theorem, body axes).
+
+    Args:
+        mass, com, inertia: The bare body: mass, centre of mass, inertia about its centre.
+        points: The masses attached to it.
+    """
+    items = [(mass, com, inertia)] + [(p.mass_kg, np.asarray(p.position_m, dtype=float),
+                                       np.asarray(p.inertia_kgm2, dtype=float)) for p in points]
+    total = sum(m for m, _, _ in items)
+    if total <= 0:
+        return 0.0, com, inertia
+    c: np.ndarray = np.sum([m * x for m, x, _ in items], axis=0) / total
+    out = np.zeros((3, 3))
+    for m, x, i in items:
+        d = x - c
+        out += i + m * (float(d @ d) * np.eye(3) - np.outer(d, d))
+    return float(total), c, out
+
+
 class Body(_Frozen):
-    """A rigid body: mass [kg], centre of mass [m] in its frame, inertia about the COM [kg·m²]."""
+    """A rigid body: mass [kg], centre of mass [m] in its frame, inertia [kg·m²].
+
+    Inertia convention (``inertia_frame``): ``"com"`` (the default): about the centre of mass,
+    along the body frame's axes; ``"origin"``: about the body frame's origin, along its axes
+    (converted at load, I_com = I_origin − m·(|c|²·E − c·cᵀ)). Point masses (``point_masses``)
+    are folded into the body at load by the parallel-axis theorem: after loading, ``mass_kg``,
+    ``com_m`` and ``inertia_kgm2`` (about the centre of mass) are the whole body's, the
+    masses are listed in ``folded_point_masses`` and ``inertia_frame`` is ``"com"``.
+    """
 
     name: str
     mass_kg: float = Field(ge=0)
     com_m: Vec3 = (0.0, 0.0, 0.0)
     inertia_kgm2: Mat3 = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    inertia_frame: InertiaFrame = Field(
+        "com", description="inertia_kgm2 about the centre of mass ('com') or about the body "
+        "frame's origin ('origin'), body axes either way")
+    point_masses: list[PointMass] = Field(
+        default_factory=list, description="masses attached to the body (folded in at load)")
+    folded_point_masses: list[PointMass] = Field(
+        default_factory=list, description="the point masses already folded into mass_kg, "
+        "com_m and inertia_kgm2 (set at load)")
     assumed: list[str] = Field(default_factory=list, description="fields whose values are assumed")
     visuals: list[Visual] = Field(default_factory=list)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fold(cls, data: object) -> object:
+        if not isinstance(data, dict):
+            return data
+        frame = data.get("inertia_frame", "com")
+        points = data.get("point_masses") or []
+        if frame == "com" and not points:
+            return data
+        out = dict(data)
+        try:
+            m = float(out.get("mass_kg", 0.0))
+            c = np.asarray(out.get("com_m", (0.0, 0.0, 0.0)), dtype=float).reshape(3)
+            i = np.asarray(out.get("inertia_kgm2", np.zeros((3, 3))), dtype=float).reshape(3, 3)
+            pts = [p if isinstance(p, PointMass) else PointMass.model_validate(p)
+                   for p in points]
+        except (TypeError, ValueError):
+            return data  # the field validators report it
+        if frame == "origin":
+            i = i - m * (float(c @ c) * np.eye(3) - np.outer(c, c))
+        elif frame != "com":
+            return data
+        m, c, i = fold_point_masses(m, c, i, pts)
+        out.update(mass_kg=m, com_m=tuple(float(x) for x in c),
+                   inertia_kgm2=tuple(tuple(float(x) for x in row) for row in i),
+                   inertia_frame="com", point_masses=[],
+                   folded_point_masses=list(out.get("folded_point_masses") or []) + pts)
+        return out
 
     @field_validator("inertia_kgm2")
     @classmethod
@@ -158,6 +241,9 @@ class Cylinder(_Frozen):
     friction: Friction
     valve: Valve | None = None
     linkage: FourBar | None = None
+    dead_volume_m3: float | None = Field(
+        None, gt=0, description="hose + port volume per chamber of this cylinder [m³]; None: "
+        "hydraulics.dead_volume_m3")
     assumed: list[str] = Field(default_factory=list)
 
     @model_validator(mode="after")
@@ -201,6 +287,10 @@ class Channel(_Frozen):
     min: float
     max: float
     resolution: float = Field(gt=0, description="quantisation step, in ``unit``")
+    accuracy: float | None = Field(
+        None, gt=0, description="stated accuracy of the sensor, ± bound in ``unit`` (e.g. "
+        "0.5 % of the full range); None: not stated (the twin then uses the noise it "
+        "estimates from the data)")
     optional: bool = False
 
     @model_validator(mode="after")
@@ -223,7 +313,8 @@ class Hydraulics(_Frozen):
     relief_pressure_pa: float = Field(gt=0)
     oil_bulk_modulus_pa: float = Field(gt=0)
     hose_bulk_modulus_pa: float = Field(gt=0)
-    dead_volume_m3: float = Field(gt=0, description="hose + port volume per chamber")
+    dead_volume_m3: float = Field(gt=0, description="hose + port volume per chamber, for "
+                                  "every cylinder without its own dead_volume_m3")
 
     @property
     def effective_bulk_modulus_pa(self) -> float:

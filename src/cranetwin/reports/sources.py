@@ -290,6 +290,7 @@ class ImportedFileSource:
         got = read_file(self.path, self.machine, self.mapping)
         self.samples = got.samples
         self.import_report = got.report
+        self.warnings: list[str] = []  # forces the pressures do not resolve (after chunks())
         self.label = self.label or (f"recording {self.path.name} ({got.report.rows_accepted} "
                                     f"samples, {got.report.rows_refused} rows refused), "
                                     "replayed by the twin")
@@ -299,15 +300,24 @@ class ImportedFileSource:
 
     def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
         from cranetwin.importer.replay import check_samples
+        from cranetwin.signal import SmoothingChoice
         from cranetwin.twin import iter_replay
+        from cranetwin.twin.observability import ForceRange, unobservable
 
         check_samples(self.samples, self.machine)
         done = 0
+        forces = ForceRange()
+        smoothing: dict[str, SmoothingChoice] = {}
         for res in iter_replay(self.samples, self.machine, grid_hz=self.grid_hz,
                                payload=self.payload_kg):
             if not res.n:
                 continue
+            forces.add(res.cyl_force)
+            smoothing = smoothing or res.smoothing
             n = int(np.searchsorted(self.samples.t_s, res.t_s[-1], side="right")) - done
             done += n
             h = history_from_twin(self.machine, res)
             yield (h if h.n else None), n
+        self.warnings = unobservable(forces.assess(self.machine, smoothing))
+        if self.warnings:
+            self.label += "; " + "; ".join(self.warnings)

@@ -56,9 +56,10 @@ def energy_terms(machine: Machine, truth: Truth,
     if h is None:
         raise SimulationError(f"machine {machine.name!r} has no hydraulics section")
     b_oil = h.oil_bulk_modulus_pa
-    v0e = h.dead_volume_m3 * b_oil / h.hose_bulk_modulus_pa
     hydraulic = np.zeros(truth.n)
     for k, c in enumerate(machine.cylinders):
+        v0 = h.dead_volume_m3 if c.dead_volume_m3 is None else c.dead_volume_m3
+        v0e = v0 * b_oil / h.hose_bulk_modulus_pa
         s = np.clip(truth.rod_s[:, k], 0.0, c.stroke_m)
         va = c.area_a_m2 * s + v0e
         vb = c.area_b_m2 * (c.stroke_m - s) + v0e

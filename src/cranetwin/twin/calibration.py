@@ -43,7 +43,8 @@ about 2σ and may be missed on some sensor seeds whatever the estimator (docs/AC
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -56,7 +57,7 @@ from cranetwin.samples import SampleArrays
 from cranetwin.signal import nominal_period
 from cranetwin.signal.savgol import sg_filter
 from cranetwin.twin.channels import ChannelMap
-from cranetwin.twin.options import ReplayOptions
+from cranetwin.twin.options import END_STOP_MARGIN_M, ReplayOptions
 from cranetwin.twin.replay import replay
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.stages import derivative_filter
@@ -75,11 +76,25 @@ WIDE_FILTER = (2, 2.0)
 WIDE_FILTER_RATIO = 0.01
 # largest velocity-noise / vc ratio the Coulomb column is corrected for (module docstring)
 MAX_NOISE_RATIO = 0.5
+# a friction parameter is identified when its standard error is at most this share of its value
+# (the value at least two standard errors from zero)
+REL_SE_MAX = 0.5
+# rod positions within this share of the stroke (and at least END_STOP_MARGIN_M) of either end
+# count as end-stop contact: the stop takes a force Eq. 1–2 does not know
+END_STOP_SHARE = 0.01
+# a payload step smaller than this is no payload change [kg]; larger than 5σ of the estimate
+PAYLOAD_STEP_KG = 30.0
 
 
 @dataclass(frozen=True)
 class CylinderFit:
-    """Friction of one cylinder: file values and estimates (Eq. 2)."""
+    """Friction of one cylinder: file values and estimates (Eq. 2).
+
+    A parameter the data do not identify (standard error above ``REL_SE_MAX`` of its value, a
+    value ≤ 0, or for vc a flat residual between vc/2 and 2·vc) keeps the file's value; it
+    is listed in ``prior`` and the reason in ``notes``. ``*_std`` are standard errors (NaN
+    where the prior was kept; vc has none: its identification is a residual test).
+    """
 
     name: str
     coulomb_file: float
@@ -90,6 +105,30 @@ class CylinderFit:
     viscous: float
     rms_before_n: float
     rms_after_n: float
+    coulomb_std: float = float("nan")
+    viscous_std: float = float("nan")
+    prior: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class MassSegment:
+    """A stretch of constant carried mass between payload changes (grab, release).
+
+    Attributes:
+        t0_s, t1_s: Its start and end [s] (transitions left out of the fit).
+        extra_mass_kg: Mass beyond the file's tool mass there [kg].
+        std_kg: Its standard error [kg].
+        identified: The total (tool + extra) is physical (≥ 0) and determined.
+        note: Why not, when not.
+    """
+
+    t0_s: float
+    t1_s: float
+    extra_mass_kg: float
+    std_kg: float
+    identified: bool
+    note: str = ""
 
 
 @dataclass(frozen=True)
@@ -98,7 +137,9 @@ class Calibration:
 
     Attributes:
         cylinders: Friction fits, in ``machine.cylinders`` order.
-        extra_mass_kg: Mass at the load point beyond the file's tool mass (payload + tool error).
+        extra_mass_kg: Mass at the load point beyond the file's tool mass (payload + tool error)
+            of the longest constant-mass segment (``segments``; one when the payload did not
+            change) [kg]; NaN when that mass is not identified (``mass_note`` says why).
         extra_mass_std_kg: Its statistical standard error [kg]: residuals' correlation
             time and a jackknife over time blocks taken into account, model error not (on
             simulated 10-minute runs the error was 0.1–0.3 kg against a stated 0.02 kg).
@@ -109,6 +150,10 @@ class Calibration:
         filter_passes_width: The low-pass used: moving-average passes and width [instants].
         velocity_noise_mps: Standard deviation of each cylinder's velocity noise that the
             Coulomb column was corrected for, in ``machine.cylinders`` order [m/s].
+        segments: The constant-mass segments the payload changes split the run into.
+        excluded_s: Seconds left out, by reason (``"end stop"``, ``"payload change"``,
+            ``"dropout"``).
+        mass_note: Why ``extra_mass_kg`` is NaN, else "".
     """
 
     cylinders: tuple[CylinderFit, ...]
@@ -119,6 +164,9 @@ class Calibration:
     offsets_n: tuple[float, ...] = ()
     filter_passes_width: tuple[int, int] = (1, 1)
     velocity_noise_mps: tuple[float, ...] = ()
+    segments: tuple[MassSegment, ...] = ()
+    excluded_s: dict[str, float] = field(default_factory=dict)
+    mass_note: str = ""
 
 
 def _lowpass(x: F64, width: int, passes: int) -> F64:
@@ -172,21 +220,40 @@ def velocity_noise_std(res: TwinResult, samples: SampleArrays, machine: Machine)
     return out
 
 
-def _design(vc: F64, v: F64, g: F64, width: int, passes: int, sigma_v: F64) -> F64:
-    """Columns [m, Fc_0, b_0, off_0, Fc_1, b_1, off_1, …] stacked over cylinders, each
-    low-passed by :func:`_lowpass`: shape (n'·nc, 1 + 3nc). The Coulomb columns are
+class Layout(NamedTuple):
+    """The fit's data layout: per instant its constant-mass segment ``seg`` (n,) (of
+    ``n_seg``) and whether it may be used ``ok`` (n,) (no end stop, payload change, dropout);
+    parameters [m_0 … m_{S−1}, Fc_0, b_0, off_0, Fc_1, …] (S = n_seg)."""
+
+    seg: npt.NDArray[np.int64]
+    n_seg: int
+    ok: npt.NDArray[np.bool_]
+
+
+def _design(vc: F64, v: F64, g: F64, width: int, passes: int, sigma_v: F64,
+            lay: Layout) -> F64:
+    """Columns [m_0 … m_{S−1}, Fc_0, b_0, off_0, Fc_1, …] stacked over cylinders, each
+    low-passed by :func:`_lowpass`: shape (n'·nc, S + 3nc). The Coulomb columns are
     :func:`coulomb_column` with the velocity noise ``sigma_v`` [m/s] per cylinder."""
     n, nc = v.shape
+    ns = lay.n_seg
     m = n - passes * (max(width, 1) - 1)
-    a = np.zeros((m * nc, 1 + 3 * nc))
+    a = np.zeros((m * nc, ns + 3 * nc))
     for c in range(nc):
         rows = slice(c * m, (c + 1) * m)
-        a[rows, 0] = _lowpass(g[:, c], width, passes)
-        a[rows, 1 + 3 * c] = _lowpass(coulomb_column(v[:, c], float(vc[c]), float(sigma_v[c])),
-                                      width, passes)
-        a[rows, 2 + 3 * c] = _lowpass(v[:, c], width, passes)
-        a[rows, 3 + 3 * c] = 1.0
+        for k in range(ns):
+            a[rows, k] = _lowpass(np.where(lay.seg == k, g[:, c], 0.0), width, passes)
+        a[rows, ns + 3 * c] = _lowpass(coulomb_column(v[:, c], float(vc[c]),
+                                                      float(sigma_v[c])), width, passes)
+        a[rows, ns + 1 + 3 * c] = _lowpass(v[:, c], width, passes)
+        a[rows, ns + 2 + 3 * c] = 1.0
     return a
+
+
+def _good_rows(lay: Layout, width: int, passes: int, nc: int) -> npt.NDArray[np.bool_]:
+    """Rows of the stacked design whose low-pass window holds only usable instants."""
+    good = _lowpass(lay.ok.astype(np.float64), width, passes) > 1.0 - 1e-9
+    return np.tile(good, nc)
 
 
 def res_rate(res: TwinResult) -> float:
@@ -200,37 +267,67 @@ def sample_rate(samples: SampleArrays) -> float:
     return 1.0 / nominal_period(samples.t_s, samples.period_ns)
 
 
-def _before(y: F64, v: F64, cyls: list[Cylinder], c: int, width: int, passes: int) -> F64:
-    """Low-passed force residual of cylinder ``c`` with the file's friction, no extra mass [N]."""
-    return _lowpass(y[:, c] - physics.friction_force(v[:, c], cyls[c].friction), width, passes)
+def _before(y: F64, v: F64, cyls: list[Cylinder], c: int, width: int, passes: int,
+            lay: Layout) -> F64:
+    """Low-passed force residual of cylinder ``c`` with the file's friction, no extra mass, at
+    the usable rows [N]."""
+    r = _lowpass(y[:, c] - physics.friction_force(v[:, c], cyls[c].friction), width, passes)
+    out: F64 = r[_good_rows(lay, width, passes, 1)]
+    return out
 
 
-def _fit(y: F64, g: F64, v: F64, vc0: F64, width: int, passes: int,
-         sigma_v: F64) -> tuple[F64, F64, F64]:
-    """Least squares for fixed vc inside a coordinate search over each cylinder's vc (coarse
-    logarithmic grid, then a bounded 1-D minimisation; a second sweep refines locally).
+class Fixed(NamedTuple):
+    """Parameters held at the machine file's values: column index → value, and per cylinder
+    whether vc is held (at ``vc0``)."""
+
+    cols: dict[int, float]
+    vc: npt.NDArray[np.bool_]
+
+
+def _fit(y: F64, g: F64, v: F64, vc0: F64, filt: tuple[int, int], sigma_v: F64,
+         lay: Layout, fixed: Fixed) -> tuple[F64, F64, F64, F64]:
+    """Least squares for fixed vc inside a coordinate search over each free cylinder's vc
+    (coarse logarithmic grid, then a bounded 1-D minimisation; a second sweep refines
+    locally), on the usable rows, the ``fixed`` columns moved to the right-hand side.
 
     Returns:
-        (parameters [m, Fc_0, b_0, off_0, …], low-passed residual stacked over cylinders [N],
-        vc per cylinder [m/s]).
+        (parameters [m_0 …, Fc_0, b_0, off_0, …] with the fixed ones at their values,
+        residual at the usable rows stacked over cylinders [N], vc per cylinder [m/s],
+        the design's free columns' covariance per unit residual variance (AᵀA)⁻¹ padded
+        with NaN for the fixed ones).
     """
-    yv = _lowpass(y, width, passes).T.reshape(-1)
+    passes, width = filt
+    nc = v.shape[1]
+    rows = _good_rows(lay, width, passes, nc)
+    yv = _lowpass(y, width, passes).T.reshape(-1)[rows]
+    ncol = lay.n_seg + 3 * nc
+    free = np.array([k for k in range(ncol) if k not in fixed.cols], dtype=np.int64)
+    fix_idx = np.array(sorted(fixed.cols), dtype=np.int64)
+    fix_val = np.array([fixed.cols[k] for k in fix_idx.tolist()])
 
-    def solve(vc: F64) -> tuple[F64, F64]:
-        a = _design(vc, v, g, width, passes, sigma_v)
-        x = np.asarray(np.linalg.solve(a.T @ a, a.T @ yv), dtype=np.float64)
-        return x, yv - a @ x
+    def solve(vc: F64) -> tuple[F64, F64, F64]:
+        a = _design(vc, v, g, width, passes, sigma_v, lay)[rows]
+        rhs = yv - (a[:, fix_idx] @ fix_val if fix_idx.size else 0.0)
+        af = a[:, free]
+        ata = af.T @ af
+        xf = np.asarray(np.linalg.solve(ata, af.T @ rhs), dtype=np.float64)
+        x = np.empty(ncol)
+        x[free] = xf
+        x[fix_idx] = fix_val
+        return x, rhs - af @ xf, ata
 
     def sse(vc: F64, c: int, log_vc: float) -> float:
         trial = vc.copy()
         trial[c] = np.exp(log_vc)
-        _, r = solve(trial)
+        _, r, _ = solve(trial)
         return float(np.dot(r, r))
 
     vc = vc0.copy()
     log_step = float(np.log(VC_GRID[1] / VC_GRID[0]))
     for sweep in range(2):
-        for c in range(v.shape[1]):
+        for c in range(nc):
+            if fixed.vc[c]:
+                continue
             if sweep == 0:   # coarse grid, then refine between the neighbours of the best
                 vals = [sse(vc, c, float(np.log(x))) for x in VC_GRID]
                 centre = float(np.log(VC_GRID[int(np.argmin(vals))]))
@@ -240,17 +337,82 @@ def _fit(y: F64, g: F64, v: F64, vc0: F64, width: int, passes: int,
                                     bounds=(centre - log_step, centre + log_step),
                                     options={"xatol": 1e-4})
             vc[c] = float(np.exp(found.x))
-    x, r = solve(vc)
-    return x, r, vc
+    x, r, ata = solve(vc)
+    inv = np.full((ncol, ncol), np.nan)
+    inv[np.ix_(free, free)] = np.linalg.inv(ata)
+    return x, r, vc, inv
+
+
+def log_dist(vc: float) -> float:
+    """Distance of vc from the nearer end of ``VC_GRID`` in log units."""
+    return float(min(np.log(vc / VC_GRID[0]), np.log(VC_GRID[-1] / vc)))
+
+
+def _vc_rises(y: F64, g: F64, v: F64, vc: F64, filt: tuple[int, int], sigma_v: F64,
+              lay: Layout, c: int, trials: tuple[float, ...]) -> list[float]:
+    """How much the residual sum of squares [N²] rises when cylinder ``c``'s vc is moved from
+    its fit to each of ``trials`` [m/s] (the linear parameters re-solved, every other vc
+    held)."""
+    hold = Fixed({}, np.ones(v.shape[1], dtype=bool))
+    out = []
+    base = None
+    for val in (float(vc[c]), *trials):
+        trial = vc.copy()
+        trial[c] = val
+        _, r, _, _ = _fit(y, g, v, trial, filt, sigma_v, lay, hold)
+        sse = float(np.dot(r, r))
+        if base is None:
+            base = sse
+        else:
+            out.append(sse - base)
+    return out
+
+
+def _segments(res: TwinResult, t: F64, sample_period: float,
+              window_s: float) -> tuple[npt.NDArray[np.int64], int, npt.NDArray[np.bool_],
+                                        list[float]]:
+    """Constant-mass segments from the replay's payload estimate: (segment per instant of
+    ``t``, count, instants near a payload change, change times [s]).
+
+    A change is where the estimate crosses halfway between its low and high levels (10th and
+    90th percentiles) when they differ by more than ``PAYLOAD_STEP_KG`` and 5σ; the smear of
+    the estimate's window (:func:`cranetwin.twin.lifts.payload_smear_s`) and 1 s either side
+    are left out."""
+    from cranetwin.twin.lifts import lift_payloads, payload_smear_s
+
+    m = np.nan_to_num(res.payload_kg)
+    lo, hi = np.percentile(m, [10.0, 90.0])
+    sig = float(np.median(res.payload_std_kg[np.isfinite(res.payload_std_kg)])) \
+        if np.any(np.isfinite(res.payload_std_kg)) else 0.0
+    seg = np.zeros(t.shape[0], dtype=np.int64)
+    near = np.zeros(t.shape[0], dtype=bool)
+    if hi - lo < max(PAYLOAD_STEP_KG, 5.0 * sig):
+        return seg, 1, near, []
+    smear = payload_smear_s(res, sample_period, window_s)
+    lifts = lift_payloads(res.t_s, m - lo, np.ones_like(m), smear, (hi - lo) / 2.0)
+    changes = sorted({x for lf in lifts for x in (lf.grab_s, lf.release_s)
+                      if res.t_s[0] < x < res.t_s[-1]})
+    for tc in changes:
+        seg += (t > tc).astype(np.int64)
+        near |= np.abs(t - tc) <= smear / 2.0 + 1.0
+    return seg, len(changes) + 1, near, changes
 
 
 def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
               decimate: int = 10) -> Calibration:
     """Estimate friction (Fc, vc, b per cylinder) and the carried mass by least squares.
 
+    Before the fit, instants are left out where a rod touches an end stop (within
+    ``END_STOP_SHARE`` of its stroke: the stop takes a force Eq. 1–2 does not know), where a
+    dropout was bridged, and around payload changes; a run whose payload changes (grab,
+    release) is split into constant-mass segments, each with its own mass, friction shared.
+    After the fit, a friction parameter the data do not identify (:class:`CylinderFit`) and
+    any negative Fc, vc or b keeps the file's value and the rest is fitted again; a segment
+    whose total mass (tool + extra) comes out negative is reported as not identified, never
+    as a mass.
+
     Args:
-        samples: A recording with motion of every cylinder through zero velocity and a constant
-            payload (the fit assumes one mass for the whole recording).
+        samples: A recording with motion of every cylinder through zero velocity.
         machine: The machine file being calibrated.
         trim_s: Seconds dropped at each end (spline end effects) [s].
         decimate: Use every ``decimate``-th grid instant (1 kHz grid).
@@ -259,25 +421,38 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
         :class:`Calibration`.
 
     Raises:
-        TwinError: Too little data, or data that does not determine the parameters.
+        TwinError: Too little usable data, or data that does not determine the parameters.
     """
     # motion from the replay (payload estimated there only for the slewing inertia when theta0
     # is integrated from torque); the fit itself uses the raw Eq. 1 force and inverse dynamics.
     # Pressures by fixed (linear) windows: the adaptive ICI choice is nonlinear and biased the
     # viscous coefficient by ~10 % in tests.
+    window_s = 4.0
     res = replay(samples, machine, grid_hz=1000.0, payload=None,
-                 options=ReplayOptions(payload_window_s=4.0, adaptive_pressures=False))
+                 options=ReplayOptions(payload_window_s=window_s, adaptive_pressures=False))
     keep = (res.t_s >= res.t_s[0] + trim_s) & (res.t_s <= res.t_s[-1] - trim_s)
     idx = np.flatnonzero(keep)[::decimate]
     if idx.shape[0] < 50:
         raise TwinError(f"calibration needs a longer recording (only {idx.shape[0]} instants)")
+    cyls = machine.cylinders
+    nc = len(cyls)
+    t = res.t_s[idx]
+    dt_i = float(np.median(np.diff(t)))
+    stroke = np.array([c.stroke_m for c in cyls])
+    margin = np.maximum(END_STOP_SHARE * stroke, END_STOP_MARGIN_M)
+    rod = res.rod_s[idx]
+    stop = np.any((rod <= margin) | (rod >= stroke - margin), axis=1)
+    seg, n_seg, near, changes = _segments(res, t, 1.0 / sample_rate(samples), window_s)
+    gap = res.gap[idx]
+    ok = ~(stop | near | gap)
+    excluded = {"end stop": float(stop.sum() * dt_i),
+                "payload change": float((near & ~stop).sum() * dt_i),
+                "dropout": float((gap & ~stop & ~near).sum() * dt_i)}
     q, qd, qdd = res.q[idx], res.qd[idx], res.qdd[idx]
     tau0 = physics.joint_torques(machine, q, qd, qdd, 0.0)
     g_all = physics.joint_torques(machine, q, qd, qdd, 1.0) - tau0
     _, arm = physics.cylinder_kinematics(machine, q)
-    cj = [machine.joint_index(c.joint) for c in machine.cylinders]
-    cyls = machine.cylinders
-    nc = len(cyls)
+    cj = [machine.joint_index(c.joint) for c in cyls]
     hyd = np.column_stack([res.p_a[idx, c] * cyl.area_a_m2 - res.p_b[idx, c] * cyl.area_b_m2
                            for c, cyl in enumerate(cyls)])
     y = hyd - tau0[:, cj] / arm  # what friction and the extra mass must explain [N]
@@ -289,51 +464,164 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
     wd = max((c.window for k, c in res.smoothing.items() if k.endswith("'")), default=1)
     unit = wd * res_rate(res) / decimate / sample_rate(samples)
     filters = [(p, max(1, int(round(k * unit)))) for p, k in (NARROW_FILTER, WIDE_FILTER)]
-    if v.shape[0] - max(p * (w - 1) for p, w in filters) < 50:
-        raise TwinError(f"calibration needs a longer recording ({v.shape[0]} instants for "
-                        f"filters of {filters})")
+    lay = Layout(seg, n_seg, ok)
+    usable = [int(_good_rows(lay, w_, p_, 1).sum()) for p_, w_ in filters]
+    if usable[0] < 50:
+        w_ = filters[0][1]
+        raise TwinError(
+            f"calibration needs more usable data: {usable[0]} instants left for filters of "
+            f"{w_} instants after leaving out {excluded['end stop']:.1f} s of end-stop "
+            f"contact, {excluded['payload change']:.1f} s around payload changes and "
+            f"{excluded['dropout']:.1f} s of dropouts")
     vc0 = np.array([c.friction.coulomb_velocity for c in cyls])
-    passes, width = filters[0]
     sigma_v = velocity_noise_std(res, samples, machine)
-    x, r, vc = _fit(y, g, v, vc0, width, passes, sigma_v)
-    n = v.shape[0] - passes * (width - 1)
-    before = np.column_stack([_before(y, v, cyls, c, width, passes) for c in range(nc)])
-    ratio = max(float(np.sqrt(np.mean(r[c * n:(c + 1) * n] ** 2) / np.mean(before[:, c] ** 2)))
-                for c in range(nc))
-    if ratio > WIDE_FILTER_RATIO:   # hydraulic oscillations left: refit with the wide filter
-        passes, width = filters[1]
-        x, r, vc = _fit(y, g, v, vc, width, passes, sigma_v)
-    a = _design(vc, v, g, width, passes, sigma_v)
-    n = v.shape[0] - passes * (width - 1)
-    dof = max(a.shape[0] - a.shape[1], 1)
-    sigma2 = float(np.dot(r, r)) / dof
-    # the residuals are low-passed (smoothing, then the moving averages above): neighbours are
-    # correlated, so the independent-errors covariance is scaled by the residuals' integrated
-    # autocorrelation time (the number of instants per independent error); errors that drift
-    # over the recording (model mismatch) show in a delete-one-block jackknife over time
-    # instead: the larger of the two is reported
-    tau = max(correlation_time(r[c * n : (c + 1) * n]) for c in range(nc))
+    no_fix = Fixed({}, np.zeros(nc, dtype=bool))
+    filt = filters[0]
     try:
-        cov = sigma2 * tau * np.linalg.inv(a.T @ a)
-        mass_std = max(float(np.sqrt(cov[0, 0])),
-                       _jackknife_std(a, _lowpass(y, width, passes).T.reshape(-1), n, nc))
+        x, r, vc, _ = _fit(y, g, v, vc0, filt, sigma_v, lay, no_fix)
+        before = [_before(y, v, cyls, c, filt[1], filt[0], lay) for c in range(nc)]
+        n = before[0].shape[0]
+        ratio = max(float(np.sqrt(np.mean(r[c * n:(c + 1) * n] ** 2) / np.mean(before[c] ** 2)))
+                    for c in range(nc))
+        if ratio > WIDE_FILTER_RATIO and usable[1] >= 50:  # oscillations left: the wide filter
+            filt = filters[1]
+            x, r, vc, _ = _fit(y, g, v, vc, filt, sigma_v, lay, no_fix)
+        fixed, notes = _identify(x, r, vc, (y, g, v, sigma_v), filt, lay, machine)
+        if fixed.cols or fixed.vc.any():
+            vc = np.where(fixed.vc, vc0, vc)
+            x, r, vc, _ = _fit(y, g, v, vc, filt, sigma_v, lay, fixed)
+        passes, width = filt
+        rows = _good_rows(lay, width, passes, nc)
+        n = int(rows.sum()) // nc
+        a = _design(vc, v, g, width, passes, sigma_v, lay)[rows]
+        dof = max(a.shape[0] - a.shape[1] + len(fixed.cols), 1)
+        sigma2 = float(np.dot(r, r)) / dof
+        # the residuals are low-passed (smoothing, then the moving averages above): neighbours
+        # are correlated, so the independent-errors covariance is scaled by the residuals'
+        # integrated autocorrelation time; errors that drift over the recording (model
+        # mismatch) show in a delete-one-block jackknife over time instead: the larger of the
+        # two is reported for the mass
+        tau = max(correlation_time(r[c * n : (c + 1) * n]) for c in range(nc))
+        free = [k for k in range(a.shape[1]) if k not in fixed.cols]
+        cov = np.full((a.shape[1], a.shape[1]), np.nan)
+        cov[np.ix_(free, free)] = sigma2 * tau * np.linalg.inv(a[:, free].T @ a[:, free])
+        yv = _lowpass(y, width, passes).T.reshape(-1)[rows]
+        fix_idx = sorted(fixed.cols)
+        rhs = yv - a[:, fix_idx] @ np.array([fixed.cols[k] for k in fix_idx]) if fix_idx else yv
+        jack = _jackknife_std(a[:, free], rhs, n, nc) if n_seg == 1 else 0.0
     except np.linalg.LinAlgError as exc:
         raise TwinError("the recording does not determine the friction and mass "
                         "(no motion of some cylinder?)") from exc
+    se = np.sqrt(np.diag(cov))
+    segs = _mass_segments(x, se, jack, t, seg, n_seg, changes, machine.load_point.tool_mass_kg)
+    main = max(range(n_seg), key=lambda k: int(np.sum((seg == k) & ok)))
     fits = []
     for c, cyl in enumerate(cyls):
         fr = cyl.friction
-        before = _before(y, v, cyls, c, width, passes)
+        b0 = _before(y, v, cyls, c, width, passes, lay)
         after = r[c * n : (c + 1) * n]
+        k0 = n_seg + 3 * c
+        prior = tuple(name for name, col in (("Fc", k0), ("b", k0 + 1)) if col in fixed.cols)
+        prior += ("vc",) if fixed.vc[c] else ()
         fits.append(CylinderFit(
-            name=cyl.name, coulomb_file=fr.coulomb, coulomb=float(x[1 + 3 * c]),
+            name=cyl.name, coulomb_file=fr.coulomb, coulomb=float(x[k0]),
             coulomb_velocity_file=fr.coulomb_velocity, coulomb_velocity=float(vc[c]),
-            viscous_file=fr.viscous, viscous=float(x[2 + 3 * c]),
-            rms_before_n=float(np.sqrt(np.mean(before**2))),
-            rms_after_n=float(np.sqrt(np.mean(after**2)))))
-    return Calibration(tuple(fits), float(x[0]), mass_std, machine.load_point.tool_mass_kg, n,
-                       tuple(float(x[3 + 3 * c]) for c in range(nc)), (passes, width),
-                       tuple(float(sv) for sv in sigma_v))
+            viscous_file=fr.viscous, viscous=float(x[k0 + 1]),
+            rms_before_n=float(np.sqrt(np.mean(b0**2))),
+            rms_after_n=float(np.sqrt(np.mean(after**2))),
+            coulomb_std=float(se[k0]), viscous_std=float(se[k0 + 1]), prior=prior,
+            notes=tuple(notes[c])))
+    ms = segs[main]
+    return Calibration(tuple(fits), ms.extra_mass_kg if ms.identified else float("nan"),
+                       ms.std_kg, machine.load_point.tool_mass_kg, n,
+                       tuple(float(x[n_seg + 2 + 3 * c]) for c in range(nc)), (passes, width),
+                       tuple(float(sv) for sv in sigma_v), tuple(segs), excluded,
+                       "" if ms.identified else ms.note)
+
+
+def _identify(x: F64, r: F64, vc: F64, data: tuple[F64, F64, F64, F64],
+              filt: tuple[int, int], lay: Layout,
+              machine: Machine) -> tuple[Fixed, list[list[str]]]:
+    """Which friction parameters keep the file's value (:class:`CylinderFit`), and why."""
+    y, g, v, sigma_v = data
+    cyls = machine.cylinders
+    nc = len(cyls)
+    passes, width = filt
+    rows = _good_rows(lay, width, passes, nc)
+    n = int(rows.sum()) // nc
+    a = _design(vc, v, g, width, passes, sigma_v, lay)[rows]
+    dof = max(a.shape[0] - a.shape[1], 1)
+    sigma2 = float(np.dot(r, r)) / dof
+    tau = max(correlation_time(r[c * n : (c + 1) * n]) for c in range(nc))
+    try:
+        se = np.sqrt(np.abs(np.diag(sigma2 * tau * np.linalg.pinv(a.T @ a))))
+        cond = float(np.linalg.cond(a / np.maximum(np.linalg.norm(a, axis=0), 1e-300)))
+    except np.linalg.LinAlgError:
+        se = np.full(a.shape[1], np.inf)
+        cond = np.inf
+    cols: dict[int, float] = {}
+    hold_vc = np.zeros(nc, dtype=bool)
+    notes: list[list[str]] = [[] for _ in range(nc)]
+    for c, cyl in enumerate(cyls):
+        k0 = lay.n_seg + 3 * c
+        for name, k, prior in (("Fc", k0, cyl.friction.coulomb),
+                               ("b", k0 + 1, cyl.friction.viscous)):
+            val, err = float(x[k]), float(se[k])
+            if not val > 0.0:
+                cols[k] = prior
+                notes[c].append(f"{name} came out {val:.4g} (≤ 0, not physical): file value "
+                                f"{prior:g} kept")
+            elif not err <= REL_SE_MAX * val:
+                cols[k] = prior
+                notes[c].append(f"{name} = {val:.4g} ± {err:.2g} not determined by the data "
+                                f"(standard error > {100 * REL_SE_MAX:.0f} %; condition "
+                                f"number {cond:.2g}): file value {prior:g} kept")
+        vc_file = cyl.friction.coulomb_velocity
+        if k0 in cols:
+            hold_vc[c] = True
+            notes[c].append("vc: file value kept (Fc not determined)")
+            continue
+        # a likelihood-ratio test: one standard error of vc raises the residual sum of
+        # squares by σ²·τ (τ: the residuals' correlation time)
+        half, double = _vc_rises(y, g, v, vc, filt, sigma_v, lay, c,
+                                 (0.5 * vc[c], 2.0 * vc[c]))
+        unit = sigma2 * tau
+        edge = log_dist(vc[c]) < float(np.log(VC_GRID[1] / VC_GRID[0]))
+        # the standard errors here come out several times the actual errors on simulated runs
+        # (the residuals are mostly smoothing error, not noise), and holding a weakly
+        # determined vc at a wrong file value biased b by 10 %: so only a vc at the end of the
+        # search range (no minimum inside it) keeps the file value; a flat one is reported
+        if edge:
+            hold_vc[c] = True
+            notes[c].append(f"vc = {1e3 * vc[c]:.3g} mm/s not determined (at the end of the "
+                            f"search range, {1e3 * VC_GRID[0]:g}–{1e3 * VC_GRID[-1]:g} mm/s): "
+                            f"file value {1e3 * vc_file:.3g} mm/s kept")
+        elif min(half, double) < unit:
+            notes[c].append(f"vc = {1e3 * vc[c]:.3g} mm/s weakly determined (vc/2 or 2·vc "
+                            "within one standard error)")
+    return Fixed(cols, hold_vc), notes
+
+
+def _mass_segments(x: F64, se: F64, jack: float, t: F64, seg: npt.NDArray[np.int64],
+                   n_seg: int, changes: list[float], tool_kg: float) -> list[MassSegment]:
+    """One :class:`MassSegment` per constant-mass stretch; a negative total is no answer."""
+    bounds = [float(t[0]), *changes, float(t[-1])]
+    out = []
+    for k in range(n_seg):
+        m, s = float(x[k]), max(float(se[k]), jack)
+        total = tool_kg + m
+        if not np.isfinite(m):
+            out.append(MassSegment(bounds[k], bounds[k + 1], m, s, False,
+                                   "not determined (no usable instants)"))
+        elif total < 0.0:
+            out.append(MassSegment(bounds[k], bounds[k + 1], m, s, False,
+                                   f"the fit gives a total mass of {total:.1f} kg at the load "
+                                   f"point (tool {tool_kg:g} kg {m:+.1f} kg), which is not "
+                                   "physical: the run does not determine it (too little "
+                                   "motion of the boom, or a model error)"))
+        else:
+            out.append(MassSegment(bounds[k], bounds[k + 1], m, s, True))
+    return out
 
 
 def correlation_time(x: F64, max_lag_fraction: float = 0.1) -> float:

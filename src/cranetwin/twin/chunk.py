@@ -65,13 +65,15 @@ class Timing(NamedTuple):
 
 class PayloadSetting(NamedTuple):
     """A known payload [kg] (or None: estimated) and the regression's weights (n_c,),
-    independent fractions (n_c,), prefilter half and half window [samples]."""
+    independent fractions (n_c,), prefilter half and half window [samples], raw force noise
+    per cylinder (n_c,) [N]."""
 
     known: float | None
     weights: F64
     frac: F64
     prefilter_half: int
     half_window: int
+    noise: F64
 
 
 def splines(plan: ReplayPlan, knots_t: F64, sm: F64, r: int) -> tuple[F64, I64, I64]:
@@ -154,7 +156,7 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
                        smp[:, rod_v])
         mk, sk = estimate_payload(plan, (q_s, qd_s, qdd_s), f_s, arm_s,
                                   (payload.weights, payload.frac, payload.prefilter_half,
-                                   payload.half_window))
+                                   payload.half_window, payload.noise))
         mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
     dynamic = plan.opt.wrench_acceleration == "dynamic"
     # the joints whose loads are measured: every cylinder's, every drive's with a torque

@@ -6,14 +6,30 @@ load point, so the inverse-dynamics joint loads are affine in m::
     tau_id(q, qd, qdd; m) = tau_0 + m·g,   g = tau_id(…; 1 kg) − tau_id(…; 0 kg)
 
 and the actuator loads computed from the pressures (Eq. 1–2 through the moment arms) should
-equal them. Over a centred window of N instants and the cylinder-driven joints c, with weights
-w_c = 1/σ_c² (σ_c: error of that joint's actuator load), the estimate and its standard error are::
+equal them. Per cylinder joint c (per unit of rod force: g_c = g/arm_c, r_c = r/arm_c), both
+sides first averaged over P = 2·prefilter_half + 1 instants ("filter both sides"), then over a
+centred window of N instants with weights w_c::
 
     m̂ = Σ w_c·g_c·r_c / Σ w_c·g_c²,      r = tau_act − tau_0
-    σ_m̂² = [Σ w_c·(r_c − m̂·g_c)² / (n_eff − 1)] / Σ w_c·g_c²
 
-with n_eff the number of independent errors in the window (samples × joints × the smoothing's
-variance reduction), because interpolated and smoothed samples are correlated.
+Its standard error has two parts (the smoothed errors are correlated over many samples, so
+neither is the textbook σ²/(N−1))::
+
+    σ_m̂² = σ_p² + σ_e²
+
+* σ_p, the pressure noise propagated through the estimator: raw force noise σ_c (white,
+  before any smoothing; the pressure smoother keeps the mean, so only the two moving averages
+  matter) gives ``σ_p² = κ(N, P)·Σ w_c²·g_c²·σ_c² / (Σ w_c·g_c²)²`` with κ = Σ_k u_k² / N,
+  u = box(N) ∗ box(P)/P the estimator's weight on each raw sample;
+* σ_e, every other error, from the window's residual scatter beyond what that noise explains:
+  ``σ_e² = max(RSS − N·Σ w_c·σ_c²/P, 0) / (n_eff − 1) / Σ w_c·g_c²``, RSS = Σ w_c·(r_c −
+  m̂·g_c)², over n_eff = 1 + n_c·N/P independent errors: N/P per joint in a long window, and
+  one when the window lies within the prefilter (the joints' errors then share their cause,
+  the accelerations smoothed over the long derivative window that position noise brings).
+
+Measured on simulated lifts (docs/ACCURACY.md "Payload uncertainty"): see there for the RMS
+of error/σ at 1, 2, 5 % sensor error; the previous σ (the window's scatter over
+N·Σ risk_c/σ_c² samples) was 3–9× too small.
 """
 
 from __future__ import annotations
@@ -42,14 +58,14 @@ class JointLoads(NamedTuple):
 
 class PayloadWindow(NamedTuple):
     """The regression's settings: each cylinder's joint index ``joints`` (n_c,), weights 1/σ²
-    per cylinder joint (n_c,), the prefilter's and the fit's half windows [instants] and the
-    independent errors per instant summed over the joints ``frac_sum``."""
+    per cylinder joint (n_c,) [1/N²], the raw force noise ``noise_var`` σ_c² per cylinder
+    (n_c,) [N²], the prefilter's and the fit's half windows [instants]."""
 
     joints: npt.NDArray[np.int64]
     weights: F64
+    noise_var: F64
     prefilter_half: int
     half_window: int
-    frac_sum: float
 
 
 @njit(cache=True)
@@ -69,19 +85,55 @@ def _moving_sum_cols(x, half, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def _window_estimate(sgg, sgr, srr, n_eff):  # type: ignore[no-untyped-def]
-    """Payload [kg] and its standard error from one window's weighted sums Σg², Σg·r, Σr² and
-    its effective number of independent samples (NaN and inf when the window has no
+def box_gain(n, p):  # type: ignore[no-untyped-def]
+    """κ(N, P) = Σ_k u_k² / N for u = box(N) ∗ box(P)/P: the variance of the mean over N
+    instants of a P-point moving average of white noise, relative to σ²/N (1 for P = 1,
+    ≈ 2N/(3P) for P ≫ N)."""
+    a = min(n, p)
+    b = max(n, p)
+    s = (a - 1.0) * a * (2.0 * a - 1.0) / 3.0 + (b - a + 1.0) * a * a
+    return s / (p * p) / n
+
+
+@njit(cache=True, inline="always")
+def _window_estimate(sums, cnt, n_c, p, wsig):  # type: ignore[no-untyped-def]
+    """Payload [kg] and its standard error (module docstring) from one window's weighted sums
+    ``sums`` = (Σ w·g², Σ w·g·r, Σ w·r², Σ w²·g²·σ²) over ``cnt`` instants of ``n_c`` joints
+    after a ``p``-point prefilter, ``wsig`` = Σ w_c·σ_c² (NaN and inf when the window has no
     excitation, Σg² = 0)."""
+    sgg = sums[0]
+    sgr = sums[1]
     if not sgg > 0.0:
         return np.nan, np.inf
     m = sgr / sgg
-    rss = max(srr - m * sgr, 0.0)
-    return m, np.sqrt(rss / max(n_eff - 1.0, 1.0) / sgg)
+    rss = max(sums[2] - m * sgr, 0.0)
+    excess = max(rss - cnt * wsig / p, 0.0)
+    n_eff = 1.0 + n_c * cnt / p
+    var_e = excess / max(n_eff - 1.0, 1.0) / sgg
+    var_p = box_gain(cnt, float(p)) * sums[3] / (sgg * sgg)
+    return m, np.sqrt(var_e + var_p)
 
 
 @njit(cache=True)
-def _windowed_payload(g, r, weights, pf, half, frac_sum, m_out, std_out):  # type: ignore[no-untyped-def]
+def _window_sums(per, half, pf, n_c, wsig, m_out, std_out):  # type: ignore[no-untyped-def]
+    """The estimate at every instant from the per-instant sums ``per`` (n, 4)."""
+    n = per.shape[0]
+    cp = np.zeros((n + 1, 4))
+    for i in range(n):
+        for j in range(4):
+            cp[i + 1, j] = cp[i, j] + per[i, j]
+    sums = np.empty(4)
+    for i in range(n):
+        hi = min(i + half + 1, n)
+        lo = max(i - half, 0)
+        for j in range(4):
+            sums[j] = cp[hi, j] - cp[lo, j]
+        m_out[i], std_out[i] = _window_estimate(sums, float(hi - lo), float(n_c),
+                                                2 * pf + 1, wsig)
+
+
+@njit(cache=True)
+def _windowed_payload(g, r, weights, noise_var, pf, half, m_out, std_out):  # type: ignore[no-untyped-def]
     n, k = g.shape
     if pf > 0:  # centred moving average of both sides over [i − pf, i + pf]
         gs = np.empty((n, k))
@@ -96,25 +148,23 @@ def _windowed_payload(g, r, weights, pf, half, frac_sum, m_out, std_out):  # typ
     else:
         gs = g
         rs = r
-    per = np.empty((n, 3))
+    per = np.empty((n, 4))
     for i in range(n):
         a = 0.0
         b = 0.0
         c = 0.0
+        d = 0.0
         for j in range(k):
             wg = gs[i, j] * weights[j]
             a += wg * gs[i, j]
             b += wg * rs[i, j]
             c += rs[i, j] * rs[i, j] * weights[j]
+            d += wg * wg * noise_var[j]
         per[i, 0] = a
         per[i, 1] = b
         per[i, 2] = c
-    sums = np.empty((n, 3))
-    _moving_sum_cols(per, half, sums)
-    for i in range(n):
-        cnt = float(min(i + half + 1, n) - max(i - half, 0))
-        m_out[i], std_out[i] = _window_estimate(sums[i, 0], sums[i, 1], sums[i, 2],
-                                                cnt * frac_sum)
+        per[i, 3] = d
+    _window_sums(per, half, pf, k, np.sum(weights * noise_var), m_out, std_out)
 
 
 @njit(cache=True)
@@ -125,7 +175,7 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
     the running sums of g and r are formed with them, the per-instant window sums with the
     running sums of those, so the data are passed over twice."""
     t0, t1, force, arm = loads
-    joints, weights, pf, half, frac_sum = win
+    joints, weights, noise_var, pf, half = win
     n, k = arm.shape
     keep = n if pf == 0 else 0  # g, r themselves only without the prefilter
     g = np.empty((keep, k))
@@ -146,10 +196,7 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
                 r[i, c] = ri
             cg[i + 1, c] = cg[i, c] + gi
             cr[i + 1, c] = cr[i, c] + ri
-    cp = np.empty((n + 1, 3))  # running sums of Σ w·g², Σ w·g·r, Σ w·r²
-    cp[0, 0] = 0.0
-    cp[0, 1] = 0.0
-    cp[0, 2] = 0.0
+    per = np.empty((n, 4))  # per instant: Σ w·g², Σ w·g·r, Σ w·r², Σ w²·g²·σ²
     for i in range(n):
         hi = min(i + pf + 1, n)
         lo = max(i - pf, 0)
@@ -157,6 +204,7 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
         sa = 0.0
         sb = 0.0
         sc = 0.0
+        sd = 0.0
         for c in range(k):
             if pf > 0:
                 gs = (cg[hi, c] - cg[lo, c]) / cnt
@@ -168,18 +216,16 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
             sa += wg * gs
             sb += wg * rs
             sc += rs * rs * weights[c]
-        cp[i + 1, 0] = cp[i, 0] + sa
-        cp[i + 1, 1] = cp[i, 1] + sb
-        cp[i + 1, 2] = cp[i, 2] + sc
-    for i in range(n):
-        hi = min(i + half + 1, n)
-        lo = max(i - half, 0)
-        m_out[i], std_out[i] = _window_estimate(cp[hi, 0] - cp[lo, 0], cp[hi, 1] - cp[lo, 1],
-                                                cp[hi, 2] - cp[lo, 2], float(hi - lo) * frac_sum)
+            sd += wg * wg * noise_var[c]
+        per[i, 0] = sa
+        per[i, 1] = sb
+        per[i, 2] = sc
+        per[i, 3] = sd
+    _window_sums(per, half, pf, k, np.sum(weights * noise_var), m_out, std_out)
 
 
 def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_window: int,
-                     independent_fraction: F64) -> tuple[F64, F64]:
+                     independent_fraction: F64, noise_std: F64 | None = None) -> tuple[F64, F64]:
     """Sliding-window weighted least-squares payload (module docstring), in one compiled pass.
 
     g and r are first averaged over centred windows of ``2·prefilter_half + 1`` instants
@@ -192,25 +238,32 @@ def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_win
         weights: 1/σ² per joint, shape (n_c,) [1/(N·m)²].
         prefilter_half: Half width of the moving average [instants]; 0 for none.
         half_window: Half window of the fit [instants].
-        independent_fraction: Independent errors per instant per joint, shape (n_c,), in (0, 1].
+        independent_fraction: The pressure smoothers' variance gain risk/σ² per joint, shape
+            (n_c,), in (0, 1]; checked, not used by the σ any more (module docstring).
+        noise_std: Raw (unsmoothed) noise of r per joint, shape (n_c,) [N·m or N]; None: 0
+            (σ from the residual scatter alone).
 
     Returns:
         (m̂, σ_m̂), each shape (k,) [kg]; NaN estimate and inf σ where g vanishes.
     """
     if g.shape != r.shape or g.ndim != 2:
         raise TwinError(f"g {g.shape} and r {r.shape} must both be (k, n_c)")
+    if np.shape(independent_fraction) != (g.shape[1],):
+        raise TwinError(f"independent_fraction must have shape ({g.shape[1]},)")
     m = np.empty(g.shape[0])
     std = np.empty(g.shape[0])
+    nv = np.zeros(g.shape[1]) if noise_std is None else np.asarray(noise_std, np.float64) ** 2
     _windowed_payload(np.ascontiguousarray(g, dtype=np.float64),
                       np.ascontiguousarray(r, dtype=np.float64),
-                      np.ascontiguousarray(weights, dtype=np.float64), int(prefilter_half),
-                      int(half_window), float(np.sum(independent_fraction)), m, std)
+                      np.ascontiguousarray(weights, dtype=np.float64),
+                      np.ascontiguousarray(nv), int(prefilter_half), int(half_window), m, std)
     return m, std
 
 
 def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
                        joints: npt.NDArray[np.int64], weights: F64, prefilter_half: int,
-                       half_window: int, independent_fraction: F64) -> tuple[F64, F64]:
+                       half_window: int, independent_fraction: F64,
+                       noise_std: F64 | None = None) -> tuple[F64, F64]:
     """:func:`windowed_payload` from the inverse dynamics at 0 and 1 kg and the cylinder
     forces, in one compiled pass: g = (tau1 − tau0)/arm and r = (F·arm − tau0)/arm at the
     cylinder joints (per unit of rod force: F·arm is the actuator load F·ds/dq).
@@ -221,6 +274,7 @@ def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
         arm: Moment arms ds/dq, (k, n_c) [m/rad or m/m].
         joints: Joint index of each cylinder, (n_c,).
         weights, prefilter_half, half_window, independent_fraction: as :func:`windowed_payload`.
+        noise_std: Raw noise of each cylinder's force, (n_c,) [N]; None: 0.
 
     Returns:
         (m̂, σ_m̂), each shape (k,) [kg].
@@ -231,10 +285,10 @@ def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
     m = np.empty(arm.shape[0])
     std = np.empty(arm.shape[0])
     c = np.ascontiguousarray
+    nv = np.zeros(arm.shape[1]) if noise_std is None else np.asarray(noise_std, np.float64) ** 2
     loads = JointLoads(c(tau0, dtype=np.float64), c(tau1, dtype=np.float64),
                        c(force, dtype=np.float64), c(arm, dtype=np.float64))
-    win = PayloadWindow(c(joints, dtype=np.int64), c(weights, dtype=np.float64),
-                        int(prefilter_half), int(half_window),
-                        float(np.sum(independent_fraction)))
+    win = PayloadWindow(c(joints, dtype=np.int64), c(weights, dtype=np.float64), c(nv),
+                        int(prefilter_half), int(half_window))
     _regression_payload(loads, win, m, std)
     return m, std

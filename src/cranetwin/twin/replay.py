@@ -115,7 +115,7 @@ class TwinStream:
         # the first integrated joint (the slew) starts at theta0_initial, any other at 0
         self._slew = [SlewState(theta0=self.opt.theta0_initial if i == 0 else 0.0)
                       for i in range(self.plan.n_int)]
-        self._pw_cache: tuple[tuple[SmoothingChoice, ...], F64, F64] | None = None
+        self._pw_cache: tuple[tuple[SmoothingChoice, ...], F64, F64, F64] | None = None
         self._finished = False
         self._rods_checked = False
 
@@ -141,7 +141,7 @@ class TwinStream:
             hit = (self._choices, *payload_weights(self.plan, self._choices))
             self._pw_cache = hit
         _, half, pf = self._margins()
-        return PayloadSetting(self.payload, hit[1], hit[2], pf // 2, half)
+        return PayloadSetting(self.payload, hit[1], hit[2], pf // 2, half, hit[3])
 
     # -- public API ----------------------------------------------------------------------------
     def set_smoothing(self, choices: tuple[SmoothingChoice, ...]) -> None:
@@ -306,7 +306,8 @@ class TwinStream:
         else:
             ps = self._payload_setting()
             mass, _ = estimate_payload(plan, (q, qd, qdd), f, arm,
-                                       (ps.weights, ps.frac, ps.prefilter_half, ps.half_window))
+                                       (ps.weights, ps.frac, ps.prefilter_half, ps.half_window,
+                                        ps.noise))
             mass = np.nan_to_num(np.maximum(mass, 0.0))
         sl = slice(k0 - lo, k_hi - lo)
         nj = self.machine.n_joints

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -11,6 +12,9 @@ import numpy.typing as npt
 from cranetwin.errors import TwinError
 from cranetwin.model import Machine
 from cranetwin.signal import SmoothingChoice
+
+if TYPE_CHECKING:
+    from cranetwin.twin.observability import ForceObservability
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
@@ -77,6 +81,16 @@ class TwinResult:
         from cranetwin.physics import body_poses
 
         return body_poses(machine, self.q)
+
+    def force_observability(self, machine: Machine) -> tuple[ForceObservability, ...]:
+        """Per cylinder, whether the pressures resolve its force over this result's window
+        (:mod:`cranetwin.twin.observability`): the per-sample force error against the range
+        of ``cyl_force``."""
+        from cranetwin.twin.observability import ForceRange
+
+        rng = ForceRange()
+        rng.add(self.cyl_force)
+        return rng.assess(machine, self.smoothing)
 
     def tip_path(self, machine: Machine) -> F64:
         """World position of the load point, shape (m, 3) [m] (computed on demand)."""

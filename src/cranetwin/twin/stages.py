@@ -316,33 +316,38 @@ def sample_states(plan: ReplayPlan, sm: F64) -> tuple[F64, F64, F64, F64, F64, F
     return q, qd, qdd, cs[:, 4 * nc :], cs[:, 3 * nc : 4 * nc], cs
 
 
-def payload_weights(plan: ReplayPlan, choices: tuple[SmoothingChoice, ...]) -> tuple[F64, F64]:
-    """Weights 1/σ² per cylinder joint (n_c,) and the independent errors per sample of each
-    (n_c,), from the pressures' smoothing choices."""
+def payload_weights(plan: ReplayPlan,
+                    choices: tuple[SmoothingChoice, ...]) -> tuple[F64, F64, F64]:
+    """Weights 1/σ² per cylinder joint (n_c,), the independent errors per sample of each
+    (n_c,) and the raw noise of each cylinder's hydraulic force (n_c,) [N], from the
+    pressures' smoothing choices."""
     m = plan.machine
     weights = np.empty(len(m.cylinders))
     frac = np.empty(len(m.cylinders))
+    noise = np.empty(len(m.cylinders))
     for c, cyl in enumerate(m.cylinders):
         ch = choices[plan.cmap.p_a[c]]
+        noise[c] = max(ch.sigma, 0.0)
         weights[c] = 1.0 / (max(ch.risk, 0.0) + cyl.friction.coulomb ** 2)
         # independent errors per sample ≈ the smoother's variance gain, risk/σ²
         frac[c] = float(np.clip(ch.risk / ch.sigma**2, 1e-3, 1.0)) if ch.sigma > 0 else 1.0
-    return weights, frac
+    return weights, frac, noise
 
 
 def estimate_payload(plan: ReplayPlan, motion: tuple[F64, F64, F64], f: F64, arm: F64,
-                     setting: tuple[F64, F64, int, int]) -> tuple[F64, F64]:
+                     setting: tuple[F64, F64, int, int, F64]) -> tuple[F64, F64]:
     """Payload and its standard error (n,) [kg] at every instant of motion = (q, qd, qdd)
     (n, n_j) (windows cut at its ends) from the cylinder forces f and moment arms (n, n_c);
-    setting = (weights, independent fractions, prefilter half, half window)."""
+    setting = (weights, independent fractions, prefilter half, half window, raw force noise
+    per cylinder [N]) (:mod:`cranetwin.twin.payload`)."""
     q, qd, qdd = motion
     nj = plan.machine.n_joints
     t0 = np.empty((q.shape[0], nj))  # joint loads without payload
     t1 = np.empty((q.shape[0], nj))  # and with 1 kg at the load point
     c = np.ascontiguousarray
     plan.kernels.rnea_payload(c(q), c(qd), c(qdd), t0, t1)
-    weights, frac, pf, half = setting
-    return regression_payload(t0, t1, f, arm, plan.cyl_joint, weights, pf, half, frac)
+    weights, frac, pf, half, noise = setting
+    return regression_payload(t0, t1, f, arm, plan.cyl_joint, weights, pf, half, frac, noise)
 
 
 def margins(choices: tuple[SmoothingChoice, ...] | None, nch: int, period: float,

@@ -1,0 +1,157 @@
+"""Can the pressures resolve a cylinder's force? The sensor error against the force range seen.
+
+A cylinder's force comes from its two chamber pressures, F = A_A·p_A − A_B·p_B − friction
+(Eq. 1–2). A pressure error σ_p in each chamber is a force error::
+
+    σ_F = sqrt(A_A²·σ_pA² + A_B²·σ_pB²)      (= σ_p·sqrt(A_A² + A_B²) for equal sensors)
+
+per sample, before any smoothing. σ_p is the larger of the sensors' stated accuracy
+(``Channel.accuracy``, a ± bound taken as uniform: σ = accuracy/√3) and the noise the replay
+estimated from the data (:attr:`cranetwin.signal.SmoothingChoice.sigma` of the pressure pair,
+already in N). A stated accuracy is mostly offset and gain error, which no smoothing removes,
+so σ_F is compared unsmoothed.
+
+When σ_F exceeds ``RESOLVABLE_SHARE`` (10 %) of the range of the cylinder's replayed force
+(max − min over the window), the force is flagged as not observable: its shape is then mostly
+sensor error (a small telescope cylinder of a few kN behind 0–250 bar sensors: ±1 % of the
+pressure range is ±490 N of force). The flag travels with the replay: :func:`assess`
+returns one :class:`ForceObservability` per cylinder, :class:`ForceRange` collects the range
+chunk by chunk for streamed replays.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal, NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+from cranetwin.model import Machine
+from cranetwin.signal import SmoothingChoice
+
+F64 = npt.NDArray[np.float64]
+
+RESOLVABLE_SHARE = 0.10
+"""A force is observable when its per-sample error σ_F is at most this share of its range."""
+
+
+class ForceObservability(NamedTuple):
+    """Whether one cylinder's force can be resolved in a replayed window.
+
+    Attributes:
+        cylinder: Cylinder name.
+        sigma_n: Per-sample force error σ_F [N] (module docstring).
+        source: Where σ_p came from: the sensors' stated accuracy or the data's noise.
+        range_n: Range of the replayed force in the window, max − min [N].
+        share: sigma_n / range_n (inf for a constant force).
+        observable: share ≤ ``RESOLVABLE_SHARE``.
+    """
+
+    cylinder: str
+    sigma_n: float
+    source: Literal["stated accuracy", "estimated noise"]
+    range_n: float
+    share: float
+    observable: bool
+
+    def message(self) -> str:
+        """One line naming the cylinder and the numbers."""
+        verdict = "observable" if self.observable else "NOT observable"
+        return (f"cylinder {self.cylinder!r}: force {verdict}: pressure error "
+                f"±{self.sigma_n:.0f} N (1σ, {self.source}) against a force range of "
+                f"{self.range_n:.0f} N "
+                f"({100 * self.share:.0f} %; limit {100 * RESOLVABLE_SHARE:.0f} %)")
+
+    def as_json(self) -> dict[str, Any]:
+        """Plain numbers for the API (``share`` None when infinite)."""
+        share = None if not math.isfinite(self.share) else round(self.share, 4)
+        return {"cylinder": self.cylinder, "sigma_n": round(self.sigma_n, 1),
+                "source": self.source, "range_n": round(self.range_n, 1), "share": share,
+                "observable": self.observable}
+
+
+def stated_force_sigma(machine: Machine, cylinder: int) -> float:
+    """σ_F [N] from the stated accuracy of the cylinder's two pressure channels, or 0 when
+    either channel states none."""
+    cyl = machine.cylinders[cylinder]
+    acc: dict[str, float] = {}
+    for ch in machine.channels:
+        if ch.source == cyl.name and ch.quantity in ("pressure_a", "pressure_b"):
+            if ch.accuracy is None:
+                return 0.0
+            acc[ch.quantity] = ch.accuracy / math.sqrt(3.0)
+    if len(acc) < 2:
+        return 0.0
+    return math.hypot(cyl.area_a_m2 * acc["pressure_a"], cyl.area_b_m2 * acc["pressure_b"])
+
+
+def force_sigma(machine: Machine, cylinder: int,
+                smoothing: Mapping[str, SmoothingChoice]) -> tuple[float, Literal[
+                    "stated accuracy", "estimated noise"]]:
+    """(σ_F [N], its source) for one cylinder: the larger of the stated accuracy's and the
+    estimated noise's (the pressure pair's smoothing choice, keyed by the pA channel's name)."""
+    cyl = machine.cylinders[cylinder]
+    est = 0.0
+    for ch in machine.channels:
+        if ch.source == cyl.name and ch.quantity == "pressure_a" and ch.name in smoothing:
+            est = max(smoothing[ch.name].sigma, 0.0)
+    stated = stated_force_sigma(machine, cylinder)
+    return (stated, "stated accuracy") if stated >= est else (est, "estimated noise")
+
+
+def assess(machine: Machine, smoothing: Mapping[str, SmoothingChoice], force_min_n: F64,
+           force_max_n: F64) -> tuple[ForceObservability, ...]:
+    """One :class:`ForceObservability` per cylinder (``machine.cylinders`` order).
+
+    Args:
+        machine: The machine (areas, channels and their stated accuracy).
+        smoothing: The replay's smoothing choices (:attr:`TwinResult.smoothing`).
+        force_min_n, force_max_n: Smallest and largest replayed force per cylinder, (n_c,) [N].
+    """
+    out = []
+    for k, cyl in enumerate(machine.cylinders):
+        sigma, source = force_sigma(machine, k, smoothing)
+        span = float(force_max_n[k] - force_min_n[k])
+        share = sigma / span if span > 0 else (0.0 if sigma == 0 else math.inf)
+        out.append(ForceObservability(cyl.name, sigma, source, span, share,
+                                      bool(share <= RESOLVABLE_SHARE)))
+    return tuple(out)
+
+
+@dataclass
+class ForceRange:
+    """The replayed force's range per cylinder, collected over the chunks of a replay."""
+
+    lo: F64 = field(default_factory=lambda: np.zeros(0))
+    hi: F64 = field(default_factory=lambda: np.zeros(0))
+
+    def add(self, force_n: F64) -> None:
+        """Take in a chunk's cylinder forces, (m, n_c) [N] (non-finite values ignored)."""
+        if force_n.shape[0] == 0:
+            return
+        f = np.where(np.isfinite(force_n), force_n, np.nan)
+        with np.errstate(all="ignore"):
+            lo = np.nan_to_num(np.nanmin(f, axis=0), nan=np.inf)
+            hi = np.nan_to_num(np.nanmax(f, axis=0), nan=-np.inf)
+        if self.lo.shape[0] == 0:
+            self.lo, self.hi = lo, hi
+        else:
+            self.lo = np.minimum(self.lo, lo)
+            self.hi = np.maximum(self.hi, hi)
+
+    def assess(self, machine: Machine,
+               smoothing: Mapping[str, SmoothingChoice]) -> tuple[ForceObservability, ...]:
+        """:func:`assess` over what was added (nothing added: no verdicts)."""
+        if self.lo.shape[0] == 0:
+            return ()
+        span_ok = self.hi >= self.lo
+        return assess(machine, smoothing, np.where(span_ok, self.lo, 0.0),
+                      np.where(span_ok, self.hi, 0.0))
+
+
+def unobservable(verdicts: tuple[ForceObservability, ...]) -> list[str]:
+    """The warning lines of the cylinders whose force is not observable."""
+    return [v.message() for v in verdicts if not v.observable]
