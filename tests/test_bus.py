@@ -24,13 +24,13 @@ from cranetwin.bus.sink import JetStreamStore
 from cranetwin.bus.subjects import (
     BusConfig,
     msg_id_of,
-    partition_of,
     subject_of,
     subject_token,
 )
 from cranetwin.errors import StorageUnavailableError
 from cranetwin.samples import SampleBlock
 from cranetwin.storage import Store
+from cranetwin.storage.sharding import partition_of
 
 pytestmark = pytest.mark.timeout(120)
 NATS_URL = "nats://127.0.0.1:4222"

@@ -9,6 +9,7 @@ nats-py is the ``nats`` extra; the modules import it lazily and raise
 
 from __future__ import annotations
 
-from cranetwin.bus.subjects import BusConfig, msg_id_of, partition_of, subject_of
+from cranetwin.bus.subjects import BusConfig, msg_id_of, subject_of
+from cranetwin.storage.sharding import partition_of
 
 __all__ = ["BusConfig", "msg_id_of", "partition_of", "subject_of"]

@@ -191,7 +191,7 @@ class TwinWorker:
         own, m = self.ownership, self.metrics
         if own is None or m is None:
             return
-        from cranetwin.service.ownership import partition_of
+        from cranetwin.storage.sharding import partition_of
 
         now = time.time()
         lag: dict[int, float] = dict.fromkeys(own.owned, 0.0)
