@@ -137,7 +137,11 @@ STORED_KEYS = {"days", "shift_h", "rate_hz", "stored_hours", "samples", "write_s
                "report_2d_seconds", "report_2d_cpu_seconds", "direct_range_hours",
                "merged_range_seconds", "direct_range_seconds", "speedup_vs_direct",
                "equal_to_direct", "work_cycles", "events", "kp", "max_damage",
-               "remaining_years_worst", "peak_rss_mib"}
+               "remaining_years_worst", "peak_rss_mib",
+               "export_samples", "export_samples_per_second", "export_cpu_samples_per_second",
+               "export_csv_samples_per_second", "export_read_samples_per_second",
+               "baseline_export_per_block_read_samples_per_second",
+               "baseline_json_pages_samples_per_second"}
 
 
 def test_stored_benchmark_merges_what_the_worker_stored() -> None:
@@ -148,6 +152,13 @@ def test_stored_benchmark_merges_what_the_worker_stored() -> None:
     assert set(j) == STORED_KEYS
     assert j["equal_to_direct"] is True  # the merged report of the range equals replaying it
     assert j["samples"] == 2 * (180 + 5) * 100  # both shifts, every sample, through the worker
+    # the export streamed every stored sample (all channels), and each rate is a real rate
+    assert j["export_samples"] > 0 and j["export_samples"] % j["samples"] == 0
+    for key in ("export_samples_per_second", "export_cpu_samples_per_second",
+                "export_csv_samples_per_second", "export_read_samples_per_second",
+                "baseline_export_per_block_read_samples_per_second",
+                "baseline_json_pages_samples_per_second"):
+        assert j[key] > 0, key
     assert j["worker_windows"] == 2 * 4
     assert j["speedup_vs_direct"] == pytest.approx(
         j["direct_range_seconds"] / j["merged_range_seconds"], rel=0.06, abs=0.06)
