@@ -100,19 +100,6 @@ class WriterCounters:
                 "write_retries": self.write_retries, "refused": dict(self.refused)}
 
 
-def _db_unavailable(exc: BaseException) -> bool:
-    if isinstance(exc, StorageUnavailableError):
-        return True
-    cur: BaseException | None = exc
-    seen: set[int] = set()
-    while cur is not None and id(cur) not in seen:
-        seen.add(id(cur))
-        if dberrors.is_unavailable(cur):
-            return True
-        cur = cur.__cause__ or cur.__context__
-    return False
-
-
 class StoreWriter:
     """Consumes partitions of the fleet bus into ``store`` (see the module docstring).
 
@@ -162,7 +149,7 @@ class StoreWriter:
             try:
                 result = self.store.write_batch(blocks)
             except Exception as exc:
-                if not _db_unavailable(exc):
+                if not dberrors.unavailable_in_chain(exc):
                     raise
                 self.counters.write_retries += 1
                 if outage_since is None:

@@ -15,7 +15,6 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any, Literal
 
-from cranetwin.errors import StorageUnavailableError
 from cranetwin.ingest.config import DaemonConfig
 from cranetwin.ingest.metrics import Metrics
 from cranetwin.protocol.status import StatusReport
@@ -38,19 +37,9 @@ def outcomes_of(result: WriteResult) -> list[Outcome]:
 
 def is_unavailable(exc: BaseException) -> bool:
     """Whether ``exc`` is an operational database failure (connection lost, server down,
-    database locked, disk I/O): the write should be retried, not refused. Storage raises
-    :class:`~cranetwin.errors.StorageUnavailableError` for these; the SQLAlchemy errors in the
-    cause chain are recognised too, for calls that let them through."""
-    if isinstance(exc, StorageUnavailableError):
-        return True
-    seen: set[int] = set()
-    cur: BaseException | None = exc
-    while cur is not None and id(cur) not in seen:
-        seen.add(id(cur))
-        if dberrors.is_unavailable(cur):
-            return True
-        cur = cur.__cause__ or cur.__context__
-    return False
+    database locked, disk I/O): the write should be retried, not refused
+    (:func:`cranetwin.storage.dberrors.unavailable_in_chain`)."""
+    return dberrors.unavailable_in_chain(exc)
 
 
 class Abandoned(Exception):

@@ -17,6 +17,23 @@ def is_unavailable(exc: BaseException) -> bool:
     return isinstance(exc, sa_exc.DBAPIError) and bool(exc.connection_invalidated)
 
 
+def unavailable_in_chain(exc: BaseException) -> bool:
+    """Whether ``exc`` means the database is unavailable: a
+    :class:`~cranetwin.errors.StorageUnavailableError` (what storage raises for these), or an
+    error :func:`is_unavailable` recognises anywhere in its cause chain (for calls that let the
+    SQLAlchemy errors through). The write should then be retried, not refused."""
+    if isinstance(exc, StorageUnavailableError):
+        return True
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if is_unavailable(cur):
+            return True
+        cur = cur.__cause__ or cur.__context__
+    return False
+
+
 def is_data_error(exc: BaseException) -> bool:
     """The database rejected the values written (data or integrity error; an integer the driver
     cannot bind), as opposed to a failure of the database or a bug."""
