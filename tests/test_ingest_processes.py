@@ -1,9 +1,11 @@
 """``cranetwin ingest --processes N``: a SO_REUSEPORT group steered by the wire id inside the
 datagram. Steering keeps a machine on its socket whatever its source port; a child killed with
-SIGKILL mid-stream is restarted on its socket and nothing acknowledged is lost or doubled."""
+SIGKILL mid-stream is restarted on its socket and nothing acknowledged is lost or doubled (with
+the database, and with the children publishing to the NATS JetStream fleet bus)."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import signal
@@ -23,9 +25,11 @@ from cranetwin.bench.ingest import (
     make_sender,
     start_daemon,
 )
+from cranetwin.bus.subjects import BusConfig
 from cranetwin.ingest.steering import bind_group, steer
 from cranetwin.protocol import Sender
 from cranetwin.storage import Store
+from test_bus import delete_stream, fresh_bus, nats_unreachable_reason, run_writer
 from test_ingest_faults import run_main
 from test_ingest_reliability import LAYOUT, assert_stored_exactly, key, registered
 
@@ -209,11 +213,96 @@ def test_processes_port_in_use_is_one_line_exit_2(
     assert err.count("\n") == 1 and "Traceback" not in err and "already in use" in err, err
 
 
-@pytest.mark.timeout(60)
-def test_processes_with_the_fleet_bus_is_refused_in_one_line(
-        sqlite_url: str, monkeypatch: pytest.MonkeyPatch,
-        capsys: pytest.CaptureFixture[str]) -> None:
-    code, _, err = run_main(monkeypatch, capsys, "ingest", "--bind", "127.0.0.1:0", "--db",
-                            sqlite_url, "--metrics-bind", "0", "--processes", "2",
-                            "--bus", "nats://127.0.0.1:4222")
-    assert code == 2 and err.count("\n") == 1 and "--processes with --bus" in err, err
+def _stream_keys(cfg: BusConfig) -> list[tuple[int, int]]:
+    """(wire id, seq) of every message in the stream, read directly (nothing consumed)."""
+    import nats
+
+    async def run() -> list[tuple[int, int]]:
+        nc = await nats.connect(cfg.url, connect_timeout=2, allow_reconnect=False)
+        try:
+            js = nc.jetstream()
+            state = (await js.stream_info(cfg.stream)).state
+            out = []
+            for q in range(state.first_seq, state.last_seq + 1) if state.messages else ():
+                msg = await js.get_msg(cfg.stream, q)
+                machine, _epoch, seq = msg.headers["Nats-Msg-Id"].split("/")
+                out.append((int(machine.removeprefix("crane-")), int(seq)))
+            assert len(out) == state.messages
+            return out
+        finally:
+            await nc.close()
+
+    return asyncio.run(run())
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_a_child_killed_mid_stream_on_the_fleet_bus_loses_and_doubles_nothing(
+        sqlite_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--processes 2 --bus nats://…``: each child publishes to JetStream; ``kill -9`` of one
+    mid-stream; every seq acked is in the stream exactly once (at the kill and at the end), and
+    a storage writer stores every sample exactly once."""
+    reason = nats_unreachable_reason()
+    if reason:
+        pytest.skip(reason)
+    cfg = fresh_bus(partitions=4, ack_wait_s=1.0)
+    # the parent reads the bus settings from its environment; its children get them on stdin
+    for k, v in {"CRANETWIN_BUS_STREAM": cfg.stream, "CRANETWIN_BUS_PREFIX": cfg.prefix,
+                 "CRANETWIN_BUS_PARTITIONS": str(cfg.partitions),
+                 "CRANETWIN_BUS_ACK_WAIT_S": str(cfg.ack_wait_s),
+                 "CRANETWIN_BUS_PUBLISH_TIMEOUT_S": "10"}.items():  # no retry under load
+        monkeypatch.setenv(k, v)
+    wire_ids = [1, 2, 3, 4, 5, 6]
+    store = registered(sqlite_url, wire_ids)
+    sent = {w: grid_values(LAYOUT, 3000, w) for w in wire_ids}
+    senders = [make_sender(key(w), sent[w], rto_s=0.2, max_unacked=8, max_burst=4)
+               for w in wire_ids]
+    acked = _record_acks(senders)
+    port = free_udp_port()
+    fleet = Fleet(senders, ("127.0.0.1", port))
+    proc = None
+    try:
+        proc = start_daemon(sqlite_url, port, tmp_path, "--processes", "2", "--bus", cfg.url)
+        children = {c["index"]: c["pid"] for c in proc.info["children"]}
+        assert sorted(children) == [0, 1] and len(set(children.values())) == 2
+        total = sum(v.shape[0] for v in sent.values())
+        assert fleet.run(timeout_s=90, until=lambda: sum(
+            s.acked_samples for s in fleet.senders.values()) >= total // 3)
+        os.kill(children[1], signal.SIGKILL)  # serves the odd wire ids: no flush, no goodbye
+        acked_at_kill = {w: set(q) for w, q in acked.items()}
+        in_stream = _stream_keys(cfg)
+        for w, seqs in acked_at_kill.items():  # acked ⇒ PubAcked, before any retransmission
+            assert seqs <= {q for m, q in in_stream if m == w}, f"crane-{w}: acked, not in stream"
+        assert any(acked_at_kill[w] for w in (1, 3, 5))  # the dead child had acked some
+        assert stored_blocks_are_none(store, wire_ids)  # nothing went to the database itself
+        assert fleet.run(timeout_s=150), "not everything was acknowledged after the kill"
+        final = proc.stop(60)
+        assert proc.poll() == 0
+        assert final["restarts"] == 1 and final["processes"] == 2
+        in_stream = _stream_keys(cfg)
+        assert len(in_stream) == len(set(in_stream)), "a block is in the stream twice"
+        for i, w in enumerate(wire_ids):
+            seqs = sorted(q for m, q in in_stream if m == w)
+            assert set(seqs) >= acked[w]
+            assert seqs == list(range(1, senders[i].next_seq)), f"crane-{w}"
+        # the restarted child published the odd machines' rest, child 0 all the even ones
+        by_child = {c["index"]: c for c in final["children"]}
+        odd = sum(1 for m, _ in in_stream if m % 2)
+        assert by_child[0]["stored_blocks"] == len(in_stream) - odd
+        assert 0 < by_child[1]["stored_blocks"] < odd
+        got = run_writer(store, cfg, until=lambda: store.stats().samples >= total, timeout_s=90)
+        assert not isinstance(got, BaseException), got
+        assert got["refused"] == {} and got["bad_messages"] == 0
+        assert_stored_exactly(store, sent)
+        for i, w in enumerate(wire_ids):
+            assert _stored_seqs(store, w) == list(range(1, senders[i].next_seq))
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        fleet.close()
+        store.close()
+        delete_stream(cfg)
+
+
+def stored_blocks_are_none(store: Store, wire_ids: list[int]) -> bool:
+    return all(not _stored_seqs(store, w) for w in wire_ids)

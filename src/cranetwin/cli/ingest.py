@@ -23,6 +23,7 @@ from cranetwin.errors import CraneTwinError
 from cranetwin.settings import Settings, load_settings
 
 if TYPE_CHECKING:
+    from cranetwin.bus.subjects import BusConfig
     from cranetwin.ingest.config import DaemonConfig
 
 machines_app = typer.Typer(help="Register machines (wire id and HMAC secret) and list them.",
@@ -141,11 +142,10 @@ def ingest(
                                      range_margin=st.ingest_range_margin))
 
     if processes > 1:
-        if st.bus_url:
-            raise CliError("--processes with --bus is not supported yet: run one "
-                           "`cranetwin ingest --bus` per address")
+        from cranetwin.cli.store_writer import bus_config
+
         _run_group(st.database_url, cfg, processes, st.live_bus_url, st.ingest_busy_timeout_s,
-                   log_level)
+                   log_level, bus_config(st) if st.bus_url else None)
         return
 
     def ready(d: IngestDaemon) -> None:
@@ -170,8 +170,9 @@ def ingest(
 
 
 def _run_group(db_url: str, cfg: DaemonConfig, processes: int, live_url: str | None,
-               busy_timeout_s: float, log_level: str) -> None:
-    """``--processes N``: the parent of N daemon processes (blocking until SIGTERM/SIGINT)."""
+               busy_timeout_s: float, log_level: str, bus: BusConfig | None) -> None:
+    """``--processes N``: the parent of N daemon processes (blocking until SIGTERM/SIGINT),
+    each publishing to ``bus`` if given."""
     from cranetwin.ingest.processes import ProcessGroup
 
     def ready(g: ProcessGroup) -> None:
@@ -181,7 +182,7 @@ def _run_group(db_url: str, cfg: DaemonConfig, processes: int, live_url: str | N
         sys.stdout.flush()
 
     group = ProcessGroup(db_url, cfg, processes, live_url=live_url,
-                         busy_timeout_s=busy_timeout_s, log_level=log_level)
+                         busy_timeout_s=busy_timeout_s, log_level=log_level, bus=bus)
     final = group.run(on_ready=ready)
     sys.stdout.write(json.dumps({"event": "stopped", **final}) + "\n")
     sys.stdout.flush()

@@ -3,20 +3,20 @@
 :func:`serve_to_bus` is :func:`cranetwin.ingest.daemon.serve` with the store replaced by a
 :class:`~cranetwin.bus.sink.JetStreamStore`: machine keys and status reports still come from and
 go to the database at ``db_url``; sample blocks go to JetStream, and a machine is acknowledged
-once the PubAcks of its blocks are in. The daemon itself is unchanged.
+once the PubAcks of its blocks are in. The daemon itself is unchanged
+(:func:`~cranetwin.ingest.daemon.serve_store` runs it on either store). With ``--processes N``
+every child process runs it (:mod:`cranetwin.ingest.child`).
 """
 
 from __future__ import annotations
 
-import asyncio
 from collections.abc import Callable
 from typing import Any
 
 from cranetwin.bus.sink import JetStreamStore
 from cranetwin.bus.subjects import BusConfig
 from cranetwin.ingest.config import DaemonConfig
-from cranetwin.ingest.daemon import IngestDaemon
-from cranetwin.ingest.sockets import new_event_loop
+from cranetwin.ingest.daemon import IngestDaemon, serve_store
 from cranetwin.storage.live import LiveBus
 
 
@@ -36,13 +36,5 @@ def serve_to_bus(db_url: str, bus: BusConfig, config: DaemonConfig | None = None
     Returns:
         The final :meth:`IngestDaemon.snapshot`.
     """
-    store = JetStreamStore.open_bus(db_url, bus, busy_timeout_s=busy_timeout_s)
-    try:
-        daemon = IngestDaemon(store, config, live)
-        with asyncio.Runner(loop_factory=new_event_loop) as runner:
-            runner.run(daemon.serve(on_ready=on_ready))
-        return daemon.snapshot()
-    finally:
-        if live is not None:
-            live.close()
-        store.close()
+    return serve_store(JetStreamStore.open_bus(db_url, bus, busy_timeout_s=busy_timeout_s),
+                       config, live, on_ready)

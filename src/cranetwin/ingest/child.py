@@ -2,8 +2,10 @@
 :class:`~cranetwin.ingest.processes.ProcessGroup` as ``python -m cranetwin.ingest.child``).
 
 Reads its settings as one JSON object on stdin (:func:`~cranetwin.ingest.processes.child_spec`:
-database URL, ``DaemonConfig`` fields, the inherited socket's descriptor), serves on that socket
-until SIGTERM, and prints two JSON lines on stdout as ``cranetwin ingest`` does:
+database URL, ``DaemonConfig`` fields, the fleet bus's ``BusConfig`` fields or null, the
+inherited socket's descriptor), serves on that socket until SIGTERM — writing to the database,
+or publishing to the fleet bus (:func:`~cranetwin.ingest.bus_serve.serve_to_bus`) — and prints
+two JSON lines on stdout as ``cranetwin ingest`` does:
 ``{"event": "ready", "index", "pid", "metrics"}`` and ``{"event": "stopped", <counters>}``.
 """
 
@@ -58,10 +60,17 @@ def main() -> None:
     def ready(d: IngestDaemon) -> None:
         _emit({"event": "ready", "index": index, "pid": os.getpid(), "metrics": d.metrics_url})
 
+    busy = float(spec["busy_timeout_s"])
     try:
-        final = serve(spec["db_url"], cfg,
-                      open_bus(spec["live_url"]) if spec["live_url"] else None,
-                      on_ready=ready, busy_timeout_s=float(spec["busy_timeout_s"]))
+        live = open_bus(spec["live_url"]) if spec["live_url"] else None
+        if spec.get("bus"):
+            from cranetwin.bus.subjects import BusConfig
+            from cranetwin.ingest.bus_serve import serve_to_bus
+
+            final = serve_to_bus(spec["db_url"], BusConfig(**spec["bus"]), cfg, live,
+                                 on_ready=ready, busy_timeout_s=busy)
+        else:
+            final = serve(spec["db_url"], cfg, live, on_ready=ready, busy_timeout_s=busy)
     except (IngestConfigError, CraneTwinError) as exc:
         sys.stderr.write(f"error: ingest process {index}: {exc}\n")
         sys.exit(2)

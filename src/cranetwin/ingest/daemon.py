@@ -81,7 +81,8 @@ from cranetwin.storage import Store
 from cranetwin.storage.live import LiveBus
 
 __all__ = ["COUNTERS", "DaemonConfig", "IngestConfigError", "IngestDaemon", "Metrics",
-           "check_model", "is_unavailable", "layout_of", "new_event_loop", "serve"]
+           "check_model", "is_unavailable", "layout_of", "new_event_loop", "serve",
+           "serve_store"]
 
 log = logging.getLogger(__name__)
 
@@ -386,7 +387,21 @@ def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None =
         IngestConfigError: an address cannot be bound.
         StorageError: the database cannot be opened.
     """
-    store = Store.open(db_url, busy_timeout_s=busy_timeout_s)
+    return serve_store(Store.open(db_url, busy_timeout_s=busy_timeout_s), config, bus, on_ready)
+
+
+def serve_store(store: Store, config: DaemonConfig | None = None, bus: LiveBus | None = None,
+                on_ready: Callable[[IngestDaemon], None] | None = None) -> dict[str, Any]:
+    """Run the daemon on an opened ``store`` until SIGTERM/SIGINT (blocking), then close the
+    store and ``bus`` (whatever happens). :func:`serve` and
+    :func:`cranetwin.ingest.bus_serve.serve_to_bus` differ only in the store they pass.
+
+    Returns:
+        The final :meth:`IngestDaemon.snapshot`.
+
+    Raises:
+        IngestConfigError: an address cannot be bound.
+    """
     try:
         daemon = IngestDaemon(store, config, bus)
         with asyncio.Runner(loop_factory=new_event_loop) as runner:

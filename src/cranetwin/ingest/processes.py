@@ -5,16 +5,19 @@ The parent binds the ``SO_REUSEPORT`` group (:func:`~cranetwin.ingest.steering.b
 socket ``i`` receives the machines with ``wire_id % N == i``), keeps every socket open for its
 whole life, and runs child ``i`` (``python -m cranetwin.ingest.child``) on an inherited copy of
 socket ``i``. The child is a whole :class:`~cranetwin.ingest.daemon.IngestDaemon` with its own
-decoder, writer and database connection; its settings (database URL included) come as one JSON
-object on its stdin, never in argv. The parent reads nothing from the sockets itself.
+decoder, writer and database connection — or, with a fleet bus configured, the daemon publishing
+to JetStream (:func:`~cranetwin.ingest.bus_serve.serve_to_bus`, docs/BUS.md) with its own NATS
+connection; its settings (database and bus URLs included) come as one JSON object on its stdin,
+never in argv. The parent reads nothing from the sockets itself.
 
-* **A child dies** (``kill -9``, a crash): nothing acknowledged is lost — a child acks only after
-  its commit. Its socket stays in the group at index ``i`` (the parent holds it), so the kernel
-  keeps steering the datagrams of its machines (``wire_id % N == i``) to it and queues them in
-  the socket's receive buffer; the parent restarts the child on the same socket (after 0.2 s;
-  while it keeps dying within 10 s of its start, after twice the previous wait, up to 5 s),
-  which reads them. What was queued or in flight and not acked is retransmitted by the machines
-  and deduplicated by storage. No other machine moves.
+* **A child dies** (``kill -9``, a crash): nothing acknowledged is lost — a child acks only
+  after its commit (on the bus: after the PubAcks). Its socket stays in the group at index ``i``
+  (the parent holds it), so the kernel keeps steering the datagrams of its machines
+  (``wire_id % N == i``) to it and queues them in the socket's receive buffer; the parent
+  restarts the child on the same socket (after 0.2 s; while it keeps dying within 10 s of its
+  start, after twice the previous wait, up to 5 s), which reads them. What was queued or in
+  flight and not acked is retransmitted by the machines and deduplicated by storage (on the
+  bus: by JetStream's duplicate window, then by storage). No other machine moves.
 * **Stop**: SIGTERM/SIGINT to the parent is forwarded once to every child (each flushes, acks
   and exits as a single daemon does); a second signal is forwarded too (children give up their
   unwritten batches at once). Children run in their own session, so a terminal's Ctrl-C
@@ -44,10 +47,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cranetwin.ingest.config import DaemonConfig, IngestConfigError
 from cranetwin.ingest.steering import bind_group
+
+if TYPE_CHECKING:
+    from cranetwin.bus.subjects import BusConfig
 
 __all__ = ["ProcessGroup", "child_spec", "merge_counters"]
 
@@ -71,10 +77,12 @@ class _Child:
 
 
 def child_spec(db_url: str, config: DaemonConfig, index: int, fd: int, *,
-               live_url: str | None, busy_timeout_s: float, log_level: str) -> dict[str, Any]:
+               live_url: str | None, busy_timeout_s: float, log_level: str,
+               bus: BusConfig | None = None) -> dict[str, Any]:
     """The JSON object a child reads on stdin: its settings and the descriptor of its socket.
 
     The metrics endpoint of child ``i`` is ``metrics_port + i`` (port 0: each any free port).
+    ``bus`` (the fleet bus, or None: write to the database) travels as its fields.
     """
     cfg = dataclasses.asdict(config)
     limits = cfg.pop("limits")
@@ -83,7 +91,8 @@ def child_spec(db_url: str, config: DaemonConfig, index: int, fd: int, *,
         cfg["metrics_port"] = config.metrics_port + index
     return {"db_url": db_url, "config": cfg, "limits": limits, "index": index, "fd": fd,
             "live_url": live_url, "busy_timeout_s": busy_timeout_s, "log_level": log_level,
-            "parent_pid": os.getpid()}
+            "parent_pid": os.getpid(),
+            "bus": dataclasses.asdict(bus) if bus is not None else None}
 
 
 def merge_counters(finals: list[dict[str, Any]]) -> dict[str, Any]:
@@ -110,6 +119,8 @@ class ProcessGroup:
         config: Settings of every child (``socket_fd`` is set per child).
         processes: N, 1 … 64.
         live_url: Live fan-out bus URL for the children, or None.
+        bus: The fleet bus the children publish blocks to (docs/BUS.md), or None: they write
+            to the database.
         busy_timeout_s: SQLite lock wait of each child [s].
         log_level: Logging level of the children (they log to the parent's stderr).
         start_timeout_s: Longest wait for a child's ``ready`` line [s].
@@ -117,11 +128,13 @@ class ProcessGroup:
 
     def __init__(self, db_url: str, config: DaemonConfig, processes: int, *,
                  live_url: str | None = None, busy_timeout_s: float = 3.0,
-                 log_level: str = "INFO", start_timeout_s: float = 60.0) -> None:
+                 log_level: str = "INFO", start_timeout_s: float = 60.0,
+                 bus: BusConfig | None = None) -> None:
         self.db_url = db_url
         self.config = config
         self.n = processes
         self.live_url = live_url
+        self.bus = bus
         self.busy_timeout_s = busy_timeout_s
         self.log_level = log_level
         self.start_timeout_s = start_timeout_s
@@ -135,7 +148,8 @@ class ProcessGroup:
     # -- children -----------------------------------------------------------------------------
     def _spawn(self, c: _Child) -> None:
         spec = child_spec(self.db_url, self.config, c.index, c.fd, live_url=self.live_url,
-                          busy_timeout_s=self.busy_timeout_s, log_level=self.log_level)
+                          busy_timeout_s=self.busy_timeout_s, log_level=self.log_level,
+                          bus=self.bus)
         proc = subprocess.Popen([sys.executable, "-m", "cranetwin.ingest.child"],
                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                 pass_fds=[c.fd], start_new_session=True)
