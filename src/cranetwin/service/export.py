@@ -70,6 +70,18 @@ def _pa() -> Any:
     return pa
 
 
+def _pa_module(name: str) -> Any:
+    """``pyarrow.csv`` or ``pyarrow.parquet``; MissingExtraError without the extra."""
+    try:
+        if name == "csv":
+            import pyarrow.csv as mod
+        else:
+            import pyarrow.parquet as mod
+    except ImportError as exc:
+        raise MissingExtraError("import", "CSV and Parquet export") from exc
+    return mod
+
+
 def check(series: str, fmt: str) -> None:
     """Refuse an unknown series or format before any work starts.
 
@@ -309,8 +321,7 @@ def encode(chunks: Iterator[Columns], sch: Any, fmt: str) -> Iterator[bytes]:
     schema and no rows when there is no chunk). Floats are written exactly (CSV: the
     shortest text that reads back to the same float64)."""
     if fmt == "csv":
-        import pyarrow.csv as pacsv
-
+        pacsv = _pa_module("csv")
         header = True
         for cols in chunks:
             buf = io.BytesIO()
@@ -320,8 +331,7 @@ def encode(chunks: Iterator[Columns], sch: Any, fmt: str) -> Iterator[bytes]:
         if header:
             yield (",".join(f'"{n}"' for n in sch.names) + "\n").encode()
         return
-    import pyarrow.parquet as pq
-
+    pq = _pa_module("parquet")
     sink = _Sink()
     # no dictionary pages: sensor columns rarely repeat, and dictionary attempts halve the speed
     with pq.ParquetWriter(sink, sch, compression="zstd", compression_level=1,
