@@ -24,7 +24,7 @@ from cranetwin.errors import AnalyticsError, CraneTwinError
 from cranetwin.model import Machine
 from cranetwin.storage import analytics_windows as aw
 
-PART_MAGIC = b"cranetwin-analytics-part-1\n"
+PART_MAGIC = b"cranetwin-analytics-part-2\n"  # 2: loaded stretches carry steady columns
 MINUTE_S = 60
 LEVELS = (86400, 3600, MINUTE_S)
 
