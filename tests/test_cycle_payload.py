@@ -179,3 +179,35 @@ def test_parts_with_steady_instants_merge_exactly(data: st.DataObject) -> None:
                                                             rel=1e-9)
         assert [c.load_ratio for c in got] == pytest.approx([c.load_ratio for c in direct],
                                                             rel=1e-9)
+
+
+@pytest.mark.timeout(300)
+def test_a_part_of_the_previous_format_is_read_as_steady_everywhere() -> None:
+    """A stored part of format 1 (loaded stretches without the steady columns) is read with
+    every instant steady, which is what it averaged over, and merges with a part of format 2."""
+    import dataclasses
+    import pickle
+    import zlib
+
+    from cranetwin.analytics.runs import Run
+    from cranetwin.service.history import PART_MAGIC_1, load_part
+
+    m, h = _noisy_history()
+    h = dataclasses.replace(h, payload_steady=None)
+    direct = AnalyticsState(m).update(h).report().cycles
+    assert len(direct) == 2
+    cut = h.n // 3  # inside the first lift
+    proto = AnalyticsState(m)
+    first, second = proto.part(h.slice(0, cut)), proto.part(h.slice(cut, h.n))
+    assert first is not None and second is not None and first.productivity.loaded is not None
+    old = dataclasses.replace(first)
+    old.productivity = dataclasses.replace(first.productivity)
+    old.productivity.loaded = dataclasses.replace(first.productivity.loaded, runs=[
+        Run(r.t_start, r.t_end, r.n, r.first[:5], r.last[:5], r.vmax[:5], r.vmin[:5],
+            r.vsum[:5], r.t_peak, r.at_peak[:5]) for r in first.productivity.loaded.runs])
+    assert old.productivity.loaded.runs and old.productivity.loaded.runs[-1].vsum.shape == (5,)
+    read = load_part(PART_MAGIC_1 + zlib.compress(pickle.dumps(old)))
+    got = AnalyticsState(m).apply(proto.merge_parts(read, second)).report().cycles
+    assert [c.t_grab for c in got] == [c.t_grab for c in direct]
+    assert [c.payload_kg for c in got] == pytest.approx([c.payload_kg for c in direct],
+                                                        rel=1e-9)
