@@ -50,6 +50,10 @@ class LoadHistory:
         rod_v: Cylinder rod velocities, shape (n, n_cyl) [m/s] or None.
         p_a: Piston-side pressures, shape (n, n_cyl) [Pa] or None.
         p_b: Rod-side pressures, shape (n, n_cyl) [Pa] or None.
+        payload_steady: Where ``payload_kg`` is a steady estimate of the load carried,
+            shape (n,) bool, or None (everywhere). An estimate from a sliding window smears
+            grab and release into ramps; a work cycle's payload is the mean over its steady
+            instants only (see :mod:`cranetwin.analytics.productivity`).
     """
 
     t_s: F64
@@ -64,6 +68,7 @@ class LoadHistory:
     rod_v: F64 | None = None
     p_a: F64 | None = None
     p_b: F64 | None = None
+    payload_steady: npt.NDArray[np.bool_] | None = None
 
     @property
     def n(self) -> int:
@@ -88,6 +93,7 @@ class LoadHistory:
         rod_v: npt.ArrayLike | None = None,
         p_a: npt.ArrayLike | None = None,
         p_b: npt.ArrayLike | None = None,
+        payload_steady: npt.ArrayLike | None = None,
     ) -> LoadHistory:
         """Check and assemble a history from plain arrays.
 
@@ -104,6 +110,8 @@ class LoadHistory:
             qd: Joint velocities, shape (n, n_joints); central differences of q if None.
             height_m, rod_s, rod_v, p_a, p_b: Optional channels, see the class docstring.
                 rod_v is differentiated from rod_s if only rod_s is given.
+            payload_steady: Where the payload estimate is steady, shape (n,) bool (None:
+                everywhere).
 
         Raises:
             AnalyticsError: A shape is wrong, times are not strictly increasing, a value is
@@ -139,9 +147,15 @@ class LoadHistory:
         pl = _arr("payload_kg", payload_kg, (n,))
         re = _arr("reach_m", reach_m, (n,))
         assert f is not None and pl is not None and re is not None
+        steady = None
+        if payload_steady is not None:
+            steady = np.ascontiguousarray(payload_steady, dtype=bool)
+            if steady.shape != (n,):
+                raise AnalyticsError(f"payload_steady: shape {steady.shape}, expected {(n,)}")
         h = cls(t_s=t, cyl_force=f, joint_moment=jm, q=qa, qd=qda, payload_kg=pl, reach_m=re,
                 height_m=_arr("height_m", height_m, (n,)), rod_s=rs, rod_v=rv,
-                p_a=_arr("p_a", p_a, (n, nc)), p_b=_arr("p_b", p_b, (n, nc)))
+                p_a=_arr("p_a", p_a, (n, nc)), p_b=_arr("p_b", p_b, (n, nc)),
+                payload_steady=steady)
         for name in ("t_s", "cyl_force", "joint_moment", "q", "qd", "payload_kg", "reach_m"):
             if not np.all(np.isfinite(getattr(h, name))):
                 raise AnalyticsError(f"{name}: contains NaN or inf; bridge gaps before analytics")
@@ -156,7 +170,9 @@ class LoadHistory:
             joint_moment=self.joint_moment[start:stop], q=self.q[start:stop],
             qd=self.qd[start:stop], payload_kg=self.payload_kg[start:stop],
             reach_m=self.reach_m[start:stop], height_m=cut(self.height_m),
-            rod_s=cut(self.rod_s), rod_v=cut(self.rod_v), p_a=cut(self.p_a), p_b=cut(self.p_b))
+            rod_s=cut(self.rod_s), rod_v=cut(self.rod_v), p_a=cut(self.p_a), p_b=cut(self.p_b),
+            payload_steady=None if self.payload_steady is None
+            else self.payload_steady[start:stop])
 
     def load_channel(self, machine: Machine, spec: str) -> F64:
         """The load history a ``FatigueDetail.load`` string names.

@@ -2,7 +2,11 @@
 
 A work cycle is a run of "loaded" (payload ≥ ``grab_kg``) lasting at least ``min_loaded_s``;
 dips shorter than ``merge_gap_s`` do not split it. Within it the tool must rise (``lift``) and
-the crane must slew (``swing``) for the cycle to be complete. Working time: the machine is
+the crane must slew (``swing``) for the cycle to be complete. Its payload is the mean over the
+run's steady instants (:attr:`LoadHistory.payload_steady`: a sliding-window estimate smears
+grab and release into ramps, which a mean over the whole run takes in and reads low), or over
+the whole run if none is steady; a cycle needs a load: a run whose payload is below
+``grab_kg`` is no cycle. Working time: the machine is
 working while any joint moves faster than ``moving_fraction`` of its velocity limit; pauses
 shorter than ``min_idle_s`` count as working. Time is only counted while data arrive: a gap in the
 timestamps longer than ``max_gap_s`` is "off" (neither working nor idle).
@@ -45,9 +49,10 @@ class WorkCycle:
     Attributes:
         t_grab: Time the load was picked up [s].
         t_release: Time the load was released [s].
-        payload_kg: Mean payload while loaded [kg].
+        payload_kg: Mean payload while loaded [kg] (over the steady instants, see the module
+            docstring).
         load_ratio: Mean of payload / rated payload at the current reach (P_i/P_max of
-            ISO 4301-1 for this cycle).
+            ISO 4301-1 for this cycle), over the same instants.
         lift: Whether the load was lifted.
         swing: Whether the crane slewed while loaded.
         reach_max_m: Largest reach while loaded [m].
@@ -88,7 +93,8 @@ class ProductivityPart:
         inner_recorded_s: Recorded time between the chunk's samples per UTC day (day number →
             s); the step from the previous chunk is added when folding.
         idle: Raw stretches of "not moving".
-        loaded: Raw stretches of "loaded" with (payload, ratio, reach, slew angle, rise).
+        loaded: Raw stretches of "loaded" with (payload, ratio, reach, slew angle, rise,
+            steady, steady·payload, steady·ratio) (steady: 1 or 0).
         has_height: The history carried the height of the load point.
     """
 
@@ -123,10 +129,17 @@ class ProductivityTracker:
         """The accumulator of the UTC day containing time ``t`` [s]."""
         return self.days.setdefault(int(t // DAY_S), DayUsage())
 
-    def _cycle(self, r: Run, has_height: bool) -> WorkCycle:
-        # columns: payload, ratio, reach, slew angle, rise (height or lift angle)
+    def _cycle(self, r: Run, has_height: bool) -> WorkCycle | None:
+        # columns: payload, ratio, reach, slew angle, rise (height or lift angle), steady,
+        # steady·payload, steady·ratio
         lift_tol = self.cfg.lift_m if has_height else self.cfg.lift_rad
-        wc = WorkCycle(r.t_start, r.t_end, float(r.mean[0]), float(r.mean[1]),
+        if r.vsum[5] > 0:
+            payload, ratio = r.vsum[6] / r.vsum[5], r.vsum[7] / r.vsum[5]
+        else:
+            payload, ratio = r.mean[0], r.mean[1]
+        if not payload >= self.cfg.grab_kg:
+            return None
+        wc = WorkCycle(r.t_start, r.t_end, float(payload), float(ratio),
                        bool(r.vmax[4] - r.first[4] > lift_tol),
                        bool(r.vmax[3] - r.vmin[3] > self.cfg.swing_rad), float(r.vmax[2]))
         d = self.day(r.t_start)
@@ -167,7 +180,11 @@ class ProductivityTracker:
         rated = self.machine.rated_load.payload_at(h.reach_m)
         has_h = h.height_m is not None
         rise = h.height_m if h.height_m is not None else h.q[:, self._lift_joint]
-        vals = (h.payload_kg, h.payload_kg / rated, h.reach_m, h.q[:, self._slew], rise)
+        ratio = h.payload_kg / rated
+        w = (np.ones(h.n) if h.payload_steady is None
+             else h.payload_steady.astype(np.float64))
+        vals = (h.payload_kg, ratio, h.reach_m, h.q[:, self._slew], rise, w, w * h.payload_kg,
+                w * ratio)
         loaded = segments(t, h.payload_kg >= self.cfg.grab_kg, vals, self.cfg.max_gap_s)
         return ProductivityPart(float(t[0]), float(t[-1]), inner, idle, loaded, has_h)
 
@@ -204,7 +221,8 @@ class ProductivityTracker:
         for r in self._idle.feed_segments(p.idle):
             self._idle_run(r)
         for r in self._loaded.feed_segments(p.loaded):
-            self.cycles.append(self._cycle(r, p.has_height))
+            if (wc := self._cycle(r, p.has_height)) is not None:
+                self.cycles.append(wc)
         self._has_height = p.has_height
 
     def update(self, h: LoadHistory) -> None:
@@ -222,7 +240,8 @@ class ProductivityTracker:
         probe.days = days
         probe.idle_s = idle
         for r in self._loaded.flush():
-            cycles.append(probe._cycle(r, getattr(self, "_has_height", False)))
+            if (wc := probe._cycle(r, getattr(self, "_has_height", False))) is not None:
+                cycles.append(wc)
         for r in self._idle.flush():
             probe._idle_run(r)
         return cycles, self.recorded_s, probe.idle_s, days

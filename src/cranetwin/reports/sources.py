@@ -60,12 +60,15 @@ def history_from_recording(machine: Machine, rec: Recording) -> LoadHistory:
 
 
 def history_from_twin(machine: Machine, res: TwinResult) -> LoadHistory:
-    """A twin replay result as a load history (NaN-free instants only).
+    """A twin replay result as a load history (NaN-free instants only), with where its
+    payload is steady (:func:`cranetwin.service.analytics.steady_payload`).
 
     Args:
         machine: The machine replayed.
         res: A :class:`cranetwin.twin.TwinResult`.
     """
+    from cranetwin.service.analytics import steady_payload
+
     reach, height = _reach_height(machine, res.q)
     ok = np.isfinite(res.cyl_force).all(axis=1) & np.isfinite(res.joint_wrench).all(axis=(1, 2))
     ok &= np.isfinite(res.payload_kg) & np.isfinite(res.q).all(axis=1)
@@ -76,7 +79,7 @@ def history_from_twin(machine: Machine, res: TwinResult) -> LoadHistory:
         machine, t_s=k(res.t_s), cyl_force=k(res.cyl_force), q=k(res.q), qd=k(res.qd),
         payload_kg=np.maximum(k(res.payload_kg), 0.0), reach_m=k(reach), height_m=k(height),
         joint_wrench=k(res.joint_wrench), rod_s=k(res.rod_s), rod_v=k(res.rod_v),
-        p_a=k(res.p_a), p_b=k(res.p_b))
+        p_a=k(res.p_a), p_b=k(res.p_b), payload_steady=k(steady_payload(res)))
 
 
 class Source(Protocol):

@@ -43,8 +43,34 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+def steady_payload(res: Any, threshold_kg: float | None = None,
+                   sample_period_s: float | None = None) -> np.ndarray:
+    """Where a replay's payload estimate is a steady estimate of a lift's load, shape (n,)
+    bool: inside each lift (:func:`cranetwin.twin.lifts.result_lifts`) with the grab and
+    release ramps the estimate's window smears left out. A work cycle's payload is the mean
+    over these instants (:mod:`cranetwin.analytics.productivity`).
+
+    Args:
+        res: A :class:`cranetwin.twin.TwinResult` (computed over the whole replay, margins
+            included, so a lift is found the same way in every window that holds it).
+        threshold_kg: A lift is where the estimate exceeds this [kg] (None: the work cycles'
+            ``grab_kg``).
+        sample_period_s: Period of the replayed samples [s] (None: the median step of the
+            result's grid, which the replay puts at the sample rate).
+    """
+    from cranetwin.analytics import ProductivityConfig
+    from cranetwin.twin.lifts import result_lifts, steady_mask
+
+    if res.t_s.shape[0] < 2:
+        return np.zeros(res.t_s.shape, dtype=bool)
+    thr = ProductivityConfig().grab_kg if threshold_kg is None else threshold_kg
+    dt = float(np.median(np.diff(res.t_s))) if sample_period_s is None else sample_period_s
+    return steady_mask(res.t_s, result_lifts(res, dt, thr))
+
+
 def load_history(machine: Machine, res: Any, keep: np.ndarray) -> Any:
-    """:class:`cranetwin.analytics.LoadHistory` of the kept instants of a replay result."""
+    """:class:`cranetwin.analytics.LoadHistory` of the kept instants of a replay result, with
+    where its payload is steady (:func:`steady_payload`)."""
     from cranetwin.analytics import LoadHistory
     from cranetwin.physics import horizontal_reach
 
@@ -53,7 +79,7 @@ def load_history(machine: Machine, res: Any, keep: np.ndarray) -> Any:
         machine, t_s=res.t_s[keep], cyl_force=res.cyl_force[keep], q=q, qd=res.qd[keep],
         payload_kg=np.maximum(res.payload_kg[keep], 0.0), reach_m=horizontal_reach(machine, q),
         joint_wrench=res.joint_wrench[keep], rod_s=res.rod_s[keep], rod_v=res.rod_v[keep],
-        p_a=res.p_a[keep], p_b=res.p_b[keep])
+        p_a=res.p_a[keep], p_b=res.p_b[keep], payload_steady=steady_payload(res)[keep])
 
 
 def stored_events(machine_id: str, events: list[Any]) -> list[Any]:

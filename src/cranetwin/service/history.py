@@ -20,11 +20,13 @@ from typing import Any
 import numpy as np
 
 from cranetwin.analytics import AnalyticsConfig, AnalyticsPart, AnalyticsState, LoadHistory
+from cranetwin.analytics.runs import Run
 from cranetwin.errors import AnalyticsError, CraneTwinError
 from cranetwin.model import Machine
 from cranetwin.storage import analytics_windows as aw
 
-PART_MAGIC = b"cranetwin-analytics-part-1\n"
+PART_MAGIC = b"cranetwin-analytics-part-2\n"  # 2: loaded stretches carry steady columns
+PART_MAGIC_1 = b"cranetwin-analytics-part-1\n"  # every instant steady (read, upgraded)
 MINUTE_S = 60
 LEVELS = (86400, 3600, MINUTE_S)
 
@@ -41,12 +43,26 @@ def load_part(data: bytes) -> AnalyticsPart:
     Raises:
         AnalyticsError: Not a part of this version.
     """
-    if not data.startswith(PART_MAGIC):
+    old = data.startswith(PART_MAGIC_1)
+    if not (old or data.startswith(PART_MAGIC)):
         raise AnalyticsError("not an analytics part of this version")
     part = pickle.loads(zlib.decompress(data[len(PART_MAGIC):]))
     if not isinstance(part, AnalyticsPart):
         raise AnalyticsError(f"expected an AnalyticsPart, got {type(part).__name__}")
+    if old and part.productivity.loaded is not None:
+        part.productivity.loaded.runs = [_steady_everywhere(r)
+                                         for r in part.productivity.loaded.runs]
     return part
+
+
+def _steady_everywhere(r: Run) -> Run:
+    """A loaded stretch of a version-1 part (payload, ratio, reach, slew, rise) with the
+    steady columns of every instant steady (what version 1 averaged over)."""
+    def pad(x: Any) -> Any:
+        return np.concatenate([x, [1.0, x[0], x[1]]])
+    return Run(r.t_start, r.t_end, r.n, pad(r.first), pad(r.last), pad(r.vmax), pad(r.vmin),
+               np.concatenate([r.vsum, [float(r.n), r.vsum[0], r.vsum[1]]]), r.t_peak,
+               pad(r.at_peak))
 
 
 def window_history(backend: Any, replayer: Any, machine: Machine, machine_id: str, w0: float,
@@ -239,7 +255,7 @@ def update_duty(engine: Any, machine: Machine, machine_id: str, first_s: float,
     was dropped after late data)."""
     rows = aw.windows(engine, machine_id, DUTY_LEVEL, -1e9, 1e9)
     duty: DutyToDate | None = None
-    if rows:
+    if rows and rows[0][3].startswith(PART_MAGIC):  # another version: rebuilt
         try:
             obj = pickle.loads(zlib.decompress(rows[0][3][len(PART_MAGIC):]))
             duty = obj if isinstance(obj, DutyToDate) else None
@@ -266,7 +282,7 @@ def update_duty(engine: Any, machine: Machine, machine_id: str, first_s: float,
 def stored_duty(engine: Any, machine_id: str) -> tuple[int, float, float] | None:
     """(work cycles, Σ ratio³, until s) of the stored duty to date, or None."""
     rows = aw.windows(engine, machine_id, DUTY_LEVEL, -1e9, 1e9)
-    if not rows:
+    if not rows or not rows[0][3].startswith(PART_MAGIC):
         return None
     try:
         duty = pickle.loads(zlib.decompress(rows[0][3][len(PART_MAGIC):]))

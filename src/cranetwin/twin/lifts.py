@@ -113,6 +113,23 @@ def lift_payloads(t_s: F64, payload_kg: F64, payload_std_kg: F64, smear_s: float
     return lifts
 
 
+def steady_mask(t_s: F64, lifts: list[Lift]) -> npt.NDArray[np.bool_]:
+    """Instants inside a lift's steady part (the instants its payload was averaged over).
+
+    Args:
+        t_s: Instants, shape (m,) [s].
+        lifts: Lifts found in an estimate on these instants (:func:`lift_payloads`).
+
+    Returns:
+        Shape (m,): True where t0_s <= t <= t1_s of some lift.
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    out = np.zeros(t.shape, dtype=bool)
+    for lf in lifts:
+        out |= (t >= lf.t0_s) & (t <= lf.t1_s)
+    return out
+
+
 def result_lifts(result: TwinResult, sample_period_s: float, threshold_kg: float,
                  payload_window_s: float = 2.0) -> list[Lift]:
     """:func:`lift_payloads` of a replay's estimate (its smear from its smoothing choices)."""
