@@ -230,11 +230,13 @@ def test_daemon_acks_only_after_the_pubAck_and_acked_blocks_survive_a_nats_crash
         assert drive([sender], daemon.address, timeout_s=60.0)
         assert sender.acked_samples == 600 and not daemon.storage_outage
         # down again while connected (nats-py reconnecting): no ack until it is back
-        acks = daemon.snapshot()["acks_sent"]
+        stored = daemon.snapshot()["stored_blocks"]
         private_nats.stop()
         second = make_sender(2, values2, batch_samples=50)
         assert not drive([second], daemon.address, timeout_s=4.0)
-        assert second.acked_samples == 0 and daemon.snapshot()["acks_sent"] == acks
+        # nothing of the second machine published or acknowledged (a late retransmission of
+        # the first machine's may still be re-acked: it is already durable)
+        assert second.acked_samples == 0 and daemon.snapshot()["stored_blocks"] == stored
         private_nats.start()
         assert drive([second], daemon.address, timeout_s=60.0)
         assert second.acked_samples == 400
