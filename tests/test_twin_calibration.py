@@ -78,7 +78,7 @@ def test_coulomb_column_averages_to_tanh_under_velocity_noise() -> None:
     over the same noise is visibly wider (what narrowed the fitted vc)."""
     import numpy as np
 
-    from cranetwin.twin.calibration import MAX_NOISE_RATIO, coulomb_column
+    from cranetwin.twin.calibration_fit import MAX_NOISE_RATIO, coulomb_column
 
     vc, sigma = 0.003, 0.0011  # the extension of truth B: r = 0.37
     x, w = np.polynomial.hermite.hermgauss(40)
@@ -106,7 +106,7 @@ def test_velocity_noise_std_matches_the_replayed_velocity_error() -> None:
     import numpy as np
 
     from cranetwin.samples import SampleArrays
-    from cranetwin.twin.calibration import velocity_noise_std
+    from cranetwin.twin.calibration_data import velocity_noise_std
     from cranetwin.twin.replay import ReplayOptions, replay
 
     m = load_machine("patu655")
@@ -129,7 +129,7 @@ def test_velocity_noise_std_matches_the_replayed_velocity_error() -> None:
 def test_correlation_time_of_white_and_averaged_noise() -> None:
     import numpy as np
 
-    from cranetwin.twin.calibration import correlation_time
+    from cranetwin.twin.calibration_data import correlation_time
 
     rng = np.random.default_rng(3)
     white = rng.normal(size=200_000)

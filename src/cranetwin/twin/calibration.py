@@ -44,27 +44,39 @@ about 2σ and may be missed on some sensor seeds whatever the estimator (docs/AC
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import minimize_scalar
 
 from cranetwin import physics
 from cranetwin.errors import TwinError
-from cranetwin.model import Cylinder, Machine
+from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
-from cranetwin.signal import nominal_period
-from cranetwin.signal.savgol import sg_filter
-from cranetwin.twin.channels import ChannelMap
+from cranetwin.twin.calibration_data import (
+    correlation_time,
+    jackknife_std,
+    payload_segments,
+    res_rate,
+    sample_rate,
+    velocity_noise_std,
+)
+from cranetwin.twin.calibration_fit import (
+    VC_GRID,
+    Fixed,
+    Layout,
+    design,
+    fit_friction,
+    good_rows,
+    log_dist,
+    lowpass,
+    residual_before,
+    vc_rises,
+)
 from cranetwin.twin.options import END_STOP_MARGIN_M, ReplayOptions
 from cranetwin.twin.replay import replay
-from cranetwin.twin.result import TwinResult
-from cranetwin.twin.stages import derivative_filter
 
 F64 = npt.NDArray[np.float64]
 
-VC_GRID = np.geomspace(5e-4, 0.05, 25)
 # low-pass filters on both sides of the fit: (moving-average passes, width as a multiple of the
 # derivative-smoothing window). The narrow one keeps the sharp force step at each reversal that
 # determines vc; the wide one removes the hydraulic oscillations that the smoothed accelerations
@@ -74,16 +86,12 @@ VC_GRID = np.geomspace(5e-4, 0.05, 25)
 NARROW_FILTER = (1, 1.0)
 WIDE_FILTER = (2, 2.0)
 WIDE_FILTER_RATIO = 0.01
-# largest velocity-noise / vc ratio the Coulomb column is corrected for (module docstring)
-MAX_NOISE_RATIO = 0.5
 # a friction parameter is identified when its standard error is at most this share of its value
 # (the value at least two standard errors from zero)
 REL_SE_MAX = 0.5
 # rod positions within this share of the stroke (and at least END_STOP_MARGIN_M) of either end
 # count as end-stop contact: the stop takes a force Eq. 1–2 does not know
 END_STOP_SHARE = 0.01
-# a payload step smaller than this is no payload change [kg]; larger than 5σ of the estimate
-PAYLOAD_STEP_KG = 30.0
 
 
 @dataclass(frozen=True)
@@ -169,235 +177,6 @@ class Calibration:
     mass_note: str = ""
 
 
-def _lowpass(x: F64, width: int, passes: int) -> F64:
-    """``passes`` moving averages of ``width`` along axis 0, 'valid' part only."""
-    for _ in range(passes):
-        x = _moving_average(x, width)
-    return x
-
-
-def _moving_average(x: F64, width: int) -> F64:
-    """Moving average along axis 0, 'valid' part only: shape (n − width + 1, …)."""
-    if width <= 1:
-        return x
-    c = np.cumsum(np.concatenate([np.zeros((1,) + x.shape[1:]), x]), axis=0)
-    out: F64 = (c[width:] - c[:-width]) / width
-    return out
-
-
-def coulomb_column(v: F64, vc: float, sigma_v: float) -> F64:
-    """Coulomb regressor of Eq. 2 at a noisy velocity: ψ(v) = tanh(u) + r²·tanh(u)·sech²(u),
-    u = v/vc, r = min(σ_v/vc, ``MAX_NOISE_RATIO``), whose average over Gaussian velocity noise
-    of standard deviation σ_v is tanh(v_true/vc) to O(r⁴) (module docstring).
-
-    Args:
-        v: Measured velocities [m/s].
-        vc: Coulomb velocity [m/s].
-        sigma_v: Velocity noise standard deviation [m/s]; 0 gives tanh(v/vc).
-    """
-    t = np.tanh(v / vc)
-    r2 = min(sigma_v / vc, MAX_NOISE_RATIO) ** 2
-    out: F64 = t + r2 * t * (1.0 - t * t) if r2 > 0.0 else t
-    return out
-
-
-def velocity_noise_std(res: TwinResult, samples: SampleArrays, machine: Machine) -> F64:
-    """Standard deviation of each cylinder's rod-velocity noise in a replay [m/s]:
-    σ_s·‖h'‖/Δt, with σ_s the position noise the replay estimated and h' the Savitzky–Golay
-    derivative filter it used (:func:`cranetwin.twin.stages.derivative_filter`). The spline
-    onto the grid is not counted (the fit's instants fall 1 ms after the samples; on simulated
-    runs this matched the measured velocity error of the sensor noise to 1 %)."""
-    cmap = ChannelMap.build(machine, samples.channels)
-    dt = 1.0 / sample_rate(samples)
-    out = np.zeros(len(machine.cylinders))
-    for c, j in enumerate(cmap.s):
-        name = cmap.names[j]
-        pos, der = res.smoothing.get(name), res.smoothing.get(name + "'")
-        if pos is None or der is None or not pos.sigma > 0.0:
-            continue
-        w, p = derivative_filter(der)
-        out[c] = pos.sigma * float(np.linalg.norm(sg_filter(w, p, 1))) / dt
-    return out
-
-
-class Layout(NamedTuple):
-    """The fit's data layout: per instant its constant-mass segment ``seg`` (n,) (of
-    ``n_seg``) and whether it may be used ``ok`` (n,) (no end stop, payload change, dropout);
-    parameters [m_0 … m_{S−1}, Fc_0, b_0, off_0, Fc_1, …] (S = n_seg)."""
-
-    seg: npt.NDArray[np.int64]
-    n_seg: int
-    ok: npt.NDArray[np.bool_]
-
-
-def _design(vc: F64, v: F64, g: F64, width: int, passes: int, sigma_v: F64,
-            lay: Layout) -> F64:
-    """Columns [m_0 … m_{S−1}, Fc_0, b_0, off_0, Fc_1, …] stacked over cylinders, each
-    low-passed by :func:`_lowpass`: shape (n'·nc, S + 3nc). The Coulomb columns are
-    :func:`coulomb_column` with the velocity noise ``sigma_v`` [m/s] per cylinder."""
-    n, nc = v.shape
-    ns = lay.n_seg
-    m = n - passes * (max(width, 1) - 1)
-    a = np.zeros((m * nc, ns + 3 * nc))
-    for c in range(nc):
-        rows = slice(c * m, (c + 1) * m)
-        for k in range(ns):
-            a[rows, k] = _lowpass(np.where(lay.seg == k, g[:, c], 0.0), width, passes)
-        a[rows, ns + 3 * c] = _lowpass(coulomb_column(v[:, c], float(vc[c]),
-                                                      float(sigma_v[c])), width, passes)
-        a[rows, ns + 1 + 3 * c] = _lowpass(v[:, c], width, passes)
-        a[rows, ns + 2 + 3 * c] = 1.0
-    return a
-
-
-def _good_rows(lay: Layout, width: int, passes: int, nc: int) -> npt.NDArray[np.bool_]:
-    """Rows of the stacked design whose low-pass window holds only usable instants."""
-    good = _lowpass(lay.ok.astype(np.float64), width, passes) > 1.0 - 1e-9
-    return np.tile(good, nc)
-
-
-def res_rate(res: TwinResult) -> float:
-    """Grid rate of a replay result [Hz]."""
-    return 1.0 / nominal_period(res.t_s[:100])
-
-
-def sample_rate(samples: SampleArrays) -> float:
-    """Nominal sample rate [Hz]: the period the samples carry, estimated only if they carry
-    none."""
-    return 1.0 / nominal_period(samples.t_s, samples.period_ns)
-
-
-def _before(y: F64, v: F64, cyls: list[Cylinder], c: int, width: int, passes: int,
-            lay: Layout) -> F64:
-    """Low-passed force residual of cylinder ``c`` with the file's friction, no extra mass, at
-    the usable rows [N]."""
-    r = _lowpass(y[:, c] - physics.friction_force(v[:, c], cyls[c].friction), width, passes)
-    out: F64 = r[_good_rows(lay, width, passes, 1)]
-    return out
-
-
-class Fixed(NamedTuple):
-    """Parameters held at the machine file's values: column index → value, and per cylinder
-    whether vc is held (at ``vc0``)."""
-
-    cols: dict[int, float]
-    vc: npt.NDArray[np.bool_]
-
-
-def _fit(y: F64, g: F64, v: F64, vc0: F64, filt: tuple[int, int], sigma_v: F64,
-         lay: Layout, fixed: Fixed) -> tuple[F64, F64, F64, F64]:
-    """Least squares for fixed vc inside a coordinate search over each free cylinder's vc
-    (coarse logarithmic grid, then a bounded 1-D minimisation; a second sweep refines
-    locally), on the usable rows, the ``fixed`` columns moved to the right-hand side.
-
-    Returns:
-        (parameters [m_0 …, Fc_0, b_0, off_0, …] with the fixed ones at their values,
-        residual at the usable rows stacked over cylinders [N], vc per cylinder [m/s],
-        the design's free columns' covariance per unit residual variance (AᵀA)⁻¹ padded
-        with NaN for the fixed ones).
-    """
-    passes, width = filt
-    nc = v.shape[1]
-    rows = _good_rows(lay, width, passes, nc)
-    yv = _lowpass(y, width, passes).T.reshape(-1)[rows]
-    ncol = lay.n_seg + 3 * nc
-    free = np.array([k for k in range(ncol) if k not in fixed.cols], dtype=np.int64)
-    fix_idx = np.array(sorted(fixed.cols), dtype=np.int64)
-    fix_val = np.array([fixed.cols[k] for k in fix_idx.tolist()])
-
-    def solve(vc: F64) -> tuple[F64, F64, F64]:
-        a = _design(vc, v, g, width, passes, sigma_v, lay)[rows]
-        rhs = yv - (a[:, fix_idx] @ fix_val if fix_idx.size else 0.0)
-        af = a[:, free]
-        ata = af.T @ af
-        xf = np.asarray(np.linalg.solve(ata, af.T @ rhs), dtype=np.float64)
-        x = np.empty(ncol)
-        x[free] = xf
-        x[fix_idx] = fix_val
-        return x, rhs - af @ xf, ata
-
-    def sse(vc: F64, c: int, log_vc: float) -> float:
-        trial = vc.copy()
-        trial[c] = np.exp(log_vc)
-        _, r, _ = solve(trial)
-        return float(np.dot(r, r))
-
-    vc = vc0.copy()
-    log_step = float(np.log(VC_GRID[1] / VC_GRID[0]))
-    for sweep in range(2):
-        for c in range(nc):
-            if fixed.vc[c]:
-                continue
-            if sweep == 0:   # coarse grid, then refine between the neighbours of the best
-                vals = [sse(vc, c, float(np.log(x))) for x in VC_GRID]
-                centre = float(np.log(VC_GRID[int(np.argmin(vals))]))
-            else:
-                centre = float(np.log(vc[c]))
-            found = minimize_scalar(lambda lv, c=c: sse(vc, c, lv), method="bounded",
-                                    bounds=(centre - log_step, centre + log_step),
-                                    options={"xatol": 1e-4})
-            vc[c] = float(np.exp(found.x))
-    x, r, ata = solve(vc)
-    inv = np.full((ncol, ncol), np.nan)
-    inv[np.ix_(free, free)] = np.linalg.inv(ata)
-    return x, r, vc, inv
-
-
-def log_dist(vc: float) -> float:
-    """Distance of vc from the nearer end of ``VC_GRID`` in log units."""
-    return float(min(np.log(vc / VC_GRID[0]), np.log(VC_GRID[-1] / vc)))
-
-
-def _vc_rises(y: F64, g: F64, v: F64, vc: F64, filt: tuple[int, int], sigma_v: F64,
-              lay: Layout, c: int, trials: tuple[float, ...]) -> list[float]:
-    """How much the residual sum of squares [N²] rises when cylinder ``c``'s vc is moved from
-    its fit to each of ``trials`` [m/s] (the linear parameters re-solved, every other vc
-    held)."""
-    hold = Fixed({}, np.ones(v.shape[1], dtype=bool))
-    out = []
-    base = None
-    for val in (float(vc[c]), *trials):
-        trial = vc.copy()
-        trial[c] = val
-        _, r, _, _ = _fit(y, g, v, trial, filt, sigma_v, lay, hold)
-        sse = float(np.dot(r, r))
-        if base is None:
-            base = sse
-        else:
-            out.append(sse - base)
-    return out
-
-
-def _segments(res: TwinResult, t: F64, sample_period: float,
-              window_s: float) -> tuple[npt.NDArray[np.int64], int, npt.NDArray[np.bool_],
-                                        list[float]]:
-    """Constant-mass segments from the replay's payload estimate: (segment per instant of
-    ``t``, count, instants near a payload change, change times [s]).
-
-    A change is where the estimate crosses halfway between its low and high levels (10th and
-    90th percentiles) when they differ by more than ``PAYLOAD_STEP_KG`` and 5σ; the smear of
-    the estimate's window (:func:`cranetwin.twin.lifts.payload_smear_s`) and 1 s either side
-    are left out."""
-    from cranetwin.twin.lifts import lift_payloads, payload_smear_s
-
-    m = np.nan_to_num(res.payload_kg)
-    lo, hi = np.percentile(m, [10.0, 90.0])
-    sig = float(np.median(res.payload_std_kg[np.isfinite(res.payload_std_kg)])) \
-        if np.any(np.isfinite(res.payload_std_kg)) else 0.0
-    seg = np.zeros(t.shape[0], dtype=np.int64)
-    near = np.zeros(t.shape[0], dtype=bool)
-    if hi - lo < max(PAYLOAD_STEP_KG, 5.0 * sig):
-        return seg, 1, near, []
-    smear = payload_smear_s(res, sample_period, window_s)
-    lifts = lift_payloads(res.t_s, m - lo, np.ones_like(m), smear, (hi - lo) / 2.0)
-    changes = sorted({x for lf in lifts for x in (lf.grab_s, lf.release_s)
-                      if res.t_s[0] < x < res.t_s[-1]})
-    for tc in changes:
-        seg += (t > tc).astype(np.int64)
-        near |= np.abs(t - tc) <= smear / 2.0 + 1.0
-    return seg, len(changes) + 1, near, changes
-
-
 def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
               decimate: int = 10) -> Calibration:
     """Estimate friction (Fc, vc, b per cylinder) and the carried mass by least squares.
@@ -442,7 +221,7 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
     margin = np.maximum(END_STOP_SHARE * stroke, END_STOP_MARGIN_M)
     rod = res.rod_s[idx]
     stop = np.any((rod <= margin) | (rod >= stroke - margin), axis=1)
-    seg, n_seg, near, changes = _segments(res, t, 1.0 / sample_rate(samples), window_s)
+    seg, n_seg, near, changes = payload_segments(res, t, 1.0 / sample_rate(samples), window_s)
     gap = res.gap[idx]
     ok = ~(stop | near | gap)
     excluded = {"end stop": float(stop.sum() * dt_i),
@@ -465,7 +244,7 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
     unit = wd * res_rate(res) / decimate / sample_rate(samples)
     filters = [(p, max(1, int(round(k * unit)))) for p, k in (NARROW_FILTER, WIDE_FILTER)]
     lay = Layout(seg, n_seg, ok)
-    usable = [int(_good_rows(lay, w_, p_, 1).sum()) for p_, w_ in filters]
+    usable = [int(good_rows(lay, w_, p_, 1).sum()) for p_, w_ in filters]
     if usable[0] < 50:
         w_ = filters[0][1]
         raise TwinError(
@@ -478,22 +257,22 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
     no_fix = Fixed({}, np.zeros(nc, dtype=bool))
     filt = filters[0]
     try:
-        x, r, vc, _ = _fit(y, g, v, vc0, filt, sigma_v, lay, no_fix)
-        before = [_before(y, v, cyls, c, filt[1], filt[0], lay) for c in range(nc)]
+        x, r, vc, _ = fit_friction(y, g, v, vc0, filt, sigma_v, lay, no_fix)
+        before = [residual_before(y, v, cyls, c, filt[1], filt[0], lay) for c in range(nc)]
         n = before[0].shape[0]
         ratio = max(float(np.sqrt(np.mean(r[c * n:(c + 1) * n] ** 2) / np.mean(before[c] ** 2)))
                     for c in range(nc))
         if ratio > WIDE_FILTER_RATIO and usable[1] >= 50:  # oscillations left: the wide filter
             filt = filters[1]
-            x, r, vc, _ = _fit(y, g, v, vc, filt, sigma_v, lay, no_fix)
+            x, r, vc, _ = fit_friction(y, g, v, vc, filt, sigma_v, lay, no_fix)
         fixed, notes = _identify(x, r, vc, (y, g, v, sigma_v), filt, lay, machine)
         if fixed.cols or fixed.vc.any():
             vc = np.where(fixed.vc, vc0, vc)
-            x, r, vc, _ = _fit(y, g, v, vc, filt, sigma_v, lay, fixed)
+            x, r, vc, _ = fit_friction(y, g, v, vc, filt, sigma_v, lay, fixed)
         passes, width = filt
-        rows = _good_rows(lay, width, passes, nc)
+        rows = good_rows(lay, width, passes, nc)
         n = int(rows.sum()) // nc
-        a = _design(vc, v, g, width, passes, sigma_v, lay)[rows]
+        a = design(vc, v, g, width, passes, sigma_v, lay)[rows]
         dof = max(a.shape[0] - a.shape[1] + len(fixed.cols), 1)
         sigma2 = float(np.dot(r, r)) / dof
         # the residuals are low-passed (smoothing, then the moving averages above): neighbours
@@ -505,10 +284,10 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
         free = [k for k in range(a.shape[1]) if k not in fixed.cols]
         cov = np.full((a.shape[1], a.shape[1]), np.nan)
         cov[np.ix_(free, free)] = sigma2 * tau * np.linalg.inv(a[:, free].T @ a[:, free])
-        yv = _lowpass(y, width, passes).T.reshape(-1)[rows]
+        yv = lowpass(y, width, passes).T.reshape(-1)[rows]
         fix_idx = sorted(fixed.cols)
         rhs = yv - a[:, fix_idx] @ np.array([fixed.cols[k] for k in fix_idx]) if fix_idx else yv
-        jack = _jackknife_std(a[:, free], rhs, n, nc) if n_seg == 1 else 0.0
+        jack = jackknife_std(a[:, free], rhs, n, nc) if n_seg == 1 else 0.0
     except np.linalg.LinAlgError as exc:
         raise TwinError("the recording does not determine the friction and mass "
                         "(no motion of some cylinder?)") from exc
@@ -518,7 +297,7 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
     fits = []
     for c, cyl in enumerate(cyls):
         fr = cyl.friction
-        b0 = _before(y, v, cyls, c, width, passes, lay)
+        b0 = residual_before(y, v, cyls, c, width, passes, lay)
         after = r[c * n : (c + 1) * n]
         k0 = n_seg + 3 * c
         prior = tuple(name for name, col in (("Fc", k0), ("b", k0 + 1)) if col in fixed.cols)
@@ -547,9 +326,9 @@ def _identify(x: F64, r: F64, vc: F64, data: tuple[F64, F64, F64, F64],
     cyls = machine.cylinders
     nc = len(cyls)
     passes, width = filt
-    rows = _good_rows(lay, width, passes, nc)
+    rows = good_rows(lay, width, passes, nc)
     n = int(rows.sum()) // nc
-    a = _design(vc, v, g, width, passes, sigma_v, lay)[rows]
+    a = design(vc, v, g, width, passes, sigma_v, lay)[rows]
     dof = max(a.shape[0] - a.shape[1], 1)
     sigma2 = float(np.dot(r, r)) / dof
     tau = max(correlation_time(r[c * n : (c + 1) * n]) for c in range(nc))
@@ -583,7 +362,7 @@ def _identify(x: F64, r: F64, vc: F64, data: tuple[F64, F64, F64, F64],
             continue
         # a likelihood-ratio test: one standard error of vc raises the residual sum of
         # squares by σ²·τ (τ: the residuals' correlation time)
-        half, double = _vc_rises(y, g, v, vc, filt, sigma_v, lay, c,
+        half, double = vc_rises(y, g, v, vc, filt, sigma_v, lay, c,
                                  (0.5 * vc[c], 2.0 * vc[c]))
         unit = sigma2 * tau
         edge = log_dist(vc[c]) < float(np.log(VC_GRID[1] / VC_GRID[0]))
@@ -623,36 +402,3 @@ def _mass_segments(x: F64, se: F64, jack: float, t: F64, seg: npt.NDArray[np.int
             out.append(MassSegment(bounds[k], bounds[k + 1], m, s, True))
     return out
 
-
-def correlation_time(x: F64, max_lag_fraction: float = 0.1) -> float:
-    """Integrated autocorrelation time τ = 1 + 2·Σ ρ_k of a series [samples], the sum stopped
-    at the first negative ρ_k (or at ``max_lag_fraction`` of the length): the variance of a
-    mean of n correlated values is τ·σ²/n. 1 for white noise."""
-    xa = np.asarray(x, dtype=np.float64)
-    xa = xa - xa.mean()
-    n = xa.shape[0]
-    if n < 4 or not np.any(xa):
-        return 1.0
-    size = 1 << int(np.ceil(np.log2(2 * n)))
-    spec = np.fft.rfft(xa, size)
-    acf = np.fft.irfft(spec * np.conj(spec), size)[:n]
-    rho = acf / acf[0]
-    lag_max = max(1, int(max_lag_fraction * n))
-    neg = np.flatnonzero(rho[1 : lag_max + 1] < 0.0)
-    stop = int(neg[0]) + 1 if neg.size else lag_max + 1
-    return float(max(1.0, 1.0 + 2.0 * np.sum(rho[1:stop])))
-
-
-def _jackknife_std(a: F64, yv: F64, n: int, nc: int, blocks: int = 10) -> float:
-    """Delete-one-block jackknife standard error of the first parameter (the mass) of the
-    stacked least squares a·x = yv, the blocks contiguous in time (the same instants removed
-    from every cylinder's rows)."""
-    edges = np.linspace(0, n, blocks + 1).astype(int)
-    est = np.empty(blocks)
-    for k in range(blocks):
-        keep = np.ones(n, dtype=bool)
-        keep[edges[k] : edges[k + 1]] = False
-        rows = np.tile(keep, nc)
-        ak = a[rows]
-        est[k] = np.linalg.solve(ak.T @ ak, ak.T @ yv[rows])[0]
-    return float(np.sqrt((blocks - 1) / blocks * np.sum((est - est.mean()) ** 2)))
