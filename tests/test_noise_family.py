@@ -117,6 +117,25 @@ def test_decimate_keeps_every_nth_sample_and_the_period() -> None:
     assert d.period_ns == 40_000_000
 
 
+@pytest.mark.timeout(60)
+def test_fixed_choices_change_only_the_pressure_windows() -> None:
+    from cranetwin.signal import SmoothingChoice
+    from cranetwin.twin.noise_family import fixed_choices
+
+    m = load_machine("patu655")
+    default = {c.name: SmoothingChoice(131, 3, 2.0, 1.0, adaptive=c.quantity.startswith("press"))
+               for c in m.channels}
+    default["lift_s'"] = SmoothingChoice(45, 3, 1e-4, float("nan"))
+    out = dict(zip(default, fixed_choices(default, m, 21), strict=True))
+    for name, c in out.items():
+        if name.endswith(("_pA", "_pB")):
+            assert (c.window, c.polyorder, c.adaptive, c.sigma) == (21, 3, False, 2.0)
+        else:
+            assert c == default[name]
+    assert all(c.window == 1 for n, c in zip(default, fixed_choices(default, m, 1), strict=True)
+               if n.endswith(("_pA", "_pB")))
+
+
 # -- the targets' evaluation can fail ----------------------------------------------------------
 
 def _case(force: float, fixed_best: float, pos: float, observable: bool, z: float,

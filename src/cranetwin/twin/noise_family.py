@@ -22,7 +22,7 @@ NRMSE = RMSE / (max − min of the truth) over the run (:func:`cranetwin.signal.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -36,6 +36,7 @@ from cranetwin.signal.window import DEFAULT_WINDOWS
 from cranetwin.twin.lifts import result_lifts
 from cranetwin.twin.options import ReplayOptions
 from cranetwin.twin.replay import replay
+from cranetwin.twin.result import TwinResult
 
 F64 = npt.NDArray[np.float64]
 
@@ -145,7 +146,7 @@ class CaseResult:
         """Plain numbers (NaN → None)."""
         def num(x: float) -> float | None:
             return round(float(x), 6) if np.isfinite(x) else None
-        return {"spec": self.spec.__dict__,
+        return {"spec": asdict(self.spec),
                 "cylinders": [{"cylinder": c.cylinder, "force": num(c.force),
                                "fixed": dict(zip(FIXED_WINDOWS, map(num, c.fixed), strict=True)),
                                "best_fixed_window": c.best_fixed[0],
@@ -185,7 +186,7 @@ def fixed_choices(default: dict[str, SmoothingChoice], machine: Machine,
     return tuple(out)
 
 
-def _payload_scores(res: Any, truth_p: F64, spec: CaseSpec) -> tuple[float, int, list[float],
+def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[float, int, list[float],
                                                                       list[float]]:
     steady = np.ones(res.n, dtype=bool)
     for c in np.flatnonzero(np.diff(truth_p) != 0):
