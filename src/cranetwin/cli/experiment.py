@@ -9,7 +9,7 @@ from rich.console import Console
 from rich.table import Table
 
 from cranetwin.errors import TwinError
-from cranetwin.model import load_machine
+from cranetwin.model import Machine, load_machine
 
 experiment_app = typer.Typer(help="Accuracy experiments of the twin.", no_args_is_help=True)
 
@@ -30,20 +30,36 @@ def _levels(spec: str) -> list[float]:
 @experiment_app.command("noise")
 def noise(
     scenario: str = typer.Option("fig3", help="Built-in scenario (fig3, log-loading, random)."),
-    levels: str = typer.Option("0:10:1", help="Error levels e [%]: start:stop:step or list."),
-    seeds: int = typer.Option(20, help="Noise realisations per level."),
+    levels: str | None = typer.Option(
+        None, help="Error levels e [%]: start:stop:step or list (default 0:10:1; with "
+        "--family one level, default 5)."),
+    seeds: int | None = typer.Option(
+        None, help="Noise realisations per level (default 20; with --family 1)."),
     duration: float | None = typer.Option(
         None, help="Simulated duration in seconds (default: the scenario's)."),
     machine: str = typer.Option("patu655", help="Machine name or TOML file."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     plot: str | None = typer.Option(None, "--plot", help="Write a Fig. 7-like PNG here."),
+    family: bool = typer.Option(
+        False, "--family", help="Run the family of cranes, sample rates (50–200 Hz) and "
+        "error models (uniform, Gaussian, quantised, biased; share of full and of recorded "
+        "range) instead, and judge the accuracy targets (--scenario, --duration ignored)."),
+    quick: bool = typer.Option(False, "--quick", help="With --family: a small subset."),
 ) -> None:
     """Simulate, sample at 100 Hz (quantisation only), add uniform error e, replay, and
-    report NRMSE of Xc1, Xc2 (lift/jib rod positions) and Fc1, Fc2 (forces) vs the truth."""
+    report NRMSE of Xc1, Xc2 (lift/jib rod positions) and Fc1, Fc2 (forces) vs the truth.
+    With --family: the accuracy over a generated family of cranes and error models."""
     from cranetwin.sim import SensorModel, builtin_scenario, simulate
     from cranetwin.twin import experiment as ex
 
     m = load_machine(machine)
+    if family:
+        _family(m, levels, seeds, quick, as_json)
+        return
+    if quick:
+        raise TwinError("--quick needs --family")
+    seeds = 20 if seeds is None else seeds
+    levels = "0:10:1" if levels is None else levels
     rec = simulate(m, builtin_scenario(scenario, duration_s=duration), seed=0,
                    sensors=SensorModel.ideal(100.0), wrenches=False)
     results = ex.run_levels(rec, m, _levels(levels), seeds)
@@ -65,6 +81,23 @@ def noise(
                   f"{r.input_mean['Xc1'] * 100:.2f}", f"{r.input_mean['Fc1'] * 100:.2f}",
                   f"{r.payload_rmse_kg:.1f}", f"{r.payload_rmse_rated * 100:.2f}")
     con.print(t)
+
+
+def _family(m: Machine, levels: str | None, seeds: int | None, quick: bool,
+            as_json: bool) -> None:
+    from cranetwin.cli import _noise_family as nf
+    from cranetwin.twin.noise_targets import evaluate
+
+    lv = _levels(levels) if levels is not None else [0.05]
+    if len(lv) != 1 or not lv[0] > 0:
+        raise TwinError(f"--family takes one positive error level, got {levels!r}")
+    plan = nf.family_plan(quick, lv[0], 1 if seeds is None else seeds)
+    err = Console(stderr=True)
+    cases = nf.run_family(m, plan, progress=lambda msg: err.print(msg, highlight=False))
+    if as_json:
+        typer.echo(json.dumps(nf.as_json(plan, cases, evaluate(cases))))
+        return
+    nf.print_family(cases, plan, Console(width=200))
 
 
 def register(app: typer.Typer) -> None:

@@ -5,7 +5,8 @@ sensor's full range). Real loggers differ: the error may be Gaussian, and it may
 what the channel actually recorded rather than of the sensor's range (a 250 bar sensor on a
 cylinder that never sees more than 40 bar). :func:`inject_error` covers those combinations so
 that accuracy claims (the payload's σ, the force observability flag) are checked on more than
-one error model.
+one error model. Besides random error it makes the two a filter cannot average away: a coarse
+quantisation (a staircase, the same on every run) and a constant offset per channel (bias).
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ F64 = npt.NDArray[np.float64]
 
 NOISY_QUANTITIES: tuple[str, ...] = ("pressure_a", "pressure_b", "position")
 
-Distribution = Literal["uniform", "gaussian"]
+Distribution = Literal["uniform", "gaussian", "quantised", "biased"]
+DISTRIBUTIONS: tuple[Distribution, ...] = ("uniform", "gaussian", "quantised", "biased")
 Scale = Literal["full", "recorded"]
 
 
@@ -40,7 +42,10 @@ def inject_error(samples: SampleArrays, machine: Machine, level: float, seed: in
         level: e as a fraction (0.02 = 2 %).
         seed: Seed of the error (same seed, same error).
         distribution: ``"uniform"``: uniform in [−e, +e] × R (σ = e·R/√3); ``"gaussian"``:
-            normal with σ = e·R.
+            normal with σ = e·R; ``"quantised"``: the value rounded to steps of 2·e·R (error
+            within ±e·R, deterministic: the seed is not used); ``"biased"``: a constant offset
+            per channel, uniform in [−e/2, +e/2] × R, plus uniform error in [−e/2, +e/2] × R
+            (within ±e·R; half of it no smoothing removes).
         scale: R is the sensor's full range (``"full"``, ``Channel.full_range``) or the range
             the channel recorded in ``samples`` (``"recorded"``, max − min).
         quantities: Channel quantities that get error.
@@ -53,7 +58,7 @@ def inject_error(samples: SampleArrays, machine: Machine, level: float, seed: in
     """
     if level < 0:
         raise SimulationError(f"error level must be >= 0, got {level}")
-    if distribution not in ("uniform", "gaussian") or scale not in ("full", "recorded"):
+    if distribution not in DISTRIBUTIONS or scale not in ("full", "recorded"):
         raise SimulationError(f"unknown error model {distribution!r} / {scale!r}")
     rng = np.random.default_rng(seed)
     wanted = set(quantities)
@@ -70,6 +75,16 @@ def inject_error(samples: SampleArrays, machine: Machine, level: float, seed: in
             col = col[np.isfinite(col)]
             r[j] = float(col.max() - col.min()) if col.size else 0.0
     shape = samples.values.shape
-    unit = (rng.uniform(-1.0, 1.0, size=shape) if distribution == "uniform"
-            else rng.standard_normal(size=shape))
-    return dataclasses.replace(samples, values=samples.values + unit * (level * r)[None, :])
+    amp = (level * r)[None, :]
+    if distribution == "quantised":
+        step = np.where(amp > 0, 2.0 * amp, 1.0)
+        values = np.where(amp > 0, np.round(samples.values / step) * step, samples.values)
+        return dataclasses.replace(samples, values=values)
+    if distribution == "biased":
+        offset = rng.uniform(-0.5, 0.5, size=(1, shape[1]))
+        unit = offset + rng.uniform(-0.5, 0.5, size=shape)
+    elif distribution == "uniform":
+        unit = rng.uniform(-1.0, 1.0, size=shape)
+    else:
+        unit = rng.standard_normal(size=shape)
+    return dataclasses.replace(samples, values=samples.values + unit * amp)
