@@ -181,10 +181,14 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
     if gap_g.shape[0] < n:
         gap_g = np.concatenate([gap_g, np.zeros(n - gap_g.shape[0], dtype=bool)])
     out = gridpass.GridOut.empty(n, nj, nc, np.ascontiguousarray(gap_g))
+    # one grid row per sample: the cylinder states the integration computed at the samples
+    # are the grid's (same arithmetic on the same smoothed values)
+    pre = (rows.cs[ka - e0 : ka - e0 + n] if r == 1 and rows.cs is not None
+           else np.empty((0, 5 * nc)))
     bad = gridpass.grid_pass(
         gridpass.Splines(coef, ka - f0, r, h0, h_last, src, der, qi), plan.cylinders,
         plan.free_joints, gridpass.SampleState(mk, sk, mm, minv, minv_ok, len(full), dynamic),
-        out, plan.kernels)
+        out, plan.kernels, pre)
     if bad:
         bad_rows = ~np.all(np.isfinite(out.q), axis=1)
         joint_motion(plan, out.rod_s[bad_rows], out.rod_v[bad_rows], out.rod_v[bad_rows],

@@ -229,7 +229,7 @@ def spline_points(sp, n_out, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def state_pass(sp, cy, fj, st, out):  # type: ignore[no-untyped-def]
+def state_pass(sp, cy, fj, st, out, pre):  # type: ignore[no-untyped-def]
     """Step 1 at every row of ``out``: splines, cylinder kinematics (rods clipped to their
     strokes), Eq. 1–2, actuator loads, the free joints, the payload.
 
@@ -237,6 +237,10 @@ def state_pass(sp, cy, fj, st, out):  # type: ignore[no-untyped-def]
         sp: :class:`Splines`; cy: :class:`Cylinders`; fj: :class:`FreeJoints`;
         st: :class:`SampleState`; out: :class:`GridOut` (written but tau_id, resid, wrench,
             qdd2, fix).
+        pre: The cylinder states at the rows of ``out`` when the grid rows are the samples
+            and the sample-rate stage computed them (:func:`cranetwin.twin.stages.
+            cylinder_states` rows, (n, 5·n_c): the same arithmetic on the same values), else
+            shape (0, 5·n_c): computed here.
 
     Returns:
         Number of rows where a rod position has no joint angle (their q is NaN).
@@ -250,6 +254,7 @@ def state_pass(sp, cy, fj, st, out):  # type: ignore[no-untyped-def]
     for k in range(nc):
         cells_per_m[k] = cy.table.shape[1] / cy.stroke[k]
     bad = 0
+    reuse = pre.shape[0] > 0
     for g in range(out.q.shape[0]):
         s0, fr = spline_row(sp, g, val)
         row_bad = False
@@ -258,8 +263,19 @@ def state_pass(sp, cy, fj, st, out):  # type: ignore[no-untyped-def]
             s = min(max(raw, 0.0), cy.stroke[k])
             v = val[qi.v + k]
             j = cy.joint[k]
-            qj, qdj, qddj, arm = joint_motion(cy.table, cy.table_ok, cy.cyl, k, cells_per_m[k],
-                                              s, v, val[qi.a + k])
+            pa = val[qi.pa + k]
+            pb = val[qi.pb + k]
+            if reuse:
+                qj = pre[g, k]
+                qdj = pre[g, nc + k]
+                qddj = pre[g, 2 * nc + k]
+                arm = pre[g, 3 * nc + k]
+                f = pre[g, 4 * nc + k]
+            else:
+                qj, qdj, qddj, arm = joint_motion(cy.table, cy.table_ok, cy.cyl, k,
+                                                  cells_per_m[k], s, v, val[qi.a + k])
+                p = cy.params[k]
+                f = eq1_cylinder_force(pa, pb, v, p[0], p[1], p[2], p[3], p[4])
             if not math.isfinite(qj):
                 row_bad = True
             out.q[g, j] = qj
@@ -267,12 +283,8 @@ def state_pass(sp, cy, fj, st, out):  # type: ignore[no-untyped-def]
             out.qdd[g, j] = qddj
             out.rod_s[g, k] = s
             out.rod_v[g, k] = v
-            pa = val[qi.pa + k]
-            pb = val[qi.pb + k]
             out.pa[g, k] = pa
             out.pb[g, k] = pb
-            p = cy.params[k]
-            f = eq1_cylinder_force(pa, pb, v, p[0], p[1], p[2], p[3], p[4])
             out.force[g, k] = f
             out.tau_act[g, j] = f * arm
             out.known[g, j] = not (raw <= cy.stop_margin or raw >= cy.stroke[k] - cy.stop_margin)
@@ -355,13 +367,14 @@ def correction_pass(r, st, out):  # type: ignore[no-untyped-def]
 
 
 def grid_pass(sp: Splines, cy: Cylinders, fj: FreeJoints, st: SampleState, out: GridOut,
-              kernels: BatchKernels) -> int:
-    """Every grid quantity of a chunk into ``out`` (steps 1–4 of the module docstring).
+              kernels: BatchKernels, pre: F64) -> int:
+    """Every grid quantity of a chunk into ``out`` (steps 1–4 of the module docstring);
+    ``pre``: as :func:`state_pass`.
 
     Returns:
         Number of rows where a rod position has no joint angle (their q is NaN).
     """
-    bad = int(state_pass(sp, cy, fj, st, out))
+    bad = int(state_pass(sp, cy, fj, st, out, pre))
     kernels.rnea(out.q, out.qd, out.qdd, out.pl, out.tau_id, out.wrench)
     correction_pass(sp.r, st, out)
     if st.dynamic:
