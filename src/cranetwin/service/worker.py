@@ -91,7 +91,7 @@ class TwinWorker:
     def __init__(self, backend: Backend, settings: Settings, metrics: Metrics | None = None,
                  replayer: Replayer | None = None, max_windows_per_pass: int = 30,
                  quiet_s: float = 60.0, clock: Callable[[], float] = time.monotonic,
-                 ownership: Ownership | None = None) -> None:
+                 ownership: Ownership | None = None, schedule_check_s: float = 60.0) -> None:
         from cranetwin.service.replayer import Replayer
 
         self.replayer = replayer if replayer is not None else Replayer()
@@ -108,6 +108,10 @@ class TwinWorker:
         self._last_sample: dict[str, tuple[float, float]] = {}
         self._marks: dict[str, tuple[float, float]] = {}  # machine → (newest sample, watermark)
         self._next_upkeep = clock()
+        self.schedule_check_s = schedule_check_s
+        """Least time between two checks of one machine's service schedules [s of ``clock``]
+        (each merges its stored analytics when it has lift or damage items)."""
+        self._next_schedule_check: dict[str, float] = {}
         self.stop_event = threading.Event()
         """Set to stop: checked between windows, so the window being replayed is finished and
         committed first (a second or so)."""
@@ -279,6 +283,7 @@ class TwinWorker:
         self._roll_up(rec, start_wm, prog.watermark_s)
         if done or prog.watermark_s != start_wm:
             self._update_duty(rec, dr[0], prog.watermark_s)
+        self._check_schedules(rec)
         self._marks[rec.machine_id] = (dr[1], prog.watermark_s)
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
@@ -377,6 +382,23 @@ class TwinWorker:
                         first_s, until_s)
         except CraneTwinError as exc:
             log.warning("machine %s: duty to date not updated: %s", rec.machine_id, exc)
+
+    def _check_schedules(self, rec: MachineRecord) -> None:
+        """Raise the ``service_due`` events of the machine's due items
+        (:func:`cranetwin.service.schedules.check_due`), at most every ``schedule_check_s``."""
+        from cranetwin.service.schedules import check_due
+
+        now = self.clock()
+        if now < self._next_schedule_check.get(rec.machine_id, -math.inf):
+            return
+        self._next_schedule_check[rec.machine_id] = now + self.schedule_check_s
+        try:
+            n = check_due(self.backend, rec.machine_id)
+        except CraneTwinError as exc:
+            log.warning("machine %s: service schedule not checked: %s", rec.machine_id, exc)
+            return
+        if n:
+            log.info("machine %s: %d service item(s) due", rec.machine_id, n)
 
     def _roll_up(self, rec: MachineRecord, from_s: float, to_s: float) -> None:
         """Roll the minute parts of the hours (and days) the progress mark passed from
