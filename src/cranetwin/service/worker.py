@@ -295,20 +295,33 @@ class TwinWorker:
         """Store the window's analytics part (:mod:`cranetwin.service.history`: what any
         range's analytics merge from) and its events, before the window's commit: a redone
         window replaces its part, and storage ignores events stored before (unique on machine,
-        time, kind). Events of runs spanning a window edge are stored once per window (the
-        /events list); reports merge the parts, which join such runs."""
+        time, kind).
+
+        The events are found the way a report merges parts: the previous minute's stored part
+        is folded first, so the look-back detectors (force rates, end-stop entries) see the
+        samples before the window, and a run that started before the window is not a new
+        event here. A window stores the events that start in it (a run still open at its end
+        is stored as it stands; a report joins it with its continuation, same start)."""
         from cranetwin.analytics import EventDetector
         from cranetwin.service.analytics import load_history, stored_events
-        from cranetwin.service.history import store_part
+        from cranetwin.service.history import load_part, store_part
+        from cranetwin.storage import analytics_windows as aw
 
         if int(np.count_nonzero(keep)) < 2:
             return
+        engine = self.backend.store.engine
         try:
             h = load_history(machine, res, keep)
-            store_part(self.backend.store.engine, machine, rec.machine_id, w0, w1, h, *times)
+            store_part(engine, machine, rec.machine_id, w0, w1, h, *times)
             det = EventDetector(machine)
+            prev = aw.windows(engine, rec.machine_id, 60, w0 - 60, w0)
+            if prev:
+                part = load_part(prev[-1][3])
+                if part.t_last < float(h.t_s[0]):
+                    det.apply(part.events)
             det.update(h)
-            events = stored_events(rec.machine_id, det.all_events())
+            events = stored_events(rec.machine_id,
+                                   [e for e in det.all_events() if e.t_start >= w0])
         except CraneTwinError as exc:
             log.warning("machine %s: analytics of window %.0f failed: %s", rec.machine_id, w0,
                         exc)
