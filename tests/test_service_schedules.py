@@ -5,6 +5,9 @@ alarms, cleared by marking the item done), fleet role for writes."""
 
 from __future__ import annotations
 
+import csv
+import io
+import zipfile
 from collections.abc import Iterator
 from typing import Any
 
@@ -164,5 +167,19 @@ def test_api_worker_event_once_and_done(ctx: Any, monkeypatch: pytest.MonkeyPatc
                        json={"value": 0.0}).status_code == 200
     assert sv.check_due(b, MID, now_s=NOW) == 1
     assert client.post(f"{url}/nope/done", headers=keys["fleet"]).status_code == 404
+    # the report has a Service schedule section (CSV: schedule.csv; HTML: the section)
+    rng = {"from": T0, "to": T0 + 240}
+    r = client.get(f"/api/v1/machines/{MID}/report", headers=keys["fleet"],
+                   params={**rng, "format": "csv"})
+    assert r.status_code == 200, r.text
+    with zipfile.ZipFile(io.BytesIO(r.content)) as z:
+        rows = list(csv.DictReader(io.StringIO(z.read("schedule.csv").decode())))
+    got_rows = {row["item"]: row for row in rows}
+    assert set(got_rows) == set(items)
+    assert got_rows["oil filter"]["status"] == "overdue"
+    assert got_rows["annual"]["due (UTC, estimated)"].startswith("2026-12-01")
+    page = client.get(f"/api/v1/machines/{MID}/report", headers=keys["fleet"],
+                      params={**rng, "format": "html"}).text
+    assert "<h1>Service schedule</h1>" in page and "boom inspection" in page
     assert client.delete(f"{url}/greasing", headers=keys["fleet"]).status_code == 204
     assert client.delete(f"{url}/greasing", headers=keys["fleet"]).status_code == 404

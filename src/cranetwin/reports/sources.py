@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -218,6 +218,14 @@ class StoreSource:
                            self.t1_s, edge, prog.watermark_s if prog is not None else None,
                            config=config,
                            next_sample=lambda t: backend.next_sample_time(self.machine_id, t))
+
+    def schedule(self) -> list[Any]:
+        """The machine's service schedule now: what is due when
+        (:func:`cranetwin.service.schedules.statuses`), for the report's section."""
+        from cranetwin.service.backend import Backend
+        from cranetwin.service.schedules import statuses
+
+        return statuses(Backend(self.store), self.machine_id)
 
     def history_usage(self) -> tuple[float, float] | None:
         """(operating s, calendar s) of the machine's whole recorded history: the twin worker's
