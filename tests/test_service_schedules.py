@@ -181,5 +181,10 @@ def test_api_worker_event_once_and_done(ctx: Any, monkeypatch: pytest.MonkeyPatc
     page = client.get(f"/api/v1/machines/{MID}/report", headers=keys["fleet"],
                       params={**rng, "format": "html"}).text
     assert "<h1>Service schedule</h1>" in page and "boom inspection" in page
+    # the machine page's table of the items (filled by schedule.js from the list above)
+    html = client.get(f"/machines/{MID}").text
+    assert 'id="schedule-rows"' in html
+    js = client.get("/static/js/schedule.js")
+    assert js.status_code == 200 and "/schedules`" in js.text
     assert client.delete(f"{url}/greasing", headers=keys["fleet"]).status_code == 204
     assert client.delete(f"{url}/greasing", headers=keys["fleet"]).status_code == 404

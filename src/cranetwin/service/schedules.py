@@ -197,7 +197,8 @@ class ScheduleInput:
         basis: One of :data:`BASES`.
         interval: Interval in the basis' unit (> 0).
         detail: Fatigue detail of a damage item (None: the most damaged).
-        last_done_value: Counter when last done (None: the counter now — counted from now).
+        last_done_value: Counter when last done (None: the counter now — counted from now;
+            ignored for calendar items, whose counter is the date ``last_done_s``).
         last_done_s: When last done [s since the epoch] (None: now).
     """
 
@@ -247,9 +248,10 @@ def set_schedule(backend: Any, machine_id: str, item: str, inp: ScheduleInput, b
     now = time.time() if now_s is None else now_s
     done_s = now if inp.last_done_s is None else inp.last_done_s
     value = inp.last_done_value
-    if value is None:
-        value = (done_s / DAY_S if inp.basis == "calendar_days"
-                 else _counter_now(backend, machine_id, inp.basis, inp.detail, now))
+    if inp.basis == "calendar_days":  # the counter of a calendar item is the date
+        value = done_s / DAY_S
+    elif value is None:
+        value = _counter_now(backend, machine_id, inp.basis, inp.detail, now)
     sch = st.Schedule(0, machine_id, item, inp.basis, float(inp.interval), inp.detail,
                       float(value), float(done_s), None, now, by)
     with backend.session() as s, s.begin():
@@ -274,9 +276,10 @@ def mark_done(backend: Any, machine_id: str, item: str, by: str, value: float | 
         raise NotFoundError("Unknown service item", f"machine {machine_id} has no item {item!r}")
     t = now if at_s is None else at_s
     v = value
-    if v is None:
-        v = (t / DAY_S if cur.basis == "calendar_days"
-             else _counter_now(backend, machine_id, cur.basis, cur.detail, now))
+    if cur.basis == "calendar_days":
+        v = t / DAY_S
+    elif v is None:
+        v = _counter_now(backend, machine_id, cur.basis, cur.detail, now)
     with backend.session() as s, s.begin():
         st.mark_done(s, machine_id, item, float(v), float(t), by)
         if cur.due_event_id is not None:
