@@ -98,6 +98,11 @@ ROUTES: list[tuple[str, str, str, dict[str, Any] | None]] = [
     ("GET", f"/api/v1/aemp/Fleet/Equipment/ID/{MID}/{TS}", "fleet", None),
     ("GET", f"/api/v1/machines/{MID}/export?{R}&series=raw", "fleet", None),
     ("GET", "/api/v1/fleet/figures", "viewer", None),
+    ("GET", f"/api/v1/machines/{MID}/schedules", "viewer", None),
+    ("PUT", f"/api/v1/machines/{MID}/schedules/{{item}}", "fleet",
+     {"basis": "operating_hours", "interval": 500}),
+    ("POST", f"/api/v1/machines/{MID}/schedules/{{item}}/done", "fleet", {}),
+    ("DELETE", f"/api/v1/machines/{MID}/schedules/{{item}}", "fleet", None),
 ]
 RANK = {"viewer": 0, "fleet": 1, "admin": 2}
 

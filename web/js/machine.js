@@ -4,6 +4,7 @@ import { Crane3D } from "./crane3d.js";
 import { ReplayStore } from "./replay.js";
 import { Charts, channelCatalog, chartGroups, DEFAULT_KINDS } from "./charts.js";
 import { Timeline, coverageFromHistory, nextCovered } from "./timeline.js";
+import { showSchedule } from "./schedule.js";
 
 const $ = (id) => document.getElementById(id);
 const SPEEDS = [0.25, 0.5, 1, 2, 4, 8, 16];
@@ -128,6 +129,7 @@ async function start() {
   if (!embed) setupSignIn(() => window.location.reload());
   if (embed) { $("mode-live").disabled = true; $("share").hidden = true; $("export").hidden = true; $("report").hidden = true; $("report-fmt").hidden = true; $("back-link").hidden = true; }
   wireControls();
+  if (!embed) showSchedule(machineId, $("schedule-card"), $("schedule-rows")).catch(() => {});
   requestAnimationFrame(loop);
   // plotly (4.6 MB to parse) is loaded once the crane is drawn, so it never delays that paint
   const afterPaint = Promise.race([firstFrame, new Promise((r) => setTimeout(r, 3000))]);

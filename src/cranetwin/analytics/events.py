@@ -73,7 +73,8 @@ class EventConfig:
         overspeed_tolerance: Slewing speed above velocity_limit·(1 + tolerance) is overspeed.
         overspeed_min_s: Minimum duration of overspeed [s].
         shock_rate_per_s: Force rate, as a fraction of the cylinder's relief force per second,
-            above which a load is a shock [1/s].
+            above which a load is a shock [1/s], for cylinders without their own
+            ``shock_rate_n_per_s`` in the machine file.
         shock_window_s: Time step of the force-rate difference [s].
         max_gap_s: A gap in the data longer than this ends any condition [s].
     """
@@ -126,6 +127,27 @@ class EventPart:
     n: int
 
 
+def load_force(machine: Machine, h: LoadHistory, end_zone_m: float = 0.005) -> F64:
+    """The axial force each cylinder carries [N], shape (n, n_cyl): the pressures' force
+    ``h.cyl_force``, and where the rod is within ``end_zone_m`` of a stroke end the
+    inverse-dynamics load ``h.cyl_load`` (the stop takes what the oil does not). Without
+    ``cyl_load`` or rod positions, ``cyl_force``. What shock loads and the end-stop evidence
+    are taken from, in every chunk and every look-back alike."""
+    if h.cyl_load is None or h.rod_s is None:
+        return h.cyl_force
+    stroke = np.array([c.stroke_m for c in machine.cylinders])
+    at_end = (h.rod_s <= end_zone_m) | (h.rod_s >= stroke - end_zone_m)
+    return np.where(at_end, h.cyl_load, h.cyl_force)
+
+
+def force_rate(t: F64, f: F64, lag: int, first: int, stop: int) -> F64:
+    """|f(t_k) − f(t_{k−lag})| / (t_k − t_{k−lag}) for k in [first, stop) (first ≥ lag): the
+    rate of change of each force over ``lag`` samples [N/s], shape (stop − first, n_cyl). The
+    shock detector's one formula, for every chunk and every look-back across chunks."""
+    return (np.abs(f[first:stop] - f[first - lag:stop - lag])
+            / (t[first:stop] - t[first - lag:stop - lag])[:, None])
+
+
 def nominal_speed_mps(machine: Machine) -> F64:
     """Nominal rod speed of each cylinder at full valve opening [m/s], shape (n_cyl,).
 
@@ -148,6 +170,16 @@ def relief_force_n(machine: Machine) -> F64:
     return np.array([p * c.area_a_m2 for c in machine.cylinders])
 
 
+def shock_limits_n_per_s(machine: Machine, rate_per_s: float = 15.0) -> F64:
+    """Force rate above which a cylinder's load is a shock, per cylinder [N/s], shape
+    (n_cyl,): the machine file's ``shock_rate_n_per_s``, else ``rate_per_s`` × the push force
+    at relief pressure (PATU 655: 2.1 MN/s lift and jib, 0.53 MN/s extension)."""
+    relief = relief_force_n(machine)
+    return np.array([c.shock_rate_n_per_s if c.shock_rate_n_per_s is not None
+                     else rate_per_s * float(relief[i])
+                     for i, c in enumerate(machine.cylinders)])
+
+
 def _severity(ratio: float, critical: float) -> str:
     return "critical" if ratio >= critical else "warning"
 
@@ -163,7 +195,7 @@ class EventDetector:
         self.cfg = config or EventConfig()
         c = self.cfg
         self._speed = nominal_speed_mps(machine)
-        self._relief_f = relief_force_n(machine)
+        self._shock_lim = shock_limits_n_per_s(machine, c.shock_rate_per_s)
         self._relief_p = machine.hydraulics.relief_pressure_pa if machine.hydraulics else None
         self._max_rated = float(max(machine.rated_load.payload_kg))
         self._slew = next((i for i, j in enumerate(machine.joints) if j.kind == "revolute"
@@ -219,7 +251,7 @@ class EventDetector:
                      {"pressure_ratio": ratio, "duration_s": r.duration_s, "t_peak": r.t_peak})
 
     def _shock_event(self, i: int, r: Run) -> Event:
-        lim = self.cfg.shock_rate_per_s * float(self._relief_f[i])
+        lim = float(self._shock_lim[i])
         ratio = float(r.vmax[0] / lim)
         return Event("shock_load", r.t_start, r.t_end, _severity(ratio, 2.0),
                      self.machine.cylinders[i].name, float(r.vmax[0]), lim, "N/s",
@@ -293,10 +325,9 @@ class EventDetector:
             return out
         c = self.cfg
         tt = t[first:stop]
-        rate = (np.abs(f[first:stop] - f[first - lag:stop - lag])
-                / (tt - t[first - lag:stop - lag])[:, None])
+        rate = force_rate(t, f, lag, first, stop)
         for i in range(len(self.machine.cylinders)):
-            lim = c.shock_rate_per_s * float(self._relief_f[i])
+            lim = float(self._shock_lim[i])
             out[f"shock:{i}"] = segments(tt, rate[:, i] > lim, (rate[:, i], f[first:stop, i]),
                                          c.max_gap_s)
         return out
@@ -320,7 +351,7 @@ class EventDetector:
         tail. Exact for a constant sample period (the twin's grid)."""
         if h.n == 0:
             return None
-        t, f = h.t_s, h.cyl_force
+        t, f = h.t_s, load_force(self.machine, h, self.cfg.end_zone_m)  # one force for both
         dt = float(np.median(np.diff(t[: min(t.shape[0], 100)]))) if t.shape[0] > 1 else 1.0
         keep, lag = self._keep(dt), self._lag(dt)
         n = t.shape[0]

@@ -54,6 +54,12 @@ class LoadHistory:
             shape (n,) bool, or None (everywhere). An estimate from a sliding window smears
             grab and release into ramps; a work cycle's payload is the mean over its steady
             instants only (see :mod:`cranetwin.analytics.productivity`).
+        cyl_load: Axial load each cylinder carries by inverse dynamics, τ_ID / (ds/dq),
+            shape (n, n_cyl) [N], or None. The chamber pressures' force (``cyl_force`` of a
+            replay) misses what the pressures cannot see: a rod driven into its end stop is
+            stopped by the stop, not the oil. The shock detector takes it where a rod is at a
+            stroke end (:func:`cranetwin.analytics.events.load_force`); a simulator's true
+            cylinder force already includes the stop (give None).
     """
 
     t_s: F64
@@ -69,6 +75,7 @@ class LoadHistory:
     p_a: F64 | None = None
     p_b: F64 | None = None
     payload_steady: npt.NDArray[np.bool_] | None = None
+    cyl_load: F64 | None = None
 
     @property
     def n(self) -> int:
@@ -94,6 +101,7 @@ class LoadHistory:
         p_a: npt.ArrayLike | None = None,
         p_b: npt.ArrayLike | None = None,
         payload_steady: npt.ArrayLike | None = None,
+        cyl_load: npt.ArrayLike | None = None,
     ) -> LoadHistory:
         """Check and assemble a history from plain arrays.
 
@@ -112,6 +120,8 @@ class LoadHistory:
                 rod_v is differentiated from rod_s if only rod_s is given.
             payload_steady: Where the payload estimate is steady, shape (n,) bool (None:
                 everywhere).
+            cyl_load: Cylinder load forces by inverse dynamics, shape (n, n_cyl) [N] (None:
+                ``cyl_force`` is the shock detector's force).
 
         Raises:
             AnalyticsError: A shape is wrong, times are not strictly increasing, a value is
@@ -155,7 +165,9 @@ class LoadHistory:
         h = cls(t_s=t, cyl_force=f, joint_moment=jm, q=qa, qd=qda, payload_kg=pl, reach_m=re,
                 height_m=_arr("height_m", height_m, (n,)), rod_s=rs, rod_v=rv,
                 p_a=_arr("p_a", p_a, (n, nc)), p_b=_arr("p_b", p_b, (n, nc)),
-                payload_steady=steady)
+                payload_steady=steady, cyl_load=_arr("cyl_load", cyl_load, (n, nc)))
+        if h.cyl_load is not None and not np.all(np.isfinite(h.cyl_load)):
+            raise AnalyticsError("cyl_load: contains NaN or inf; bridge gaps before analytics")
         for name in ("t_s", "cyl_force", "joint_moment", "q", "qd", "payload_kg", "reach_m"):
             if not np.all(np.isfinite(getattr(h, name))):
                 raise AnalyticsError(f"{name}: contains NaN or inf; bridge gaps before analytics")
@@ -172,7 +184,7 @@ class LoadHistory:
             reach_m=self.reach_m[start:stop], height_m=cut(self.height_m),
             rod_s=cut(self.rod_s), rod_v=cut(self.rod_v), p_a=cut(self.p_a), p_b=cut(self.p_b),
             payload_steady=None if self.payload_steady is None
-            else self.payload_steady[start:stop])
+            else self.payload_steady[start:stop], cyl_load=cut(self.cyl_load))
 
     def load_channel(self, machine: Machine, spec: str) -> F64:
         """The load history a ``FatigueDetail.load`` string names.

@@ -18,6 +18,7 @@ from cranetwin.api import (
     routes_live,
     routes_machines,
     routes_ops,
+    routes_schedules,
     routes_session,
 )
 from cranetwin.api.errors import install_error_handlers
@@ -128,7 +129,7 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
         return await count_request(services.metrics, request, call_next)
 
     for module in (routes_ops, routes_session, routes_machines, routes_data, routes_aemp,
-                   routes_alarms, routes_live):
+                   routes_alarms, routes_live, routes_schedules):
         app.include_router(module.router)
     try:
         from cranetwin.api import routes_web

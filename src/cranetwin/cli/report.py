@@ -147,11 +147,13 @@ def report(
         rep = build_report(src, progress=lambda n: bar.advance(task, n), t0_s=window[0],
                            t1_s=window[1])
         bar.update(task, completed=src.total())
+        schedule = src.schedule() if isinstance(src, StoreSource) else None
         paths = []
         for f, target in targets.items():
             wtask = bar.add_task(f"writing {f}", total=len(SECTIONS))
             paths.append(write(rep, src.machine, f, target, src.label,
-                               progress=functools.partial(bar.advance, wtask)))
+                               progress=functools.partial(bar.advance, wtask),
+                               schedule=schedule))
             bar.update(wtask, completed=len(SECTIONS))
     typer.echo(f"{', '.join(map(str, paths))}: {len(rep.cycles)} work cycles, "
                f"{len(rep.events)} events, {rep.n_samples:,} samples")

@@ -244,6 +244,10 @@ class Cylinder(_Frozen):
     dead_volume_m3: float | None = Field(
         None, gt=0, description="hose + port volume per chamber of this cylinder [m³]; None: "
         "hydraulics.dead_volume_m3")
+    shock_rate_n_per_s: float | None = Field(
+        None, gt=0, description="rate of change of the cylinder's load force above which a "
+        "load is a shock [N/s]; None: 15/s × the push force at relief pressure "
+        "(docs/ANALYTICS.md, shock_load)")
     assumed: list[str] = Field(default_factory=list)
 
     @model_validator(mode="after")

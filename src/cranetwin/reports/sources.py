@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -67,7 +67,7 @@ def history_from_twin(machine: Machine, res: TwinResult) -> LoadHistory:
         machine: The machine replayed.
         res: A :class:`cranetwin.twin.TwinResult`.
     """
-    from cranetwin.service.analytics import steady_payload
+    from cranetwin.service.analytics import cylinder_loads, steady_payload
 
     reach, height = _reach_height(machine, res.q)
     ok = np.isfinite(res.cyl_force).all(axis=1) & np.isfinite(res.joint_wrench).all(axis=(1, 2))
@@ -79,7 +79,8 @@ def history_from_twin(machine: Machine, res: TwinResult) -> LoadHistory:
         machine, t_s=k(res.t_s), cyl_force=k(res.cyl_force), q=k(res.q), qd=k(res.qd),
         payload_kg=np.maximum(k(res.payload_kg), 0.0), reach_m=k(reach), height_m=k(height),
         joint_wrench=k(res.joint_wrench), rod_s=k(res.rod_s), rod_v=k(res.rod_v),
-        p_a=k(res.p_a), p_b=k(res.p_b), payload_steady=k(steady_payload(res)))
+        p_a=k(res.p_a), p_b=k(res.p_b), payload_steady=k(steady_payload(res)),
+        cyl_load=cylinder_loads(machine, k(res.q), k(res.id_torque), k(res.cyl_force)))
 
 
 class Source(Protocol):
@@ -217,6 +218,14 @@ class StoreSource:
                            self.t1_s, edge, prog.watermark_s if prog is not None else None,
                            config=config,
                            next_sample=lambda t: backend.next_sample_time(self.machine_id, t))
+
+    def schedule(self) -> list[Any]:
+        """The machine's service schedule now: what is due when
+        (:func:`cranetwin.service.schedules.statuses`), for the report's section."""
+        from cranetwin.service.backend import Backend
+        from cranetwin.service.schedules import statuses
+
+        return statuses(Backend(self.store), self.machine_id)
 
     def history_usage(self) -> tuple[float, float] | None:
         """(operating s, calendar s) of the machine's whole recorded history: the twin worker's

@@ -6,7 +6,9 @@ One place decides what a report says; the PDF, HTML and CSV writers only lay it 
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -214,3 +216,21 @@ def productivity(rep: AnalyticsReport) -> Table:
         ["Mean payload per cycle [kg]", fmt(moved / n if n else float("nan"))],
         ["Utilisation (working / recorded)", f"{100 * rep.utilisation:.1f} %"],
     ])
+
+
+def schedule(items: Sequence[Any]) -> Table:
+    """The service schedule: each maintenance item, its interval, when last done, the counter
+    now and when it is due (value, estimated date) — the
+    :class:`cranetwin.service.schedules.DueStatus` of each item."""
+    rows: list[Row] = []
+    for d in items:
+        s = d.schedule
+        unit = d.unit or "damage"
+        due_date = when(d.due_at_s) if d.due_at_s is not None else "–"
+        rows.append([s.item, f"{s.basis} ({unit})" + (f", {d.detail}" if d.detail else ""),
+                     fmt(s.interval, 4), f"{fmt(s.last_done_value, 4)} ({when(s.last_done_s)})",
+                     "–" if d.current is None else fmt(d.current, 4), fmt(d.due_at, 4),
+                     due_date, "–" if d.remaining is None else fmt(d.remaining, 4), d.status])
+    return Table("Service schedule", ["item", "basis", "interval", "last done (UTC)", "now",
+                                      "due at", "due (UTC, estimated)", "remaining", "status"],
+                 rows)

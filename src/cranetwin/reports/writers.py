@@ -1,10 +1,11 @@
 """Report writers: PDF (reportlab), self-contained HTML (inline PNG), CSV (directory or zip).
 
 Sections (PDF pages, HTML sections): Summary, Usage, Load spectrum, Damage and remaining life,
-Duty record, Events, Productivity, Assumptions. CSV files: ``summary.csv``, ``usage.csv``,
-``spectra.csv``, ``assumptions.csv``,
+Duty record, Events, Productivity, Assumptions, and Service schedule for a stored machine.
+CSV files: ``summary.csv``, ``usage.csv``, ``spectra.csv``, ``assumptions.csv``,
 ``cycles.csv`` (rainflow from-to table), ``damage.csv``, ``duty.csv``, ``events.csv``,
-``work_cycles.csv``; written into a directory, or a ``.zip`` if the output name ends in .zip.
+``work_cycles.csv`` (and ``schedule.csv``); written into a directory, or a ``.zip`` if the
+output name ends in .zip.
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ import csv
 import html
 import io
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from cranetwin.analytics import AnalyticsReport
 from cranetwin.errors import MissingExtraError, ReportError
@@ -29,11 +31,22 @@ SECTIONS = ("Summary", "Usage", "Load spectrum", "Damage and remaining life", "D
             "Events", "Productivity", "Assumptions")
 
 
-def _sections(rep: AnalyticsReport, machine: Machine, source: str,
-              figs: dict[str, bytes]) -> list[tuple[str, str, list[T.Table], bytes | None]]:
+Schedule = Sequence[Any] | None
+"""The machine's service schedule (:class:`cranetwin.service.schedules.DueStatus` per item), or
+None when the report is not of a stored machine (no section then)."""
+
+
+def _sections(rep: AnalyticsReport, machine: Machine, source: str, figs: dict[str, bytes],
+              schedule: Schedule = None) -> list[tuple[str, str, list[T.Table], bytes | None]]:
     """(heading, intro, tables, figure) per section."""
     ev = T.events(rep, MAX_EVENT_ROWS)
     n_ev = len(rep.events)
+    extra = [] if schedule is None else [
+        ("Service schedule", "Maintenance items by operating hours, lifts (work cycles), "
+         "Miner damage of a fatigue detail or calendar days, counted over the machine's whole "
+         "processed history (not only this report's range); due dates estimated from the "
+         "last 7 days' rate. Due: within 10 % of the interval; overdue: past it.",
+         [T.schedule(schedule)], None)]
     return [
         ("Summary", f"Load-history report of {machine.name}: {machine.machine.description}.",
          [T.summary(rep, machine, source)], None),
@@ -57,6 +70,7 @@ def _sections(rep: AnalyticsReport, machine: Machine, source: str,
          [T.productivity(rep)], figs.get("productivity")),
         ("Assumptions", "Every figure of this report rests on these assumptions; results scale "
          "with the fatigue details and the design class.", [T.assumptions(rep)], None),
+        *extra,
     ]
 
 
@@ -110,7 +124,8 @@ def _font() -> str:
 
 
 def write_pdf(rep: AnalyticsReport, machine: Machine, out: Path, source: str,
-              figs: dict[str, bytes], progress: Callable[[], None] | None = None) -> Path:
+              figs: dict[str, bytes], progress: Callable[[], None] | None = None,
+              schedule: Schedule = None) -> Path:
     """PDF with one page per section (plots and tables).
 
     Raises:
@@ -143,7 +158,8 @@ def write_pdf(rep: AnalyticsReport, machine: Machine, out: Path, source: str,
     cell = ParagraphStyle("c", parent=body, fontSize=6.5, leading=7.5)
     width = A4[0] - 30 * mm
     story: list[object] = []
-    for i, (head, intro, tabs, fig) in enumerate(_sections(rep, machine, source, figs)):
+    for i, (head, intro, tabs, fig) in enumerate(_sections(rep, machine, source, figs,
+                                                           schedule)):
         if i:
             story.append(PageBreak())
         story += [Paragraph(head, h1), Paragraph(html.escape(intro), body), Spacer(1, 3 * mm)]
@@ -181,11 +197,12 @@ padding:2px 6px}th{background:#dde6f0}img{max-width:100%}section{margin-bottom:2
 
 
 def write_html(rep: AnalyticsReport, machine: Machine, out: Path, source: str,
-               figs: dict[str, bytes], progress: Callable[[], None] | None = None) -> Path:
+               figs: dict[str, bytes], progress: Callable[[], None] | None = None,
+               schedule: Schedule = None) -> Path:
     """One self-contained HTML file (inline CSS and base64 PNG figures, no external links)."""
     parts = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>cranetwin "
              f"report {html.escape(machine.name)}</title><style>{CSS}</style></head><body>"]
-    for head, intro, tabs, fig in _sections(rep, machine, source, figs):
+    for head, intro, tabs, fig in _sections(rep, machine, source, figs, schedule):
         parts.append(f"<section><h1>{html.escape(head)}</h1><p>{html.escape(intro)}</p>")
         if fig is not None:
             b64 = base64.b64encode(fig).decode("ascii")
@@ -207,13 +224,15 @@ def write_html(rep: AnalyticsReport, machine: Machine, out: Path, source: str,
 
 # --- CSV ------------------------------------------------------------------------------------------
 
-def csv_tables(rep: AnalyticsReport, machine: Machine, source: str) -> dict[str, T.Table]:
+def csv_tables(rep: AnalyticsReport, machine: Machine, source: str,
+               schedule: Schedule = None) -> dict[str, T.Table]:
     """The CSV files and their tables."""
+    extra = {} if schedule is None else {"schedule.csv": T.schedule(schedule)}
     return {"summary.csv": T.summary(rep, machine, source), "usage.csv": T.usage(rep),
             "spectra.csv": T.spectra(rep), "cycles.csv": T.cycle_rows(rep),
             "damage.csv": T.damage(rep, machine), "duty.csv": T.duty(rep),
             "events.csv": T.events(rep), "work_cycles.csv": T.work_cycles(rep),
-            "assumptions.csv": T.assumptions(rep)}
+            "assumptions.csv": T.assumptions(rep), **extra}
 
 
 def _csv_text(tab: T.Table) -> str:
@@ -224,9 +243,11 @@ def _csv_text(tab: T.Table) -> str:
     return buf.getvalue()
 
 
-def write_csv(rep: AnalyticsReport, machine: Machine, out: Path, source: str) -> Path:
+def write_csv(rep: AnalyticsReport, machine: Machine, out: Path, source: str,
+              schedule: Schedule = None) -> Path:
     """CSV files into directory ``out`` (created), or into a zip archive if ``out`` ends .zip."""
-    files = {name: _csv_text(t) for name, t in csv_tables(rep, machine, source).items()}
+    files = {name: _csv_text(t) for name, t in csv_tables(rep, machine, source,
+                                                          schedule).items()}
     if out.suffix.lower() == ".zip":
         with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as z:
             for name, text in files.items():
@@ -242,8 +263,9 @@ def write_csv(rep: AnalyticsReport, machine: Machine, out: Path, source: str) ->
 
 
 def write(rep: AnalyticsReport, machine: Machine, fmt: str, out: Path, source: str,
-          progress: Callable[[], None] | None = None) -> Path:
-    """Write the report in ``fmt`` (pdf, html or csv) to ``out``.
+          progress: Callable[[], None] | None = None, schedule: Schedule = None) -> Path:
+    """Write the report in ``fmt`` (pdf, html or csv) to ``out`` (with a Service schedule
+    section when ``schedule`` is given).
 
     Raises:
         ReportError: Unknown format or the file could not be written.
@@ -252,13 +274,13 @@ def write(rep: AnalyticsReport, machine: Machine, fmt: str, out: Path, source: s
     check_format(fmt)
     try:
         if fmt == "csv":
-            return write_csv(rep, machine, out, source)
+            return write_csv(rep, machine, out, source, schedule)
         from cranetwin.reports.figures import all_figures
 
         figs = all_figures(rep, machine)
         if fmt == "pdf":
-            return write_pdf(rep, machine, out, source, figs, progress)
-        return write_html(rep, machine, out, source, figs, progress)
+            return write_pdf(rep, machine, out, source, figs, progress, schedule)
+        return write_html(rep, machine, out, source, figs, progress, schedule)
     except OSError as exc:
         raise ReportError(f"cannot write {out}: {exc}") from exc
 
@@ -267,7 +289,8 @@ MEDIA_TYPES = {"pdf": "application/pdf", "html": "text/html; charset=utf-8",
                "csv": "application/zip"}
 
 
-def render(rep: AnalyticsReport, machine: Machine, fmt: str, source: str) -> tuple[bytes, str, str]:
+def render(rep: AnalyticsReport, machine: Machine, fmt: str, source: str,
+           schedule: Schedule = None) -> tuple[bytes, str, str]:
     """The report as bytes for a download (e.g. from the API): ``(content, media type, file
     name)``; CSV comes as a zip of the CSV files.
 
@@ -280,5 +303,5 @@ def render(rep: AnalyticsReport, machine: Machine, fmt: str, source: str) -> tup
     check_format(fmt)
     name = f"{machine.name}-report.{'zip' if fmt == 'csv' else fmt}"
     with tempfile.TemporaryDirectory() as d:
-        path = write(rep, machine, fmt, Path(d) / name, source)
+        path = write(rep, machine, fmt, Path(d) / name, source, schedule=schedule)
         return path.read_bytes(), MEDIA_TYPES[fmt], name

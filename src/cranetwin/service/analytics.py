@@ -68,9 +68,34 @@ def steady_payload(res: Any, threshold_kg: float | None = None,
     return steady_mask(res.t_s, result_lifts(res, dt, thr))
 
 
+def cylinder_loads(machine: Machine, q: np.ndarray, id_torque: np.ndarray,
+                   cyl_force: np.ndarray) -> np.ndarray:
+    """Axial load of each cylinder by inverse dynamics, F = τ_ID / (ds/dq) [N], shape
+    (n, n_cyl): the force the reconstructed motion needs along the cylinder, pressures and end
+    stop together (virtual work, as ``actuator_torque = F·ds/dq``). Where the lever vanishes
+    (|ds/dq| < 1e-6) or τ_ID is not finite, the pressures' force ``cyl_force`` is kept.
+
+    Args:
+        machine: The machine.
+        q: Joint positions, shape (n, n_joints) [rad or m].
+        id_torque: Inverse-dynamics joint loads, shape (n, n_joints) [N·m or N].
+        cyl_force: Cylinder forces of the pressures (Eq. 1–2), shape (n, n_cyl) [N].
+    """
+    from cranetwin.physics import moment_arms
+
+    if q.shape[0] == 0 or not machine.cylinders:
+        return np.array(cyl_force, dtype=float, copy=True)
+    arm = moment_arms(machine, q)
+    tau = id_torque[:, [machine.joint_index(c.joint) for c in machine.cylinders]]
+    ok = (np.abs(arm) >= 1e-6) & np.isfinite(tau)
+    return np.where(ok, tau / np.where(ok, arm, 1.0), cyl_force)
+
+
 def load_history(machine: Machine, res: Any, keep: np.ndarray) -> Any:
     """:class:`cranetwin.analytics.LoadHistory` of the kept instants of a replay result, with
-    where its payload is steady (:func:`steady_payload`)."""
+    where its payload is steady (:func:`steady_payload`) and the cylinders' load forces by
+    inverse dynamics (:func:`cylinder_loads`: at a stroke end, what shock loads are taken
+    from)."""
     from cranetwin.analytics import LoadHistory
     from cranetwin.physics import horizontal_reach
 
@@ -79,7 +104,8 @@ def load_history(machine: Machine, res: Any, keep: np.ndarray) -> Any:
         machine, t_s=res.t_s[keep], cyl_force=res.cyl_force[keep], q=q, qd=res.qd[keep],
         payload_kg=np.maximum(res.payload_kg[keep], 0.0), reach_m=horizontal_reach(machine, q),
         joint_wrench=res.joint_wrench[keep], rod_s=res.rod_s[keep], rod_v=res.rod_v[keep],
-        p_a=res.p_a[keep], p_b=res.p_b[keep], payload_steady=steady_payload(res)[keep])
+        p_a=res.p_a[keep], p_b=res.p_b[keep], payload_steady=steady_payload(res)[keep],
+        cyl_load=cylinder_loads(machine, q, res.id_torque[keep], res.cyl_force[keep]))
 
 
 def stored_events(machine_id: str, events: list[Any]) -> list[Any]:

@@ -80,8 +80,9 @@ class MachineStatus:
     data_range: tuple[float, float] | None
 
 
-RenderReport = Callable[[Any, Machine, str, str], tuple[bytes, str, str]]
-"""``(analytics report, machine, format, source label) -> (body, media type, file name)``."""
+RenderReport = Callable[[Any, Machine, str, str, Any], tuple[bytes, str, str]]
+"""``(analytics report, machine, format, source label, service schedule) -> (body, media type,
+file name)``."""
 
 
 @dataclass(frozen=True)
@@ -331,8 +332,11 @@ class FleetService:
         if rep is None:
             body, media, name = render(analytics_json(None, rng), fmt, rec.machine_id)
         else:
+            from cranetwin.service.schedules import statuses
+
             source = f"cranetwin API: machine {rec.machine_id}, {iso(rng.t0_s)} – {iso(rng.t1_s)}"
-            body, media, name = render_report(rep, machine, fmt, source)
+            body, media, name = render_report(rep, machine, fmt, source,
+                                              statuses(self.backend, rec.machine_id))
             name = f"{rec.machine_id}-{name}"
         return ReportFile(body, media, name)
 

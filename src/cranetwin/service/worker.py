@@ -91,7 +91,7 @@ class TwinWorker:
     def __init__(self, backend: Backend, settings: Settings, metrics: Metrics | None = None,
                  replayer: Replayer | None = None, max_windows_per_pass: int = 30,
                  quiet_s: float = 60.0, clock: Callable[[], float] = time.monotonic,
-                 ownership: Ownership | None = None) -> None:
+                 ownership: Ownership | None = None, schedule_check_s: float = 60.0) -> None:
         from cranetwin.service.replayer import Replayer
 
         self.replayer = replayer if replayer is not None else Replayer()
@@ -108,6 +108,10 @@ class TwinWorker:
         self._last_sample: dict[str, tuple[float, float]] = {}
         self._marks: dict[str, tuple[float, float]] = {}  # machine → (newest sample, watermark)
         self._next_upkeep = clock()
+        self.schedule_check_s = schedule_check_s
+        """Least time between two checks of one machine's service schedules [s of ``clock``]
+        (each merges its stored analytics when it has lift or damage items)."""
+        self._next_schedule_check: dict[str, float] = {}
         self.stop_event = threading.Event()
         """Set to stop: checked between windows, so the window being replayed is finished and
         committed first (a second or so)."""
@@ -279,6 +283,7 @@ class TwinWorker:
         self._roll_up(rec, start_wm, prog.watermark_s)
         if done or prog.watermark_s != start_wm:
             self._update_duty(rec, dr[0], prog.watermark_s)
+        self._check_schedules(rec)
         self._marks[rec.machine_id] = (dr[1], prog.watermark_s)
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
@@ -290,20 +295,33 @@ class TwinWorker:
         """Store the window's analytics part (:mod:`cranetwin.service.history`: what any
         range's analytics merge from) and its events, before the window's commit: a redone
         window replaces its part, and storage ignores events stored before (unique on machine,
-        time, kind). Events of runs spanning a window edge are stored once per window (the
-        /events list); reports merge the parts, which join such runs."""
+        time, kind).
+
+        The events are found the way a report merges parts: the previous minute's stored part
+        is folded first, so the look-back detectors (force rates, end-stop entries) see the
+        samples before the window, and a run that started before the window is not a new
+        event here. A window stores the events that start in it (a run still open at its end
+        is stored as it stands; a report joins it with its continuation, same start)."""
         from cranetwin.analytics import EventDetector
         from cranetwin.service.analytics import load_history, stored_events
-        from cranetwin.service.history import store_part
+        from cranetwin.service.history import load_part, store_part
+        from cranetwin.storage import analytics_windows as aw
 
         if int(np.count_nonzero(keep)) < 2:
             return
+        engine = self.backend.store.engine
         try:
             h = load_history(machine, res, keep)
-            store_part(self.backend.store.engine, machine, rec.machine_id, w0, w1, h, *times)
+            store_part(engine, machine, rec.machine_id, w0, w1, h, *times)
             det = EventDetector(machine)
+            prev = aw.windows(engine, rec.machine_id, 60, w0 - 60, w0)
+            if prev:
+                part = load_part(prev[-1][3])
+                if part.t_last < float(h.t_s[0]):
+                    det.apply(part.events)
             det.update(h)
-            events = stored_events(rec.machine_id, det.all_events())
+            events = stored_events(rec.machine_id,
+                                   [e for e in det.all_events() if e.t_start >= w0])
         except CraneTwinError as exc:
             log.warning("machine %s: analytics of window %.0f failed: %s", rec.machine_id, w0,
                         exc)
@@ -377,6 +395,23 @@ class TwinWorker:
                         first_s, until_s)
         except CraneTwinError as exc:
             log.warning("machine %s: duty to date not updated: %s", rec.machine_id, exc)
+
+    def _check_schedules(self, rec: MachineRecord) -> None:
+        """Raise the ``service_due`` events of the machine's due items
+        (:func:`cranetwin.service.schedules.check_due`), at most every ``schedule_check_s``."""
+        from cranetwin.service.schedules import check_due
+
+        now = self.clock()
+        if now < self._next_schedule_check.get(rec.machine_id, -math.inf):
+            return
+        self._next_schedule_check[rec.machine_id] = now + self.schedule_check_s
+        try:
+            n = check_due(self.backend, rec.machine_id)
+        except CraneTwinError as exc:
+            log.warning("machine %s: service schedule not checked: %s", rec.machine_id, exc)
+            return
+        if n:
+            log.info("machine %s: %d service item(s) due", rec.machine_id, n)
 
     def _roll_up(self, rec: MachineRecord, from_s: float, to_s: float) -> None:
         """Roll the minute parts of the hours (and days) the progress mark passed from
