@@ -1,8 +1,9 @@
 """The partition map of the shards: which database holds which machine partitions.
 
 :class:`ShardMap` maps each of P machine partitions
-(:func:`cranetwin.storage.sharding.partition_of`) to a database URL; :class:`StoreSpec` is where a process stores (one URL or a map), built from
-the settings by :func:`store_spec` and opened by :func:`cranetwin.storage.shards.open_store`.
+(:func:`cranetwin.storage.sharding.partition_of`) to a database URL; :class:`StoreSpec` is
+where a process stores (one URL or a map), built from the settings by :func:`store_spec` and
+opened by :func:`cranetwin.storage.shards.open_store`.
 """
 
 from __future__ import annotations

@@ -86,7 +86,7 @@ class ShardedStore(Store):
         super().__init__(shards[shard_map.owner[0]].engine)
         self.shards = list(shards)
         self.map = shard_map
-        self._ready = list(ready) if ready is not None else [True] * len(shards)
+        self.ready = list(ready) if ready is not None else [True] * len(shards)
         self._pause = [0.0] * len(shards)
         self._until = [0.0] * len(shards)
         self._keys: list[dict[int, tuple[str, bytes]]] = [{} for _ in shards]
@@ -148,9 +148,9 @@ class ShardedStore(Store):
                 raise StorageUnavailableError(f"shard {i} ({url}) is unavailable; tried again "
                                               f"in {self._until[i] - now:.1f} s")
         try:
-            if not self._ready[i]:
+            if not self.ready[i]:
                 migrate(self.shards[i].engine)
-                self._ready[i] = True
+                self.ready[i] = True
             out = fn(self.shards[i])
         except StorageUnavailableError:
             with self._lock:
