@@ -7,7 +7,8 @@ machines. Every shard is an ordinary :class:`~cranetwin.storage.Store` with the 
 
 :class:`ShardedStore` is a :class:`~cranetwin.storage.Store`: per-machine calls go to the
 machine's shard; fleet-wide calls (machine list, machine keys, storage statistics, rollup,
-partition maintenance) go to every shard and are merged; :meth:`ShardedStore.write_batch`
+partition maintenance) go to every shard and are merged (the machine list and keys of a shard
+that is unavailable are the ones last read from it, so a daemon keeps verifying its machines); :meth:`ShardedStore.write_batch`
 splits a batch by shard. A shard that fails with :class:`StorageUnavailableError` only holds
 back its own machines: their blocks come back ``unavailable`` (neither acknowledged nor
 refused) while the other shards' blocks are stored, and the shard is skipped for a short,
@@ -36,6 +37,7 @@ from sqlalchemy import Engine
 
 from cranetwin.errors import StorageError, StorageUnavailableError
 from cranetwin.samples import F64, SampleArrays, SampleBlock
+from cranetwin.storage.dberrors import unavailable, unavailable_in_chain
 from cranetwin.storage.engine import BUSY_TIMEOUT_S, display_url, make_engine, migrate
 from cranetwin.storage.events import Event
 from cranetwin.storage.machines import MachineInfo
@@ -90,6 +92,7 @@ class ShardedStore(Store):
         self._pause = [0.0] * len(shards)
         self._until = [0.0] * len(shards)
         self._keys: list[dict[int, tuple[str, bytes]]] = [{} for _ in shards]
+        self._machines: list[list[MachineInfo]] = [[] for _ in shards]
         self._lock = threading.Lock()
 
     @classmethod
@@ -152,11 +155,15 @@ class ShardedStore(Store):
                 migrate(self.shards[i].engine)
                 self.ready[i] = True
             out = fn(self.shards[i])
-        except StorageUnavailableError:
+        except Exception as exc:
+            if not unavailable_in_chain(exc):
+                raise
             with self._lock:
                 self._pause[i] = min(max(2 * self._pause[i], PAUSE_MIN_S), PAUSE_MAX_S)
                 self._until[i] = time.monotonic() + self._pause[i]
-            raise
+            if isinstance(exc, StorageUnavailableError):
+                raise
+            raise unavailable(f"shard {i} ({url})", exc) from exc
         if self._pause[i]:
             with self._lock:
                 self._pause[i], self._until[i] = 0.0, 0.0
@@ -177,20 +184,27 @@ class ShardedStore(Store):
         if wire_id in self.machine_keys():
             raise StorageError(f"machine {machine_id!r} or wire id {wire_id} is already "
                                "registered; choose unused ones")
-        return self._one(machine_id, lambda s: s.add_machine(machine_id, wire_id, secret,
-                                                             model, metadata))
+        i = self.shard_of(machine_id)
+        info = self._call(i, lambda s: s.add_machine(machine_id, wire_id, secret, model,
+                                                     metadata))
+        self._keys[i][int(wire_id)] = (machine_id, bytes(secret))
+        self._machines[i].append(info)
+        return info
 
     def get_machine(self, machine_id: str) -> MachineInfo:
         return self._one(machine_id, lambda s: s.get_machine(machine_id))
 
     def machines(self) -> list[MachineInfo]:
-        """Every machine of every shard, by machine id.
-
-        Raises:
-            StorageUnavailableError: A shard is unavailable (a partial list is never returned).
-        """
-        return sorted((m for ms in self._all(lambda s: s.machines()) for m in ms),
-                      key=lambda m: m.machine_id)
+        """Every machine of every shard, by machine id; an unavailable shard contributes the
+        machines last read from it (none if it was never read), with a warning."""
+        out: list[MachineInfo] = []
+        for i in range(len(self.shards)):
+            try:
+                self._machines[i] = self._call(i, lambda s: s.machines())
+            except StorageUnavailableError as exc:
+                log.warning("machines of shard %d not reloaded (last known listed): %s", i, exc)
+            out.extend(self._machines[i])
+        return sorted(out, key=lambda m: m.machine_id)
 
     def machine_keys(self) -> dict[int, tuple[str, bytes]]:
         """Every shard's keys; an unavailable shard contributes the keys last read from it (its
