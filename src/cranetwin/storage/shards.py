@@ -8,13 +8,13 @@ machines. Every shard is an ordinary :class:`~cranetwin.storage.Store` with the 
 :class:`ShardedStore` is a :class:`~cranetwin.storage.Store`: per-machine calls go to the
 machine's shard; fleet-wide calls (machine list, machine keys, storage statistics, rollup,
 partition maintenance) go to every shard and are merged (the machine list and keys of a shard
-that is unavailable are the ones last read from it, so a daemon keeps verifying its
-machines); :meth:`ShardedStore.write_batch` splits a batch by shard. A shard that fails with :class:`StorageUnavailableError` only holds
-back its own machines: their blocks come back ``unavailable`` (neither acknowledged nor
-refused) while the other shards' blocks are stored, and the shard is skipped for a short,
-growing pause (0.25 s doubling up to 5 s) before it is tried again, so a dead server costs one
-connection timeout per pause, not one per batch. A shard unreachable at start is migrated on
-its first successful use.
+that is unavailable are the ones last read from it, so a daemon keeps verifying its machines);
+:meth:`ShardedStore.write_batch` splits a batch by shard. A shard that fails with
+:class:`StorageUnavailableError` only holds back its own machines: their blocks come back
+``unavailable`` (neither acknowledged nor refused) while the other shards' blocks are stored,
+and the shard is skipped for a short, growing pause (0.25 s doubling up to 5 s) before it is
+tried again, so a dead server costs one connection timeout per pause, not one per batch. A shard
+unreachable at start is migrated on its first successful use.
 
 The shard of partition 0 is the *home* shard: :attr:`Store.engine` is its engine, so the
 tables that belong to no machine (API keys, service state) live there.
