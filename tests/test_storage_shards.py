@@ -389,3 +389,32 @@ def test_store_writer_naks_a_down_shards_blocks_and_stores_them_once_it_is_back(
         sink.close()
         delete_stream(cfg)
     assert done and done[0]["stored_blocks"] == len(sent) and done[0]["duplicates"] == 0
+
+
+@pytest.mark.timeout(60)
+def test_db_upgrade_migrates_every_shard_and_hides_passwords(tmp_path: Path,
+                                                             monkeypatch: pytest.MonkeyPatch
+                                                             ) -> None:
+    import sqlite3
+
+    from typer.testing import CliRunner
+
+    from cranetwin.cli import app
+
+    a, b = tmp_path / "a.db", tmp_path / "b.db"
+    monkeypatch.setenv("CRANETWIN_STORAGE_SHARDS", json.dumps(
+        {"0-9": f"sqlite:///{a}", "10-15": f"sqlite:///{b}"}))
+    got = CliRunner().invoke(app, ["db", "upgrade"])
+    assert got.exit_code == 0, got.output
+    assert got.output.count("at the newest revision") == 2
+    for f in (a, b):
+        with sqlite3.connect(f) as c:
+            tables = {r[0] for r in c.execute("SELECT name FROM sqlite_master")}
+        assert {"machines", "sample_blocks", "alembic_version"} <= tables
+    # a shard that cannot be migrated fails the command, with its password hidden
+    monkeypatch.setenv("CRANETWIN_STORAGE_SHARDS", json.dumps(
+        {"0-9": f"sqlite:///{a}",
+         "10-15": "postgresql+psycopg://u:hunter2@127.0.0.1:1/x?connect_timeout=1"}))
+    got = CliRunner().invoke(app, ["db", "upgrade"])
+    assert got.exit_code != 0
+    assert "hunter2" not in got.output and "***" in got.output
