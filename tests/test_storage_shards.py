@@ -418,3 +418,49 @@ def test_db_upgrade_migrates_every_shard_and_hides_passwords(tmp_path: Path,
     got = CliRunner().invoke(app, ["db", "upgrade"])
     assert got.exit_code != 0
     assert "hunter2" not in got.output and "***" in got.output
+
+
+@pytest.mark.postgres
+@pytest.mark.timeout(120)
+def test_alarms_are_listed_from_every_shard_and_acted_on_in_their_own(
+        sharded: ShardedStore) -> None:
+    """Event ids are per database: the alarm list merges both shards newest first with ids that
+    name their shard, an acknowledgement goes to that shard, new events of both are notified."""
+    from cranetwin.service.alarms import AlarmService
+    from cranetwin.service.backend import Backend
+    from cranetwin.storage import Event
+
+    ma, mb = f"crane-{A_WIRES[0]}", f"crane-{B_WIRES[0]}"
+    backend = Backend(sharded)
+    svc = AlarmService(backend, offline_s=60.0, gap_s=10.0)
+    offered: list[dict[str, Any]] = []
+
+    class Notifier:
+        def offer(self, alarm: dict[str, Any]) -> None:
+            offered.append(alarm)
+
+    svc.set_notifier(Notifier(), "warning")
+    evs = [Event(ma, 100.0, "overload", "critical", {}), Event(mb, 200.0, "overload",
+                                                              "critical", {}),
+           Event(mb, 300.0, "data_gap", "info", {}), Event(ma, 400.0, "machine_offline",
+                                                           "warning", {})]
+    assert sharded.add_events(evs) == 4
+    page = svc.list(state="all", limit=10)
+    assert page["total"] == 4 and page["kinds"] == ["data_gap", "machine_offline", "overload"]
+    assert [(a["machine_id"], a["t"]) for a in page["items"]] == \
+        [(ma, 400.0), (mb, 300.0), (mb, 200.0), (ma, 100.0)]
+    ids = [a["id"] for a in page["items"]]
+    assert len(set(ids)) == 4  # the two shards' row ids collide; these do not
+    two = svc.list(state="all", limit=2, offset=1)
+    assert [a["id"] for a in two["items"]] == ids[1:3] and two["total"] == 4
+    b_alarm = page["items"][2]
+    done = svc.act(b_alarm["id"], "clear", "tester")
+    assert done["id"] == b_alarm["id"] and done["machine_id"] == mb
+    assert done["cleared"]["by"] == "tester"
+    active = svc.list(state="active", limit=10)
+    assert b_alarm["id"] not in [a["id"] for a in active["items"]] and active["total"] == 3
+    assert svc.list(machine_ids=[ma], state="all")["total"] == 2
+    # the webhook is offered the new warnings and criticals of both shards, once
+    assert svc.notify_new() == 3 and svc.notify_new() == 0
+    assert sorted((a["machine_id"], a["t"]) for a in offered) == \
+        sorted([(ma, 100.0), (ma, 400.0), (mb, 200.0)])
