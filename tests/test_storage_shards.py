@@ -464,3 +464,16 @@ def test_alarms_are_listed_from_every_shard_and_acted_on_in_their_own(
     assert svc.notify_new() == 3 and svc.notify_new() == 0
     assert sorted((a["machine_id"], a["t"]) for a in offered) == \
         sorted([(ma, 100.0), (ma, 400.0), (mb, 200.0)])
+
+
+@pytest.mark.timeout(10)
+def test_delivery_count_read_from_the_ack_subject_as_nats_py_reads_it() -> None:
+    from nats.aio.msg import Msg
+
+    from cranetwin.bus.consumer import _delivered
+
+    for reply in ("$JS.ACK.S.c.3.5.5.1700000000000000000.0",
+                  "$JS.ACK.dom.acc.S.c.4.5.5.1700000000000000000.0.tok",
+                  "$JS.ACK.S.c.1.9.9.1700000000000000000.2"):
+        assert _delivered(reply) == Msg(None, subject="x", reply=reply).metadata.num_delivered
+    assert _delivered(None) == _delivered("_INBOX.abc") == 1

@@ -26,6 +26,8 @@ registry of its own, served by ``prometheus_client.start_http_server``:
 
 from __future__ import annotations
 
+from typing import Any
+
 from prometheus_client import CollectorRegistry, Counter, Gauge, generate_latest
 
 PREFIX = "cranetwin_store_writer"
@@ -54,6 +56,18 @@ class WriterMetrics:
                                      "the database was unavailable", registry=r)
         self.lag = Gauge(f"{PREFIX}_lag_messages", "messages of the partition not acked yet "
                          "(pending + ack pending)", ["partition"], registry=r)
+        self._children: dict[int, tuple[Any, Any, Any, Any]] = {}
+
+    def of(self, partition: int) -> tuple[Any, Any, Any, Any]:
+        """The (consumed, committed, redelivered, unavailable) counters of one partition
+        (labelled children cached: the message path does not build labels per message)."""
+        got = self._children.get(partition)
+        if got is None:
+            p = str(partition)
+            got = (self.consumed.labels(p), self.committed.labels(p),
+                   self.redelivered.labels(p), self.unavailable.labels(p))
+            self._children[partition] = got
+        return got
 
     def render(self) -> bytes:
         """The registry in the Prometheus text format."""
