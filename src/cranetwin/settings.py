@@ -63,6 +63,9 @@ class Settings(BaseSettings):
     bus_ack_wait_s: float = Field(
         30.0, gt=0, description="a block not acked by its storage writer within this time is "
                                 "delivered again [s]")
+    store_writer_metrics_bind: str = Field(
+        "0", description="HOST:PORT of `cranetwin store-writer`'s Prometheus /metrics (HTTP); "
+                         "0 = not served")
     ingest_bind: str = Field("127.0.0.1:5005", description="UDP HOST:PORT of `cranetwin ingest`")
     ingest_metrics_bind: str = Field(
         "127.0.0.1:9105", description="HOST:PORT of the ingest daemon's Prometheus /metrics "
@@ -146,6 +149,15 @@ class Settings(BaseSettings):
     storage_maintenance_interval_s: float = Field(
         3600.0, gt=0, description="how often the twin worker makes partitions ahead and "
                                   "applies retention [s]")
+    # -- machines sharded across databases (``cranetwin.storage.shards``; docs/SCALING.md) ----
+    storage_shards: dict[str, str] | None = Field(
+        None, description="partition map of the shards, JSON: {\"0-7\": \"postgresql://a/…\", "
+                          "\"8-15\": \"postgresql://b/…\"}; each machine partition (0 … "
+                          "storage_shard_partitions − 1) in exactly one range; set: "
+                          "database_url is not used")
+    storage_shard_partitions: int = Field(
+        16, ge=1, le=65536, description="machine partitions P of the shard map (keep it equal "
+                                        "to bus_partitions and worker_partition_count)")
     summary_interval_s: float = Field(1.0, gt=0, description="derived summary interval [s]")
     payload_lift_threshold_kg: float = Field(
         50.0, ge=0, description="payload above which the crane is holding a load (load count) [kg]")

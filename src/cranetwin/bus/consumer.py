@@ -19,7 +19,14 @@ a ``duplicate``, so every block is stored exactly once. A block storage refuses 
 ``seq_reused``, …: its machine was already acknowledged by the daemon) is terminated on the bus
 (never delivered again), counted by reason in ``refused`` and logged once per reason; a message
 that is not a block (:class:`~cranetwin.bus.blockcodec.BlockCodecError`) likewise as
-``bad_messages``.
+``bad_messages``. A block whose database shard is unavailable while the others are written
+(:class:`~cranetwin.storage.shards.ShardedStore`, outcome ``unavailable``) is negatively acked
+with a delay (``-NAK``, ``nak_delay_s``): delivered again, never lost, and the other shards'
+blocks of the batch go on.
+
+Prometheus metrics (:mod:`cranetwin.bus.metrics`, ``--metrics-bind``): consumed, committed,
+redelivered and unavailable per partition, refusals by reason, and each partition's lag (its
+messages not acked yet, read from JetStream every ``lag_interval_s``).
 
 One writer per partition at a time: storage's overlap check assumes a single writer per machine
 (:mod:`cranetwin.storage.writes`). Two writers bound to one consumer still never lose or double
@@ -37,11 +44,12 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from cranetwin.bus.blockcodec import BlockCodecError, decode_blocks
+from cranetwin.bus.metrics import WriterMetrics
 from cranetwin.bus.subjects import (
     BusConfig,
     deliver_subject,
@@ -70,6 +78,8 @@ class WriterConfig:
             database is unavailable [s].
         rollup_interval_s: Period of the 1-min summary rollup [s].
         report_interval_s: Period of the counters log line [s].
+        lag_interval_s: Period of the partitions' lag reading from JetStream [s].
+        nak_delay_s: Redelivery delay of a block held back by an unavailable shard [s].
     """
 
     batch_max: int = 1000
@@ -78,6 +88,8 @@ class WriterConfig:
     retry_max_s: float = 5.0
     rollup_interval_s: float = 30.0
     report_interval_s: float = 10.0
+    lag_interval_s: float = 5.0
+    nak_delay_s: float = 1.0
 
 
 @dataclass
@@ -91,13 +103,28 @@ class WriterCounters:
     duplicates: int = 0
     bad_messages: int = 0
     write_retries: int = 0
+    unavailable: int = 0
+    redelivered: int = 0
     refused: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return {"messages": self.messages, "batches": self.batches,
                 "stored_blocks": self.stored_blocks, "stored_samples": self.stored_samples,
                 "duplicates": self.duplicates, "bad_messages": self.bad_messages,
-                "write_retries": self.write_retries, "refused": dict(self.refused)}
+                "write_retries": self.write_retries, "unavailable": self.unavailable,
+                "redelivered": self.redelivered, "refused": dict(self.refused)}
+
+
+def _delivered(reply: str | None) -> int:
+    """JetStream's delivery count from a message's ack subject: ``$JS.ACK.<stream>.<consumer>.
+    <delivered>.…`` (9 tokens) or, with domain and account, ``$JS.ACK.<domain>.<account>.
+    <stream>.<consumer>.<delivered>.…`` (12 or more); 1 when it is not one (a split is 4×
+    cheaper than nats-py's ``Msg.metadata``)."""
+    t = (reply or "").split(".")
+    if len(t) < 9 or t[0] != "$JS" or t[1] != "ACK":
+        return 1
+    k = 4 if len(t) == 9 else 6
+    return int(t[k]) if t[k].isdigit() else 1
 
 
 class StoreWriter:
@@ -122,12 +149,13 @@ class StoreWriter:
         self.live = live
         self.config = config or WriterConfig()
         self.counters = WriterCounters()
+        self.metrics = WriterMetrics()
         self.ready = asyncio.Event()
         self._logged: set[str] = set()
         self._stop = asyncio.Event()
         self._nats = nats_module()
         self._nc: Any = None
-        self._pending: list[Any] = []
+        self._pending: list[tuple[int, Any]] = []  # (partition, message)
         self._arrived = asyncio.Event()
 
     def stop(self) -> None:
@@ -152,6 +180,7 @@ class StoreWriter:
                 if not dberrors.unavailable_in_chain(exc):
                     raise
                 self.counters.write_retries += 1
+                self.metrics.write_retries.inc()
                 if outage_since is None:
                     outage_since = time.monotonic()
                     log.error("database unavailable: retrying with backoff, nothing acked on "
@@ -173,9 +202,14 @@ class StoreWriter:
             self._log_once("rollup", "summary rollup failed: %s", exc)
 
     # -- bus side (event loop) ------------------------------------------------------------------
-    async def _on_msg(self, msg: Any) -> None:
-        self._pending.append(msg)
-        self._arrived.set()
+    def _on_msg(self, partition: int) -> Callable[[Any], Awaitable[None]]:
+        """The subscription callback of one partition."""
+
+        async def cb(msg: Any) -> None:
+            self._pending.append((partition, msg))
+            self._arrived.set()
+
+        return cb
 
     async def _reply(self, msg: Any, what: bytes) -> None:
         """``+ACK``, ``+TERM`` or ``+WPI`` (in progress) to the message's reply subject."""
@@ -187,18 +221,30 @@ class StoreWriter:
         on (a long database outage), so they are not delivered again meanwhile."""
         while True:
             await asyncio.sleep(max(self.bus.ack_wait_s / 3, 0.1))
-            for m in [*msgs, *self._pending]:
+            for m in [*msgs, *(m for _, m in self._pending)]:
                 with contextlib.suppress(Exception):
                     await self._reply(m, b"+WPI")
 
-    async def _handle(self, msgs: list[Any]) -> None:
-        c = self.counters
-        c.messages += len(msgs)
+    def _count_delivery(self, items: list[tuple[int, Any]]) -> None:
+        mt = self.metrics
+        for p, m in items:
+            mt.of(p)[0].inc()
+            if _delivered(m.reply) > 1:
+                self.counters.redelivered += 1
+                mt.of(p)[2].inc()
+
+    async def _handle(self, items: list[tuple[int, Any]]) -> None:
+        c, mt = self.counters, self.metrics
+        c.messages += len(items)
+        self._count_delivery(items)
+        msgs = [m for _, m in items]
         blocks: list[SampleBlock] = []
         kept: list[Any] = []
-        for m, got in zip(msgs, decode_blocks([m.data for m in msgs]), strict=True):
+        parts: list[int] = []
+        for (p, m), got in zip(items, decode_blocks([m.data for m in msgs]), strict=True):
             if isinstance(got, BlockCodecError):
                 c.bad_messages += 1
+                mt.refused.labels("bad_message").inc()
                 self._log_once("bad_message", "message on %s is not a block, terminated: %s",
                                m.subject, got)
                 with contextlib.suppress(Exception):
@@ -206,6 +252,7 @@ class StoreWriter:
             else:
                 blocks.append(got)
                 kept.append(m)
+                parts.append(p)
         if not blocks:
             return
         keep = asyncio.create_task(self._keep_in_progress(kept))
@@ -217,10 +264,21 @@ class StoreWriter:
             return
         c.batches += 1
         new: list[SampleBlock] = []
-        for m, (b, o) in zip(kept, result, strict=True):
+        nak = b'-NAK {"delay": %d}' % round(self.config.nak_delay_s * 1e9)
+        for p, m, (b, o) in zip(parts, kept, result, strict=True):
+            if o.status == "unavailable":  # its shard is down: delivered again later
+                c.unavailable += 1
+                mt.of(p)[3].inc()
+                self._log_once(f"unavailable:{p}", "blocks of partition %d held back, their "
+                               "database shard is unavailable (delivered again): %s", p,
+                               o.detail)
+                with contextlib.suppress(Exception):
+                    await self._reply(m, nak)
+                continue
             if o.status == "refused":
                 reason = o.reason or "unstorable"
                 c.refused[reason] = c.refused.get(reason, 0) + 1
+                mt.refused.labels(reason).inc()
                 self._log_once(f"refused:{reason}", "block of %s (epoch %d, seq %d) refused by "
                                "storage after its machine was acknowledged (%s): %s",
                                b.machine_id, b.epoch, b.seq, reason, o.detail)
@@ -230,9 +288,11 @@ class StoreWriter:
                 new.append(b)
                 c.stored_blocks += 1
                 c.stored_samples += b.n
+                mt.stored_samples.inc(b.n)
             else:
                 c.duplicates += 1
             await self._reply(m, b"+ACK")
+            mt.of(p)[1].inc()
         if self.live is not None and new:
             live = self.live
             try:
@@ -251,6 +311,19 @@ class StoreWriter:
                      c.stored_samples, (c.stored_samples - last) / max(now - t_last, 1e-9),
                      c.duplicates, c.refused, c.write_retries)
             last, t_last = c.stored_samples, now
+
+    async def _lag(self, jsm: Any) -> None:
+        """Every ``lag_interval_s``: each partition's messages not acked yet, from JetStream."""
+        while True:
+            for p in self.partitions:
+                try:
+                    info = await jsm.consumer_info(self.bus.stream, durable_name(self.bus, p))
+                except Exception as exc:  # NATS reconnecting: the gauge keeps its last value
+                    self._log_once("lag", "could not read the consumers' lag: %s", exc)
+                    break
+                self.metrics.lag.labels(str(p)).set(
+                    int(info.num_pending or 0) + int(info.num_ack_pending or 0))
+            await asyncio.sleep(self.config.lag_interval_s)
 
     async def _rollups(self) -> None:
         while True:
@@ -291,9 +364,10 @@ class StoreWriter:
                         deliver_policy=api.DeliverPolicy.ALL, max_deliver=-1,
                         max_ack_pending=self.config.batch_max))
                 subs.append(await nc.subscribe(deliver_subject(self.bus, p), queue=name,
-                                               cb=self._on_msg))
+                                               cb=self._on_msg(p)))
             tasks.append(asyncio.create_task(self._report()))
             tasks.append(asyncio.create_task(self._rollups()))
+            tasks.append(asyncio.create_task(self._lag(jsm)))
             self.ready.set()
             while not self._stop.is_set():
                 for t in tasks:
@@ -304,9 +378,9 @@ class StoreWriter:
                     with contextlib.suppress(TimeoutError):
                         await asyncio.wait_for(self._arrived.wait(), self.config.fetch_wait_s)
                     continue
-                msgs = self._pending[:self.config.batch_max]
+                batch = self._pending[:self.config.batch_max]
                 del self._pending[:self.config.batch_max]
-                await self._handle(msgs)
+                await self._handle(batch)
         finally:
             for sub in subs:  # no more deliveries; what is not acked is delivered again
                 with contextlib.suppress(Exception):

@@ -32,7 +32,7 @@ from cranetwin.bus.blockcodec import encode_blocks
 from cranetwin.bus.subjects import BusConfig, ensure_stream, msg_id_of, subject_of
 from cranetwin.errors import StorageUnavailableError
 from cranetwin.samples import SampleBlock
-from cranetwin.storage import Store
+from cranetwin.storage import ShardedStore, Store, StoreSpec
 from cranetwin.storage import blocks as blocks_mod
 from cranetwin.storage.engine import BUSY_TIMEOUT_S, DEFAULT_URL, make_engine, migrate
 from cranetwin.storage.nats_loop import NatsLoop
@@ -158,17 +158,25 @@ class JetStreamStore(Store):
     publisher: JetStreamPublisher
 
     @classmethod
-    def open_bus(cls, url: str = DEFAULT_URL, bus: BusConfig | None = None, *,
+    def open_bus(cls, url: str | StoreSpec = DEFAULT_URL, bus: BusConfig | None = None, *,
                  busy_timeout_s: float = BUSY_TIMEOUT_S) -> JetStreamStore:
-        """Connect to the database at ``url`` (machines, status) and to the bus ``bus``.
+        """Connect to the database at ``url`` (machines, status; a
+        :class:`~cranetwin.storage.StoreSpec` with shards: every shard) and to the bus ``bus``.
 
         Raises:
             StorageUnavailableError: The database server is unreachable.
             StorageError: Bad URL or failed migration.
             MissingExtraError: nats-py is not installed.
         """
-        store = cls(make_engine(url, busy_timeout_s=busy_timeout_s))
-        migrate(store.engine)
+        spec = StoreSpec(url) if isinstance(url, str) else url
+        shard_map = spec.shard_map()
+        store: JetStreamStore
+        if shard_map is not None:
+            sharded = ShardedStore.open_map(shard_map, busy_timeout_s=busy_timeout_s)
+            store = ShardedJetStreamStore(sharded.shards, shard_map, sharded.ready)
+        else:
+            store = cls(make_engine(spec.url, busy_timeout_s=busy_timeout_s))
+            migrate(store.engine)
         store.publisher = JetStreamPublisher(bus or BusConfig())
         return store
 
@@ -214,3 +222,8 @@ class JetStreamStore(Store):
     def close(self) -> None:
         self.publisher.close()
         super().close()
+
+
+class ShardedJetStreamStore(JetStreamStore, ShardedStore):
+    """:class:`JetStreamStore` whose machines and status reports live on the shards of a
+    :class:`~cranetwin.storage.shards.ShardedStore` (blocks still go to the bus)."""

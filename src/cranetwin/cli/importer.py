@@ -42,10 +42,9 @@ def import_cmd(
     same file again stores nothing new."""
     from cranetwin.importer import import_file
     from cranetwin.settings import Settings, load_settings
-    from cranetwin.storage import Store
+    from cranetwin.storage import open_store, store_spec
 
-    url = load_settings(Settings, database_url=db).database_url
-    with Store.open(url) as store:
+    with open_store(store_spec(load_settings(Settings, database_url=db))) as store:
         m = machine_of(store.get_machine(machine).model, machine)
         with Progress(TextColumn("{task.description}"), BarColumn(),
                       TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(),

@@ -25,6 +25,7 @@ from cranetwin.settings import Settings, load_settings
 if TYPE_CHECKING:
     from cranetwin.bus.subjects import BusConfig
     from cranetwin.ingest.config import DaemonConfig
+    from cranetwin.storage import StoreSpec
 
 machines_app = typer.Typer(help="Register machines (wire id and HMAC secret) and list them.",
                            no_args_is_help=True)
@@ -117,6 +118,7 @@ def ingest(
     """
     from cranetwin.ingest.daemon import DaemonConfig, IngestDaemon, serve
     from cranetwin.protocol import Limits
+    from cranetwin.storage import store_spec
     from cranetwin.storage.live import open_bus
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: "
@@ -144,7 +146,7 @@ def ingest(
     if processes > 1:
         from cranetwin.cli.store_writer import bus_config
 
-        _run_group(st.database_url, cfg, processes, st.live_bus_url, st.ingest_busy_timeout_s,
+        _run_group(store_spec(st), cfg, processes, st.live_bus_url, st.ingest_busy_timeout_s,
                    log_level, bus_config(st) if st.bus_url else None)
         return
 
@@ -160,16 +162,16 @@ def ingest(
         from cranetwin.cli.store_writer import bus_config
         from cranetwin.ingest.bus_serve import serve_to_bus
 
-        final = serve_to_bus(st.database_url, bus_config(st), cfg, live_bus, on_ready=ready,
+        final = serve_to_bus(store_spec(st), bus_config(st), cfg, live_bus, on_ready=ready,
                              busy_timeout_s=st.ingest_busy_timeout_s)
     else:
-        final = serve(st.database_url, cfg, live_bus, on_ready=ready,
+        final = serve(store_spec(st), cfg, live_bus, on_ready=ready,
                       busy_timeout_s=st.ingest_busy_timeout_s)
     sys.stdout.write(json.dumps({"event": "stopped", **final}) + "\n")
     sys.stdout.flush()
 
 
-def _run_group(db_url: str, cfg: DaemonConfig, processes: int, live_url: str | None,
+def _run_group(db_url: StoreSpec, cfg: DaemonConfig, processes: int, live_url: str | None,
                busy_timeout_s: float, log_level: str, bus: BusConfig | None) -> None:
     """``--processes N``: the parent of N daemon processes (blocking until SIGTERM/SIGINT),
     each publishing to ``bus`` if given."""
@@ -257,7 +259,7 @@ def add(
 ) -> None:
     """Register a machine. A generated secret is printed once (or written to --secret-out)."""
     from cranetwin.ingest.daemon import check_model
-    from cranetwin.storage import Store
+    from cranetwin.storage import open_store, store_spec
 
     if secret is not None:
         raise _fail("--secret is refused: a secret on the command line is visible to every user "
@@ -286,7 +288,7 @@ def add(
     st = load_settings(Settings, database_url=db)
     fd = _open_secret_out(secret_out) if secret_out is not None else None
     try:
-        with Store.open(st.database_url) as store:
+        with open_store(store_spec(st)) as store:
             info = store.add_machine(machine_id, wire_id, key, model=model_text, metadata=meta)
     except BaseException:
         if fd is not None and secret_out is not None:
@@ -308,10 +310,10 @@ def list_(
     as_json: bool = typer.Option(False, "--json", help="Print JSON."),
 ) -> None:
     """List registered machines (never their secrets)."""
-    from cranetwin.storage import Store
+    from cranetwin.storage import open_store, store_spec
 
     st = load_settings(Settings, database_url=db)
-    with Store.open(st.database_url) as store:
+    with open_store(store_spec(st)) as store:
         ms = store.machines()
     if as_json:
         typer.echo(json.dumps([m.__dict__ for m in ms], indent=1))

@@ -59,10 +59,9 @@ def replay_cmd(
         from cranetwin.cli.importer import machine_of
         from cranetwin.cli.report import parse_time
         from cranetwin.settings import Settings, load_settings
-        from cranetwin.storage import Store
+        from cranetwin.storage import open_store, store_spec
 
-        url = load_settings(Settings, database_url=db).database_url
-        with Store.open(url) as store:
+        with open_store(store_spec(load_settings(Settings, database_url=db))) as store:
             m = machine_of(store.get_machine(machine).model, machine)
             source = store.read_samples(machine, parse_time(t_from), parse_time(t_to))
         if source.t_s.shape[0] == 0:

@@ -134,9 +134,10 @@ def report(
             raise ReportError("give --machine ID --from T0 --to T1 (storage), or --recording "
                               "FILE, or --demo")
         from cranetwin.settings import Settings, load_settings
+        from cranetwin.storage import store_spec
 
         settings = load_settings(Settings, database_url=db)
-        src = StoreSource(settings.database_url, machine, parse_time(t_from), parse_time(t_to),
+        src = StoreSource(store_spec(settings), machine, parse_time(t_from), parse_time(t_to),
                           margin_s=settings.twin_margin_s)
     with Progress(TextColumn("{task.description}"), BarColumn(),
                   TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(),

@@ -55,11 +55,12 @@ def create(
     """Create a key and print it (only its hash is stored: copy it now)."""
     from cranetwin.service.backend import Backend
     from cranetwin.service.keys import ROLES
+    from cranetwin.storage import store_spec
 
     if role not in ROLES:
         raise typer.BadParameter(f"{role!r}: expected one of {', '.join(ROLES)}",
                                  param_hint="--role")
-    backend = Backend.open(_settings(db).database_url)
+    backend = Backend.open(store_spec(_settings(db)))
     try:
         _, token = backend.create_key(role, name)
     finally:
@@ -71,9 +72,9 @@ def create(
 def list_keys(db: str | None = typer.Option(None, "--db", help=_DB_HELP)) -> None:
     """List keys (id, role, name, created, revoked); secrets are not stored."""
     from cranetwin.service.backend import Backend
-    from cranetwin.storage import apikeys
+    from cranetwin.storage import apikeys, store_spec
 
-    backend = Backend.open(_settings(db).database_url)
+    backend = Backend.open(store_spec(_settings(db)))
     try:
         with backend.session() as s:
             rows = apikeys.list_keys(s)
@@ -93,9 +94,9 @@ def revoke(key_id: str = typer.Argument(..., help="The key id (12 hex digits aft
            db: str | None = typer.Option(None, "--db", help=_DB_HELP)) -> None:
     """Revoke a key (servers stop accepting it within 10 s)."""
     from cranetwin.service.backend import Backend
-    from cranetwin.storage import apikeys
+    from cranetwin.storage import apikeys, store_spec
 
-    backend = Backend.open(_settings(db).database_url)
+    backend = Backend.open(store_spec(_settings(db)))
     try:
         with backend.session() as s, s.begin():
             found = apikeys.revoke_key(s, key_id)

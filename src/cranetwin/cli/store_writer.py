@@ -1,7 +1,8 @@
 """``cranetwin store-writer``: consume partitions of the fleet bus into the database.
 
 Options left out fall back to the shared settings (``CRANETWIN_BUS_URL``,
-``CRANETWIN_DATABASE_URL``, ``CRANETWIN_BUS_PARTITIONS``, …; docs/BUS.md).
+``CRANETWIN_DATABASE_URL`` or the shards of ``CRANETWIN_STORAGE_SHARDS``,
+``CRANETWIN_BUS_PARTITIONS``, ``CRANETWIN_STORE_WRITER_METRICS_BIND``, …; docs/BUS.md).
 """
 
 from __future__ import annotations
@@ -71,29 +72,48 @@ def store_writer(
     batch_max: int = typer.Option(1000, min=1, help="Blocks per transaction at most."),
     rollup_interval: float = typer.Option(30.0, min=0.1, help="Seconds between 1-min summary "
                                           "rollups [s] (one more at shutdown)."),
+    metrics_bind: str | None = typer.Option(
+        None, "--metrics-bind", help="HTTP address of the Prometheus /metrics, HOST:PORT, or 0 "
+        "for none (default: $CRANETWIN_STORE_WRITER_METRICS_BIND, else 0)."),
     log_level: str = typer.Option("INFO", help="Logging level."),
 ) -> None:
     """Store the blocks of the fleet bus (JetStream) in the database; ack after commit.
 
     Prints one JSON line on stdout once consuming: {"event": "ready", "partitions": [...],
-    "pid": N}, and one after SIGTERM/SIGINT: {"event": "stopped", <counters>}.
+    "pid": N, "metrics": "http://HOST:PORT/metrics" or null, "store": where it stores (no
+    password)}, and one after SIGTERM/SIGINT: {"event": "stopped", <counters>}.
     """
     from cranetwin.bus.consumer import StoreWriter, WriterConfig
-    from cranetwin.storage import Store
+    from cranetwin.cli.ingest import parse_bind
+    from cranetwin.storage import open_store, store_spec
     from cranetwin.storage.live import open_bus
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: "
                         "%(message)s")
-    st = load_settings(Settings, bus_url=bus, database_url=db, live_bus_url=live)
+    st = load_settings(Settings, bus_url=bus, database_url=db, live_bus_url=live,
+                       store_writer_metrics_bind=metrics_bind)
     if not st.bus_url:
         raise PartitionsError("no bus: give --bus nats://HOST:PORT or set CRANETWIN_BUS_URL")
     cfg = bus_config(st)
     parts = parse_partitions(partitions, cfg.partitions)
+    bind = st.store_writer_metrics_bind.strip()
+    where = None if bind in ("0", "", "off") else parse_bind(bind, "--metrics-bind")
+    spec = store_spec(st)
     live_bus = open_bus(st.live_bus_url) if st.live_bus_url else None
-    store = Store.open(st.database_url)
+    store = open_store(spec)
+    server = None
     try:
         writer = StoreWriter(store, cfg, parts, live_bus, WriterConfig(batch_max=batch_max,
                                                                    rollup_interval_s=rollup_interval))
+        metrics_url = None
+        if where is not None:
+            from prometheus_client import start_http_server
+
+            server, _ = start_http_server(where[1], addr=where[0],
+                                          registry=writer.metrics.registry)
+            host, port = server.server_address[:2]
+            host = str(host)
+            metrics_url = f"http://{host if ':' not in host else f'[{host}]'}:{port}/metrics"
 
         async def main() -> dict[str, object]:
             loop = asyncio.get_running_loop()
@@ -103,7 +123,8 @@ def store_writer(
             async def announce() -> None:
                 await writer.ready.wait()
                 sys.stdout.write(json.dumps({"event": "ready", "partitions": parts,
-                                             "pid": os.getpid()}) + "\n")
+                                             "pid": os.getpid(), "metrics": metrics_url,
+                                             "store": spec.display()}) + "\n")
                 sys.stdout.flush()
 
             task = asyncio.create_task(announce())
@@ -114,6 +135,8 @@ def store_writer(
 
         final = asyncio.run(main())
     finally:
+        if server is not None:
+            server.shutdown()
         if live_bus is not None:
             live_bus.close()
         store.close()

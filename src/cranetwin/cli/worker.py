@@ -59,7 +59,7 @@ def worker(
     from cranetwin.service.metrics import Metrics
     from cranetwin.service.ownership import Ownership, PartitionSpecError, parse_partitions
     from cranetwin.service.worker import TwinWorker
-    from cranetwin.storage.engine import display_url
+    from cranetwin.storage import store_spec
 
     settings = load_settings(Settings, database_url=db, worker_metrics_bind=metrics_bind,
                              worker_interval_s=interval, worker_partitions=partitions,
@@ -83,7 +83,7 @@ def worker(
 
         host, port = parse_bind(bind, "--metrics-bind")
         start_http_server(port, addr=host, registry=metrics.registry)
-    backend = Backend.open(settings.database_url)
+    backend = Backend.open(store_spec(settings))
     own = None if spec is None else Ownership(spec, backend.store.engine)
     try:
         tw = TwinWorker(backend, settings, metrics, quiet_s=settings.worker_quiet_s,
@@ -98,7 +98,7 @@ def worker(
         part = "" if spec is None else (
             f", partitions {'auto' if spec.fixed is None else ','.join(map(str, spec.fixed))} "
             f"of {spec.count}" + ("" if own is not None and own.locked else " (no locks)"))
-        typer.echo(f"cranetwin worker ready: {display_url(settings.database_url)}, windows of "
+        typer.echo(f"cranetwin worker ready: {store_spec(settings).display()}, windows of "
                    f"{settings.worker_window_s:g} s{part}")
         windows = tw.run()
     finally:

@@ -18,16 +18,18 @@ from cranetwin.bus.subjects import BusConfig
 from cranetwin.ingest.config import DaemonConfig
 from cranetwin.ingest.daemon import IngestDaemon, serve_store
 from cranetwin.storage.live import LiveBus
+from cranetwin.storage.shardmap import StoreSpec
 
 
-def serve_to_bus(db_url: str, bus: BusConfig, config: DaemonConfig | None = None,
+def serve_to_bus(db_url: str | StoreSpec, bus: BusConfig, config: DaemonConfig | None = None,
                  live: LiveBus | None = None,
                  on_ready: Callable[[IngestDaemon], None] | None = None,
                  busy_timeout_s: float = 3.0) -> dict[str, Any]:
     """Run the daemon with its blocks going to ``bus`` until SIGTERM/SIGINT (blocking).
 
     Args:
-        db_url: The database of machine keys and status reports.
+        db_url: The database of machine keys and status reports (a URL, or a
+            :class:`~cranetwin.storage.StoreSpec` with the shards).
         bus: The fleet bus.
         live: Live fan-out of published blocks (None: none; in a bus deployment the storage
             writers announce blocks after they are stored, so the daemons usually have none).

@@ -48,6 +48,7 @@ def main() -> None:
     from cranetwin.errors import CraneTwinError
     from cranetwin.ingest.daemon import IngestDaemon, serve
     from cranetwin.storage.live import open_bus
+    from cranetwin.storage.shardmap import StoreSpec
 
     spec = json.loads(sys.stdin.read())
     _die_with_parent(int(spec["parent_pid"]))
@@ -61,16 +62,17 @@ def main() -> None:
         _emit({"event": "ready", "index": index, "pid": os.getpid(), "metrics": d.metrics_url})
 
     busy = float(spec["busy_timeout_s"])
+    db = StoreSpec.from_json(spec["db_url"])
     try:
         live = open_bus(spec["live_url"]) if spec["live_url"] else None
         if spec.get("bus"):
             from cranetwin.bus.subjects import BusConfig
             from cranetwin.ingest.bus_serve import serve_to_bus
 
-            final = serve_to_bus(spec["db_url"], BusConfig(**spec["bus"]), cfg, live,
+            final = serve_to_bus(db, BusConfig(**spec["bus"]), cfg, live,
                                  on_ready=ready, busy_timeout_s=busy)
         else:
-            final = serve(spec["db_url"], cfg, live, on_ready=ready, busy_timeout_s=busy)
+            final = serve(db, cfg, live, on_ready=ready, busy_timeout_s=busy)
     except (IngestConfigError, CraneTwinError) as exc:
         sys.stderr.write(f"error: ingest process {index}: {exc}\n")
         sys.exit(2)

@@ -77,7 +77,7 @@ from cranetwin.ingest.pipeline import Pipeline, drain
 from cranetwin.ingest.sockets import _bind, _bind_message, new_event_loop
 from cranetwin.ingest.writer import StorageWriter, is_unavailable
 from cranetwin.protocol import Receiver
-from cranetwin.storage import Store
+from cranetwin.storage import Store, StoreSpec, open_store
 from cranetwin.storage.live import LiveBus
 
 __all__ = ["COUNTERS", "DaemonConfig", "IngestConfigError", "IngestDaemon", "Metrics",
@@ -368,10 +368,12 @@ class IngestDaemon(Pipeline):
             await asyncio.sleep(0.02)
 
 
-def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None = None,
+def serve(db_url: str | StoreSpec, config: DaemonConfig | None = None, bus: LiveBus | None = None,
           on_ready: Callable[[IngestDaemon], None] | None = None,
           busy_timeout_s: float = 3.0) -> dict[str, Any]:
-    """Open the store at ``db_url`` and run the daemon until SIGTERM/SIGINT (blocking).
+    """Open the store at ``db_url`` (a URL or a :class:`~cranetwin.storage.StoreSpec`, e.g.
+    shards: :func:`cranetwin.storage.open_store`) and run the daemon until SIGTERM/SIGINT
+    (blocking).
 
     Args:
         on_ready: Called once the daemon listens (``address``, ``metrics_url`` set).
@@ -387,7 +389,7 @@ def serve(db_url: str, config: DaemonConfig | None = None, bus: LiveBus | None =
         IngestConfigError: an address cannot be bound.
         StorageError: the database cannot be opened.
     """
-    return serve_store(Store.open(db_url, busy_timeout_s=busy_timeout_s), config, bus, on_ready)
+    return serve_store(open_store(db_url, busy_timeout_s=busy_timeout_s), config, bus, on_ready)
 
 
 def serve_store(store: Store, config: DaemonConfig | None = None, bus: LiveBus | None = None,

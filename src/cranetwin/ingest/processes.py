@@ -54,6 +54,7 @@ from cranetwin.ingest.steering import bind_group
 
 if TYPE_CHECKING:
     from cranetwin.bus.subjects import BusConfig
+    from cranetwin.storage.shardmap import StoreSpec
 
 __all__ = ["ProcessGroup", "child_spec", "merge_counters"]
 
@@ -76,7 +77,7 @@ class _Child:
     final: dict[str, Any] = field(default_factory=dict)
 
 
-def child_spec(db_url: str, config: DaemonConfig, index: int, fd: int, *,
+def child_spec(db_url: str | StoreSpec, config: DaemonConfig, index: int, fd: int, *,
                live_url: str | None, busy_timeout_s: float, log_level: str,
                bus: BusConfig | None = None) -> dict[str, Any]:
     """The JSON object a child reads on stdin: its settings and the descriptor of its socket.
@@ -89,7 +90,8 @@ def child_spec(db_url: str, config: DaemonConfig, index: int, fd: int, *,
     cfg.pop("socket_fd")
     if config.metrics_host is not None and config.metrics_port:
         cfg["metrics_port"] = config.metrics_port + index
-    return {"db_url": db_url, "config": cfg, "limits": limits, "index": index, "fd": fd,
+    db = db_url if isinstance(db_url, str) else db_url.to_json()
+    return {"db_url": db, "config": cfg, "limits": limits, "index": index, "fd": fd,
             "live_url": live_url, "busy_timeout_s": busy_timeout_s, "log_level": log_level,
             "parent_pid": os.getpid(),
             "bus": dataclasses.asdict(bus) if bus is not None else None}
@@ -115,7 +117,7 @@ class ProcessGroup:
     """N ingest daemon processes sharing ``config.host:config.port`` (see the module doc).
 
     Args:
-        db_url: Database of every child.
+        db_url: Database of every child (a URL, or a spec with the shards).
         config: Settings of every child (``socket_fd`` is set per child).
         processes: N, 1 … 64.
         live_url: Live fan-out bus URL for the children, or None.
@@ -126,7 +128,7 @@ class ProcessGroup:
         start_timeout_s: Longest wait for a child's ``ready`` line [s].
     """
 
-    def __init__(self, db_url: str, config: DaemonConfig, processes: int, *,
+    def __init__(self, db_url: str | StoreSpec, config: DaemonConfig, processes: int, *,
                  live_url: str | None = None, busy_timeout_s: float = 3.0,
                  log_level: str = "INFO", start_timeout_s: float = 60.0,
                  bus: BusConfig | None = None) -> None:

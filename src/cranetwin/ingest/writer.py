@@ -31,8 +31,17 @@ storage did not explain: neither acked nor refused, so its sender retransmits; c
 
 
 def outcomes_of(result: WriteResult) -> list[Outcome]:
-    return [(o.status, o.reason or "unstorable") if o.status == "refused" else (o.status, "")
-            for o in result.outcomes]
+    """Storage's outcomes as the daemon's; ``unavailable`` (the machine's shard failed while
+    the others were written) is an ``error``: neither acked nor refused, retransmitted."""
+    out: list[Outcome] = []
+    for o in result.outcomes:
+        if o.status == "refused":
+            out.append(("refused", o.reason or "unstorable"))
+        elif o.status == "unavailable":
+            out.append(("error", o.reason or "shard_unavailable"))
+        else:
+            out.append((o.status, ""))
+    return out
 
 
 def is_unavailable(exc: BaseException) -> bool:

@@ -22,6 +22,7 @@ from cranetwin.testing.histories import Misuse, SyntheticCrane
 
 if TYPE_CHECKING:
     from cranetwin.sim import Recording
+    from cranetwin.storage import StoreSpec
     from cranetwin.twin import TwinResult
 
 F64 = npt.NDArray[np.float64]
@@ -163,7 +164,8 @@ class StoreSource:
     parts (:meth:`range_state`, what :func:`cranetwin.reports.build_report` uses), or replayed
     four hours at a time by :meth:`chunks` (the direct path)."""
 
-    url: str
+    url: str | StoreSpec
+    """A database URL, or where the settings store (shards included)."""
     machine_id: str
     t0_s: float
     t1_s: float
@@ -174,11 +176,11 @@ class StoreSource:
 
     def __post_init__(self) -> None:
         try:
-            from cranetwin.storage import Store
+            from cranetwin.storage import open_store
             from cranetwin.storage.engine import display_url
         except ImportError as exc:  # pragma: no cover - storage is part of the package
             raise ReportError(f"storage is not available: {exc}") from exc
-        self.store = Store.open(self.url)
+        self.store = open_store(self.url)
         info = {m.machine_id: m for m in self.store.machines()}
         if self.machine_id not in info:
             raise ReportError(f"unknown machine {self.machine_id!r}; registered: "
@@ -194,7 +196,8 @@ class StoreSource:
             self.machine = load_machine(model)
         if not self.t1_s > self.t0_s:
             raise ReportError(f"--to ({self.t1_s}) must be after --from ({self.t0_s})")
-        self.label = self.label or f"machine {self.machine_id} from {display_url(self.url)}"
+        self.label = self.label or f"machine {self.machine_id} from " + (
+            display_url(self.url) if isinstance(self.url, str) else self.url.display())
 
     def total(self) -> int:
         return int(np.ceil((self.t1_s - self.t0_s) / WINDOW_S))
@@ -214,7 +217,8 @@ class StoreSource:
         def edge(a: float, b: float) -> LoadHistory | None:
             return window_history(backend, replayer, self.machine, self.machine_id, a, b,
                                   self.margin_s)
-        return range_state(self.store.engine, self.machine, self.machine_id, self.t0_s,
+        engine = self.store.engine_for(self.machine_id)
+        return range_state(engine, self.machine, self.machine_id, self.t0_s,
                            self.t1_s, edge, prog.watermark_s if prog is not None else None,
                            config=config,
                            next_sample=lambda t: backend.next_sample_time(self.machine_id, t))
@@ -236,7 +240,7 @@ class StoreSource:
         from cranetwin.storage.apikeys import get_progress
 
         dr = self.store.data_range(self.machine_id)
-        with Session(self.store.engine) as s:
+        with Session(self.store.engine_for(self.machine_id)) as s:
             row = get_progress(s, self.machine_id)
             if row is None or dr is None or not row.operating_s > 0:
                 return None

@@ -61,7 +61,7 @@ class AlarmService:
         self._lock = threading.Lock()
         self.notifier: Any = None  # a service.webhooks.WebhookNotifier, when configured
         self.notify_severities: list[str] = ["critical"]
-        self._notified: int | None = None  # newest event id offered to the notifier
+        self._notified: list[int] | None = None  # per shard: newest event row id offered
 
     # -- webhook notification -----------------------------------------------------------------
     def set_notifier(self, notifier: Any, min_severity: str = "critical") -> None:
@@ -72,13 +72,10 @@ class AlarmService:
         self.notifier = notifier
         self._notified = self._newest_id()
 
-    def _newest_id(self) -> int:
-        from sqlalchemy import func, select
+    def _newest_id(self) -> list[int]:
+        from cranetwin.storage.alarmshards import newest_ids
 
-        from cranetwin.storage.events import EventRow
-
-        with self.backend.session() as s:
-            return int(s.scalar(select(func.max(EventRow.id))) or 0)
+        return newest_ids(self.backend.store.engines)
 
     def notify_new(self) -> int:
         """Offer the events stored since the last call (of the notified severities) to the
@@ -86,26 +83,17 @@ class AlarmService:
         delivery."""
         if self.notifier is None:
             return 0
-        from sqlalchemy import func, select
+        from cranetwin.storage.alarmshards import new_since
 
-        from cranetwin.storage.alarms import get_alarm
-        from cranetwin.storage.events import EventRow
-
+        engines = self.backend.store.engines
         with self._lock:
-            last = self._notified or 0
-            with self.backend.session() as s:
-                top = int(s.scalar(select(func.max(EventRow.id))) or 0)
-                ids = list(s.scalars(select(EventRow.id).where(
-                    EventRow.id > last, EventRow.id <= top,
-                    EventRow.severity.in_(self.notify_severities))
-                    .order_by(EventRow.id).limit(500)))
-                found = [get_alarm(s, i) for i in ids]
+            last = self._notified or [0] * len(engines)
+            found, marks = new_since(engines, last, self.notify_severities)
             for a in found:
-                if a is not None:
-                    self.notifier.offer(as_json(a))
-            # the watermark passes every event seen, whatever its severity (ids only grow)
-            self._notified = ids[-1] if len(ids) == 500 else top
-        return len(ids)
+                self.notifier.offer(as_json(a))
+            # the watermarks pass every event seen, whatever its severity (ids only grow)
+            self._notified = marks
+        return len(found)
 
     # -- listing and actions ------------------------------------------------------------------
     def list(self, *, machine_ids: list[str] | None = None, severities: list[str] | None = None,
@@ -113,13 +101,11 @@ class AlarmService:
              t1_s: float | None = None, state: str = "active", limit: int = 50,
              offset: int = 0) -> dict[str, Any]:
         """``{"total", "offset", "limit", "items": [...]}``, newest first (see :func:`as_json`)."""
-        from cranetwin.storage import alarms
+        from cranetwin.storage.alarmshards import list_all
 
-        with self.backend.session() as s:
-            total, rows = alarms.list_alarms(
-                s, machine_ids=machine_ids, severities=severities, kinds=kinds, t0_s=t0_s,
-                t1_s=t1_s, state=state, limit=limit, offset=offset)
-            kinds_all = alarms.kinds_in_use(s)
+        total, rows, kinds_all = list_all(
+            self.backend.store.engines, machine_ids=machine_ids, severities=severities,
+            kinds=kinds, t0_s=t0_s, t1_s=t1_s, state=state, limit=limit, offset=offset)
         return {"total": total, "offset": offset, "limit": limit, "kinds": kinds_all,
                 "items": [as_json(a) for a in rows]}
 
@@ -130,11 +116,10 @@ class AlarmService:
         Raises:
             NotFoundError: No such event.
         """
-        from cranetwin.storage import alarms
+        from cranetwin.storage.alarmshards import act
 
-        with self.backend.session() as s, s.begin():
-            a = alarms.set_alarm_state(s, event_id, action, by,
-                                       time.time() if now_s is None else now_s)
+        a = act(self.backend.store.engines, event_id, action, by,
+                time.time() if now_s is None else now_s)
         if a is None:
             raise NotFoundError("Unknown event", f"no event {event_id} (ids are the `id` of GET "
                                 "/api/v1/alarms)")
@@ -187,7 +172,7 @@ class AlarmService:
         """Clear the ``machine_offline`` events of a silence that has ended."""
         from cranetwin.storage import alarms
 
-        with self.backend.session() as s, s.begin():
+        with self.backend.session(machine_id) as s, s.begin():  # the machine's shard
             _, rows = alarms.list_alarms(s, machine_ids=[machine_id], kinds=["machine_offline"],
                                          t0_s=t0_s, t1_s=t1_s, state="active", limit=100)
             for a in rows:

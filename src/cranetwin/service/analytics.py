@@ -139,7 +139,8 @@ def analytics_report(backend: Any, replayer: Replayer, machine: Machine, machine
     def edge(a: float, b: float) -> Any:
         return window_history(backend, replayer, machine, machine_id, a, b, margin_s)
 
-    state = range_state(backend.store.engine, machine, machine_id, rng.t0_s, rng.t1_s, edge,
+    engine = backend.store.engine_for(machine_id)
+    state = range_state(engine, machine, machine_id, rng.t0_s, rng.t1_s, edge,
                         prog.watermark_s if prog is not None else None, max_replay_s,
                         next_sample=lambda t: backend.next_sample_time(machine_id, t))
     if state.n_samples == 0:

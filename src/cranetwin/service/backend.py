@@ -34,7 +34,7 @@ from cranetwin.errors import CraneTwinError, ModelError, StorageError
 from cranetwin.model import Machine, builtin_machines, load_machine
 from cranetwin.samples import SampleArrays
 from cranetwin.service.errors import ConflictError, InvalidRequestError, NotFoundError
-from cranetwin.storage import Store
+from cranetwin.storage import Store, StoreSpec, open_store
 from cranetwin.storage import apikeys as keyrepo
 from cranetwin.storage import summaries as summ
 from cranetwin.storage.machines import get_row
@@ -114,17 +114,20 @@ class Backend:
         self._lock = threading.Lock()
 
     @classmethod
-    def open(cls, url: str) -> Backend:
-        """Open (and migrate) the database at ``url``."""
-        return cls(Store.open(url))
+    def open(cls, url: str | StoreSpec) -> Backend:
+        """Open (and migrate) the database at ``url``, or every shard of a
+        :class:`~cranetwin.storage.StoreSpec` (:func:`cranetwin.storage.open_store`)."""
+        return cls(open_store(url))
 
     def close(self) -> None:
         """Close the store."""
         self.store.close()
 
-    def session(self) -> Session:
-        """A new ORM session on the store's engine."""
-        return Session(self.store.engine)
+    def session(self, machine_id: str | None = None) -> Session:
+        """A new ORM session on the engine holding ``machine_id``'s rows (its shard), or on
+        the store's home engine (API keys, rows of no machine)."""
+        return Session(self.store.engine if machine_id is None
+                       else self.store.engine_for(machine_id))
 
     # -- machines -----------------------------------------------------------------------------
     @staticmethod
@@ -211,7 +214,7 @@ class Backend:
         return self.machine(machine_id), secret.hex()
 
     def _set_location(self, machine_id: str, lat: float, lon: float) -> None:
-        with self.session() as s, s.begin():
+        with self.session(machine_id) as s, s.begin():
             row = get_row(s, machine_id)
             row.latitude_deg, row.longitude_deg = lat, lon
 
@@ -221,7 +224,7 @@ class Backend:
         None leaves a field as it is."""
         import json
 
-        with self.session() as s, s.begin():
+        with self.session(machine_id) as s, s.begin():
             row = get_row(s, machine_id)
             meta = json.loads(row.meta_json or "{}")
             if name is not None:
@@ -319,7 +322,7 @@ class Backend:
     # -- twin worker progress -----------------------------------------------------------------
     def progress(self, machine_id: str) -> Progress | None:
         """The worker's stored progress of a machine."""
-        with self.session() as s:
+        with self.session(machine_id) as s:
             row = keyrepo.get_progress(s, machine_id)
             if row is None:
                 return None
@@ -345,7 +348,7 @@ class Backend:
 
     def reset_progress(self, prog: Progress) -> None:
         """Store progress unconditionally (position the worker: tests, benchmarks, operators)."""
-        with self.session() as s, s.begin():
+        with self.session(prog.machine_id) as s, s.begin():
             row = s.get(keyrepo.TwinProgressRow, prog.machine_id)
             values = asdict(prog)
             values["updated_s"] = time.time()
@@ -392,7 +395,7 @@ class Backend:
             of this one was written (summaries included).
         """
         try:
-            with self.session() as s, s.begin():
+            with self.session(prog.machine_id) as s, s.begin():
                 if t_s.size:
                     pk = self._pk(s, prog.machine_id)
                     t_ns = np.round(t_s * 1e9).astype(np.int64)

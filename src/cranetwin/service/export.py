@@ -139,7 +139,7 @@ def raw_chunks(backend: Any, machine: Machine, machine_id: str, rng: TimeRange,
     names = [c.name for c in machine.channels]
     span = chunk_samples / nominal_rate_hz
     start = rng.t0_s
-    with backend.session() as session:
+    with backend.session(machine_id) as session:
         while start < rng.t1_s:
             nxt = backend.next_sample_time(machine_id, start)
             if nxt is None or nxt >= rng.t1_s:

@@ -117,8 +117,11 @@ class FleetService:
 
     @classmethod
     def open(cls, settings: Settings, metrics: Metrics | None = None) -> FleetService:
-        """Open the store at ``settings.database_url`` and build the service."""
-        return cls(settings, Backend.open(settings.database_url), metrics)
+        """Open the store of the settings (``database_url``, or the shards of
+        ``storage_shards``) and build the service."""
+        from cranetwin.storage import store_spec
+
+        return cls(settings, Backend.open(store_spec(settings)), metrics)
 
     async def start(self) -> None:
         """Warm up (:mod:`cranetwin.service.warmup`, before serving: ~0.5 s, and done in the
@@ -347,12 +350,13 @@ class FleetService:
         from cranetwin.service.history import stored_duty
         from cranetwin.storage.aempreads import status_rows
 
-        engine = self.backend.store.engine
-        status = status_rows(engine, [r.machine_id for r in recs])
+        store = self.backend.store
+        status = {k: v for e, ids in store.engines_of(r.machine_id for r in recs)
+                  for k, v in status_rows(e, ids).items()}  # one query per shard
         out = []
         for rec in recs:
             p = self.backend.progress(rec.machine_id) or Progress.empty(rec.machine_id)
-            duty = stored_duty(engine, rec.machine_id)
+            duty = stored_duty(store.engine_for(rec.machine_id), rec.machine_id)
             st = status.get(rec.machine_id)
             meta = st.metadata if st is not None else {}
             meter = (st.operating_hours, st.status_s) if st is not None and \
@@ -410,7 +414,7 @@ class FleetService:
         if element not in aemp.SERIES:
             raise NotFoundError("No such time series", f"{element!r}: served are "
                                 f"{', '.join(aemp.SERIES)}")
-        engine = self.backend.store.engine
+        engine = self.backend.store.engine_for(machine_id)
         minutes = minute_times(engine, machine_id, rng.t0_s, rng.t1_s)
         before = times_until(engine, machine_id, rng.t0_s)
         offset = 0.0

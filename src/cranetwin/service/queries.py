@@ -196,7 +196,7 @@ def events_page(backend: Backend, machine_id: str, rng: TimeRange, *,
         if bad:
             raise InvalidRequestError("Unknown severity", f"{', '.join(map(repr, bad))}: "
                                       f"expected {', '.join(SEVERITIES)}")
-    with backend.session() as s:
+    with backend.session(machine_id) as s:
         rows = read_page(s, machine_id, rng.t0_s, rng.t1_s, kinds=kinds, severities=severities,
                          after=after, limit=limit + 1)
     more = len(rows) > limit

@@ -157,10 +157,10 @@ def usage_of(backend: Any, machine_id: str, bases: set[str] | None = None,
     first = float(math.floor(dr[0] / 60.0) * 60.0)
     recent0 = max(first, until - RECENT_DAYS * DAY_S)
     span_d = max((until - recent0) / DAY_S, 1e-9)
-    engine = backend.store.engine
+    engine = backend.store.engine_for(machine_id)
     if "operating_hours" in want:
         values["operating_hours"] = prog.operating_s / 3600.0
-        with backend.session() as s:
+        with backend.session(machine_id) as s:
             rates["operating_hours"] = st.operating_seconds(s, machine_id, recent0,
                                                             until) / 3600.0 / span_d
     if not want & {"lifts", "damage_fraction"} or until <= first:
@@ -254,7 +254,7 @@ def set_schedule(backend: Any, machine_id: str, item: str, inp: ScheduleInput, b
         value = _counter_now(backend, machine_id, inp.basis, inp.detail, now)
     sch = st.Schedule(0, machine_id, item, inp.basis, float(inp.interval), inp.detail,
                       float(value), float(done_s), None, now, by)
-    with backend.session() as s, s.begin():
+    with backend.session(machine_id) as s, s.begin():
         st.put_schedule(s, sch)
     return _one(backend, machine_id, item, now)
 
@@ -270,7 +270,7 @@ def mark_done(backend: Any, machine_id: str, item: str, by: str, value: float | 
     from cranetwin.storage import alarms
 
     now = time.time() if now_s is None else now_s
-    with backend.session() as s:
+    with backend.session(machine_id) as s:
         cur = st.get_schedule(s, machine_id, item)
     if cur is None:
         raise NotFoundError("Unknown service item", f"machine {machine_id} has no item {item!r}")
@@ -280,7 +280,7 @@ def mark_done(backend: Any, machine_id: str, item: str, by: str, value: float | 
         v = t / DAY_S
     elif v is None:
         v = _counter_now(backend, machine_id, cur.basis, cur.detail, now)
-    with backend.session() as s, s.begin():
+    with backend.session(machine_id) as s, s.begin():
         st.mark_done(s, machine_id, item, float(v), float(t), by)
         if cur.due_event_id is not None:
             alarms.set_alarm_state(s, cur.due_event_id, "clear", by, now)
@@ -294,7 +294,7 @@ def delete_schedule(backend: Any, machine_id: str, item: str) -> None:
         NotFoundError: Unknown machine or item.
     """
     backend.machine(machine_id)
-    with backend.session() as s, s.begin():
+    with backend.session(machine_id) as s, s.begin():
         if not st.delete_schedule(s, machine_id, item):
             raise NotFoundError("Unknown service item",
                                 f"machine {machine_id} has no item {item!r}")
@@ -302,7 +302,7 @@ def delete_schedule(backend: Any, machine_id: str, item: str) -> None:
 
 def statuses(backend: Any, machine_id: str, now_s: float | None = None) -> list[DueStatus]:
     """Due status of every item of the machine, by item name."""
-    with backend.session() as s:
+    with backend.session(machine_id) as s:
         items = st.list_schedules(s, machine_id)
     if not items:
         return []
@@ -355,7 +355,7 @@ def check_due(backend: Any, machine_id: str, now_s: float | None = None) -> int:
         evidence = {"message": msg, "item": s.item, "basis": s.basis, "interval": s.interval,
                     "due_at": d.due_at, "current": d.current, "status": d.status,
                     "detail": d.detail, "schedule_id": s.schedule_id, "component": s.item}
-        with backend.session() as ses, ses.begin():
+        with backend.session(machine_id) as ses, ses.begin():
             if st.raise_due(ses, s.schedule_id, t, "critical" if d.status == "overdue"
                             else "warning", evidence, now) is not None:
                 raised += 1

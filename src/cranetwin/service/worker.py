@@ -42,7 +42,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace as dc_replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -115,6 +115,10 @@ class TwinWorker:
         self.stop_event = threading.Event()
         """Set to stop: checked between windows, so the window being replayed is finished and
         committed first (a second or so)."""
+
+    def _engine(self, rec: MachineRecord) -> Any:
+        """The engine holding the machine's rows (its shard when storage is sharded)."""
+        return self.backend.store.engine_for(rec.machine_id)
 
     def stop_requested(self) -> bool:
         """Whether :attr:`stop_event` is set."""
@@ -309,7 +313,7 @@ class TwinWorker:
 
         if int(np.count_nonzero(keep)) < 2:
             return
-        engine = self.backend.store.engine
+        engine = self._engine(rec)
         try:
             h = load_history(machine, res, keep)
             store_part(engine, machine, rec.machine_id, w0, w1, h, *times)
@@ -349,7 +353,7 @@ class TwinWorker:
         from cranetwin.service.history import drop_duty, roll_up
         from cranetwin.storage import analytics_windows as aw
 
-        engine = self.backend.store.engine
+        engine = self._engine(rec)
         win, m = self.settings.worker_window_s, self.settings.twin_margin_s
         mark = aw.block_mark(engine, rec.machine_id)
         top, late = aw.new_blocks_before(engine, rec.machine_id, mark, prog.watermark_s)
@@ -391,7 +395,7 @@ class TwinWorker:
         from cranetwin.service.history import update_duty
 
         try:
-            update_duty(self.backend.store.engine, self.backend.model_of(rec), rec.machine_id,
+            update_duty(self._engine(rec), self.backend.model_of(rec), rec.machine_id,
                         first_s, until_s)
         except CraneTwinError as exc:
             log.warning("machine %s: duty to date not updated: %s", rec.machine_id, exc)
@@ -421,7 +425,7 @@ class TwinWorker:
         if math.floor(from_s / 3600) == math.floor(to_s / 3600):
             return
         try:
-            roll_up(self.backend.store.engine, self.backend.model_of(rec), rec.machine_id,
+            roll_up(self._engine(rec), self.backend.model_of(rec), rec.machine_id,
                     math.floor(from_s / 86400) * 86400.0, to_s)
         except CraneTwinError as exc:
             log.warning("machine %s: roll-up to %.0f failed: %s", rec.machine_id, to_s, exc)
@@ -461,7 +465,7 @@ class TwinWorker:
         if redo_w0 is not None:
             from cranetwin.storage import analytics_windows as aw
 
-            old = aw.window_times(self.backend.store.engine, rec.machine_id, 60, w0)
+            old = aw.window_times(self._engine(rec), rec.machine_id, 60, w0)
             count = old is None
             new = prog if not count else dc_replace(prog, windows=prog.windows + 1)
         n_in = int(np.count_nonzero((samples.t_s >= w0) & (samples.t_s < w1)))

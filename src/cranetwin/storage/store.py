@@ -108,6 +108,21 @@ class Store:
         """``sqlite`` or ``postgresql``."""
         return self.engine.dialect.name
 
+    def engine_for(self, machine_id: str) -> Engine:
+        """The engine holding ``machine_id``'s rows (one engine here; its shard's in
+        :class:`~cranetwin.storage.shards.ShardedStore`)."""
+        return self.engine
+
+    def engines_of(self, machine_ids: Iterable[str]) -> list[tuple[Engine, list[str]]]:
+        """``machine_ids`` grouped by the engine holding them (fan-out of fleet reads)."""
+        ids = list(machine_ids)
+        return [(self.engine, ids)] if ids else []
+
+    @property
+    def engines(self) -> list[Engine]:
+        """Every engine of the store (one here; one per shard when sharded)."""
+        return [self.engine]
+
     def _session(self) -> Session:
         return Session(self.engine, expire_on_commit=False)
 

@@ -57,7 +57,7 @@ from cranetwin.storage.dberrors import is_data_error, is_unavailable, unavailabl
 
 log = logging.getLogger(__name__)
 
-Status = Literal["stored", "duplicate", "refused"]
+Status = Literal["stored", "duplicate", "refused", "unavailable"]
 REASONS = ("seq_reused", "overlap", "unstorable", "unknown_machine")
 """Every refusal reason :class:`BlockOutcome` may carry."""
 
@@ -68,9 +68,13 @@ class BlockOutcome:
 
     Attributes:
         status: ``stored`` (newly stored by this call), ``duplicate`` (the same block was already
-            stored: same (machine, epoch, seq), t_start, n and period) or ``refused`` (not
-            stored, and never will be on a retry).
-        reason: For ``refused``: one of :data:`REASONS`; None otherwise.
+            stored: same (machine, epoch, seq), t_start, n and period), ``refused`` (not
+            stored, and never will be on a retry) or ``unavailable`` (not stored because the
+            database shard of its machine failed while the others were written
+            (:class:`cranetwin.storage.shards.ShardedStore`): neither acknowledge nor refuse
+            it; a retry may store it).
+        reason: For ``refused``: one of :data:`REASONS`; :data:`UNAVAILABLE` for
+            ``unavailable``; None otherwise.
         detail: One line for the logs (why it was refused); empty otherwise.
     """
 
@@ -81,11 +85,19 @@ class BlockOutcome:
     @property
     def durable(self) -> bool:
         """The block is in the database (stored now or before): it may be acknowledged."""
-        return self.status != "refused"
+        return self.status in ("stored", "duplicate")
 
+
+UNAVAILABLE = "shard_unavailable"
+"""The reason of an ``unavailable`` outcome."""
 
 STORED = BlockOutcome("stored")
 DUPLICATE = BlockOutcome("duplicate")
+
+
+def unavailable_outcome(detail: str) -> BlockOutcome:
+    """Not stored: the machine's shard failed (retry later; neither ack nor refuse)."""
+    return BlockOutcome("unavailable", UNAVAILABLE, detail)
 
 
 def refused(reason: str, detail: str) -> BlockOutcome:
@@ -124,8 +136,14 @@ class WriteResult:
 
     @property
     def refused(self) -> list[tuple[SampleBlock, BlockOutcome]]:
-        """Blocks not stored, with their outcome (``reason``, ``detail``)."""
-        return [(b, o) for b, o in self if not o.durable]
+        """Blocks refused, with their outcome (``reason``, ``detail``); an ``unavailable``
+        block is not among them (see :attr:`unavailable`)."""
+        return [(b, o) for b, o in self if o.status == "refused"]
+
+    @property
+    def unavailable(self) -> list[tuple[SampleBlock, BlockOutcome]]:
+        """Blocks not stored because their shard failed: retry them, neither ack nor refuse."""
+        return [(b, o) for b, o in self if o.status == "unavailable"]
 
     def counts(self) -> dict[str, int]:
         """Number of blocks per ``stored``, ``duplicate`` and per refusal reason (non-zero only)."""
