@@ -54,6 +54,7 @@ class EdgePublisher:
         self._lock = threading.Lock()
         self._connected = threading.Event()
         self.rebirths = 0
+        self.last_births: list[Any] = []
         self._c: Any = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2,
                                    client_id=f"cranetwin-edge-{group}-{edge_node}",
                                    protocol=mqtt.MQTTv311, clean_session=True)
@@ -68,9 +69,14 @@ class EdgePublisher:
         self._c.will_set(str(Topic(group, "NDEATH", edge_node)), death.SerializeToString(), 1)
         self._c.connect(host, port, 30)
         self._c.loop_start()
-        if not self._connected.wait(10):
+        try:
+            if not self._connected.wait(10):
+                raise TimeoutError("no CONNACK")
+            self._wait(self.last_births, 10.0)
+        except (TimeoutError, RuntimeError, ValueError) as exc:
             self.close()
-            raise TimeoutError(f"MQTT broker {host}:{port} did not accept the edge node")
+            raise TimeoutError(f"MQTT broker {host}:{port} did not accept the edge node: "
+                               f"{exc}") from exc
 
     def _next_seq(self) -> int:
         with self._lock:
@@ -100,7 +106,8 @@ class EdgePublisher:
 
     def births(self) -> None:
         """Publish NBIRTH and every device's DBIRTH (QoS 0 for NBIRTH as Sparkplug asks,
-        QoS 1 for the DBIRTHs the adapter learns aliases from)."""
+        QoS 1 for the DBIRTHs the adapter learns aliases from; their message infos in
+        :attr:`last_births`; the constructor returns once the broker has acked them)."""
         with self._lock:
             self._seq = 0
         now = time.time_ns() // 1_000_000
@@ -110,10 +117,11 @@ class EdgePublisher:
         m.name, m.datatype, m.long_value = "bdSeq", UINT64, 0
         self._c.publish(str(Topic(self.group, "NBIRTH", self.edge_node)),
                         node.SerializeToString(), 0)
-        for device, layout in self.layouts.items():
+        self.last_births = [
             self._c.publish(str(Topic(self.group, "DBIRTH", self.edge_node, device)),
                             encode_birth(layout, self._next_seq(), now, self._aliases(layout)),
                             1)
+            for device, layout in self.layouts.items()]
 
     def publish(self, block: SampleBlock) -> Any:
         """Publish ``block`` as DDATA of its machine, QoS 1; returns paho's message info
@@ -131,12 +139,16 @@ class EdgePublisher:
             TimeoutError: a block not acked by the broker within ``timeout_s``.
         """
         infos = [self.publish(b) for b in blocks]
+        self._wait(infos, timeout_s)
+        return len(infos)
+
+    @staticmethod
+    def _wait(infos: list[Any], timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         for info in infos:
             info.wait_for_publish(max(0.0, deadline - time.monotonic()))
             if not info.is_published():
-                raise TimeoutError("the broker did not acknowledge every block in time")
-        return len(infos)
+                raise TimeoutError("the broker did not acknowledge every message in time")
 
     def close(self) -> None:
         """Disconnect (a clean disconnect: no NDEATH will)."""
