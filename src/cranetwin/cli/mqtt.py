@@ -116,7 +116,7 @@ def mqtt_ingest(
                                    range_margin=st.ingest_range_margin),
                      writer=DaemonConfig())
     live_bus = open_bus(st.live_bus_url) if st.live_bus_url else None
-    store = Store.open(st.database_url)
+    store = Store.open(st.database_url, busy_timeout_s=st.ingest_busy_timeout_s)
     try:
         adapter = MqttIngest(store, cfg, live_bus)
         for sig in (signal.SIGTERM, signal.SIGINT):
