@@ -425,3 +425,19 @@ def test_adapter_killed_mid_stream_stores_every_broker_acked_block_exactly_once(
             np.testing.assert_array_equal(got.t_ns, np.concatenate([b.times_ns() for b in mine]))
             np.testing.assert_array_equal(got.values, np.concatenate([b.values for b in mine]))
         assert s.stats().samples == sum(b.n for b in sent)
+
+
+# --- the benchmark (structure and consistency; timings are not checked) -------------------------
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_bench_mqtt_stores_everything_and_reports_consistent_figures(group: str) -> None:
+    from cranetwin.bench.mqtt import run_bench
+
+    out = run_bench(machines=2, blocks=5, samples=20, batch_max=100, broker=(HOST, PORT))
+    assert (out["samples"], out["blocks"], out["samples_per_block"]) == (200, 10, 20)
+    assert out["exact"] and out["mqtt_stored_samples"] == 200 and out["mqtt_dropped"] == {}
+    for key in ("direct_samples_per_s", "mqtt_samples_per_s", "direct_cpu_us_per_sample",
+                "mqtt_cpu_us_per_sample"):
+        assert out[key] > 0, key
+    assert out["mqtt_cpu_ratio_vs_direct"] == pytest.approx(
+        out["mqtt_cpu_us_per_sample"] / out["direct_cpu_us_per_sample"], rel=0.05, abs=0.02)

@@ -76,6 +76,9 @@ class Settings(BaseSettings):
     mqtt_username: str | None = Field(None, description="MQTT user name (else from the URL)")
     mqtt_password: str = Field(
         "", repr=False, description="MQTT password (environment only; never logged)")
+    mqtt_protocol: Literal["5", "3.1.1"] = Field(
+        "5", description="MQTT version of the adapter: 5 (session expiry, Receive Maximum) or "
+                         "3.1.1 (NATS's MQTT listener speaks 3.1.1 only)")
     mqtt_session_expiry_s: int = Field(
         7 * 86400, ge=0, description="how long the broker keeps the adapter's session and its "
                                      "unacknowledged messages while the adapter is away [s]")

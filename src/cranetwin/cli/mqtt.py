@@ -105,7 +105,8 @@ def mqtt_ingest(
         raise MqttCliError("no broker: give --broker mqtt://HOST:PORT or set "
                            "CRANETWIN_MQTT_BROKER_URL")
     b = parse_broker(st.mqtt_broker_url)
-    cfg = MqttConfig(host=b.host, port=b.port, tls=b.tls, group=st.mqtt_group,
+    cfg = MqttConfig(host=b.host, port=b.port, tls=b.tls, protocol=st.mqtt_protocol,
+                     group=st.mqtt_group,
                      client_id=st.mqtt_client_id, username=st.mqtt_username or b.username,
                      password=st.mqtt_password or None,
                      session_expiry_s=st.mqtt_session_expiry_s,

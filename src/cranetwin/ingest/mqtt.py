@@ -71,6 +71,9 @@ class MqttConfig:
         client_id: MQTT client id: the name of the persistent session (one adapter per id).
         username, password: Broker credentials (``password`` never logged nor in ``repr``).
         tls: Connect with TLS (``mqtts://``).
+        protocol: ``"5"`` (MQTT 5: session expiry, Receive Maximum) or ``"3.1.1"`` (a
+            persistent ``clean_session=False`` session; for NATS's MQTT listener, which speaks
+            3.1.1 only; the broker's own settings bound the unacked messages then).
         session_expiry_s: How long the broker keeps the session, and with it every message
             not yet acked, while the adapter is away [s].
         receive_maximum: Unacked messages the broker may send at once (MQTT 5 Receive
@@ -89,6 +92,7 @@ class MqttConfig:
     username: str | None = None
     password: str | None = field(default=None, repr=False)
     tls: bool = False
+    protocol: str = "5"
     session_expiry_s: int = 7 * 86400
     receive_maximum: int = 1000
     batch_max: int = 1000
@@ -326,8 +330,10 @@ class MqttIngest:
             raise MissingExtraError("mqtt", "the MQTT ingest adapter") from exc
         new_properties: Any = Properties  # untyped in paho
         cfg = self.config
+        v5 = cfg.protocol != "3.1.1"
         c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=cfg.client_id,
-                        protocol=mqtt.MQTTv5, manual_ack=True)
+                        protocol=mqtt.MQTTv5 if v5 else mqtt.MQTTv311,
+                        clean_session=None if v5 else False, manual_ack=True)
         if cfg.username is not None:
             c.username_pw_set(cfg.username, cfg.password)
         if cfg.tls:
@@ -335,11 +341,15 @@ class MqttIngest:
         c.on_connect, c.on_subscribe, c.on_message = (self._on_connect, self._on_subscribe,
                                                       self._on_message)
         c.reconnect_delay_set(0.25, 5)
-        props = new_properties(PacketTypes.CONNECT)
-        props.SessionExpiryInterval = cfg.session_expiry_s
-        props.ReceiveMaximum = cfg.receive_maximum
         try:
-            c.connect(cfg.host, cfg.port, cfg.keepalive_s, clean_start=False, properties=props)
+            if v5:
+                props = new_properties(PacketTypes.CONNECT)
+                props.SessionExpiryInterval = cfg.session_expiry_s
+                props.ReceiveMaximum = cfg.receive_maximum
+                c.connect(cfg.host, cfg.port, cfg.keepalive_s, clean_start=False,
+                          properties=props)
+            else:
+                c.connect(cfg.host, cfg.port, cfg.keepalive_s)
         except OSError as exc:
             raise StorageUnavailableError(
                 f"MQTT broker {cfg.host}:{cfg.port} unreachable: {exc}") from exc
