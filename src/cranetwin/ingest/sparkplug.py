@@ -31,11 +31,13 @@ what storage keeps is what the UDP path would have kept for the same sensor read
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from cranetwin import codec
 from cranetwin.errors import MissingExtraError, ProtocolError
@@ -245,6 +247,16 @@ def _columns(cols: Mapping[str, bytes | None], layout: Layout, machine_id: str) 
     return out
 
 
+@functools.lru_cache(maxsize=256)
+def _bounds(layout: Layout, margin: float) -> tuple[npt.NDArray[np.float64],
+                                                    npt.NDArray[np.float64]]:
+    """Accepted value range per channel: ``[min, max]`` widened by ``margin`` of the span."""
+    lo = np.array([c.min for c in layout.channels])
+    hi = np.array([c.max for c in layout.channels])
+    span = (hi - lo) * margin
+    return lo - span, hi + span
+
+
 def limits_problem(block: SampleBlock, layout: Layout, limits: Limits,
                    now_ns: int) -> SparkplugError | None:
     """Why ``block`` is refused at the edge, or None: the checks the UDP receiver applies
@@ -260,11 +272,9 @@ def limits_problem(block: SampleBlock, layout: Layout, limits: Limits,
     if block.t0_ns < max(lo_t, 0) or block.t_end_ns > hi_t:
         return SparkplugError("bad_time", f"times {block.t0_ns}…{block.t_end_ns} ns outside "
                               f"[now − {limits.max_past_s:g} s, now + {limits.max_future_s:g} s]")
-    lo = np.array([c.min for c in layout.channels])
-    hi = np.array([c.max for c in layout.channels])
-    span = (hi - lo) * limits.range_margin
+    lo, hi = _bounds(layout, limits.range_margin)
     with np.errstate(invalid="ignore"):
-        bad = (block.values < lo - span) | (block.values > hi + span)
+        bad = (block.values < lo) | (block.values > hi)
     if bad.any():
         ch = layout.channels[int(np.flatnonzero(bad.any(axis=0))[0])]
         return SparkplugError("out_of_range", f"channel {ch.name!r}: value outside "
