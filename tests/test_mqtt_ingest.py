@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import select
+import shutil
 import signal
 import socket
 import sqlite3
@@ -46,12 +47,46 @@ LAYOUT = layout_of("patu655")
 SECRET = b"0123456789abcdef0123456789abcdef"
 
 
-def broker_unreachable_reason() -> str | None:
+def broker_unreachable_reason(port: int = PORT) -> str | None:
     try:
-        with socket.create_connection((HOST, PORT), timeout=2):
+        with socket.create_connection((HOST, port), timeout=2):
             return None
     except OSError as exc:
-        return f"no MQTT broker at {HOST}:{PORT}: {exc}"
+        return f"no MQTT broker at {HOST}:{port}: {exc}"
+
+
+def _free_port() -> int:
+    with socket.socket() as sk:
+        sk.bind((HOST, 0))
+        return int(sk.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def nats_mqtt_port(tmp_path_factory: pytest.TempPathFactory) -> Iterator[int]:
+    """A private nats-server with JetStream and its MQTT listener, on free ports; skipped
+    unless a nats-server that accepts '.' in MQTT topics (2.10 or newer) is found
+    (``$CRANETWIN_TEST_NATS_SERVER``, else ``nats-server`` on the PATH)."""
+    exe = os.environ.get("CRANETWIN_TEST_NATS_SERVER") or shutil.which("nats-server")
+    if not exe:
+        pytest.skip("no nats-server (set CRANETWIN_TEST_NATS_SERVER)")
+    version = subprocess.run([exe, "--version"], capture_output=True, text=True).stdout
+    parts = version.rsplit("v", 1)[-1].strip().split(".")
+    if len(parts) < 2 or (int(parts[0]), int(parts[1])) < (2, 10):
+        pytest.skip(f"{exe} is {version.strip()}: its MQTT listener refuses '.' in topics "
+                    "(spBv1.0/…); 2.10 or newer needed")
+    work = tmp_path_factory.mktemp("nats")
+    port = _free_port()
+    (work / "nats.conf").write_text(
+        f"server_name: cranetwin_test\nlisten: {HOST}:{_free_port()}\n"
+        f"jetstream {{ store_dir: \"{work / 'js'}\" }}\nmqtt {{ listen: {HOST}:{port} }}\n")
+    proc = subprocess.Popen([exe, "-c", str(work / "nats.conf")], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        wait_for(lambda: broker_unreachable_reason(port) is None, 20, what="nats-server")
+        yield port
+    finally:
+        proc.terminate()
+        proc.wait(10)
 
 
 def grid_block(machine_id: str, seq: int, n: int = 100, *, epoch: int = 7,
@@ -222,7 +257,7 @@ class Running:
     """An adapter running in a thread (stopped, and its session ended, by :meth:`close`)."""
 
     def __init__(self, store: Store, group: str, **kw: Any) -> None:
-        self.adapter = MqttIngest(store, MqttConfig(host=HOST, port=PORT, group=group,
+        self.adapter = MqttIngest(store, MqttConfig(host=HOST, group=group,
                                                     client_id=f"ct-{group}",
                                                     session_expiry_s=60, **kw))
         self.result: dict[str, Any] = {}
@@ -250,8 +285,8 @@ def adapter(store: Store, group: str) -> Iterator[Running]:
     r.close()
 
 
-def publisher(group: str, aliases: bool = False) -> EdgePublisher:
-    return EdgePublisher(HOST, PORT, group, "edge-a", {"crane-1": LAYOUT, "crane-2": LAYOUT},
+def publisher(group: str, aliases: bool = False, port: int = PORT) -> EdgePublisher:
+    return EdgePublisher(HOST, port, group, "edge-a", {"crane-1": LAYOUT, "crane-2": LAYOUT},
                          use_aliases=aliases)
 
 
@@ -352,14 +387,37 @@ def test_bad_messages_are_refused_counted_and_acked_and_ingest_goes_on(
                                   np.concatenate([b.values for b in good]))
 
 
+def test_through_nats_mqtt_listener_round_trip_and_republished_blocks_stored_once(
+        nats_mqtt_port: int, store: Store) -> None:
+    group = f"t{uuid.uuid4().hex[:10]}"
+    run = Running(store, group, port=nats_mqtt_port, protocol="3.1.1")
+    pub = publisher(group, aliases=True, port=nats_mqtt_port)
+    try:
+        sent = [grid_block(m, s) for s in range(20) for m in ("crane-1", "crane-2")]
+        pub.publish_all(sent)
+        pub.publish_all(sent[:10])
+        wait_for(lambda: run.counters()["stored_blocks"] + run.counters()["duplicates"] == 50,
+                 what="every message written")
+        c = run.counters()
+        assert (c["stored_blocks"], c["duplicates"], c["dropped"]) == (40, 10, {})
+        for m in ("crane-1", "crane-2"):
+            np.testing.assert_array_equal(
+                stored_values(store, m),
+                np.concatenate([b.values for b in sent if b.machine_id == m]))
+    finally:
+        pub.close()
+        run.close()
+
+
 # --- kill -9 of the adapter process --------------------------------------------------------------
-def start_adapter(group: str, db_url: str, log: Path) -> subprocess.Popen[bytes]:
+def start_adapter(group: str, db_url: str, log: Path, port: int = PORT,
+                  protocol: str = "5") -> subprocess.Popen[bytes]:
     """``cranetwin mqtt-ingest`` in a subprocess; returns once its ready line is printed."""
     env = dict(os.environ)
     env.update({"PYTHONPATH": f"{SRC}{os.pathsep}{env.get('PYTHONPATH', '')}",
-                "CRANETWIN_MQTT_SESSION_EXPIRY_S": "120"})
+                "CRANETWIN_MQTT_SESSION_EXPIRY_S": "120", "CRANETWIN_MQTT_PROTOCOL": protocol})
     cmd = [sys.executable, "-c", "from cranetwin.cli import main; main()", "mqtt-ingest",
-           "--broker", f"mqtt://{HOST}:{PORT}", "--group", group, "--client-id", f"ct-{group}",
+           "--broker", f"mqtt://{HOST}:{port}", "--group", group, "--client-id", f"ct-{group}",
            "--db", db_url, "--batch-max", "50", "--log-level", "WARNING"]
     with open(log, "ab") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, env=env)
@@ -375,11 +433,17 @@ def start_adapter(group: str, db_url: str, log: Path) -> subprocess.Popen[bytes]
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
+@pytest.mark.parametrize("broker", ["mosquitto", "nats"])
 def test_adapter_killed_mid_stream_stores_every_broker_acked_block_exactly_once(
-        group: str, tmp_path: Path) -> None:
+        broker: str, request: pytest.FixtureRequest, tmp_path: Path) -> None:
     """Kill -9 the adapter while it holds delivered blocks it could not commit (another
     connection holds the SQLite write lock, the adapter retries): an adapter that acked before
     the commit would lose them, since the broker forgets what was acked."""
+    if broker == "nats":
+        port, protocol = request.getfixturevalue("nats_mqtt_port"), "3.1.1"
+    else:
+        port, protocol = PORT, "5"
+    group = request.getfixturevalue("group")
     db = tmp_path / "kill.db"
     db_url = f"sqlite:///{db}"
     with Store.open(db_url) as s:
@@ -387,8 +451,8 @@ def test_adapter_killed_mid_stream_stores_every_broker_acked_block_exactly_once(
         s.add_machine("crane-2", 702, SECRET)
     log = tmp_path / "adapter.log"
     sent = [grid_block(m, s, 50) for s in range(150) for m in ("crane-1", "crane-2")]
-    proc = start_adapter(group, db_url, log)
-    pub = publisher(group)
+    proc = start_adapter(group, db_url, log, port, protocol)
+    pub = publisher(group, port=port)
     try:
         pub.publish_all(sent[:100])
         with Store.open(db_url) as s:
@@ -407,7 +471,7 @@ def test_adapter_killed_mid_stream_stores_every_broker_acked_block_exactly_once(
         pub.publish_all(sent[160:])  # broker-acked while no adapter runs: kept in its session
         with Store.open(db_url) as s:
             assert s.stats().blocks < 160  # the blocks in hand at the kill were not stored
-        proc = start_adapter(group, db_url, log)
+        proc = start_adapter(group, db_url, log, port, protocol)
         with Store.open(db_url) as s:
             wait_for(lambda: s.stats().blocks == len(sent), 120, what="every block stored")
     finally:
