@@ -235,6 +235,32 @@ def test_topics_and_broker_urls() -> None:
         parse_broker("http://h:1883")
 
 
+@pytest.mark.timeout(30)
+def test_a_message_sent_again_while_in_hand_is_taken_once_and_acked_once(
+        tmp_path: Path) -> None:
+    """NATS sends an unacked message again after its ack_wait on the same connection: the
+    copy is not queued twice, so its packet id is acked once."""
+    from types import SimpleNamespace
+
+    with Store.open(f"sqlite:///{tmp_path / 'x.db'}") as s:
+        s.add_machine("crane-1", 701, SECRET)
+        ad = MqttIngest(s, MqttConfig())
+        acks: list[int] = []
+        ad._client = SimpleNamespace(ack=lambda mid, qos: acks.append(mid))
+        ad._conn = 1
+        body = spb.encode_ddata(grid_block("crane-1", 0), 0, 0)
+        msg = SimpleNamespace(topic="spBv1.0/g/DDATA/e/crane-1", payload=body, mid=9, qos=1)
+        ad._on_message(None, None, msg)
+        ad._on_message(None, None, msg)
+        assert ad._queue.qsize() == 1
+        ad._handle([ad._queue.get()])
+        assert acks == [9] and ad.snapshot()["dropped"] == {"redelivered_in_hand": 1}
+        ad._on_message(None, None, msg)  # acked by now: a later copy is taken (and acked) again
+        ad._handle([ad._queue.get()])
+        assert acks == [9, 9] and ad.snapshot()["duplicates"] == 1
+        assert s.stats().blocks == 1
+
+
 # --- the adapter against Mosquitto ---------------------------------------------------------------
 @pytest.fixture
 def group() -> str:

@@ -133,6 +133,7 @@ class MqttIngest:
         self._db = StorageWriter(store, config.writer, self.metrics, self._log_once)
         self._queue: queue.Queue[Msg] = queue.Queue()
         self._conn = 0  # generation of the current connection (0: none yet)
+        self._in_hand: set[tuple[int, int]] = set()  # (connection, mid) delivered, not acked
         self._aliases: dict[tuple[str, str], dict[int, str]] = {}
         self._held: dict[tuple[str, str], list[Msg]] = {}
         self._rebirth_asked: dict[str, float] = {}
@@ -185,6 +186,12 @@ class MqttIngest:
             self.ready.set()
 
     def _on_message(self, _c: Any, _u: Any, m: Any) -> None:
+        key = (self._conn, m.mid)
+        if m.qos and key in self._in_hand:  # sent again before we acked it (NATS's ack_wait)
+            self.metrics.drop("redelivered_in_hand")
+            return
+        if m.qos:
+            self._in_hand.add(key)
         self._queue.put(Msg(m.topic, m.payload, m.mid, m.qos, self._conn))
 
     # -- machines -------------------------------------------------------------------------------
@@ -300,6 +307,7 @@ class MqttIngest:
         for msg in msgs:
             if msg.qos == 0:
                 continue
+            self._in_hand.discard((msg.conn, msg.mid))
             if msg.conn != self._conn:  # its connection is gone: the broker sends it again
                 self.metrics.drop("ack_after_reconnect")
                 continue
