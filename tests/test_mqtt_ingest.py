@@ -531,3 +531,28 @@ def test_bench_mqtt_stores_everything_and_reports_consistent_figures(group: str)
         assert out[key] > 0, key
     assert out["mqtt_cpu_ratio_vs_direct"] == pytest.approx(
         out["mqtt_cpu_us_per_sample"] / out["direct_cpu_us_per_sample"], rel=0.05, abs=0.02)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_mqtt_send_publishes_the_test_recording_and_it_is_stored(store: Store,
+                                                                 group: str) -> None:
+    from typer.testing import CliRunner
+
+    from cranetwin.cli import app
+
+    run = Running(store, group)
+    try:
+        res = CliRunner().invoke(app, ["mqtt-send", "--machine", "crane-2", "--broker",
+                                       f"mqtt://{HOST}:{PORT}", "--group", group,
+                                       "--duration", "3", "--block-s", "0.5", "--fast",
+                                       "--aliases"])
+        assert res.exit_code == 0, res.output
+        sent = json.loads(res.output.strip().splitlines()[-1])
+        assert (sent["event"], sent["blocks"], sent["samples"]) == ("sent", 6, 300)
+        wait_for(lambda: run.counters()["stored_samples"] == 300, what="the recording stored")
+        got = store.read_samples("crane-2", 0.0, 4e9)
+        assert got.values.shape == (300, len(LAYOUT.names)) and got.period_ns == 10_000_000
+        assert run.counters()["dropped"] == {}
+    finally:
+        run.close()
