@@ -5,6 +5,7 @@ answers or the ``mqtt`` extra is missing."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import select
@@ -433,6 +434,90 @@ def test_through_nats_mqtt_listener_round_trip_and_republished_blocks_stored_onc
     finally:
         pub.close()
         run.close()
+
+
+class CuttableProxy:
+    """A TCP proxy to the broker whose connections the test can cut (a network fault)."""
+
+    def __init__(self, port: int = PORT) -> None:
+        self.target = port
+        self.server = socket.create_server((HOST, 0))
+        self.port = int(self.server.getsockname()[1])
+        self.socks: list[socket.socket] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                a, _ = self.server.accept()
+            except OSError:
+                return
+            b = socket.create_connection((HOST, self.target))
+            self.socks += [a, b]
+            for x, y in ((a, b), (b, a)):
+                threading.Thread(target=self._pipe, args=(x, y), daemon=True).start()
+
+    @staticmethod
+    def _pipe(x: socket.socket, y: socket.socket) -> None:
+        try:
+            while data := x.recv(65536):
+                y.sendall(data)
+        except OSError:
+            pass
+        for z in (x, y):
+            with contextlib.suppress(OSError):
+                z.shutdown(socket.SHUT_RDWR)
+
+    def cut(self) -> None:
+        for sk in self.socks:
+            with contextlib.suppress(OSError):
+                sk.shutdown(socket.SHUT_RDWR)
+        self.socks = []
+
+    def close(self) -> None:
+        self.server.close()
+        self.cut()
+
+
+def test_connection_cut_while_blocks_are_uncommitted_they_are_stored_once_acked_once(
+        group: str, tmp_path: Path) -> None:
+    """The connection drops while the adapter holds blocks it cannot commit yet: it reconnects
+    (same session), stores them once the database is back, does not ack them on the new
+    connection (their packet ids belonged to the old one) and acks the broker's redelivery."""
+    db = tmp_path / "cut.db"
+    st_ = Store.open(f"sqlite:///{db}", busy_timeout_s=0.2)
+    st_.add_machine("crane-1", 701, SECRET)
+    proxy = CuttableProxy()
+    run = Running(st_, group, port=proxy.port)
+    pub = publisher(group)
+    try:
+        sent = [grid_block("crane-1", s) for s in range(30)]
+        pub.publish_all(sent[:10])
+        wait_for(lambda: run.counters()["stored_blocks"] == 10, what="the first blocks")
+        lock = sqlite3.connect(db, timeout=30)
+        lock.execute("BEGIN EXCLUSIVE")
+        try:
+            pub.publish_all(sent[10:20])
+            wait_for(lambda: run.counters()["write_errors"] > 0, what="blocks in hand")
+            conn = run.adapter._conn
+            proxy.cut()
+            wait_for(lambda: run.adapter._conn > conn, what="the reconnect")
+        finally:
+            lock.rollback()
+            lock.close()
+        pub.publish_all(sent[20:])
+        wait_for(lambda: run.counters()["stored_blocks"] == 30, what="every block stored")
+        wait_for(lambda: run.counters()["duplicates"] >= 1, what="the redelivery written")
+        c = run.counters()
+        assert c["dropped"].get("ack_after_reconnect", 0) >= 1
+        assert set(c["dropped"]) <= {"ack_after_reconnect", "redelivered_in_hand"}
+        np.testing.assert_array_equal(stored_values(st_, "crane-1"),
+                                      np.concatenate([b.values for b in sent]))
+    finally:
+        pub.close()
+        run.close()
+        proxy.close()
+        st_.close()
 
 
 # --- kill -9 of the adapter process --------------------------------------------------------------
