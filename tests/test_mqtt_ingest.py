@@ -262,6 +262,45 @@ def test_a_message_sent_again_while_in_hand_is_taken_once_and_acked_once(
         assert s.stats().blocks == 1
 
 
+@pytest.mark.timeout(30)
+def test_one_batch_of_mixed_messages_stores_the_good_and_refuses_each_bad_one(
+        tmp_path: Path) -> None:
+    """The values of a batch are put on the grid and checked in one pass per layout: a bad
+    block among good ones is refused alone, whatever makes it bad."""
+    from types import SimpleNamespace
+
+    from cranetwin.ingest.mqtt import Msg
+
+    with Store.open(f"sqlite:///{tmp_path / 'x.db'}") as s:
+        s.add_machine("crane-1", 701, SECRET)
+        s.add_machine("crane-2", 702, SECRET)
+        ad = MqttIngest(s, MqttConfig())
+        acks: list[int] = []
+        ad._client = SimpleNamespace(ack=lambda mid, qos: acks.append(mid))
+        ad._conn = 1
+        good = [grid_block("crane-1", i) for i in range(3)] + [grid_block("crane-2", 0, 37)]
+        inf, wild = grid_block("crane-1", 10), grid_block("crane-2", 10)
+        v = inf.values.copy()
+        v[5, 2] = np.inf
+        inf = SampleBlock("crane-1", 10, inf.t0_ns, inf.period_ns, inf.channels,
+                          inf.resolution, v, epoch=7)
+        v = wild.values.copy()
+        v[7, 1] = -1e12
+        wild = SampleBlock("crane-2", 10, wild.t0_ns, wild.period_ns, wild.channels,
+                           wild.resolution, v, epoch=7)
+        order = [good[0], inf, good[1], wild, good[2], good[3]]
+        msgs = [Msg(f"spBv1.0/g/DDATA/e/{b.machine_id}", spb.encode_ddata(b, 0, 0), i + 1, 1,
+                    1) for i, b in enumerate(order)]
+        ad._handle(msgs)
+        c = ad.snapshot()
+        assert (c["stored_blocks"], c["dropped"]) == (4, {"out_of_range": 2})
+        assert sorted(acks) == [1, 2, 3, 4, 5, 6]
+        for m in ("crane-1", "crane-2"):
+            np.testing.assert_array_equal(
+                stored_values(s, m), np.concatenate([b.values for b in good
+                                                     if b.machine_id == m]))
+
+
 # --- the adapter against Mosquitto ---------------------------------------------------------------
 @pytest.fixture
 def group() -> str:

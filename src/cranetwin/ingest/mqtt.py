@@ -1,23 +1,17 @@
 """The MQTT ingest adapter: Sparkplug B ``DDATA`` from a broker into storage, acked after commit.
 
-``cranetwin mqtt-ingest`` runs one :class:`MqttIngest` (docs/INGEST.md, "MQTT / Sparkplug B")::
+``cranetwin mqtt-ingest`` runs one :class:`MqttIngest` (docs/INGEST.md, "MQTT / Sparkplug B"):
+the paho network thread queues each delivered message; the adapter thread takes batches,
+learns metric aliases from ``DBIRTH``, decodes and checks each ``DDATA`` against the machine
+description (:mod:`~cranetwin.ingest.sparkplug`; an unknown alias is held unacked and a rebirth
+asked for), writes the blocks with :class:`~cranetwin.ingest.writer.StorageWriter`
+(``Store.write_batch``, idempotent on (machine, epoch, seq), retried while the database is
+unavailable) and only after the commit sends the PUBACK of every message of the batch.
 
-    broker ─► paho network thread: on_message ─► queue (topic, payload, mid, connection)
-       adapter thread, batches of ≤ batch_max messages / batch_wait_s:
-          DBIRTH → metric aliases of (edge node, device)
-          DDATA  → decode (sparkplug) → machine description checks (Limits) → block
-                   unknown alias → held unacked, a rebirth asked of the edge node
-          StorageWriter.write_blocks → Store.write_batch (one transaction, idempotent on
-                   (machine, epoch, seq); retried while the database is unavailable)
-          after the commit: PUBACK of every message of the batch (stored, duplicate,
-                   refused) — never before
-
-The subscription is QoS 1 in a persistent session (MQTT 5, ``clean_start`` false, a session
-expiry), with manual acknowledgement: the broker keeps every message not yet acked and sends
-it again after a reconnect, so a crash of the adapter before a commit means redelivery, and
-storage's idempotence turns a redelivery into a ``duplicate``. An ack is only sent on the
-connection that delivered the message (packet ids of a former connection may name other
-messages by now); what was in hand when the connection dropped is delivered again.
+The subscription is QoS 1 in a persistent session with manual acks: the broker keeps what is
+not acked and sends it again after a reconnect, so a crash before a commit means redelivery,
+which storage turns into a ``duplicate``. An ack only goes over the connection that delivered
+the message (packet ids of a former connection may name other messages by now).
 """
 
 from __future__ import annotations
@@ -34,11 +28,14 @@ from cranetwin.errors import MissingExtraError, StorageUnavailableError
 from cranetwin.ingest.config import DaemonConfig, layout_of
 from cranetwin.ingest.metrics import Metrics
 from cranetwin.ingest.sparkplug import (
+    DData,
     SparkplugError,
     Topic,
     birth_aliases,
-    decode_ddata,
-    limits_problem,
+    encode_rebirth,
+    limits_problems,
+    on_grid,
+    parse_ddata,
     parse_topic,
     pb,
 )
@@ -49,7 +46,6 @@ from cranetwin.storage import Store
 from cranetwin.storage.live import LiveBus
 
 log = logging.getLogger(__name__)
-BOOLEAN = 11  # Sparkplug B DataType Boolean
 
 
 def paho() -> Any:
@@ -212,8 +208,8 @@ class MqttIngest:
         return layout
 
     # -- one batch ------------------------------------------------------------------------------
-    def _decode(self, msg: Msg, topic: Topic) -> SampleBlock:
-        """The block of a DDATA message, validated as the UDP daemon validates a datagram.
+    def _parse(self, msg: Msg, topic: Topic) -> tuple[DData, Layout]:
+        """The identity and values of a DDATA message and its machine's layout.
 
         Raises:
             SparkplugError: refused (or ``unknown_alias``: to be held).
@@ -224,38 +220,22 @@ class MqttIngest:
             raise SparkplugError("bad_model", f"machine {topic.device!r}: {exc}") from exc
         if layout is None:
             raise SparkplugError("unknown_machine", f"no machine {topic.device!r} registered")
-        block, _ = decode_ddata(msg.payload, topic.device, layout,
-                                self._aliases.get((topic.edge_node, topic.device)))
-        problem = limits_problem(block, layout, self.config.limits, time.time_ns())
-        if problem is not None:
-            raise problem
-        return block
+        return parse_ddata(msg.payload, topic.device, layout,
+                           self._aliases.get((topic.edge_node, topic.device))), layout
 
-    def _hold(self, msg: Msg, topic: Topic) -> bool:
-        """Keep ``msg`` unacked until its device's DBIRTH arrives; ask the edge node for one.
-        False when too many are held already (then it is refused)."""
-        if sum(len(v) for v in self._held.values()) >= self.config.receive_maximum // 2:
-            return False
-        self._held.setdefault((topic.edge_node, topic.device), []).append(msg)
-        now = time.monotonic()
-        if now - self._rebirth_asked.get(topic.edge_node, -1e9) >= self.config.rebirth_interval_s:
-            self._rebirth_asked[topic.edge_node] = now
-            p = pb().Payload()
-            p.timestamp = time.time_ns() // 1_000_000
-            m = p.metrics.add()
-            m.name, m.datatype, m.boolean_value = "Node Control/Rebirth", BOOLEAN, True
-            self._client.publish(str(Topic(topic.group, "NCMD", topic.edge_node)),
-                                 p.SerializeToString(), qos=0)
-            log.info("asked edge node %s for a rebirth (unknown metric alias)", topic.edge_node)
-        return True
+    def _refuse(self, msg: Msg, exc: SparkplugError) -> None:
+        self.metrics.drop(exc.reason)
+        self._log_once(f"refused:{exc.reason}", exc, "message on %s refused (%s): %s",
+                       msg.topic, exc.reason, exc)
 
-    def _handle(self, msgs: list[Msg]) -> None:
-        """Decode, write and ack one batch (acks only after the commit)."""
+    def _blocks(self, msgs: list[Msg]) -> tuple[list[tuple[Msg, SampleBlock]], list[Msg]]:
+        """The valid blocks of a batch with their messages, and the messages to ack whatever
+        the write does (DBIRTHs, refused). Births and parsing first, in arrival order; then
+        the values of each layout's blocks are put on the grid and checked in one pass."""
         m = self.metrics
         todo: deque[Msg] = deque(msgs)
-        blocks: list[SampleBlock] = []
-        block_msgs: list[Msg] = []
-        done: list[Msg] = []  # acked after the commit whatever becomes of their blocks
+        parsed: dict[Layout, list[tuple[Msg, DData]]] = {}
+        done: list[Msg] = []
         while todo:
             msg = todo.popleft()
             m.add("received")
@@ -268,19 +248,55 @@ class MqttIngest:
                     todo.extend(self._held.pop(key, []))
                     done.append(msg)
                     continue
-                blocks.append(self._decode(msg, topic))
-                block_msgs.append(msg)
-                m.add("accepted")
+                d, layout = self._parse(msg, topic)
+                parsed.setdefault(layout, []).append((msg, d))
             except SparkplugError as exc:
                 if exc.reason == "unknown_alias" and self._hold(msg, topic):
                     continue
-                m.drop(exc.reason)
-                self._log_once(f"refused:{exc.reason}", exc, "message on %s refused (%s): %s",
-                               msg.topic, exc.reason, exc)
+                self._refuse(msg, exc)
                 done.append(msg)
+        good: list[tuple[Msg, SampleBlock]] = []
+        now = time.time_ns()
+        for layout, items in parsed.items():
+            gridded: list[tuple[Msg, SampleBlock]] = []
+            for (msg, _), b in zip(items, on_grid([d for _, d in items], layout), strict=True):
+                if isinstance(b, SparkplugError):
+                    self._refuse(msg, b)
+                    done.append(msg)
+                else:
+                    gridded.append((msg, b))
+            problems = limits_problems([b for _, b in gridded], layout, self.config.limits, now)
+            for (msg, b), problem in zip(gridded, problems, strict=True):
+                if problem is None:
+                    good.append((msg, b))
+                    m.add("accepted")
+                else:
+                    self._refuse(msg, problem)
+                    done.append(msg)
+        return good, done
+
+    def _hold(self, msg: Msg, topic: Topic) -> bool:
+        """Keep ``msg`` unacked until its device's DBIRTH arrives; ask the edge node for one.
+        False when too many are held already (then it is refused)."""
+        if sum(len(v) for v in self._held.values()) >= self.config.receive_maximum // 2:
+            return False
+        self._held.setdefault((topic.edge_node, topic.device), []).append(msg)
+        now = time.monotonic()
+        if now - self._rebirth_asked.get(topic.edge_node, -1e9) >= self.config.rebirth_interval_s:
+            self._rebirth_asked[topic.edge_node] = now
+            self._client.publish(str(Topic(topic.group, "NCMD", topic.edge_node)),
+                                 encode_rebirth(time.time_ns() // 1_000_000), qos=0)
+            log.info("asked edge node %s for a rebirth (unknown metric alias)", topic.edge_node)
+        return True
+
+    def _handle(self, msgs: list[Msg]) -> None:
+        """Decode, write and ack one batch (acks only after the commit)."""
+        m = self.metrics
+        good, done = self._blocks(msgs)
+        blocks = [b for _, b in good]
         outcomes = self._db.write_blocks(blocks)  # raises Abandoned: nothing acked
         new: list[SampleBlock] = []
-        for b, msg, (kind, reason) in zip(blocks, block_msgs, outcomes, strict=True):
+        for (msg, b), (kind, reason) in zip(good, outcomes, strict=True):
             if kind == "stored":
                 new.append(b)
             elif kind == "duplicate":

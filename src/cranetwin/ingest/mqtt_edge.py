@@ -20,6 +20,7 @@ from typing import Any
 from cranetwin.ingest.mqtt import paho
 from cranetwin.ingest.sparkplug import (
     BLOCK_METRICS,
+    REBIRTH,
     UINT64,
     Topic,
     aliases_for,
@@ -97,7 +98,7 @@ class EdgePublisher:
             p.ParseFromString(msg.payload)
         except Exception:
             return
-        if any(m.name == "Node Control/Rebirth" and m.boolean_value for m in p.metrics):
+        if any(m.name == REBIRTH and m.boolean_value for m in p.metrics):
             self.rebirths += 1
             self.births()
 

@@ -47,7 +47,8 @@ from cranetwin.samples import SampleBlock
 NAMESPACE = "spBv1.0"
 EPOCH, SEQ, T0, PERIOD = "block/epoch", "block/seq", "block/t0_ns", "block/period_ns"
 BLOCK_METRICS = (EPOCH, SEQ, T0, PERIOD)
-UINT64, DOUBLE_ARRAY = 8, 31
+REBIRTH = "Node Control/Rebirth"
+UINT64, BOOLEAN, DOUBLE_ARRAY = 8, 11, 31
 """Sparkplug B ``DataType`` codes (Tahu ``sparkplug_b.proto``)."""
 MAX_SAMPLES = 100_000
 """Most samples one DDATA may carry (storage's block limit is 6 h; this bounds memory)."""
@@ -156,6 +157,15 @@ def encode_birth(layout: Layout, spb_seq: int, timestamp_ms: int,
     return bytes(p.SerializeToString())
 
 
+def encode_rebirth(timestamp_ms: int) -> bytes:
+    """The NCMD payload asking an edge node to publish its births again."""
+    p = pb().Payload()
+    p.timestamp = timestamp_ms
+    m = p.metrics.add()
+    m.name, m.datatype, m.boolean_value = REBIRTH, BOOLEAN, True
+    return bytes(p.SerializeToString())
+
+
 def _parse(payload: bytes) -> Any:
     try:
         p = pb().Payload()
@@ -177,9 +187,27 @@ def birth_aliases(payload: bytes) -> dict[int, str]:
             if m.name and m.HasField("alias")}
 
 
-def decode_ddata(payload: bytes, machine_id: str, layout: Layout,
-                 aliases: Mapping[int, str] | None = None) -> tuple[SampleBlock, int]:
-    """The block of a DDATA payload and its Sparkplug seq, quantised to ``layout``.
+@dataclass(frozen=True)
+class DData:
+    """One DDATA as sent: the block's identity and its values, not yet on the sensor grid.
+
+    Attributes:
+        values: Shape (n, len(layout.channels)) [channel units], NaN = missing.
+        spb_seq: The Sparkplug sequence number of the message (0‥255).
+    """
+
+    machine_id: str
+    epoch: int
+    seq: int
+    t0_ns: int
+    period_ns: int
+    values: npt.NDArray[np.float64]
+    spb_seq: int
+
+
+def parse_ddata(payload: bytes, machine_id: str, layout: Layout,
+                aliases: Mapping[int, str] | None = None) -> DData:
+    """The identity and values of a DDATA payload, in ``layout``'s column order.
 
     Args:
         payload: The message body.
@@ -215,18 +243,52 @@ def decode_ddata(payload: bytes, machine_id: str, layout: Layout,
     if unknown:
         raise SparkplugError("bad_payload", f"channels {unknown} are not in the machine "
                              f"description of {machine_id!r}")
-    values = _columns(cols, layout, machine_id)
+    return DData(machine_id, ids[EPOCH], ids[SEQ], ids[T0], ids[PERIOD],
+                 _columns(cols, layout, machine_id), int(p.seq))
+
+
+def on_grid(items: Sequence[DData], layout: Layout) -> list[SampleBlock | SparkplugError]:
+    """The blocks of ``items`` (all of ``layout``), quantised to the channel resolutions
+    (k = round(v / resolution); :func:`cranetwin.codec.quantise`) in one pass over all of
+    them; an item whose values cannot be quantised (infinite, beyond 2**53 steps) gives an
+    ``out_of_range`` error in its place."""
+    if not items:
+        return []
+    res = layout.resolutions
     try:
-        k, mask = codec.quantise(values, layout.resolutions)
+        k, mask = codec.quantise(np.concatenate([d.values for d in items]), res)
     except codec.QuantiseError as exc:
-        raise SparkplugError("out_of_range", f"DDATA of {machine_id!r}: {exc}") from exc
-    block = SampleBlock(machine_id, ids[SEQ], ids[T0], ids[PERIOD], layout.names,
-                        layout.resolutions, codec.dequantise(k, mask, layout.resolutions),
-                        epoch=ids[EPOCH], steps=k)
-    return block, int(p.seq)
+        if len(items) > 1:
+            return [r for d in items for r in on_grid([d], layout)]
+        return [SparkplugError("out_of_range", f"DDATA of {items[0].machine_id!r}: {exc}")]
+    values = codec.dequantise(k, mask if mask.any() else None, res)
+    out: list[SampleBlock | SparkplugError] = []
+    a = 0
+    for d in items:
+        b = a + d.values.shape[0]
+        out.append(SampleBlock(d.machine_id, d.seq, d.t0_ns, d.period_ns, layout.names, res,
+                               values[a:b], epoch=d.epoch, steps=k[a:b]))
+        a = b
+    return out
 
 
-def _columns(cols: Mapping[str, bytes | None], layout: Layout, machine_id: str) -> Any:
+def decode_ddata(payload: bytes, machine_id: str, layout: Layout,
+                 aliases: Mapping[int, str] | None = None) -> tuple[SampleBlock, int]:
+    """The block of a DDATA payload (:func:`parse_ddata`, :func:`on_grid`) and its Sparkplug seq.
+
+    Raises:
+        SparkplugError: as :func:`parse_ddata`, or ``out_of_range`` (values that cannot be
+            quantised).
+    """
+    d = parse_ddata(payload, machine_id, layout, aliases)
+    block = on_grid([d], layout)[0]
+    if isinstance(block, SparkplugError):
+        raise block
+    return block, d.spb_seq
+
+
+def _columns(cols: Mapping[str, bytes | None], layout: Layout,
+             machine_id: str) -> npt.NDArray[np.float64]:
     lengths = {len(b) for b in cols.values() if b is not None}
     if len(lengths) != 1 or 0 in lengths or next(iter(lengths)) % 8:
         raise SparkplugError("bad_payload", f"DDATA of {machine_id!r}: channel arrays must be "
@@ -235,16 +297,21 @@ def _columns(cols: Mapping[str, bytes | None], layout: Layout, machine_id: str) 
     n = next(iter(lengths)) // 8
     if n > MAX_SAMPLES:
         raise SparkplugError("bad_payload", f"{n} samples in one DDATA; at most {MAX_SAMPLES}")
-    out = np.full((n, len(layout.channels)), np.nan)
-    for j, ch in enumerate(layout.channels):
+    raws: list[bytes] = []
+    for ch in layout.channels:
         raw = cols.get(ch.name)
         if raw is None:
             if not ch.optional:
                 raise SparkplugError("bad_payload", f"DDATA of {machine_id!r} lacks channel "
                                      f"{ch.name!r}")
-            continue
-        out[:, j] = np.frombuffer(raw, dtype="<f8")
-    return out
+            raw = _nan_bytes(n)
+        raws.append(raw)
+    return np.frombuffer(b"".join(raws), dtype="<f8").reshape(len(raws), n).T.astype(np.float64)
+
+
+@functools.lru_cache(maxsize=64)
+def _nan_bytes(n: int) -> bytes:
+    return np.full(n, np.nan, dtype="<f8").tobytes()
 
 
 @functools.lru_cache(maxsize=256)
@@ -259,27 +326,46 @@ def _bounds(layout: Layout, margin: float) -> tuple[npt.NDArray[np.float64],
 
 def limits_problem(block: SampleBlock, layout: Layout, limits: Limits,
                    now_ns: int) -> SparkplugError | None:
-    """Why ``block`` is refused at the edge, or None: the checks the UDP receiver applies
-    (:class:`~cranetwin.protocol.Limits`: times within ``[now − max_past, now + max_future]``,
-    every value within its channel's ``[min, max]`` plus ``range_margin`` of the span) and the
-    identity ranges (epoch 1 ‥ 2**63 − 1, seq < 2**63, period ≥ 1 ns)."""
-    if not (1 <= block.epoch <= INT63 and 0 <= block.seq <= INT63 and block.period_ns >= 1
-            and 0 <= block.t0_ns <= INT63):
-        return SparkplugError("bad_payload", f"epoch {block.epoch}, seq {block.seq}, period "
-                              f"{block.period_ns} ns or t0 {block.t0_ns} ns out of range")
-    lo_t = now_ns - int(limits.max_past_s * 1e9)
-    hi_t = now_ns + int(limits.max_future_s * 1e9)
-    if block.t0_ns < max(lo_t, 0) or block.t_end_ns > hi_t:
-        return SparkplugError("bad_time", f"times {block.t0_ns}…{block.t_end_ns} ns outside "
-                              f"[now − {limits.max_past_s:g} s, now + {limits.max_future_s:g} s]")
+    """Why ``block`` is refused at the edge, or None (:func:`limits_problems` of one)."""
+    return limits_problems([block], layout, limits, now_ns)[0]
+
+
+def limits_problems(blocks: Sequence[SampleBlock], layout: Layout, limits: Limits,
+                    now_ns: int) -> list[SparkplugError | None]:
+    """Per block of ``layout``, why it is refused at the edge, or None: the checks the UDP
+    receiver applies (:class:`~cranetwin.protocol.Limits`: times within ``[now − max_past,
+    now + max_future]``, every value within its channel's ``[min, max]`` plus
+    ``range_margin`` of the span) and the identity ranges (epoch 1 ‥ 2**63 − 1,
+    seq < 2**63, period ≥ 1 ns). The values of all blocks are checked in one pass."""
+    if not blocks:
+        return []
     lo, hi = _bounds(layout, limits.range_margin)
-    with np.errstate(invalid="ignore"):
-        bad = (block.values < lo) | (block.values > hi)
-    if bad.any():
-        ch = layout.channels[int(np.flatnonzero(bad.any(axis=0))[0])]
-        return SparkplugError("out_of_range", f"channel {ch.name!r}: value outside "
-                              f"[{ch.min:g}, {ch.max:g}] + {limits.range_margin:.0%} margin")
-    return None
+    v = np.concatenate([b.values for b in blocks])
+    bad_rows = ((v < lo) | (v > hi)).any(axis=1)
+    starts = np.cumsum([0] + [b.n for b in blocks[:-1]])
+    bad_blocks = np.logical_or.reduceat(bad_rows, starts)
+    lo_t = max(now_ns - int(limits.max_past_s * 1e9), 0)
+    hi_t = now_ns + int(limits.max_future_s * 1e9)
+    out: list[SparkplugError | None] = []
+    for b, bad in zip(blocks, bad_blocks, strict=True):
+        if not (1 <= b.epoch <= INT63 and 0 <= b.seq <= INT63 and b.period_ns >= 1
+                and 0 <= b.t0_ns <= INT63):
+            out.append(SparkplugError("bad_payload", f"epoch {b.epoch}, seq {b.seq}, period "
+                                      f"{b.period_ns} ns or t0 {b.t0_ns} ns out of range"))
+        elif b.t0_ns < lo_t or b.t_end_ns > hi_t:
+            out.append(SparkplugError(
+                "bad_time", f"times {b.t0_ns}…{b.t_end_ns} ns outside [now − "
+                f"{limits.max_past_s:g} s, now + {limits.max_future_s:g} s]"))
+        elif bad:
+            with np.errstate(invalid="ignore"):
+                cols = ((b.values < lo) | (b.values > hi)).any(axis=0)
+            ch = layout.channels[int(np.flatnonzero(cols)[0])]
+            out.append(SparkplugError(
+                "out_of_range", f"channel {ch.name!r}: value outside [{ch.min:g}, {ch.max:g}] "
+                f"+ {limits.range_margin:.0%} margin"))
+        else:
+            out.append(None)
+    return out
 
 
 def aliases_for(names: Sequence[str]) -> dict[str, int]:
