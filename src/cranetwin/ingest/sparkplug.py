@@ -3,8 +3,8 @@
 A machine publishes one block per ``DDATA`` message on ``spBv1.0/<group>/DDATA/<edge
 node>/<machine id>``. Its Sparkplug B payload (the Eclipse Tahu protobuf) carries:
 
-* ``payload.seq``: the Sparkplug sequence number (0‥255, per edge node); kept for gap
-  detection only, it is not the block's identity;
+* ``payload.seq``: the Sparkplug sequence number (0‥255, per edge node); decoded, but not
+  the block's identity (nothing checks its gaps: identity and order are ``block/seq``'s);
 * ``payload.timestamp``: when the message was built [ms since the Unix epoch];
 * four ``UInt64`` metrics naming the block as the UDP path does: ``block/epoch`` (the sender's
   epoch, 1 ‥ 2**63 − 1), ``block/seq`` (the block's sequence number in that epoch),
