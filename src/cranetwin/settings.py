@@ -66,6 +66,28 @@ class Settings(BaseSettings):
     store_writer_metrics_bind: str = Field(
         "0", description="HOST:PORT of `cranetwin store-writer`'s Prometheus /metrics (HTTP); "
                          "0 = not served")
+    # -- MQTT ingest adapter (``cranetwin mqtt-ingest``; docs/INGEST.md) ------------------------
+    mqtt_broker_url: str | None = Field(
+        None, description="MQTT broker of `cranetwin mqtt-ingest`: mqtt://[user@]host:port or "
+                          "mqtts://… (Mosquitto, or NATS's MQTT listener); no password in it")
+    mqtt_group: str = Field("cranetwin", min_length=1,
+                            description="Sparkplug B group id whose DDATA is stored")
+    mqtt_client_id: str = Field(
+        "cranetwin-mqtt-ingest", min_length=1,
+        description="MQTT client id of the adapter: names its persistent session (one adapter "
+                    "per id)")
+    mqtt_username: str | None = Field(None, description="MQTT user name (else from the URL)")
+    mqtt_password: str = Field(
+        "", repr=False, description="MQTT password (environment only; never logged)")
+    mqtt_protocol: Literal["5", "3.1.1"] = Field(
+        "5", description="MQTT version of the adapter: 5 (session expiry, Receive Maximum) or "
+                         "3.1.1 (NATS's MQTT listener speaks 3.1.1 only)")
+    mqtt_session_expiry_s: int = Field(
+        7 * 86400, ge=0, description="how long the broker keeps the adapter's session and its "
+                                     "unacknowledged messages while the adapter is away [s]")
+    mqtt_receive_maximum: int = Field(
+        1000, ge=1, le=65535, description="unacknowledged messages the broker may send the "
+                                          "adapter at once (MQTT 5 Receive Maximum)")
     ingest_bind: str = Field("127.0.0.1:5005", description="UDP HOST:PORT of `cranetwin ingest`")
     ingest_metrics_bind: str = Field(
         "127.0.0.1:9105", description="HOST:PORT of the ingest daemon's Prometheus /metrics "
