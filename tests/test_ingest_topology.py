@@ -18,16 +18,17 @@ import sys
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 from sqlalchemy import text
 
+from conftest import SECRET, _pg_conninfo, pg_unreachable_reason
 from cranetwin.bench.chaos import TcpProxy
 from cranetwin.bench.ingest_daemon import DaemonProcess, start_daemon
 from cranetwin.storage import Store
 from cranetwin.testing.netns import HOSTS, VIP, Topology, unavailable_reason
-from conftest import SECRET, _pg_conninfo, pg_unreachable_reason
 from test_ingest_reliability import registered
 
 PORT = 9000
@@ -103,9 +104,17 @@ def test_two_hosts_behind_a_udp_balancer_lose_move_and_double_nothing(
     daemons: dict[str, DaemonProcess] = {}
     fleet: subprocess.Popen[bytes] | None = None
     try:
-        for h, ip in HOSTS.items():
-            daemons[h] = start_daemon(url, PORT, tmp_path, host=ip,
+        with ThreadPoolExecutor(2) as pool:  # both start at once (each imports for seconds)
+            started = {h: pool.submit(start_daemon, url, PORT, tmp_path, host=ip,
                                       prefix=topology.prefix(f"host{h}"))
+                       for h, ip in HOSTS.items()}
+            failed = []
+            for h, job in started.items():
+                try:
+                    daemons[h] = job.result()
+                except RuntimeError as exc:  # kill the other one below, then report
+                    failed.append(f"host{h}: {exc}")
+        assert not failed, failed
         topology.short_udp_timeouts(1)
         args = {"secret": SECRET.decode(), "wire_ids": WIRE_IDS, "vip": VIP, "port": PORT,
                 "journal": str(tmp_path / "journals"), "speed": 4.0, "duration_s": 60.0}
