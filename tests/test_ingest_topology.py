@@ -104,9 +104,9 @@ def test_two_hosts_behind_a_udp_balancer_lose_move_and_double_nothing(
     daemons: dict[str, DaemonProcess] = {}
     fleet: subprocess.Popen[bytes] | None = None
     try:
-        with ThreadPoolExecutor(2) as pool:  # both start at once (each imports for seconds)
+        with ThreadPoolExecutor(2) as pool:  # both at once: each imports for 5-60 s under load
             started = {h: pool.submit(start_daemon, url, PORT, tmp_path, host=ip,
-                                      prefix=topology.prefix(f"host{h}"))
+                                      prefix=topology.prefix(f"host{h}"), ready_timeout_s=90)
                        for h, ip in HOSTS.items()}
             failed = []
             for h, job in started.items():

@@ -99,10 +99,11 @@ class DaemonProcess:
 
 
 def start_daemon(db_url: str, port: int, workdir: Path, *extra: str, host: str = "127.0.0.1",
-                 prefix: Sequence[str] = ()) -> DaemonProcess:
+                 prefix: Sequence[str] = (), ready_timeout_s: float = 60.0) -> DaemonProcess:
     """``cranetwin ingest`` in a subprocess on ``host``:``port``, its Prometheus endpoint on a
-    free port; returns once its ``ready`` line says it is listening (≤ 60 s). ``prefix`` is put
-    before the command (e.g. ``ip netns exec NAME``: the daemon in a network namespace).
+    free port; returns once its ``ready`` line says it is listening (≤ ``ready_timeout_s``).
+    ``prefix`` is put before the command (e.g. ``ip netns exec NAME``: the daemon in a network
+    namespace).
 
     Its log goes to a file in ``workdir``, never to a pipe nobody reads; stdout (two lines: ready,
     stopped) is read with a deadline, so a daemon that hangs at start cannot hang the caller.
@@ -118,7 +119,7 @@ def start_daemon(db_url: str, port: int, workdir: Path, *extra: str, host: str =
     with open(log, "ab") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err)
     assert proc.stdout is not None
-    end = time.monotonic() + 60
+    end = time.monotonic() + ready_timeout_s
     buf = b""
     while b"\n" not in buf:
         left = end - time.monotonic()
