@@ -152,13 +152,14 @@ class UdpProxy:
 
 class TcpProxy:
     """A TCP relay to the database server that can be cut: :meth:`cut` closes every connection
-    and refuses new ones (accepts and closes them at once) until :meth:`restore`."""
+    and refuses new ones (accepts and closes them at once) until :meth:`restore`. It listens
+    on ``bind`` (an address of this host), on a free port."""
 
-    def __init__(self, target: tuple[str, int]) -> None:
+    def __init__(self, target: tuple[str, int], bind: str = "127.0.0.1") -> None:
         self.target = target
         self.srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self.srv.bind(("127.0.0.1", 0))
+        self.srv.bind((bind, 0))
         self.srv.listen(64)
         self.port: int = self.srv.getsockname()[1]
         self._pairs: list[tuple[socket.socket, socket.socket]] = []

@@ -13,6 +13,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -97,9 +98,12 @@ class DaemonProcess:
         return {}
 
 
-def start_daemon(db_url: str, port: int, workdir: Path, *extra: str) -> DaemonProcess:
-    """``cranetwin ingest`` in a subprocess on 127.0.0.1:``port``, its Prometheus endpoint on a
-    free port; returns once its ``ready`` line says it is listening (≤ 60 s).
+def start_daemon(db_url: str, port: int, workdir: Path, *extra: str, host: str = "127.0.0.1",
+                 prefix: Sequence[str] = (), ready_timeout_s: float = 60.0) -> DaemonProcess:
+    """``cranetwin ingest`` in a subprocess on ``host``:``port``, its Prometheus endpoint on a
+    free port; returns once its ``ready`` line says it is listening (≤ ``ready_timeout_s``).
+    ``prefix`` is put before the command (e.g. ``ip netns exec NAME``: the daemon in a network
+    namespace).
 
     Its log goes to a file in ``workdir``, never to a pipe nobody reads; stdout (two lines: ready,
     stopped) is read with a deadline, so a daemon that hangs at start cannot hang the caller.
@@ -108,14 +112,14 @@ def start_daemon(db_url: str, port: int, workdir: Path, *extra: str) -> DaemonPr
         RuntimeError: it exited or did not get ready in time (its log attached).
     """
     workdir.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-c", "from cranetwin.cli import main; main()", "ingest",
-           "--bind", f"127.0.0.1:{port}", "--db", db_url, "--metrics-bind", "127.0.0.1:0",
+    cmd = [*prefix, sys.executable, "-c", "from cranetwin.cli import main; main()", "ingest",
+           "--bind", f"{host}:{port}", "--db", db_url, "--metrics-bind", "127.0.0.1:0",
            "--log-level", "WARNING", *extra]
-    log = workdir / f"ingest-{port}.stderr"
+    log = workdir / f"ingest-{host}-{port}.stderr"
     with open(log, "ab") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err)
     assert proc.stdout is not None
-    end = time.monotonic() + 60
+    end = time.monotonic() + ready_timeout_s
     buf = b""
     while b"\n" not in buf:
         left = end - time.monotonic()
