@@ -94,7 +94,7 @@ def _wait(cond: Callable[[], bool], timeout_s: float, what: str) -> None:
 
 @pytest.mark.slow
 @pytest.mark.postgres
-@pytest.mark.timeout(180)
+@pytest.mark.timeout(300)
 def test_two_hosts_behind_a_udp_balancer_lose_move_and_double_nothing(
         topology: Topology, fresh_database: str, tmp_path: Path) -> None:
     pg = _pg_conninfo().rsplit("/", 1)[0].replace("postgresql://", "postgresql+psycopg://", 1)
