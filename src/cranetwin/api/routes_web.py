@@ -25,7 +25,8 @@ from typing import Annotated, Any
 import httpx
 import numpy as np
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi import Path as PathParam
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 
 from cranetwin.errors import CraneTwinError, MissingExtraError
 from cranetwin.model import Machine, load_machine, machine_from_dict
@@ -40,6 +41,9 @@ log = logging.getLogger(__name__)
 router = APIRouter(tags=["web"])
 
 _SCENE_CACHE: dict[str, dict[str, Any]] = {}
+
+WebMachineId = Annotated[str, PathParam(description="machine identifier", examples=["crane-1"],
+                                        min_length=1, max_length=64)]
 
 
 class WebError(CraneTwinError):
@@ -184,11 +188,36 @@ async def require_viewer(request: Request) -> None:
     await require_role("viewer")(request)
 
 
+async def require_viewer_heavy(request: Request) -> None:
+    """:func:`require_viewer`, charged as a heavy request (the export replays)."""
+    if getattr(request.app.state, "services", None) is None:
+        return
+    from cranetwin.api.deps import require_role
+
+    await require_role("viewer", heavy=True)(request)
+
+
 ViewerDep = Depends(require_viewer)
+HeavyViewerDep = Depends(require_viewer_heavy)
+
+_WEB_PROBLEMS = (401, 403, 404, 422, 429, 503)
+"""Problem JSON statuses of the scene and export routes (the API's own, passed through)."""
+
+
+def _problems() -> dict[int | str, dict[str, Any]]:
+    from cranetwin.api.errors import problem_responses
+
+    return problem_responses(*_WEB_PROBLEMS)
 
 
 def _auth_headers(request: Request) -> dict[str, str]:
     headers = {"accept": "application/json"}
+    services = getattr(request.app.state, "services", None)
+    limiter = getattr(services, "limiter", None)
+    if limiter is not None:  # the outer request paid: its in-process calls are not charged
+        from cranetwin.api.limits import INTERNAL_HEADER
+
+        headers[INTERNAL_HEADER] = limiter.internal_token
     for name in ("x-api-key", "authorization", "cookie"):
         if name in request.headers:
             headers[name] = request.headers[name]
@@ -252,8 +281,11 @@ def _envelope_spec(machine: Machine) -> dict[str, Any]:
                           "axis": [float(x) for x in axis / np.linalg.norm(axis)]}}
 
 
-@router.get("/api/v1/machines/{machine_id}/scene", dependencies=[ViewerDep])
-async def machine_scene(machine_id: str, request: Request) -> Response:
+@router.get("/api/v1/machines/{machine_id}/scene", dependencies=[ViewerDep],
+            responses={200: {"description": "the scene commands and spec",
+                             "content": {"application/json": {"schema": {"type": "object"}}}},
+                       **_problems()}, response_class=JSONResponse)
+async def machine_scene(machine_id: WebMachineId, request: Request) -> Response:
     """meshcat ``set_object`` commands for every body, cylinder, the tool and payload, plus the
     spec the browser needs to animate them (node paths, barrel lengths, load point). Role viewer.
     """
@@ -300,9 +332,12 @@ async def _twin_window(request: Request, machine_id: str, t0: float, t1: float,
     return join_twin(parts)
 
 
-@router.get("/api/v1/machines/{machine_id}/export.html", dependencies=[ViewerDep])
+@router.get("/api/v1/machines/{machine_id}/export.html", dependencies=[HeavyViewerDep],
+            responses={200: {"description": "the self-contained HTML file (attachment)",
+                             "content": {"text/html": {"schema": {"type": "string"}}}},
+                       **_problems()}, response_class=HTMLResponse)
 async def machine_export(
-    machine_id: str, request: Request,
+    machine_id: WebMachineId, request: Request,
     from_: Annotated[str, Query(alias="from", description="ISO 8601 or epoch seconds")],
     to: Annotated[str, Query(description="ISO 8601 or epoch seconds")],
 ) -> Response:
@@ -335,13 +370,26 @@ async def machine_export(
             events = []
     except WebError as exc:
         return _problem(exc.status, exc.title, exc.detail)
-    html = render_export(_web_dir(request), {
+    html = await _render(request, {
         "machine": machine, "model": model, "scene": scene, "twin": twin,
         "history": history, "events": events, "from": t0, "to": t1,
     })
     name = f"cranetwin-{machine_id}-{int(t0)}.html"
     return Response(html, media_type="text/html",
                     headers={"Content-Disposition": f'attachment; filename="{name}"'})
+
+
+async def _render(request: Request, data: dict[str, Any]) -> str:
+    """:func:`render_export` off the event loop: on the API's heavy threads (503 when they are
+    full), or a worker thread in an app without the API's services."""
+    import asyncio
+
+    services = getattr(request.app.state, "services", None)
+    if services is None:
+        return await asyncio.to_thread(render_export, _web_dir(request), data)
+    from cranetwin.api.limits import run_heavy
+
+    return await run_heavy(services, None, render_export, _web_dir(request), data)
 
 
 def _history_channels(model: dict[str, Any]) -> list[str]:

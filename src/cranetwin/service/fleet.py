@@ -107,7 +107,8 @@ class FleetService:
         self.settings = settings
         self.backend = backend
         self.metrics = metrics if metrics is not None else Metrics()
-        self.twin_cache: LruCache[bytes] = LruCache(settings.twin_cache_entries)
+        self.twin_cache: LruCache[bytes] = LruCache(settings.twin_cache_entries,
+                                                    settings.twin_cache_bytes)
         self.replayer = Replayer()
         self.worker: TwinWorker | None = None
         self.live_payload: dict[str, LivePayload] = {}
@@ -178,6 +179,9 @@ class FleetService:
         """Copy cache counters into the metrics."""
         self.metrics.twin_cache_hits.set(self.twin_cache.hits)
         self.metrics.twin_cache_misses.set(self.twin_cache.misses)
+        self.metrics.twin_cache_bytes.set(self.twin_cache.nbytes)
+        self.metrics.twin_cache_max_bytes.set(self.settings.twin_cache_bytes)
+        self.metrics.twin_cache_evictions.set(self.twin_cache.evictions)
 
     # -- machines ---------------------------------------------------------------------------------
     def _status(self, last_seen: float | None) -> Status:
