@@ -118,9 +118,18 @@ class Settings(BaseSettings):
     rate_heavy_cost: float = Field(
         10.0, ge=1, description="tokens of a heavy request (twin replay, analytics, report, "
                                 "export, export.html)")
+    rate_limit_delay_s: float = Field(
+        1.0, ge=0, le=60, description="a refused request is answered after min(Retry-After, "
+                                      "this) [s], costing no CPU meanwhile: a client that "
+                                      "ignores Retry-After cannot make the server refuse "
+                                      "hundreds of requests a second")
     heavy_workers: int = Field(
         2, ge=1, le=64, description="threads that run heavy work (replays, reports, exports), "
                                     "apart from the threads serving cheap requests")
+    heavy_processes: int = Field(
+        0, ge=0, le=64, description="worker processes that run the twin replays (their own "
+                                    "interpreters: cheap requests never wait for a replay's "
+                                    "interpreter lock); 0 = replays on the heavy threads")
     heavy_queue: int = Field(
         8, ge=0, le=10_000, description="heavy requests that may wait for a heavy thread; "
                                         "beyond: 503 with Retry-After")

@@ -21,6 +21,7 @@ from cranetwin.api import (
     routes_session,
 )
 from cranetwin.api.errors import install_error_handlers
+from cranetwin.api.limits import RateLimitMiddleware
 from cranetwin.api.metrics import count_request
 from cranetwin.api.services import Services
 from cranetwin.settings import Settings, load_settings
@@ -126,6 +127,9 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
         if services is None:
             return await call_next(request)
         return await count_request(services.metrics, request, call_next)
+
+    # outermost: a request over its key's rate is refused before anything else runs
+    app.add_middleware(RateLimitMiddleware)
 
     for module in (routes_ops, routes_session, routes_machines, routes_data, routes_aemp,
                    routes_alarms, routes_live):

@@ -47,10 +47,10 @@ StoreDep = Annotated["Backend", Depends(get_backend)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
-def require_role(role: Role, heavy: bool = False):  # type: ignore[no-untyped-def]
+def require_role(role: Role):  # type: ignore[no-untyped-def]
     """Dependency admitting keys of at least ``role``: no/unknown key → 401, lower role → 403,
-    its rate limit used up → 429 (:func:`cranetwin.api.limits.admit`; ``heavy``: the request
-    costs ``rate_heavy_cost`` tokens instead of 1).
+    its rate limit used up → 429 (:func:`cranetwin.api.limits.admit`, if the middleware did not
+    charge the request already).
 
     The three ``Security`` parameters only document the accepted key locations in OpenAPI; the
     key is read by :meth:`~cranetwin.api.auth.KeyVerifier.authenticate` (a presented key, else the
@@ -65,20 +65,16 @@ def require_role(role: Role, heavy: bool = False):  # type: ignore[no-untyped-de
     ) -> ApiKey:
         services = get_services(request)
         key = authorise(services.keys.authenticate(request), role)
-        admit(services, request, key, heavy)
+        admit(services, request, key)
         return key
 
-    dependency.__name__ = f"require_{role}{'_heavy' if heavy else ''}"
+    dependency.__name__ = f"require_{role}"
     return dependency
 
 
 CurrentKey = Annotated[ApiKey, Depends(require_role("viewer"))]
 FleetKey = Annotated[ApiKey, Depends(require_role("fleet"))]
 AdminKey = Annotated[ApiKey, Depends(require_role("admin"))]
-HeavyViewerKey = Annotated[ApiKey, Depends(require_role("viewer", heavy=True))]
-"""A viewer key charged a heavy request (twin replay, export.html)."""
-HeavyFleetKey = Annotated[ApiKey, Depends(require_role("fleet", heavy=True))]
-"""A fleet key charged a heavy request (analytics, report, export)."""
 
 MachineIdPath = Annotated[str, Path(description="machine identifier", examples=["crane-1"],
                                     min_length=1, max_length=64)]

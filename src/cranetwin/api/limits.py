@@ -2,13 +2,19 @@
 
 **Rate limit.** Every authenticated request takes tokens from its key's bucket: a cheap request
 (machine list, history, events, …) 1, a heavy one (twin replay, analytics, report, export,
-export.html) ``rate_heavy_cost``. A bucket holds at most ``rate_<role>_burst`` tokens and gets
-``rate_<role>_per_s`` back per second, per role (viewer < fleet < admin). A request that finds
-too few tokens is answered 429 problem JSON with ``Retry-After`` [whole seconds until enough
-tokens are back] and counted in ``cranetwin_http_refused_total{reason="rate_limit"}``. The
-browser's sessions of a key share the key's bucket (signing in again gives no fresh one). The
-web routes' in-process calls to the API (scene, export.html) carry a per-process token and are
-not charged again: the outer request paid.
+export.html: :data:`HEAVY_ROUTES`) ``rate_heavy_cost``. A bucket holds at most
+``rate_<role>_burst`` tokens and gets ``rate_<role>_per_s`` back per second, per role
+(viewer < fleet < admin). A request that finds too few tokens is answered 429 problem JSON
+with ``Retry-After`` [whole seconds until enough tokens are back] and counted in
+``cranetwin_http_refused_total{reason="rate_limit"}``. A key verified in the last seconds is
+charged by :class:`RateLimitMiddleware` before any routing, so that refusing costs little, and
+its refusal is sent after min(``Retry-After``, ``rate_limit_delay_s``) (a wait that costs no
+CPU: a client hammering from N threads then gets at most about N refusals a second, instead of
+hundreds that each cost the event loop its time, and other keys' requests with it); any other
+by the routes' key dependency once the key is checked. The browser's sessions of a key
+share the key's bucket (signing in again gives no fresh one). The web routes' in-process calls
+to the API (scene, export.html) carry a per-process token and are not charged again: the outer
+request paid.
 
 Hand-written rather than the ``limits`` package: ``limits`` offers fixed, moving and sliding
 windows (no token bucket, so no burst separate from the rate and no exact time to the next
@@ -25,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import re
 import secrets
 import threading
 import time
@@ -33,9 +40,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from starlette.requests import HTTPConnection
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from cranetwin.api.auth import ApiKey, Role
-from cranetwin.api.errors import ApiError
+from cranetwin.api.errors import ApiError, problem
 from cranetwin.service.errors import BusyError
 from cranetwin.settings import Settings
 
@@ -127,15 +135,30 @@ class RateLimiter:
             return bucket.take(self.heavy_cost if heavy else 1.0, now)
 
 
-def admit(services: Services, conn: HTTPConnection, key: ApiKey, heavy: bool) -> None:
-    """Charge ``key`` for this request.
+HEAVY_ROUTES = re.compile(r"^/api/v1/machines/[^/]+/(twin|analytics|report|export|export\.html)$")
+"""Paths of the heavy requests (replays, reports, exports): they cost ``rate_heavy_cost``."""
+
+_CHARGED = "cranetwin.charged"
+"""Scope entry marking a request the middleware has charged already."""
+
+
+def is_heavy(path: str) -> bool:
+    """Whether a request of ``path`` is heavy (:data:`HEAVY_ROUTES`)."""
+    return HEAVY_ROUTES.match(path) is not None
+
+
+def admit(services: Services, conn: HTTPConnection, key: ApiKey) -> None:
+    """Charge ``key`` for this request (once: not again after :class:`RateLimitMiddleware`).
 
     Raises:
         ApiError: 429 with ``Retry-After`` when its bucket holds too few tokens.
     """
     limiter = services.limiter
-    if limiter is None or conn.headers.get(INTERNAL_HEADER) == limiter.internal_token:
+    if limiter is None or conn.scope.get(_CHARGED) or \
+            conn.headers.get(INTERNAL_HEADER) == limiter.internal_token:
         return
+    conn.scope[_CHARGED] = True
+    heavy = is_heavy(conn.url.path)
     wait_s = limiter.take(key.key_id, key.role, heavy)
     if wait_s > 0:
         services.metrics.refused.labels("rate_limit", key.role).inc()
@@ -149,20 +172,48 @@ def admit(services: Services, conn: HTTPConnection, key: ApiKey, heavy: bool) ->
                        headers={"Retry-After": str(retry)})
 
 
+class RateLimitMiddleware:
+    """Charges requests of keys verified recently (:meth:`KeyVerifier.peek`) before any routing,
+    and answers a refused one at once: a client ignoring ``Retry-After`` costs the server
+    little more than parsing its request. Requests of keys not verified recently are charged by
+    the routes' key dependency (:func:`admit`) after their key is checked."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            services = getattr(scope["app"].state, "services", None)
+            if services is not None and services.limiter is not None:
+                conn = HTTPConnection(scope)
+                key = services.keys.peek(conn)
+                if key is not None:
+                    try:
+                        admit(services, conn, key)
+                    except ApiError as exc:
+                        retry = float((exc.headers or {}).get("Retry-After", "1"))
+                        await asyncio.sleep(min(retry, services.settings.rate_limit_delay_s))
+                        await problem(exc.status, exc.title, exc.detail,
+                                      headers=exc.headers)(scope, receive, send)
+                        return
+        await self.app(scope, receive, send)
+
+
 def _busy(services: Services, key: ApiKey | None, exc: BusyError) -> BusyError:
     services.metrics.refused.labels("busy", key.role if key is not None else "-").inc()
     return exc
 
 
 async def run_heavy(services: Services, key: ApiKey | None, fn: Callable[..., T],
-                    *args: Any) -> T:
-    """``fn(*args)`` run on the heavy pool, awaited (``key``: the caller, for the metric).
+                    *args: Any, process_fn: Callable[..., T] | None = None) -> T:
+    """``fn(*args)`` run on the heavy pool (``process_fn(*args)`` in a worker process when the
+    pool has them), awaited (``key``: the caller, for the metric).
 
     Raises:
         BusyError: The pool is full (HTTP 503 with ``Retry-After``).
     """
     try:
-        fut = services.heavy.submit(fn, *args)
+        fut = services.heavy.submit(fn, *args, process_fn=process_fn)
     except BusyError as exc:
         raise _busy(services, key, exc) from None
     return await asyncio.wrap_future(fut)

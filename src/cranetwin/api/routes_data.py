@@ -7,13 +7,7 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
-from cranetwin.api.deps import (
-    CurrentKey,
-    HeavyFleetKey,
-    HeavyViewerKey,
-    MachineDep,
-    ServicesDep,
-)
+from cranetwin.api.deps import CurrentKey, FleetKey, MachineDep, ServicesDep
 from cranetwin.api.errors import PROBLEM_RESPONSES
 from cranetwin.api.limits import run_heavy, stream_heavy
 from cranetwin.api.params import RangeDep
@@ -41,7 +35,7 @@ def get_samples(
 
 @router.get("/twin", response_model=TwinOut, summary="Twin replay of a window")
 async def get_twin(
-    key: HeavyViewerKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
+    key: CurrentKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
     rate_hz: Annotated[float, Query(gt=0, le=1000, description="output rate [Hz]",
                                     examples=[50])] = 50.0,
 ) -> Response:
@@ -50,7 +44,17 @@ async def get_twin(
     ``rate_hz``. At most CRANETWIN_MAX_TWIN_RANGE_S (120 s) and 12000 output samples per call;
     results are cached per (machine, window, rate). A heavy request (rate limit and heavy
     threads: docs/API.md "Service limits")."""
-    body = await run_heavy(services, key, services.fleet.twin_window, machine, rng, rate_hz)
+    from cranetwin.service import heavyproc
+
+    fleet = services.fleet
+    cache_key = fleet.twin_key(machine, rng, rate_hz)
+    cached = fleet.twin_cache.get(cache_key)
+    if cached is not None:
+        return Response(cached, media_type=JSON)
+    body, cacheable = await run_heavy(services, key, fleet.twin_body, machine, rng, rate_hz,
+                                      process_fn=heavyproc.twin_body)
+    if cacheable:
+        fleet.twin_cache.put(cache_key, body)
     return Response(body, media_type=JSON)
 
 
@@ -109,7 +113,7 @@ def get_events(
                              "description": "the series as a file, streamed"}},
             response_class=StreamingResponse)
 async def export_series(
-    key: HeavyFleetKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
+    key: FleetKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
     series: Annotated[Literal["raw", "forces", "joint_loads", "payload", "cycles", "events"],
                       Query(description="raw samples, twin series (cylinder forces, joint "
                                         "loads, payload), work cycles or events")] = "raw",
@@ -146,7 +150,7 @@ def find_moment(
 
 @router.get("/analytics", summary="Load spectrum, damage, duty class, productivity (fleet)",
             response_model=dict[str, Any])
-async def get_analytics(key: HeavyFleetKey, machine: MachineDep, services: ServicesDep,
+async def get_analytics(key: FleetKey, machine: MachineDep, services: ServicesDep,
                         rng: RangeDep) -> dict[str, Any]:
     """Analytics of [from, to) from the derived history: load spectrum, Miner damage, duty
     class and productivity (a heavy request)."""
@@ -160,7 +164,7 @@ async def get_analytics(key: HeavyFleetKey, machine: MachineDep, services: Servi
                                             "a single CSV when the range holds no samples)"}},
             response_class=Response)
 async def get_report(
-    key: HeavyFleetKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
+    key: FleetKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
     format: Annotated[Literal["pdf", "csv", "html"], Query(description="file format")] = "pdf",
 ) -> Response:
     """The maintenance report of [from, to) (cranetwin.reports): load spectra, damage and

@@ -188,17 +188,7 @@ async def require_viewer(request: Request) -> None:
     await require_role("viewer")(request)
 
 
-async def require_viewer_heavy(request: Request) -> None:
-    """:func:`require_viewer`, charged as a heavy request (the export replays)."""
-    if getattr(request.app.state, "services", None) is None:
-        return
-    from cranetwin.api.deps import require_role
-
-    await require_role("viewer", heavy=True)(request)
-
-
 ViewerDep = Depends(require_viewer)
-HeavyViewerDep = Depends(require_viewer_heavy)
 
 _WEB_PROBLEMS = (401, 403, 404, 422, 429, 503)
 """Problem JSON statuses of the scene and export routes (the API's own, passed through)."""
@@ -332,7 +322,7 @@ async def _twin_window(request: Request, machine_id: str, t0: float, t1: float,
     return join_twin(parts)
 
 
-@router.get("/api/v1/machines/{machine_id}/export.html", dependencies=[HeavyViewerDep],
+@router.get("/api/v1/machines/{machine_id}/export.html", dependencies=[ViewerDep],
             responses={200: {"description": "the self-contained HTML file (attachment)",
                              "content": {"text/html": {"schema": {"type": "string"}}}},
                        **_problems()}, response_class=HTMLResponse)

@@ -50,7 +50,12 @@ class Services:
                                 session_secret=settings.session_secret)
         self.live = LiveHub(bus)
         self.limiter = RateLimiter.from_settings(settings) if settings.rate_limit else None
-        self.heavy = HeavyPool(settings.heavy_workers, settings.heavy_queue)
+        processes = None
+        if settings.heavy_processes:
+            from cranetwin.service.heavyproc import process_pool
+
+            processes = process_pool(settings)
+        self.heavy = HeavyPool(settings.heavy_workers, settings.heavy_queue, processes=processes)
         self.alarms = AlarmService(fleet.backend, settings.alarm_offline_s, settings.alarm_gap_s)
         self._alarm_task: asyncio.Task[None] | None = None
         self.webhook: Any = None
@@ -74,6 +79,12 @@ class Services:
         """Warm up and start the in-process worker, as the settings ask."""
         await self.fleet.start()
         cfg = self.settings
+        if self.heavy.processes is not None:  # start the replay processes before serving
+            from cranetwin.service import heavyproc
+
+            fn = heavyproc.warm if cfg.warm_up else int
+            await asyncio.gather(*(asyncio.wrap_future(self.heavy.processes.submit(fn))
+                                   for _ in range(cfg.heavy_processes)))
         if cfg.alarm_webhook_url:
             from cranetwin.service.webhooks import WebhookNotifier
 
@@ -113,7 +124,7 @@ class Services:
         if self.webhook is not None:
             await asyncio.to_thread(self.webhook.close)
         await self.live.close()
-        self.heavy.close()
+        await asyncio.to_thread(self.heavy.close)
         await self.fleet.close()
 
     def refresh_gauges(self) -> None:

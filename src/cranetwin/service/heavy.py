@@ -9,14 +9,16 @@ requests queued behind them. So heavy work runs here: ``workers`` threads of its
 bounded by ``workers`` replays.
 
 A streamed result (an export produced chunk by chunk while it is sent) takes one admission for
-the whole stream (:meth:`HeavyPool.lease`) and runs each chunk on the pool's threads.
+the whole stream (:meth:`HeavyPool.lease`) and runs each chunk on the pool's threads. Twin
+replays may instead run in worker processes (``heavy_processes``;
+:mod:`cranetwin.service.heavyproc`), under the same admission.
 """
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from typing import Any, TypeVar
 
 from cranetwin.service.errors import BusyError
@@ -58,13 +60,15 @@ class HeavyPool:
         retry_after_s: The ``retry_after_s`` of a refusal [s].
     """
 
-    def __init__(self, workers: int, queue: int, retry_after_s: float = 1.0) -> None:
+    def __init__(self, workers: int, queue: int, retry_after_s: float = 1.0,
+                 processes: Executor | None = None) -> None:
         if workers < 1 or queue < 0:
             raise ValueError(f"workers={workers} (≥ 1), queue={queue} (≥ 0)")
         self.workers = workers
         self.limit = workers + queue
         self.retry_after_s = retry_after_s
         self.refused = 0
+        self.processes = processes
         self._executor = ThreadPoolExecutor(workers, thread_name_prefix="cranetwin-heavy")
         self._lock = threading.Lock()
         self._admitted = 0
@@ -87,15 +91,20 @@ class HeavyPool:
         with self._lock:
             self._admitted -= 1
 
-    def submit(self, fn: Callable[..., T], *args: Any) -> Future[T]:
-        """Run ``fn(*args)`` on a heavy thread.
+    def submit(self, fn: Callable[..., T], *args: Any,
+               process_fn: Callable[..., T] | None = None) -> Future[T]:
+        """Run ``fn(*args)`` on a heavy thread, or ``process_fn(*args)`` (a module-level
+        function: it and the arguments are pickled) in a worker process when the pool has them.
 
         Raises:
             BusyError: ``workers + queue`` jobs are admitted already.
         """
         self._admit()
         try:
-            fut = self._executor.submit(fn, *args)
+            if process_fn is not None and self.processes is not None:
+                fut = self.processes.submit(process_fn, *args)
+            else:
+                fut = self._executor.submit(fn, *args)
         except BaseException:
             self._release()
             raise
@@ -112,5 +121,8 @@ class HeavyPool:
         return Lease(self)
 
     def close(self) -> None:
-        """Stop the threads after the running jobs (waiting jobs are cancelled)."""
+        """Stop the threads after the running jobs (waiting jobs are cancelled), and the worker
+        processes (waiting for them to exit)."""
         self._executor.shutdown(wait=False, cancel_futures=True)
+        if self.processes is not None:
+            self.processes.shutdown(wait=True, cancel_futures=True)
