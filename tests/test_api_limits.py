@@ -218,7 +218,9 @@ def server(tmp_path: Path) -> Iterator[tuple[str, dict[str, str], Services]]:
     import uvicorn
 
     # a viewer's twin request costs 50 of its 200 tokens, 20 back per second: key A has a
-    # burst of 4 replays, then 0.4 per second; key B's 90 cheap requests stay within its bucket
+    # burst of 4 replays, then 0.4 per second; key B's 90 cheap requests stay within its bucket.
+    # Replays in a worker process: on the API's own threads (heavy_processes=0) B's median was
+    # 4× its quiet one in the same conditions (60 → 244 ms, load average 24 on 2 cores)
     app = create_app(Settings(database_url=f"sqlite:///{tmp_path / 'fair.db'}",
                               worker_in_process=False, warm_up=True, rate_viewer_burst=200,
                               rate_viewer_per_s=20, rate_heavy_cost=50, heavy_processes=1))
