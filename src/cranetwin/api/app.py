@@ -150,6 +150,7 @@ def _register_problem_schema(app: FastAPI) -> None:
     """Make sure ``#/components/schemas/Problem`` exists in the OpenAPI document."""
     from fastapi.openapi.utils import get_openapi
 
+    from cranetwin.api.openapi import make_truthful
     from cranetwin.api.schemas import Problem
 
     def openapi() -> dict[str, object]:
@@ -160,6 +161,7 @@ def _register_problem_schema(app: FastAPI) -> None:
         comps = schema.setdefault("components", {}).setdefault("schemas", {})
         comps.setdefault("Problem", Problem.model_json_schema(ref_template=
                                                               "#/components/schemas/{model}"))
+        make_truthful(schema, app.state.settings)
         app.openapi_schema = schema
         return schema
 

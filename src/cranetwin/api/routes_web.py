@@ -24,10 +24,11 @@ from typing import Annotated, Any
 
 import httpx
 import numpy as np
-from fastapi import APIRouter, Depends, Query, Request
+from fastapi import APIRouter, Depends, Query, Request, Security
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 
+from cranetwin.api.auth import bearer_scheme, header_scheme, query_scheme
 from cranetwin.errors import CraneTwinError, MissingExtraError
 from cranetwin.model import Machine, load_machine, machine_from_dict
 from cranetwin.physics.frames import rpy_matrix
@@ -189,6 +190,8 @@ async def require_viewer(request: Request) -> None:
 
 
 ViewerDep = Depends(require_viewer)
+KEY_SCHEMES = [Security(header_scheme), Security(bearer_scheme), Security(query_scheme)]
+"""Where the key may travel, for the OpenAPI document (``require_viewer`` reads it)."""
 
 _WEB_PROBLEMS = (401, 403, 404, 422, 429, 503)
 """Problem JSON statuses of the scene and export routes (the API's own, passed through)."""
@@ -271,7 +274,7 @@ def _envelope_spec(machine: Machine) -> dict[str, Any]:
                           "axis": [float(x) for x in axis / np.linalg.norm(axis)]}}
 
 
-@router.get("/api/v1/machines/{machine_id}/scene", dependencies=[ViewerDep],
+@router.get("/api/v1/machines/{machine_id}/scene", dependencies=[ViewerDep, *KEY_SCHEMES],
             responses={200: {"description": "the scene commands and spec",
                              "content": {"application/json": {"schema": {"type": "object"}}}},
                        **_problems()}, response_class=JSONResponse)
@@ -322,7 +325,7 @@ async def _twin_window(request: Request, machine_id: str, t0: float, t1: float,
     return join_twin(parts)
 
 
-@router.get("/api/v1/machines/{machine_id}/export.html", dependencies=[ViewerDep],
+@router.get("/api/v1/machines/{machine_id}/export.html", dependencies=[ViewerDep, *KEY_SCHEMES],
             responses={200: {"description": "the self-contained HTML file (attachment)",
                              "content": {"text/html": {"schema": {"type": "string"}}}},
                        **_problems()}, response_class=HTMLResponse)
