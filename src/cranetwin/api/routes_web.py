@@ -220,6 +220,14 @@ def _auth_headers(request: Request) -> dict[str, str]:
     return headers
 
 
+def _machine_url(machine_id: str) -> str:
+    """``/api/v1/machines/{machine_id}`` with the id percent-encoded (an id may hold any
+    character; the in-process call's URL must stay a URL)."""
+    from urllib.parse import quote
+
+    return f"/api/v1/machines/{quote(machine_id, safe='')}"
+
+
 async def _api_get(request: Request, path: str, params: dict[str, Any] | None = None) -> Any:
     transport = httpx.ASGITransport(app=request.app)
     async with httpx.AsyncClient(transport=transport, base_url="http://cranetwin.internal",
@@ -236,7 +244,7 @@ async def _api_get(request: Request, path: str, params: dict[str, Any] | None = 
 
 
 async def _scene_for(request: Request, machine_id: str) -> dict[str, Any]:
-    model_json = await _api_get(request, f"/api/v1/machines/{machine_id}/model")
+    model_json = await _api_get(request, f"{_machine_url(machine_id)}/model")
     key = hashlib.sha256(json.dumps(model_json, sort_keys=True).encode()).hexdigest()
     if key in _SCENE_CACHE:
         return _SCENE_CACHE[key]
@@ -317,7 +325,7 @@ async def _twin_window(request: Request, machine_id: str, t0: float, t1: float,
     a = t0
     while a < t1 - 1e-9:
         b = min(t1, a + 60.0)
-        parts.append(await _api_get(request, f"/api/v1/machines/{machine_id}/twin",
+        parts.append(await _api_get(request, f"{_machine_url(machine_id)}/twin",
                                     {"from": a, "to": b, "rate_hz": rate_hz}))
         a = b
     from cranetwin.viz.export import join_twin
@@ -345,7 +353,7 @@ async def machine_export(
             raise WebError(422, "Range too long",
                            f"{t1 - t0:.0f} s requested; exports hold at most "
                            f"{EXPORT_MAX_SECONDS:.0f} s (choose a shorter window)")
-        base = f"/api/v1/machines/{machine_id}"
+        base = _machine_url(machine_id)
         machine = await _api_get(request, base)
         model = await _api_get(request, f"{base}/model")
         scene = await _scene_for(request, machine_id)
