@@ -111,6 +111,33 @@ def test_heavy_pool_refuses_beyond_workers_plus_queue_and_frees_slots() -> None:
         pool.close()
 
 
+@pytest.mark.timeout(20)
+def test_a_stream_gives_its_admission_back_when_done_or_never_started() -> None:
+    import asyncio
+    import gc
+    from types import SimpleNamespace
+
+    from cranetwin.api.limits import stream_heavy
+
+    pool = HeavyPool(workers=1, queue=0)
+    services: Any = SimpleNamespace(heavy=pool)
+
+    async def run() -> list[bytes]:
+        _, never = await stream_heavy(services, None, lambda: 1, lambda _: iter([b"x"]))
+        assert pool.admitted == 1
+        del never
+        gc.collect()
+        assert pool.admitted == 0
+        _, body = await stream_heavy(services, None, lambda: 1, lambda _: iter([b"a", b"b"]))
+        return [chunk async for chunk in body]
+
+    try:
+        assert asyncio.run(run()) == [b"a", b"b"]
+        assert pool.admitted == 0
+    finally:
+        pool.close()
+
+
 # --- the API -------------------------------------------------------------------------------------
 def _fill(services: Services) -> dict[str, str]:
     machine = load_machine("patu655")

@@ -35,6 +35,7 @@ import re
 import secrets
 import threading
 import time
+import weakref
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -252,4 +253,6 @@ async def stream_heavy(services: Services, key: ApiKey, start: Callable[[], T],
         finally:
             lease.release()
 
-    return result, stream()
+    gen = stream()
+    weakref.finalize(gen, lease.release)  # a stream never started gives its admission back too
+    return result, gen
