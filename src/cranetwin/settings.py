@@ -127,6 +127,37 @@ class Settings(BaseSettings):
     max_samples_limit: int = Field(10_000, ge=1, description="most samples per samples page")
     nominal_rate_hz: float = Field(100.0, gt=0, description="expected sensor sample rate [Hz]")
     twin_cache_entries: int = Field(64, ge=0, description="replay results kept in the LRU cache")
+    twin_cache_bytes: int = Field(
+        256 * 2**20, ge=0, description="most bytes the replay cache holds (its results' bytes; "
+                                       "least recently used evicted first) [B]")
+    # -- service limits (``cranetwin.api.limits``, ``cranetwin.service.heavy``) ----------------
+    rate_limit: bool = Field(True, description="rate-limit every key (token bucket per key)")
+    rate_viewer_per_s: float = Field(
+        20.0, gt=0, description="tokens a viewer key gets back per second (a cheap request "
+                                "costs 1, a heavy one rate_heavy_cost)")
+    rate_viewer_burst: float = Field(200.0, ge=1, description="bucket size of a viewer key")
+    rate_fleet_per_s: float = Field(40.0, gt=0, description="tokens per second of a fleet key")
+    rate_fleet_burst: float = Field(400.0, ge=1, description="bucket size of a fleet key")
+    rate_admin_per_s: float = Field(100.0, gt=0, description="tokens per second of an admin key")
+    rate_admin_burst: float = Field(1000.0, ge=1, description="bucket size of an admin key")
+    rate_heavy_cost: float = Field(
+        10.0, ge=1, description="tokens of a heavy request (twin replay, analytics, report, "
+                                "export, export.html)")
+    rate_limit_delay_s: float = Field(
+        1.0, ge=0, le=60, description="a refused request is answered after min(Retry-After, "
+                                      "this) [s], costing no CPU meanwhile: a client that "
+                                      "ignores Retry-After cannot make the server refuse "
+                                      "hundreds of requests a second")
+    heavy_workers: int = Field(
+        2, ge=1, le=64, description="threads that run heavy work (replays, reports, exports), "
+                                    "apart from the threads serving cheap requests")
+    heavy_processes: int = Field(
+        0, ge=0, le=64, description="worker processes that run the twin replays (their own "
+                                    "interpreters: cheap requests never wait for a replay's "
+                                    "interpreter lock); 0 = replays on the heavy threads")
+    heavy_queue: int = Field(
+        8, ge=0, le=10_000, description="heavy requests that may wait for a heavy thread; "
+                                        "beyond: 503 with Retry-After")
     live_rate_hz: float = Field(25.0, ge=1, le=50, description="live websocket frames per second")
     live_offline_s: float = Field(
         300.0, gt=0, description="a machine not seen for this long is 'offline' [s]")

@@ -22,6 +22,7 @@ from cranetwin.api import (
     routes_session,
 )
 from cranetwin.api.errors import install_error_handlers
+from cranetwin.api.limits import RateLimitMiddleware
 from cranetwin.api.metrics import count_request
 from cranetwin.api.services import Services
 from cranetwin.settings import Settings, load_settings
@@ -128,6 +129,9 @@ def create_app(settings: Settings | None = None, *, bus: object = None) -> FastA
             return await call_next(request)
         return await count_request(services.metrics, request, call_next)
 
+    # outermost: a request over its key's rate is refused before anything else runs
+    app.add_middleware(RateLimitMiddleware)
+
     for module in (routes_ops, routes_session, routes_machines, routes_data, routes_aemp,
                    routes_alarms, routes_live, routes_schedules):
         app.include_router(module.router)
@@ -147,6 +151,7 @@ def _register_problem_schema(app: FastAPI) -> None:
     """Make sure ``#/components/schemas/Problem`` exists in the OpenAPI document."""
     from fastapi.openapi.utils import get_openapi
 
+    from cranetwin.api.openapi import make_truthful
     from cranetwin.api.schemas import Problem
 
     def openapi() -> dict[str, object]:
@@ -157,6 +162,7 @@ def _register_problem_schema(app: FastAPI) -> None:
         comps = schema.setdefault("components", {}).setdefault("schemas", {})
         comps.setdefault("Problem", Problem.model_json_schema(ref_template=
                                                               "#/components/schemas/{model}"))
+        make_truthful(schema, app.state.settings)
         app.openapi_schema = schema
         return schema
 

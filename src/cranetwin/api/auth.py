@@ -174,6 +174,24 @@ class KeyVerifier:
         self._cache["session:" + cookie] = (time.monotonic(), key)
         return key
 
+    def peek(self, conn: HTTPConnection) -> ApiKey | None:
+        """The caller of a request if its key or session was verified within ``ttl_s`` (no
+        database read, no error), else None."""
+        now = time.monotonic()
+        token = presented_token(conn)
+        if token:
+            hit = self._cache.get(token)
+        else:
+            cookie = conn.cookies.get(SESSION_COOKIE)
+            hit = self._cache.get("session:" + cookie) if cookie else None
+            if hit is not None and cookie is not None:
+                parts = cookie.split(".")
+                if len(parts) != 5 or not parts[2].isdigit() or int(parts[2]) <= time.time():
+                    return None
+        if hit is None or now - hit[0] >= self._ttl_s:
+            return None
+        return hit[1]
+
     def authenticate(self, conn: HTTPConnection) -> ApiKey:
         """The caller of a request or websocket: its presented key, else its session cookie.
 

@@ -15,6 +15,7 @@ from cranetwin.api.auth import (
     header_scheme,
     query_scheme,
 )
+from cranetwin.api.limits import admit
 from cranetwin.settings import Settings
 
 if TYPE_CHECKING:
@@ -47,7 +48,9 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
 def require_role(role: Role):  # type: ignore[no-untyped-def]
-    """Dependency admitting keys of at least ``role``: no/unknown key → 401, lower role → 403.
+    """Dependency admitting keys of at least ``role``: no/unknown key → 401, lower role → 403,
+    its rate limit used up → 429 (:func:`cranetwin.api.limits.admit`, if the middleware did not
+    charge the request already).
 
     The three ``Security`` parameters only document the accepted key locations in OpenAPI; the
     key is read by :meth:`~cranetwin.api.auth.KeyVerifier.authenticate` (a presented key, else the
@@ -61,7 +64,9 @@ def require_role(role: Role):  # type: ignore[no-untyped-def]
         _query: Annotated[str | None, Security(query_scheme)] = None,
     ) -> ApiKey:
         services = get_services(request)
-        return authorise(services.keys.authenticate(request), role)
+        key = authorise(services.keys.authenticate(request), role)
+        admit(services, request, key)
+        return key
 
     dependency.__name__ = f"require_{role}"
     return dependency

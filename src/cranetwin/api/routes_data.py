@@ -9,6 +9,7 @@ from fastapi.responses import Response, StreamingResponse
 
 from cranetwin.api.deps import CurrentKey, FleetKey, MachineDep, ServicesDep
 from cranetwin.api.errors import PROBLEM_RESPONSES
+from cranetwin.api.limits import run_heavy, stream_heavy
 from cranetwin.api.params import RangeDep
 from cranetwin.api.schemas import EventOut, FindOut, HistoryOut, SamplesPage, TwinOut
 
@@ -33,7 +34,7 @@ def get_samples(
 
 
 @router.get("/twin", response_model=TwinOut, summary="Twin replay of a window")
-def get_twin(
+async def get_twin(
     key: CurrentKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
     rate_hz: Annotated[float, Query(gt=0, le=1000, description="output rate [Hz]",
                                     examples=[50])] = 50.0,
@@ -41,8 +42,20 @@ def get_twin(
     """Joint coordinates, body poses, tip path, cylinder pins and forces (Eq. 1–2), joint
     torques and reaction wrenches (inverse dynamics), payload estimate — for [from, to) at
     ``rate_hz``. At most CRANETWIN_MAX_TWIN_RANGE_S (120 s) and 12000 output samples per call;
-    results are cached per (machine, window, rate)."""
-    return Response(services.fleet.twin_window(machine, rng, rate_hz), media_type=JSON)
+    results are cached per (machine, window, rate). A heavy request (rate limit and heavy
+    threads: docs/API.md "Service limits")."""
+    from cranetwin.service import heavyproc
+
+    fleet = services.fleet
+    cache_key = fleet.twin_key(machine, rng, rate_hz)
+    cached = fleet.twin_cache.get(cache_key)
+    if cached is not None:
+        return Response(cached, media_type=JSON)
+    body, cacheable = await run_heavy(services, key, fleet.twin_body, machine, rng, rate_hz,
+                                      process_fn=heavyproc.twin_body)
+    if cacheable:
+        fleet.twin_cache.put(cache_key, body)
+    return Response(body, media_type=JSON)
 
 
 @router.get("/history", response_model=HistoryOut, summary="Load history (min/max/mean)")
@@ -99,7 +112,7 @@ def get_events(
             responses={200: {"content": {"text/csv": {}, "application/vnd.apache.parquet": {}},
                              "description": "the series as a file, streamed"}},
             response_class=StreamingResponse)
-def export_series(
+async def export_series(
     key: FleetKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
     series: Annotated[Literal["raw", "forces", "joint_loads", "payload", "cycles", "events"],
                       Query(description="raw samples, twin series (cylinder forces, joint "
@@ -107,11 +120,15 @@ def export_series(
     format: Annotated[Literal["csv", "parquet"], Query(description="file format")] = "csv",
 ) -> StreamingResponse:
     """Any range of one series as CSV or Parquet, produced chunk by chunk while it is sent
-    (never the whole range in memory). Columns: docs/API.md "Export"."""
+    (never the whole range in memory), on a heavy thread. Columns: docs/API.md "Export"."""
+    from cranetwin.service.export import Export
     from cranetwin.service.export import export_series as run
 
-    exp = run(services.fleet, machine, rng, series, format)
-    return StreamingResponse(exp.body, media_type=exp.media_type, headers={
+    def start() -> Export:
+        return run(services.fleet, machine, rng, series, format)
+
+    exp, body = await stream_heavy(services, key, start, lambda e: e.body)
+    return StreamingResponse(body, media_type=exp.media_type, headers={
         "Content-Disposition": f'attachment; filename="{exp.filename}"'})
 
 
@@ -133,11 +150,11 @@ def find_moment(
 
 @router.get("/analytics", summary="Load spectrum, damage, duty class, productivity (fleet)",
             response_model=dict[str, Any])
-def get_analytics(key: FleetKey, machine: MachineDep, services: ServicesDep,
-                  rng: RangeDep) -> dict[str, Any]:
+async def get_analytics(key: FleetKey, machine: MachineDep, services: ServicesDep,
+                        rng: RangeDep) -> dict[str, Any]:
     """Analytics of [from, to) from the derived history: load spectrum, Miner damage, duty
-    class and productivity."""
-    return services.fleet.analytics(machine, rng)
+    class and productivity (a heavy request)."""
+    return await run_heavy(services, key, services.fleet.analytics, machine, rng)
 
 
 @router.get("/report", summary="Report download (fleet)",
@@ -146,7 +163,7 @@ def get_analytics(key: FleetKey, machine: MachineDep, services: ServicesDep,
                              "description": "the report file (csv: a zip of CSV tables; "
                                             "a single CSV when the range holds no samples)"}},
             response_class=Response)
-def get_report(
+async def get_report(
     key: FleetKey, machine: MachineDep, services: ServicesDep, rng: RangeDep,
     format: Annotated[Literal["pdf", "csv", "html"], Query(description="file format")] = "pdf",
 ) -> Response:
@@ -154,6 +171,6 @@ def get_report(
     remaining life, duty class, events, productivity — as PDF, HTML or a zip of CSV tables."""
     from cranetwin.reports import render
 
-    rep = services.fleet.report(machine, rng, format, render)
+    rep = await run_heavy(services, key, services.fleet.report, machine, rng, format, render)
     return Response(rep.body, media_type=rep.media_type,
                     headers={"Content-Disposition": f'attachment; filename="{rep.filename}"'})

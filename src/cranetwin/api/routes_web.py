@@ -24,9 +24,11 @@ from typing import Annotated, Any
 
 import httpx
 import numpy as np
-from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi import APIRouter, Depends, Query, Request, Security
+from fastapi import Path as PathParam
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 
+from cranetwin.api.auth import bearer_scheme, header_scheme, query_scheme
 from cranetwin.errors import CraneTwinError, MissingExtraError
 from cranetwin.model import Machine, load_machine, machine_from_dict
 from cranetwin.physics.frames import rpy_matrix
@@ -40,6 +42,9 @@ log = logging.getLogger(__name__)
 router = APIRouter(tags=["web"])
 
 _SCENE_CACHE: dict[str, dict[str, Any]] = {}
+
+WebMachineId = Annotated[str, PathParam(description="machine identifier", examples=["crane-1"],
+                                        min_length=1, max_length=64)]
 
 
 class WebError(CraneTwinError):
@@ -185,10 +190,27 @@ async def require_viewer(request: Request) -> None:
 
 
 ViewerDep = Depends(require_viewer)
+KEY_SCHEMES = [Security(header_scheme), Security(bearer_scheme), Security(query_scheme)]
+"""Where the key may travel, for the OpenAPI document (``require_viewer`` reads it)."""
+
+_WEB_PROBLEMS = (401, 403, 404, 422, 429, 503)
+"""Problem JSON statuses of the scene and export routes (the API's own, passed through)."""
+
+
+def _problems() -> dict[int | str, dict[str, Any]]:
+    from cranetwin.api.errors import problem_responses
+
+    return problem_responses(*_WEB_PROBLEMS)
 
 
 def _auth_headers(request: Request) -> dict[str, str]:
     headers = {"accept": "application/json"}
+    services = getattr(request.app.state, "services", None)
+    limiter = getattr(services, "limiter", None)
+    if limiter is not None:  # the outer request paid: its in-process calls are not charged
+        from cranetwin.api.limits import INTERNAL_HEADER
+
+        headers[INTERNAL_HEADER] = limiter.internal_token
     for name in ("x-api-key", "authorization", "cookie"):
         if name in request.headers:
             headers[name] = request.headers[name]
@@ -196,6 +218,14 @@ def _auth_headers(request: Request) -> dict[str, str]:
     if key and "x-api-key" not in headers and "authorization" not in headers:
         headers["x-api-key"] = key
     return headers
+
+
+def _machine_url(machine_id: str) -> str:
+    """``/api/v1/machines/{machine_id}`` with the id percent-encoded (an id may hold any
+    character; the in-process call's URL must stay a URL)."""
+    from urllib.parse import quote
+
+    return f"/api/v1/machines/{quote(machine_id, safe='')}"
 
 
 async def _api_get(request: Request, path: str, params: dict[str, Any] | None = None) -> Any:
@@ -214,7 +244,7 @@ async def _api_get(request: Request, path: str, params: dict[str, Any] | None = 
 
 
 async def _scene_for(request: Request, machine_id: str) -> dict[str, Any]:
-    model_json = await _api_get(request, f"/api/v1/machines/{machine_id}/model")
+    model_json = await _api_get(request, f"{_machine_url(machine_id)}/model")
     key = hashlib.sha256(json.dumps(model_json, sort_keys=True).encode()).hexdigest()
     if key in _SCENE_CACHE:
         return _SCENE_CACHE[key]
@@ -252,8 +282,11 @@ def _envelope_spec(machine: Machine) -> dict[str, Any]:
                           "axis": [float(x) for x in axis / np.linalg.norm(axis)]}}
 
 
-@router.get("/api/v1/machines/{machine_id}/scene", dependencies=[ViewerDep])
-async def machine_scene(machine_id: str, request: Request) -> Response:
+@router.get("/api/v1/machines/{machine_id}/scene", dependencies=[ViewerDep, *KEY_SCHEMES],
+            responses={200: {"description": "the scene commands and spec",
+                             "content": {"application/json": {"schema": {"type": "object"}}}},
+                       **_problems()}, response_class=JSONResponse)
+async def machine_scene(machine_id: WebMachineId, request: Request) -> Response:
     """meshcat ``set_object`` commands for every body, cylinder, the tool and payload, plus the
     spec the browser needs to animate them (node paths, barrel lengths, load point). Role viewer.
     """
@@ -292,7 +325,7 @@ async def _twin_window(request: Request, machine_id: str, t0: float, t1: float,
     a = t0
     while a < t1 - 1e-9:
         b = min(t1, a + 60.0)
-        parts.append(await _api_get(request, f"/api/v1/machines/{machine_id}/twin",
+        parts.append(await _api_get(request, f"{_machine_url(machine_id)}/twin",
                                     {"from": a, "to": b, "rate_hz": rate_hz}))
         a = b
     from cranetwin.viz.export import join_twin
@@ -300,9 +333,12 @@ async def _twin_window(request: Request, machine_id: str, t0: float, t1: float,
     return join_twin(parts)
 
 
-@router.get("/api/v1/machines/{machine_id}/export.html", dependencies=[ViewerDep])
+@router.get("/api/v1/machines/{machine_id}/export.html", dependencies=[ViewerDep, *KEY_SCHEMES],
+            responses={200: {"description": "the self-contained HTML file (attachment)",
+                             "content": {"text/html": {"schema": {"type": "string"}}}},
+                       **_problems()}, response_class=HTMLResponse)
 async def machine_export(
-    machine_id: str, request: Request,
+    machine_id: WebMachineId, request: Request,
     from_: Annotated[str, Query(alias="from", description="ISO 8601 or epoch seconds")],
     to: Annotated[str, Query(description="ISO 8601 or epoch seconds")],
 ) -> Response:
@@ -317,7 +353,7 @@ async def machine_export(
             raise WebError(422, "Range too long",
                            f"{t1 - t0:.0f} s requested; exports hold at most "
                            f"{EXPORT_MAX_SECONDS:.0f} s (choose a shorter window)")
-        base = f"/api/v1/machines/{machine_id}"
+        base = _machine_url(machine_id)
         machine = await _api_get(request, base)
         model = await _api_get(request, f"{base}/model")
         scene = await _scene_for(request, machine_id)
@@ -335,13 +371,26 @@ async def machine_export(
             events = []
     except WebError as exc:
         return _problem(exc.status, exc.title, exc.detail)
-    html = render_export(_web_dir(request), {
+    html = await _render(request, {
         "machine": machine, "model": model, "scene": scene, "twin": twin,
         "history": history, "events": events, "from": t0, "to": t1,
     })
     name = f"cranetwin-{machine_id}-{int(t0)}.html"
     return Response(html, media_type="text/html",
                     headers={"Content-Disposition": f'attachment; filename="{name}"'})
+
+
+async def _render(request: Request, data: dict[str, Any]) -> str:
+    """:func:`render_export` off the event loop: on the API's heavy threads (503 when they are
+    full), or a worker thread in an app without the API's services."""
+    import asyncio
+
+    services = getattr(request.app.state, "services", None)
+    if services is None:
+        return await asyncio.to_thread(render_export, _web_dir(request), data)
+    from cranetwin.api.limits import run_heavy
+
+    return await run_heavy(services, None, render_export, _web_dir(request), data)
 
 
 def _history_channels(model: dict[str, Any]) -> list[str]:

@@ -3,7 +3,9 @@
 One :class:`Services` per app, opened by the app's lifespan: the
 :class:`~cranetwin.service.fleet.FleetService` (data, replays, the in-process twin worker when
 the settings ask for it), the :class:`~cranetwin.api.auth.KeyVerifier`, the websocket fan-out
-(:class:`~cranetwin.api.live.LiveHub`) and the Prometheus metrics. The functions below turn
+(:class:`~cranetwin.api.live.LiveHub`), the Prometheus metrics, the rate limiter
+(:class:`~cranetwin.api.limits.RateLimiter`, None when off) and the pool of heavy work
+(:class:`~cranetwin.service.heavy.HeavyPool`). The functions below turn
 the service's plain results into the public schemas.
 """
 
@@ -15,11 +17,13 @@ import logging
 from typing import Any
 
 from cranetwin.api.auth import KeyVerifier
+from cranetwin.api.limits import RateLimiter
 from cranetwin.api.live import Follower, LiveHub
 from cranetwin.api.schemas import DataRange, Location, MachineDetail, MachinePublic
 from cranetwin.service.alarms import AlarmService
 from cranetwin.service.backend import Backend, MachineRecord
 from cranetwin.service.fleet import FleetService, MachineStatus
+from cranetwin.service.heavy import HeavyPool
 from cranetwin.service.live_payload import public_kg
 from cranetwin.service.metrics import Metrics
 from cranetwin.service.timerange import iso
@@ -45,6 +49,13 @@ class Services:
         self.keys = KeyVerifier(fleet.backend.key_lookup,
                                 session_secret=settings.session_secret)
         self.live = LiveHub(bus)
+        self.limiter = RateLimiter.from_settings(settings) if settings.rate_limit else None
+        processes = None
+        if settings.heavy_processes:
+            from cranetwin.service.heavyproc import process_pool
+
+            processes = process_pool(settings)
+        self.heavy = HeavyPool(settings.heavy_workers, settings.heavy_queue, processes=processes)
         self.alarms = AlarmService(fleet.backend, settings.alarm_offline_s, settings.alarm_gap_s)
         self._alarm_task: asyncio.Task[None] | None = None
         self.webhook: Any = None
@@ -68,6 +79,12 @@ class Services:
         """Warm up and start the in-process worker, as the settings ask."""
         await self.fleet.start()
         cfg = self.settings
+        if self.heavy.processes is not None:  # start the replay processes before serving
+            from cranetwin.service import heavyproc
+
+            fn = heavyproc.warm if cfg.warm_up else int
+            await asyncio.gather(*(asyncio.wrap_future(self.heavy.processes.submit(fn))
+                                   for _ in range(cfg.heavy_processes)))
         if cfg.alarm_webhook_url:
             from cranetwin.service.webhooks import WebhookNotifier
 
@@ -107,11 +124,13 @@ class Services:
         if self.webhook is not None:
             await asyncio.to_thread(self.webhook.close)
         await self.live.close()
+        await asyncio.to_thread(self.heavy.close)
         await self.fleet.close()
 
     def refresh_gauges(self) -> None:
-        """Copy cache counters into the metrics."""
+        """Copy cache counters and the heavy pool's load into the metrics."""
         self.fleet.refresh_gauges()
+        self.metrics.heavy_admitted.set(self.heavy.admitted)
 
     def follower_factory(self, rec: MachineRecord) -> Any:
         """A zero-argument factory of the live follower of ``rec`` (for :class:`LiveHub`)."""

@@ -139,7 +139,9 @@ def _twin_baseline(url: str, start: float) -> float:
 
 
 def _serve(url: str, port: int) -> subprocess.Popen[bytes]:
-    env = {**os.environ, "CRANETWIN_DATABASE_URL": url}
+    # one client measuring speed: its 60 twin requests in a row would exceed a viewer key's
+    # rate limit (tests/test_api_limits.py measures the limits)
+    env = {**os.environ, "CRANETWIN_DATABASE_URL": url, "CRANETWIN_RATE_LIMIT": "false"}
     proc = subprocess.Popen([sys.executable, "-c", "from cranetwin.cli import main; main()",
                              "serve", "--port", str(port), "--no-worker", "--log-level",
                              "warning"], env=env, stdout=subprocess.DEVNULL,

@@ -7,8 +7,9 @@ Raised by :mod:`cranetwin.service` and translated once at the edges (the HTTP AP
     └── ServiceError            a request the service cannot answer (title + detail)
         ├── NotFoundError       unknown machine, page past the last            (HTTP 404)
         ├── ConflictError       machine id or wire id already registered       (HTTP 409)
-        └── InvalidRequestError bad parameter, range or page too large, unknown
-                                channel, unknown model, invalid time           (HTTP 422)
+        ├── InvalidRequestError bad parameter, range or page too large, unknown
+        │                       channel, unknown model, invalid time           (HTTP 422)
+        └── BusyError           the heavy work queue is full; retry later      (HTTP 503)
 
 Replay failures keep their own classes (:class:`~cranetwin.errors.TwinError`,
 :class:`~cranetwin.errors.SignalError`, …), storage outages :class:`~cranetwin.errors.StorageError`.
@@ -43,3 +44,15 @@ class ConflictError(ServiceError):
 
 class InvalidRequestError(ServiceError):
     """A parameter is invalid: range, limit, channel, time, model."""
+
+
+class BusyError(ServiceError):
+    """Heavy work (replays, reports, exports) is refused because its queue is full.
+
+    Attributes:
+        retry_after_s: When a retry may succeed [s].
+    """
+
+    def __init__(self, title: str, detail: str, retry_after_s: float = 1.0) -> None:
+        super().__init__(title, detail)
+        self.retry_after_s = retry_after_s

@@ -108,7 +108,8 @@ class FleetService:
         self.settings = settings
         self.backend = backend
         self.metrics = metrics if metrics is not None else Metrics()
-        self.twin_cache: LruCache[bytes] = LruCache(settings.twin_cache_entries)
+        self.twin_cache: LruCache[bytes] = LruCache(settings.twin_cache_entries,
+                                                    settings.twin_cache_bytes)
         self.replayer = Replayer()
         self.worker: TwinWorker | None = None
         self.live_payload: dict[str, LivePayload] = {}
@@ -182,6 +183,9 @@ class FleetService:
         """Copy cache counters into the metrics."""
         self.metrics.twin_cache_hits.set(self.twin_cache.hits)
         self.metrics.twin_cache_misses.set(self.twin_cache.misses)
+        self.metrics.twin_cache_bytes.set(self.twin_cache.nbytes)
+        self.metrics.twin_cache_max_bytes.set(self.settings.twin_cache_bytes)
+        self.metrics.twin_cache_evictions.set(self.twin_cache.evictions)
 
     # -- machines ---------------------------------------------------------------------------------
     def _status(self, last_seen: float | None) -> Status:
@@ -240,6 +244,21 @@ class FleetService:
     # -- twin -------------------------------------------------------------------------------------
     def twin_window(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> bytes:
         """Replay of [from, to) at ``rate_hz`` as JSON bytes (cached per machine/window/rate)."""
+        key = self.twin_key(rec, rng, rate_hz)
+        body = self.twin_cache.get(key)
+        if body is None:
+            body, cacheable = self.twin_body(rec, rng, rate_hz)
+            if cacheable:
+                self.twin_cache.put(key, body)
+        return body
+
+    def twin_key(self, rec: MachineRecord, rng: TimeRange,
+                 rate_hz: float) -> tuple[str, float, float, float]:
+        """The replay cache's key of a twin request, after checking its limits.
+
+        Raises:
+            InvalidRequestError: Window too long, rate too high, too many output samples.
+        """
         s = self.settings
         rng.limit(s.max_twin_range_s, "the twin")
         if rate_hz > s.max_twin_rate_hz:
@@ -250,15 +269,15 @@ class FleetService:
             raise InvalidRequestError(
                 "Too many points", f"{n_out:.0f} output samples requested ({rng.duration_s:g} s "
                 f"at {rate_hz:g} Hz); at most {s.max_twin_points} per call")
-        key = (rec.machine_id, round(rng.t0_s, 6), round(rng.t1_s, 6), float(rate_hz))
-        body = self.twin_cache.get(key)
-        if body is None:
-            body = orjson.dumps(self._twin(rec, rng, rate_hz), option=orjson.OPT_SERIALIZE_NUMPY)
-            # the newest window may still grow: cache only windows that end in stored data
-            dr = self.backend.data_range(rec.machine_id)
-            if dr is not None and rng.t1_s + s.twin_margin_s <= dr[1]:
-                self.twin_cache.put(key, body)
-        return body
+        return (rec.machine_id, round(rng.t0_s, 6), round(rng.t1_s, 6), float(rate_hz))
+
+    def twin_body(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> tuple[bytes, bool]:
+        """The replay of a twin request (checked by :meth:`twin_key`) as JSON bytes, and whether
+        it may be cached: the newest window may still grow, so only windows that end in stored
+        data are."""
+        body = orjson.dumps(self._twin(rec, rng, rate_hz), option=orjson.OPT_SERIALIZE_NUMPY)
+        dr = self.backend.data_range(rec.machine_id)
+        return body, dr is not None and rng.t1_s + self.settings.twin_margin_s <= dr[1]
 
     def _twin(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> dict[str, Any]:
         machine = self.backend.model_of(rec)

@@ -25,6 +25,19 @@ class Metrics:
         self.twin_cache_hits = Gauge("cranetwin_twin_cache_hits", "replay cache hits", registry=r)
         self.twin_cache_misses = Gauge("cranetwin_twin_cache_misses", "replay cache misses",
                                        registry=r)
+        self.twin_cache_bytes = Gauge("cranetwin_twin_cache_bytes",
+                                      "bytes held by the replay cache", registry=r)
+        self.twin_cache_max_bytes = Gauge("cranetwin_twin_cache_max_bytes",
+                                          "byte bound of the replay cache", registry=r)
+        self.twin_cache_evictions = Gauge("cranetwin_twin_cache_evictions",
+                                          "replay results evicted to keep the cache's bounds",
+                                          registry=r)
+        self.refused = Counter("cranetwin_http_refused",
+                               "requests refused by the service limits (rate_limit: 429, "
+                               "busy: 503)", ["reason", "role"], registry=r)
+        self.heavy_admitted = Gauge("cranetwin_heavy_admitted",
+                                    "heavy requests running or waiting for a heavy thread",
+                                    registry=r)
         self.worker_windows = Counter("cranetwin_worker_windows",
                                       "windows processed by the twin worker", ["machine"],
                                       registry=r)
