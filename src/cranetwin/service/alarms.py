@@ -10,9 +10,10 @@ tool is expected to raise by itself:
 
 New events of a chosen severity and above can be sent to a webhook
 (:mod:`cranetwin.service.webhooks`): :meth:`AlarmService.notify_new`, run after each check,
-offers the events stored since the last call (every process's: the twin worker's, the ingest
-daemon's and these) to the notifier's thread, which signs, sends and retries them; nothing here
-waits for the receiver. Events older than the service's start are not sent.
+queues the events stored since the notifier's durable cursor (every process's: the twin
+worker's, the ingest daemon's and these) in the database's webhook outbox, from which the
+notifier's thread signs, sends and retries them; nothing here waits for the receiver. Events
+stored before the webhook was first set up on the database are not sent.
 
 :class:`AlarmService` holds no HTTP; the API's ``routes_alarms`` calls it, and ``Services`` runs
 :meth:`AlarmService.check_connectivity` every ``alarm_check_interval_s``. A gap is seen by
@@ -61,16 +62,19 @@ class AlarmService:
         self._lock = threading.Lock()
         self.notifier: Any = None  # a service.webhooks.WebhookNotifier, when configured
         self.notify_severities: list[str] = ["critical"]
-        self._notified: int | None = None  # newest event id offered to the notifier
 
     # -- webhook notification -----------------------------------------------------------------
     def set_notifier(self, notifier: Any, min_severity: str = "critical") -> None:
-        """Send new events of ``min_severity`` and above to ``notifier`` (``offer(alarm)``),
-        starting after the newest event stored now."""
+        """Send new events of ``min_severity`` and above to ``notifier`` (a
+        :class:`~cranetwin.service.webhooks.WebhookNotifier`). The first time a webhook is set
+        up on a database its cursor starts after the newest event stored now; later starts
+        continue where the last check stopped, so events stored while no API process ran are
+        sent too."""
         order = ["info", "warning", "critical"]
         self.notify_severities = order[order.index(min_severity):]
         self.notifier = notifier
-        self._notified = self._newest_id()
+        if notifier.cursor() is None:
+            notifier.offer_many([], cursor=self._newest_id())
 
     def _newest_id(self) -> int:
         from sqlalchemy import func, select
@@ -81,9 +85,9 @@ class AlarmService:
             return int(s.scalar(select(func.max(EventRow.id))) or 0)
 
     def notify_new(self) -> int:
-        """Offer the events stored since the last call (of the notified severities) to the
-        notifier, in the order they were stored; returns how many. Never waits for a
-        delivery."""
+        """Queue the events stored since the notifier's cursor (of the notified severities) in
+        its outbox, in the order they were stored, and move the cursor past them in the same
+        transaction; returns how many. Never waits for a delivery."""
         if self.notifier is None:
             return 0
         from sqlalchemy import func, select
@@ -92,7 +96,7 @@ class AlarmService:
         from cranetwin.storage.events import EventRow
 
         with self._lock:
-            last = self._notified or 0
+            last = self.notifier.cursor() or 0
             with self.backend.session() as s:
                 top = int(s.scalar(select(func.max(EventRow.id))) or 0)
                 ids = list(s.scalars(select(EventRow.id).where(
@@ -100,11 +104,10 @@ class AlarmService:
                     EventRow.severity.in_(self.notify_severities))
                     .order_by(EventRow.id).limit(500)))
                 found = [get_alarm(s, i) for i in ids]
-            for a in found:
-                if a is not None:
-                    self.notifier.offer(as_json(a))
-            # the watermark passes every event seen, whatever its severity (ids only grow)
-            self._notified = ids[-1] if len(ids) == 500 else top
+            # the cursor passes every event seen, whatever its severity (ids only grow)
+            new = ids[-1] if len(ids) == 500 else top
+            if new > last:
+                self.notifier.offer_many([as_json(a) for a in found if a is not None], cursor=new)
         return len(ids)
 
     # -- listing and actions ------------------------------------------------------------------
