@@ -139,13 +139,17 @@ class _LiveFeeder:
             self.stop.wait(0.2)
 
 
-def _real_app(tmpdir: str, end: float, history_s: float) -> tuple[Any, dict[str, Any]]:
-    """create_app on a temporary SQLite database holding ``history_s`` of kinematic samples."""
+def _real_app(tmpdir: str, web_dir: str | None = None) -> Any:
+    """create_app on a temporary SQLite database (filled by :func:`_fill`), serving the web
+    files of ``web_dir`` (None: the repository's)."""
+    from pathlib import Path
+
     from cranetwin.api import create_app
     from cranetwin.settings import Settings
 
     url = f"sqlite:///{tmpdir}/bench-web.db"
-    return create_app(Settings(database_url=url, worker_in_process=False)), {"url": url}
+    return create_app(Settings(database_url=url, worker_in_process=False,
+                               web_dir=Path(web_dir) if web_dir else None))
 
 
 def _fill(app: Any, srv_url: str, end: float, history_s: float) -> str:
@@ -171,7 +175,7 @@ def _fill(app: Any, srv_url: str, end: float, history_s: float) -> str:
 
 
 def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
-        server: str = "real", demo: bool = True) -> dict[str, Any]:
+        server: str = "real", demo: bool = True, web_dir: str | None = None) -> dict[str, Any]:
     """Measure the figures above; returns them as a dict.
 
     Args:
@@ -180,6 +184,8 @@ def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
         server: ``real`` (create_app on SQLite with 15 min of stored samples) or ``preview``
             (synthetic data, no database).
         demo: Also measure ``demo_first_live_seconds`` (starts a demo in a fresh directory).
+        web_dir: Serve the pages from this copy of ``web/`` (A/B comparisons of front-end
+            changes; real server only).
     """
     import tempfile
 
@@ -194,10 +200,11 @@ def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
     tmp = tempfile.TemporaryDirectory()
     feeder = None
     if server == "real":
-        app, _ = _real_app(tmp.name, end, 900.0)
+        app = _real_app(tmp.name, web_dir)
     else:
         app = create_preview_app(history_s=1800.0, end=end)
-    out: dict[str, Any] = {"browser": "chromium (headless, swiftshader)", "server": server}
+    out: dict[str, Any] = {"browser": "chromium (headless, swiftshader)", "server": server,
+                           "web_dir": web_dir or "repository"}
     with ServerThread(app) as srv, sync_playwright() as p:
         key = _fill(app, srv.url, end, 900.0) if server == "real" else PREVIEW_KEY
         if server == "real":
@@ -288,8 +295,10 @@ def register(bench_app: typer.Typer) -> None:
         server: str = typer.Option("real", help="real (create_app + SQLite) or preview."),
         demo: bool = typer.Option(True, help="Also time a demo started in a fresh directory "
                                   "(demo_first_live_seconds)."),
+        web_dir: str = typer.Option("", help="Serve the pages from this copy of web/ (A/B "
+                                    "runs of front-end changes; default: the repository's)."),
     ) -> None:
         """Web UI: first paint (cold and warm server), replay fps (10-min window), live latency
         (sample → screen) in headless Chromium, and the demo's time to its first live crane."""
-        result = run(seconds, chromium, server, demo)
+        result = run(seconds, chromium, server, demo, web_dir or None)
         emit(result, as_json)
