@@ -245,7 +245,10 @@ function startLive() {
 // ---- drawing -------------------------------------------------------------------------------------
 function loop(now) {
   requestAnimationFrame(loop);
-  if (page.lastWall !== null && (page.playing || page.mode === "live")) stats.rafIntervals.push(now - page.lastWall);
+  if (page.lastWall !== null && (page.playing || page.mode === "live")) {
+    stats.rafIntervals.push(now - page.lastWall);
+    for (const c of page.cells) if (c.crane) c.crane.frameTime(now - page.lastWall);
+  }
   const dt = page.lastWall === null ? 0 : (now - page.lastWall) / 1000;
   page.lastWall = now;
   if (page.mode === "live") {

@@ -341,7 +341,10 @@ function stopLive() {
 // ---- rendering loop -----------------------------------------------------------------------------
 function loop(now) {
   requestAnimationFrame(loop);
-  if (state.lastWall !== null && (state.playing || state.mode === "live")) metrics.rafIntervals.push(now - state.lastWall);
+  if (state.lastWall !== null && (state.playing || state.mode === "live")) {
+    metrics.rafIntervals.push(now - state.lastWall);
+    if (state.crane) state.crane.frameTime(now - state.lastWall);
+  }
   const dt = state.lastWall === null ? 0 : (now - state.lastWall) / 1000;
   state.lastWall = now;
   if (!state.crane) return;
