@@ -14,7 +14,10 @@ loopback) and drives Debian's Chromium headless (software WebGL) with Playwright
 - ``demo_first_live_seconds``: ``cranetwin fleetdemo --machines 1`` started in a fresh empty
   directory → the demo reports its crane live (``--no-demo`` skips it);
 - baseline: rAF rate of an empty page in the same browser (``blank_fps``), and the ratio
-  ``replay_fps / blank_fps`` (1.0 = the crane costs no frames).
+  ``replay_fps / blank_fps`` (1.0 = the crane costs no frames);
+- ``render_frame_ms``: median time to draw one 3D frame and wait for it (60 frames), interleaved
+  with ``render_frame_ms_baseline_gradient``, the same frame with meshcat's gradient background
+  quad at pixel ratio 0.7 (what the page drew before; software rasterisers pay for every pixel).
 
 The browser signs in the way a person does: the key is POSTed once to ``/api/v1/session`` and
 the pages are opened with the session cookie only, never with a key in their URL.
@@ -103,6 +106,31 @@ def demo_first_live(timeout_s: float = 300.0) -> float | None:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(10)
         return found
+
+
+RENDER_AB_JS = """([n]) => {
+  // One 3D frame drawn and waited for (readPixels of one pixel finishes the GPU work), n times
+  // each, alternating: the page as it is, and meshcat's gradient background quad at 0.7x.
+  const cr = window.__crane, v = cr.viewer, r = v.renderer, gl = r.getContext();
+  const own = [v.scene.background, r.getPixelRatio()];
+  v.handle_command({type: "set_property", path: "/Background", property: "top_color",
+                    value: [0.87, 0.9, 0.94]});
+  const baseline = [v.scene.background, 0.7];
+  const px = new Uint8Array(4), out = {page: [], baseline: []};
+  const cfgs = [["page", own], ["baseline", baseline]];
+  for (let k = 0; k < n; k++) for (const [name, [bg, ratio]] of cfgs) {
+    v.scene.background = bg;
+    if (r.getPixelRatio() !== ratio) { r.setPixelRatio(ratio); cr.resize(); }
+    const t0 = performance.now();
+    v.render(); gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    out[name].push(performance.now() - t0);
+  }
+  v.scene.background = own[0]; r.setPixelRatio(own[1]); cr.resize(); v.set_dirty();
+  const med = (a) => a.slice().sort((x, y) => x - y)[a.length >> 1];
+  return {page: med(out.page), baseline: med(out.baseline), ratio: own[1]};
+}"""
+"""Render cost of one frame of the machine page against meshcat's default background, the two
+interleaved in one page so both see the same load."""
 
 
 def _fps(intervals: list[float]) -> tuple[float, float]:
@@ -262,6 +290,10 @@ def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
             out[f"replay_{speed}x_p95_frame_ms"] = p95
             out[f"replay_{speed}x_drawn_fps"] = drawn / seconds
         out["replay_fps"] = min(out["replay_1x_fps"], out["replay_16x_fps"])
+        ab = page.evaluate(RENDER_AB_JS, [60])
+        out["render_frame_ms"] = ab["page"]
+        out["render_frame_ms_baseline_gradient"] = ab["baseline"]
+        out["render_pixel_ratio"] = ab["ratio"]
         out["replay_fps_ratio_to_blank"] = out["replay_fps"] / out["blank_fps"]
         # live latency (server frame time -> drawn), 25 Hz stream
         page.goto(f"{srv.url}/machines/crane-1?mode=live")
