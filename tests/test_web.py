@@ -158,6 +158,36 @@ def test_bundle_has_no_imports_and_every_module() -> None:
         assert name in src
 
 
+def test_bundle_order_follows_the_imports_and_names_are_unique() -> None:
+    """Every module the machine page imports (transitively) is in the export bundle after the
+    modules it imports, and no two modules declare the same top-level name (the bundle joins
+    them into one scope)."""
+    from cranetwin.viz.export import MODULE_ORDER
+
+    js = web_dir() / "js"
+    imports = {name: re.findall(r'^import\s.*?from\s+"\./([\w.]+)";', (js / name).read_text(),
+                                re.MULTILINE) for name in MODULE_ORDER}
+    seen: list[str] = []
+    todo = ["machine.js"]
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.append(name)
+        todo += re.findall(r'^import\s.*?from\s+"\./([\w.]+)";', (js / name).read_text(),
+                           re.MULTILINE)
+    assert set(seen) <= set(MODULE_ORDER)
+    for name, deps in imports.items():
+        assert all(MODULE_ORDER.index(d) < MODULE_ORDER.index(name) for d in deps), name
+    declared: dict[str, str] = {}
+    decl = re.compile(r"^(?:export\s+)?(?:async\s+)?(?:function|class|const|let)\s+([\w$]+)",
+                      re.MULTILINE)
+    for name in MODULE_ORDER:
+        for n in decl.findall((js / name).read_text()):
+            assert n not in declared, f"{n} declared in {declared.get(n)} and {name}"
+            declared[n] = name
+
+
 def test_vendor_files_are_the_packaged_bundles() -> None:
     meshcat = vendor_file("meshcat.min.js")
     plotly = vendor_file("plotly.min.js")

@@ -84,6 +84,10 @@ export function reachOf(axis, p) {
   return { r, dir: r > 1e-9 ? perp.map((x) => x / r) : [1, 0, 0] };
 }
 
+const SOFTWARE_RATIO = 0.7; // pixel ratio of a software rasteriser
+const MIN_SOFTWARE_RATIO = 0.5; // ... while its frames are slow
+const SLOW_FRAME_MS = 25; // below 40 fps
+const FAST_FRAME_MS = 18; // 55 fps and more
 export const ENVELOPE_HEIGHT_M = 2.5; // the chart's largest rated payload drawn this high [m]
 const ENVELOPE_N = 48;
 
@@ -99,12 +103,18 @@ export class Crane3D {
     element.appendChild(renderer.domElement);
     this.viewer = new MeshCat.Viewer(element, true, renderer);
     this.software = software;
-    renderer.setPixelRatio(software ? 0.7 : Math.min(window.devicePixelRatio || 1, 2));
+    renderer.setPixelRatio(software ? SOFTWARE_RATIO : Math.min(window.devicePixelRatio || 1, 2));
     window.addEventListener("resize", () => this.resize()); // after meshcat's own (window height)
     this.spec = sceneData.spec;
     this.viewer.handle_command({ type: "set_property", path: "/Background", property: "top_color", value: [0.87, 0.9, 0.94] });
     this.viewer.handle_command({ type: "set_property", path: "/Background", property: "bottom_color", value: [0.63, 0.69, 0.77] });
     this.viewer.handle_command({ type: "set_property", path: "/Axes", property: "visible", value: false });
+    if (software) {
+      // meshcat draws its gradient background as a full-screen textured quad every frame; a
+      // software rasteriser pays for every pixel of it, so it gets a plain clear colour (the
+      // gradient's middle) instead: no extra pass, one shader less to compile for the first frame
+      this.viewer.scene.background = new THREE.Color(0.75, 0.795, 0.855);
+    }
     for (const cmd of sceneData.commands) this.viewer.handle_command(cmd);
     this.nodes = {};
     const find = (path) => this.viewer.scene_tree.find(path.split("/").filter((x) => x.length));
@@ -138,6 +148,27 @@ export class Crane3D {
     this.buildEnvelope();
     // parked pose until data arrives (no log on the grapple)
     if (this.spec.rest_frame) this.apply(this.spec.rest_frame);
+  }
+
+  // Adaptive resolution on software rasterisers: `frameMs` is the interval of the animation
+  // frame just drawn. Slow frames for half a second lower the pixel ratio (0.7 → 0.5), fast ones
+  // for two seconds raise it again; real GPUs keep their ratio.
+  frameTime(frameMs) {
+    if (!this.software || !(frameMs > 0)) return;
+    const a = this.frameEma === undefined ? frameMs : this.frameEma;
+    this.frameEma = a + 0.1 * (frameMs - a);
+    const now = performance.now();
+    if (this.ratioChanged !== undefined && now - this.ratioChanged < 500) return;
+    const ratio = this.viewer.renderer.getPixelRatio();
+    let next = ratio;
+    if (this.frameEma > SLOW_FRAME_MS && ratio > MIN_SOFTWARE_RATIO + 1e-6) next = MIN_SOFTWARE_RATIO;
+    else if (this.frameEma < FAST_FRAME_MS && ratio < SOFTWARE_RATIO - 1e-6 && now - (this.ratioChanged || 0) > 2000) next = SOFTWARE_RATIO;
+    if (next !== ratio) {
+      this.ratioChanged = now;
+      this.viewer.renderer.setPixelRatio(next);
+      this.resize();
+      this.viewer.set_dirty();
+    }
   }
 
   resize() {

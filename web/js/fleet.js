@@ -9,6 +9,8 @@ let figures = { machines: {}, total: null };
 const sort = { key: "status", dir: 1 };
 const STATUS_ORDER = { live: 0, idle: 1, offline: 2 };
 const map = new FleetMap($("map"));
+const compareSel = new Set(); // machine ids ticked for the compare page (2 to 4)
+const COMPARE_MAX = 4;
 
 function figure(m, k) { return (figures.machines[m.machine_id] || {})[k] ?? null; }
 
@@ -72,7 +74,8 @@ function render() {
     const link = `/machines/${encodeURIComponent(m.machine_id)}`;
     const payload = m.payload_kg === null || m.payload_kg === undefined ? "–" : `${Math.round(m.payload_kg)} kg`;
     tr.innerHTML = `<td><a href="${link}"></a></td><td></td><td><span class="badge ${m.status}"></span></td>`
-      + `<td title="${m.last_seen || ""}"></td><td class="num"></td><td class="num"></td><td class="num"></td><td class="num"></td><td class="num"></td>`;
+      + `<td title="${m.last_seen || ""}"></td><td class="num"></td><td class="num"></td><td class="num"></td><td class="num"></td><td class="num"></td>`
+      + `<td class="pick"><input type="checkbox" class="compare-pick"></td>`;
     tr.querySelector("a").textContent = m.name || m.machine_id;
     tr.children[1].textContent = m.model || "";
     tr.querySelector(".badge").textContent = m.status || "unknown";
@@ -83,6 +86,11 @@ function render() {
     tr.children[7].textContent = fmt(figure(m, "tonnes"), 1);
     tr.children[8].textContent = String(m.alarms ?? 0);
     if (m.alarms > 0) tr.children[8].classList.add("alarm");
+    const pick = tr.querySelector(".compare-pick");
+    pick.checked = compareSel.has(m.machine_id);
+    pick.setAttribute("aria-label", `Compare ${m.name || m.machine_id}`);
+    pick.onchange = () => { if (pick.checked) compareSel.add(m.machine_id); else compareSel.delete(m.machine_id); compareButton(); };
+    tr.children[9].onclick = (ev) => ev.stopPropagation();
     tr.onclick = (ev) => { if (ev.target.tagName !== "A") window.location.href = link; };
     tr.onmouseenter = () => map.highlight(m.machine_id);
     tr.onmouseleave = () => map.highlight(null);
@@ -92,6 +100,16 @@ function render() {
   map.update(shown).then((n) => { window.cranetwin.mapMarkers = n; window.cranetwin.mapReady = true; })
     .catch((err) => { window.cranetwin.mapError = String(err); });
   $("empty").hidden = machines.length > 0;
+  compareButton();
+}
+
+function compareButton() {
+  for (const id of [...compareSel]) if (!machines.some((m) => m.machine_id === id)) compareSel.delete(id);
+  const n = compareSel.size;
+  const b = $("compare");
+  b.textContent = `Compare (${n})`;
+  b.disabled = n < 2 || n > COMPARE_MAX;
+  b.title = n > COMPARE_MAX ? `At most ${COMPARE_MAX} machines side by side` : "Open 2 to 4 ticked machines side by side";
 }
 
 async function refresh() {
@@ -116,6 +134,10 @@ async function refresh() {
   }
 }
 
+$("compare").onclick = () => {
+  const ids = machines.map((m) => m.machine_id).filter((id) => compareSel.has(id));
+  if (ids.length >= 2 && ids.length <= COMPARE_MAX) window.location.href = `/compare?machines=${ids.map(encodeURIComponent).join(",")}`;
+};
 $("filter").oninput = render;
 $("status-filter").onchange = render;
 for (const th of document.querySelectorAll("#machines th[data-sort]")) {

@@ -1,18 +1,21 @@
 // Machine page: 3D crane, live and replay modes, charts on one time cursor, events, share/export.
-import { ApiError, askSignIn, download, getJSON, setupSignIn, wsURL, isoSeconds, parseTime, relTime } from "./api.js";
+// The page wires these modules together: source (API or embedded data), crane3d (the scene),
+// replay + playback (chunks, play clock), live (websocket, buffers), chartpanel (channel
+// picker and load history), timeline.
+import { ApiError, askSignIn, download, setupSignIn, isoSeconds, parseTime, relTime } from "./api.js";
 import { Crane3D } from "./crane3d.js";
 import { ReplayStore } from "./replay.js";
-import { Charts, channelCatalog, chartGroups, DEFAULT_KINDS } from "./charts.js";
-import { Timeline, coverageFromHistory, nextCovered } from "./timeline.js";
+import { Charts } from "./charts.js";
+import { Timeline, coverageFromHistory } from "./timeline.js";
+import { apiSource, embeddedSource, loadScript } from "./source.js";
+import { FRAME_S, REPLAY_RATE_HZ, drawReplay, playStep } from "./playback.js";
+import { LiveBuffer, LiveFeed, drawLive } from "./live.js";
+import { ChartPanel } from "./chartpanel.js";
+import { buildForceRows, showNow } from "./nowcard.js";
 import { showSchedule } from "./schedule.js";
 
 const $ = (id) => document.getElementById(id);
 const SPEEDS = [0.25, 0.5, 1, 2, 4, 8, 16];
-const REPLAY_RATE_HZ = 25;
-const LIVE_WINDOW_S = 60;
-const TRAIL_S = 20;
-const FRAME_S = 1 / REPLAY_RATE_HZ; // one frame step [s]
-const GAP_SKIP_S = 2; // play jumps over silences longer than this [s]
 
 // Measurements read by the browser tests and benchmarks.
 const metrics = window.cranetwin = {
@@ -20,53 +23,6 @@ const metrics = window.cranetwin = {
   ready: false, firstFrameMs: null, sceneMs: null, framesRendered: 0, rafIntervals: [],
   liveLatencyMs: [], liveFrames: 0, lastLiveT: null, mode: null, cursor: null, drawnT: null, errors: [],
 };
-
-// ---- data source: the API, or the data embedded in an exported file ---------------------------
-function apiSource(id) {
-  const base = `/api/v1/machines/${encodeURIComponent(id)}`;
-  return {
-    embedded: false,
-    machine: () => getJSON(base),
-    model: () => getJSON(`${base}/model`),
-    scene: () => getJSON(`${base}/scene`),
-    twin: (a, b, rate) => getJSON(`${base}/twin`, { from: a, to: b, rate_hz: rate }),
-    history: (a, b, channels, maxPoints) => getJSON(`${base}/history`, { from: a, to: b, channels: channels.join(","), max_points: maxPoints }),
-    events: (a, b) => getJSON(`${base}/events`, { from: a, to: b }),
-    liveURL: () => wsURL(`${base}/live`),
-  };
-}
-function embeddedSource(e) {
-  return {
-    embedded: true,
-    machine: async () => e.machine,
-    model: async () => e.model,
-    scene: async () => e.scene,
-    twin: async (a, b) => sliceTwin(e.twin, a, b),
-    history: async () => e.history,
-    events: async () => e.events || [],
-    liveURL: () => null,
-  };
-}
-function sliceTwin(tw, a, b) {
-  const idx = [];
-  tw.t.forEach((t, i) => { if (t >= a - 1e-9 && t <= b + 1e-9) idx.push(i); });
-  const pick = (arr) => idx.map((i) => arr[i]);
-  const out = { t: pick(tw.t), q: pick(tw.q), tip: tw.tip ? pick(tw.tip) : null, poses: {}, cylinder_pins: {}, utilisation: {}, cylinder_forces: {}, payload: tw.payload };
-  for (const k in tw.poses) out.poses[k] = pick(tw.poses[k]);
-  for (const k in tw.cylinder_pins || {}) out.cylinder_pins[k] = pick(tw.cylinder_pins[k]);
-  for (const k in tw.utilisation || {}) out.utilisation[k] = pick(tw.utilisation[k]);
-  for (const k in tw.cylinder_forces || {}) out.cylinder_forces[k] = pick(tw.cylinder_forces[k]);
-  return out;
-}
-
-function loadScript(src) {
-  return new Promise((resolve, reject) => {
-    if (typeof Plotly !== "undefined") { resolve(); return; }
-    const s = document.createElement("script");
-    s.src = src; s.onload = resolve; s.onerror = () => reject(new Error(`cannot load ${src}`));
-    document.head.appendChild(s);
-  });
-}
 
 // ---- page state ---------------------------------------------------------------------------------
 const embed = window.CRANETWIN_EMBED || null;
@@ -76,10 +32,10 @@ const params = new URLSearchParams(window.location.search);
 const state = {
   machine: null, model: null, crane: null, charts: null, groups: null,
   mode: null, from: null, to: null, cursor: null, playing: false, view: null, coverage: [],
-  catalog: [], selected: [], timeline: null,
+  panel: null, charts: null, timeline: null,
   speed: Math.min(16, Math.max(0.25, parseFloat(params.get("speed")) || 1)),
   store: null, events: [], live: null, liveFrame: null, liveDirty: false,
-  liveBuffer: { t: [], series: {} }, liveTrail: [], lastWall: null, lastUrlUpdate: 0, historyAsk: 0,
+  liveBuffer: new LiveBuffer(), liveTrail: [], lastWall: null, lastUrlUpdate: 0,
 };
 
 function banner(text, kind = "info") {
@@ -120,11 +76,10 @@ async function start() {
   state.crane = new Crane3D($("view3d"), scene);
   window.__crane = state.crane;
   metrics.sceneMs = performance.now() - t0;
-  buildForceRows();
-  state.catalog = channelCatalog(model);
-  const wanted = (params.get("ch") || "").split(",").filter((n) => state.catalog.some((c) => c.name === n));
-  state.selected = wanted.length ? wanted : state.catalog.filter((c) => DEFAULT_KINDS.includes(c.kind)).map((c) => c.name);
-  buildChannelPicker();
+  buildForceRows($("force-rows"), state.crane.spec.cylinders);
+  state.panel = new ChartPanel(source, model, { list: $("channel-list"), count: $("channel-count"), charts: $("charts"), msg: $("charts-msg") },
+    (params.get("ch") || "").split(","));
+  state.panel.buildPicker(pickChannels);
   state.timeline = new Timeline($("timeline"), { onView: (a, b) => setView(a, b, "timeline"), onSeek: (t) => { state.playing = false; updatePlayButton(); seek(t, true); } });
   if (!embed) setupSignIn(() => window.location.reload());
   if (embed) { $("mode-live").disabled = true; $("share").hidden = true; $("export").hidden = true; $("report").hidden = true; $("report-fmt").hidden = true; $("back-link").hidden = true; }
@@ -134,9 +89,9 @@ async function start() {
   // plotly (4.6 MB to parse) is loaded once the crane is drawn, so it never delays that paint
   const afterPaint = Promise.race([firstFrame, new Promise((r) => setTimeout(r, 3000))]);
   const chartsReady = afterPaint.then(() => (embed ? null : loadScript("/static/vendor/plotly.min.js"))).then(() => {
-    state.groups = chartGroups(state.catalog, state.selected);
-    state.charts = new Charts($("charts"), state.groups, (t) => { if (state.mode === "replay") seek(t, true); },
-      (a, b) => { if (state.mode === "replay") setView(a ?? state.from, b ?? state.to, "chart"); });
+    state.panel.attach((groups) => new Charts($("charts"), groups, (t) => { if (state.mode === "replay") seek(t, true); },
+      (a, b) => { if (state.mode === "replay") setView(a ?? state.from, b ?? state.to, "chart"); }));
+    state.charts = state.panel.charts;
     if (state.view) state.charts.setXRange(state.view.a, state.view.b);
     $("charts").addEventListener("wheel", (ev) => {
       if (state.mode !== "replay" || !state.timeline || state.from === null) return;
@@ -195,15 +150,6 @@ function setStatus(machine) {
   s.className = `badge ${st}`;
 }
 
-function buildForceRows() {
-  const rows = $("force-rows");
-  rows.innerHTML = "";
-  for (const c of state.crane.spec.cylinders) {
-    const tr = document.createElement("tr");
-    tr.innerHTML = `<th scope="row">${c}</th><td id="f-${c}">–</td><td><div class="bar"><div id="u-${c}"></div></div></td>`;
-    rows.appendChild(tr);
-  }
-}
 
 // ---- modes --------------------------------------------------------------------------------------
 function setMode(mode, from, to, t) {
@@ -287,7 +233,8 @@ function fmtDuration(s) {
 // Where data exist in the range (for the timeline and for play to skip silences).
 async function loadCoverage(from, to) {
   try {
-    const ch = state.catalog.find((c) => c.kind === "pressure") || state.catalog[0];
+    const catalog = state.panel.catalog;
+    const ch = catalog.find((c) => c.kind === "pressure") || catalog[0];
     const hist = await source.history(from, to, [ch ? ch.name : "payload"], 600);
     if (state.from !== from || state.to !== to) return;
     state.coverage = coverageFromHistory(hist);
@@ -296,38 +243,9 @@ async function loadCoverage(from, to) {
   } catch (_) { state.coverage = []; }
 }
 
-function buildChannelPicker() {
-  const box = $("channel-list");
-  box.innerHTML = "";
-  const kinds = [];
-  for (const c of state.catalog) if (!kinds.includes(c.kind)) kinds.push(c.kind);
-  for (const k of kinds) {
-    const fs = document.createElement("fieldset");
-    const chans = state.catalog.filter((c) => c.kind === k);
-    fs.innerHTML = `<legend>${chans[0].title}</legend>`;
-    for (const c of chans) {
-      const label = document.createElement("label");
-      const input = document.createElement("input");
-      input.type = "checkbox";
-      input.value = c.name;
-      input.dataset.channel = c.name;
-      input.checked = state.selected.includes(c.name);
-      input.onchange = () => pickChannels();
-      label.append(input, ` ${c.label}${c.live ? "" : " (not live)"}`);
-      fs.appendChild(label);
-    }
-    box.appendChild(fs);
-  }
-  $("channel-count").textContent = String(state.selected.length);
-}
-
 function pickChannels() {
-  state.selected = [...document.querySelectorAll("#channel-list input:checked")].map((i) => i.value);
-  $("channel-count").textContent = String(state.selected.length);
-  metrics.channels = state.selected.slice();
+  metrics.channels = state.panel.selected.slice();
   if (!state.charts) return;
-  state.groups = chartGroups(state.catalog, state.selected);
-  state.charts.setGroups(state.groups);
   if (state.mode === "replay") loadHistory(state.view ? state.view.a : state.from, state.view ? state.view.b : state.to);
   else state.charts.setLive(state.liveBuffer);
   updateUrl(true);
@@ -335,27 +253,7 @@ function pickChannels() {
 
 async function loadHistory(from, to) {
   if (!state.charts) return;
-  const channels = state.groups.flatMap((g) => g.channels);
-  const msg = $("charts-msg");
-  if (channels.length === 0) {
-    state.charts.setHistory({ channels: {} }, state.events);
-    msg.hidden = false; msg.textContent = "No channel chosen: pick some under Channels.";
-    return;
-  }
-  const ask = ++state.historyAsk;
-  try {
-    const maxPoints = Math.min(2000, Math.max(200, Math.round($("charts").clientWidth * 1.5)));
-    const hist = await source.history(from, to, channels, maxPoints);
-    if (ask !== state.historyAsk) return; // a newer view or channel choice asked meanwhile
-    const any = state.charts.setHistory(hist, state.events);
-    metrics.historyLoads = (metrics.historyLoads || 0) + 1;
-    msg.hidden = any;
-    if (!any) msg.textContent = "No load history in this range.";
-  } catch (err) {
-    msg.hidden = false;
-    msg.textContent = `Load history unavailable: ${err.message}`;
-  }
-  state.charts.setCursor(state.cursor);
+  if (await state.panel.loadHistory(from, to, () => state.events, () => state.cursor)) metrics.historyLoads = (metrics.historyLoads || 0) + 1;
 }
 
 function renderEvents() {
@@ -408,40 +306,24 @@ function startLive() {
   $("slider").disabled = true;
   $("play").disabled = true;
   for (const id of ["frame-back", "frame-fwd", "zoom-out"]) $(id).disabled = true;
-  state.liveBuffer = { t: [], series: {} };
+  state.liveBuffer = new LiveBuffer();
   state.liveTrail = [];
-  let backoff = 500;
-  let lastFrameWall = Date.now();
-  const connect = () => {
-    const ws = new WebSocket(source.liveURL());
-    state.live = ws;
-    ws.onopen = () => { backoff = 500; banner("Connected — waiting for data from the machine…", "info"); lastFrameWall = Date.now(); };
-    ws.onmessage = (msg) => {
-      let f;
-      try { f = JSON.parse(msg.data); } catch (_) { return; }
-      if (f.type === "hello") return;
-      if (f.type === "error") { state.liveError = true; banner(f.detail || f.title || "Live stream error", "error"); return; }
-      lastFrameWall = Date.now();
-      f.receivedAt = performance.now();
+  state.live = new LiveFeed(source.liveURL(), {
+    open: () => banner("Connected — waiting for data from the machine…", "info"),
+    error: (text) => { state.liveError = true; banner(text, "error"); },
+    frame: (f) => {
       state.liveFrame = f;
       state.liveDirty = true;
       metrics.liveFrames += 1;
-      pushLive(f);
-    };
-    ws.onclose = (ev) => {
-      if (state.live !== ws) return;
-      if (ev.code === 4401 || ev.code === 4403 || ev.code === 1008) { banner("The live stream refused this key.", "error"); return; }
-      if (ev.code === 4404) { banner(`Unknown machine “${machineId}”.`, "error"); return; }
-      banner(`Live connection lost — reconnecting in ${(backoff / 1000).toFixed(1)} s…`, "error");
-      state.liveTimer = setTimeout(connect, backoff);
-      backoff = Math.min(backoff * 2, 10000);
-    };
-  };
-  connect();
+      state.liveBuffer.push(f);
+    },
+    refused: (code) => banner(code === 4404 ? `Unknown machine “${machineId}”.` : "The live stream refused this key.", "error"),
+    lost: (ms) => banner(`Live connection lost — reconnecting in ${(ms / 1000).toFixed(1)} s…`, "error"),
+  });
   state.liveWatch = setInterval(() => {
     if (state.mode !== "live") return;
-    const quiet = (Date.now() - lastFrameWall) / 1000;
-    if (quiet > 3 && state.live && state.live.readyState === 1) {
+    const quiet = state.live.quietS();
+    if (quiet > 3 && state.live.connected) {
       const seen = state.machine && state.machine.last_seen ? ` Last seen ${relTime(state.machine.last_seen)}.` : "";
       banner(`No live data for ${Math.round(quiet)} s — the machine is idle or offline.${seen} Use Replay to see stored data.`, "warn");
     } else if (quiet <= 1 && $("banner").classList.contains("warn")) {
@@ -454,29 +336,17 @@ function startLive() {
 }
 
 function stopLive() {
-  if (state.live) { const ws = state.live; state.live = null; ws.close(); }
-  clearTimeout(state.liveTimer);
+  if (state.live) { state.live.close(); state.live = null; }
   clearInterval(state.liveWatch);
-}
-
-function pushLive(f) {
-  const b = state.liveBuffer;
-  b.t.push(f.t);
-  const add = (name, v) => { (b.series[name] ||= []).push(v ?? null); };
-  for (const [k, v] of Object.entries(f.pressures || {})) add(k, v);
-  for (const [k, v] of Object.entries(f.cylinder_forces || {})) add(`force:${k}`, v);
-  for (const [k, v] of Object.entries(f.joint_torques || {})) add(`torque:${k}`, v);
-  add("payload", f.payload_kg);
-  while (b.t.length > 0 && b.t[0] < f.t - LIVE_WINDOW_S) {
-    b.t.shift();
-    for (const k in b.series) b.series[k].shift();
-  }
 }
 
 // ---- rendering loop -----------------------------------------------------------------------------
 function loop(now) {
   requestAnimationFrame(loop);
-  if (state.lastWall !== null && (state.playing || state.mode === "live")) metrics.rafIntervals.push(now - state.lastWall);
+  if (state.lastWall !== null && (state.playing || state.mode === "live")) {
+    metrics.rafIntervals.push(now - state.lastWall);
+    if (state.crane) state.crane.frameTime(now - state.lastWall);
+  }
   const dt = state.lastWall === null ? 0 : (now - state.lastWall) / 1000;
   state.lastWall = now;
   if (!state.crane) return;
@@ -484,10 +354,7 @@ function loop(now) {
     if (!state.liveDirty) return;
     state.liveDirty = false;
     const f = state.liveFrame;
-    const tip = state.crane.tipFromPoses(f.poses || {});
-    if (tip) { state.liveTrail.push(tip[0], tip[1], tip[2]); if (state.liveTrail.length > 3 * 600) state.liveTrail.splice(0, 3); }
-    state.crane.apply(f);
-    state.crane.setTrail(state.liveTrail);
+    drawLive(state.crane, f, state.liveTrail);
     readout(f);
     metrics.lastLiveT = f.t;
     metrics.liveLatencyMs.push(Date.now() - f.t * 1000);
@@ -496,17 +363,11 @@ function loop(now) {
   }
   if (state.mode !== "replay" || !state.store) return;
   if (state.playing) {
-    let next = state.cursor + dt * state.speed;
+    const step = playStep(state.store, state.coverage, state.cursor, dt, state.speed, state.to);
     // silences (no data) are skipped, not played through in real time
-    const cov = nextCovered(state.coverage, next);
-    if (state.coverage.length && (cov === null || cov - next > GAP_SKIP_S)) {
-      next = cov === null ? state.to : cov;
-      metrics.gapsSkipped = (metrics.gapsSkipped || 0) + 1;
-    }
-    const f = state.store.frameAt(next);
-    if (f && typeof f === "object") {
-      if (f.gapTo !== undefined && f.gapTo - next > GAP_SKIP_S) { next = f.gapTo; metrics.gapsSkipped = (metrics.gapsSkipped || 0) + 1; }
-      state.cursor = metrics.cursor = Math.min(next, state.to);
+    if (step.gapsSkipped) metrics.gapsSkipped = (metrics.gapsSkipped || 0) + step.gapsSkipped;
+    if (step.kind === "frame") {
+      state.cursor = metrics.cursor = step.cursor;
       followCursor();
       if (now - (state.lastSliderPaint || 0) > 100) {
         state.lastSliderPaint = now;
@@ -515,10 +376,9 @@ function loop(now) {
       }
       state.needsFrame = true;
       if (state.cursor >= state.to) { state.playing = false; updatePlayButton(); updateUrl(true); }
-    } else if (f === "empty" || f === "error") {
+    } else if (step.kind === "chunk-skipped") {
       // a whole chunk without data: on to the next chunk at once
-      const i = state.store.chunkIndex(next);
-      state.cursor = metrics.cursor = Math.min(state.store.from + (i + 1) * 60, state.to);
+      state.cursor = metrics.cursor = step.cursor;
       followCursor();
       $("slider").value = String(state.cursor - state.view.a);
       state.timeline.setCursor(state.cursor);
@@ -530,13 +390,11 @@ function loop(now) {
 }
 
 function drawReplayFrame() {
-  const f = state.store.frameAt(state.cursor);
+  const f = drawReplay(state.crane, state.store, state.cursor);
   if ((f === "loading" || f === "empty") && !state.playing) $("time-label").textContent = `${fmtTime(state.cursor).slice(11)} (${f === "empty" ? "no data" : "loading…"})`;
   if (!f || typeof f !== "object") return;
   state.needsFrame = false;
   metrics.drawnT = f.t;
-  state.crane.apply(f);
-  state.crane.setTrail(state.store.trail(state.cursor, TRAIL_S, state.crane.trailN));
   readout(f);
   rendered();
 }
@@ -568,30 +426,8 @@ function readout(f) {
   $("now-time").textContent = fmtTime(f.t);
   $("time-label").textContent = state.mode === "replay" ? `${fmtTime(state.cursor).slice(11)} (${state.speed}×)`
     : `live · ${Math.max(0, Math.round(Date.now() - f.t * 1000))} ms behind`;
-  const kg = f.payload_kg;
-  $("now-payload").textContent = kg === null || kg === undefined ? "unknown" : `${Math.round(kg)} kg`;
-  const env = state.crane.envelopeState;
-  const rated = env ? env.rated_kg : state.crane.spec.rated_payload_kg;
-  $("payload-bar").style.width = `${Math.min(100, 100 * (kg || 0) / rated)}%`;
-  if (env) {
-    metrics.envelope = env;
-    $("now-reach").textContent = `${env.reach_m.toFixed(2)} m`;
-    $("now-rated").textContent = `${Math.round(env.rated_kg)} kg`;
-    const u = $("now-util");
-    u.textContent = kg === null || kg === undefined ? "–" : `${Math.round(100 * env.utilisation)} % of rated`;
-    u.className = env.utilisation > 1 ? "over" : env.utilisation > 0.8 ? "high" : "";
-    $("readout").textContent = kg === null || kg === undefined ? "" : `load ${Math.round(kg)} kg · ${Math.round(100 * env.utilisation)} % of the rated ${Math.round(env.rated_kg)} kg at ${env.reach_m.toFixed(1)} m`;
-  }
-  for (const c of state.crane.spec.cylinders) {
-    const F = (f.cylinder_forces || {})[c];
-    const u = (f.utilisation || {})[c];
-    $(`f-${c}`).textContent = F === undefined || F === null ? "–" : `${(F / 1000).toFixed(1)} kN`;
-    const bar = $(`u-${c}`);
-    const uu = u === undefined || u === null ? 0 : Math.abs(u);
-    bar.style.width = `${Math.min(100, 100 * uu)}%`;
-    bar.className = uu > 1 ? "over" : uu > 0.8 ? "high" : "";
-    bar.parentElement.title = `${Math.round(100 * uu)} % of rating`;
-  }
+  const env = showNow(f, state.crane);
+  if (env) metrics.envelope = env;
 }
 
 // ---- controls -----------------------------------------------------------------------------------
@@ -629,8 +465,8 @@ function shareURL() {
       url.searchParams.set("vto", state.view.b.toFixed(2));
     }
   }
-  const defaults = state.catalog.filter((c) => DEFAULT_KINDS.includes(c.kind)).map((c) => c.name).join(",");
-  if (state.selected.length && state.selected.join(",") !== defaults) url.searchParams.set("ch", state.selected.join(","));
+  const sel = state.panel ? state.panel.selected : [];
+  if (sel.length && sel.join(",") !== state.panel.defaults().join(",")) url.searchParams.set("ch", sel.join(","));
   return url.toString();
 }
 

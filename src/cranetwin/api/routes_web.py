@@ -122,6 +122,13 @@ def machine_page(machine_id: str, request: Request) -> Response:
     return _page(request, "machine.html")
 
 
+@router.get("/compare", include_in_schema=False)
+def compare_page(request: Request) -> Response:
+    """2–4 machines side by side (HTML): ``/compare?machines=a,b[,c,d]``, live or replaying one
+    time range on one timeline; the page's script reads the machines from the query."""
+    return _page(request, "compare.html")
+
+
 _MEDIA = {".js": "text/javascript", ".css": "text/css", ".html": "text/html",
           ".svg": "image/svg+xml", ".png": "image/png", ".json": "application/json"}
 

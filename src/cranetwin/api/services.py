@@ -86,15 +86,16 @@ class Services:
             await asyncio.gather(*(asyncio.wrap_future(self.heavy.processes.submit(fn))
                                    for _ in range(cfg.heavy_processes)))
         if cfg.alarm_webhook_url:
-            from cranetwin.service.webhooks import WebhookNotifier
+            from cranetwin.service.webhooks import WebhookConfig, WebhookNotifier
 
             if not cfg.alarm_webhook_secret:
                 log.warning("CRANETWIN_ALARM_WEBHOOK_URL is set without "
                             "CRANETWIN_ALARM_WEBHOOK_SECRET: webhook off (its requests are signed)")
             else:
-                self.webhook = WebhookNotifier(
+                self.webhook = WebhookNotifier(WebhookConfig(
                     cfg.alarm_webhook_url, cfg.alarm_webhook_secret, cfg.alarm_webhook_retries,
-                    cfg.alarm_webhook_backoff_s, cfg.alarm_webhook_timeout_s)
+                    cfg.alarm_webhook_backoff_s, cfg.alarm_webhook_timeout_s),
+                    self.backend.session)
                 await asyncio.to_thread(self.alarms.set_notifier, self.webhook,
                                         cfg.alarm_webhook_severity)
         if self.settings.alarm_check_interval_s > 0:
@@ -110,7 +111,7 @@ class Services:
             except Exception as exc:  # noqa: BLE001 - a failed check must not stop the next
                 log.warning("alarm check failed: %s", exc)
             if self.webhook is not None:
-                try:  # hands new events to the webhook's thread; never waits for a delivery
+                try:  # queues new events in the webhook outbox; never waits for a delivery
                     await asyncio.to_thread(self.alarms.notify_new)
                 except Exception as exc:  # noqa: BLE001
                     log.warning("webhook check failed: %s", exc)

@@ -14,7 +14,10 @@ loopback) and drives Debian's Chromium headless (software WebGL) with Playwright
 - ``demo_first_live_seconds``: ``cranetwin fleetdemo --machines 1`` started in a fresh empty
   directory → the demo reports its crane live (``--no-demo`` skips it);
 - baseline: rAF rate of an empty page in the same browser (``blank_fps``), and the ratio
-  ``replay_fps / blank_fps`` (1.0 = the crane costs no frames).
+  ``replay_fps / blank_fps`` (1.0 = the crane costs no frames);
+- ``render_frame_ms``: median time to draw one 3D frame and wait for it (60 frames), interleaved
+  with ``render_frame_ms_baseline_gradient``, the same frame with meshcat's gradient background
+  quad at pixel ratio 0.7 (what the page drew before; software rasterisers pay for every pixel).
 
 The browser signs in the way a person does: the key is POSTed once to ``/api/v1/session`` and
 the pages are opened with the session cookie only, never with a key in their URL.
@@ -105,6 +108,31 @@ def demo_first_live(timeout_s: float = 300.0) -> float | None:
         return found
 
 
+RENDER_AB_JS = """([n]) => {
+  // One 3D frame drawn and waited for (readPixels of one pixel finishes the GPU work), n times
+  // each, alternating: the page as it is, and meshcat's gradient background quad at 0.7x.
+  const cr = window.__crane, v = cr.viewer, r = v.renderer, gl = r.getContext();
+  const own = [v.scene.background, r.getPixelRatio()];
+  v.handle_command({type: "set_property", path: "/Background", property: "top_color",
+                    value: [0.87, 0.9, 0.94]});
+  const baseline = [v.scene.background, 0.7];
+  const px = new Uint8Array(4), out = {page: [], baseline: []};
+  const cfgs = [["page", own], ["baseline", baseline]];
+  for (let k = 0; k < n; k++) for (const [name, [bg, ratio]] of cfgs) {
+    v.scene.background = bg;
+    if (r.getPixelRatio() !== ratio) { r.setPixelRatio(ratio); cr.resize(); }
+    const t0 = performance.now();
+    v.render(); gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    out[name].push(performance.now() - t0);
+  }
+  v.scene.background = own[0]; r.setPixelRatio(own[1]); cr.resize(); v.set_dirty();
+  const med = (a) => a.slice().sort((x, y) => x - y)[a.length >> 1];
+  return {page: med(out.page), baseline: med(out.baseline), ratio: own[1]};
+}"""
+"""Render cost of one frame of the machine page against meshcat's default background, the two
+interleaved in one page so both see the same load."""
+
+
 def _fps(intervals: list[float]) -> tuple[float, float]:
     xs = sorted(x for x in intervals if x > 0)
     if not xs:
@@ -139,13 +167,17 @@ class _LiveFeeder:
             self.stop.wait(0.2)
 
 
-def _real_app(tmpdir: str, end: float, history_s: float) -> tuple[Any, dict[str, Any]]:
-    """create_app on a temporary SQLite database holding ``history_s`` of kinematic samples."""
+def _real_app(tmpdir: str, web_dir: str | None = None) -> Any:
+    """create_app on a temporary SQLite database (filled by :func:`_fill`), serving the web
+    files of ``web_dir`` (None: the repository's)."""
+    from pathlib import Path
+
     from cranetwin.api import create_app
     from cranetwin.settings import Settings
 
     url = f"sqlite:///{tmpdir}/bench-web.db"
-    return create_app(Settings(database_url=url, worker_in_process=False)), {"url": url}
+    return create_app(Settings(database_url=url, worker_in_process=False,
+                               web_dir=Path(web_dir) if web_dir else None))
 
 
 def _fill(app: Any, srv_url: str, end: float, history_s: float) -> str:
@@ -171,7 +203,7 @@ def _fill(app: Any, srv_url: str, end: float, history_s: float) -> str:
 
 
 def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
-        server: str = "real", demo: bool = True) -> dict[str, Any]:
+        server: str = "real", demo: bool = True, web_dir: str | None = None) -> dict[str, Any]:
     """Measure the figures above; returns them as a dict.
 
     Args:
@@ -180,6 +212,8 @@ def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
         server: ``real`` (create_app on SQLite with 15 min of stored samples) or ``preview``
             (synthetic data, no database).
         demo: Also measure ``demo_first_live_seconds`` (starts a demo in a fresh directory).
+        web_dir: Serve the pages from this copy of ``web/`` (A/B comparisons of front-end
+            changes; real server only).
     """
     import tempfile
 
@@ -194,10 +228,11 @@ def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
     tmp = tempfile.TemporaryDirectory()
     feeder = None
     if server == "real":
-        app, _ = _real_app(tmp.name, end, 900.0)
+        app = _real_app(tmp.name, web_dir)
     else:
         app = create_preview_app(history_s=1800.0, end=end)
-    out: dict[str, Any] = {"browser": "chromium (headless, swiftshader)", "server": server}
+    out: dict[str, Any] = {"browser": "chromium (headless, swiftshader)", "server": server,
+                           "web_dir": web_dir or "repository"}
     with ServerThread(app) as srv, sync_playwright() as p:
         key = _fill(app, srv.url, end, 900.0) if server == "real" else PREVIEW_KEY
         if server == "real":
@@ -255,6 +290,10 @@ def run(seconds: float = 6.0, chromium: str = "/usr/bin/chromium",
             out[f"replay_{speed}x_p95_frame_ms"] = p95
             out[f"replay_{speed}x_drawn_fps"] = drawn / seconds
         out["replay_fps"] = min(out["replay_1x_fps"], out["replay_16x_fps"])
+        ab = page.evaluate(RENDER_AB_JS, [60])
+        out["render_frame_ms"] = ab["page"]
+        out["render_frame_ms_baseline_gradient"] = ab["baseline"]
+        out["render_pixel_ratio"] = ab["ratio"]
         out["replay_fps_ratio_to_blank"] = out["replay_fps"] / out["blank_fps"]
         # live latency (server frame time -> drawn), 25 Hz stream
         page.goto(f"{srv.url}/machines/crane-1?mode=live")
@@ -288,8 +327,10 @@ def register(bench_app: typer.Typer) -> None:
         server: str = typer.Option("real", help="real (create_app + SQLite) or preview."),
         demo: bool = typer.Option(True, help="Also time a demo started in a fresh directory "
                                   "(demo_first_live_seconds)."),
+        web_dir: str = typer.Option("", help="Serve the pages from this copy of web/ (A/B "
+                                    "runs of front-end changes; default: the repository's)."),
     ) -> None:
         """Web UI: first paint (cold and warm server), replay fps (10-min window), live latency
         (sample → screen) in headless Chromium, and the demo's time to its first live crane."""
-        result = run(seconds, chromium, server, demo)
+        result = run(seconds, chromium, server, demo, web_dir or None)
         emit(result, as_json)

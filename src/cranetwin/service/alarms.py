@@ -10,9 +10,10 @@ tool is expected to raise by itself:
 
 New events of a chosen severity and above can be sent to a webhook
 (:mod:`cranetwin.service.webhooks`): :meth:`AlarmService.notify_new`, run after each check,
-offers the events stored since the last call (every process's: the twin worker's, the ingest
-daemon's and these) to the notifier's thread, which signs, sends and retries them; nothing here
-waits for the receiver. Events older than the service's start are not sent.
+queues the events stored since the notifier's durable cursor (every process's: the twin
+worker's, the ingest daemon's and these) in the database's webhook outbox, from which the
+notifier's thread signs, sends and retries them; nothing here waits for the receiver. Events
+stored before the webhook was first set up on the database are not sent.
 
 :class:`AlarmService` holds no HTTP; the API's ``routes_alarms`` calls it, and ``Services`` runs
 :meth:`AlarmService.check_connectivity` every ``alarm_check_interval_s``. A gap is seen by
@@ -44,6 +45,12 @@ def _iso(t: float | None) -> str | None:
     return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
 
 
+def _cursor_name(shard: int) -> str:
+    """Name of the webhook outbox's cursor over shard ``shard``'s event ids (``events`` for the
+    first, the only one without sharding)."""
+    return "events" if shard == 0 else f"events.{shard}"
+
+
 class AlarmService:
     """Alarm listing, acknowledgement and connectivity checks over a :class:`Backend`.
 
@@ -61,16 +68,22 @@ class AlarmService:
         self._lock = threading.Lock()
         self.notifier: Any = None  # a service.webhooks.WebhookNotifier, when configured
         self.notify_severities: list[str] = ["critical"]
-        self._notified: list[int] | None = None  # per shard: newest event row id offered
 
     # -- webhook notification -----------------------------------------------------------------
     def set_notifier(self, notifier: Any, min_severity: str = "critical") -> None:
-        """Send new events of ``min_severity`` and above to ``notifier`` (``offer(alarm)``),
-        starting after the newest event stored now."""
+        """Send new events of ``min_severity`` and above to ``notifier`` (a
+        :class:`~cranetwin.service.webhooks.WebhookNotifier`). The first time a webhook is set
+        up on a database its cursor starts after the newest event stored now; later starts
+        continue where the last check stopped, so events stored while no API process ran are
+        sent too."""
         order = ["info", "warning", "critical"]
         self.notify_severities = order[order.index(min_severity):]
         self.notifier = notifier
-        self._notified = self._newest_id()
+        names = [_cursor_name(i) for i in range(len(self.backend.store.engines))]
+        start = {n: v for n, v in zip(names, self._newest_id(), strict=True)
+                 if notifier.cursor(n) is None}
+        if start:
+            notifier.offer_many([], cursors=start)
 
     def _newest_id(self) -> list[int]:
         from cranetwin.storage.alarmshards import newest_ids
@@ -78,21 +91,22 @@ class AlarmService:
         return newest_ids(self.backend.store.engines)
 
     def notify_new(self) -> int:
-        """Offer the events stored since the last call (of the notified severities) to the
-        notifier, in the order they were stored; returns how many. Never waits for a
-        delivery."""
+        """Queue the events stored since the notifier's cursor (of the notified severities) in
+        its outbox, in the order they were stored, and move the cursor past them in the same
+        transaction; returns how many. Never waits for a delivery."""
         if self.notifier is None:
             return 0
         from cranetwin.storage.alarmshards import new_since
 
         engines = self.backend.store.engines
         with self._lock:
-            last = self._notified or [0] * len(engines)
+            names = [_cursor_name(i) for i in range(len(engines))]
+            last = [self.notifier.cursor(n) or 0 for n in names]
             found, marks = new_since(engines, last, self.notify_severities)
-            for a in found:
-                self.notifier.offer(as_json(a))
-            # the watermarks pass every event seen, whatever its severity (ids only grow)
-            self._notified = marks
+            # the cursors pass every event seen, whatever its severity (ids only grow)
+            moved = {n: m for n, m, old in zip(names, marks, last, strict=True) if m > old}
+            if found or moved:
+                self.notifier.offer_many([as_json(a) for a in found], cursors=moved)
         return len(found)
 
     # -- listing and actions ------------------------------------------------------------------
