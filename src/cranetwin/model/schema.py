@@ -213,6 +213,21 @@ class FourBar(_Frozen):
     branch: Literal[-1, 1] = 1
 
 
+class LinearActuator(_Frozen):
+    """A cylinder acting directly along a prismatic joint (a telescope, a directly acting linear
+    actuator): rod position s = ``s0_m`` + q [m], q the joint position. The cylinder's force is
+    the joint's force (moment arm 1); its pins (``base_pin_m``, ``rod_pin_m``) only draw it.
+    """
+
+    kind: Literal["linear"] = "linear"
+    s0_m: float = Field(0.0, description="rod position s at joint position q = 0 [m]")
+
+
+Linkage = Annotated[FourBar | LinearActuator, Field(discriminator="kind")]
+"""The linkage kinds a cylinder may declare (a cylinder without one is pinned directly to the
+two bodies of its joint)."""
+
+
 class Valve(_Frozen):
     """Proportional valve: Q = Qn·U·sign(Δp)·sqrt(|Δp|), first-order spool lag."""
 
@@ -225,8 +240,9 @@ class Cylinder(_Frozen):
     """A double-acting hydraulic cylinder driving ``joint``.
 
     The base pin sits on the joint's parent body, the rod pin on the child body (``linkage`` absent)
-    or on the four-bar rod end E (``linkage`` set; ``rod_pin_m`` then unused).
-    Rod position s = cylinder pin-to-pin length − ``closed_length_m``, in [0, ``stroke_m``].
+    or on the four-bar rod end E (a ``four_bar`` linkage; ``rod_pin_m`` then unused).
+    Rod position s = cylinder pin-to-pin length − ``closed_length_m``, in [0, ``stroke_m``];
+    with a ``linear`` linkage s = s0 + q along a prismatic joint and the pins only draw it.
     """
 
     name: str
@@ -240,7 +256,7 @@ class Cylinder(_Frozen):
     stroke_m: float = Field(gt=0)
     friction: Friction
     valve: Valve | None = None
-    linkage: FourBar | None = None
+    linkage: Linkage | None = None
     dead_volume_m3: float | None = Field(
         None, gt=0, description="hose + port volume per chamber of this cylinder [m³]; None: "
         "hydraulics.dead_volume_m3")

@@ -31,7 +31,7 @@ import numpy.typing as npt
 import trimesh
 
 from cranetwin.errors import CraneTwinError
-from cranetwin.model import Machine, Visual
+from cranetwin.model import FourBar, Machine, Visual
 
 log = logging.getLogger(__name__)
 
@@ -326,7 +326,7 @@ def build_scene(machine: Machine, base_dir: Path | None = None,
         cmds.append(set_object(f"{ROOT}/cylinders/{cyl.name}/rod",
                                mesh_object(rod, "#c9ced6", name=f"{cyl.name}.rod")))
         barrels[cyl.name] = 0.92 * cyl.closed_length_m
-        if cyl.linkage is not None:
+        if isinstance(cyl.linkage, FourBar):
             # four-bar: link D→E (pivot on the parent body to the rod end) and E→F (rod end to
             # the coupler pin on the child body), unit +z meshes stretched every frame
             joint = machine.joints[machine.joint_index(cyl.joint)]
