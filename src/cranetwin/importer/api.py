@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from cranetwin.importer.mapping import ChannelMap, ImportFileError, Mapping, load_mapping
+from cranetwin.importer.mdf import mdf_start_s
 from cranetwin.importer.pipeline import BLOCK_SAMPLES, ImportReport, Pipeline, file_epoch
 from cranetwin.importer.readers import (
     Chunk,
@@ -20,7 +21,6 @@ from cranetwin.importer.readers import (
     detect_format,
     file_columns,
     iter_chunks,
-    mdf_start_s,
 )
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays, SampleBlock
