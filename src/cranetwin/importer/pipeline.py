@@ -111,7 +111,7 @@ class ImportReport:
         return "\n".join(out)
 
 
-def _time_ns(raw: npt.NDArray[Any], mapping: Mapping, start_s: float | None,
+def raw_time_ns(raw: npt.NDArray[Any], mapping: Mapping, start_s: float | None,
              ) -> tuple[I64, B]:
     """Raw time column → int64 ns since the epoch, and a mask of unusable entries."""
     fmt = mapping.time_format
@@ -274,7 +274,7 @@ class Pipeline:
             return [Refusal(int(rows[i]), column, why(i),
                             None if lines is None else int(lines[i])) for i in idx]
 
-        t, tbad = _time_ns(chunk.time, self.mapping, self.start_s)
+        t, tbad = raw_time_ns(chunk.time, self.mapping, self.start_s)
         tbad &= ~bad
         if tbad.any():
             rep.refuse(refusals(tbad, self._time_name(), lambda i: f"{chunk.time[i]!r} is not a "
