@@ -37,7 +37,8 @@ def logged(machine: Machine, tmp_path_factory: pytest.TempPathFactory) -> Logged
     d = tmp_path_factory.mktemp("payload")
     f = d / "logger.csv"
     np.savetxt(f, np.column_stack([s.t_s + T0, s.values, truth / 1000.0]), delimiter=",",
-               fmt=["%.6f", *["%.10g"] * (len(s.channels) + 1)], header=",".join(["t_s", *s.channels, "hook_t"]), comments="")
+               fmt=["%.6f", *["%.10g"] * (len(s.channels) + 1)],
+               header=",".join(["t_s", *s.channels, "hook_t"]), comments="")
     m = d / "map.toml"
     m.write_text(MAP)
     return f, m, s.t_s + T0, truth

@@ -18,10 +18,10 @@ from cranetwin.physics import (
     cylinder_kinematics,
     inverse_dynamics,
     joints_from_cylinders,
+    linkage,
     moment_arm_rates,
     reach_problems,
 )
-from cranetwin.physics import linkage
 
 TELESCOPE = Path(__file__).parent / "data" / "telescope655.toml"
 
