@@ -570,7 +570,11 @@ function readout(f) {
   $("now-payload").textContent = kg === null || kg === undefined ? "unknown" : `${Math.round(kg)} kg`;
   const env = state.crane.envelopeState;
   const rated = env ? env.rated_kg : state.crane.spec.rated_payload_kg;
-  $("payload-bar").style.width = `${Math.min(100, 100 * (kg || 0) / rated)}%`;
+  $("payload-bar").style.width = rated ? `${Math.min(100, 100 * (kg || 0) / rated)}%` : "0%";
+  if (!env && !rated) { // the machine has no rated-load chart
+    $("now-rated").textContent = "unknown";
+    $("now-util").textContent = "unknown (no rated-load chart)";
+  }
   if (env) {
     metrics.envelope = env;
     $("now-reach").textContent = `${env.reach_m.toFixed(2)} m`;

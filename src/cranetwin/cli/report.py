@@ -158,6 +158,8 @@ def report(
                f"{len(rep.events)} events, {rep.n_samples:,} samples")
     for line in getattr(src, "warnings", []):
         typer.echo(f"warning: {line}", err=True)
+    for note in src.machine.unknowns():
+        typer.echo(f"note: {note}", err=True)
     lifts = getattr(src, "lifts", None)
     if lifts is not None:  # a known payload series: the twin's estimate against it
         from cranetwin.importer.payload import summary_line

@@ -235,9 +235,10 @@ class Pipeline:
         chans = [machine.channel(m.channel) for m in present]
         self.names = tuple(m.channel for m in present)
         self.res = np.array([c.resolution for c in chans])
-        tol = mapping.range_tolerance * np.array([c.full_range for c in chans]) + self.res
-        self.lo = np.array([c.min for c in chans]) - tol
-        self.hi = np.array([c.max for c in chans]) + tol
+        # a channel whose sensor range is unknown (no min/max) has no range check
+        tol = mapping.range_tolerance * np.array([c.full_range or 0.0 for c in chans]) + self.res
+        self.lo = np.array([-np.inf if c.min is None else c.min for c in chans]) - tol
+        self.hi = np.array([np.inf if c.max is None else c.max for c in chans]) + tol
         self.scale = np.array([m.scale for m in present])
         self.shift = np.array([m.shift for m in present])
         self.report = ImportReport(channels=self.names)

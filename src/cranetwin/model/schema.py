@@ -162,7 +162,9 @@ class Joint(_Frozen):
     origin_rpy_rad: Vec3 = (0.0, 0.0, 0.0)
     lower: float = Field(description="lower limit [rad or m]")
     upper: float = Field(description="upper limit [rad or m]")
-    velocity_limit: float = Field(1.0, gt=0, description="[rad/s or m/s]")
+    velocity_limit: float | None = Field(
+        None, gt=0, description="[rad/s or m/s]; None: unknown (no overspeed check, and the "
+        "simulator cannot drive a torque drive on the joint)")
     unit: str = ""
     fixed_value: float | None = Field(
         None, description="passive joint (no actuator): held at this value [rad or m], within "
@@ -300,8 +302,10 @@ class Channel(_Frozen):
     quantity: Quantity
     source: str = Field(description="actuator name (pressure/position/torque) or joint (angle)")
     unit: str
-    min: float
-    max: float
+    min: float | None = Field(None, description="lower end of the sensor's range, in ``unit``; "
+                              "None (with max): the range is unknown")
+    max: float | None = Field(None, description="upper end of the sensor's range, in ``unit``; "
+                              "None (with min): the range is unknown")
     resolution: float = Field(gt=0, description="quantisation step, in ``unit``")
     accuracy: float | None = Field(
         None, gt=0, description="stated accuracy of the sensor, ± bound in ``unit`` (e.g. "
@@ -311,13 +315,17 @@ class Channel(_Frozen):
 
     @model_validator(mode="after")
     def _range(self) -> Channel:
-        if not self.min < self.max:
+        if (self.min is None) != (self.max is None):
+            raise ValueError("give both min and max (the sensor's range), or neither (unknown)")
+        if self.min is not None and self.max is not None and not self.min < self.max:
             raise ValueError(f"min {self.min} must be below max {self.max}")
         return self
 
     @property
-    def full_range(self) -> float:
-        """max − min, in ``unit``."""
+    def full_range(self) -> float | None:
+        """max − min, in ``unit``; None when the range is unknown."""
+        if self.min is None or self.max is None:
+            return None
         return self.max - self.min
 
 
@@ -409,7 +417,9 @@ class Machine(_Frozen):
     channels: list[Channel] = Field(default_factory=list)
     hydraulics: Hydraulics | None = None
     load_point: LoadPoint
-    rated_load: RatedLoad
+    rated_load: RatedLoad | None = Field(
+        None, description="rated-load chart; None: unknown (no overload or above-rating "
+        "events, load ratios unknown)")
     fatigue: list[FatigueDetail] = Field(default_factory=list)
     classification: Classification | None = None
 
@@ -453,6 +463,23 @@ class Machine(_Frozen):
             if c.name == name:
                 return c
         raise KeyError(name)
+
+    def unknowns(self) -> list[str]:
+        """The optional fields this description leaves out, each as ``"path: what is then
+        unknown"`` (consumers say "unknown" there rather than invent a value)."""
+        out: list[str] = []
+        if self.rated_load is None:
+            out.append("rated_load: no rated-load chart; load ratios, overload and "
+                       "payload-above-rating events and the 3D envelope are unknown")
+        for i, j in enumerate(self.joints):
+            if j.velocity_limit is None:
+                out.append(f"joints.{i}.velocity_limit: unknown for {j.name!r}; no overspeed "
+                           "check (the simulator needs it on a joint with a torque drive)")
+        for i, c in enumerate(self.channels):
+            if c.min is None or c.max is None:
+                out.append(f"channels.{i}.min/max: sensor range of {c.name!r} unknown; its "
+                           "values are not range-checked (import, ingest)")
+        return out
 
     def chain_bodies(self) -> list[Body]:
         """Bodies in chain order: body i is the child of joint i."""
