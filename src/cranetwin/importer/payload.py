@@ -16,6 +16,7 @@ ends of a lift say how fast the estimate follows, not how right it is.
 
 from __future__ import annotations
 
+import datetime as dt
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,7 +94,11 @@ class LiftError:
         return 100.0 * self.error_kg / self.known_kg
 
     def line(self) -> str:
-        return (f"lift {self.t_start_s:.2f}–{self.t_end_s:.2f} s: known {self.known_kg:.1f} kg, "
+        """E.g. ``lift 2026-01-01T00:00:09.000Z, 14.0 s: known 312.3 kg, estimate …``."""
+        start = dt.datetime.fromtimestamp(self.t_start_s, dt.UTC).strftime(
+            "%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+        return (f"lift {start}, {self.t_end_s - self.t_start_s:.1f} s: known "
+                f"{self.known_kg:.1f} kg, "
                 f"estimate {self.estimate_kg:.1f} kg, error {self.error_kg:+.1f} kg "
                 f"({self.error_pct:+.1f} %)")
 
