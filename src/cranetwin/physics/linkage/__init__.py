@@ -16,9 +16,10 @@ All three numeric functions return NaN where the geometry cannot assemble. Kinds
 along a prismatic joint, s = s0 + q: a telescope) and :mod:`.four_bar` (through a four-bar
 linkage).
 
-Adding a kind: its module, an entry in :data:`KINDS` and a branch in each of the three
+Adding a kind: its module, an entry in :data:`KINDS` and a branch in each of the four
 dispatchers below (numba compiles calls, not look-ups), plus its description in the model
-schema.
+schema (``cranetwin.model.schema.Linkage``). ``tests/test_physics_linear.py`` fails for a
+kind in :data:`KINDS` that a dispatcher does not reach.
 """
 
 from __future__ import annotations
