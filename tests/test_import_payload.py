@@ -142,3 +142,16 @@ def test_report_source_analyses_the_known_payload(machine: Machine, logged: Logg
     ph = np.concatenate([h.payload_kg for h in hist])
     np.testing.assert_allclose(ph, np.interp(th, t, truth), rtol=1e-9, atol=1e-6)
     assert src.lifts is not None and len(src.lifts) == 1
+
+
+@pytest.mark.timeout(60)
+def test_payload_logged_slower_than_the_sensors_is_held_half_its_spacing() -> None:
+    from cranetwin.importer.payload import payload_at
+
+    t = np.arange(0, 3_000_000_000, 10_000_000, dtype=np.int64)  # 100 Hz samples
+    raw_t = np.array([0, 1_000_000_000, 2_000_000_000], dtype=np.int64)  # 1 Hz payload
+    got = payload_at(t, raw_t, np.array([0.0, 400.0, 410.0]), 10_000_000)
+    assert got[0] == 0.0 and got[100] == 400.0 and got[149] == 400.0 and got[151] == 410.0
+    assert got[250] == 410.0 and np.isnan(got[251])  # beyond half the rows' 1 s spacing
+    far = payload_at(t, raw_t[:1], np.array([5.0]), 10_000_000)  # one row: half a period
+    assert far[0] == 5.0 and np.all(np.isnan(far[1:]))

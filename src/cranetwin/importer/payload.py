@@ -31,7 +31,9 @@ MIN_LIFT_S = 2.0
 
 def payload_at(t_ns: I64, raw_t_ns: I64, raw_kg: F64, period_ns: int) -> F64:
     """The known payload [kg] at the sample times ``t_ns``: the value of the file's row
-    nearest in time, if within half a sample period (else NaN).
+    nearest in time, if within half a period (else NaN) — the samples' period, or the rows'
+    own median spacing where that is longer (a payload logged more slowly than the sensors,
+    e.g. in an MDF channel group of its own).
 
     Args:
         t_ns: Sample times [ns since the epoch], shape (n,), increasing.
@@ -48,7 +50,8 @@ def payload_at(t_ns: I64, raw_t_ns: I64, raw_kg: F64, period_ns: int) -> F64:
     hi = np.clip(np.searchsorted(rt, t_ns), 0, rt.size - 1)
     lo = np.clip(hi - 1, 0, rt.size - 1)
     near = np.where(np.abs(rt[hi] - t_ns) <= np.abs(t_ns - rt[lo]), hi, lo)
-    ok = np.abs(rt[near] - t_ns) <= max(period_ns, 1) // 2
+    own = int(np.median(np.diff(rt))) if rt.size > 1 else 0
+    ok = np.abs(rt[near] - t_ns) <= max(period_ns, own, 1) // 2
     out[ok] = rv[near[ok]]
     return out
 
