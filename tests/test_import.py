@@ -288,7 +288,7 @@ def test_cli_import_exit_status_and_summary(tmp_path: Path, rec: SampleArrays) -
 
 def test_iso_times_with_zones() -> None:
     from cranetwin.importer.mapping import mapping_from_dict as mfd
-    from cranetwin.importer.pipeline import _time_ns
+    from cranetwin.importer.pipeline import raw_time_ns as _time_ns
 
     m = mfd({"time": {"format": "iso8601"}}, load_machine("patu655"))
     raw = np.array(["2026-01-01T02:00:00.010+02:00", "2026-01-01T00:00:00.020Z",

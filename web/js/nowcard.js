@@ -29,7 +29,11 @@ export function showNow(f, crane) {
   byId("now-payload").textContent = kg === null || kg === undefined ? "unknown" : `${Math.round(kg)} kg`;
   const env = crane.envelopeState;
   const rated = env ? env.rated_kg : crane.spec.rated_payload_kg;
-  byId("payload-bar").style.width = `${Math.min(100, 100 * (kg || 0) / rated)}%`;
+  byId("payload-bar").style.width = rated ? `${Math.min(100, 100 * (kg || 0) / rated)}%` : "0%";
+  if (!env && !rated) { // the machine has no rated-load chart
+    byId("now-rated").textContent = "unknown";
+    byId("now-util").textContent = "unknown (no rated-load chart)";
+  }
   if (env) {
     byId("now-reach").textContent = `${env.reach_m.toFixed(2)} m`;
     byId("now-rated").textContent = `${Math.round(env.rated_kg)} kg`;

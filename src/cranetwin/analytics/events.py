@@ -197,9 +197,12 @@ class EventDetector:
         self._speed = nominal_speed_mps(machine)
         self._shock_lim = shock_limits_n_per_s(machine, c.shock_rate_per_s)
         self._relief_p = machine.hydraulics.relief_pressure_pa if machine.hydraulics else None
-        self._max_rated = float(max(machine.rated_load.payload_kg))
+        rl = machine.rated_load
+        self._max_rated = float(max(rl.payload_kg)) if rl is not None else None
         self._slew = next((i for i, j in enumerate(machine.joints) if j.kind == "revolute"
                            and abs(j.axis[2]) > 0.99), None)
+        self._slew_limit = (None if self._slew is None
+                            else machine.joints[self._slew].velocity_limit)
         self._trackers: dict[str, tuple[RunTracker, Converter]] = {
             "overload": (RunTracker(c.overload_min_s, 0.0, c.max_gap_s), self._overload_event),
             "payload": (RunTracker(c.overload_min_s, 0.0, c.max_gap_s), self._payload_event),
@@ -225,8 +228,20 @@ class EventDetector:
              "reach_m": float(reach), "rated_payload_kg": float(rated),
              "duration_s": r.duration_s})
 
+    def unchecked(self) -> list[str]:
+        """Event kinds this machine description cannot check, each with what is unknown."""
+        out = []
+        if self._max_rated is None:
+            out.append("overload and payload above rating: not checked, rated-load chart "
+                       "unknown")
+        if self._slew is not None and self._slew_limit is None:
+            name = self.machine.joints[self._slew].name
+            out.append(f"slew overspeed: not checked, velocity limit of joint {name!r} unknown")
+        return out
+
     def _payload_event(self, r: Run) -> Event:
         ratio = float(r.vmax[0])
+        assert self._max_rated is not None
         return Event(
             "payload_above_rating", r.t_start, r.t_end, _severity(ratio, self.cfg.critical_ratio),
             "load", float(r.vmax[1]), self._max_rated, "kg",
@@ -236,10 +251,11 @@ class EventDetector:
     def _overspeed_event(self, r: Run) -> Event:
         assert self._slew is not None
         j = self.machine.joints[self._slew]
-        ratio = float(r.vmax[0] / j.velocity_limit)
+        assert self._slew_limit is not None
+        ratio = float(r.vmax[0] / self._slew_limit)
         return Event(
             "slew_overspeed", r.t_start, r.t_end, _severity(ratio, self.cfg.critical_ratio),
-            j.name, float(r.vmax[0]), j.velocity_limit, "rad/s",
+            j.name, float(r.vmax[0]), self._slew_limit, "rad/s",
             {"speed_ratio": ratio, "duration_s": r.duration_s, "t_peak": r.t_peak})
 
     def _pressure_event(self, name: str, side: str, r: Run) -> Event:
@@ -273,16 +289,18 @@ class EventDetector:
         c = self.cfg
         g = c.max_gap_s
         out: dict[str, Segments | None] = {}
-        rated = self.machine.rated_load.payload_at(h.reach_m)
-        ratio = h.payload_kg / rated
-        loaded = h.payload_kg >= c.min_payload_kg
-        out["overload"] = segments(h.t_s, loaded & (ratio > c.overload_ratio),
-                                   (ratio, h.payload_kg, h.reach_m, rated), g)
-        pr = h.payload_kg / self._max_rated
-        out["payload"] = segments(h.t_s, pr > 1.0, (pr, h.payload_kg, h.reach_m), g)
-        if self._slew is not None:
+        rl = self.machine.rated_load
+        if rl is not None and self._max_rated is not None:  # unknown chart: not checked
+            rated = rl.payload_at(h.reach_m)
+            ratio = h.payload_kg / rated
+            loaded = h.payload_kg >= c.min_payload_kg
+            out["overload"] = segments(h.t_s, loaded & (ratio > c.overload_ratio),
+                                       (ratio, h.payload_kg, h.reach_m, rated), g)
+            pr = h.payload_kg / self._max_rated
+            out["payload"] = segments(h.t_s, pr > 1.0, (pr, h.payload_kg, h.reach_m), g)
+        if self._slew is not None and self._slew_limit is not None:  # unknown: not checked
             w = np.abs(h.qd[:, self._slew])
-            lim = self.machine.joints[self._slew].velocity_limit * (1 + c.overspeed_tolerance)
+            lim = self._slew_limit * (1 + c.overspeed_tolerance)
             out["overspeed"] = segments(h.t_s, w > lim, (w,), g)
         if h.p_a is not None and h.p_b is not None and self._relief_p is not None:
             lim = self._relief_p * (1 + c.pressure_tolerance)

@@ -38,6 +38,7 @@ class ProductivityConfig:
     lift_rad: float = 0.05
     swing_rad: float = 0.15
     moving_fraction: float = 0.03
+    moving_speed_unknown_limit: float = 0.02
     min_idle_s: float = 30.0
     max_gap_s: float = 1.0
 
@@ -51,7 +52,8 @@ class WorkCycle:
         t_release: Time the load was released [s].
         payload_kg: Mean payload while loaded [kg] (over the steady instants, see the module
             docstring).
-        load_ratio: Mean of payload / rated payload at the current reach (P_i/P_max of
+        load_ratio: NaN when the machine has no rated-load chart (unknown). Mean of payload /
+            rated payload at the current reach (P_i/P_max of
             ISO 4301-1 for this cycle), over the same instants.
         lift: Whether the load was lifted.
         swing: Whether the crane slewed while loaded.
@@ -115,7 +117,11 @@ class ProductivityTracker:
         self._loaded = RunTracker(self.cfg.min_loaded_s, self.cfg.merge_gap_s,
                                   self.cfg.max_gap_s)
         self._idle = RunTracker(self.cfg.min_idle_s, 0.0, self.cfg.max_gap_s)
-        self._vlim = np.array([j.velocity_limit for j in machine.joints])
+        # a joint moves above moving_fraction of its velocity limit; where that limit is
+        # unknown, above moving_speed_unknown_limit [rad/s or m/s]
+        self._moving = np.array([self.cfg.moving_speed_unknown_limit if j.velocity_limit is None
+                                 else self.cfg.moving_fraction * j.velocity_limit
+                                 for j in machine.joints])
         self._slew = next((i for i, j in enumerate(machine.joints) if j.kind == "revolute"
                            and abs(j.axis[2]) > 0.99), 0)
         self._lift_joint = 1 if machine.n_joints > 1 else 0
@@ -173,11 +179,12 @@ class ProductivityTracker:
             cut = np.searchsorted(t[1:], np.arange(d0 + 1, d1 + 1) * DAY_S)
             for dkey, part in zip(range(d0, d1 + 1), np.split(dt, cut), strict=True):
                 inner[dkey] = float(part.sum())
-        moving = np.abs(h.qd[:, 0]) > self.cfg.moving_fraction * self._vlim[0]
+        moving = np.abs(h.qd[:, 0]) > self._moving[0]
         for j in range(1, h.qd.shape[1]):
-            moving |= np.abs(h.qd[:, j]) > self.cfg.moving_fraction * self._vlim[j]
+            moving |= np.abs(h.qd[:, j]) > self._moving[j]
         idle = segments(t, ~moving, (t,), self.cfg.max_gap_s)
-        rated = self.machine.rated_load.payload_at(h.reach_m)
+        rl = self.machine.rated_load  # no chart: load ratios unknown (NaN)
+        rated = rl.payload_at(h.reach_m) if rl is not None else np.full(h.n, np.nan)
         has_h = h.height_m is not None
         rise = h.height_m if h.height_m is not None else h.q[:, self._lift_joint]
         ratio = h.payload_kg / rated

@@ -62,15 +62,22 @@ def default_class_widths(machine: Machine, classes: int = 200) -> dict[str, floa
     """Rainflow level width per load channel: 1/``classes`` of a nominal full scale.
 
     Cylinder force: the push force at relief pressure. Joint moment: twice the largest rated
-    load moment (rated payload + tool at the chart's reach), allowing for the booms' own weight.
+    load moment (rated payload + tool at the chart's reach), allowing for the booms' own weight;
+    without a rated-load chart, the strongest cylinder's relief force times its longest
+    pin-to-pin length (a bound on what it can hold; a bin width, not a rating).
     """
     out: dict[str, float] = {}
     rel = relief_force_n(machine)
     for c, f in zip(machine.cylinders, rel.tolist(), strict=True):
         out[f"cylinder:{c.name}:force"] = f / classes
     rl = machine.rated_load
-    m_nom = 2 * G * max((p + machine.load_point.tool_mass_kg) * r
-                        for p, r in zip(rl.payload_kg, rl.reach_m, strict=True))
+    if rl is not None:
+        m_nom = 2 * G * max((p + machine.load_point.tool_mass_kg) * r
+                            for p, r in zip(rl.payload_kg, rl.reach_m, strict=True))
+    else:  # no chart: the strongest cylinder at relief on its longest pin-to-pin length
+        m_nom = max([f * (c.closed_length_m + c.stroke_m)
+                     for c, f in zip(machine.cylinders, rel.tolist(), strict=True)]
+                    or [d.max_torque_nm for d in machine.torque_drives] or [1.0e4])
     for j in machine.joints:
         out[f"joint:{j.name}:moment"] = m_nom / classes
     return out
@@ -420,7 +427,7 @@ class AnalyticsState:
         ratios = np.array([c.load_ratio for c in cycles])
         cls = ml.classification
         classification = duty = None
-        if cls is not None:
+        if cls is not None and ml.rated_load is not None:  # no chart: load ratios unknown
             eq_days = basis.equivalent_days
             classification = classify(ratios, eq_days if 0 < eq_days < np.inf else 1e-9,
                                       cls.design_life_years, cls.design_group)
@@ -457,6 +464,16 @@ def assumptions(machine: Machine, cfg: AnalyticsConfig, basis: RateBasis) -> tup
                    + (" (taken as zero)." if cfg.prior_equivalent_cycles == 0 else "."))
     else:
         out.append("No design classification in the machine file: no duty record.")
+    if machine.rated_load is None:
+        out.append("No rated-load chart in the machine file: the load ratio of each work "
+                   "cycle, the duty class (ISO 4301-1), the used design working period "
+                   "(ISO 12482) and overload and payload-above-rating events are unknown "
+                   "(not computed).")
+    for i, j in enumerate(machine.joints):
+        if j.velocity_limit is None:
+            out.append(f"Velocity limit of joint '{j.name}' unknown (joints.{i}.velocity_limit): "
+                       "no overspeed check on it; it counts as moving above "
+                       f"{cfg.productivity.moving_speed_unknown_limit:g} rad/s or m/s.")
     out.append("Rate basis: " + basis.description + ". Remaining life, next service, the "
                "projected class of utilisation and the date the design working period is "
                "reached assume this usage continues.")

@@ -283,8 +283,9 @@ def _envelope_spec(machine: Machine) -> dict[str, Any]:
     the base frame), from which the reach is measured."""
     j0 = machine.joints[0]
     axis = rpy_matrix(j0.origin_rpy_rad) @ np.asarray(j0.axis, dtype=float)
-    return {"rated_load": {"reach_m": list(machine.rated_load.reach_m),
-                           "payload_kg": list(machine.rated_load.payload_kg)},
+    rl = machine.rated_load  # None: no chart, the view draws no envelope
+    return {"rated_load": None if rl is None else {"reach_m": list(rl.reach_m),
+                                                   "payload_kg": list(rl.payload_kg)},
             "slew_axis": {"origin_m": [float(x) for x in j0.origin_m],
                           "axis": [float(x) for x in axis / np.linalg.norm(axis)]}}
 

@@ -59,7 +59,8 @@ def replay_tables(machine: Machine, duration_s: float, payload_kg: float, step_s
     force = cylinder_forces_from_torques(machine, q, tau)
     tip = load_point_position(machine, q)
     reach = horizontal_reach(machine, q)
-    rated = machine.rated_load.payload_at(reach)
+    rated = (machine.rated_load.payload_at(reach) if machine.rated_load is not None
+             else np.full(reach.shape, np.nan))  # no chart: unknown
     rows = np.arange(0, len(t), max(1, int(round(step_s * rate_hz))))
 
     pos = Table(title=f"{machine.name}: positions (built-in motion, computed at {rate_hz:g} Hz)")

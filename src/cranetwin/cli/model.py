@@ -71,13 +71,17 @@ def show(machine: str = typer.Argument(..., help="Built-in name or TOML file."))
     for col in ("channel", "quantity", "source", "range", "resolution", "optional"):
         t.add_column(col)
     for ch in m.channels:
-        t.add_row(ch.name, ch.quantity, ch.source, f"{ch.min:g} … {ch.max:g} {ch.unit}",
+        rng = ("unknown" if ch.min is None or ch.max is None
+               else f"{ch.min:g} … {ch.max:g} {ch.unit}")
+        t.add_row(ch.name, ch.quantity, ch.source, rng,
                   f"{ch.resolution:g} {ch.unit}", "yes" if ch.optional else "")
     con.print(t)
     lp = m.load_point
     con.print(f"Load point: {lp.point_m} m on {lp.body}; tool mass {lp.tool_mass_kg:g} kg")
-    chart = ", ".join(f"{r:g} m: {p:g} kg" for r, p in zip(m.rated_load.reach_m,
-                                                           m.rated_load.payload_kg, strict=True))
+    rl = m.rated_load
+    chart = ("unknown (no [rated_load] chart)" if rl is None else
+             ", ".join(f"{r:g} m: {p:g} kg" for r, p in zip(rl.reach_m, rl.payload_kg,
+                                                            strict=True)))
     con.print(f"Rated load: {chart}")
 
 
@@ -100,6 +104,8 @@ def validate(
             typer.echo(f"  - {p}")
         raise typer.Exit(1)
     typer.echo(f"{path}: OK")
+    for note in m.unknowns():  # optional fields left out: said, not invented
+        typer.echo(f"  unknown: {note}")
 
 
 def register(app: typer.Typer) -> None:

@@ -37,12 +37,14 @@ def replay_cmd(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress display."),
 ) -> None:
     """Replay samples through the twin and write joint q/qd/qdd, rod s/v, pressures, cylinder
-    forces, joint torques and reaction wrenches, tip position, payload ± σ and gap flags."""
+    forces, joint torques and reaction wrenches, tip position, payload ± σ and gap flags; with
+    a known payload column (the mapping's [payload]), it and the estimate's error per lift."""
+    from cranetwin.importer.payload import summary_line
     from cranetwin.importer.replay import (
         ReplayNotes,
         column_units,
         iter_replay_table,
-        load_source,
+        load_source_and_payload,
         write_table,
     )
 
@@ -50,7 +52,7 @@ def replay_cmd(
         if t_from is not None or t_to is not None or db is not None:
             raise TwinError("give FILE, or --machine ID --from --to [--db]: not both")
         m = load_machine(machine or "patu655")
-        source = load_source(file, m, mapping)
+        source, known = load_source_and_payload(file, m, mapping)
     else:
         if machine is None or t_from is None or t_to is None:
             raise TwinError("give FILE [--mapping MAP], or --machine ID --from T0 --to T1")
@@ -66,7 +68,8 @@ def replay_cmd(
             source = store.read_samples(machine, parse_time(t_from), parse_time(t_to))
         if source.t_s.shape[0] == 0:
             raise TwinError(f"no samples of {machine!r} stored in [{t_from}, {t_to})")
-    units = column_units(m, source.channels)
+        known = None
+    units = column_units(m, source.channels, known is not None)
     notes = ReplayNotes.empty()
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[rows]}"
                   " rows"), TimeElapsedColumn(), disable=quiet) as bar:
@@ -74,12 +77,17 @@ def replay_cmd(
 
         def chunks() -> Iterator[dict[str, F64]]:
             for ch in iter_replay_table(source, m, payload=payload, grid_hz=grid_hz,
-                                        notes=notes):
+                                        notes=notes, known_payload_kg=known):
                 bar.update(task, rows=bar.tasks[task].fields["rows"] + ch["t_s"].shape[0])
                 yield ch
 
         rows = write_table(chunks(), out, units)
     typer.echo(f"{out}: {rows} rows × {len(units)} columns (docs/IMPORT.md lists them)")
+    lifts = notes.lifts()
+    if lifts is not None:  # a known payload series: the estimate's error per lift
+        typer.echo(summary_line(lifts))
+        for lift in lifts:
+            typer.echo(f"  {lift.line()}")
     from cranetwin.twin.observability import unobservable
 
     for line in unobservable(notes.force_observability(m)):

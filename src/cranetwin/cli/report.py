@@ -93,7 +93,8 @@ def report(
     mapping: Path | None = typer.Option(None, "--mapping", help="Mapping TOML of a user's "
                                         "--recording file (docs/IMPORT.md)."),
     payload: float | None = typer.Option(None, "--payload", help="Known payload [kg] of a "
-                                         "user's --recording file (default: estimated)."),
+                                         "user's --recording file (default: estimated; a "
+                                         "known payload column: the mapping's [payload])."),
     demo: bool = typer.Option(False, "--demo", help="Synthetic 8-hour shifts with a few "
                               "injected misuse events."),
     days: int = typer.Option(30, "--days", help="Days of --demo data."),
@@ -160,6 +161,15 @@ def report(
                f"{len(rep.events)} events, {rep.n_samples:,} samples")
     for line in getattr(src, "warnings", []):
         typer.echo(f"warning: {line}", err=True)
+    for note in src.machine.unknowns():
+        typer.echo(f"note: {note}", err=True)
+    lifts = getattr(src, "lifts", None)
+    if lifts is not None:  # a known payload series: the twin's estimate against it
+        from cranetwin.importer.payload import summary_line
+
+        typer.echo(summary_line(lifts))
+        for lift in lifts:
+            typer.echo(f"  {lift.line()}")
 
 
 def register(app: typer.Typer) -> None:

@@ -11,16 +11,24 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+import numpy.typing as npt
 
 from cranetwin.importer.mapping import ChannelMap, ImportFileError, Mapping, load_mapping
-from cranetwin.importer.pipeline import BLOCK_SAMPLES, ImportReport, Pipeline, file_epoch
+from cranetwin.importer.mdf import mdf_start_s
+from cranetwin.importer.payload import payload_at
+from cranetwin.importer.pipeline import (
+    BLOCK_SAMPLES,
+    ImportReport,
+    Pipeline,
+    file_epoch,
+    raw_time_ns,
+)
 from cranetwin.importer.readers import (
     Chunk,
     TimeKind,
     detect_format,
     file_columns,
     iter_chunks,
-    mdf_start_s,
 )
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays, SampleBlock
@@ -28,6 +36,7 @@ from cranetwin.samples import SampleArrays, SampleBlock
 if TYPE_CHECKING:
     from cranetwin.storage import Store
 
+F64 = npt.NDArray[np.float64]
 Progress = Callable[[int, int], None]
 """Called with (units done, units in all) after each chunk (bytes for CSV, rows otherwise)."""
 
@@ -105,10 +114,19 @@ def iter_blocks(path: str | Path, machine: Machine, mapping: Mapping | str | Pat
 
 @dataclass(frozen=True)
 class ImportedFile:
-    """A file read into memory: its samples (quantised, on each run's grid) and the report."""
+    """A file read into memory: its samples (quantised, on each run's grid) and the report.
+
+    Attributes:
+        samples: The samples.
+        report: What was read, accepted and refused.
+        payload_kg: The mapping's known payload column at the sample times [kg], shape (n,)
+            (NaN where the file's row nearest in time is over half a period away or empty);
+            None when the mapping names no payload column (:mod:`cranetwin.importer.payload`).
+    """
 
     samples: SampleArrays
     report: ImportReport
+    payload_kg: npt.NDArray[np.float64] | None = None
 
 
 def read_file(path: str | Path, machine: Machine, mapping: Mapping | str | Path | None = None,
@@ -120,8 +138,34 @@ def read_file(path: str | Path, machine: Machine, mapping: Mapping | str | Path 
     Raises:
         ImportFileError: As :func:`iter_blocks`; also when no row was accepted.
     """
-    pipe, blocks = iter_blocks(path, machine, mapping, machine_id, progress=progress)
-    return _collect(pipe, blocks, str(path))
+    m = mapping if isinstance(mapping, Mapping) else load_mapping(mapping, machine)
+    pipe, blocks = iter_blocks(path, machine, m, machine_id, progress=progress)
+    got = _collect(pipe, blocks, str(path))
+    if m.payload_column is None:
+        return got
+    return replace(got, payload_kg=_file_payload(Path(path), m, got.samples, pipe))
+
+
+def _file_payload(p: Path, m: Mapping, samples: SampleArrays, pipe: Pipeline) -> F64:
+    """The mapping's payload column at the samples' times (a second pass over the file that
+    reads the time and that column only)."""
+    assert m.payload_column is not None
+    fmt = detect_format(p)
+    if m.payload_column not in set(file_columns(p, fmt, m.delimiter)):
+        raise ImportFileError(f"{p}: no payload column {m.payload_column!r} (the mapping's "
+                              "[payload] column)")
+    ts: list[npt.NDArray[np.int64]] = []
+    vs: list[F64] = []
+    time_map = replace(m, time_format="relative_s") if fmt == "mdf" else m
+    for chunk in iter_chunks(p, fmt, [m.payload_column], m.time_column, _time_kind(m),
+                             m.delimiter):
+        t, tbad = raw_time_ns(chunk.time, time_map, pipe.start_s)
+        keep = ~(tbad | chunk.bad)
+        ts.append(t[keep])
+        vs.append(chunk.columns[m.payload_column][keep] * m.payload_scale)
+    t_ns = samples.t_ns if samples.t_ns is not None else np.rint(samples.t_s * 1e9).astype(
+        np.int64)
+    return payload_at(t_ns, np.concatenate(ts), np.concatenate(vs), pipe.report.period_ns)
 
 
 def _collect(pipe: Pipeline, blocks: Iterable[SampleBlock], what: str) -> ImportedFile:
@@ -181,7 +225,18 @@ def read_columns(columns: Columns, machine: Machine, mapping: Mapping | str | Pa
     pipe = Pipeline(machine, m, machine_id or machine.name, 1, present, m.start_s)
     pipe.report.absent = tuple(absent)
     chunk = Chunk(1, raw_t, cols, np.zeros(n, dtype=bool), [], None, n, n)
-    return _collect(pipe, [*pipe.feed(chunk), *pipe.finish()], "the columns")
+    got = _collect(pipe, [*pipe.feed(chunk), *pipe.finish()], "the columns")
+    if m.payload_column is None:
+        return got
+    if m.payload_column not in columns:
+        raise ImportFileError(f"no payload column {m.payload_column!r} (the mapping's [payload] "
+                              "column) in the columns given")
+    kg = np.asarray(columns[m.payload_column], dtype=np.float64) * m.payload_scale
+    t, tbad = raw_time_ns(raw_t, m, pipe.start_s)
+    t_ns = got.samples.t_ns if got.samples.t_ns is not None else np.rint(
+        got.samples.t_s * 1e9).astype(np.int64)
+    return replace(got, payload_kg=payload_at(t_ns, t[~tbad], kg[~tbad],
+                                              pipe.report.period_ns))
 
 
 @dataclass

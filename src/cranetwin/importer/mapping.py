@@ -29,6 +29,10 @@ position; the time from a column ``t_s`` (or ``time``) in epoch seconds. See doc
 
     [checks]
     range_tolerance = 0.0           # share of a channel's full range allowed beyond min/max
+
+    [payload]                       # a known payload as a time series (not a sensor channel)
+    column = "hook_load"
+    unit = "kg"                     # kg | t
 """
 
 from __future__ import annotations
@@ -126,6 +130,9 @@ class Mapping:
         jitter: Share of the period one spacing may deviate before a new run starts.
         delimiter: CSV field separator.
         range_tolerance: Share of each channel's full range accepted beyond [min, max].
+        payload_column: Column of a known payload [``payload_unit``] (None: none).
+        payload_unit: Unit of that column (kg or t).
+        payload_scale: Factor from ``payload_unit`` to kg (derived).
         source: Where the mapping came from (file path or ``<default>``).
         text: Canonical JSON of what the mapping said (part of the import's identity).
     """
@@ -138,13 +145,17 @@ class Mapping:
     jitter: float = 0.25
     delimiter: str = ","
     range_tolerance: float = 0.0
+    payload_column: str | None = None
+    payload_unit: str = "kg"
+    payload_scale: float = 1.0
     source: str = "<default>"
     text: str = "{}"
     extra: dict[str, Any] = field(default_factory=dict)
 
     def identity(self) -> bytes:
         """Bytes that change whenever the mapping would change what is stored."""
-        d = {k: v for k, v in asdict(self).items() if k not in ("source", "text", "extra")}
+        skip = ("source", "text", "extra", "payload_column", "payload_unit", "payload_scale")
+        d = {k: v for k, v in asdict(self).items() if k not in skip}  # the payload: not stored
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).digest()
 
 
@@ -165,7 +176,7 @@ def parse_time_text(text: str | float | int, where: str) -> float:
     return t.timestamp()
 
 
-_TOP = {"time", "csv", "channels", "checks"}
+_TOP = {"time", "csv", "channels", "checks", "payload"}
 _TIME = {"column", "format", "start", "period_s", "jitter"}
 _CHAN = {"column", "unit", "convention", "offset"}
 
@@ -227,6 +238,15 @@ def mapping_from_dict(data: dict[str, Any], machine: Machine,
     if not (isinstance(rtol, int | float) and rtol >= 0):
         raise ImportFileError(f"{source}: checks.range_tolerance must be ≥ 0, got {rtol!r}")
 
+    pay = dict(data.get("payload", {}))
+    _check_keys(pay, {"column", "unit"}, f"{source}: [payload]")
+    pay_col = pay.get("column")
+    if pay and not (isinstance(pay_col, str) and pay_col):
+        raise ImportFileError(f"{source}: payload.column must name the file's payload column, "
+                              f"got {pay_col!r}")
+    pay_unit = str(pay.get("unit", "kg"))
+    pay_scale = unit_factor(pay_unit, "kg", f"{source}: payload.unit")
+
     given = dict(data.get("channels", {}))
     known = {c.name: c for c in machine.channels}
     unknown = sorted(set(given) - set(known))
@@ -266,5 +286,7 @@ def mapping_from_dict(data: dict[str, Any], machine: Machine,
         channels=tuple(maps), time_column=None if tm.get("column") is None else str(tm["column"]),
         time_format=fmt,  # type: ignore[arg-type]
         start_s=start_s, period_s=None if period is None else float(period),
-        jitter=float(jitter), delimiter=delim, range_tolerance=float(rtol), source=source,
+        jitter=float(jitter), delimiter=delim, range_tolerance=float(rtol),
+        payload_column=None if pay_col is None else str(pay_col), payload_unit=pay_unit,
+        payload_scale=pay_scale, source=source,
         text=json.dumps(data, sort_keys=True, default=str))

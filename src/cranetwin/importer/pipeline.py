@@ -111,7 +111,7 @@ class ImportReport:
         return "\n".join(out)
 
 
-def _time_ns(raw: npt.NDArray[Any], mapping: Mapping, start_s: float | None,
+def raw_time_ns(raw: npt.NDArray[Any], mapping: Mapping, start_s: float | None,
              ) -> tuple[I64, B]:
     """Raw time column → int64 ns since the epoch, and a mask of unusable entries."""
     fmt = mapping.time_format
@@ -235,9 +235,10 @@ class Pipeline:
         chans = [machine.channel(m.channel) for m in present]
         self.names = tuple(m.channel for m in present)
         self.res = np.array([c.resolution for c in chans])
-        tol = mapping.range_tolerance * np.array([c.full_range for c in chans]) + self.res
-        self.lo = np.array([c.min for c in chans]) - tol
-        self.hi = np.array([c.max for c in chans]) + tol
+        # a channel whose sensor range is unknown (no min/max) has no range check
+        tol = mapping.range_tolerance * np.array([c.full_range or 0.0 for c in chans]) + self.res
+        self.lo = np.array([-np.inf if c.min is None else c.min for c in chans]) - tol
+        self.hi = np.array([np.inf if c.max is None else c.max for c in chans]) + tol
         self.scale = np.array([m.scale for m in present])
         self.shift = np.array([m.shift for m in present])
         self.report = ImportReport(channels=self.names)
@@ -274,7 +275,7 @@ class Pipeline:
             return [Refusal(int(rows[i]), column, why(i),
                             None if lines is None else int(lines[i])) for i in idx]
 
-        t, tbad = _time_ns(chunk.time, self.mapping, self.start_s)
+        t, tbad = raw_time_ns(chunk.time, self.mapping, self.start_s)
         tbad &= ~bad
         if tbad.any():
             rep.refuse(refusals(tbad, self._time_name(), lambda i: f"{chunk.time[i]!r} is not a "

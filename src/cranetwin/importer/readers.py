@@ -1,4 +1,5 @@
-"""Read a user's file in chunks of rows: CSV (numpy), Parquet (pyarrow) and ASAM MDF4 (asammdf).
+"""Read a user's file in chunks of rows: CSV (numpy), Parquet (pyarrow) and ASAM MDF4 (asammdf,
+:mod:`.mdf`).
 
 Each reader yields :class:`Chunk` s: the raw time column, the raw value columns the mapping
 needs (float64, NaN = missing) and the rows it could not parse, with row, column and reason.
@@ -27,7 +28,6 @@ Format = Literal["csv", "parquet", "mdf"]
 
 CSV_CHUNK_BYTES = 8 << 20
 PARQUET_BATCH_ROWS = 1 << 17
-MDF_CHUNK_ROWS = 1 << 17
 
 
 @dataclass(frozen=True)
@@ -338,77 +338,6 @@ def read_parquet(path: Path, needed: list[str], time_column: str | None, time_ki
         row += n
 
 
-# -- ASAM MDF4 --------------------------------------------------------------------------------
-
-def _asammdf() -> Any:
-    try:
-        import asammdf
-    except ImportError as exc:
-        raise MissingExtraError("import", "ASAM MDF files") from exc
-    return asammdf
-
-
-def mdf_start_s(path: Path) -> float:
-    """Epoch time of an MDF file's relative time 0 [s] (its header's start time)."""
-    mdf = _asammdf().MDF(str(path))
-    try:
-        return float(mdf.header.start_time.timestamp())
-    finally:
-        mdf.close()
-
-
-def read_mdf(path: Path, needed: list[str],
-             chunk_rows: int = MDF_CHUNK_ROWS) -> Iterator[Chunk]:
-    """Chunks of an MDF4 file. Every needed channel must be in one channel group (one master
-    time channel); the time is the master's, relative seconds since the header's start."""
-    asammdf = _asammdf()
-    try:
-        mdf = asammdf.MDF(str(path))
-    except Exception as exc:  # asammdf raises many kinds on a bad file
-        raise ImportFileError(f"{path}: not a readable MDF file: {exc}") from exc
-    try:
-        where: dict[str, tuple[int, int]] = {}
-        for c in needed:
-            entries = mdf.channels_db.get(c)
-            if not entries:
-                names = sorted(k for k in mdf.channels_db if not k.startswith("$"))
-                raise ImportFileError(f"{path}: no MDF channel {c!r}; the file has: "
-                                      f"{', '.join(names)}")
-            where[c] = entries[0]
-        groups = {g for g, _ in where.values()}
-        if len(groups) > 1:
-            raise ImportFileError(f"{path}: the mapped channels are in {len(groups)} channel "
-                                  "groups (different time bases); resample them into one group "
-                                  "first (e.g. asammdf's MDF.resample)")
-        g = next(iter(groups)) if groups else 0
-        total = int(mdf.groups[g].channel_group.cycles_nr)
-        row = 1
-        for off in range(0, total, chunk_rows):
-            cnt = min(chunk_rows, total - off)
-            t: F64 | None = None
-            cols: dict[str, F64] = {}
-            for c in needed:
-                gi, ci = where[c]
-                sig = mdf.get(c, group=gi, index=ci, record_offset=off, record_count=cnt)
-                if t is None:
-                    t = np.asarray(sig.timestamps, dtype=np.float64)
-                samples = np.asarray(sig.samples)
-                if samples.dtype.kind not in "fiu":
-                    raise ImportFileError(f"{path}: MDF channel {c!r} holds {samples.dtype}, not "
-                                          "numbers")
-                v = samples.astype(np.float64)
-                if sig.invalidation_bits is not None:
-                    v[np.asarray(sig.invalidation_bits, dtype=bool)] = np.nan
-                cols[c] = v
-            if t is None:
-                break
-            n = t.shape[0]
-            yield Chunk(row, t, cols, np.zeros(n, dtype=bool), [], None, off + cnt, total)
-            row += n
-    finally:
-        mdf.close()
-
-
 def iter_chunks(path: Path, fmt: Format, needed: list[str], time_column: str | None,
                 time_kind: TimeKind, delimiter: str) -> Iterator[Chunk]:
     """Chunks of ``path`` in format ``fmt``."""
@@ -418,6 +347,8 @@ def iter_chunks(path: Path, fmt: Format, needed: list[str], time_column: str | N
         return read_csv(path, needed, time_column, time_kind, delimiter)
     if fmt == "parquet":
         return read_parquet(path, needed, time_column, time_kind)
+    from cranetwin.importer.mdf import read_mdf
+
     return read_mdf(path, needed)
 
 
@@ -431,11 +362,9 @@ def file_columns(path: Path, fmt: Format, delimiter: str) -> list[str]:
             return list(pq.ParquetFile(path).schema_arrow.names)
         except Exception as exc:
             raise ImportFileError(f"{path}: not a readable Parquet file: {exc}") from exc
-    mdf = _asammdf().MDF(str(path))
-    try:
-        return [k for k in mdf.channels_db if not k.startswith("$")]
-    finally:
-        mdf.close()
+    from cranetwin.importer.mdf import mdf_columns
+
+    return mdf_columns(path)
 
 
 __all__ = ["Chunk", "Refusal", "detect_format", "file_columns", "iter_chunks"]

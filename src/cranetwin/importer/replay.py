@@ -25,6 +25,9 @@ column                             unit               what
 ``tip.x``, ``tip.y``, ``tip.z``    m                  load point in the world frame
 ``payload_kg``                     kg                 payload (given, or estimated)
 ``payload_std_kg``                 kg                 one-sigma uncertainty of the estimate
+``payload_known_kg``               kg                 only with a known payload series (the
+                                                      mapping's ``[payload]`` column): it
+``payload_error_kg``               kg                 ``payload_kg − payload_known_kg``
 ``gap``                            0/1                1 where a dropout was bridged
 ``missing.<channel>``              0/1                1 where that input channel's sample nearest
                                                       the instant is missing (NaN) or over 0.6
@@ -35,7 +38,7 @@ column                             unit               what
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +48,7 @@ from cranetwin.errors import MissingExtraError, TwinError
 from cranetwin.importer.api import Columns, read_columns, read_file
 from cranetwin.importer.checks import check_rod_positions
 from cranetwin.importer.mapping import Mapping
+from cranetwin.importer.payload import LiftError, lift_errors, on_grid
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import SmoothingChoice
@@ -55,13 +59,15 @@ F64 = npt.NDArray[np.float64]
 WRENCH = ("fx", "fy", "fz", "mx", "my", "mz")
 
 
-def column_units(machine: Machine, channels: Sequence[str] | None = None) -> dict[str, str]:
+def column_units(machine: Machine, channels: Sequence[str] | None = None,
+                 known_payload: bool = False) -> dict[str, str]:
     """Every output column name, in order, with its unit (see the module docstring).
 
     Args:
         machine: The machine.
         channels: The input channels (their ``missing.<channel>`` flags); None = every channel
             of the machine.
+        known_payload: With the known payload's columns.
     """
     out: dict[str, str] = {"t_s": "s"}
     lin = {j.name: j.kind == "prismatic" for j in machine.joints}
@@ -80,7 +86,10 @@ def column_units(machine: Machine, channels: Sequence[str] | None = None) -> dic
     for j in machine.joints:
         out.update({f"wrench.{j.name}.{k}": ("N" if k[0] == "f" else "N*m") for k in WRENCH})
     out.update({"tip.x": "m", "tip.y": "m", "tip.z": "m", "payload_kg": "kg",
-                "payload_std_kg": "kg", "gap": "1"})
+                "payload_std_kg": "kg"})
+    if known_payload:
+        out.update({"payload_known_kg": "kg", "payload_error_kg": "kg"})
+    out["gap"] = "1"
     out.update({f"missing.{c.name}": "1" for c in machine.channels
                 if channels is None or c.name in channels})
     return out
@@ -126,11 +135,19 @@ Source = SampleArrays | str | Path | Columns
 def load_source(source: Source, machine: Machine,
                 mapping: Mapping | str | Path | None = None) -> SampleArrays:
     """Samples from arrays, a file (:func:`read_file`) or columns (:func:`read_columns`)."""
+    return load_source_and_payload(source, machine, mapping)[0]
+
+
+def load_source_and_payload(source: Source, machine: Machine,
+                            mapping: Mapping | str | Path | None = None,
+                            ) -> tuple[SampleArrays, F64 | None]:
+    """:func:`load_source` and the known payload at the samples (the mapping's ``[payload]``
+    column; None without one, and for :class:`SampleArrays`)."""
     if isinstance(source, SampleArrays):
-        return source
-    if isinstance(source, str | Path):
-        return read_file(source, machine, mapping).samples
-    return read_columns(source, machine, mapping).samples
+        return source, None
+    got = (read_file(source, machine, mapping) if isinstance(source, str | Path)
+           else read_columns(source, machine, mapping))
+    return got.samples, got.payload_kg
 
 
 def check_samples(samples: SampleArrays, machine: Machine) -> None:
@@ -153,15 +170,26 @@ class ReplayNotes:
 
     forces: ForceRange
     smoothing: dict[str, SmoothingChoice]
+    payload: list[tuple[F64, F64, F64]] = field(default_factory=list)
 
     @staticmethod
     def empty() -> ReplayNotes:
         return ReplayNotes(ForceRange(), {})
 
-    def add(self, res: TwinResult) -> None:
+    def add(self, res: TwinResult, known_kg: F64 | None = None) -> None:
         self.forces.add(res.cyl_force)
         if not self.smoothing:
             self.smoothing.update(res.smoothing)
+        if known_kg is not None:
+            self.payload.append((res.t_s, known_kg, res.payload_kg))
+
+    def lifts(self) -> list[LiftError] | None:
+        """The payload estimate's error per lift against the known payload series (None:
+        no known payload; :func:`cranetwin.importer.payload.lift_errors`)."""
+        if not self.payload:
+            return None
+        t, known, est = (np.concatenate(x) for x in zip(*self.payload, strict=True))
+        return lift_errors(t, known, est)
 
     def force_observability(self, machine: Machine) -> tuple[ForceObservability, ...]:
         """Per cylinder, whether the pressures resolve its force over the replayed window."""
@@ -172,7 +200,8 @@ def iter_replay_table(source: Source, machine: Machine,
                       mapping: Mapping | str | Path | None = None, *,
                       payload: float | None = None, grid_hz: float | None = None,
                       options: ReplayOptions | None = None,
-                      notes: ReplayNotes | None = None) -> Iterator[dict[str, F64]]:
+                      notes: ReplayNotes | None = None,
+                      known_payload_kg: F64 | None = None) -> Iterator[dict[str, F64]]:
     """Replay samples (or a CSV/Parquet/MDF4 file read with ``mapping``) chunk by chunk.
 
     Args:
@@ -186,7 +215,12 @@ def iter_replay_table(source: Source, machine: Machine,
             sample rate).
         options: Further replay settings.
         notes: Filled with the window's force ranges and smoothing choices as the chunks
-            pass (:class:`ReplayNotes`: which cylinder forces are observable).
+            pass (:class:`ReplayNotes`: which cylinder forces are observable), and with the
+            payload estimate against a known payload series (:meth:`ReplayNotes.lifts`).
+        known_payload_kg: A known payload series at the samples' times [kg], shape (n,)
+            (default: a file's or columns' ``[payload]`` column, if the mapping names one):
+            adds ``payload_known_kg`` and ``payload_error_kg``; the twin still estimates the
+            payload (or uses ``payload``) and the series is compared with it, not fed in.
 
     Yields:
         Consecutive chunks of named columns (:func:`column_units` of the input's channels).
@@ -196,7 +230,10 @@ def iter_replay_table(source: Source, machine: Machine,
             channels, too few samples.
         ImportFileError: The file cannot be read as mapped.
     """
-    samples = load_source(source, machine, mapping)
+    samples, from_file = load_source_and_payload(source, machine, mapping)
+    known = from_file if known_payload_kg is None else np.asarray(known_payload_kg, dtype=float)
+    if known is not None and known.shape != samples.t_s.shape:
+        raise TwinError(f"known payload has shape {known.shape}; the samples {samples.t_s.shape}")
     check_samples(samples, machine)
     if samples.t_s.shape[0] < 4:
         raise TwinError(f"{samples.t_s.shape[0]} sample(s): too few to replay")
@@ -208,11 +245,25 @@ def iter_replay_table(source: Source, machine: Machine,
         grid_hz = float(round(1.0 / period))
     for res in iter_replay(samples, machine, grid_hz, payload, opt):
         if res.n:
-            if notes is not None:
-                notes.add(res)
             cols = result_columns(res, machine)
+            grid_known = None if known is None else on_grid(res.t_s, samples.t_s, known)
+            if grid_known is not None:
+                cols = _with_known(cols, grid_known)
+            if notes is not None:
+                notes.add(res, grid_known)
             cols.update(channel_flags(samples, res.t_s, period))
             yield cols
+
+
+def _with_known(cols: dict[str, F64], known: F64) -> dict[str, F64]:
+    """``cols`` with ``payload_known_kg`` and ``payload_error_kg`` after ``payload_std_kg``."""
+    out: dict[str, F64] = {}
+    for k, v in cols.items():
+        out[k] = v
+        if k == "payload_std_kg":
+            out["payload_known_kg"] = known
+            out["payload_error_kg"] = cols["payload_kg"] - known
+    return out
 
 
 @dataclass(frozen=True)
@@ -224,10 +275,13 @@ class ReplayTable:
     Attributes:
         columns: Column name → values, shape (m,) each, in :func:`column_units` order.
         units: Column name → unit.
+        lifts: The payload estimate's error per lift against a known payload series
+            (None without one).
     """
 
     columns: dict[str, F64]
     units: dict[str, str]
+    lifts: list[LiftError] | None = None
 
     def __getitem__(self, name: str) -> F64:
         return self.columns[name]
@@ -239,17 +293,21 @@ class ReplayTable:
 
 def replay_table(source: Source, machine: Machine,
                  mapping: Mapping | str | Path | None = None, *, payload: float | None = None,
-                 grid_hz: float | None = None,
-                 options: ReplayOptions | None = None) -> ReplayTable:
-    """:func:`iter_replay_table` collected into one :class:`ReplayTable`."""
-    samples = load_source(source, machine, mapping)
+                 grid_hz: float | None = None, options: ReplayOptions | None = None,
+                 known_payload_kg: F64 | None = None) -> ReplayTable:
+    """:func:`iter_replay_table` collected into one :class:`ReplayTable` (with the payload
+    error per lift when a known payload series is given or mapped)."""
+    samples, known = load_source_and_payload(source, machine, mapping)
+    if known_payload_kg is not None:
+        known = np.asarray(known_payload_kg, dtype=float)
+    notes = ReplayNotes.empty()
     parts = list(iter_replay_table(samples, machine, payload=payload, grid_hz=grid_hz,
-                                   options=options))
-    units = column_units(machine, samples.channels)
+                                   options=options, notes=notes, known_payload_kg=known))
+    units = column_units(machine, samples.channels, known is not None)
     if not parts:
         raise TwinError("the replay produced no output")
     cols = {k: np.concatenate([p[k] for p in parts]) for k in units}
-    return ReplayTable(cols, units)
+    return ReplayTable(cols, units, notes.lifts())
 
 
 def write_table(chunks: Iterator[dict[str, F64]], out: str | Path,

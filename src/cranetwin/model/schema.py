@@ -17,10 +17,11 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from cranetwin.model.references import WORLD as WORLD  # re-exported
+from cranetwin.model.references import reference_problems as reference_problems
+
 Vec3 = Annotated[tuple[float, float, float], Field(description="3-vector [m] or unit-free")]
 Mat3 = tuple[Vec3, Vec3, Vec3]
-
-WORLD = "world"
 
 
 class _Frozen(BaseModel):
@@ -162,7 +163,9 @@ class Joint(_Frozen):
     origin_rpy_rad: Vec3 = (0.0, 0.0, 0.0)
     lower: float = Field(description="lower limit [rad or m]")
     upper: float = Field(description="upper limit [rad or m]")
-    velocity_limit: float = Field(1.0, gt=0, description="[rad/s or m/s]")
+    velocity_limit: float | None = Field(
+        None, gt=0, description="[rad/s or m/s]; None: unknown (no overspeed check, and the "
+        "simulator cannot drive a torque drive on the joint)")
     unit: str = ""
     fixed_value: float | None = Field(
         None, description="passive joint (no actuator): held at this value [rad or m], within "
@@ -213,6 +216,21 @@ class FourBar(_Frozen):
     branch: Literal[-1, 1] = 1
 
 
+class LinearActuator(_Frozen):
+    """A cylinder acting directly along a prismatic joint (a telescope, a directly acting linear
+    actuator): rod position s = ``s0_m`` + q [m], q the joint position. The cylinder's force is
+    the joint's force (moment arm 1); its pins (``base_pin_m``, ``rod_pin_m``) only draw it.
+    """
+
+    kind: Literal["linear"] = "linear"
+    s0_m: float = Field(0.0, description="rod position s at joint position q = 0 [m]")
+
+
+Linkage = Annotated[FourBar | LinearActuator, Field(discriminator="kind")]
+"""The linkage kinds a cylinder may declare (a cylinder without one is pinned directly to the
+two bodies of its joint)."""
+
+
 class Valve(_Frozen):
     """Proportional valve: Q = Qn·U·sign(Δp)·sqrt(|Δp|), first-order spool lag."""
 
@@ -225,8 +243,9 @@ class Cylinder(_Frozen):
     """A double-acting hydraulic cylinder driving ``joint``.
 
     The base pin sits on the joint's parent body, the rod pin on the child body (``linkage`` absent)
-    or on the four-bar rod end E (``linkage`` set; ``rod_pin_m`` then unused).
-    Rod position s = cylinder pin-to-pin length − ``closed_length_m``, in [0, ``stroke_m``].
+    or on the four-bar rod end E (a ``four_bar`` linkage; ``rod_pin_m`` then unused).
+    Rod position s = cylinder pin-to-pin length − ``closed_length_m``, in [0, ``stroke_m``];
+    with a ``linear`` linkage s = s0 + q along a prismatic joint and the pins only draw it.
     """
 
     name: str
@@ -240,7 +259,7 @@ class Cylinder(_Frozen):
     stroke_m: float = Field(gt=0)
     friction: Friction
     valve: Valve | None = None
-    linkage: FourBar | None = None
+    linkage: Linkage | None = None
     dead_volume_m3: float | None = Field(
         None, gt=0, description="hose + port volume per chamber of this cylinder [m³]; None: "
         "hydraulics.dead_volume_m3")
@@ -288,8 +307,10 @@ class Channel(_Frozen):
     quantity: Quantity
     source: str = Field(description="actuator name (pressure/position/torque) or joint (angle)")
     unit: str
-    min: float
-    max: float
+    min: float | None = Field(None, description="lower end of the sensor's range, in ``unit``; "
+                              "None (with max): the range is unknown")
+    max: float | None = Field(None, description="upper end of the sensor's range, in ``unit``; "
+                              "None (with min): the range is unknown")
     resolution: float = Field(gt=0, description="quantisation step, in ``unit``")
     accuracy: float | None = Field(
         None, gt=0, description="stated accuracy of the sensor, ± bound in ``unit`` (e.g. "
@@ -299,13 +320,17 @@ class Channel(_Frozen):
 
     @model_validator(mode="after")
     def _range(self) -> Channel:
-        if not self.min < self.max:
+        if (self.min is None) != (self.max is None):
+            raise ValueError("give both min and max (the sensor's range), or neither (unknown)")
+        if self.min is not None and self.max is not None and not self.min < self.max:
             raise ValueError(f"min {self.min} must be below max {self.max}")
         return self
 
     @property
-    def full_range(self) -> float:
-        """max − min, in ``unit``."""
+    def full_range(self) -> float | None:
+        """max − min, in ``unit``; None when the range is unknown."""
+        if self.min is None or self.max is None:
+            return None
         return self.max - self.min
 
 
@@ -397,7 +422,9 @@ class Machine(_Frozen):
     channels: list[Channel] = Field(default_factory=list)
     hydraulics: Hydraulics | None = None
     load_point: LoadPoint
-    rated_load: RatedLoad
+    rated_load: RatedLoad | None = Field(
+        None, description="rated-load chart; None: unknown (no overload or above-rating "
+        "events, load ratios unknown)")
     fatigue: list[FatigueDetail] = Field(default_factory=list)
     classification: Classification | None = None
 
@@ -442,79 +469,23 @@ class Machine(_Frozen):
                 return c
         raise KeyError(name)
 
+    def unknowns(self) -> list[str]:
+        """The optional fields this description leaves out, each as ``"path: what is then
+        unknown"`` (consumers say "unknown" there rather than invent a value)."""
+        out: list[str] = []
+        if self.rated_load is None:
+            out.append("rated_load: no rated-load chart; load ratios, overload and "
+                       "payload-above-rating events and the 3D envelope are unknown")
+        for i, j in enumerate(self.joints):
+            if j.velocity_limit is None:
+                out.append(f"joints.{i}.velocity_limit: unknown for {j.name!r}; no overspeed "
+                           "check (the simulator needs it on a joint with a torque drive)")
+        for i, c in enumerate(self.channels):
+            if c.min is None or c.max is None:
+                out.append(f"channels.{i}.min/max: sensor range of {c.name!r} unknown; its "
+                           "values are not range-checked (import, ingest)")
+        return out
+
     def chain_bodies(self) -> list[Body]:
         """Bodies in chain order: body i is the child of joint i."""
         return [self.body(j.child) for j in self.joints]
-
-
-def _names(items: object) -> list[str]:
-    if not isinstance(items, list):
-        return []
-    return [str(x.get("name")) for x in items if isinstance(x, dict)]
-
-
-def reference_problems(data: dict[str, object]) -> list[str]:
-    """Cross-references in a (raw or dumped) machine description, as ``"path: message"`` lines.
-
-    Works on plain dicts so that a file with field errors still gets its references checked.
-    """
-    problems: list[str] = []
-    bodies = _names(data.get("bodies"))
-    joints_raw = data.get("joints")
-    joints = [j for j in joints_raw if isinstance(j, dict)] if isinstance(joints_raw, list) else []
-    joint_names = [str(j.get("name")) for j in joints]
-    if len(set(bodies)) != len(bodies):
-        problems.append("bodies: names must be unique")
-    if len(set(joint_names)) != len(joint_names):
-        problems.append("joints: names must be unique")
-    expected_parent = WORLD
-    for i, j in enumerate(joints):
-        if j.get("child") not in bodies:
-            problems.append(f"joints.{i}.child: unknown body {j.get('child')!r}")
-        if j.get("parent") != expected_parent:
-            problems.append(
-                f"joints.{i}.parent: {j.get('parent')!r} breaks the serial chain "
-                f"(expected {expected_parent!r})"
-            )
-        expected_parent = str(j.get("child"))
-    actuated: set[str] = set()
-    actuator_names: set[str] = set()
-    for kind in ("cylinders", "torque_drives"):
-        acts = data.get(kind)
-        for i, a in enumerate(acts if isinstance(acts, list) else []):
-            if not isinstance(a, dict):
-                continue
-            actuator_names.add(str(a.get("name")))
-            joint = a.get("joint")
-            if joint not in joint_names:
-                problems.append(f"{kind}.{i}.joint: unknown joint {joint!r}")
-            elif joint in actuated:
-                problems.append(f"{kind}.{i}.joint: joint {joint!r} already has an actuator")
-            actuated.add(str(joint))
-    for i, (name, j) in enumerate(zip(joint_names, joints, strict=True)):
-        fixed = j.get("fixed_value") is not None
-        if name not in actuated and not fixed:
-            problems.append(f"joints.{i}: joint {name!r} has no actuator; a passive joint "
-                            "declares the value it is held at (fixed_value)")
-        elif name in actuated and fixed:
-            problems.append(f"joints.{i}.fixed_value: joint {name!r} has an actuator; only a "
-                            "passive joint (no actuator) is held at a fixed value")
-    channels_raw = data.get("channels")
-    channels = [c for c in channels_raw if isinstance(c, dict)] if isinstance(
-        channels_raw, list) else []
-    channel_names = [str(c.get("name")) for c in channels]
-    if len(set(channel_names)) != len(channel_names):
-        problems.append("channels: names must be unique")
-    for i, c in enumerate(channels):
-        source = c.get("source")
-        if c.get("quantity") == "angle":
-            if source not in joint_names:
-                problems.append(f"channels.{i}.source: unknown joint {source!r}")
-        elif c.get("quantity") != "load" and source not in actuator_names:
-            problems.append(f"channels.{i}.source: unknown actuator {source!r}")
-    load_point = data.get("load_point")
-    if isinstance(load_point, dict) and load_point.get("body") not in bodies:
-        problems.append(f"load_point.body: unknown body {load_point.get('body')!r}")
-    if data.get("cylinders") and data.get("hydraulics") is None:
-        problems.append("hydraulics: required when the machine has cylinders")
-    return problems

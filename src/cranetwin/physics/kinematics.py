@@ -12,6 +12,7 @@ Geometry (see :mod:`cranetwin.model.schema` for frames):
   rod pin r (child) in the joint frame, ``|Rot(q)·r − b|² = K0 − 2·rho·cos(q − phi)``, so
   ``ds/dq = rho·sin(q − phi)/length`` and ``q = phi ± acos((K0 − length²)/(2·rho))``;
 * direct cylinder on a prismatic joint — ``length² = |d|² + 2(d·e)·q + q²``;
+* linear actuator along a prismatic joint (a telescope) — ``s = s0 + q``, moment arm 1;
 * four-bar (the jib) — rod end E from the intersection of circle(D, |DE|) and circle(F(q), |EF|)
   on the side ``FourBar.branch`` selects; the inverse intersects circle(C, length) with
   circle(D, |DE|) for E, then circle(O, |OF|) with circle(E, |EF|) for F, on the branches
@@ -26,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.errors import ModelError, PhysicsError
-from cranetwin.model import WORLD, Machine
+from cranetwin.model import WORLD, FourBar, Machine
 from cranetwin.physics import kernels as K
 from cranetwin.physics.chain import (
     choose_inverse_branches,
@@ -345,7 +346,7 @@ def cylinder_pins(machine: Machine, q: npt.ArrayLike) -> CylinderPins:
         child = poses[:, ji]
         base[:, k] = _apply(parent, np.asarray(cyl.base_pin_m, dtype=float))
         lk = cyl.linkage
-        if lk is None:
+        if not isinstance(lk, FourBar):  # pinned directly, or a linear actuator's drawn pins
             rod[:, k] = _apply(child, np.asarray(cyl.rod_pin_m, dtype=float))
             continue
         # joint frame (before the joint's motion) in the world
@@ -398,7 +399,7 @@ def reach_problems(machine: Machine, tolerance: float = 0.005) -> list[str]:
         except ModelError as exc:
             problems.append(f"{path}.linkage: {exc}")
             continue
-        if cyl.linkage is not None:
+        if isinstance(cyl.linkage, FourBar):
             a = np.asarray(joint.axis, dtype=float)
             w = [float(joint_frame_point(joint, cyl.base_pin_m) @ a),
                  float(joint_frame_point(joint, cyl.linkage.pivot_m) @ a),

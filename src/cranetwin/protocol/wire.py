@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import math
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -100,9 +101,9 @@ class ChannelLike(Protocol):
     @property
     def name(self) -> str: ...
     @property
-    def min(self) -> float: ...
+    def min(self) -> float | None: ...
     @property
-    def max(self) -> float: ...
+    def max(self) -> float | None: ...
     @property
     def resolution(self) -> float: ...
     @property
@@ -115,8 +116,8 @@ class ChannelSpec:
 
     Attributes:
         name: Channel name from the machine description.
-        min: Lower end of the sensor range [channel unit].
-        max: Upper end of the sensor range [channel unit].
+        min: Lower end of the sensor range [channel unit]; −inf: unknown (no range check).
+        max: Upper end of the sensor range [channel unit]; +inf: unknown (no range check).
         resolution: Quantisation step [channel unit]; values travel as k = round(v / resolution).
         optional: Declared optional in the machine description (may be absent or sent by status).
     """
@@ -150,8 +151,9 @@ class Layout:
     @classmethod
     def from_channels(cls, channels: Iterable[ChannelLike]) -> Layout:
         """Layout of ``machine.channels`` (objects with name, min, max, resolution, optional)."""
-        return cls(tuple(ChannelSpec(c.name, float(c.min), float(c.max), float(c.resolution),
-                                     bool(c.optional)) for c in channels))
+        return cls(tuple(ChannelSpec(c.name, -math.inf if c.min is None else float(c.min),
+                                     math.inf if c.max is None else float(c.max),
+                                     float(c.resolution), bool(c.optional)) for c in channels))
 
     @cached_property
     def names(self) -> tuple[str, ...]:

@@ -124,10 +124,14 @@ def productivity(rep: AnalyticsReport, machine: Machine) -> bytes:
     fig, axes = _plt().subplots(1, 2, figsize=(7.5, 3.0))
     p = np.array([c.payload_kg for c in rep.cycles])
     r = np.array([c.load_ratio for c in rep.cycles])
+    known = r[np.isfinite(r)]
     axes[0].hist(p, bins=30, color="#2f6db5")
     axes[0].set_xlabel("payload per work cycle [kg]")
     axes[0].set_ylabel("cycles")
-    axes[1].hist(r, bins=30, range=(0, max(1.2, float(r.max()) if r.size else 1.2)),
+    if r.size and not known.size:  # no rated-load chart
+        axes[1].text(0.5, 0.5, "load ratio unknown:\nno rated-load chart", ha="center",
+                     va="center", transform=axes[1].transAxes)
+    axes[1].hist(known, bins=30, range=(0, max(1.2, float(known.max()) if known.size else 1.2)),
                  color="#4a9a5b")
     axes[1].axvline(1.0, color="#b53a2f", lw=1)
     axes[1].set_xlabel("P_i / P_max (rated at reach)")

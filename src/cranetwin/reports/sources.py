@@ -8,7 +8,7 @@ kinematics, which is why these adapters live here and not in :mod:`cranetwin.ana
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 from cranetwin.analytics import AnalyticsConfig, AnalyticsState, LoadHistory
 from cranetwin.errors import CraneTwinError, ReportError
+from cranetwin.importer.payload import LiftError, lift_errors, on_grid
 from cranetwin.model import Machine, load_machine
 from cranetwin.testing.histories import Misuse, SyntheticCrane
 
@@ -285,6 +286,11 @@ class ImportedFileSource:
     """A user's recording (CSV, Parquet, MDF4; docs/IMPORT.md), read through the importer with
     its mapping and analysed on the twin's replay of its samples (not on any truth file).
 
+    A known payload series (the mapping's ``[payload]`` column) is the analysis's payload
+    where it is known (the twin's estimate elsewhere), and the estimate is compared with it
+    per lift (``lifts``, after :meth:`chunks`); the twin's joint loads still come from its
+    estimate (or ``payload_kg``).
+
     Attributes:
         machine: The machine recorded.
         path: The file.
@@ -305,6 +311,8 @@ class ImportedFileSource:
 
         got = read_file(self.path, self.machine, self.mapping)
         self.samples = got.samples
+        self.known_payload_kg = got.payload_kg
+        self.lifts: list[LiftError] | None = None
         self.import_report = got.report
         self.warnings: list[str] = []  # forces the pressures do not resolve (after chunks())
         self.label = self.label or (f"recording {self.path.name} ({got.report.rows_accepted} "
@@ -324,6 +332,7 @@ class ImportedFileSource:
         done = 0
         forces = ForceRange()
         smoothing: dict[str, SmoothingChoice] = {}
+        pairs: list[tuple[F64, F64, F64]] = []
         for res in iter_replay(self.samples, self.machine, grid_hz=self.grid_hz,
                                payload=self.payload_kg):
             if not res.n:
@@ -332,8 +341,16 @@ class ImportedFileSource:
             smoothing = smoothing or res.smoothing
             n = int(np.searchsorted(self.samples.t_s, res.t_s[-1], side="right")) - done
             done += n
+            if self.known_payload_kg is not None:
+                known = on_grid(res.t_s, self.samples.t_s, self.known_payload_kg)
+                pairs.append((res.t_s, known, res.payload_kg))
+                res = replace(res, payload_kg=np.where(np.isfinite(known), known,
+                                                       res.payload_kg))
             h = history_from_twin(self.machine, res)
             yield (h if h.n else None), n
+        if pairs:
+            t, known, est = (np.concatenate(x) for x in zip(*pairs, strict=True))
+            self.lifts = lift_errors(t, known, est)
         self.warnings = unobservable(forces.assess(self.machine, smoothing))
         if self.warnings:
             self.label += "; " + "; ".join(self.warnings)

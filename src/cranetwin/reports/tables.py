@@ -197,7 +197,8 @@ def events(rep: AnalyticsReport, limit: int | None = None) -> Table:
 def work_cycles(rep: AnalyticsReport) -> Table:
     """Every detected work cycle."""
     rows: list[Row] = [[when(c.t_grab), round(c.t_release - c.t_grab, 2), round(c.payload_kg, 1),
-                        round(c.load_ratio, 4), int(c.lift), int(c.swing), round(c.reach_max_m, 3)]
+                        round(c.load_ratio, 4) if np.isfinite(c.load_ratio) else "unknown",
+                        int(c.lift), int(c.swing), round(c.reach_max_m, 3)]
                        for c in rep.cycles]
     return Table("Work cycles", ["grab (UTC)", "loaded s", "payload kg", "load ratio", "lift",
                                  "swing", "max reach m"], rows)

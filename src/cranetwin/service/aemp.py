@@ -109,9 +109,10 @@ class EquipmentFigures:
     oem_name: str = "cranetwin"
 
 
-def rated_load_kg(machine: Machine) -> float:
-    """Largest payload of the rated-load chart [kg]."""
-    return float(max(machine.rated_load.payload_kg))
+def rated_load_kg(machine: Machine) -> float | None:
+    """Largest payload of the rated-load chart [kg]; None (null) without a chart (unknown)."""
+    rl = machine.rated_load
+    return None if rl is None else float(max(rl.payload_kg))
 
 
 def header(fig: EquipmentFigures) -> dict[str, Any]:

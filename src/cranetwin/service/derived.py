@@ -81,7 +81,8 @@ def update_counters(prog: Progress, machine: Machine, t_s: F64, payload_kg: F64,
         period_s: Grid period [s].
         threshold_kg: Lift threshold [kg].
     """
-    rated_max = float(max(machine.rated_load.payload_kg))
+    rl = machine.rated_load  # no chart: ratios unknown, no overloads or spectrum counted
+    rated_max = float(max(rl.payload_kg)) if rl is not None else None
     op = prog.operating_s + len(t_s) * period_s
     idle = prog.idle_s + float(np.sum(working < 0.5)) * period_s
     in_lift, peak, ratio = prog.in_lift, prog.lift_peak_kg, prog.lift_peak_ratio
@@ -94,7 +95,10 @@ def update_counters(prog: Progress, machine: Machine, t_s: F64, payload_kg: F64,
         starts = np.concatenate(([0], np.flatnonzero(np.diff(sec)) + 1))
         pl = np.where(np.isfinite(payload_kg), payload_kg, 0.0)
         means = np.add.reduceat(pl, starts) / np.diff(np.append(starts, len(t_s)))
-        rated_at = machine.rated_load.payload_at(reach_m[starts])
+        # without a chart the ratio is not computed: it stays 0 (the stored column has no
+        # null), and rated_max None above keeps overloads and the spectrum uncounted
+        rated_at = (rl.payload_at(reach_m[starts]) if rl is not None
+                    else np.full(starts.shape, np.inf))
         for m, r in zip(means.tolist(), rated_at.tolist(), strict=True):
             if not in_lift and m > threshold_kg:
                 in_lift, peak, ratio = True, m, m / r
@@ -105,8 +109,9 @@ def update_counters(prog: Progress, machine: Machine, t_s: F64, payload_kg: F64,
                 if m < threshold_kg / 2:
                     count += 1
                     total += peak
-                    cube += (peak / rated_max) ** 3
-                    over += int(ratio > 1.0)
+                    if rated_max is not None:
+                        cube += (peak / rated_max) ** 3
+                        over += int(ratio > 1.0)
                     mx = max(mx, peak)
                     in_lift, peak, ratio = False, 0.0, 0.0
         finite = payload_kg[np.isfinite(payload_kg)]

@@ -30,7 +30,7 @@ class SensorChannel(Protocol):
     @property
     def quantity(self) -> str: ...
     @property
-    def full_range(self) -> float: ...
+    def full_range(self) -> float | None: ...
 
 
 class HasChannels(Protocol):
@@ -71,6 +71,9 @@ def inject_uniform_noise(
     for j, name in enumerate(samples.channels):
         ch = known.get(name)
         if ch is not None and ch.quantity in wanted:
+            if ch.full_range is None:
+                raise SignalError(f"channel {name!r}: sensor range unknown (no min/max); the "
+                                  "error is a share of the range")
             scale[j] = level * ch.full_range
     err = rng.uniform(-1.0, 1.0, size=samples.values.shape) * scale[None, :]
     return dataclasses.replace(samples, values=samples.values + err)

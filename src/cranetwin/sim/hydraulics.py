@@ -40,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from cranetwin.errors import SimulationError
 from cranetwin.model import Hydraulics, Machine
 
 F64 = npt.NDArray[np.float64]
@@ -160,6 +161,11 @@ def pack(machine: Machine, settings: HydraulicSettings | None = None) -> Hydraul
         row[S_B] = d.friction.viscous
         row[S_KS] = st.slew_stiffness_nm_rad
         row[S_TLEAK] = st.slew_leak_time_s
+        if j.velocity_limit is None:
+            raise SimulationError(
+                f"joints.{machine.joint_index(d.joint)}.velocity_limit: unknown; the simulator "
+                f"drives torque drive {d.name!r} at velocity_limit × valve command, so it needs "
+                "the joint's speed at full command")
         row[S_WMAX] = j.velocity_limit
         row[S_TAU] = st.slew_spool_time_s
         row[S_UMAX] = 10.0

@@ -69,6 +69,9 @@ def inject_error(samples: SampleArrays, machine: Machine, level: float, seed: in
         if ch is None or ch.quantity not in wanted:
             continue
         if scale == "full":
+            if ch.full_range is None:
+                raise SimulationError(f"channel {name!r}: sensor range unknown (no min/max); "
+                                      "use scale=\"recorded\"")
             r[j] = ch.full_range
         else:
             col = samples.values[:, j]

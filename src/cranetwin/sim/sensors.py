@@ -155,7 +155,13 @@ class SensorReader:
         self.channels = [c for c in machine.channels if model.include_optional or not c.optional]
         self.names = tuple(c.name for c in self.channels)
         self.columns = [channel_source_column(machine, c) for c in self.channels]
-        spans = np.array([c.full_range for c in self.channels])
+        unknown = [c.name for c in self.channels if c.full_range is None]
+        if unknown and (model.noise_fraction > 0 or model.bias_fraction > 0):
+            raise SimulationError(
+                f"channel(s) {', '.join(unknown)}: sensor range unknown (no min/max); the "
+                "sensor model's noise and bias are shares of the range: state the ranges or "
+                "simulate with noise_fraction = bias_fraction = 0")
+        spans = np.array([c.full_range or 0.0 for c in self.channels])
         self.bias = (rng.normal(0.0, model.bias_fraction * spans) if model.bias_fraction > 0
                      else np.zeros(len(self.channels)))
         self._burst_left = np.zeros(len(self.channels), dtype=np.int64)
@@ -168,9 +174,10 @@ class SensorReader:
         for j, ch in enumerate(self.channels):
             x = snapshots[:, self.columns[j]] + self.bias[j]
             if model.noise_fraction > 0:
-                x = x + self.rng.normal(0.0, model.noise_fraction * ch.full_range, m)
+                x = x + self.rng.normal(0.0, model.noise_fraction * (ch.full_range or 0.0), m)
             x = np.round(x / ch.resolution) * ch.resolution
-            out[:, j] = np.clip(x, ch.min, ch.max)
+            # a sensor saturates at the ends of its range; an unknown range: not clipped
+            out[:, j] = x if ch.min is None or ch.max is None else np.clip(x, ch.min, ch.max)
             if model.dropout_probability > 0:
                 out[self._dropouts(m, j), j] = np.nan
         return out

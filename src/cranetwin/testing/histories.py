@@ -93,7 +93,11 @@ class SyntheticCrane:
         self._down = 0.15 + rng.uniform(-0.1, 0.1, n)
         self._l_pick = rng.uniform(0.2, 1.1, n)
         grab_reach = self._reach(self._down, np.full(n, -0.9), self._l_pick)
-        cap = 0.85 * self.machine.rated_load.payload_at(grab_reach)
+        rl = self.machine.rated_load
+        if rl is None:
+            raise ValueError(f"{self.machine.name}: synthetic shifts size their loads by the "
+                             "rated-load chart, which this machine does not state")
+        cap = 0.85 * rl.payload_at(grab_reach)
         self._mass = np.minimum(np.clip(rng.lognormal(np.log(230.0), 0.4, n), 60.0, None), cap)
         self._lift_to = np.full(n, 0.6)
         self._hit = np.zeros(n, dtype=bool)
@@ -101,7 +105,7 @@ class SyntheticCrane:
         ml = self.machine
         for k in self.misuse.overload:
             self._mass[k] = self.misuse.overload_factor * float(
-                ml.rated_load.payload_at(grab_reach[k]))
+                rl.payload_at(grab_reach[k]))
         j1 = ml.joints[1]
         for k in self.misuse.end_stop:
             self._lift_to[k] = j1.upper

@@ -72,7 +72,8 @@ def run_levels(recording: Any, machine: Machine, levels: list[float], seeds: int
     truth_pos_s = tr.rod_s[ts_idx][:, [li, ji]]
     truth_f_s = tr.cyl_force[ts_idx][:, [li, ji]]
     reach = physics.horizontal_reach(machine, tr.q)
-    rated = machine.rated_load.payload_at(reach)
+    rated = (machine.rated_load.payload_at(reach) if machine.rated_load is not None
+             else np.full(reach.shape, np.nan))  # no chart: unknown
     out: list[LevelResult] = []
     for e in levels:
         runs: dict[str, list[float]] = {k: [] for k in METRICS}

@@ -31,7 +31,7 @@ import numpy.typing as npt
 import trimesh
 
 from cranetwin.errors import CraneTwinError
-from cranetwin.model import Machine, Visual
+from cranetwin.model import FourBar, Machine, Visual
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,8 @@ class SceneSpec:
         tool_path: meshcat path of the tool node (placed at the load point, world-aligned).
         payload_path: meshcat path of the payload log (unit mesh, scaled by :func:`payload_matrix`).
         trail_path: meshcat path of the tip-path line.
-        rated_payload_kg: Largest rated payload [kg], for the payload bar.
+        rated_payload_kg: Largest rated payload [kg], for the payload bar; None: no rated-load
+            chart (unknown).
     """
 
     bodies: list[str]
@@ -82,7 +83,7 @@ class SceneSpec:
     tool_path: str
     payload_path: str
     trail_path: str
-    rated_payload_kg: float
+    rated_payload_kg: float | None
     extras: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
@@ -326,7 +327,7 @@ def build_scene(machine: Machine, base_dir: Path | None = None,
         cmds.append(set_object(f"{ROOT}/cylinders/{cyl.name}/rod",
                                mesh_object(rod, "#c9ced6", name=f"{cyl.name}.rod")))
         barrels[cyl.name] = 0.92 * cyl.closed_length_m
-        if cyl.linkage is not None:
+        if isinstance(cyl.linkage, FourBar):
             # four-bar: link D→E (pivot on the parent body to the rod end) and E→F (rod end to
             # the coupler pin on the child body), unit +z meshes stretched every frame
             joint = machine.joints[machine.joint_index(cyl.joint)]
@@ -376,7 +377,8 @@ def build_scene(machine: Machine, base_dir: Path | None = None,
         tool_path=tool,
         payload_path=f"{tool}/payload",
         trail_path=f"{ROOT}/trail",
-        rated_payload_kg=float(max(machine.rated_load.payload_kg)),
+        rated_payload_kg=(None if machine.rated_load is None  # no chart: unknown
+                          else float(max(machine.rated_load.payload_kg))),
         extras={"trail_points": trail_points, "linkages": linkages, **drawing},
     )
     return cmds, spec

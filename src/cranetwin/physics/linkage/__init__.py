@@ -12,11 +12,14 @@ Every kind module gives, for the parameters of one cylinder block (``cyl`` array
 
 All three numeric functions return NaN where the geometry cannot assemble. Kinds:
 :mod:`.revolute` (a cylinder directly on a revolute joint, law of cosines), :mod:`.prismatic`
-(directly on a prismatic joint) and :mod:`.four_bar` (through a four-bar linkage).
+(a cylinder pinned to both bodies of a prismatic joint), :mod:`.linear` (a cylinder acting
+along a prismatic joint, s = s0 + q: a telescope) and :mod:`.four_bar` (through a four-bar
+linkage).
 
-Adding a kind: its module, an entry in :data:`KINDS` and a branch in each of the three
+Adding a kind: its module, an entry in :data:`KINDS` and a branch in each of the four
 dispatchers below (numba compiles calls, not look-ups), plus its description in the model
-schema.
+schema (``cranetwin.model.schema.Linkage``). ``tests/test_physics_linear.py`` fails for a
+kind in :data:`KINDS` that a dispatcher does not reach.
 """
 
 from __future__ import annotations
@@ -31,13 +34,13 @@ from numba import njit
 from cranetwin.errors import ModelError
 from cranetwin.model import Cylinder, Joint
 from cranetwin.physics.layout import C_KIND
-from cranetwin.physics.linkage import four_bar, prismatic, revolute
+from cranetwin.physics.linkage import four_bar, linear, prismatic, revolute
 
 F64 = npt.NDArray[np.float64]
 
-KINDS: tuple[ModuleType, ...] = (four_bar, revolute, prismatic)
-"""The kinds, tried in this order by :func:`kind_of` (a four-bar claims any cylinder with a
-linkage first)."""
+KINDS: tuple[ModuleType, ...] = (four_bar, linear, revolute, prismatic)
+"""The kinds, tried in this order by :func:`kind_of` (a cylinder that declares its linkage is
+claimed by that kind before the direct kinds look at it)."""
 
 
 def kind_of(joint: Joint, cyl: Cylinder) -> ModuleType:
@@ -62,6 +65,8 @@ def state(cyl, o, q):  # type: ignore[no-untyped-def]
         return prismatic.state(cyl, o, q)
     if kind == four_bar.KIND:
         return four_bar.state(cyl, o, q)
+    if kind == linear.KIND:
+        return linear.state(cyl, o, q)
     return math.nan, math.nan, math.nan
 
 
@@ -75,6 +80,8 @@ def motion(cyl, o, s):  # type: ignore[no-untyped-def]
         return prismatic.motion(cyl, o, s)
     if kind == four_bar.KIND:
         return four_bar.motion(cyl, o, s)
+    if kind == linear.KIND:
+        return linear.motion(cyl, o, s)
     return math.nan, math.nan, math.nan
 
 
@@ -88,6 +95,8 @@ def inverse(cyl, o, s):  # type: ignore[no-untyped-def]
         return prismatic.inverse(cyl, o, s)
     if kind == four_bar.KIND:
         return four_bar.inverse(cyl, o, s)
+    if kind == linear.KIND:
+        return linear.inverse(cyl, o, s)
     return math.nan
 
 
@@ -100,11 +109,13 @@ def branch_signs(cyl, o, q):  # type: ignore[no-untyped-def]
         return revolute.branch(cyl, o, q), 1.0, 1.0
     if kind == prismatic.KIND:
         return prismatic.branch(cyl, o, q), 1.0, 1.0
+    if kind == linear.KIND:
+        return linear.branch(cyl, o, q), 1.0, 1.0
     se, sf = four_bar.branches(cyl, o, q)
     if math.isnan(se):
         return math.nan, math.nan, math.nan
     return 1.0, se, sf
 
 
-__all__ = ["KINDS", "branch_signs", "four_bar", "inverse", "kind_of", "motion", "prismatic",
-           "revolute", "state"]
+__all__ = ["KINDS", "branch_signs", "four_bar", "inverse", "kind_of", "linear", "motion",
+           "prismatic", "revolute", "state"]

@@ -27,7 +27,7 @@ import numpy.typing as npt
 from numba import njit
 
 from cranetwin.errors import ModelError
-from cranetwin.model import Cylinder, Joint
+from cranetwin.model import Cylinder, FourBar, Joint
 from cranetwin.physics.frames import joint_frame_point, plane_basis
 from cranetwin.physics.layout import C_CENTRE, C_CLOSED
 
@@ -38,8 +38,9 @@ CX, DX, F0X, DE_LEN, EF_LEN, BRANCH_E, SIGMA_E, SIGMA_F = 9, 11, 13, 15, 16, 17,
 
 
 def matches(joint: Joint, cyl: Cylinder) -> bool:
-    """This kind drives ``joint`` with ``cyl``: a cylinder with a linkage (revolute joint)."""
-    return cyl.linkage is not None
+    """This kind drives ``joint`` with ``cyl``: a cylinder with a four-bar linkage (revolute
+    joint)."""
+    return isinstance(cyl.linkage, FourBar)
 
 
 def fill(block: F64, joint: Joint, cyl: Cylinder, base: F64) -> None:
@@ -51,7 +52,7 @@ def fill(block: F64, joint: Joint, cyl: Cylinder, base: F64) -> None:
     if joint.kind != "revolute":
         raise ModelError(f"cylinder {cyl.name!r}: a four-bar linkage needs a revolute joint")
     lk = cyl.linkage
-    assert lk is not None
+    assert isinstance(lk, FourBar)
     e1, e2 = plane_basis(np.asarray(joint.axis, dtype=np.float64))
     d = joint_frame_point(joint, lk.pivot_m)
     f = np.asarray(lk.coupler_pin_m, dtype=np.float64)  # child frame = joint frame at q = 0
