@@ -435,9 +435,18 @@ def test_alarms_are_listed_from_every_shard_and_acted_on_in_their_own(
     svc = AlarmService(backend, offline_s=60.0, gap_s=10.0)
     offered: list[dict[str, Any]] = []
 
-    class Notifier:
-        def offer(self, alarm: dict[str, Any]) -> None:
-            offered.append(alarm)
+    class Notifier:  # the outbox's interface: named cursors, queued with them
+        def __init__(self) -> None:
+            self.cursors: dict[str, int] = {}
+
+        def cursor(self, name: str = "events") -> int | None:
+            return self.cursors.get(name)
+
+        def offer_many(self, alarms: list[dict[str, Any]], cursor: int | None = None,
+                       cursors: dict[str, int] | None = None) -> None:
+            offered.extend(alarms)
+            for name, value in (cursors or {}).items():
+                self.cursors[name] = max(value, self.cursors.get(name, 0))
 
     svc.set_notifier(Notifier(), "warning")
     evs = [Event(ma, 100.0, "overload", "critical", {}), Event(mb, 200.0, "overload",
