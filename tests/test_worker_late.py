@@ -87,10 +87,9 @@ def test_block_committed_after_a_higher_id_was_seen_is_processed(pg_url: str,
         xid = int(held.execute(text("SELECT pg_current_xact_id()::text::bigint")).scalar_one())
         # ...while writer 2 commits higher ids (minute 3) and a pass runs
         b.store.write_blocks(_blocks(base, T0 + 185.0, 55.0, 3000))  # type: ignore[arg-type]
-        with b.store.engine.connect() as c:
-            ids = dict(c.execute(text("SELECT seq, id FROM sample_blocks "
-                                      "WHERE seq IN (2000, 3000)")).all())
-        assert ids[2000] < ids[3000]  # (writer 2's row is visible, writer 1's is not)
+        ids = dict(held.execute(text("SELECT seq, id FROM sample_blocks "
+                                     "WHERE seq IN (2000, 3000)")).all())
+        assert ids[2000] < ids[3000]  # writer 1's ids are the lower ones
         worker.catch_up(rec)
         tx.commit()
     # every transaction below the writer's has to end (other clients of this server too)
@@ -113,3 +112,37 @@ def test_block_committed_after_a_higher_id_was_seen_is_processed(pg_url: str,
     assert worker.catch_up(rec) == 0  # nothing redone twice
     assert b.progress(MID) == after
     b.close()
+
+
+def _lifts(p: Progress | None) -> tuple[object, ...]:
+    assert p is not None
+    return tuple(getattr(p, k) for k in LIFT)
+
+
+@pytest.mark.timeout(300)
+def test_late_block_into_a_processed_minute_recounts_the_lifts(sqlite_url: str,
+                                                               base: SampleArrays) -> None:
+    b = _backend(sqlite_url)
+    worker = _worker(b)
+    rec = b.machine(MID)
+    b.store.write_blocks(_blocks(base, T0, 70.0, 0))  # type: ignore[arg-type]
+    b.store.write_blocks(_blocks(base, T0 + 110.0, 140.0, 1000))  # type: ignore[arg-type]
+    assert worker.catch_up(rec) == 4  # minutes 0-3; minute 1 has a 40-s hole
+    before = b.progress(MID)
+    assert before is not None
+    b.store.write_blocks(_blocks(base, T0 + 70.0, 40.0, 2000))  # type: ignore[arg-type]
+    assert worker.catch_up(rec) >= 1  # minute 1 (and its neighbours) redone
+    after = b.progress(MID)
+    # a fresh processing of the whole history, everything stored at once
+    fresh_b = _backend(sqlite_url.replace("cranetwin.db", "fresh.db"))
+    fresh_b.store.write_blocks(_blocks(base, T0, 250.0, 0))  # type: ignore[arg-type]
+    assert _worker(fresh_b).catch_up(fresh_b.machine(MID)) == 4
+    fresh = fresh_b.progress(MID)
+    assert fresh is not None and after is not None
+    assert _lifts(before) != _lifts(fresh), "the late samples change a lift"
+    assert _lifts(after) == pytest.approx(_lifts(fresh), rel=1e-9)
+    assert (after.operating_s, after.idle_s) == pytest.approx((fresh.operating_s, fresh.idle_s),
+                                                              abs=0.02)
+    assert worker.catch_up(rec) == 0 and b.progress(MID) == after  # nothing recounted twice
+    b.close()
+    fresh_b.close()
