@@ -54,8 +54,10 @@ from cranetwin.service.derived import (
     MOVING_RAD_S,
     derive,
     derived_channels,
+    lift_seconds,
     update_counters,
 )
+from cranetwin.service.liftcount import store_seconds
 
 if TYPE_CHECKING:
     from cranetwin.service.backend import Backend, MachineRecord, Progress
@@ -376,6 +378,10 @@ class TwinWorker:
                 return None
             prog = new
             done += 1
+        recounted = self._recount_lifts(rec, prog)
+        if recounted is None:
+            return None
+        prog = recounted
         lo, hi = min(minutes), max(minutes) + win
         aw.delete_windows(engine, rec.machine_id, lo, hi, levels=(3600, 86400))
         drop_duty(engine, rec.machine_id)  # rebuilt from the parts at the end of the pass
@@ -388,6 +394,22 @@ class TwinWorker:
             aw.set_block_mark(engine, rec.machine_id, top)
         log.info("machine %s: %d window(s) redone for late data", rec.machine_id, done)
         return prog, done
+
+    def _recount_lifts(self, rec: MachineRecord, prog: Progress) -> Progress | None:
+        """``prog`` with the lift counters folded again over the stored minutes
+        (:func:`cranetwin.service.liftcount.recount`) and saved; None if another worker moved
+        the watermark."""
+        from cranetwin.service.liftcount import recount
+
+        new = recount(self._engine(rec), self.backend.model_of(rec), prog,
+                      self.settings.payload_lift_threshold_kg)
+        if new is None:
+            log.warning("machine %s: lift counters not recounted (minutes processed before "
+                        "their lift seconds were stored)", rec.machine_id)
+            return prog
+        if new == prog:
+            return prog
+        return new if self.backend.save_progress(new, prog.watermark_s) else None
 
     def _update_duty(self, rec: MachineRecord, first_s: float, until_s: float) -> None:
         """Fold the new minutes into the machine's duty to date (AEMP's kp and design life
@@ -441,9 +463,10 @@ class TwinWorker:
             expected_watermark_s: The stored watermark the commit is conditional on (None: no
                 progress row stored yet).
             redo_w0: Redo the past window starting here instead (late data behind the
-                watermark): the watermark stays; the window's derived summaries, analytics part
-                and events are written again; the cumulative counters take the window in only
-                when it had no analytics part before (a backfill into an empty window).
+                watermark): the watermark stays; the window's derived summaries, analytics part,
+                lift seconds and events are written again; its operating and idle time replace
+                those counted for it before (if any); the lift counters are left to
+                :meth:`_recount_lifts` after the redo.
 
         Returns:
             The new progress, or None when another worker committed the window first (nothing
@@ -488,15 +511,18 @@ class TwinWorker:
         t = res.t_s[keep]
         reach = horizontal_reach(machine, res.q[keep]) if t.size else np.zeros(0)
         times = (t.size / grid_hz, float(np.sum(values[:, -1] < 0.5)) / grid_hz)
-        if count:
+        if redo_w0 is None:
             new = update_counters(new, machine, t, res.payload_kg[keep], reach, values[:, -1],
                                   1.0 / grid_hz, s.payload_lift_threshold_kg)
-        elif old is not None:  # a redone window replaces its share of the operating time
-            new = dc_replace(new, operating_s=new.operating_s - old[0] + times[0],
-                             idle_s=new.idle_s - old[1] + times[1])
+        else:  # a redone window replaces its share of the operating time; the lift counters
+            o = old or (0.0, 0.0)  # are recounted after the redo (:meth:`_recount_lifts`)
+            new = dc_replace(new, operating_s=new.operating_s - o[0] + times[0],
+                             idle_s=new.idle_s - o[1] + times[1])
         if t.size:
             if redo_w0 is None:
                 new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
+            store_seconds(self._engine(rec), rec.machine_id, w0, w1,
+                          *lift_seconds(machine, t, res.payload_kg[keep], reach))
             self._store_analytics(rec, machine, res, keep, w0, w1, times)
         if not self.backend.commit_window(new, expected, names, t, values):
             return None

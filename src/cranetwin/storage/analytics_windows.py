@@ -9,9 +9,21 @@ window) replaces it. Plain functions over an engine, so the storage core is not 
 
 from __future__ import annotations
 
-from sqlalchemy import BigInteger, Engine, Float, Integer, LargeBinary, String, delete, select
+from sqlalchemy import (
+    BigInteger,
+    Engine,
+    Float,
+    Integer,
+    LargeBinary,
+    String,
+    delete,
+    func,
+    select,
+    text,
+)
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Mapped, Session, mapped_column
+from sqlalchemy.sql.elements import ColumnElement, TextClause
 
 from cranetwin.storage.base import Base
 
@@ -98,40 +110,75 @@ def delete_windows(engine: Engine, machine_id: str, t0_s: float, t1_s: float,
 
 MARK_LEVEL = 0
 """``level_s`` of the row that keeps a machine's block mark (``t1_ns``: the largest sample block
-id the analytics have seen)."""
+id the analytics have seen; SQLite, and PostgreSQL before its first commit-order mark)."""
+XMARK_LEVEL = -2
+"""PostgreSQL: ``level_s`` of the row that keeps a machine's commit-order mark (``t1_ns``: the
+``pg_snapshot_xmin`` of the last pass; every block written by a transaction below it has been
+seen). ``-1`` is the duty to date (:mod:`cranetwin.service.history`)."""
 
 
-def block_mark(engine: Engine, machine_id: str) -> int | None:
-    """The largest block id seen by :func:`new_blocks_before`, or None before the first call."""
+def _mark(engine: Engine, machine_id: str, level: int) -> int | None:
     w = AnalyticsWindowRow
     with Session(engine) as s:
-        v = s.scalar(select(w.t1_ns).where(w.machine_id == machine_id, w.level_s == MARK_LEVEL))
+        v = s.scalar(select(w.t1_ns).where(w.machine_id == machine_id, w.level_s == level))
         return None if v is None else int(v)
 
 
+def block_mark(engine: Engine, machine_id: str) -> int | None:
+    """The mark of :func:`new_blocks_before` (PostgreSQL: the commit-order mark once one is
+    stored, else the block id mark), or None before the first call."""
+    if engine.dialect.name == "postgresql":
+        x = _mark(engine, machine_id, XMARK_LEVEL)
+        if x is not None:
+            return x
+    return _mark(engine, machine_id, MARK_LEVEL)
+
+
 def set_block_mark(engine: Engine, machine_id: str, mark: int) -> None:
-    """Store the block mark of a machine."""
-    put_window(engine, machine_id, MARK_LEVEL, 0.0, mark / SEC, 0, b"")
+    """Store the mark :func:`new_blocks_before` returned (PostgreSQL: a commit-order mark)."""
+    level = XMARK_LEVEL if engine.dialect.name == "postgresql" else MARK_LEVEL
+    put_window(engine, machine_id, level, 0.0, mark / SEC, 0, b"")
 
 
-def new_blocks_before(engine: Engine, machine_id: str, after_id: int | None,
+def new_blocks_before(engine: Engine, machine_id: str, after: int | None,
                       before_s: float) -> tuple[int | None, list[tuple[float, float]]]:
-    """Blocks stored after block id ``after_id`` that start before ``before_s`` (late data and
-    backfills behind the twin worker's progress mark): ``(largest id seen, [(t_start s, t_end s),
-    ...])``. With ``after_id`` None only the largest id is returned (the first call)."""
-    from sqlalchemy import func
+    """Blocks stored since the mark ``after`` that start before ``before_s`` (late data and
+    backfills behind the twin worker's progress mark): ``(the next mark, [(t_start s, t_end s),
+    ...])``. With ``after`` None only the mark is returned (the first call).
 
+    SQLite (one writer: ids grow in commit order): the mark is the largest block id seen.
+    PostgreSQL: ids are drawn when an insert runs, not when it commits, so a lower id can
+    commit after a higher one was seen; the mark is instead ``pg_snapshot_xmin`` of the pass,
+    and a pass takes the rows whose writing transaction (``writer_xid``, migration ``0006c``)
+    lies in [previous mark, this xmin): every transaction below xmin has ended, so nothing can
+    appear below the mark later. A transaction left open anywhere on the server holds xmin
+    back and so delays (never loses) late blocks. A PostgreSQL mark of the earlier kind (a
+    block id, from before ``0006c``) is used once: rows above that id, then the xmin mark.
+    """
     from cranetwin.storage.blocks import BlockRow
     from cranetwin.storage.machines import MachineRow
 
+    pg = engine.dialect.name == "postgresql"
     with Session(engine) as s:
         pk = s.scalar(select(MachineRow.id).where(MachineRow.machine_id == machine_id))
         if pk is None:
-            return after_id, []
-        top = s.scalar(select(func.max(BlockRow.id)).where(BlockRow.machine_pk == pk))
-        if after_id is None or top is None:
-            return (None if top is None else int(top)), []
-        rows = s.execute(select(BlockRow.t_start_ns, BlockRow.t_end_ns).where(
-            BlockRow.machine_pk == pk, BlockRow.id > after_id,
-            BlockRow.t_start_ns < _ns(before_s))).all()
-        return int(top), [(a / SEC, b / SEC) for a, b in rows]
+            return after, []
+        b = BlockRow
+        where: list[ColumnElement[bool] | TextClause] = [b.machine_pk == pk,
+                                                         b.t_start_ns < _ns(before_s)]
+        if pg:
+            top = s.scalar(text("SELECT pg_snapshot_xmin(pg_current_snapshot())::text::bigint"))
+            legacy = after is not None and _mark(engine, machine_id, XMARK_LEVEL) is None
+            if after is None:
+                return int(top), []
+            where.append(b.id > after if legacy else text(
+                "writer_xid >= CAST(CAST(:lo AS text) AS xid8) "
+                "AND writer_xid < CAST(CAST(:hi AS text) AS xid8)").bindparams(lo=after,
+                                                                              hi=int(top)))
+        else:
+            top = s.scalar(select(func.max(b.id)).where(b.machine_pk == pk))
+            if after is None or top is None:
+                return (None if top is None else int(top)), []
+            where.append(b.id > after)
+        rows = s.execute(select(b.t_start_ns, b.t_end_ns).where(*where)).all()
+        return int(top), [(a / SEC, c / SEC) for a, c in rows]
