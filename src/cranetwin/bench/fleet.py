@@ -6,7 +6,9 @@ synced to disk: the bench kills no sender), ``cranetwin ingest --processes N --b
 ``cranetwin store-writer --partitions`` (the bus partitions split between the writers), ``cranetwin
 worker --partitions auto --of P`` (M workers), a ``nats-server -js`` of the bench's own on a free
 port, and a fresh database ``h_fleetbench_…`` per run (dropped at the end). Every cranetwin
-process reaches PostgreSQL through a TCP proxy that the bench can cut. Three runs:
+process of a bus run reaches PostgreSQL through a TCP proxy that the bench can cut. The three
+runs' processes are started side by side before the first one streams
+(:mod:`cranetwin.bench.fleet_setup`); then, one after the other:
 
 1. **direct** (the per-core baseline): one ``cranetwin ingest`` process writing straight to the
    database, the same machines, rate and datagrams, ``--direct-s`` of data;
@@ -46,11 +48,11 @@ Figures of a run:
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import time
-from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -58,256 +60,84 @@ import numpy as np
 import typer
 
 from cranetwin.bench import emit
-from cranetwin.bench.fleet_parts import (
-    PG_DEFAULT,
-    SECRET,
-    NatsServer,
-    Sampler,
-    SenderPlan,
-    Senders,
-    children,
-    fresh_database,
-    machine_name,
-    pg_target,
-    register_machines,
-    spawn_role,
-    start_role,
-    stop_proc,
-    via_proxy,
-    wait_ready,
-)
-from cranetwin.bench.ingest_daemon import free_udp_port
-
-
-@dataclass(frozen=True)
-class FleetConfig:
-    """Settings of a bench run (printed with the figures)."""
-
-    machines: int = 1000
-    rate_hz: float = 10.0
-    batch_samples: int = 10
-    sender_processes: int = 2
-    daemons: int = 2
-    writers: int = 2
-    workers: int = 2
-    worker_partitions: int = 8
-    bus_partitions: int = 16
-    window_s: float = 4.0
-    settle_s: float = 1.0
-    margin_s: float = 1.0
-    direct_s: float = 20.0
-    baseline_s: float = 40.0
-    warm_s: float = 25.0
-    fault_gap_s: float = 30.0
-    outage_s: float = 30.0
-    tail_s: float = 45.0
-    lag_target_s: float = 10.0
-
-    @property
-    def faults_s(self) -> float:
-        """Data time of the faults run."""
-        return self.warm_s + 3 * self.fault_gap_s + self.outage_s + self.tail_s
-
-
-def _env(cfg: FleetConfig) -> dict[str, str]:
-    import cranetwin
-
-    src = str(Path(cranetwin.__file__).resolve().parents[1])
-    env = dict(os.environ)
-    env.update({"PYTHONPATH": os.pathsep.join(x for x in (src, env.get("PYTHONPATH")) if x),
-                "CRANETWIN_WORKER_WINDOW_S": str(cfg.window_s),
-                "CRANETWIN_WORKER_SETTLE_S": str(cfg.settle_s),
-                "CRANETWIN_TWIN_MARGIN_S": str(cfg.margin_s),
-                "CRANETWIN_BUS_PARTITIONS": str(cfg.bus_partitions)})
-    return env
-
-
-def _split(n: int, k: int) -> list[str]:
-    """``0..n−1`` in ``k`` contiguous ranges ``a-b``."""
-    cuts = [round(i * n / k) for i in range(k + 1)]
-    return [f"{a}-{b - 1}" for a, b in zip(cuts, cuts[1:], strict=False) if b > a]
-
-
-def _readback(db_url: str, plan: SenderPlan, results: list[dict[str, Any]]) -> dict[str, int]:
-    """Every machine's stored samples against what its sender sent (module docstring)."""
-    from cranetwin.bench.ingest import patu_layout
-    from cranetwin.ingest.sender import SyntheticSource
-    from cranetwin.protocol import MachineKey
-    from cranetwin.storage import Store
-
-    layout = patu_layout()
-    out = dict.fromkeys(("sent", "stored", "lost", "doubled", "acked", "acked_not_stored",
-                         "unexpected", "machines_mismatched", "machines_reported"), 0)
-    period_s = plan.period_ns / 1e9
-    with Store.open(db_url) as store:
-        for r in results:
-            name = machine_name(r["wire_id"])
-            got = store.read_samples(name, 0, 4e9)
-            n_stored = store.stats(name).samples
-            rows = np.rint(got.t_s / period_s).astype(np.int64)
-            want = np.arange(r["row0"], r["row0"] + r["samples"], dtype=np.int64)
-            have = np.isin(want, rows)
-            out["sent"] += int(want.size)
-            out["stored"] += n_stored
-            out["lost"] += int((~have).sum())
-            out["doubled"] += max(0, n_stored - int(rows.size))
-            out["unexpected"] += int((~np.isin(rows, want)).sum())
-            out["acked"] += int(r["acked"])
-            out["acked_not_stored"] += max(0, int(r["acked"]) - int(have.sum()))
-            out["machines_reported"] += 1
-            if rows.size:
-                key = MachineKey(r["wire_id"], name, SECRET, layout)
-                exp = SyntheticSource(key, period_s, seed=r["wire_id"]).read(
-                    int(rows[0]), int(rows[-1] - rows[0] + 1))[rows - rows[0]]
-                if not np.array_equal(exp, got.values, equal_nan=True):
-                    out["machines_mismatched"] += 1
-    out["machines_missing"] = plan.machines - out["machines_reported"]
-    return out
+from cranetwin.bench.fleet_parts import PG_DEFAULT, Sampler, children
+from cranetwin.bench.fleet_setup import BusEnv, DirectEnv, FleetConfig, readback
 
 
 def _pct(x: list[float], q: float) -> float | None:
     return None if not x else round(float(np.percentile(x, q)), 2)
 
 
-def _direct(cfg: FleetConfig, pg: str, work: Path) -> dict[str, Any]:
-    """The single-process direct path (run 1)."""
-    env = _env(cfg)
-    plan = SenderPlan(cfg.machines, cfg.rate_hz, cfg.direct_s, cfg.batch_samples,
-                      cfg.sender_processes)
-    with fresh_database(pg, "direct") as url:
-        register_machines(url, cfg.machines)
-        port = free_udp_port()
-        daemon = start_role(["ingest", "--bind", f"127.0.0.1:{port}", "--db", url,
-                                "--metrics-bind", "0", "--log-level", "WARNING",
-                                "--rollup-interval", "3600"], work / "direct-ingest.stderr",
-                               env, b'{"event": "ready"')
-        sampler = Sampler(url, cfg.machines, time.time())
-        sampler.track("ingest", daemon.pid)
-        senders = None
-        try:
-            sampler.poll_cpu()
-            cpu0 = sampler.cpu_seconds("ingest")
-            t0 = time.monotonic()
-            (work / "senders").mkdir(parents=True)
-            senders = Senders(plan, ("127.0.0.1", port), work / "senders", env)
-            drained = senders.wait(cfg.direct_s + plan.drain_s + 60)
-            sampler.poll_cpu()
-            cpu = sampler.cpu_seconds("ingest") - cpu0
-            seconds = time.monotonic() - t0
-            stop_proc(daemon)
-        finally:
-            if senders is not None:
-                senders.kill()
-            if daemon.poll() is None:
-                daemon.kill()
-                daemon.wait(10)
-        counts = _readback(url, plan, senders.results())
-    return {"seconds": round(seconds, 1), "drained": drained, "ingest_cpu_seconds": round(cpu, 2),
+def _direct(e: DirectEnv) -> dict[str, Any]:
+    """Run 1: the single-process direct path."""
+    assert e.senders is not None
+    plan = e.cfg.plan(e.seconds)
+    e.register()
+    sampler = Sampler(e.db, e.cfg.machines, time.time())
+    sampler.track("ingest", e.daemon.pid)
+    sampler.poll_cpu()
+    cpu0 = sampler.cpu_seconds("ingest")
+    t0 = time.monotonic()
+    e.senders.go()
+    drained = e.senders.wait(e.seconds + plan.drain_s + 60)  # acked = committed: all stored
+    sampler.poll_cpu()
+    cpu = sampler.cpu_seconds("ingest") - cpu0
+    seconds = time.monotonic() - t0
+    e.close_processes()
+    counts = readback(e.db, plan, e.senders.results())
+    return {"data_seconds": e.seconds, "seconds": round(seconds, 1), "drained": drained,
+            "ingest_cpu_seconds": round(cpu, 2),
             "samples_per_second_per_core": round(counts["stored"] / cpu) if cpu > 0 else None,
             **counts}
 
 
-@dataclass
-class _Topology:
-    """The processes of a bus run."""
+def _faults(e: BusEnv, sampler: Sampler, t0: float) -> list[dict[str, Any]]:
+    """The fault schedule (module docstring); each fault's name, how, start and end
+    (monotonic)."""
+    cfg = e.cfg
+    assert e.nats is not None
 
-    nats: NatsServer
-    db: str
-    writers: list[Any]
-    workers: list[Any]
-    ingest: Any
-    port: int
+    def at(t: float) -> float:
+        time.sleep(max(0.0, t0 + t - time.monotonic()))
+        return time.monotonic()
 
-    def all_procs(self) -> list[Any]:
-        return [self.ingest, *self.writers, *self.workers]
-
-
-def _worker_args(cfg: FleetConfig, db: str) -> list[str]:
-    return ["worker", "--db", db, "--partitions", "auto", "--of", str(cfg.worker_partitions),
-            "--interval", "0.5", "--log-level", "warning"]
-
-
-def _start(cfg: FleetConfig, db: str, work: Path, env: dict[str, str]) -> _Topology:
-    """NATS, then the writers, workers and the ingest group, started together (each waited
-    for until its ready line)."""
-    nats = NatsServer(work)
-    nats.start()
-    topo = _Topology(nats, db, [], [], None, free_udp_port())
-    ok = b'{"event": "ready"'
-    try:
-        waits = []
-        for i, parts in enumerate(_split(cfg.bus_partitions, cfg.writers)):
-            log = work / f"writer-{i}.stderr"
-            topo.writers.append(spawn_role(
-                ["store-writer", "--bus", nats.url, "--db", db, "--partitions", parts,
-                 "--log-level", "WARNING", "--rollup-interval", "3600"], log, env))
-            waits.append((topo.writers[-1], log, ok))
-        for i in range(cfg.workers):
-            log = work / f"worker-{i}.stderr"
-            topo.workers.append(spawn_role(_worker_args(cfg, db), log, env))
-            waits.append((topo.workers[-1], log, b"cranetwin worker ready"))
-        log = work / "ingest.stderr"
-        topo.ingest = spawn_role(
-            ["ingest", "--bind", f"127.0.0.1:{topo.port}", "--db", db, "--bus", nats.url,
-             "--processes", str(cfg.daemons), "--metrics-bind", "0", "--log-level", "WARNING",
-             "--rollup-interval", "3600"], log, env)
-        waits.append((topo.ingest, log, ok))
-        for proc, log, ready in waits:
-            wait_ready(proc, log, ready)
-    except BaseException:
-        _stop(topo)
-        raise
-    return topo
-
-
-def _stop(topo: _Topology) -> None:
-    for p in topo.all_procs():
-        if p is not None:
-            stop_proc(p, 60)
-    topo.nats.close()
-
-
-def _faults(cfg: FleetConfig, topo: _Topology, proxy: Any, work: Path, env: dict[str, str],
-            at: Callable[[float], float]) -> list[dict[str, Any]]:
-    """Run the fault schedule; each fault's name, how, start and end (monotonic)."""
     out: list[dict[str, Any]] = []
     t = cfg.warm_s
-    t_start = at(t)
-    kids = children(topo.ingest.pid)
+    start = at(t)
+    kids = children(e.ingest.pid)
     if kids:
         os.kill(kids[0], 9)
     out.append({"fault": "daemon", "how": f"SIGKILL of ingest process 1 of {cfg.daemons} "
                 "(cranetwin ingest --processes restarts it on its socket)",
-                "start": t_start, "end": time.monotonic()})
+                "start": start, "end": time.monotonic(), "done": bool(kids)})
     t += cfg.fault_gap_s
-    t_start = at(t)
-    victim = topo.workers.pop(0)
+    start = at(t)
+    victim = e.workers[0]
     victim.kill()
     victim.wait(10)
-    t_end = time.monotonic()
+    end = time.monotonic()
     at(t + 5)
-    topo.workers.append(start_role(_worker_args(cfg, topo.db),
-                                   work / "worker-new.stderr", env,
-                                   b"cranetwin worker ready"))
+    sampler.track("worker", e.start_worker().pid)
     out.append({"fault": "worker", "how": f"SIGKILL of twin worker 1 of {cfg.workers} (the "
                 "others take its partitions); a new worker started 5 s later",
-                "start": t_start, "end": t_end})
+                "start": start, "end": end, "done": True})
     t += cfg.fault_gap_s
-    t_start = at(t)
-    topo.nats.kill()
-    topo.nats.start()
+    start = at(t)
+    e.nats.kill()
+    e.nats.start()
+    sampler.track("nats", e.nats.pids[-1])
     out.append({"fault": "nats", "how": "SIGKILL of the private nats-server -js, restarted at "
-                "once on its port and store directory", "start": t_start,
-                "end": time.monotonic()})
+                "once on its port and store directory", "start": start,
+                "end": time.monotonic(), "done": True})
     t += cfg.fault_gap_s
-    t_start = at(t)
-    proxy.cut()
+    start = at(t)
+    e.proxy.cut()
     at(t + cfg.outage_s)
-    proxy.restore()
+    e.proxy.restore()
     out.append({"fault": "postgresql", "how": f"every cranetwin process reaches PostgreSQL "
                 f"through a TCP proxy; for {cfg.outage_s:g} s it closed every connection and "
                 "refused new ones (the shared server itself kept running)",
-                "start": t_start, "end": time.monotonic()})
+                "start": start, "end": time.monotonic(), "done": True})
     return out
 
 
@@ -320,78 +150,55 @@ def _fault_figures(cfg: FleetConfig, faults: list[dict[str, Any]],
         after = [(t, v) for t, v in lag if f["start"] <= t < horizon]
         rec = next((t - f["end"] for t, v in after if t >= f["end"] and v < cfg.lag_target_s),
                    None)
-        out.append({"fault": f["fault"], "how": f["how"],
+        out.append({"fault": f["fault"], "how": f["how"], "injected": f["done"],
                     "at_s": round(f["start"] - t0, 1),
                     "duration_s": round(f["end"] - f["start"], 1),
                     "lag_before_s": round(before[-1], 1) if before else None,
                     "lag_max_s": round(max(v for _, v in after), 1) if after else None,
                     "recover_seconds": None if rec is None else round(rec, 1),
-                    "observed_s": round(min(horizon, after[-1][0] if after else f["end"])
-                                        - f["end"], 1)})
+                    "observed_s": round((after[-1][0] if after else f["end"]) - f["end"], 1)})
     return out
 
 
-def _bus_run(cfg: FleetConfig, pg: str, work: Path, faults: bool) -> dict[str, Any]:
-    """A bus run (runs 2 and 3)."""
-    from cranetwin.bench.chaos import TcpProxy
-
-    env = _env(cfg)
-    seconds = cfg.faults_s if faults else cfg.baseline_s
-    plan = SenderPlan(cfg.machines, cfg.rate_hz, seconds, cfg.batch_samples,
-                      cfg.sender_processes)
-    with fresh_database(pg, "faults" if faults else "base") as url:
-        register_machines(url, cfg.machines)
-        proxy = TcpProxy(pg_target(url))
-        purl = via_proxy(url, proxy.port)
-        topo = _start(cfg, purl, work, env)
-        sampler = Sampler(url, cfg.machines, time.time())
-        senders = None
-        fault_log: list[dict[str, Any]] = []
-        try:
-            sampler.track("ingest", topo.ingest.pid)
-            for w in topo.writers:
-                sampler.track("storage", w.pid)
-            for w in topo.workers:
-                sampler.track("worker", w.pid)
-            sampler.track("nats", topo.nats.pids[0])
-            (work / "senders").mkdir()
-            sampler.poll_cpu()
-            cpu0 = {r: sampler.cpu_seconds(r) for r in ("ingest", "storage", "worker", "nats")}
-            senders = Senders(plan, ("127.0.0.1", topo.port), work / "senders", env)
-            t0 = time.monotonic()  # every sender is streaming (its ready line)
-            sampler.stream_start_s = time.time()
-            sampler.lag_until_s = sampler.stream_start_s + seconds
-            sampler.start()
-
-            def at(t: float) -> float:
-                time.sleep(max(0.0, t0 + t - time.monotonic()))
-                return time.monotonic()
-
-            if faults:
-                fault_log = _faults(cfg, topo, proxy, work, env, at)
-                sampler.track("worker", topo.workers[-1].pid)
-                sampler.track("nats", topo.nats.pids[-1])
-            drained = senders.wait(seconds + plan.drain_s + 60)
-            sent = sum(r["samples"] for r in senders.results())
-            end = time.monotonic() + 120
-            while sampler.stored < sent and time.monotonic() < end:
-                time.sleep(0.5)
-            t_stored = time.monotonic()
-            sampler.stop()
-            cpu = {r: round(sampler.cpu_seconds(r) - cpu0[r], 2) for r in cpu0}
-        finally:
-            if senders is not None:
-                senders.kill()
-            _stop(topo)
-            proxy.close()
-            sampler.stop()
-        counts = _readback(url, plan, senders.results())
+def _bus_run(e: BusEnv, faults: bool) -> dict[str, Any]:
+    """Runs 2 and 3."""
+    assert e.senders is not None and e.nats is not None
+    plan = e.cfg.plan(e.seconds)
+    e.register()
+    sampler = Sampler(e.db, e.cfg.machines, time.time())
+    sampler.track("ingest", e.ingest.pid)
+    for w in e.writers:
+        sampler.track("storage", w.pid)
+    for w in e.workers:
+        sampler.track("worker", w.pid)
+    sampler.track("nats", e.nats.pids[0])
+    fault_log: list[dict[str, Any]] = []
+    try:
+        sampler.poll_cpu()
+        cpu0 = {r: sampler.cpu_seconds(r) for r in ("ingest", "storage", "worker", "nats")}
+        t0 = time.monotonic()
+        sampler.stream_start_s = time.time()
+        sampler.lag_until_s = sampler.stream_start_s + e.seconds
+        e.senders.go()
+        sampler.start()
+        if faults:
+            fault_log = _faults(e, sampler, t0)
+        drained = e.senders.wait(e.seconds + plan.drain_s + 60)
+        sent = sum(r["samples"] for r in e.senders.results())
+        end = time.monotonic() + 120
+        while sampler.stored < sent and time.monotonic() < end:
+            time.sleep(0.5)
+        t_stored = time.monotonic()
+    finally:
+        sampler.stop()
+        e.stop_processes()
+    cpu = {r: round(sampler.cpu_seconds(r) - cpu0[r], 2) for r in cpu0}
+    counts = readback(e.db, plan, e.senders.results())
     io_cpu = cpu["ingest"] + cpu["storage"]
     lat = sampler.latencies
     res: dict[str, Any] = {
-        "data_seconds": seconds, "drained": drained,
-        "seconds_to_stored": round(t_stored - t0, 1), **counts,
-        "cpu_seconds": cpu,
+        "data_seconds": e.seconds, "drained": drained,
+        "seconds_to_stored": round(t_stored - t0, 1), **counts, "cpu_seconds": cpu,
         "samples_per_second_per_core": round(counts["stored"] / io_cpu) if io_cpu > 0 else None,
         "latency_p50_s": _pct(lat, 50), "latency_p95_s": _pct(lat, 95),
         "latency_windows_seen": len(lat),
@@ -399,23 +206,35 @@ def _bus_run(cfg: FleetConfig, pg: str, work: Path, faults: bool) -> dict[str, A
         "lag_p50_s": _pct([v for _, v in sampler.lag], 50),
     }
     if faults:
-        res["faults"] = _fault_figures(cfg, fault_log, sampler.lag, t0)
+        res["faults"] = _fault_figures(e.cfg, fault_log, sampler.lag, t0)
     return res
 
 
 def run_fleet(cfg: FleetConfig, with_faults: bool, pg: str = PG_DEFAULT) -> dict[str, Any]:
-    """The three runs; returns the figures (module docstring)."""
-    with tempfile.TemporaryDirectory() as tmp:
+    """The runs (module docstring); returns the figures."""
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         work = Path(tmp)
         t = time.monotonic()
-        (work / "direct").mkdir()
-        direct = _direct(cfg, pg, work / "direct")
-        (work / "base").mkdir()
-        base = _bus_run(cfg, pg, work / "base", faults=False)
+        envs: list[DirectEnv | BusEnv] = [
+            DirectEnv(cfg, pg, work / "direct", cfg.direct_s),
+            BusEnv(cfg, pg, work / "base", cfg.baseline_s, "base")]
+        if with_faults:
+            envs.append(BusEnv(cfg, pg, work / "faults", cfg.faults_s, "faults"))
+        with ThreadPoolExecutor(len(envs)) as pool:
+            futures = [pool.submit(x.open) for x in envs]
+        for x, f in zip(envs, futures, strict=True):
+            if f.exception() is None:
+                stack.callback(x.close)
+        for f in futures:
+            f.result()  # raises the first failure (the others are closed on the way out)
+        setup_s = time.monotonic() - t
+        assert isinstance(envs[0], DirectEnv) and isinstance(envs[1], BusEnv)
+        direct = _direct(envs[0])
+        base = _bus_run(envs[1], faults=False)
         main = base
         if with_faults:
-            (work / "faults").mkdir()
-            main = _bus_run(cfg, pg, work / "faults", faults=True)
+            assert isinstance(envs[2], BusEnv)
+            main = _bus_run(envs[2], faults=True)
         total_s = time.monotonic() - t
     d = direct["samples_per_second_per_core"]
 
@@ -438,10 +257,11 @@ def run_fleet(cfg: FleetConfig, with_faults: bool, pg: str = PG_DEFAULT) -> dict
                                 max(recs, default=0.0)),
         "faults": faults,
         "baseline": base, "direct": direct,
-        "settings": asdict(cfg) | {"faults_data_s": cfg.faults_s},
+        "settings": {**cfg.__dict__, "faults_data_s": cfg.faults_s},
         "targets": {"lost": 0, "doubled": 0, "lag_below_s": cfg.lag_target_s,
                     "recover_within_s": 60.0, "per_core_ratio_vs_direct_min": 0.7},
-        "seconds": round(total_s, 1), "load_average_1min": round(os.getloadavg()[0], 2),
+        "setup_seconds": round(setup_s, 1), "seconds": round(total_s, 1),
+        "load_average_1min": round(os.getloadavg()[0], 2),
     }
     if with_faults:
         out["faults_run"] = {k: v for k, v in main.items() if k != "faults"}

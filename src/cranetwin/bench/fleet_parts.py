@@ -21,7 +21,6 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -97,25 +96,34 @@ def _conninfo(url: str) -> str:
     return url.replace("postgresql+psycopg://", "postgresql://", 1)
 
 
-@contextlib.contextmanager
-def fresh_database(pg_url: str, tag: str) -> Iterator[str]:
-    """A new database ``h_fleetbench_<tag>_<random>`` on the server of ``pg_url`` (dropped at
-    the end, its connections ended): its SQLAlchemy URL."""
+def create_database(pg_url: str, tag: str) -> str:
+    """A new database ``h_fleetbench_<tag>_<random>`` on the server of ``pg_url``, its schema
+    made (:meth:`Store.open` migrates): its SQLAlchemy URL."""
     try:
         import psycopg
     except ImportError as exc:
         raise MissingExtraError("postgres", "cranetwin bench fleet") from exc
+    from cranetwin.storage import Store
 
-    base = _conninfo(pg_url)
     name = f"h_fleetbench_{tag}_{uuid.uuid4().hex[:8]}"
-    with psycopg.connect(base, autocommit=True) as c:
+    with psycopg.connect(_conninfo(pg_url), autocommit=True) as c:
         c.execute(f'CREATE DATABASE "{name}"')
-    head, _, _ = pg_url.rpartition("/")
+    url = f"{pg_url.rpartition('/')[0]}/{name}"
     try:
-        yield f"{head}/{name}"
-    finally:
-        with psycopg.connect(base, autocommit=True) as c:
-            c.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+        Store.open(url).close()
+    except BaseException:
+        drop_database(pg_url, url)
+        raise
+    return url
+
+
+def drop_database(pg_url: str, url: str) -> None:
+    """Drop the database of ``url`` (made by :func:`create_database`), ending its sessions."""
+    import psycopg
+
+    name = url.rpartition("/")[2]
+    with psycopg.connect(_conninfo(pg_url), autocommit=True) as c:
+        c.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
 
 
 def via_proxy(url: str, port: int) -> str:
@@ -195,8 +203,10 @@ def sender_main() -> None:  # pragma: no cover - runs in a subprocess
                 for k, src in zip(keys, sources, strict=True)]
         return list(await asyncio.gather(*jobs))
 
-    sys.stdout.write("ready\n")  # imports done, sources built: the bench starts its clock
+    sys.stdout.write("ready\n")  # imports done, sources built; stream on "go" (stdin)
     sys.stdout.flush()
+    if sys.stdin.readline().strip() != "go":
+        return
     stats = asyncio.run(main())
     with open(cfg["out"], "w") as out:
         for k, st in zip(keys, stats, strict=True):
@@ -207,7 +217,8 @@ def sender_main() -> None:  # pragma: no cover - runs in a subprocess
 
 
 class Senders:
-    """The sender processes of one run (machines dealt round-robin)."""
+    """The sender processes of one run (machines dealt round-robin), started and loaded
+    (their ready lines waited for); they stream on :meth:`go`."""
 
     def __init__(self, plan: SenderPlan, server: tuple[str, int], workdir: Path,
                  env: dict[str, str]) -> None:
@@ -224,11 +235,17 @@ class Senders:
             with open(workdir / f"senders-{i}.stderr", "ab") as err:
                 self.procs.append(subprocess.Popen(
                     [sys.executable, "-c", "from cranetwin.bench.fleet_parts import sender_main;"
-                     " sender_main()", json.dumps(cfg)], stdout=subprocess.PIPE, stderr=err,
-                    env=env))
+                     " sender_main()", json.dumps(cfg)], stdin=subprocess.PIPE,
+                    stdout=subprocess.PIPE, stderr=err, env=env))
             self.outs.append(out)
         for i, p in enumerate(self.procs):
             wait_ready(p, workdir / f"senders-{i}.stderr", b"ready")
+
+    def go(self) -> None:
+        for p in self.procs:
+            assert p.stdin is not None
+            p.stdin.write(b"go\n")
+            p.stdin.close()
 
     def wait(self, timeout_s: float) -> bool:
         end = time.monotonic() + timeout_s
@@ -311,15 +328,18 @@ def children(pid: int) -> list[int]:
     return [int(x) for x in text.split()]
 
 
-def stop_proc(proc: subprocess.Popen[bytes], timeout_s: float = 60.0) -> None:
-    """SIGTERM, wait, SIGKILL if it does not end."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
+def stop_procs(procs: list[subprocess.Popen[bytes]], grace_s: float = 20.0) -> None:
+    """SIGTERM to all at once, wait up to ``grace_s`` together, then SIGKILL what is left."""
+    live = [p for p in procs if p.poll() is None]
+    for p in live:
+        p.send_signal(signal.SIGTERM)
+    end = time.monotonic() + grace_s
+    for p in live:
         try:
-            proc.wait(timeout_s)
+            p.wait(max(0.1, end - time.monotonic()))
         except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
+            p.kill()
+            p.wait(10)
 
 
 # --- the sampler --------------------------------------------------------------------------------
