@@ -96,6 +96,9 @@ def _conninfo(url: str) -> str:
     return url.replace("postgresql+psycopg://", "postgresql://", 1)
 
 
+_MIGRATING = threading.Lock()
+
+
 def create_database(pg_url: str, tag: str) -> str:
     """A new database ``h_fleetbench_<tag>_<random>`` on the server of ``pg_url``, its schema
     made (:meth:`Store.open` migrates): its SQLAlchemy URL."""
@@ -110,7 +113,8 @@ def create_database(pg_url: str, tag: str) -> str:
         c.execute(f'CREATE DATABASE "{name}"')
     url = f"{pg_url.rpartition('/')[0]}/{name}"
     try:
-        Store.open(url).close()
+        with _MIGRATING:  # Alembic's module state is not thread-safe
+            Store.open(url).close()
     except BaseException:
         drop_database(pg_url, url)
         raise
