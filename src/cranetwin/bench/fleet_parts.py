@@ -285,7 +285,7 @@ def spawn_role(args: list[str], log: Path, env: dict[str, str]) -> subprocess.Po
 
 
 def wait_ready(proc: subprocess.Popen[bytes], log: Path, ready: bytes,
-               timeout_s: float = 120.0) -> bytes:
+               timeout_s: float = 300.0) -> bytes:
     """The first stdout line of ``proc`` once it starts with ``ready`` (bounded wait).
 
     Raises:
