@@ -119,7 +119,7 @@ def _faults(e: BusEnv, sampler: Sampler, t0: float) -> list[dict[str, Any]]:
     at(t + 5)
     sampler.track("worker", e.start_worker().pid)
     out.append({"fault": "worker", "how": f"SIGKILL of twin worker 1 of {cfg.workers} (the "
-                "others take its partitions); a new worker started 5 s later",
+                "others take its partitions); a new worker process started 5 s later",
                 "start": start, "end": end, "done": True})
     t += cfg.fault_gap_s
     start = at(t)
