@@ -274,7 +274,7 @@ def fleet(
     machines: int = typer.Option(1000, help="Simulated machines (11 channels each)."),
     faults: bool = typer.Option(False, "--faults", help="Add the run with faults."),
     rate_hz: float = typer.Option(10.0, help="Samples per second per machine."),
-    batch_samples: int = typer.Option(10, help="Samples per datagram."),
+    batch_samples: int = typer.Option(20, help="Samples per datagram."),
     sender_processes: int = typer.Option(2, min=1, help="Sender processes."),
     daemons: int = typer.Option(2, min=1, help="Ingest processes (--processes N)."),
     writers: int = typer.Option(2, min=1, help="Storage writers (bus partitions split)."),

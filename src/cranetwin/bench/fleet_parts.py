@@ -214,7 +214,8 @@ def sender_main() -> None:  # pragma: no cover - runs in a subprocess
     stats = asyncio.run(main())
     with open(cfg["out"], "w") as out:
         for k, st in zip(keys, stats, strict=True):
-            out.write(json.dumps({"wire_id": k.wire_id, "row0": -(-firsts[k.wire_id] // period_ns),
+            out.write(json.dumps({"wire_id": k.wire_id,
+                                  "row0": -(-firsts.get(k.wire_id, 0) // period_ns),
                                   "samples": st.samples, "acked": st.acked_samples,
                                   "unacked": st.unacked, "datagrams": st.datagrams,
                                   "retransmissions": st.retransmissions}) + "\n")
@@ -252,11 +253,16 @@ class Senders:
             p.stdin.close()
 
     def wait(self, timeout_s: float) -> bool:
+        """Wait for the senders to stream and drain; True if all did within ``timeout_s``.
+        Those still running then get SIGTERM: they stop, keep what is unacknowledged in their
+        journals and write their counters."""
         end = time.monotonic() + timeout_s
         for p in self.procs:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 p.wait(max(0.1, end - time.monotonic()))
-        return all(p.poll() == 0 for p in self.procs)
+        drained = all(p.poll() == 0 for p in self.procs)
+        stop_procs(self.procs, 60.0)
+        return drained
 
     def results(self) -> list[dict[str, Any]]:
         rows: list[dict[str, Any]] = []

@@ -41,7 +41,7 @@ class FleetConfig:
 
     machines: int = 1000
     rate_hz: float = 10.0
-    batch_samples: int = 10
+    batch_samples: int = 20
     sender_processes: int = 2
     daemons: int = 2
     writers: int = 2
@@ -254,7 +254,8 @@ def readback(db_url: str, plan: SenderPlan, results: list[dict[str, Any]]) -> di
 
     layout = patu_layout()
     out = dict.fromkeys(("sent", "stored", "lost", "doubled", "acked", "acked_not_stored",
-                         "unexpected", "machines_mismatched", "machines_reported"), 0)
+                         "unexpected", "machines_mismatched", "machines_reported",
+                         "unacked_datagrams_in_journals"), 0)
     period_s = plan.period_ns / 1e9
     with Store.open(db_url) as store:
         for r in results:
@@ -272,6 +273,7 @@ def readback(db_url: str, plan: SenderPlan, results: list[dict[str, Any]]) -> di
             out["acked"] += int(r["acked"])
             out["acked_not_stored"] += max(0, int(r["acked"]) - int(have.sum()))
             out["machines_reported"] += 1
+            out["unacked_datagrams_in_journals"] += int(r["unacked"])
             if rows.size:
                 key = MachineKey(r["wire_id"], name, SECRET, layout)
                 exp = SyntheticSource(key, period_s, seed=r["wire_id"]).read(
