@@ -123,8 +123,8 @@ class DirectEnv:
             self.port = free_udp_port()
             log = self.work / "ingest.stderr"
             self.daemon = spawn_role(["ingest", "--bind", f"127.0.0.1:{self.port}", "--db",
-                                      self.db, "--metrics-bind", "0", "--log-level", "WARNING",
-                                      "--rollup-interval", "3600"], log, env)
+                                      self.db, "--metrics-bind", "0", "--log-level", "WARNING"],
+                                     log, env)
             (self.work / "senders").mkdir()
             self.senders = Senders(self.cfg.plan(self.seconds), ("127.0.0.1", self.port),
                                    self.work / "senders", env)
@@ -196,7 +196,7 @@ class BusEnv:
             log = self.work / f"writer-{i}.stderr"
             self.writers.append(spawn_role(
                 ["store-writer", "--bus", self.nats.url, "--db", self.db_proxied, "--partitions",
-                 parts, "--log-level", "WARNING", "--rollup-interval", "3600"], log, env))
+                 parts, "--log-level", "WARNING"], log, env))
             waits.append((self.writers[-1], log, READY))
         for i in range(self.cfg.workers):
             log = self.work / f"worker-{i}.stderr"
@@ -206,7 +206,7 @@ class BusEnv:
         self.ingest = spawn_role(
             ["ingest", "--bind", f"127.0.0.1:{self.port}", "--db", self.db_proxied, "--bus",
              self.nats.url, "--processes", str(self.cfg.daemons), "--metrics-bind", "0",
-             "--log-level", "WARNING", "--rollup-interval", "3600"], log, env)
+             "--log-level", "WARNING"], log, env)
         waits.append((self.ingest, log, READY))
         (self.work / "senders").mkdir()
         self.senders = Senders(self.cfg.plan(self.seconds), ("127.0.0.1", self.port),
