@@ -30,7 +30,8 @@ Figures of a run:
 * ``samples_per_second_per_core``: samples stored over the CPU seconds (user + system, /proc) of
   the ingest processes (the group's parent and children) and the storage writers, from the first
   sample sent until everything is stored (the direct run: of its one daemon). The 1-min summary
-  rollup is left out of every path (``--rollup-interval 3600``; the workers roll up).
+  rollup runs where a deployment runs it (the daemon or the storage writer, every 30 s); left
+  out, every twin worker's pass began by rolling up all machines and got to no window.
   ``per_core_ratio_vs_direct`` is that over the direct run's figure. NATS, PostgreSQL and the
   workers are not in it (their CPU seconds are listed);
 * ``latency_p50_s``/``latency_p95_s``: sample time → twin result. For every window commit of a
