@@ -53,7 +53,7 @@ class FleetConfig:
     margin_s: float = 1.0
     direct_s: float = 20.0
     baseline_s: float = 40.0
-    warm_s: float = 20.0
+    warm_s: float = 25.0
     fault_gap_s: float = 30.0
     outage_s: float = 30.0
     tail_s: float = 45.0
