@@ -183,6 +183,7 @@ class TcpProxy:
             except OSError:
                 c.close()
                 continue
+            u.settimeout(None)  # the 5 s is for connecting: an idle session must stay open
             with self._lock:
                 self._pairs.append((c, u))
             for a, b in ((c, u), (u, c)):
