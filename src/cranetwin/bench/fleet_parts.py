@@ -11,8 +11,6 @@ import asyncio
 import contextlib
 import json
 import math
-import os
-import select
 import shutil
 import signal
 import socket
@@ -25,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cranetwin.bench.ingest_daemon import cpu_seconds
+from cranetwin.bench.ingest_daemon import cpu_seconds, wait_ready
 from cranetwin.errors import MissingExtraError
 
 SECRET = b"fleet-secret-0123456789abcdef!!"
@@ -288,37 +286,6 @@ def spawn_role(args: list[str], log: Path, env: dict[str, str]) -> subprocess.Po
     with open(log, "ab") as err:
         return subprocess.Popen(cranetwin_cmd(*args), stdout=subprocess.PIPE, stderr=err,
                                 env=env)
-
-
-def wait_ready(proc: subprocess.Popen[bytes], log: Path, ready: bytes,
-               timeout_s: float = 300.0) -> bytes:
-    """The first stdout line of ``proc`` once it starts with ``ready`` (bounded wait).
-
-    Raises:
-        RuntimeError: it exited, printed something else or did not get ready in time (it is
-            killed; its log attached).
-    """
-    assert proc.stdout is not None
-    end = time.monotonic() + timeout_s
-    buf = b""
-    while b"\n" not in buf:
-        left = end - time.monotonic()
-        got, _, _ = select.select([proc.stdout], [], [], max(0.0, min(left, 0.5)))
-        if got:
-            chunk = os.read(proc.stdout.fileno(), 4096)
-            buf += chunk
-            if chunk:
-                continue
-        if proc.poll() is not None or left <= 0:
-            proc.kill()
-            proc.wait(10)
-            raise RuntimeError(f"{log.name}: did not start: {log.read_text()[-2000:]}")
-    line = buf.split(b"\n", 1)[0]
-    if not line.startswith(ready):
-        proc.kill()
-        proc.wait(10)
-        raise RuntimeError(f"{log.name}: unexpected first line {line[:200]!r}")
-    return line
 
 
 def start_role(args: list[str], log: Path, env: dict[str, str],

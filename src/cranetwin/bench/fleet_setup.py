@@ -28,9 +28,8 @@ from cranetwin.bench.fleet_parts import (
     spawn_role,
     stop_procs,
     via_proxy,
-    wait_ready,
 )
-from cranetwin.bench.ingest_daemon import free_udp_port
+from cranetwin.bench.ingest_daemon import free_udp_port, wait_ready
 
 READY = b'{"event": "ready"'
 

@@ -98,6 +98,37 @@ class DaemonProcess:
         return {}
 
 
+def wait_ready(proc: subprocess.Popen[bytes], log: Path, ready: bytes,
+               timeout_s: float = 300.0) -> bytes:
+    """The first stdout line of ``proc`` once it starts with ``ready`` (bounded wait).
+
+    Raises:
+        RuntimeError: it exited, printed something else or did not get ready in time (it is
+            killed; its log attached).
+    """
+    assert proc.stdout is not None
+    end = time.monotonic() + timeout_s
+    buf = b""
+    while b"\n" not in buf:
+        left = end - time.monotonic()
+        got, _, _ = select.select([proc.stdout], [], [], max(0.0, min(left, 0.5)))
+        if got:
+            chunk = os.read(proc.stdout.fileno(), 4096)
+            buf += chunk
+            if chunk:
+                continue
+        if proc.poll() is not None or left <= 0:
+            proc.kill()
+            proc.wait(10)
+            raise RuntimeError(f"{log.name}: did not start: {log.read_text()[-2000:]}")
+    line = buf.split(b"\n", 1)[0]
+    if not line.startswith(ready):
+        proc.kill()
+        proc.wait(10)
+        raise RuntimeError(f"{log.name}: unexpected first line {line[:200]!r}")
+    return line
+
+
 def start_daemon(db_url: str, port: int, workdir: Path, *extra: str, host: str = "127.0.0.1",
                  prefix: Sequence[str] = (), ready_timeout_s: float = 60.0) -> DaemonProcess:
     """``cranetwin ingest`` in a subprocess on ``host``:``port``, its Prometheus endpoint on a
@@ -118,22 +149,8 @@ def start_daemon(db_url: str, port: int, workdir: Path, *extra: str, host: str =
     log = workdir / f"ingest-{host}-{port}.stderr"
     with open(log, "ab") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err)
-    assert proc.stdout is not None
-    end = time.monotonic() + ready_timeout_s
-    buf = b""
-    while b"\n" not in buf:
-        left = end - time.monotonic()
-        ready, _, _ = select.select([proc.stdout], [], [], max(0.0, min(left, 0.5)))
-        if ready:
-            chunk = os.read(proc.stdout.fileno(), 4096)
-            buf += chunk
-            if chunk:
-                continue
-        if proc.poll() is not None or left <= 0:
-            proc.kill()
-            proc.wait(10)
-            raise RuntimeError(f"ingest daemon did not start: {log.read_text()[-2000:]}")
-    info = json.loads(buf.split(b"\n", 1)[0])
+    line = wait_ready(proc, log, b"{", ready_timeout_s)
+    info = json.loads(line)
     metrics = info.get("metrics")
     if isinstance(metrics, list):
         metrics = metrics[0] if metrics else None
