@@ -82,6 +82,10 @@ def test_due_status_ok_due_overdue_and_estimated_date() -> None:
     assert cal.due_at_s == pytest.approx(T0 + 30 * 86400) and cal.status == "ok"
     assert cal.remaining == pytest.approx(27.0)
     assert sv.due_status(_sched("lifts", 10.0, 0.0), u).status == "unknown"  # no counter
+    # a due date extrapolated past the year 9999 has no calendar date: null, not an error
+    slow = sv.due_status(_sched("operating_hours", 1e9, 0.0), u)
+    assert slow.due_at_s is not None and slow.due_at_s > 253402300800.0
+    assert sv.status_json(slow)["due_at"]["at"] is None
 
 
 @pytest.mark.timeout(300)
@@ -129,6 +133,11 @@ def test_api_worker_event_once_and_done(ctx: Any, monkeypatch: pytest.MonkeyPatc
                             "detail": "no such detail"}).status_code == 422
     assert client.put(f"{url}/x", headers=keys["fleet"],
                       json={"basis": "fuel", "interval": 1}).status_code == 422
+    # an interval past any calendar (it answered 500: a due date in the year 10000)
+    assert client.put(f"{url}/x", headers=keys["fleet"],
+                      json={"basis": "calendar_days", "interval": 2912108.0}).status_code == 422
+    assert client.put(f"{url}/x", headers=keys["fleet"],
+                      json={"basis": "damage_fraction", "interval": 1.5}).status_code == 422
     assert client.get("/api/v1/machines/nope/schedules", headers=keys["viewer"]).status_code \
         == 404
     got = client.get(url, headers=keys["viewer"]).json()

@@ -39,7 +39,8 @@ class ScheduleSet(BaseModel):
 
     basis: Basis = Field(description="operating_hours [h], lifts (work cycles), "
                          "damage_fraction (Miner damage D of a fatigue detail) or calendar_days")
-    interval: float = Field(gt=0, le=1e9, description="interval in the basis' unit")
+    interval: float = Field(gt=0, le=1e9, description="interval in the basis' unit (at most "
+                            "1 for damage_fraction, 36525 for calendar_days)")
     detail: str | None = Field(None, max_length=128, description="fatigue detail of a "
                                "damage_fraction item (default: the most damaged detail)")
     last_done_value: float | None = Field(None, ge=0, le=1e12, description="the basis' "

@@ -121,7 +121,10 @@ def create_database(pg_url: str, tag: str) -> str:
 
 def drop_database(pg_url: str, url: str) -> None:
     """Drop the database of ``url`` (made by :func:`create_database`), ending its sessions."""
-    import psycopg
+    try:
+        import psycopg
+    except ImportError as exc:
+        raise MissingExtraError("postgres", "cranetwin bench fleet") from exc
 
     name = url.rpartition("/")[2]
     with psycopg.connect(_conninfo(pg_url), autocommit=True) as c:
@@ -371,7 +374,10 @@ class Sampler:
                             self.cpu[p] = (role, max(c, self.cpu.get(p, (role, 0.0))[1]))
 
     def _run(self) -> None:
-        import psycopg
+        try:
+            import psycopg
+        except ImportError as exc:
+            raise MissingExtraError("postgres", "cranetwin bench fleet") from exc
 
         conn: Any = None
         while not self._stop.wait(1.0):

@@ -120,8 +120,18 @@ def due_status(s: st.Schedule, usage: Usage, lead_fraction: float = LEAD_FRACTIO
     return DueStatus(s, detail, UNITS[s.basis], cur, due_at, remaining, when, rate, status)
 
 
+def _date(t_s: float | None) -> str | None:
+    """:func:`iso`, None for an instant no calendar date holds (beyond the year 9999: a due
+    date extrapolated from a slow rate, or a very long interval)."""
+    try:
+        return iso(t_s)
+    except (ValueError, OverflowError, OSError):
+        return None
+
+
 def status_json(d: DueStatus) -> dict[str, Any]:
-    """A due status in the API's shape (times as ISO 8601 UTC)."""
+    """A due status in the API's shape (times as ISO 8601 UTC; a due date past the year 9999
+    is null)."""
     s = d.schedule
 
     def num(x: float | None) -> float | None:
@@ -131,8 +141,7 @@ def status_json(d: DueStatus) -> dict[str, Any]:
         "detail": d.detail,
         "last_done": {"value": s.last_done_value, "at": iso(s.last_done_s), "by": s.last_done_by},
         "created": {"at": iso(s.created_s), "by": s.created_by},
-        "current": num(d.current), "due_at": {"value": d.due_at, "at": iso(d.due_at_s)
-                                              if d.due_at_s is not None else None},
+        "current": num(d.current), "due_at": {"value": d.due_at, "at": _date(d.due_at_s)},
         "remaining": num(d.remaining), "rate_per_day": num(d.rate_per_day), "status": d.status,
         "event_id": s.due_event_id,
     }
@@ -189,6 +198,10 @@ def usage_of(backend: Any, machine_id: str, bases: set[str] | None = None,
 
 # -- planner's functions -------------------------------------------------------------------------
 
+# the longest interval a basis may have: a fraction of the design damage, a century of days
+MAX_INTERVAL = {"damage_fraction": 1.0, "calendar_days": 36525.0}
+
+
 @dataclass(frozen=True)
 class ScheduleInput:
     """What a planner sets for an item.
@@ -215,6 +228,10 @@ def _check(backend: Any, machine_id: str, inp: ScheduleInput) -> None:
                                   f"{', '.join(BASES)}")
     if not (math.isfinite(inp.interval) and inp.interval > 0):
         raise InvalidRequestError("Bad interval", f"interval {inp.interval}: expected > 0")
+    most = MAX_INTERVAL.get(inp.basis)
+    if most is not None and inp.interval > most:
+        raise InvalidRequestError("Bad interval", f"interval {inp.interval:g} of a "
+                                  f"{inp.basis} item: expected at most {most:g}")
     if inp.detail is not None:
         if inp.basis != "damage_fraction":
             raise InvalidRequestError("Detail without damage basis",
