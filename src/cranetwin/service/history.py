@@ -18,6 +18,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from cranetwin.analytics import AnalyticsConfig, AnalyticsPart, AnalyticsState, LoadHistory
 from cranetwin.analytics.runs import Run
@@ -65,6 +66,17 @@ def _steady_everywhere(r: Run) -> Run:
                pad(r.at_peak))
 
 
+def window_rows(res: Any, w0: float, w1: float) -> npt.NDArray[np.bool_]:
+    """The instants of a replay (:class:`cranetwin.twin.TwinResult`) that window [w0, w1) [s]
+    keeps: inside it and not bridged across a dropout (``res.gap``: values made up between
+    samples further apart than the replay's ``max_gap_s``). A stored window or span therefore
+    counts, summarises and analyses only instants that samples support, whether the machine
+    was off between two windows or inside one. Shape (m,) for the replay's m instants."""
+    t = res.t_s
+    keep: npt.NDArray[np.bool_] = (t >= w0) & (t < w1) & ~np.asarray(res.gap, dtype=bool)
+    return keep
+
+
 def window_history(backend: Any, replayer: Any, machine: Machine, machine_id: str, w0: float,
                    w1: float, margin_s: float, theta0: float = 0.0) -> LoadHistory | None:
     """The load history of the minute window [w0, w1), replayed as the twin worker does (the
@@ -81,7 +93,7 @@ def window_history(backend: Any, replayer: Any, machine: Machine, machine_id: st
                               theta0_initial=theta0)
     except CraneTwinError:
         return None
-    keep = (res.t_s >= w0) & (res.t_s < w1)
+    keep = window_rows(res, w0, w1)
     if int(np.count_nonzero(keep)) < 2:
         return None
     h: LoadHistory = load_history(machine, res, keep)

@@ -15,6 +15,12 @@ instants inside it are reduced to derived channels:
 * ``torque:<joint>`` — inverse-dynamics joint torque/force [N·m or N];
 * ``working`` — 1 while any joint moves (|qd| above 0.02 rad/s or 0.01 m/s), else 0.
 
+A machine with several windows ready (a worker behind its machines, catch-up after downtime)
+has them replayed and committed as one span, up to the next whole minute
+(:meth:`TwinWorker._span_windows`): the per-window cost of reads, replay set-up and transactions
+is then paid once per span, so a worker that falls behind catches up instead of falling further
+behind. Late data redoes the stored span it falls in.
+
 The summaries of a window and the machine's new progress row (watermark = end of the window,
 cumulative counters) are committed in ONE transaction, and derived summaries are written by
 overwriting their buckets: a crash before the commit leaves the window unprocessed (it is done
@@ -57,6 +63,7 @@ from cranetwin.service.derived import (
     lift_seconds,
     update_counters,
 )
+from cranetwin.service.history import window_rows
 from cranetwin.service.liftcount import store_seconds
 
 if TYPE_CHECKING:
@@ -279,12 +286,14 @@ class TwinWorker:
                     log.info("machine %s: watermark moved by another worker", rec.machine_id)
                     break
             else:
-                new = self.process_window(rec, prog, expected)
+                k = self._span_windows(w0, dr[1], quiet,
+                                       None if max_windows is None else max_windows - done)
+                new = self.process_window(rec, prog, expected, until_s=w0 + k * win)
                 if new is None:
                     log.info("machine %s: window %.0f committed by another worker",
                              rec.machine_id, w0)
                     break
-                done += 1
+                done += k
             prog, expected = new, new.watermark_s
         self._roll_up(rec, start_wm, prog.watermark_s)
         if done or prog.watermark_s != start_wm:
@@ -294,6 +303,36 @@ class TwinWorker:
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
+
+    def _span_windows(self, w0: float, newest_s: float, quiet: bool,
+                      budget: int | None) -> int:
+        """How many ready windows from ``w0`` to replay and commit as one span (≥ 1).
+
+        A worker that is behind (a pass longer than a window, catch-up after downtime, many
+        machines per core) finds several windows of a machine ready; replaying them as one span
+        costs one read, one replay and one transaction instead of one each, so the per-window
+        overhead (which at short windows is most of the cost) is paid once per span. A span
+        never crosses a whole minute (the stored analytics parts stay inside the minute, hour
+        and day they are rolled up into) and holds only ready windows: those ending at least
+        ``worker_settle_s`` before the newest sample, or, for a quiet machine, the one holding
+        its newest sample too.
+
+        Args:
+            w0: Start of the first window (the watermark) [s].
+            newest_s: Newest stored sample of the machine [s].
+            quiet: Whether the machine is quiet (:meth:`_quiet`).
+            budget: Windows still allowed in this pass (None: no limit).
+        """
+        s = self.settings
+        win = s.worker_window_s
+        if quiet:
+            ready = math.floor((newest_s - w0) / win) + 1
+        else:
+            ready = math.floor((newest_s - s.worker_settle_s - w0) / win + 1e-9)
+        minute_end = (math.floor(w0 / 60.0 + 1e-9) + 1) * 60.0
+        in_minute = math.floor((minute_end - w0) / win + 1e-9)
+        k = min(ready, in_minute, budget if budget is not None else ready)
+        return max(1, k)
 
     def _store_analytics(self, rec: MachineRecord, machine: Machine, res: object,
                          keep: npt.NDArray[np.bool_], w0: float, w1: float,
@@ -363,17 +402,18 @@ class TwinWorker:
             if top is not None and top != mark:
                 aw.set_block_mark(engine, rec.machine_id, top)
             return prog, 0
-        minutes: set[float] = set()
+        grid: set[float] = set()
         for a, b in late:
             w = math.floor((a - m) / win) * win
             while w < min(b + m, prog.watermark_s):
-                minutes.add(float(w))
+                grid.add(float(w))
                 w += win
+        spans = self._stored_spans(engine, rec.machine_id, sorted(grid))
         done = 0
-        for w0 in sorted(minutes):
+        for w0, w1 in spans:
             if self.stop_requested():
                 return prog, done  # the mark stays: the rest is found again next pass
-            new = self.process_window(rec, prog, prog.watermark_s, redo_w0=w0)
+            new = self.process_window(rec, prog, prog.watermark_s, redo_w0=w0, until_s=w1)
             if new is None:
                 return None
             prog = new
@@ -382,7 +422,7 @@ class TwinWorker:
         if recounted is None:
             return None
         prog = recounted
-        lo, hi = min(minutes), max(minutes) + win
+        lo, hi = spans[0][0], spans[-1][1]
         aw.delete_windows(engine, rec.machine_id, lo, hi, levels=(3600, 86400))
         drop_duty(engine, rec.machine_id)  # rebuilt from the parts at the end of the pass
         try:
@@ -394,6 +434,27 @@ class TwinWorker:
             aw.set_block_mark(engine, rec.machine_id, top)
         log.info("machine %s: %d window(s) redone for late data", rec.machine_id, done)
         return prog, done
+
+    def _stored_spans(self, engine: Any, machine_id: str,
+                      grid: list[float]) -> list[tuple[float, float]]:
+        """The spans to redo for the windows starting at ``grid`` (sorted) [s]: the stored
+        span holding a window (it was replayed as one, :meth:`_span_windows`) is redone whole,
+        a window inside no stored span alone. Returns ``(start, end)`` pairs, sorted, distinct."""
+        from cranetwin.storage import analytics_windows as aw
+
+        win = self.settings.worker_window_s
+        reach = max(60.0, win)
+        stored = aw.windows(engine, machine_id, 60, grid[0] - reach, grid[-1] + win + reach)
+        out: set[tuple[float, float]] = set()
+        i = 0
+        for w in grid:
+            while i < len(stored) and stored[i][1] <= w:
+                i += 1
+            if i < len(stored) and stored[i][0] <= w < stored[i][1]:
+                out.add((stored[i][0], stored[i][1]))
+            else:
+                out.add((w, w + win))
+        return sorted(out)
 
     def _recount_lifts(self, rec: MachineRecord, prog: Progress) -> Progress | None:
         """``prog`` with the lift counters folded again over the stored minutes
@@ -454,8 +515,10 @@ class TwinWorker:
 
     def process_window(self, rec: MachineRecord, prog: Progress,
                        expected_watermark_s: float | None,
-                       redo_w0: float | None = None) -> Progress | None:
-        """Replay [watermark, watermark + window), commit its summaries and progress together.
+                       redo_w0: float | None = None, until_s: float | None = None,
+                       ) -> Progress | None:
+        """Replay [watermark, until_s) (default: one window), commit its summaries and progress
+        together.
 
         Args:
             rec: The machine.
@@ -467,6 +530,8 @@ class TwinWorker:
                 lift seconds and events are written again; its operating and idle time replace
                 those counted for it before (if any); the lift counters are left to
                 :meth:`_recount_lifts` after the redo.
+            until_s: End of the span [s]: a whole number of windows after its start (one
+                window when None); with ``redo_w0``, the end of the stored span redone.
 
         Returns:
             The new progress, or None when another worker committed the window first (nothing
@@ -479,10 +544,11 @@ class TwinWorker:
         s = self.settings
         machine = self.backend.model_of(rec)
         w0 = prog.watermark_s if redo_w0 is None else redo_w0
-        w1 = w0 + s.worker_window_s
+        w1 = w0 + s.worker_window_s if until_s is None else until_s
+        n_windows = max(1, round((w1 - w0) / s.worker_window_s))
         m = s.twin_margin_s
         samples = self.backend.read_samples(rec.machine_id, w0 - m, w1 + m)
-        new = dc_replace(prog, watermark_s=w1, windows=prog.windows + 1)
+        new = dc_replace(prog, watermark_s=w1, windows=prog.windows + n_windows)
         count = True
         old: tuple[float, float] | None = None
         if redo_w0 is not None:
@@ -490,7 +556,7 @@ class TwinWorker:
 
             old = aw.window_times(self._engine(rec), rec.machine_id, 60, w0)
             count = old is None
-            new = prog if not count else dc_replace(prog, windows=prog.windows + 1)
+            new = prog if not count else dc_replace(prog, windows=prog.windows + n_windows)
         n_in = int(np.count_nonzero((samples.t_s >= w0) & (samples.t_s < w1)))
         try:
             if n_in < 8:
@@ -506,7 +572,7 @@ class TwinWorker:
             if redo_w0 is not None:
                 return prog
             return new if self.backend.save_progress(new, expected) else None
-        keep = (res.t_s >= w0) & (res.t_s < w1)
+        keep = window_rows(res, w0, w1)
         names, values = derive(machine, res, keep)
         t = res.t_s[keep]
         reach = horizontal_reach(machine, res.q[keep]) if t.size else np.zeros(0)
