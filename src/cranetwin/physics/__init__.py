@@ -32,6 +32,7 @@ does the recursion in registers (see ``cranetwin bench dynamics``). Kernels are 
 
 from __future__ import annotations
 
+import cranetwin.jitcache  # noqa: F401  (first: drops stale numba caches)
 from cranetwin.physics.actuator import (
     actuator_torques,
     cylinder_force,

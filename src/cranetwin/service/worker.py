@@ -297,7 +297,10 @@ class TwinWorker:
             prog, expected = new, new.watermark_s
         self._roll_up(rec, start_wm, prog.watermark_s)
         if done or prog.watermark_s != start_wm:
-            self._update_duty(rec, dr[0], prog.watermark_s)
+            # the duty to date folds every minute since its last update: once a minute of data
+            # (or when the machine went quiet) is enough, not once per short window
+            if quiet or math.floor(prog.watermark_s / 60.0) != math.floor(start_wm / 60.0):
+                self._update_duty(rec, dr[0], prog.watermark_s)
         self._check_schedules(rec)
         self._marks[rec.machine_id] = (dr[1], prog.watermark_s)
         if self.metrics is not None:

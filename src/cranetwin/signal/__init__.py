@@ -5,6 +5,7 @@ Only numpy and scipy (plus the machine model for channel ranges)."""
 
 from __future__ import annotations
 
+import cranetwin.jitcache  # noqa: F401  (first: drops stale numba caches)
 from cranetwin.signal.differentiate import newton_derivative
 from cranetwin.signal.ici import ICI_WINDOWS, ici_select, ici_smooth, ici_smooth_pair
 from cranetwin.signal.noise import NOISY_QUANTITIES, inject_uniform_noise, nrmse

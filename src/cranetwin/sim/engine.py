@@ -37,17 +37,14 @@ dynamics solved for the other joints); :class:`StepBuffers`, what one evaluation
 
 from __future__ import annotations
 
-import hashlib
 import math
-import os
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from cranetwin.physics import kernels as kernels_module
+import cranetwin.jitcache  # noqa: F401  (first: drops stale numba caches)
 from cranetwin.physics.actuator import eq1_cylinder_force, eq2_friction
 from cranetwin.physics.chain import CYL_BLOCK, HEADER, JOINT_BLOCK, PRISMATIC
 from cranetwin.physics.kernels import cylinder_kinematics, joint_transforms, rnea_into
@@ -153,35 +150,6 @@ class Records(NamedTuple):
     idx: I64
 
 
-def _drop_stale_cache() -> None:
-    """Delete this module's numba cache when a module it compiles in has changed.
-
-    numba keys a cached function on its own source file only, but the loop below inlines the
-    physics kernels and the hydraulic kernels: after either changes, the cached loop would
-    silently run the old code. A stamp of those sources next to the cache decides.
-    """
-    here = Path(__file__).resolve()
-    physics_dir = Path(kernels_module.__file__).resolve().parent
-    deps = [here, here.with_name("hydraulics.py"), here.with_name("layout.py"),
-            *sorted(physics_dir.rglob("*.py"))]  # every physics module the loop may inline
-    digest = hashlib.sha256(b"".join(p.read_bytes() for p in deps)).hexdigest()
-    cache_dirs = [here.parent / "__pycache__"]
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        cache_dirs.append(Path(os.environ["NUMBA_CACHE_DIR"]))
-    for d in cache_dirs:
-        stamp = d / "engine.deps-stamp"
-        try:
-            if stamp.exists() and stamp.read_text() == digest:
-                continue
-            for f in d.rglob("engine.*.nb[ic]"):
-                f.unlink(missing_ok=True)
-            d.mkdir(parents=True, exist_ok=True)
-            stamp.write_text(digest)
-        except OSError:      # read-only install: numba then compiles in memory anyway
-            continue
-
-
-_drop_stale_cache()
 
 # flags
 F_FRICTION, F_VALVES, F_LOSSES, F_SCHEME = 0, 1, 2, 3
