@@ -83,7 +83,12 @@ def worker(
 
         host, port = parse_bind(bind, "--metrics-bind")
         start_http_server(port, addr=host, registry=metrics.registry)
+    from cranetwin.service.warmup import warm_up
+    from cranetwin.storage.engine import relax_commit_durability
+
     backend = Backend.open(store_spec(settings))
+    for engine in backend.store.engines:  # derived data only: replayed again if lost
+        relax_commit_durability(engine)
     own = None if spec is None else Ownership(spec, backend.store.engine)
     try:
         tw = TwinWorker(backend, settings, metrics, quiet_s=settings.worker_quiet_s,
@@ -98,6 +103,7 @@ def worker(
         part = "" if spec is None else (
             f", partitions {'auto' if spec.fixed is None else ','.join(map(str, spec.fixed))} "
             f"of {spec.count}" + ("" if own is not None and own.locked else " (no locks)"))
+        warm_up()  # compiled kernels loaded before "ready": the first window waits for none
         typer.echo(f"cranetwin worker ready: {store_spec(settings).display()}, windows of "
                    f"{settings.worker_window_s:g} s{part}")
         windows = tw.run()
