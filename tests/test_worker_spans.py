@@ -105,3 +105,49 @@ def test_late_data_redoes_the_stored_span(sqlite_url: str, base: SampleArrays) -
                                                           abs=0.2)
     assert worker.catch_up(b.machine(MID)) == 0  # nothing redone twice
     b.close()
+
+
+@pytest.mark.postgres
+@pytest.mark.timeout(300)
+def test_threads_store_what_one_thread_stores(pg_url: str, base: SampleArrays) -> None:
+    from sqlalchemy import text
+
+    from cranetwin.storage.engine import make_engine
+
+    urls = [pg_url]
+    e = make_engine(pg_url)
+    with e.connect().execution_options(isolation_level="AUTOCOMMIT") as c:
+        c.execute(text("DROP DATABASE IF EXISTS cranetwin_threads_b"))
+        c.execute(text("CREATE DATABASE cranetwin_threads_b"))
+    e.dispose()
+    urls.append(pg_url.rsplit("/", 1)[0] + "/cranetwin_threads_b")
+    got = []
+    try:
+        for url, threads in zip(urls, (1, 4), strict=True):
+            b = Backend.open(url)
+            ids = [f"crane-t{i}" for i in range(6)]
+            blocks = []
+            for i, mid in enumerate(ids):
+                b.store.add_machine(mid, wire_id=20 + i, secret=b"k" * 32)
+                blocks += list(tiled_blocks(mid, MACHINE, T0 + 7 * i, 90.0, 1.0, base=base,
+                                            seq0=0, origin_s=T0))
+            b.store.write_blocks(blocks)
+            s = Settings(database_url="unused", worker_in_process=False, worker_window_s=WIN,
+                         worker_settle_s=1.0, twin_margin_s=1.0, worker_threads=threads)
+            w = TwinWorker(b, s)
+            while w.run_once():
+                pass
+            got.append({m: b.progress(m) for m in ids})
+            b.close()
+    finally:
+        e = make_engine(pg_url)
+        with e.connect().execution_options(isolation_level="AUTOCOMMIT") as c:
+            c.execute(text("DROP DATABASE IF EXISTS cranetwin_threads_b WITH (FORCE)"))
+        e.dispose()
+    one, four = got
+    assert all(p is not None and p.windows >= 20 for p in one.values())
+    for m in one:
+        a, z = one[m], four[m]
+        assert a is not None and z is not None
+        assert (a.watermark_s, a.windows, a.load_count) == (z.watermark_s, z.windows, z.load_count)
+        assert a.operating_s == pytest.approx(z.operating_s, abs=1e-6)

@@ -176,6 +176,9 @@ class Settings(BaseSettings):
                            "otherwise it runs as its own process, `cranetwin worker`")
     worker_window_s: float = Field(60.0, gt=0, description="twin worker window [s]")
     worker_interval_s: float = Field(1.0, gt=0, description="twin worker poll period [s]")
+    worker_threads: int = Field(
+        1, ge=1, le=32, description="machines a twin worker process replays at once (threads: "
+                                    "one machine's database waits overlap another's work)")
     worker_settle_s: float = Field(
         2.0, ge=0, description="a window is processed once samples this much past its end exist")
     worker_grid_hz: float = Field(100.0, gt=0, description="twin worker replay grid rate [Hz]")

@@ -51,6 +51,10 @@ def worker(
         None, "--quiet-s", min=0.001,
         help="A machine silent this long gets its last window processed [s] (default: "
              "$CRANETWIN_WORKER_QUIET_S, else 60)."),
+    threads: int | None = typer.Option(
+        None, min=1, max=32,
+        help="Machines replayed at once, in threads (default: $CRANETWIN_WORKER_THREADS, "
+             "else 1)."),
     log_level: str = typer.Option("info", help="Log level."),
 ) -> None:
     """Run the twin worker: replay stored samples window by window into derived summaries,
@@ -63,7 +67,8 @@ def worker(
 
     settings = load_settings(Settings, database_url=db, worker_metrics_bind=metrics_bind,
                              worker_interval_s=interval, worker_partitions=partitions,
-                             worker_partition_count=of, worker_quiet_s=quiet_s)
+                             worker_partition_count=of, worker_quiet_s=quiet_s,
+                             worker_threads=threads)
     spec = None
     if settings.worker_partitions:
         try:

@@ -47,6 +47,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace as dc_replace
 from typing import TYPE_CHECKING, Any
 
@@ -121,6 +122,8 @@ class TwinWorker:
         """Least time between two checks of one machine's service schedules [s of ``clock``]
         (each merges its stored analytics when it has lift or damage items)."""
         self._next_schedule_check: dict[str, float] = {}
+        self._pool: ThreadPoolExecutor | None = None
+        self._failed: Exception | None = None
         self.stop_event = threading.Event()
         """Set to stop: checked between windows, so the window being replayed is finished and
         committed first (a second or so)."""
@@ -171,10 +174,16 @@ class TwinWorker:
             total += done
             if done == 0:
                 stop.wait(self.settings.worker_interval_s)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
         return total
 
     def run_once(self) -> int:
         """One pass over all machines: at most ``max_windows_per_pass`` windows each.
+
+        With ``worker_threads`` > 1 the machines are caught up that many at a time (each
+        machine by one thread at a time; their commits stay conditional on the watermark).
 
         Returns:
             Windows processed (0 = every machine is caught up).
@@ -187,6 +196,8 @@ class TwinWorker:
         # the ingest daemon rolls 1-min summaries up every 30 s; do it here too so that a
         # service fed by another writer still answers long history queries from 1-min rows
         self.backend.store.rollup()
+        pool = self._thread_pool()
+        pending: list[Future[int]] = []
         for rec in self.backend.list_machines():
             if self.stop_requested():
                 break
@@ -197,11 +208,39 @@ class TwinWorker:
                 if not own.owns(rec.machine_id):
                     self._marks.pop(rec.machine_id, None)
                     continue
-            total += self.catch_up(rec, self.max_windows_per_pass)
+            if pool is None:
+                total += self.catch_up(rec, self.max_windows_per_pass)
+                continue
+            pending.append(pool.submit(self.catch_up, rec, self.max_windows_per_pass))
+            if len(pending) >= 2 * self.settings.worker_threads:  # ownership re-checked often
+                total += self._result(pending.pop(0))
+        for f in pending:
+            total += self._result(f)
+        if self._failed is not None:
+            failed, self._failed = self._failed, None
+            raise failed  # after every machine of the pass had its turn
         self._partition_metrics()
         if own is None or 0 in own.owned:
             self._upkeep()
         return total
+
+    def _result(self, f: Future[int]) -> int:
+        """Windows of one machine's catch-up in a thread; its exception kept for the end of
+        the pass (0 then)."""
+        try:
+            return f.result()
+        except Exception as exc:
+            self._failed = self._failed or exc
+            return 0
+
+    def _thread_pool(self) -> ThreadPoolExecutor | None:
+        """The threads of ``worker_threads`` > 1 (made on first use), else None."""
+        n = self.settings.worker_threads
+        if n <= 1:
+            return None
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(n, thread_name_prefix="twin-worker")
+        return self._pool
 
     def _partition_metrics(self) -> None:
         """Per owned partition: lag and watermark age (gauges), from this pass's machines."""
