@@ -176,6 +176,10 @@ class Settings(BaseSettings):
                            "otherwise it runs as its own process, `cranetwin worker`")
     worker_window_s: float = Field(60.0, gt=0, description="twin worker window [s]")
     worker_interval_s: float = Field(1.0, gt=0, description="twin worker poll period [s]")
+    worker_rollup_s: float = Field(
+        30.0, ge=0, description="least time between two roll-ups of the raw 1-min summaries "
+                                "by the twin worker [s]; 0 = never (the ingest daemon or the "
+                                "storage writers roll up, as in the distributed deployment)")
     worker_threads: int = Field(
         1, ge=1, le=32, description="machines a twin worker process replays at once (threads: "
                                     "one machine's database waits overlap another's work)")

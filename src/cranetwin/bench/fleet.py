@@ -280,6 +280,8 @@ def fleet(
     daemons: int = typer.Option(2, min=1, help="Ingest processes (--processes N)."),
     writers: int = typer.Option(2, min=1, help="Storage writers (bus partitions split)."),
     workers: int = typer.Option(2, min=1, help="Twin workers (--partitions auto)."),
+    worker_threads: int = typer.Option(4, min=1, max=32,
+                                       help="Machines each twin worker replays at once."),
     window_s: float = typer.Option(4.0, help="Twin worker window [s]."),
     direct_s: float = typer.Option(20.0, help="Data seconds of the direct run."),
     baseline_s: float = typer.Option(40.0, help="Data seconds of the run without faults."),
@@ -294,7 +296,8 @@ def fleet(
     workers) with faults: lost/doubled, per-core vs the direct path, latency, lag, recovery."""
     cfg = FleetConfig(machines=machines, rate_hz=rate_hz, batch_samples=batch_samples,
                       sender_processes=sender_processes, daemons=daemons, writers=writers,
-                      workers=workers, window_s=window_s, direct_s=direct_s,
+                      workers=workers, worker_threads=worker_threads, window_s=window_s,
+                      direct_s=direct_s,
                       baseline_s=baseline_s, warm_s=warm_s, fault_gap_s=fault_gap_s,
                       outage_s=outage_s, tail_s=tail_s)
     emit(run_fleet(cfg, faults, pg), as_json)

@@ -45,6 +45,7 @@ class FleetConfig:
     daemons: int = 2
     writers: int = 2
     workers: int = 2
+    worker_threads: int = 4
     worker_partitions: int = 8
     bus_partitions: int = 16
     window_s: float = 4.0
@@ -78,7 +79,10 @@ def child_env(cfg: FleetConfig) -> dict[str, str]:
                 "CRANETWIN_WORKER_WINDOW_S": str(cfg.window_s),
                 "CRANETWIN_WORKER_SETTLE_S": str(cfg.settle_s),
                 "CRANETWIN_TWIN_MARGIN_S": str(cfg.margin_s),
-                "CRANETWIN_BUS_PARTITIONS": str(cfg.bus_partitions)})
+                "CRANETWIN_BUS_PARTITIONS": str(cfg.bus_partitions),
+                "CRANETWIN_WORKER_THREADS": str(cfg.worker_threads),
+                # the storage writers roll the raw 1-min summaries up, as deployed
+                "CRANETWIN_WORKER_ROLLUP_S": "0"})
     return env
 
 

@@ -118,6 +118,7 @@ class TwinWorker:
         self._last_sample: dict[str, tuple[float, float]] = {}
         self._marks: dict[str, tuple[float, float]] = {}  # machine → (newest sample, watermark)
         self._next_upkeep = clock()
+        self._next_rollup = clock()
         self.schedule_check_s = schedule_check_s
         """Least time between two checks of one machine's service schedules [s of ``clock``]
         (each merges its stored analytics when it has lift or damage items)."""
@@ -193,9 +194,7 @@ class TwinWorker:
         if own is not None:
             own.refresh()
             due = self.clock() + self.settings.worker_interval_s
-        # the ingest daemon rolls 1-min summaries up every 30 s; do it here too so that a
-        # service fed by another writer still answers long history queries from 1-min rows
-        self.backend.store.rollup()
+        self._rollup()
         pool = self._thread_pool()
         pending: list[Future[int]] = []
         for rec in self.backend.list_machines():
@@ -223,6 +222,20 @@ class TwinWorker:
         if own is None or 0 in own.owned:
             self._upkeep()
         return total
+
+    def _rollup(self) -> None:
+        """Roll the raw 1-min summaries up, at most every ``worker_rollup_s`` (0: never).
+
+        The ingest daemon and the storage writers roll up every 30 s; this is for a service
+        fed by another writer, so that long history queries are still answered from 1-min
+        rows. It covers every machine's changed minutes, not only the owned ones: done at
+        every pass by every worker, it cost more than the windows themselves (1000 machines'
+        current minutes recomputed per pass and worker)."""
+        every = self.settings.worker_rollup_s
+        if every <= 0 or self.clock() < self._next_rollup:
+            return
+        self._next_rollup = self.clock() + every
+        self.backend.store.rollup()
 
     def _result(self, f: Future[int]) -> int:
         """Windows of one machine's catch-up in a thread; its exception kept for the end of
