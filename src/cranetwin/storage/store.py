@@ -181,15 +181,17 @@ class Store:
 
     @staticmethod
     def _newest_block_ns(s: Session, pks: Sequence[int]) -> dict[int, int]:
-        """End time of each machine's newest block [ns] (one index probe per machine; the write
-        path does not update the machine row, so ingest never contends on it)."""
-        b = blocks_mod.BlockRow
-        out: dict[int, int] = {}
-        for pk in pks:
-            t = s.scalar(select(func.max(b.t_end_ns)).where(b.machine_pk == pk))
-            if t is not None:
-                out[pk] = int(t)
-        return out
+        """End time of each machine's newest block [ns]: one statement, one index probe per
+        machine in the server (a round trip per machine cost a fleet of 1000 a second per
+        listing); the write path does not update the machine row, so ingest never contends on
+        it."""
+        if not pks:
+            return {}
+        b, m = blocks_mod.BlockRow, MachineRow
+        newest = (select(func.max(b.t_end_ns)).where(b.machine_pk == m.id)
+                  .correlate(m).scalar_subquery())
+        rows = s.execute(select(m.id, newest).where(m.id.in_(list(pks)))).all()
+        return {int(pk): int(t) for pk, t in rows if t is not None}
 
     def machine_keys(self) -> dict[int, tuple[str, bytes]]:
         """What the ingest daemon needs to verify datagrams: wire_id → (machine_id, secret)."""
