@@ -27,6 +27,18 @@ export function coverageFromHistory(history) {
   return out;
 }
 
+// The union of interval lists (each [[a, b], ...]): sorted, overlapping ones merged.
+export function unionCoverage(...lists) {
+  const all = lists.flat().slice().sort((x, y) => x[0] - y[0]);
+  const out = [];
+  for (const [a, b] of all) {
+    const last = out[out.length - 1];
+    if (last && a <= last[1]) last[1] = Math.max(last[1], b);
+    else out.push([a, b]);
+  }
+  return out;
+}
+
 // The next time >= t inside a covered interval (t itself when covered; null after the last).
 export function nextCovered(coverage, t) {
   for (const [a, b] of coverage) {
