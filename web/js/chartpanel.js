@@ -20,6 +20,13 @@ export class ChartPanel {
 
   defaults() { return this.catalog.filter((c) => this.kinds.includes(c.kind)).map((c) => c.name); }
 
+  // A raw channel (a pressure if there is one): where it has buckets, the machine sent samples
+  // (derived channels only reach as far as the twin worker has processed).
+  coverageChannel() {
+    const c = this.catalog.find((x) => x.kind === "pressure") || this.catalog[0];
+    return c ? c.name : "payload";
+  }
+
   // The picker's checkboxes, grouped by kind; onPick() after the user changed the choice.
   buildPicker(onPick) {
     const box = this.els.list;

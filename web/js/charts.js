@@ -1,6 +1,7 @@
 // Charts of pressures, cylinder forces, payload and joint loads, linked to the one time cursor.
 // Long ranges come from min/max buckets (/history): each series is a min-max band plus its mean.
-// Plotly (served locally from the plotly Python package) is the global `Plotly`. No imports.
+// Plotly (served locally from the plotly Python package) is the global `Plotly`.
+import { bucketGap } from "./timeline.js";
 
 const PALETTE = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#17becf", "#e377c2"];
 
@@ -108,8 +109,9 @@ export class Charts {
     this.groups.forEach((g, k) => {
       const yaxis = k === 0 ? "y" : `y${k + 1}`;
       g.channels.forEach((name, c) => {
-        const s = history.channels ? history.channels[name] : null;
-        if (!s || !s.t || s.t.length === 0) return;
+        const raw = history.channels ? history.channels[name] : null;
+        if (!raw || !raw.t || raw.t.length === 0) return;
+        const s = withBreaks(raw);
         const x = s.t.map((t) => t * 1000);
         const color = PALETTE[c % PALETTE.length];
         const sc = (v) => (v === null ? null : v * g.scale);
@@ -196,6 +198,21 @@ export class Charts {
     this.cursor.style.transform = `translate(${this.div.offsetLeft + px}px, ${this.div.offsetTop + fl.margin.t}px)`;
     this.cursor.style.height = `${fl.height - fl.margin.t - fl.margin.b}px`;
   }
+}
+
+// A /history series {t, min, max, mean} with a null point in each silence (bucketGap), so the
+// lines stop where the data stop instead of joining across the silence.
+export function withBreaks(s) {
+  const { gap } = bucketGap(s.t);
+  const out = { t: [], min: [], max: [], mean: [] };
+  for (let i = 0; i < s.t.length; i++) {
+    if (i > 0 && s.t[i] - s.t[i - 1] > gap) {
+      out.t.push((s.t[i - 1] + s.t[i]) / 2);
+      out.min.push(null); out.max.push(null); out.mean.push(null);
+    }
+    out.t.push(s.t[i]); out.min.push(s.min[i]); out.max.push(s.max[i]); out.mean.push(s.mean[i]);
+  }
+  return out;
 }
 
 function legendId(k) { return k === 0 ? "legend" : `legend${k + 1}`; }

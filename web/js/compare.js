@@ -257,7 +257,8 @@ async function loadCoverage(from, to) {
   const covs = [];
   const events = [];
   await Promise.all(page.cells.filter((c) => c.machine).map(async (c) => {
-    try { covs.push(coverageFromHistory(await c.source.history(from, to, ["payload"], 600))); } catch (_) { /* no history */ }
+    const ch = c.panel ? c.panel.coverageChannel() : "payload";
+    try { covs.push(coverageFromHistory(await c.source.history(from, to, [ch], 600))); } catch (_) { /* no history */ }
     try { c.events = (await c.source.events(from, to)) || []; } catch (_) { c.events = []; }
     events.push(...c.events);
   }));
