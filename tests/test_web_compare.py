@@ -231,8 +231,8 @@ def test_compare_play_skips_only_what_all_machines_miss(page: Any,
     t = page.evaluate("window.cranetwin.cursor")
     assert GAP_ALL[1] <= t < GAP_ALL[1] + 20, t - GAP_ALL[1]
     assert page.evaluate("window.cranetwin.gapsSkipped") >= 1
-    page.wait_for_function(f"Math.abs(window.cranetwin.cells['crane-4'].drawnT - "
-                           f"window.cranetwin.cursor) < 1e-6", timeout=30000)
+    page.wait_for_function("Math.abs(window.cranetwin.cells['crane-4'].drawnT - "
+                           "window.cranetwin.cursor) < 1e-6", timeout=30000)
     assert not page.errors
 
 
