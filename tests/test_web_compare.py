@@ -36,7 +36,7 @@ Image = pytest.importorskip("PIL.Image", reason="Pillow needed for pixel checks"
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str, Any]]:
     from cranetwin.api import create_app
     from cranetwin.api.preview import ServerThread
     from cranetwin.model import load_machine
@@ -51,7 +51,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]
         services = app.state.services
         viewer = services.backend.create_key("viewer", "compare tests")[1]
         admin = services.backend.create_key("admin", "compare tests")[1]
-        for i in (2, 3, 4):
+        for i in (2, 3, 4, 5, 6):  # 5, 6: no stored data (the live test sends theirs)
             r = httpx.post(f"{srv.url}/api/v1/machines", headers={"X-API-Key": admin},
                            json={"machine_id": f"crane-{i}", "model": "patu655",
                                  "name": f"Crane {i}"})
@@ -69,11 +69,11 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]
         for mid in ("crane-2", "crane-3", "crane-4"):
             TwinWorker(services.backend, services.settings, services.metrics,
                        services.fleet.replayer).catch_up(services.backend.machine(mid))
-        yield str(srv.url), str(viewer)
+        yield str(srv.url), str(viewer), app
 
 
 @pytest.fixture()
-def page(server: tuple[str, str]) -> Iterator[Any]:
+def page(server: tuple[str, str, Any]) -> Iterator[Any]:
     from cranetwin.bench.web import sign_in
 
     with playwright_api.sync_playwright() as p:
@@ -112,7 +112,7 @@ def _cells(page: Any) -> dict[str, Any]:
 
 
 @pytest.mark.timeout(180)
-def test_two_cranes_replay_on_one_timeline(page: Any, server: tuple[str, str]) -> None:
+def test_two_cranes_replay_on_one_timeline(page: Any, server: tuple[str, str, Any]) -> None:
     url = server[0]
     t = END - 500
     page.goto(f"{url}/compare?machines=crane-2,crane-3&mode=replay&from={END - 600}&to={END}&t={t}")
@@ -157,7 +157,7 @@ def test_two_cranes_replay_on_one_timeline(page: Any, server: tuple[str, str]) -
 
 
 @pytest.mark.timeout(120)
-def test_fleet_compare_button_and_wrong_links(page: Any, server: tuple[str, str]) -> None:
+def test_fleet_compare_button_and_wrong_links(page: Any, server: tuple[str, str, Any]) -> None:
     url = server[0]
     page.goto(f"{url}/")
     page.wait_for_function("window.cranetwin && window.cranetwin.ready === true", timeout=30000)
@@ -193,7 +193,7 @@ def _open_pair(page: Any, url: str, t: float, extra: str = "") -> None:
 
 @pytest.mark.timeout(120)
 def test_compare_play_skips_only_what_all_machines_miss(page: Any,
-                                                        server: tuple[str, str]) -> None:
+                                                        server: tuple[str, str, Any]) -> None:
     url = server[0]
     # the union of where either machine has data: one silence, where both are silent
     _open_pair(page, url, END - 402)
@@ -254,7 +254,7 @@ def _chart_cursor_px(page: Any, mid: str, t: float) -> tuple[float, float]:
 
 @pytest.mark.timeout(120)
 def test_compare_charts_per_machine_on_the_shared_cursor(page: Any,
-                                                         server: tuple[str, str]) -> None:
+                                                         server: tuple[str, str, Any]) -> None:
     url = server[0]
     t = END - 500
     page.goto(f"{url}/compare?machines=crane-2,crane-3&mode=replay&from={END - 600}&to={END}"
@@ -306,4 +306,51 @@ def test_compare_charts_per_machine_on_the_shared_cursor(page: Any,
         "(document.querySelector('.cmp-charts[data-machine-id=crane-3] .charts').data || [])"
         ".some(t => t.name === 'theta1')", timeout=20000)
     assert "theta1" not in _chart_traces(page, "crane-2")
+    assert not page.errors
+
+
+@pytest.mark.timeout(120)
+def test_compare_live_charts_per_machine(page: Any, server: tuple[str, str, Any]) -> None:
+    """Live: each machine's frames reach its own 3D view and its own rolling charts (cylinder
+    forces from the live stream, not the stored history)."""
+    import threading
+
+    from cranetwin.model import load_machine
+    from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
+
+    machine = load_machine("patu655")
+    base = kinematic_samples(machine, 120.0)
+    store = server[2].state.services.backend.store
+    stop = threading.Event()
+    origin = round(time.time(), 2)
+
+    def feed() -> None:
+        seq = 0
+        while not stop.is_set():
+            now = round(time.time() - 0.2, 2)
+            for k, mid in enumerate(("crane-5", "crane-6")):
+                # continuous motion; crane-6 30 s out of phase, so the two charts differ
+                store.write_blocks(list(tiled_blocks(mid, machine, now, 0.2, 0.2, base=base,
+                                                     seq0=seq, origin_s=origin - 30 * k)))
+            seq += 1
+            stop.wait(0.2)
+
+    th = threading.Thread(target=feed, daemon=True)
+    th.start()
+    try:
+        page.goto(f"{server[0]}/compare?machines=crane-5,crane-6&mode=live")
+        page.wait_for_function("window.cranetwin && window.cranetwin.mode === 'live' && Object"
+                               ".values(window.cranetwin.cells).every(c => c.liveFrames > 5)",
+                               timeout=60000)
+        for mid in ("crane-5", "crane-6"):
+            page.wait_for_function(
+                f"(document.querySelector('.cmp-charts[data-machine-id={mid}] .charts').data"
+                " || []).some(t => t.name === 'lift' && t.y.length > 3)", timeout=30000)
+        f5, f6 = _chart_traces(page, "crane-5"), _chart_traces(page, "crane-6")
+        assert {"lift", "payload"} <= set(f5) and {"lift", "payload"} <= set(f6)
+        assert max(abs(v) for v in f5["lift"] if v is not None) > 1.0  # [kN]
+        assert f5["lift"][:3] != f6["lift"][:3]
+    finally:
+        stop.set()
+        th.join(5)
     assert not page.errors
