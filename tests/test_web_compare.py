@@ -306,6 +306,15 @@ def test_compare_charts_per_machine_on_the_shared_cursor(page: Any,
         "(document.querySelector('.cmp-charts[data-machine-id=crane-3] .charts').data || [])"
         ".some(t => t.name === 'theta1')", timeout=20000)
     assert "theta1" not in _chart_traces(page, "crane-2")
+    # the link keeps the charted channels, one list for every machine
+    page.wait_for_function("window.location.search.includes('ch=')")
+    page.goto(page.url)
+    page.wait_for_function("window.cranetwin && window.cranetwin.ready === true", timeout=60000)
+    for mid in ("crane-2", "crane-3"):
+        page.wait_for_function(
+            f"(document.querySelector('.cmp-charts[data-machine-id={mid}] .charts').data || [])"
+            ".some(t => t.name === 'theta1')", timeout=30000)
+        assert {"lift", "payload", "theta1"} <= set(_chart_traces(page, mid))
     assert not page.errors
 
 

@@ -80,6 +80,7 @@ function makePanel(cell, model) {
   stats.cells[cell.id].channels = cell.panel.selected.slice();
   cell.panel.buildPicker(() => {
     stats.cells[cell.id].channels = cell.panel.selected.slice();
+    saveUrl();
     if (!cell.charts) return;
     if (page.mode === "replay") loadCellHistory(cell);
     else cell.charts.setLive(cell.liveBuffer);
@@ -413,6 +414,12 @@ function shareUrl() {
     url.searchParams.set("to", isoSeconds(page.to));
     if (page.cursor !== null) url.searchParams.set("t", page.cursor.toFixed(2));
     url.searchParams.set("speed", String(page.speed));
+  }
+  // the charted channels, when any machine's differ from the defaults: one list for all (each
+  // machine charts those it has), so the link compares the same channels
+  const panels = page.cells.filter((c) => c.panel).map((c) => c.panel);
+  if (panels.some((p) => p.selected.join(",") !== p.defaults().join(","))) {
+    url.searchParams.set("ch", [...new Set(panels.flatMap((p) => p.selected))].join(","));
   }
   return url.toString();
 }
