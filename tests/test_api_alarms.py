@@ -130,6 +130,12 @@ def test_offline_and_data_gap_events_after_their_timeouts(ctx: Any) -> None:
     assert gap["t"] == pytest.approx(last)
     assert gap["evidence"]["gap_s"] == pytest.approx(T0 + 110 - last, abs=1.0)
     assert "data gap" in gap["message"]
+    # times and durations for people: UTC to the second, "100 s", never 1.7e9 or ISO millis
+    from cranetwin.service.events import format_time
+
+    assert f"since {format_time(last)} (timeout 60 s)" in off["message"]
+    assert gap["message"] == (f"data gap: no samples for 100 s (from {format_time(last)} to "
+                              f"{format_time(T0 + 110)}; reported above 5 s)")
     # a short pause (< alarm_gap_s = 5 s) is no gap
     store.write_blocks(list(tiled_blocks("crane-2", machine, T0 + 118, 2.0, 1.0, base=base,
                                          seq0=2000)))

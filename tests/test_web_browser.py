@@ -515,6 +515,24 @@ def test_fleet_table_sorts_filters_and_shows_fleet_figures(page: Any, server: Se
     assert page.inner_text("#fig-machines") == "3"
     assert "offline" in page.inner_text("#fig-status")
     assert page.inner_text("#fig-lifts") != "–" and page.inner_text("#fig-tonnes").endswith(" t")
+    # the figures are the service's, formatted for people (en-US: grouping commas)
+    tot = page.request.get(f"{server.url}/api/v1/fleet/figures").json()["total"]
+    assert page.inner_text("#fig-hours") == f"{tot['operating_h']:,.1f} h"
+    assert page.inner_text("#fig-lifts") == f"{tot['lifts']:,.0f}"
+    assert page.inner_text("#fig-tonnes") == f"{tot['tonnes']:,.1f} t"
+    assert page.inner_text("#fig-alarms") == f"{tot['alarms_today']:,}"
+    assert page.inner_text("#fig-critical") == f"{tot['critical_today']} critical"
+    # the table's column counts the critical events of the last 24 h, as its header says
+    machines = {m["machine_id"]: m for m in page.request.get(f"{server.url}/api/v1/machines")
+                .json()}
+    for mid, m in machines.items():
+        crit = [e for e in page.request.get(f"{server.url}/api/v1/machines/{mid}/events",
+                                            params={"from": time.time() - 86400,
+                                                    "to": time.time()}).json()
+                if e["severity"] == "critical"]
+        assert m["alarms"] == len(crit), (mid, m["alarms"], len(crit))
+        assert page.inner_text(f"tr[data-machine-id={mid}] td:nth-child(9)") == str(len(crit))
+    assert "Critical 24 h" in page.inner_text("th[data-sort=alarms]")
 
     def order() -> list[str]:
         return page.eval_on_selector_all("#rows tr", "rs => rs.map(r => r.dataset.machineId)")

@@ -269,6 +269,29 @@ def test_preset_is_clamped_to_the_data_and_play_skips_the_silence(page: Any,
     assert not page.errors
 
 
+@pytest.mark.timeout(90)  # the first test also starts the module's server
+def test_chart_lines_stop_at_the_silence(page: Any, server: Service) -> None:
+    """The load history has no buckets in the 200 s silence: every chart line breaks there
+    (a null point) instead of joining the two stretches, and no min-max band spans it."""
+    _open(page, server, END - 100)
+    page.wait_for_function("(document.getElementById('charts').data || []).some(t => t.name"
+                           " === 'lift')", timeout=30000)
+    traces = page.evaluate("document.getElementById('charts').data.map(t => [t.name || '',"
+                           " t.x, t.y])")
+    assert len(traces) > 6
+    bands = 0
+    for name, xs, ys in traces:
+        inside = [y for x, y in zip(xs, ys, strict=True) if GAP[0] + 5 < x / 1000 < GAP[1] - 5]
+        assert all(y is None for y in inside), (name, inside[:5])
+        if name:  # the mean line: one trace, broken by a null point
+            assert inside and sum(y is not None for y in ys) > 100, name
+        else:  # a band's edge: one stretch, on one side of the silence
+            bands += 1
+            assert max(xs) / 1000 < GAP[0] + 5 or min(xs) / 1000 > GAP[1] - 5, name
+    assert bands == 4 * sum(1 for n, _, _ in traces if n)  # two stretches, two edges each
+    assert not page.errors
+
+
 class _Feeder:
     """Writes 0.2 s sample blocks stamped now for crane-1 (a live machine)."""
 

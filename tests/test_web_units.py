@@ -9,7 +9,13 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from cranetwin.service.events import event_message, format_quantity, readable_message
+from cranetwin.service.events import (
+    event_message,
+    format_duration,
+    format_quantity,
+    format_time,
+    readable_message,
+)
 
 
 @pytest.mark.parametrize(("value", "unit", "text"), [
@@ -20,6 +26,19 @@ from cranetwin.service.events import event_message, format_quantity, readable_me
 ])
 def test_quantities_read_like_a_person_writes_them(value: float, unit: str, text: str) -> None:
     assert format_quantity(value, unit) == text
+
+
+@pytest.mark.parametrize(("seconds", "text"), [
+    (0.4, "0 s"), (59.6, "60 s"), (119.0, "119 s"), (120.0, "2 min"), (200.0, "3 min 20 s"),
+    (7199.0, "119 min 59 s"), (7200.0, "2 h"), (7530.0, "2 h 5 min"), (172_799.0, "47 h 59 min"),
+    (3 * 86400 + 4 * 3600 + 59.0, "3 d 4 h"), (-1.0, "–"), (float("inf"), "–"),
+])
+def test_durations_read_like_a_person_says_them(seconds: float, text: str) -> None:
+    assert format_duration(seconds) == text
+
+
+def test_times_are_utc_to_the_second() -> None:
+    assert format_time(1_796_208_899.99) == "2026-12-02 10:54:59 UTC"
 
 
 def test_event_messages_have_no_exponents_or_asterisks() -> None:

@@ -1,13 +1,15 @@
-// The machine page's charts panel: the channel picker (any stored or derived channel, one chart
+// A charts panel (machine page; one per machine on the compare page): the channel picker (any stored or derived channel, one chart
 // per unit) and the load history of the replay view, drawn by charts.js on the one time cursor.
 import { channelCatalog, chartGroups, DEFAULT_KINDS } from "./charts.js";
 
 export class ChartPanel {
   // source: the page's data source; model: the machine description (/model); els: {list,
-  // count, charts, msg} elements; wanted: channel names asked for by the link (`ch=`).
-  constructor(source, model, els, wanted) {
+  // count, charts, msg} elements; wanted: channel names asked for by the link (`ch=`); kinds:
+  // the channel kinds charted when nothing is asked for.
+  constructor(source, model, els, wanted, kinds = DEFAULT_KINDS) {
     this.source = source;
     this.els = els;
+    this.kinds = kinds;
     this.catalog = channelCatalog(model);
     const ok = wanted.filter((n) => this.catalog.some((c) => c.name === n));
     this.selected = ok.length ? ok : this.defaults();
@@ -16,7 +18,14 @@ export class ChartPanel {
     this.ask = 0;
   }
 
-  defaults() { return this.catalog.filter((c) => DEFAULT_KINDS.includes(c.kind)).map((c) => c.name); }
+  defaults() { return this.catalog.filter((c) => this.kinds.includes(c.kind)).map((c) => c.name); }
+
+  // A raw channel (a pressure if there is one): where it has buckets, the machine sent samples
+  // (derived channels only reach as far as the twin worker has processed).
+  coverageChannel() {
+    const c = this.catalog.find((x) => x.kind === "pressure") || this.catalog[0];
+    return c ? c.name : "payload";
+  }
 
   // The picker's checkboxes, grouped by kind; onPick() after the user changed the choice.
   buildPicker(onPick) {

@@ -1,6 +1,7 @@
 // Charts of pressures, cylinder forces, payload and joint loads, linked to the one time cursor.
 // Long ranges come from min/max buckets (/history): each series is a min-max band plus its mean.
-// Plotly (served locally from the plotly Python package) is the global `Plotly`. No imports.
+// Plotly (served locally from the plotly Python package) is the global `Plotly`.
+import { bucketGap } from "./timeline.js";
 
 const PALETTE = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#17becf", "#e377c2"];
 
@@ -108,15 +109,19 @@ export class Charts {
     this.groups.forEach((g, k) => {
       const yaxis = k === 0 ? "y" : `y${k + 1}`;
       g.channels.forEach((name, c) => {
-        const s = history.channels ? history.channels[name] : null;
-        if (!s || !s.t || s.t.length === 0) return;
-        const x = s.t.map((t) => t * 1000);
+        const raw = history.channels ? history.channels[name] : null;
+        if (!raw || !raw.t || raw.t.length === 0) return;
         const color = PALETTE[c % PALETTE.length];
         const sc = (v) => (v === null ? null : v * g.scale);
+        const ms = (ts) => ts.map((t) => t * 1000);
         const group = `${g.key}:${name}`;
-        traces.push({ x, y: s.max.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 0, color }, hoverinfo: "skip", showlegend: false, legendgroup: group });
-        traces.push({ x, y: s.min.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 0, color }, fill: "tonexty", fillcolor: hexAlpha(color, 0.18), hoverinfo: "skip", showlegend: false, legendgroup: group });
-        traces.push({ x, y: s.mean.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 1.2, color }, name: g.label(name), legend: legendId(k), legendgroup: group });
+        // the min-max band: one filled pair per stretch with data (a fill would span a silence)
+        for (const seg of splitAtSilences(raw)) {
+          traces.push({ x: ms(seg.t), y: seg.max.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 0, color }, hoverinfo: "skip", showlegend: false, legendgroup: group });
+          traces.push({ x: ms(seg.t), y: seg.min.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 0, color }, fill: "tonexty", fillcolor: hexAlpha(color, 0.18), hoverinfo: "skip", showlegend: false, legendgroup: group });
+        }
+        const s = withBreaks(raw);
+        traces.push({ x: ms(s.t), y: s.mean.map(sc), yaxis, type: "scatter", mode: "lines", line: { width: 1.2, color }, name: g.label(name), legend: legendId(k), legendgroup: group });
       });
     });
     this.liveMode = false;
@@ -196,6 +201,37 @@ export class Charts {
     this.cursor.style.transform = `translate(${this.div.offsetLeft + px}px, ${this.div.offsetTop + fl.margin.t}px)`;
     this.cursor.style.height = `${fl.height - fl.margin.t - fl.margin.b}px`;
   }
+}
+
+// The stretches with data of a /history series {t, min, max, mean}: split at each silence
+// (bucketGap), as series of the same shape.
+export function splitAtSilences(s) {
+  const { gap } = bucketGap(s.t);
+  const out = [];
+  let a = 0;
+  for (let i = 1; i <= s.t.length; i++) {
+    if (i === s.t.length || s.t[i] - s.t[i - 1] > gap) {
+      out.push({ t: s.t.slice(a, i), min: s.min.slice(a, i), max: s.max.slice(a, i), mean: s.mean.slice(a, i) });
+      a = i;
+    }
+  }
+  return out;
+}
+
+// The series with a null point in each silence, so a line stops where the data stop instead
+// of joining across the silence.
+export function withBreaks(s) {
+  const out = { t: [], min: [], max: [], mean: [] };
+  let prev = null;
+  for (const seg of splitAtSilences(s)) {
+    if (prev !== null) {
+      out.t.push((prev + seg.t[0]) / 2);
+      out.min.push(null); out.max.push(null); out.mean.push(null);
+    }
+    for (const k of ["t", "min", "max", "mean"]) for (const v of seg[k]) out[k].push(v);
+    prev = seg.t[seg.t.length - 1];
+  }
+  return out;
 }
 
 function legendId(k) { return k === 0 ? "legend" : `legend${k + 1}`; }

@@ -233,9 +233,7 @@ function fmtDuration(s) {
 // Where data exist in the range (for the timeline and for play to skip silences).
 async function loadCoverage(from, to) {
   try {
-    const catalog = state.panel.catalog;
-    const ch = catalog.find((c) => c.kind === "pressure") || catalog[0];
-    const hist = await source.history(from, to, [ch ? ch.name : "payload"], 600);
+    const hist = await source.history(from, to, [state.panel.coverageChannel()], 600);
     if (state.from !== from || state.to !== to) return;
     state.coverage = coverageFromHistory(hist);
     metrics.coverage = state.coverage;

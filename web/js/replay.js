@@ -4,7 +4,8 @@
 export const CHUNK_S = 60;
 
 export class ReplayStore {
-  // source.twin(from, to) -> Promise of a twin JSON result (contract v1)
+  // source.twin(from, to) -> Promise of a twin JSON result (contract v1); chunks[i] and the
+  // primer are {state, data, a, b}: [a, b] the window asked for [s]
   constructor(source, from, to, rateHz) {
     this.source = source;
     this.from = from;
@@ -42,7 +43,7 @@ export class ReplayStore {
     if (this.chunks.has(i)) return;
     const a = this.from + i * CHUNK_S;
     const b = Math.min(this.to, a + CHUNK_S + 1 / this.rateHz);
-    const entry = { state: "loading", data: null };
+    const entry = { state: "loading", data: null, a, b };
     this.chunks.set(i, entry);
     this.source.twin(a, b, this.rateHz).then((data) => {
       if (!data || !data.t || data.t.length === 0) { entry.state = "empty"; }
@@ -55,7 +56,8 @@ export class ReplayStore {
     });
   }
 
-  // Fills this.frame for time t; returns null when the chunk is not there (yet).
+  // Fills this.frame for time t; returns null when the chunk is not there (yet), or "empty"
+  // after the chunk's last sample when the data stop before the chunk's end (a silence).
   frameAt(t) {
     let entry = this.ensure(t);
     if ((!entry || entry.state !== "ready") && this.primer && this.primer.state === "ready"
@@ -63,6 +65,8 @@ export class ReplayStore {
     if (!entry || entry.state !== "ready") return entry ? entry.state : null;
     const d = entry.data;
     const n = d.t.length;
+    const tol = 4 / this.rateHz; // a longer step between frames is a silence [s]
+    if (t > d.t[n - 1] + tol && entry.b > d.t[n - 1] + tol) return "empty";
     let i = upperBound(d.t, t) - 1;
     if (i < 0) i = 0;
     const j = Math.min(i + 1, n - 1);
@@ -72,7 +76,7 @@ export class ReplayStore {
     f.t = t;
     // inside a silence of the data (or before the chunk's first sample): where data resume
     if (t < d.t[0]) f.gapTo = d.t[0];
-    else if (t > d.t[i] && j > i && span > 4 / this.rateHz) f.gapTo = d.t[j];
+    else if (t > d.t[i] && j > i && span > tol) f.gapTo = d.t[j];
     else f.gapTo = undefined;
     f.index = i;
     f.chunk = entry;

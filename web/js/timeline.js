@@ -5,24 +5,42 @@
 
 export const MIN_VIEW_S = 2;
 
+// The bucket width w (median step) of /history bucket start times `ts` [s], and the silence
+// threshold: a step longer than gap = max(3 w, 5 s) is a stretch without data.
+export function bucketGap(ts) {
+  const steps = [];
+  for (let i = 1; i < ts.length; i++) steps.push(ts[i] - ts[i - 1]);
+  steps.sort((x, y) => x - y);
+  const w = steps.length ? steps[steps.length >> 1] : 1;
+  return { w, gap: Math.max(3 * w, 5) };
+}
+
 // Intervals [[a, b], ...] covered by data, from /history buckets {t: [...]} (bucket start times):
-// a silence longer than 3 bucket widths (and 5 s) splits them.
+// a silence (bucketGap) splits them.
 export function coverageFromHistory(history) {
   let ts = null;
   for (const s of Object.values((history && history.channels) || {})) {
     if (s && s.t && s.t.length > (ts ? ts.length : 0)) ts = s.t;
   }
   if (!ts || ts.length === 0) return [];
-  const steps = [];
-  for (let i = 1; i < ts.length; i++) steps.push(ts[i] - ts[i - 1]);
-  steps.sort((x, y) => x - y);
-  const w = steps.length ? steps[steps.length >> 1] : 1;
-  const gap = Math.max(3 * w, 5);
+  const { w, gap } = bucketGap(ts);
   const out = [[ts[0], ts[0] + w]];
   for (let i = 1; i < ts.length; i++) {
     const last = out[out.length - 1];
     if (ts[i] - last[1] > gap) out.push([ts[i], ts[i] + w]);
     else last[1] = ts[i] + w;
+  }
+  return out;
+}
+
+// The union of interval lists (each [[a, b], ...]): sorted, overlapping ones merged.
+export function unionCoverage(...lists) {
+  const all = lists.flat().slice().sort((x, y) => x[0] - y[0]);
+  const out = [];
+  for (const [a, b] of all) {
+    const last = out[out.length - 1];
+    if (last && a <= last[1]) last[1] = Math.max(last[1], b);
+    else out.push([a, b]);
   }
   return out;
 }

@@ -57,7 +57,7 @@ class MachinePublic(BaseModel):
                                   examples=["2026-11-23T10:42:00.000Z"])
     payload_kg: float | None = Field(description="latest payload estimate [kg], null if unknown",
                                      examples=[420.0])
-    alarms: int = Field(ge=0, description="events of severity 'alarm' in the last 24 h",
+    alarms: int = Field(ge=0, description="events of severity 'critical' in the last 24 h",
                         examples=[0])
     location: Location | None = Field(description="last GPS position, null if unknown")
 
@@ -191,7 +191,7 @@ class HistoryOut(BaseModel):
 class EventOut(BaseModel):
     t: float = Field(description="time of the event [s since epoch]")
     kind: str = Field(examples=["overload"])
-    severity: str = Field(examples=["alarm"])
+    severity: str = Field(examples=["critical"], description="info, warning or critical")
     message: str = Field(examples=["payload 1210 kg above rating 900 kg at 6.1 m reach"])
     evidence: dict[str, Any] = Field(default_factory=dict, description="values behind the event")
 

@@ -32,7 +32,7 @@ from typing import Any, Literal
 
 from cranetwin.errors import CraneTwinError
 from cranetwin.service.errors import NotFoundError
-from cranetwin.service.events import readable_message
+from cranetwin.service.events import format_duration, format_time, readable_message
 
 log = logging.getLogger(__name__)
 
@@ -166,16 +166,16 @@ class AlarmService:
                     if nxt is not None and nxt - prev > self.gap_s:
                         gap = nxt - prev
                         new.append(Event(mid, prev, "data_gap", "info", {
-                            "message": f"data gap: no samples for {gap:.0f} s "
-                                       f"(from {_iso(prev)} to {_iso(nxt)}; reported above "
-                                       f"{self.gap_s:g} s)",
+                            "message": f"data gap: no samples for {format_duration(gap)} "
+                                       f"(from {format_time(prev)} to {format_time(nxt)}; "
+                                       f"reported above {format_duration(self.gap_s)})",
                             "from": prev, "to": nxt, "gap_s": gap, "limit_s": self.gap_s}))
                         resumed.append((mid, prev, nxt))
                 self._last[mid] = last
                 if now - last > self.offline_s:
                     new.append(Event(mid, last + self.offline_s, "machine_offline", "warning", {
-                        "message": f"machine offline: no samples since {_iso(last)} (timeout "
-                                   f"{self.offline_s:g} s)",
+                        "message": f"machine offline: no samples since {format_time(last)} "
+                                   f"(timeout {format_duration(self.offline_s)})",
                         "last_seen": last, "timeout_s": self.offline_s}))
         stored = self.backend.store.add_events(new) if new else 0
         for mid, t0, t1 in resumed:

@@ -300,9 +300,9 @@ class Backend:
         return out
 
     def count_events(self, machine_id: str, t0_s: float, t1_s: float, level: str) -> int:
-        """Events of the most severe level (``critical``) in a range."""
+        """Events of severity ``level`` (``info``, ``warning``, ``critical``) in a range."""
         return sum(1 for e in self.store.events(machine_id, t0_s, t1_s)
-                   if e.severity == "critical")
+                   if e.severity == level)
 
     # -- keys ---------------------------------------------------------------------------------
     def key_lookup(self, key_id: str) -> tuple[str, str, Any] | None:

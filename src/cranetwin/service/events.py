@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from datetime import UTC, datetime
 from typing import Any
 
 _PREFIXED = {"N*m": "N·m", "N·m": "N·m", "Nm": "N·m", "N": "N", "N/s": "N/s", "W": "W"}
@@ -49,6 +50,30 @@ def format_quantity(value: float, unit: str) -> str:
     if unit in ("", "1", "ratio"):
         return f"{_number(value * 100)} %"
     return f"{_number(value)} {unit.replace('*', '·')}".rstrip()
+
+
+def format_duration(seconds: float) -> str:
+    """A duration [s] as people say it: ``"45 s"``, ``"3 min 20 s"``, ``"2 h 5 min"``,
+    ``"3 d 4 h"`` (below 2 min in seconds; whole seconds; the smaller unit left out when 0).
+    Non-finite or negative durations are ``"–"``."""
+    if not math.isfinite(seconds) or seconds < 0:
+        return "–"
+    s = int(round(seconds))
+    if s < 120:
+        return f"{s} s"
+    if s < 7200:
+        m, r = divmod(s, 60)
+        return f"{m} min {r} s" if r else f"{m} min"
+    if s < 2 * 86400:
+        h, r = divmod(s, 3600)
+        return f"{h} h {r // 60} min" if r >= 60 else f"{h} h"
+    d, r = divmod(s, 86400)
+    return f"{d} d {r // 3600} h" if r >= 3600 else f"{d} d"
+
+
+def format_time(t: float) -> str:
+    """Epoch seconds as ``"2026-12-02 10:54:59 UTC"`` (whole seconds)."""
+    return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
 
 
 def event_message(kind: str, component: str, value: float, limit: float, unit: str) -> str:

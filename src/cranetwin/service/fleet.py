@@ -203,7 +203,7 @@ class FleetService:
         last = rng[1] if rng else None
         prog = self.backend.progress(rec.machine_id)
         now = time.time()
-        alarms = self.backend.count_events(rec.machine_id, now - 86400.0, now, "alarm")
+        alarms = self.backend.count_events(rec.machine_id, now - 86400.0, now, "critical")
         payload = public_kg(prog.last_payload_kg if prog is not None else None)
         lp = self.live_payload.get(rec.machine_id)
         if payload is None and self._status(last) == "live":

@@ -69,8 +69,10 @@ def twin_json(machine: Machine, res: TwinResult, t0_s: float, t1_s: float,
     """The contract's twin object for [t0_s, t1_s) at ``rate_hz`` from a replay result.
 
     The replay's grid is sampled at the nearest grid instant to each output time (the replay is
-    run at ``rate_hz`` or a multiple of it, so this is exact up to rounding). Wrenches are
-    rotated from the child body frame to world axes.
+    run at ``rate_hz`` or a multiple of it, so this is exact up to rounding); instants bridged
+    across a dropout (``res.gap``) are left out, so a silence shows as a step in ``t`` (the 3D
+    view says "no data" there instead of drawing the spline across it). Wrenches are rotated
+    from the child body frame to world axes.
     """
     grid = res.t_s
     if res.n == 0:
@@ -83,7 +85,7 @@ def twin_json(machine: Machine, res: TwinResult, t0_s: float, t1_s: float,
         nxt = np.clip(idx + 1, 0, res.n - 1)
         idx = np.where(np.abs(grid[nxt] - t_out) < np.abs(grid[idx] - t_out), nxt, idx)
         idx = np.unique(idx)
-        idx = idx[(grid[idx] >= t0_s - 0.5 / rate_hz) & (grid[idx] < t1_s)]
+        idx = idx[(grid[idx] >= t0_s - 0.5 / rate_hz) & (grid[idx] < t1_s) & ~res.gap[idx]]
     q = res.q[idx]
     poses = body_poses(machine, q) if len(idx) else np.zeros((0, machine.n_joints, 4, 4))
     rot = poses[:, :, :3, :3]

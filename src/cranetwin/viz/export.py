@@ -30,7 +30,7 @@ EXPORT_MAX_SECONDS = 600.0
 EXPORT_MAX_FRAMES = 3000
 """Most animation frames embedded in one export."""
 
-MODULE_ORDER = ("api.js", "crane3d.js", "replay.js", "charts.js", "timeline.js", "schedule.js",
+MODULE_ORDER = ("api.js", "crane3d.js", "replay.js", "timeline.js", "charts.js", "schedule.js",
                 "source.js", "playback.js", "live.js", "chartpanel.js", "nowcard.js", "machine.js")
 """The page's ES modules in dependency order (each imports only earlier ones)."""
 
