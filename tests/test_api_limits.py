@@ -349,3 +349,33 @@ def test_a_busy_key_does_not_slow_another_keys_machine_list_by_more_than_2x(
     assert all(v.isdigit() and int(v) >= 1 for v in retry_after)  # ... and told when to retry
     assert busy <= 2.0 * quiet + FLOOR_MS, (quiet, busy)
     assert services.fleet.twin_cache.nbytes <= services.settings.twin_cache_bytes
+
+
+# --- websockets ----------------------------------------------------------------------------------
+@pytest.mark.timeout(120)
+def test_live_connects_are_charged_and_refused_with_4429_and_a_reason(tmp_path: Path) -> None:
+    from starlette.websockets import WebSocketDisconnect
+
+    for api in _api(tmp_path, rate_viewer_per_s=0.01, rate_viewer_burst=3,
+                    rate_limit_delay_s=0):
+        def connect(who: str, api: Api = api) -> dict[str, Any]:
+            with api.client.websocket_connect(f"/api/v1/machines/{MID}/live",
+                                              headers={"X-API-Key": api.keys[who]}) as ws:
+                first: dict[str, Any] = ws.receive_json()
+                if first["type"] == "error":
+                    with pytest.raises(WebSocketDisconnect) as closed:
+                        ws.receive_json()
+                    first["close"] = (closed.value.code, closed.value.reason)
+                return first
+
+        assert api.get("/api/v1/machines", "a").status_code == 200  # REST and live: one bucket
+        assert [connect("a")["type"] for _ in range(2)] == ["hello", "hello"]
+        refused = connect("a")
+        assert refused["status"] == 429 and refused["title"] == "Too many requests"
+        assert refused["close"] == (4429, "Too many requests")
+        assert refused["retry_after"] >= 1
+        assert api.get("/api/v1/machines", "a").status_code == 429  # the connects were charged
+        assert connect("b")["type"] == "hello"  # another key: its own bucket
+        text = api.get("/metrics", "admin").text
+        assert _metric(text, 'cranetwin_http_refused_total{reason="rate_limit",role="viewer"}') \
+            == 2
