@@ -250,16 +250,38 @@ class _Sink(io.RawIOBase):
         return out
 
 
-def _table(cols: Columns, sch: Any) -> Any:
+CSV_INT_MAX = 1e9
+"""Integral float columns whose values are all below this in magnitude are written to CSV as
+int64: pyarrow writes such a float as its integer digits (``4560000``, ``-3``; from 1e10 on it
+switches to ``1e+10``), and formats an int64 column in about half the time of a float64 one."""
+
+
+def _integral(x: npt.NDArray[np.float64], nan: npt.NDArray[np.bool_] | None) -> bool:
+    """Whether every value of ``x`` (NaN aside) is an integer below :data:`CSV_INT_MAX` in
+    magnitude and none is −0.0 (which pyarrow writes ``-0``): its int64 text is its float text."""
+    y = x if nan is None else x[~nan]
+    return bool(y.size) and bool(np.all(np.abs(y) < CSV_INT_MAX)) \
+        and bool(np.array_equal(np.trunc(y), y)) and not bool(np.any(np.signbit(y) & (y == 0)))
+
+
+def _table(cols: Columns, sch: Any, csv: bool = False) -> Any:
+    """The pyarrow table of one chunk (NaN as null). ``csv``: the table to write as CSV —
+    integral float columns as int64 (:data:`CSV_INT_MAX`: the same text, written faster;
+    sensor channels with a whole-number resolution, such as pressures in Pa, are)."""
     pa = _pa()
     arrays = []
     for field in sch:
         x = cols[field.name]
         nan = np.isnan(x) if x.dtype == np.float64 else None
-        if nan is not None and nan.any():
-            arrays.append(pa.array(x, type=field.type, mask=nan))
+        if nan is not None and not nan.any():
+            nan = None
+        if csv and x.dtype == np.float64 and _integral(x, nan):
+            k = (x if nan is None else np.where(nan, 0.0, x)).astype(np.int64)
+            arrays.append(pa.array(k, type=pa.int64(), mask=nan))
         else:
-            arrays.append(pa.array(x, type=field.type))
+            arrays.append(pa.array(x, type=field.type, mask=nan))
+    if csv:
+        return pa.Table.from_arrays(arrays, names=sch.names)
     return pa.Table.from_arrays(arrays, schema=sch)
 
 
@@ -325,7 +347,8 @@ def encode(chunks: Iterator[Columns], sch: Any, fmt: str) -> Iterator[bytes]:
         header = True
         for cols in chunks:
             buf = io.BytesIO()
-            pacsv.write_csv(_table(cols, sch), buf, pacsv.WriteOptions(include_header=header))
+            pacsv.write_csv(_table(cols, sch, csv=True), buf,
+                            pacsv.WriteOptions(include_header=header))
             header = False
             yield buf.getvalue()
         if header:
