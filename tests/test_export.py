@@ -202,6 +202,33 @@ def test_csv_writes_integral_columns_as_ints_with_pyarrows_float_text() -> None:
     assert b"-0," in text and b"1e+10," in text and b"4560000," in text  # pyarrow's own forms
 
 
+@pytest.mark.timeout(120)
+def test_export_does_not_import_pandas() -> None:
+    """pyarrow's ``pa.array`` imports pandas (0.3–0.5 s) to check its argument; the export
+    builds its arrays from buffers so that a CLI run and a server's first export do not pay it."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+import numpy as np
+from cranetwin.model import load_machine
+from cranetwin.service import export as ex
+m = load_machine("patu655")
+sch = ex.schema("raw", m)
+n = 50
+chunk = {"t_ns": np.arange(n, dtype=np.int64), "t_s": np.arange(n) / 100.0,
+         **{c.name: np.where(np.arange(n) == 3, np.nan, np.arange(n) * 0.25) for c in m.channels}}
+for fmt in ("csv", "parquet"):
+    assert b"".join(ex.encode(iter([chunk]), sch, fmt))
+print("pandas" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=100)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
+
+
 @pytest.mark.parametrize("series", ["forces", "payload", "joint_loads"])
 def test_export_twin_series_equal_minute_replays(ctx: Ctx, series: str) -> None:
     """A twin series is the replay of each minute with the worker's margin (values inside the
