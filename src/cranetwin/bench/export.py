@@ -32,11 +32,22 @@ from pathlib import Path
 from typing import Any
 
 from cranetwin.bench.ingest_daemon import cpu_seconds
+from cranetwin.errors import MissingExtraError
 
 CLI = "from cranetwin.cli import main; main()"
 """The ``cranetwin`` command as ``python -c`` runs it (the console script may not be on PATH)."""
 
 _CLI_LINE = re.compile(r"raw of .*, ([0-9,]+) bytes in ([0-9.]+) s")
+
+
+def _parquet() -> Any:
+    """``pyarrow.parquet`` (to count the rows of a file), or MissingExtraError (extra
+    ``import``, as the export itself)."""
+    try:
+        import pyarrow.parquet as pq
+    except ImportError as exc:
+        raise MissingExtraError("import", "the export benchmark") from exc
+    return pq
 
 
 def _free_port() -> int:
@@ -48,10 +59,8 @@ def _free_port() -> int:
 def _rows(body: bytes | None, lines: int, fmt: str) -> int:
     if fmt == "csv":
         return lines - 1  # the header line
-    import pyarrow.parquet as pq
-
     assert body is not None
-    return int(pq.ParquetFile(io.BytesIO(body)).metadata.num_rows)
+    return int(_parquet().ParquetFile(io.BytesIO(body)).metadata.num_rows)
 
 
 def _download(client: Any, url: str, key: str, params: dict[str, Any], fmt: str,
@@ -151,8 +160,7 @@ def cli_export(db_url: str, machine_id: str, t0_s: float, t1_s: float,
     Raises:
         RuntimeError: The command failed.
     """
-    import pyarrow.parquet as pq
-
+    pq = _parquet()
     env = {**os.environ, "CRANETWIN_DATABASE_URL": db_url}
     walls, cpus, own = [], [], []
     rows = 0
