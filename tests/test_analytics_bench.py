@@ -138,15 +138,23 @@ STORED_KEYS = {"days", "shift_h", "rate_hz", "stored_hours", "samples", "write_s
                "merged_range_seconds", "direct_range_seconds", "speedup_vs_direct",
                "equal_to_direct", "work_cycles", "events", "kp", "max_damage",
                "remaining_years_worst", "peak_rss_mib",
-               "export_samples", "export_samples_per_second", "export_cpu_samples_per_second",
-               "export_csv_samples_per_second", "export_read_samples_per_second",
+               "export_samples", "export_samples_per_second",
+               "export_inprocess_samples_per_second", "export_inprocess_cpu_samples_per_second",
+               "export_inprocess_csv_samples_per_second", "export_read_samples_per_second",
                "baseline_export_per_block_read_samples_per_second",
-               "baseline_json_pages_samples_per_second"}
+               "baseline_json_pages_samples_per_second",
+               *(f"export_http_{f}_{k}" for f in ("parquet", "csv")
+                 for k in ("rows", "seconds", "samples_per_second",
+                           "server_cpu_samples_per_second", "client_cpu_seconds", "walls")),
+               "export_cli_rows", "export_cli_seconds", "export_cli_samples_per_second",
+               "export_cli_cpu_seconds", "export_cli_export_seconds",
+               "export_cli_export_samples_per_second"}
 
 
 def test_stored_benchmark_merges_what_the_worker_stored() -> None:
     r = CliRunner().invoke(app, ["bench", "analytics", "--stored", "--json", "--days", "2",
-                                 "--shift-h", "0.05", "--direct-hours", "0.02"])
+                                 "--shift-h", "0.05", "--direct-hours", "0.02",
+                                 "--export-runs", "1"])
     assert r.exit_code == 0, r.output
     j = json.loads(r.output.strip().splitlines()[-1], parse_constant=_no_nan)
     assert set(j) == STORED_KEYS
@@ -154,11 +162,19 @@ def test_stored_benchmark_merges_what_the_worker_stored() -> None:
     assert j["samples"] == 2 * (180 + 5) * 100  # both shifts, every sample, through the worker
     # the export streamed every stored sample (all channels), and each rate is a real rate
     assert j["export_samples"] > 0 and j["export_samples"] % j["samples"] == 0
-    for key in ("export_samples_per_second", "export_cpu_samples_per_second",
-                "export_csv_samples_per_second", "export_read_samples_per_second",
+    for key in ("export_samples_per_second", "export_inprocess_samples_per_second",
+                "export_inprocess_cpu_samples_per_second",
+                "export_inprocess_csv_samples_per_second", "export_read_samples_per_second",
                 "baseline_export_per_block_read_samples_per_second",
-                "baseline_json_pages_samples_per_second"):
+                "baseline_json_pages_samples_per_second", "export_cli_samples_per_second",
+                "export_cli_export_samples_per_second",
+                *(f"export_http_{f}_{k}" for f in ("parquet", "csv")
+                  for k in ("samples_per_second", "server_cpu_samples_per_second"))):
         assert j[key] > 0, key
+    # every stored sample came through HTTP (both formats) and the CLI, counted from the files
+    for key in ("export_http_parquet_rows", "export_http_csv_rows", "export_cli_rows"):
+        assert j[key] == j["export_samples"], key
+    assert j["export_samples_per_second"] == j["export_http_parquet_samples_per_second"]
     assert j["worker_windows"] == 2 * 4
     assert j["speedup_vs_direct"] == pytest.approx(
         j["direct_range_seconds"] / j["merged_range_seconds"], rel=0.06, abs=0.06)

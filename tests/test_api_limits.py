@@ -138,6 +138,51 @@ def test_a_stream_gives_its_admission_back_when_done_or_never_started() -> None:
         pool.close()
 
 
+@pytest.mark.timeout(20)
+def test_replays_run_on_threads_until_the_worker_processes_are_up() -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    gate = threading.Event()
+    procs = ThreadPoolExecutor(1)  # stands in for the process pool: any Executor
+    pool = HeavyPool(workers=1, queue=2, processes=procs, process_count=1,
+                     process_warm=lambda: gate.wait(10))
+    try:
+        assert not pool.processes_ready
+        # the first call starts the processes in the background and runs on a heavy thread
+        assert pool.submit(lambda: "thread", process_fn=lambda: "process").result(5) == "thread"
+        assert pool.submit(lambda: "thread", process_fn=lambda: "process").result(5) == "thread"
+        gate.set()  # warmed up
+        deadline = time.monotonic() + 5
+        while not pool.processes_ready and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert pool.submit(lambda: "thread", process_fn=lambda: "process").result(5) == "process"
+        assert pool.submit(lambda: "thread").result(5) == "thread"  # no process_fn: threads
+    finally:
+        gate.set()
+        pool.close()
+
+    def broken() -> None:
+        raise OSError("no spawn here")
+
+    pool = HeavyPool(workers=1, queue=0, processes=ThreadPoolExecutor(1), process_warm=broken)
+    try:
+        pool.start_processes()
+        time.sleep(0.2)
+        assert not pool.processes_ready  # a failed start leaves the replays on the threads
+        assert pool.submit(lambda: "thread", process_fn=lambda: "process").result(5) == "thread"
+    finally:
+        pool.close()
+
+
+@pytest.mark.timeout(10)
+def test_one_replay_process_by_default_none_for_the_embedded_demo() -> None:
+    assert Settings(database_url="sqlite://").replay_processes == 1
+    assert Settings(database_url="sqlite://", worker_in_process=True).replay_processes == 0
+    assert Settings(database_url="sqlite://", worker_in_process=True,
+                    heavy_processes=2).replay_processes == 2
+    assert Settings(database_url="sqlite://", heavy_processes=0).replay_processes == 0
+
+
 # --- the API -------------------------------------------------------------------------------------
 def _fill(services: Services) -> dict[str, str]:
     machine = load_machine("patu655")
@@ -246,11 +291,12 @@ def server(tmp_path: Path) -> Iterator[tuple[str, dict[str, str], Services]]:
 
     # a viewer's twin request costs 50 of its 200 tokens, 20 back per second: key A has a
     # burst of 4 replays, then 0.4 per second; key B's 90 cheap requests stay within its bucket.
-    # Replays in a worker process: on the API's own threads (heavy_processes=0) B's median was
-    # 4× its quiet one in the same conditions (60 → 244 ms, load average 24 on 2 cores)
+    # Default heavy_processes: replays in a worker process, started in the background once the
+    # server is up; on the API's own threads (heavy_processes=0) B's median was 4× its quiet one
+    # in the same conditions (60 → 244 ms, load average 24 on 2 cores)
     app = create_app(Settings(database_url=f"sqlite:///{tmp_path / 'fair.db'}",
                               worker_in_process=False, warm_up=True, rate_viewer_burst=200,
-                              rate_viewer_per_s=20, rate_heavy_cost=50, heavy_processes=1))
+                              rate_viewer_per_s=20, rate_heavy_cost=50))
     port = _free_port()
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
                                            access_log=False, lifespan="on"))
@@ -261,7 +307,13 @@ def server(tmp_path: Path) -> Iterator[tuple[str, dict[str, str], Services]]:
         while not server.started:
             assert time.monotonic() < deadline and t.is_alive(), "uvicorn did not start"
             time.sleep(0.05)
-        yield f"http://127.0.0.1:{port}", _fill(app.state.services), app.state.services
+        services = app.state.services
+        assert services.heavy.processes is not None  # the default: a replay process
+        deadline = time.monotonic() + 120
+        while not services.heavy.processes_ready:  # started in the background
+            assert time.monotonic() < deadline, "the replay process did not start"
+            time.sleep(0.1)
+        yield f"http://127.0.0.1:{port}", _fill(services), services
     finally:
         server.should_exit = True
         t.join(30)
@@ -349,3 +401,33 @@ def test_a_busy_key_does_not_slow_another_keys_machine_list_by_more_than_2x(
     assert all(v.isdigit() and int(v) >= 1 for v in retry_after)  # ... and told when to retry
     assert busy <= 2.0 * quiet + FLOOR_MS, (quiet, busy)
     assert services.fleet.twin_cache.nbytes <= services.settings.twin_cache_bytes
+
+
+# --- websockets ----------------------------------------------------------------------------------
+@pytest.mark.timeout(120)
+def test_live_connects_are_charged_and_refused_with_4429_and_a_reason(tmp_path: Path) -> None:
+    from starlette.websockets import WebSocketDisconnect
+
+    for api in _api(tmp_path, rate_viewer_per_s=0.01, rate_viewer_burst=3,
+                    rate_limit_delay_s=0):
+        def connect(who: str, api: Api = api) -> dict[str, Any]:
+            with api.client.websocket_connect(f"/api/v1/machines/{MID}/live",
+                                              headers={"X-API-Key": api.keys[who]}) as ws:
+                first: dict[str, Any] = ws.receive_json()
+                if first["type"] == "error":
+                    with pytest.raises(WebSocketDisconnect) as closed:
+                        ws.receive_json()
+                    first["close"] = (closed.value.code, closed.value.reason)
+                return first
+
+        assert api.get("/api/v1/machines", "a").status_code == 200  # REST and live: one bucket
+        assert [connect("a")["type"] for _ in range(2)] == ["hello", "hello"]
+        refused = connect("a")
+        assert refused["status"] == 429 and refused["title"] == "Too many requests"
+        assert refused["close"] == (4429, "Too many requests")
+        assert refused["retry_after"] >= 1
+        assert api.get("/api/v1/machines", "a").status_code == 429  # the connects were charged
+        assert connect("b")["type"] == "hello"  # another key: its own bucket
+        text = api.get("/metrics", "admin").text
+        assert _metric(text, 'cranetwin_http_refused_total{reason="rate_limit",role="viewer"}') \
+            == 2

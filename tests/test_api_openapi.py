@@ -149,6 +149,35 @@ def test_bounds_that_are_settings_are_the_servers(ctx: Ctx) -> None:
     assert r.status_code == 200, r.text  # the largest documented value is accepted
 
 
+RANGE_PAIRS = (("from", "to"), ("start", "end"))
+"""Parameter pairs that make a range: the second must be after the first."""
+
+
+@pytest.mark.timeout(120)
+def test_every_range_says_an_inverted_one_is_422_and_is_refused_so(ctx: Ctx) -> None:
+    checked = []
+    for path, method, op in _operations(ctx.schema):
+        params = {p["name"]: p for p in op.get("parameters", [])}
+        for lo, hi in RANGE_PAIRS:
+            if lo not in params or hi not in params:
+                continue
+            label = f"{method.upper()} {path}"
+            assert "422" in op["responses"], label
+            text = params[hi].get("description", "")
+            assert f"after `{lo}`" in text and "422" in text, (label, text)
+            late, early = "2026-11-23T08:01:00Z", "2026-11-23T08:00:00Z"
+            for t_lo, t_hi in ((late, early), (late, late)):  # inverted, then empty
+                inverted = path.replace("{" + lo + "}", t_lo).replace("{" + hi + "}", t_hi)
+                url, query = _request(inverted, op, MID)
+                if params[lo]["in"] == "query":
+                    query.update({lo: t_lo, hi: t_hi})
+                r = ctx.client.get(url, params=query, headers={"X-API-Key": ctx.keys["admin"]})
+                assert r.status_code == 422, (label, t_lo, t_hi, r.status_code, r.text[:200])
+                assert _media(r.headers["content-type"]) in op["responses"]["422"]["content"]
+            checked.append(label)
+    assert len(checked) >= 9, checked  # the data routes, export.html, alarms, the AEMP series
+
+
 @pytest.mark.timeout(120)
 def test_a_method_a_path_does_not_serve_is_405_with_allow(ctx: Ctx) -> None:
     for path, item in ctx.schema["paths"].items():

@@ -276,3 +276,25 @@ def test_units_in_brackets_survive_every_help_text() -> None:
 
     walk(root, [])
     assert checked >= 5
+
+
+@pytest.mark.timeout(10)
+def test_demo_api_gets_no_replay_process_unless_the_environment_asks(
+        demo_env: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import cranetwin.demo as demo_mod
+
+    envs: list[dict[str, str]] = []
+
+    class Recorder:
+        pid = 1
+
+        def __init__(self, args: list[str], **kw: Any) -> None:
+            envs.append(kw["env"])
+
+    monkeypatch.setattr(demo_mod.subprocess, "Popen", Recorder)
+    demo = FleetDemo(DemoConfig(attach=True, api_url="http://127.0.0.1:1"))
+    monkeypatch.delenv("CRANETWIN_HEAVY_PROCESSES", raising=False)
+    demo._spawn("api", ["serve"], defaults={"CRANETWIN_HEAVY_PROCESSES": "0"})
+    monkeypatch.setenv("CRANETWIN_HEAVY_PROCESSES", "2")
+    demo._spawn("api", ["serve"], defaults={"CRANETWIN_HEAVY_PROCESSES": "0"})
+    assert [e["CRANETWIN_HEAVY_PROCESSES"] for e in envs] == ["0", "2"]

@@ -177,6 +177,58 @@ def test_export_raw_nan_and_empty_range(ctx: Ctx) -> None:
     assert r.status_code == 200 and r.text.startswith('"t_ns","t_s"') and r.text.count("\n") == 1
 
 
+@pytest.mark.timeout(30)
+def test_csv_writes_integral_columns_as_ints_with_pyarrows_float_text() -> None:
+    """Whole-number columns are written as int64 for speed: the text must be what pyarrow
+    writes for the float64 values (so a pyarrow upgrade that changes either fails here)."""
+    sch = pa.schema([("t_ns", pa.int64()), ("ints", pa.float64()), ("gaps", pa.float64()),
+                     ("big", pa.float64()), ("negzero", pa.float64()),
+                     ("fraction", pa.float64())])
+    n = 8
+    ints = np.array([0, -1, 4_560_000, 999_999_999, -999_999_999, 7, 12, 2_000_000],
+                    dtype=np.float64)
+    cols = {"t_ns": np.arange(n, dtype=np.int64), "ints": ints,
+            "gaps": np.where(np.arange(n) % 3 == 0, np.nan, ints),
+            "big": np.full(n, 1e10), "negzero": np.r_[-0.0, ints[1:]],
+            "fraction": ints + 0.5}
+    fast = ex._table(cols, sch, csv=True)
+    assert [str(t) for t in fast.schema.types] == \
+        ["int64", "int64", "int64", "double", "double", "double"]  # the fast path was taken
+    assert fast["gaps"].null_count == 3
+    text = b"".join(ex.encode(iter([cols]), sch, "csv"))
+    floats = io.BytesIO()
+    pacsv.write_csv(ex._table(cols, sch), floats)
+    assert text == floats.getvalue()
+    assert b"-0," in text and b"1e+10," in text and b"4560000," in text  # pyarrow's own forms
+
+
+@pytest.mark.timeout(120)
+def test_export_does_not_import_pandas() -> None:
+    """pyarrow's ``pa.array`` imports pandas (0.3–0.5 s) to check its argument; the export
+    builds its arrays from buffers so that a CLI run and a server's first export do not pay it."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+import numpy as np
+from cranetwin.model import load_machine
+from cranetwin.service import export as ex
+m = load_machine("patu655")
+sch = ex.schema("raw", m)
+n = 50
+chunk = {"t_ns": np.arange(n, dtype=np.int64), "t_s": np.arange(n) / 100.0,
+         **{c.name: np.where(np.arange(n) == 3, np.nan, np.arange(n) * 0.25) for c in m.channels}}
+for fmt in ("csv", "parquet"):
+    assert b"".join(ex.encode(iter([chunk]), sch, fmt))
+print("pandas" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=100)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
+
+
 @pytest.mark.parametrize("series", ["forces", "payload", "joint_loads"])
 def test_export_twin_series_equal_minute_replays(ctx: Ctx, series: str) -> None:
     """A twin series is the replay of each minute with the worker's margin (values inside the

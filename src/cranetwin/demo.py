@@ -212,10 +212,13 @@ class FleetDemo:
         self._locks: list[DemoLock] = []
 
     # --- processes ---------------------------------------------------------------------------
-    def _spawn(self, name: str, args: list[str]) -> subprocess.Popen[bytes]:
+    def _spawn(self, name: str, args: list[str],
+               defaults: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
+        """Start ``cranetwin <args>``; ``defaults``: environment variables it gets unless the
+        environment (or the config's ``extra_env``) sets them."""
         self.logdir.mkdir(mode=0o700, parents=True, exist_ok=True)
         out = open(self.logdir / f"{name}.log", "ab")  # noqa: SIM115 - closed with the child
-        env = {**os.environ, **self.config.extra_env}
+        env = {**(defaults or {}), **os.environ, **self.config.extra_env}
         proc = subprocess.Popen([*cranetwin_command(), *args], stdout=out,
                                 stderr=subprocess.STDOUT, env=env, start_new_session=True)
         out.close()
@@ -354,8 +357,10 @@ class FleetDemo:
             # its Prometheus endpoint on a free port: the default 9105 may be taken
             self._spawn("ingest", ["ingest", "--bind", c.ingest, "--metrics-bind", "127.0.0.1:0",
                                    *db])
+            # one local user: replays on the API's threads, no replay process to start beside
+            # the three of the demo (fairness between keys is for shared servers)
             self._spawn("api", ["serve", "--host", c.host, "--port", str(c.port), "--no-worker",
-                                *db])
+                                *db], defaults={"CRANETWIN_HEAVY_PROCESSES": "0"})
             self._spawn("worker", ["worker", "--metrics-bind", "0", *db])
         self.wait_healthy()
         admin = self._create_key("admin", "fleet demo")

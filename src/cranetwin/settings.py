@@ -151,10 +151,13 @@ class Settings(BaseSettings):
     heavy_workers: int = Field(
         2, ge=1, le=64, description="threads that run heavy work (replays, reports, exports), "
                                     "apart from the threads serving cheap requests")
-    heavy_processes: int = Field(
-        0, ge=0, le=64, description="worker processes that run the twin replays (their own "
-                                    "interpreters: cheap requests never wait for a replay's "
-                                    "interpreter lock); 0 = replays on the heavy threads")
+    heavy_processes: int | None = Field(
+        None, ge=0, le=64, description="worker processes that run the twin replays (their own "
+                                       "interpreters: cheap requests never wait for a replay's "
+                                       "interpreter lock), started in the background (replays "
+                                       "run on the heavy threads until they are up); 0 = "
+                                       "replays on the heavy threads; unset: 1, or 0 with "
+                                       "worker_in_process (the embedded demo)")
     heavy_queue: int = Field(
         8, ge=0, le=10_000, description="heavy requests that may wait for a heavy thread; "
                                         "beyond: 503 with Retry-After")
@@ -267,6 +270,14 @@ class Settings(BaseSettings):
         1.0, gt=0, le=60, description="first retry delay of a webhook delivery [s]")
     alarm_webhook_timeout_s: float = Field(
         5.0, gt=0, le=60, description="timeout of one webhook request [s]")
+
+    @property
+    def replay_processes(self) -> int:
+        """Worker processes for the API's twin replays: ``heavy_processes``, or when unset 1
+        (0 with ``worker_in_process``, the embedded demo)."""
+        if self.heavy_processes is not None:
+            return self.heavy_processes
+        return 0 if self.worker_in_process else 1
 
 
 S = TypeVar("S", bound=Settings)

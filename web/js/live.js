@@ -26,7 +26,12 @@ export class LiveFeed {
       let f;
       try { f = JSON.parse(msg.data); } catch (_) { return; }
       if (f.type === "hello") return;
-      if (f.type === "error") { if (this.on.error) this.on.error(f.detail || f.title || "Live stream error"); return; }
+      if (f.type === "error") {
+        // a rate-limit refusal (close 4429) says when to retry: reconnect no sooner
+        if (f.retry_after) this.backoff = Math.max(this.backoff, f.retry_after * 1000);
+        if (this.on.error) this.on.error(f.detail || f.title || "Live stream error");
+        return;
+      }
       this.lastFrameWall = Date.now();
       f.receivedAt = performance.now();
       this.on.frame(f);

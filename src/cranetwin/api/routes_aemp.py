@@ -106,7 +106,8 @@ def series(
                        Path(description="data element")],
     start: Annotated[str, Path(max_length=64, description="startDateUTC (ISO 8601)",
                                examples=["2026-11-01T00:00:00Z"])],
-    end: Annotated[str, Path(max_length=64, description="endDateUTC (ISO 8601)",
+    end: Annotated[str, Path(max_length=64, description="endDateUTC (ISO 8601); must be after "
+                             "`start`: `end` ≤ `start` is answered 422",
                              examples=["2026-11-30T00:00:00Z"])],
     page: Annotated[int, Path(ge=1, le=1_000_000, description="1-based page number")],
     format: FormatQuery = None,

@@ -10,6 +10,8 @@ from fastapi import APIRouter, Path, Query
 from cranetwin.api.auth import ApiKey
 from cranetwin.api.deps import CurrentKey, FleetKey, ServicesDep
 from cranetwin.api.errors import PROBLEM_RESPONSES
+from cranetwin.api.params import AFTER_FROM
+from cranetwin.service.errors import InvalidRequestError
 from cranetwin.service.timerange import parse_time
 
 router = APIRouter(prefix="/api/v1/alarms", tags=["alarms"])
@@ -40,7 +42,8 @@ def list_alarms(
                                              "machine_offline, data_gap")] = None,
     from_: Annotated[str | None, Query(alias="from", description="from (epoch s or ISO 8601)")]
     = None,
-    to: Annotated[str | None, Query(description="to, exclusive (epoch s or ISO 8601)")] = None,
+    to: Annotated[str | None, Query(description="to, exclusive (epoch s or ISO 8601); with "
+                                    f"`from`, {AFTER_FROM}")] = None,
     state: Annotated[StateQ, Query(description="active: not cleared; unacknowledged; "
                                    "acknowledged (not cleared); cleared; all")] = "active",
     limit: Annotated[int, Query(ge=1, le=500, description="items per page")] = 50,
@@ -50,6 +53,8 @@ def list_alarms(
     evidence, acknowledged: {by, at}|null, cleared: {by, at}|null}]}``."""
     t0 = parse_time(from_, "from") if from_ else None
     t1 = parse_time(to, "to") if to else None
+    if t0 is not None and t1 is not None and not t1 > t0:  # 422, as on every ranged route
+        raise InvalidRequestError("Invalid range", f"to ({to}) must be after from ({from_})")
     return services.alarms.list(machine_ids=_list(machine), severities=_list(severity),
                                 kinds=_list(kind), t0_s=t0, t1_s=t1, state=state, limit=limit,
                                 offset=offset)

@@ -29,6 +29,7 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 
 from cranetwin.api.auth import bearer_scheme, header_scheme, query_scheme
+from cranetwin.api.params import AFTER_FROM
 from cranetwin.errors import CraneTwinError, MissingExtraError
 from cranetwin.model import Machine, load_machine, machine_from_dict
 from cranetwin.physics.frames import rpy_matrix
@@ -348,7 +349,7 @@ async def _twin_window(request: Request, machine_id: str, t0: float, t1: float,
 async def machine_export(
     machine_id: WebMachineId, request: Request,
     from_: Annotated[str, Query(alias="from", description="ISO 8601 or epoch seconds")],
-    to: Annotated[str, Query(description="ISO 8601 or epoch seconds")],
+    to: Annotated[str, Query(description=f"ISO 8601 or epoch seconds; {AFTER_FROM}")],
 ) -> Response:
     """One self-contained HTML file replaying [from, to] (≤ 10 min): 3D animation, charts,
     events. Opens offline; no server needed. Role viewer.

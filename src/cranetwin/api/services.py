@@ -50,12 +50,15 @@ class Services:
                                 session_secret=settings.session_secret)
         self.live = LiveHub(bus)
         self.limiter = RateLimiter.from_settings(settings) if settings.rate_limit else None
-        processes = None
-        if settings.heavy_processes:
-            from cranetwin.service.heavyproc import process_pool
+        n = settings.replay_processes
+        if n:
+            from cranetwin.service import heavyproc
 
-            processes = process_pool(settings)
-        self.heavy = HeavyPool(settings.heavy_workers, settings.heavy_queue, processes=processes)
+            self.heavy = HeavyPool(settings.heavy_workers, settings.heavy_queue,
+                                   processes=heavyproc.process_pool(settings), process_count=n,
+                                   process_warm=heavyproc.warm if settings.warm_up else int)
+        else:
+            self.heavy = HeavyPool(settings.heavy_workers, settings.heavy_queue)
         self.alarms = AlarmService(fleet.backend, settings.alarm_offline_s, settings.alarm_gap_s)
         self._alarm_task: asyncio.Task[None] | None = None
         self.webhook: Any = None
@@ -79,12 +82,8 @@ class Services:
         """Warm up and start the in-process worker, as the settings ask."""
         await self.fleet.start()
         cfg = self.settings
-        if self.heavy.processes is not None:  # start the replay processes before serving
-            from cranetwin.service import heavyproc
-
-            fn = heavyproc.warm if cfg.warm_up else int
-            await asyncio.gather(*(asyncio.wrap_future(self.heavy.processes.submit(fn))
-                                   for _ in range(cfg.heavy_processes)))
+        if cfg.warm_up:  # the replay processes start in the background: serving now
+            self.heavy.start_processes()
         if cfg.alarm_webhook_url:
             from cranetwin.service.webhooks import WebhookConfig, WebhookNotifier
 

@@ -182,7 +182,8 @@ def run(days: int = 30, rate_hz: float = 100.0, baseline_hours: float = 0.25,
 
 
 def run_stored(days: int = 30, shift_h: float = 1.0, rate_hz: float = 100.0,
-               direct_hours: float = 2.0, url: str | None = None) -> dict[str, Any]:
+               direct_hours: float = 2.0, url: str | None = None,
+               export_runs: int = 3) -> dict[str, Any]:
     """The stored-data benchmark (``--stored``): reports of any range from what the twin
     worker stored.
 
@@ -199,7 +200,11 @@ def run_stored(days: int = 30, shift_h: float = 1.0, rate_hz: float = 100.0,
     the same merged report (``merged_range_seconds``) and the direct baseline that replays
     every minute of the range (``direct_range_seconds``), ``speedup_vs_direct`` their ratio
     and ``equal_to_direct`` whether they agree (spectra, damage, events, work cycles);
-    the raw-sample export rates of the whole span (:func:`_export_rates`).
+    the raw-sample export rates of the whole span in-process (:func:`_export_rates`) and as a
+    user runs it (``export_runs`` times each; 0: not measured): downloaded over HTTP from a
+    ``cranetwin serve`` process and written by ``cranetwin export``
+    (:mod:`cranetwin.bench.export`). ``export_samples_per_second`` is the HTTP Parquet download
+    (wall, median) when measured, else the in-process Parquet export.
     """
     from cranetwin.service.analytics import analytics_report, direct_report
     from cranetwin.service.backend import Backend
@@ -250,6 +255,14 @@ def run_stored(days: int = 30, shift_h: float = 1.0, rate_hz: float = 100.0,
         direct = direct_report(b, replayer, machine, mid, short)
         direct_s = time.perf_counter() - a
         exp = _export_rates(b, machine, mid, rng, short)
+        if export_runs:
+            from cranetwin.bench.export import cli_export, served_export
+
+            db_url = url or f"sqlite:///{d}/bench.db"
+            key = b.create_key("fleet", "bench export")[1]
+            exp |= served_export(db_url, key, mid, rng.t0_s, rng.t1_s, export_runs)
+            exp |= cli_export(db_url, mid, rng.t0_s, rng.t1_s, export_runs)
+            exp["export_samples_per_second"] = exp["export_http_parquet_samples_per_second"]
         b.close()
     assert rep is not None and merged is not None and direct is not None
     same = (all(np.array_equal(x.cycles.count, y.cycles.count)
@@ -287,13 +300,14 @@ def run_stored(days: int = 30, shift_h: float = 1.0, rate_hz: float = 100.0,
 
 def _export_rates(backend: Any, machine: Machine, mid: str, whole: Any,
                   short: Any) -> dict[str, Any]:
-    """Raw-sample export rates (:mod:`cranetwin.service.export`, as the API runs it: chunks
-    read in a prefetch thread) of the whole stored span:
-    ``export_samples_per_second`` (Parquet, what a bulk consumer takes),
-    ``export_csv_samples_per_second`` and ``export_read_samples_per_second`` (reading and
-    decoding alone); baseline in the same run over the ``short`` range: the same Parquet
-    writer fed by ``Store.read_samples`` (block by block), and the paged JSON samples route's
-    service call (``samples_page``, 10000 samples a page) as it serves them."""
+    """Raw-sample export rates in this process (:mod:`cranetwin.service.export`, as the API
+    runs it: chunks read in a prefetch thread; no HTTP) of the whole stored span:
+    ``export_inprocess_samples_per_second`` (Parquet, wall) and ``…_cpu_…`` (CPU of both
+    threads), ``export_inprocess_csv_samples_per_second`` and
+    ``export_read_samples_per_second`` (reading and decoding alone); baseline in the same run
+    over the ``short`` range: the same Parquet writer fed by ``Store.read_samples`` (block by
+    block), and the paged JSON samples route's service call (``samples_page``, 10000 samples a
+    page) as it serves them."""
     import orjson
 
     from cranetwin.service import export as ex
@@ -346,8 +360,9 @@ def _export_rates(backend: Any, machine: Machine, mid: str, whole: Any,
     return {
         "export_samples": n_pq,
         "export_samples_per_second": round(n_pq / w_pq),
-        "export_cpu_samples_per_second": round(n_pq / max(c_pq, 1e-9)),
-        "export_csv_samples_per_second": round(n_csv / w_csv),
+        "export_inprocess_samples_per_second": round(n_pq / w_pq),
+        "export_inprocess_cpu_samples_per_second": round(n_pq / max(c_pq, 1e-9)),
+        "export_inprocess_csv_samples_per_second": round(n_csv / w_csv),
         "export_read_samples_per_second": round(n_rd / w_rd),
         "baseline_export_per_block_read_samples_per_second": round(n_b / w_b),
         "baseline_json_pages_samples_per_second": round(n_json / w_json),
@@ -364,11 +379,14 @@ def bench_analytics(
                                 "through the store and the twin worker (see run_stored)."),
     shift_h: float = typer.Option(1.0, help="--stored: hours of data per day."),
     direct_hours: float = typer.Option(2.0, help="--stored: range of the direct baseline [h]."),
+    export_runs: int = typer.Option(3, help="--stored: downloads over HTTP and `cranetwin "
+                                    "export` runs timed per format (0: none)."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
 ) -> None:
     """Time a 30-day load-history analysis (rainflow, damage, events, productivity)."""
     if stored:
-        emit(run_stored(days, shift_h, rate_hz, direct_hours), as_json)
+        emit(run_stored(days, shift_h, rate_hz, direct_hours, export_runs=export_runs),
+             as_json)
         return
     res = run(days, rate_hz, baseline_hours, pdf)
     emit(res, as_json)

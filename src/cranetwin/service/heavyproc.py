@@ -47,7 +47,8 @@ def twin_body(rec: MachineRecord, rng: TimeRange, rate_hz: float) -> tuple[bytes
 
 
 def process_pool(settings: Settings) -> ProcessPoolExecutor:
-    """``settings.heavy_processes`` worker processes for twin replays."""
-    return ProcessPoolExecutor(settings.heavy_processes,
+    """``settings.replay_processes`` worker processes for twin replays (started at the first
+    call)."""
+    return ProcessPoolExecutor(settings.replay_processes,
                                mp_context=multiprocessing.get_context("spawn"),
                                initializer=init_worker, initargs=(settings,))
