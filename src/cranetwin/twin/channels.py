@@ -16,9 +16,8 @@ from cranetwin.signal import (
     choose_derivative_window,
     choose_window,
     estimate_noise_std,
-    savgol_smooth,
 )
-from cranetwin.twin.force_model import wants_model
+from cranetwin.twin.force_model import smoothed_range, wants_model
 from cranetwin.twin.observability import stated_force_sigma
 
 F64 = npt.NDArray[np.float64]
@@ -123,8 +122,9 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         model: Which cylinders' forces are model-based (``model_based`` on the pressure
             pair's choices; :mod:`cranetwin.twin.force_model`): ``"auto"`` those whose force
             error σ_F (the larger of the stated accuracy's and the estimated noise, as the
-            observability flag) exceeds 10 % of the range of the force smoothed with the
-            fixed window; ``"on"`` all; ``"off"`` none.
+            observability flag) exceeds 20 % (``force_model.MODEL_SHARE``) of the range of
+            the force smoothed over the fixed window (``force_model.smoothed_range``);
+            ``"on"`` all; ``"off"`` none.
 
     Position channels get a second window for their derivatives (rod velocity and
     acceleration), chosen by Lepski's rule (:func:`cranetwin.signal.choose_derivative_window`):
@@ -151,8 +151,7 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
                 if adaptive else ch)
         if model == "on" or (model == "auto" and wants_model(
                 max(stated_force_sigma(machine, c), ch.sigma),
-                float(np.ptp(savgol_smooth(force, ch.window, ch.polyorder)))
-                if force.shape[0] else 0.0)):
+                smoothed_range(force, ch.window))):
             pair = replace(pair, model_based=True)
         out[ia] = out[ib] = pair
         js = cmap.s[c]

@@ -11,7 +11,9 @@ accelerations. In four steps, each a plain function over the chunk's rows:
 1. :func:`state_pass` (compiled): splines, kinematics, Eq. 1–2, actuator loads, payload
    interpolated from the samples;
 2. ``kernels.rnea``: inverse dynamics and wrenches (the machine's batch kernel:
-   :func:`cranetwin.physics.dynamics.batch_kernels`);
+   :func:`cranetwin.physics.dynamics.batch_kernels`); then, for the cylinders whose force is
+   model-based (:mod:`cranetwin.twin.force_model`), :func:`model_pass`: F = τ_id/(ds/dq) +
+   the smoothed pressure residual, and its actuator load;
 3. :func:`correction_pass` (compiled): residual tau_act − tau_id and Δqdd;
 4. ``kernels.rnea_lin``: the wrenches' part linear in the accelerations at Δqdd, added (RNEA
    is affine in qdd).

@@ -56,7 +56,7 @@ class ReplayOptions:
             a force the pressures do not show) and during bridged dropouts.
         model_forces: Cylinder forces from the inverse dynamics corrected by the pressures
             (:mod:`cranetwin.twin.force_model`): ``"auto"`` for the cylinders whose pressure
-            error σ_F exceeds 10 % of the force range (decided with the smoothing windows),
+            error σ_F exceeds 20 % of the force range (decided with the smoothing windows),
             ``"on"`` for every cylinder, ``"off"`` for none (Eq. 1–2 of the smoothed
             pressures only). Needs smoothing on.
         generated_kernels: Inverse dynamics and mass matrices by the kernels generated for

@@ -6,15 +6,18 @@ Pipeline (paper Sect. 2, with the steps it leaves open made explicit)::
       ─ natural cubic spline to the grid (values, rate, acceleration)
       ─ kinematics: theta1, theta2, L from the rod positions; theta0 from the slew-angle channel
         or by integrating the slewing dynamics from the pillar torque
-      ─ cylinder forces, Eq. 1–2 ─ actuator joint loads F·ds/dq
+      ─ cylinder forces, Eq. 1–2 (or, where the pressures cannot resolve a force, the
+        inverse dynamics corrected by the smoothed pressure residual,
+        :mod:`cranetwin.twin.force_model`) ─ actuator joint loads F·ds/dq
       ─ payload by sliding-window least squares (if not given) ─ inverse dynamics (RNEA):
         joint loads, residual, joint reaction wrenches
 
 Everything runs per *chunk* of samples with enough overlap that every output instant sees the
 same data as a whole-recording computation would: Savitzky–Golay is a finite filter, the
 natural spline's dependence on far knots decays by ≈ 0.27 per knot (``settle_samples`` knots of
-margin leave < 1e-20 of it), and the payload window is centred. So the streaming form
-(:class:`TwinStream`, fed block by block as datagrams arrive) equals the batch form
+margin leave < 1e-20 of it), the payload window is centred, and so is the model-based
+forces' residual smoothing (its range reaching a whole window at the recording's ends). So the
+streaming form (:class:`TwinStream`, fed block by block as datagrams arrive) equals the batch form
 (:func:`replay`), which is the stream fed everything at once — seams included.
 
 Where the work is done: :class:`TwinStream` only buffers samples and keeps indices; the
