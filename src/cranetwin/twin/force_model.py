@@ -75,8 +75,13 @@ def smoothed_range(force: F64, window: int) -> float:
     n = force.shape[0]
     if n == 0:
         return 0.0
-    b = max(1, window // 2)
-    means = np.add.reduceat(force, np.arange(0, n, b)) / np.diff(np.append(np.arange(0, n, b), n))
+    b = min(max(1, window // 2), n)
+    if b == 1:
+        return float(np.ptp(force))
+    full = n - n % b
+    means = force[:full].reshape(-1, b).mean(axis=1)
+    if full < n:
+        means = np.append(means, force[full:].mean())
     return float(np.ptp(means))
 
 
