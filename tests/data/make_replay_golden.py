@@ -3,6 +3,9 @@ the simulator made of them, kept so that a change of structure can prove it chan
 
 It was run once (commit c4b71cb), on the code before the physics/twin core was reorganised
 into one module per concept; ``tests/test_replay_golden.py`` compares today's code with it.
+The model-based cylinder forces (``twin.force_model``, the default since) came later: the first
+five cases pin ``model_forces="off"`` and keep that code's arrays; the case
+``loading_model_1k`` was added with ``--add`` (its arrays are the code's at its addition).
 Run it again only when an output is meant to change, and say why in the commit.
 
     python tests/data/make_replay_golden.py          # every array anew
