@@ -2,7 +2,9 @@
 the physics/twin core was reorganised, to 1e-9 of each output's range, on crane recordings.
 
 ``tests/data/replay_golden.npz`` was written by ``tests/data/make_replay_golden.py`` from that
-code; the same script computes today's arrays here.
+code; the same script computes today's arrays here. Those cases run with the forces from the
+pressures only (``model_forces="off"``, all that code had); one later case, with model-based
+forces, holds the arrays of the code that added it.
 """
 
 from __future__ import annotations

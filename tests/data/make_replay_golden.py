@@ -3,9 +3,13 @@ the simulator made of them, kept so that a change of structure can prove it chan
 
 It was run once (commit c4b71cb), on the code before the physics/twin core was reorganised
 into one module per concept; ``tests/test_replay_golden.py`` compares today's code with it.
+The model-based cylinder forces (``twin.force_model``, the default since) came later: the first
+five cases pin ``model_forces="off"`` and keep that code's arrays; the case
+``loading_model_1k`` was added with ``--add`` (its arrays are the code's at its addition).
 Run it again only when an output is meant to change, and say why in the commit.
 
-    python tests/data/make_replay_golden.py
+    python tests/data/make_replay_golden.py          # every array anew
+    python tests/data/make_replay_golden.py --add    # only the arrays of new cases
 """
 
 from __future__ import annotations
@@ -30,14 +34,22 @@ TRUTH_FIELDS = ("t_s", "q", "qd", "qdd", "rod_s", "rod_v", "p_a", "p_b", "cyl_fo
                 "slew_torque", "joint_torque", "joint_wrench", "payload_kg", "u")
 
 # (name, scenario, seconds, noise fraction, drop slew angle, replay keyword arguments)
+# The first five are the pre-redesign code's, with the cylinder forces from the pressures only
+# (model_forces="off": that code had no model-based forces, the default since); the last one
+# was added with the model-based forces (commit message of its addition) and holds today's
+# values from then on.
 CASES: list[tuple[str, str, float, float, bool, dict[str, Any]]] = [
-    ("fig3_1k", "fig3", 6.0, 0.0, False, {"grid_hz": 1000.0}),
-    ("fig3_noisy_100", "fig3", 12.0, 0.02, False, {"grid_hz": 100.0}),
-    ("loading_torque_1k", "log-loading", 6.0, 0.01, True, {"grid_hz": 1000.0}),
+    ("fig3_1k", "fig3", 6.0, 0.0, False, {"grid_hz": 1000.0, "model_forces": "off"}),
+    ("fig3_noisy_100", "fig3", 12.0, 0.02, False, {"grid_hz": 100.0, "model_forces": "off"}),
+    ("loading_torque_1k", "log-loading", 6.0, 0.01, True,
+     {"grid_hz": 1000.0, "model_forces": "off"}),
     ("loading_fixed_200", "log-loading", 12.0, 0.02, False,
-     {"grid_hz": 200.0, "adaptive_pressures": False}),
+     {"grid_hz": 200.0, "adaptive_pressures": False, "model_forces": "off"}),
     ("loading_payload_kin_100", "log-loading", 12.0, 0.0, False,
-     {"grid_hz": 100.0, "payload": 300.0, "wrench_acceleration": "kinematic"}),
+     {"grid_hz": 100.0, "payload": 300.0, "wrench_acceleration": "kinematic",
+      "model_forces": "off"}),
+    ("loading_model_1k", "log-loading", 12.0, 0.05, False,
+     {"grid_hz": 1000.0, "model_forces": "on"}),
 ]
 
 EVERY = {name: 5 if kw["grid_hz"] >= 1000 else 1 for name, *_, kw in CASES}
@@ -94,11 +106,18 @@ def compute() -> dict[str, np.ndarray]:
     return out
 
 
-def main() -> None:
+def main(add: bool = False) -> None:
+    """Write the file; ``add`` (``--add``): keep the arrays it holds, add only new ones (a new
+    case keeps the older cases' arrays as first written)."""
     out = compute()
+    if add and OUT.exists():
+        with np.load(OUT) as f:
+            out.update({k: f[k] for k in f.files})
     np.savez_compressed(OUT, **out)
     print(f"{OUT}: {OUT.stat().st_size / 1e6:.1f} MB, {len(out)} arrays")
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    main(add="--add" in sys.argv[1:])

@@ -115,7 +115,8 @@ def case_table(cases: list[CaseResult], level: float) -> Table:
     """One row per case."""
     t = Table(title=f"Noise family at e = ±{100 * level:g} %: NRMSE [%] at the sample "
                     "instants; (w) best fixed pressure window; ! = flagged not observable; "
-                    "* = outside the force target's scope (range < 10 % of A_A·p_s)")
+                    "* = outside the force target's scope (range < 10 % of A_A·p_s); "
+                    "m = model-based force (twin.force_model)")
     for col in ("crane", "scenario", "Hz", "error", "Fc lift", "Fc jib", "Fc ext",
                 "best fixed lift / jib", "Xc / input (worst)", "RMS z", "lift err [%]"):
         t.add_column(col)
@@ -123,7 +124,7 @@ def case_table(cases: list[CaseResult], level: float) -> Table:
         s = case.spec
         fc = []
         for c in case.cylinders:
-            mark = ("!" if not c.observable else "") + (
+            mark = ("m" if c.model_based else "") + ("!" if not c.observable else "") + (
                 "*" if c.cylinder in ("lift", "jib") and not in_scope(c) else "")
             fc.append(f"{_pct(c.force)}{mark}")
         best = " / ".join(f"{_pct(c.best_fixed[1])} ({c.best_fixed[0]})"

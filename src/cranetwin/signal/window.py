@@ -39,6 +39,9 @@ class SmoothingChoice:
         sigma: Estimated noise standard deviation [signal unit].
         risk: Estimated mean squared error of the smoothed signal [unit²].
         adaptive: True: the window adapts per sample (:func:`ici_smooth`) up to ``window``.
+        model_based: On a cylinder's pressures: its force is estimated from the machine's
+            inverse dynamics corrected by the smoothed pressures
+            (:mod:`cranetwin.twin.force_model`), not from the smoothed pressures alone.
     """
 
     window: int
@@ -46,6 +49,7 @@ class SmoothingChoice:
     sigma: float
     risk: float
     adaptive: bool = False
+    model_based: bool = False
 
 
 def _segments(n: int, seg: int, max_samples: int) -> list[slice]:

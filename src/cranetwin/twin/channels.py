@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -16,6 +17,8 @@ from cranetwin.signal import (
     choose_window,
     estimate_noise_std,
 )
+from cranetwin.twin.force_model import smoothed_range, wants_model
+from cranetwin.twin.observability import stated_force_sigma
 
 F64 = npt.NDArray[np.float64]
 
@@ -101,7 +104,8 @@ class ChannelMap:
 
 def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
                      enabled: bool = True,
-                     adaptive: bool = True) -> tuple[SmoothingChoice, ...]:
+                     adaptive: bool = True,
+                     model: Literal["auto", "on", "off"] = "auto") -> tuple[SmoothingChoice, ...]:
     """Savitzky–Golay choices, from regularly sampled data, in ``cmap.choice_names`` order.
 
     Pressures pA and pB of a cylinder share their windows, chosen on the hydraulic force
@@ -115,6 +119,12 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         values: Regular samples in working order, shape (n, len(cmap.names)), finite.
         enabled: If False every channel gets window 1 (no smoothing).
         adaptive: Pressures by LPA-ICI (True) or by the fixed SURE window (False).
+        model: Which cylinders' forces are model-based (``model_based`` on the pressure
+            pair's choices; :mod:`cranetwin.twin.force_model`): ``"auto"`` those whose force
+            error σ_F (the larger of the stated accuracy's and the estimated noise, as the
+            observability flag) exceeds 20 % (``force_model.MODEL_SHARE``) of the range of
+            the force smoothed over the fixed window (``force_model.smoothed_range``);
+            ``"on"`` all; ``"off"`` none.
 
     Position channels get a second window for their derivatives (rod velocity and
     acceleration), chosen by Lepski's rule (:func:`cranetwin.signal.choose_derivative_window`):
@@ -137,8 +147,13 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         ch = choose_window(force, resolution=res)
         # pressures: window adapted per sample (LPA-ICI) on the force, up to the longest
         # candidate; sigma and the fixed window's risk kept for the payload weights
-        out[ia] = out[ib] = (SmoothingChoice(max(ICI_WINDOWS), 3, ch.sigma, ch.risk,
-                                             adaptive=True) if adaptive else ch)
+        pair = (SmoothingChoice(max(ICI_WINDOWS), 3, ch.sigma, ch.risk, adaptive=True)
+                if adaptive else ch)
+        if model == "on" or (model == "auto" and wants_model(
+                max(stated_force_sigma(machine, c), ch.sigma),
+                smoothed_range(force, ch.window))):
+            pair = replace(pair, model_based=True)
+        out[ia] = out[ib] = pair
         js = cmap.s[c]
         out[js] = choose_window(cols[js], sigma=sigma.get(js),
                                 resolution=cmap.resolution[js])

@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from cranetwin.errors import TwinError
 from cranetwin.signal import SmoothingChoice, knot_pieces, natural_pieces, newton_derivative
-from cranetwin.twin import gridpass
+from cranetwin.twin import force_model, gridpass
 from cranetwin.twin.plan import ReplayPlan
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.stages import (
@@ -24,6 +24,7 @@ from cranetwin.twin.stages import (
     eq12,
     estimate_payload,
     joint_motion,
+    payload_regressors,
     unpack_states,
 )
 
@@ -42,6 +43,10 @@ class ChunkRows(NamedTuple):
         sm: Smoothed rows f0 … (:mod:`cranetwin.twin.plan` layout).
         cs: Cylinder states rows e0 … e1 the integration computed, or None.
         gap: Rows ka … kb − 1 of the gap flags, (kb − ka,) > 0 inside a bridged dropout.
+        r0: First sample of the model-based forces' residuals
+            (:func:`cranetwin.twin.force_model.residual_range`).
+        raw: The regularised, unsmoothed pressures at samples r0 … (pA then pB per cylinder,
+            (m, 2·n_c) [Pa]); m = 0 when no force is model-based.
     """
 
     ka: int
@@ -53,6 +58,8 @@ class ChunkRows(NamedTuple):
     sm: F64
     cs: F64 | None
     gap: F64
+    r0: int
+    raw: F64
 
 
 class Timing(NamedTuple):
@@ -147,17 +154,23 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
         qdd_s[:, plan.free[f]] = theta[:, 3 * f + 2]
     ks = slice(ka - e0, min(kb - e0 + 1, ne))  # samples ka … kb (if there)
     n_ks = ks.stop - ks.start
+    use = force_model.model_cylinders(plan, choices)
+    modelled = bool(use.any()) and rows.raw.shape[0] > 0
+    regs = (payload_regressors(plan, (q_s, qd_s, qdd_s))
+            if modelled or payload.known is None else None)
+    if f_s is None and (modelled or payload.known is None):
+        f_s = eq12(plan, smp[:, qi.pa : qi.pa + nc], smp[:, qi.pb : qi.pb + nc],
+                   smp[:, rod_v])
     if payload.known is not None:
+        m_all = np.full(ne, float(payload.known))
         mk = np.full(n_ks, float(payload.known))
         sk = np.zeros(n_ks)
     else:
-        if f_s is None:
-            f_s = eq12(plan, smp[:, qi.pa : qi.pa + nc], smp[:, qi.pb : qi.pb + nc],
-                       smp[:, rod_v])
-        mk, sk = estimate_payload(plan, (q_s, qd_s, qdd_s), f_s, arm_s,
-                                  (payload.weights, payload.frac, payload.prefilter_half,
-                                   payload.half_window, payload.noise))
-        mk, sk = np.ascontiguousarray(mk[ks]), np.ascontiguousarray(sk[ks])
+        assert f_s is not None
+        m_all, s_all = estimate_payload(plan, (q_s, qd_s, qdd_s), f_s, arm_s,
+                                        (payload.weights, payload.frac, payload.prefilter_half,
+                                         payload.half_window, payload.noise), regs)
+        mk, sk = np.ascontiguousarray(m_all[ks]), np.ascontiguousarray(s_all[ks])
     dynamic = plan.opt.wrench_acceleration == "dynamic"
     # the joints whose loads are measured: every cylinder's, every drive's with a torque
     full = sorted(plan.cyl_joint.tolist()
@@ -185,10 +198,15 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
     # are the grid's (same arithmetic on the same smoothed values)
     pre = (rows.cs[ka - e0 : ka - e0 + n] if r == 1 and rows.cs is not None
            else np.empty((0, 5 * nc)))
+    model = None
+    if modelled:
+        assert regs is not None and f_s is not None
+        model = (use, _model_residual(plan, rows, e0, (regs, m_all, arm_s, f_s), choices,
+                                      (r, n)))
     bad = gridpass.grid_pass(
         gridpass.Splines(coef, ka - f0, r, h0, h_last, src, der, qi), plan.cylinders,
         plan.free_joints, gridpass.SampleState(mk, sk, mm, minv, minv_ok, len(full), dynamic),
-        out, plan.kernels, pre)
+        out, plan.kernels, pre, model)
     if bad:
         bad_rows = ~np.all(np.isfinite(out.q), axis=1)
         joint_motion(plan, out.rod_s[bad_rows], out.rod_v[bad_rows], out.rod_v[bad_rows],
@@ -206,3 +224,28 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
         payload_kg=out.mass, payload_std_kg=out.std, gap=gap_g,
         smoothing=dict(zip(plan.cmap.choice_names, choices, strict=True)),
     )
+
+
+def _model_residual(plan: ReplayPlan, rows: ChunkRows, e0: int,
+                    at_samples: tuple[tuple[F64, F64], F64, F64, F64],
+                    choices: tuple[SmoothingChoice, ...], grid: tuple[int, int]) -> F64:
+    """The smoothed residual F_raw − F_model (:mod:`cranetwin.twin.force_model`) at the n
+    grid rows of the chunk, (n, n_c) [N]; at_samples = ((t0, t1) payload regressors, payload
+    estimate, moment arms, pressure-smoothed forces) at samples e0 … (the residual range
+    rows.r0 … lies within), grid = (rows per sample, n)."""
+    (t0, t1), mass, arm, f_s = at_samples
+    r, n = grid
+    col = plan.sample_cols
+    nc = len(plan.machine.cylinders)
+    a, b = rows.r0 - e0, rows.r0 - e0 + rows.raw.shape[0]
+    sm = rows.sm[rows.r0 - rows.f0 : rows.r0 - rows.f0 + rows.raw.shape[0]]
+    v = sm[:, col.v0 : col.v0 + nc]
+    pl = np.nan_to_num(np.maximum(mass[a:b], 0.0))
+    tau = t0[a:b] + pl[:, None] * (t1[a:b] - t0[a:b])
+    f_model = force_model.model_forces(plan, tau, arm[a:b], sm[:, col.s], f_s[a:b])
+    raw_f = eq12(plan, np.ascontiguousarray(rows.raw[:, :nc]),
+                 np.ascontiguousarray(rows.raw[:, nc:]), np.ascontiguousarray(v))
+    sigma = np.array([choices[i].sigma for i in plan.cmap.p_a])
+    corr = force_model.residual_correction(raw_f, f_model, sigma,
+                                           force_model.model_cylinders(plan, choices))
+    return force_model.interpolate(corr[rows.ka - rows.r0 :], r, n)

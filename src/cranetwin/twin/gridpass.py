@@ -11,7 +11,9 @@ accelerations. In four steps, each a plain function over the chunk's rows:
 1. :func:`state_pass` (compiled): splines, kinematics, Eq. 1–2, actuator loads, payload
    interpolated from the samples;
 2. ``kernels.rnea``: inverse dynamics and wrenches (the machine's batch kernel:
-   :func:`cranetwin.physics.dynamics.batch_kernels`);
+   :func:`cranetwin.physics.dynamics.batch_kernels`); then, for the cylinders whose force is
+   model-based (:mod:`cranetwin.twin.force_model`), :func:`model_pass`: F = τ_id/(ds/dq) +
+   the smoothed pressure residual, and its actuator load;
 3. :func:`correction_pass` (compiled): residual tau_act − tau_id and Δqdd;
 4. ``kernels.rnea_lin``: the wrenches' part linear in the accelerations at Δqdd, added (RNEA
    is affine in qdd).
@@ -157,7 +159,7 @@ class GridOut(NamedTuple):
     (n, nj, 6) [N, N·m]; mass, std, pl (n,) [kg] (pl: the payload the dynamics use,
     max(mass, 0), 0 for NaN); gap (n,) rows inside a bridged dropout; known (n, nj) joints
     whose load is measured at that row; qdd2 (n, nj) the correction Δqdd; fix (n,) rows
-    that have one."""
+    that have one; arm (n, n_c) the moment arms ds/dq [m/rad or 1]."""
 
     q: F64
     qd: F64
@@ -178,6 +180,7 @@ class GridOut(NamedTuple):
     known: B
     qdd2: F64
     fix: B
+    arm: F64
 
     @staticmethod
     def empty(n: int, nj: int, nc: int, gap: B) -> GridOut:
@@ -187,7 +190,7 @@ class GridOut(NamedTuple):
         return GridOut(e(n, nj), e(n, nj), e(n, nj), e(n, nc), e(n, nc), e(n, nc), e(n, nc),
                        e(n, nc), e(n, nj), e(n, nj), e(n, nj), e(n, nj, 6), e(n), e(n), e(n),
                        gap, np.zeros((n, nj), dtype=np.bool_), np.zeros((n, nj)),
-                       np.zeros(n, dtype=np.bool_))
+                       np.zeros(n, dtype=np.bool_), e(n, nc))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -286,6 +289,7 @@ def state_pass(sp, cy, fj, st, out, pre):  # type: ignore[no-untyped-def]
             out.pa[g, k] = pa
             out.pb[g, k] = pb
             out.force[g, k] = f
+            out.arm[g, k] = arm
             out.tau_act[g, j] = f * arm
             out.known[g, j] = not (raw <= cy.stop_margin or raw >= cy.stroke[k] - cy.stop_margin)
         if row_bad:
@@ -366,16 +370,40 @@ def correction_pass(r, st, out):  # type: ignore[no-untyped-def]
         out.fix[g] = True
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def model_pass(cy, use, corr, out):  # type: ignore[no-untyped-def]
+    """Step 2b: the model-based force (:mod:`cranetwin.twin.force_model`) of every cylinder k
+    with ``use[k]``: F = τ_id / (ds/dq) at its joint + corr[g, k] (the smoothed residual at
+    row g, (n, n_c) [N]), and its actuator load F·ds/dq, at every row where the rod is out of
+    its end stop and the quotient is finite (elsewhere Eq. 1–2 of the pressures stay)."""
+    for g in range(out.q.shape[0]):
+        for k in range(use.shape[0]):
+            if not use[k]:
+                continue
+            j = cy.joint[k]
+            a = out.arm[g, k]
+            if not out.known[g, j]:
+                continue
+            f = out.tau_id[g, j] / a + corr[g, k]
+            if math.isfinite(f):
+                out.force[g, k] = f
+                out.tau_act[g, j] = f * a
+
+
 def grid_pass(sp: Splines, cy: Cylinders, fj: FreeJoints, st: SampleState, out: GridOut,
-              kernels: BatchKernels, pre: F64) -> int:
+              kernels: BatchKernels, pre: F64, model: tuple[B, F64] | None = None) -> int:
     """Every grid quantity of a chunk into ``out`` (steps 1–4 of the module docstring);
-    ``pre``: as :func:`state_pass`.
+    ``pre``: as :func:`state_pass`; ``model``: (which cylinders, the smoothed residual at
+    every row (n, n_c) [N]) of the model-based forces (:func:`model_pass`, after the inverse
+    dynamics and before the residual), or None.
 
     Returns:
         Number of rows where a rod position has no joint angle (their q is NaN).
     """
     bad = int(state_pass(sp, cy, fj, st, out, pre))
     kernels.rnea(out.q, out.qd, out.qdd, out.pl, out.tau_id, out.wrench)
+    if model is not None:
+        model_pass(cy, model[0], np.ascontiguousarray(model[1]), out)
     correction_pass(sp.r, st, out)
     if st.dynamic:
         kernels.rnea_lin(out.q, out.qdd2, out.pl, out.fix, out.wrench)

@@ -2,11 +2,13 @@
 
 A case is one crane of the family (:mod:`cranetwin.sim.family`), one scenario, one sample rate
 and one sensor-error model (:func:`cranetwin.sim.sensor_error.inject_error`). For it
-:func:`evaluate_case` replays the noisy samples with the default smoothing (LPA-ICI pressures)
-and again with each fixed Savitzky–Golay window on the pressures (:data:`FIXED_WINDOWS`,
-order 3, everything else as chosen by default), and measures against the simulator's truth at
-the sample instants (grid = sample rate, so the default and the fixed windows are compared on
-the same instants):
+:func:`evaluate_case` replays the noisy samples with the default settings (LPA-ICI pressures,
+model-based forces where the pressures cannot resolve the force,
+:mod:`cranetwin.twin.force_model`), again without model-based forces (Eq. 1–2 of the LPA-ICI
+pressures only) and again with each fixed Savitzky–Golay window on the pressures
+(:data:`FIXED_WINDOWS`, order 3, pressure-only, everything else as chosen by default), and
+measures against the simulator's truth at the sample instants (grid = sample rate, so the
+default and the fixed windows are compared on the same instants):
 
 * per cylinder the force NRMSE of the default and of every fixed window (the best fixed one in
   hindsight is the yardstick of "never worse than the best fixed window by more than 10 %");
@@ -93,13 +95,17 @@ class CylinderScore:
 
     Attributes:
         cylinder: Name.
-        force: Force NRMSE of the default smoothing.
+        force: Force NRMSE of the default.
         fixed: Force NRMSE per fixed pressure window (:data:`FIXED_WINDOWS` order).
         position: Rod-position NRMSE of the replay.
         position_input: Rod-position NRMSE of the noisy samples.
         range_share: True force range / (A_A · supply pressure).
         observable: The replay's verdict (:mod:`cranetwin.twin.observability`).
         error_share: Its per-sample force error / replayed force range.
+        pressure_only: Force NRMSE of the default without model-based forces
+            (``ReplayOptions(model_forces="off")``: LPA-ICI pressures, Eq. 1–2).
+        model_based: The default chose the model-based force for this cylinder
+            (:mod:`cranetwin.twin.force_model`).
     """
 
     cylinder: str
@@ -110,6 +116,8 @@ class CylinderScore:
     range_share: float
     observable: bool
     error_share: float
+    pressure_only: float = float("nan")
+    model_based: bool = False
 
     @property
     def best_fixed(self) -> tuple[int, float]:
@@ -154,7 +162,9 @@ class CaseResult:
                                "position": num(c.position),
                                "position_input": num(c.position_input),
                                "range_share": num(c.range_share), "observable": c.observable,
-                               "error_share": num(c.error_share)} for c in self.cylinders],
+                               "error_share": num(c.error_share),
+                               "pressure_only": num(c.pressure_only),
+                               "model_based": c.model_based} for c in self.cylinders],
                 "rms_z": num(self.rms_z), "z_count": self.z_count,
                 "lift_errors": [num(x) for x in self.lift_errors],
                 "lift_z": [num(x) for x in self.lift_z]}
@@ -186,6 +196,13 @@ def fixed_choices(default: dict[str, SmoothingChoice], machine: Machine,
     return tuple(out)
 
 
+def _pressure_a(machine: Machine, cylinder: int) -> str:
+    """The name of a cylinder's pA channel."""
+    name = machine.cylinders[cylinder].name
+    return next(ch.name for ch in machine.channels
+                if ch.source == name and ch.quantity == "pressure_a")
+
+
 def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[float, int, list[float],
                                                                       list[float]]:
     steady = np.ones(res.n, dtype=bool)
@@ -210,7 +227,8 @@ def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[floa
 
 def evaluate_case(noisy: SampleArrays, machine: Machine, truth: CaseTruth,
                   spec: CaseSpec) -> CaseResult:
-    """Replay one case (default smoothing and every fixed pressure window) and score it.
+    """Replay one case (default, pressure-only default, every fixed pressure window) and
+    score it.
 
     Args:
         noisy: The samples with the error injected, at ``spec.rate_hz``.
@@ -228,6 +246,9 @@ def evaluate_case(noisy: SampleArrays, machine: Machine, truth: CaseTruth,
         opts = ReplayOptions(smoothing=fixed_choices(res.smoothing, machine, w))
         rw = replay(noisy, machine, grid_hz=spec.rate_hz, payload=0.0, options=opts)
         fixed.append(nrmse(rw.cyl_force, true_f))
+    plain = replay(noisy, machine, grid_hz=spec.rate_hz,
+                   options=ReplayOptions(model_forces="off"))
+    pressure_only = nrmse(plain.cyl_force, true_f)
     pos = nrmse(res.rod_s, true_s)
     names = {c.name: c for c in machine.channels}
     pos_cols = [next(n for n, c in names.items()
@@ -241,6 +262,8 @@ def evaluate_case(noisy: SampleArrays, machine: Machine, truth: CaseTruth,
     cyls = tuple(CylinderScore(
         cyl.name, float(force[k]), tuple(float(f[k]) for f in fixed), float(pos[k]),
         float(pos_in[k]), float(span[k] / (cyl.area_a_m2 * supply)), verdicts[k].observable,
-        float(verdicts[k].share)) for k, cyl in enumerate(machine.cylinders))
+        float(verdicts[k].share), float(pressure_only[k]),
+        res.smoothing[_pressure_a(machine, k)].model_based)
+        for k, cyl in enumerate(machine.cylinders))
     zsq, zn, errs, lz = _payload_scores(res, truth.payload_kg[rows], spec)
     return CaseResult(spec, cyls, zsq, zn, tuple(errs), tuple(lz))

@@ -54,6 +54,11 @@ class ReplayOptions:
             ``residual`` stay kinematic either way, and so does a cylinder joint while its
             rod is within ``END_STOP_MARGIN_M`` of an end of the stroke (the end stop takes
             a force the pressures do not show) and during bridged dropouts.
+        model_forces: Cylinder forces from the inverse dynamics corrected by the pressures
+            (:mod:`cranetwin.twin.force_model`): ``"auto"`` for the cylinders whose pressure
+            error σ_F exceeds 20 % of the force range (decided with the smoothing windows),
+            ``"on"`` for every cylinder, ``"off"`` for none (Eq. 1–2 of the smoothed
+            pressures only). Needs smoothing on.
         generated_kernels: Inverse dynamics and mass matrices by the kernels generated for
             the machine (:func:`cranetwin.physics.dynamics.batch_kernels`); False: the
             generic ones (same results to rounding; the benchmark's baseline).
@@ -73,4 +78,5 @@ class ReplayOptions:
     max_gap_s: float | None = None
     lookahead_s: float | None = None
     wrench_acceleration: Literal["dynamic", "kinematic"] = "dynamic"
+    model_forces: Literal["auto", "on", "off"] = "auto"
     generated_kernels: bool = True

@@ -6,15 +6,18 @@ Pipeline (paper Sect. 2, with the steps it leaves open made explicit)::
       ─ natural cubic spline to the grid (values, rate, acceleration)
       ─ kinematics: theta1, theta2, L from the rod positions; theta0 from the slew-angle channel
         or by integrating the slewing dynamics from the pillar torque
-      ─ cylinder forces, Eq. 1–2 ─ actuator joint loads F·ds/dq
+      ─ cylinder forces, Eq. 1–2 (or, where the pressures cannot resolve a force, the
+        inverse dynamics corrected by the smoothed pressure residual,
+        :mod:`cranetwin.twin.force_model`) ─ actuator joint loads F·ds/dq
       ─ payload by sliding-window least squares (if not given) ─ inverse dynamics (RNEA):
         joint loads, residual, joint reaction wrenches
 
 Everything runs per *chunk* of samples with enough overlap that every output instant sees the
 same data as a whole-recording computation would: Savitzky–Golay is a finite filter, the
 natural spline's dependence on far knots decays by ≈ 0.27 per knot (``settle_samples`` knots of
-margin leave < 1e-20 of it), and the payload window is centred. So the streaming form
-(:class:`TwinStream`, fed block by block as datagrams arrive) equals the batch form
+margin leave < 1e-20 of it), the payload window is centred, and so is the model-based
+forces' residual smoothing (its range reaching a whole window at the recording's ends). So the
+streaming form (:class:`TwinStream`, fed block by block as datagrams arrive) equals the batch form
 (:func:`replay`), which is the stream fed everything at once — seams included.
 
 Where the work is done: :class:`TwinStream` only buffers samples and keeps indices; the
@@ -46,6 +49,7 @@ from cranetwin.errors import TwinError
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import SmoothingChoice, nominal_period, regularize
+from cranetwin.twin import force_model
 from cranetwin.twin.buffer import RowBuffer
 from cranetwin.twin.channels import choose_smoothing
 from cranetwin.twin.checks import rod_position_problem
@@ -133,6 +137,12 @@ class TwinStream:
         """Samples the payload estimate at an instant reaches on each side."""
         _, half, pf = self._margins()
         return half + pf // 2
+
+    @property
+    def _fh(self) -> int:
+        """Samples the model-based forces' residual smoothing reaches on each side
+        (:mod:`cranetwin.twin.force_model`; 0 when no force is model-based)."""
+        return force_model.model_half(self.plan, self._choices)
 
     def _payload_setting(self) -> PayloadSetting:
         assert self._choices is not None
@@ -232,7 +242,8 @@ class TwinStream:
             if not final and have < self.opt.choose_after_s:
                 return
             self._choices = choose_smoothing(self.machine, self.cmap, self._reg.arr,
-                                             self.opt.smooth, self.opt.adaptive_pressures)
+                                             self.opt.smooth, self.opt.adaptive_pressures,
+                                             self.opt.model_forces)
         self._stage_smooth(final)
         if self.plan.integrated:
             self._stage_integrate(final)
@@ -328,17 +339,20 @@ class TwinStream:
     def _stage_output(self, final: bool) -> Iterator[TwinResult]:
         ready = self._theta_done if self.plan.integrated else self._sm_valid
         n_total = self._sm_valid
-        margin = self._wh + self.opt.settle_samples
+        fh = self._fh
+        margin = self._wh + fh + self.opt.settle_samples
         k_end = n_total if final else ready - margin
+        if not final and self._out_done < fh and k_end < fh:
+            return  # the first chunk's residuals must reach a whole window (residual_range)
         while self._out_done < k_end:
             ka = self._out_done
             kb = min(k_end, ka + self.opt.chunk_samples)
             last = final and kb == n_total
-            yield self._chunk(ka, kb, last, ready)
+            yield self._chunk(ka, kb, last, ready, final)
             self._out_done = kb
 
     def _trim(self) -> None:
-        need = self._out_done - self._wh - self.opt.settle_samples - 4
+        need = self._out_done - self._wh - 2 * self._fh - self.opt.settle_samples - 4
         need = min(need, self._sm_valid - 2 * self._hw - 8)
         if self.plan.integrated:
             need = min(need, self._theta_done - self._wh - 8)
@@ -348,25 +362,37 @@ class TwinStream:
             self._gap.trim(min(need, self._gap.end))
             self._cs.trim(min(need, self._cs.end))
 
-    def _chunk(self, ka: int, kb: int, last: bool, ready: int) -> TwinResult:
+    def _chunk(self, ka: int, kb: int, last: bool, ready: int, final: bool) -> TwinResult:
         """Outputs at samples [ka, kb): the rows :func:`cranetwin.twin.chunk.chunk` needs.
 
         The payload, its regression and the mass matrices run at the sample instants of an
-        extended range (the payload window reaches ``_wh`` samples on each side), the splines
-        over ``settle_samples`` more on each side."""
+        extended range (the payload window reaches ``_wh`` samples on each side, beyond the
+        model-based forces' residual range, :func:`cranetwin.twin.force_model.residual_range`),
+        the splines over ``settle_samples`` more on each side."""
         assert self._period is not None and self._origin is not None and self._choices is not None
         wh = self._wh
         n_total = self._sm_valid if last else ready  # rows with every column final
-        e0 = max(0, ka - wh)
-        e1 = min(n_total - 1, kb + wh)  # inclusive
+        at_end = final and n_total == self._sm_valid
+        r0, r1 = force_model.residual_range(ka, kb, self._fh, n_total, at_end)
+        e0 = max(0, r0 - wh)
+        e1 = min(n_total - 1, r1 + wh)  # inclusive
         f0 = max(self._sm.base, e0 - self.opt.settle_samples)
         f1 = min(n_total - 1, e1 + self.opt.settle_samples)  # inclusive
         cached = self.plan.use_cs and e1 < f1 and self._cs.base <= e0 and e1 < self._cs.end
         rows = ChunkRows(ka, kb, last, f0, e0, e1, self._sm.get(f0, f1 + 1),
                          self._cs.get(e0, e1 + 1) if cached else None,
-                         self._gap.get(ka, kb)[:, 0])
+                         self._gap.get(ka, kb)[:, 0], r0, self._raw_pressures(r0, r1))
         return chunk(self.plan, rows, Timing(self._period, self._origin, self._r),
                      self._payload_setting(), self._choices)
+
+
+    def _raw_pressures(self, r0: int, r1: int) -> F64:
+        """Regularised pressures at samples r0 … r1 (pA then pB per cylinder, (m, 2·n_c)
+        [Pa]) when a force is model-based, else (0, 2·n_c)."""
+        cols = list(self.cmap.p_a) + list(self.cmap.p_b)
+        if not self._fh:
+            return np.empty((0, len(cols)))
+        return self._reg.get(r0, r1 + 1)[:, cols]
 
 
 def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: float = 1000.0,
@@ -399,7 +425,7 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
         reg = regularize(samples.t_s, samples.values[:, cols], period=opt.sample_period_s,
                          max_gap_s=opt.max_gap_s)
         stream.set_smoothing(choose_smoothing(machine, stream.cmap, reg.values, opt.smooth,
-                                              opt.adaptive_pressures))
+                                              opt.adaptive_pressures, opt.model_forces))
         del reg
     for i in range(0, n, block_samples):
         j = min(n, i + block_samples)

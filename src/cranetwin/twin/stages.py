@@ -334,18 +334,28 @@ def payload_weights(plan: ReplayPlan,
     return weights, frac, noise
 
 
-def estimate_payload(plan: ReplayPlan, motion: tuple[F64, F64, F64], f: F64, arm: F64,
-                     setting: tuple[F64, F64, int, int, F64]) -> tuple[F64, F64]:
-    """Payload and its standard error (n,) [kg] at every instant of motion = (q, qd, qdd)
-    (n, n_j) (windows cut at its ends) from the cylinder forces f and moment arms (n, n_c);
-    setting = (weights, independent fractions, prefilter half, half window, raw force noise
-    per cylinder [N]) (:mod:`cranetwin.twin.payload`)."""
+def payload_regressors(plan: ReplayPlan, motion: tuple[F64, F64, F64]) -> tuple[F64, F64]:
+    """Inverse-dynamics joint loads (t0, t1) (n, n_j) at motion = (q, qd, qdd) (n, n_j)
+    without payload and with 1 kg at the load point: with payload m they are
+    t0 + m·(t1 − t0)."""
     q, qd, qdd = motion
     nj = plan.machine.n_joints
     t0 = np.empty((q.shape[0], nj))  # joint loads without payload
     t1 = np.empty((q.shape[0], nj))  # and with 1 kg at the load point
     c = np.ascontiguousarray
     plan.kernels.rnea_payload(c(q), c(qd), c(qdd), t0, t1)
+    return t0, t1
+
+
+def estimate_payload(plan: ReplayPlan, motion: tuple[F64, F64, F64], f: F64, arm: F64,
+                     setting: tuple[F64, F64, int, int, F64],
+                     regressors: tuple[F64, F64] | None = None) -> tuple[F64, F64]:
+    """Payload and its standard error (n,) [kg] at every instant of motion = (q, qd, qdd)
+    (n, n_j) (windows cut at its ends) from the cylinder forces f and moment arms (n, n_c);
+    setting = (weights, independent fractions, prefilter half, half window, raw force noise
+    per cylinder [N]) (:mod:`cranetwin.twin.payload`); ``regressors``: the
+    :func:`payload_regressors` of ``motion`` if already computed."""
+    t0, t1 = payload_regressors(plan, motion) if regressors is None else regressors
     weights, frac, pf, half, noise = setting
     return regression_payload(t0, t1, f, arm, plan.cyl_joint, weights, pf, half, frac, noise)
 
