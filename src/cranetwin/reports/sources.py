@@ -62,8 +62,11 @@ def history_from_recording(machine: Machine, rec: Recording) -> LoadHistory:
 
 
 def history_from_twin(machine: Machine, res: TwinResult) -> LoadHistory:
-    """A twin replay result as a load history (NaN-free instants only), with where its
-    payload is steady (:func:`cranetwin.service.analytics.steady_payload`).
+    """A twin replay result as a load history (NaN-free instants only, and none bridged across
+    a dropout: the rule of the twin worker's windows, :func:`cranetwin.service.history.window_rows`,
+    so a report from a file, from stored samples and from the worker's stored parts count the
+    same instants), with where its payload is steady
+    (:func:`cranetwin.service.analytics.steady_payload`).
 
     Args:
         machine: The machine replayed.
@@ -74,6 +77,7 @@ def history_from_twin(machine: Machine, res: TwinResult) -> LoadHistory:
     reach, height = _reach_height(machine, res.q)
     ok = np.isfinite(res.cyl_force).all(axis=1) & np.isfinite(res.joint_wrench).all(axis=(1, 2))
     ok &= np.isfinite(res.payload_kg) & np.isfinite(res.q).all(axis=1)
+    ok &= ~np.asarray(res.gap, dtype=bool)
 
     def k(a: F64) -> F64:
         return a if ok.all() else a[ok]
