@@ -124,7 +124,6 @@ class TwinWorker:
         (each merges its stored analytics when it has lift or damage items)."""
         self._next_schedule_check: dict[str, float] = {}
         self._pool: ThreadPoolExecutor | None = None
-        self._failed: Exception | None = None
         self.stop_event = threading.Event()
         """Set to stop: checked between windows, so the window being replayed is finished and
         committed first (a second or so)."""
@@ -197,6 +196,15 @@ class TwinWorker:
         self._rollup()
         pool = self._thread_pool()
         pending: list[Future[int]] = []
+        failed: list[BaseException] = []
+
+        def result(f: Future[int]) -> int:  # a failed machine fails the pass at its end
+            exc = f.exception()
+            if exc is not None:
+                failed.append(exc)
+                return 0
+            return f.result()
+
         for rec in self.backend.list_machines():
             if self.stop_requested():
                 break
@@ -212,12 +220,10 @@ class TwinWorker:
                 continue
             pending.append(pool.submit(self.catch_up, rec, self.max_windows_per_pass))
             if len(pending) >= 2 * self.settings.worker_threads:  # ownership re-checked often
-                total += self._result(pending.pop(0))
-        for f in pending:
-            total += self._result(f)
-        if self._failed is not None:
-            failed, self._failed = self._failed, None
-            raise failed  # after every machine of the pass had its turn
+                total += result(pending.pop(0))
+        total += sum(result(f) for f in pending)
+        if failed:
+            raise failed[0]  # after every machine of the pass had its turn
         self._partition_metrics()
         if own is None or 0 in own.owned:
             self._upkeep()
@@ -236,15 +242,6 @@ class TwinWorker:
             return
         self._next_rollup = self.clock() + every
         self.backend.store.rollup()
-
-    def _result(self, f: Future[int]) -> int:
-        """Windows of one machine's catch-up in a thread; its exception kept for the end of
-        the pass (0 then)."""
-        try:
-            return f.result()
-        except Exception as exc:
-            self._failed = self._failed or exc
-            return 0
 
     def _thread_pool(self) -> ThreadPoolExecutor | None:
         """The threads of ``worker_threads`` > 1 (made on first use), else None."""

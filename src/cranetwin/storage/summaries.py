@@ -275,6 +275,20 @@ def rollup(factory: Callable[[], Session], before_s: float | None = None) -> Rol
     return RollupCounts(len(done), len(dropped), len(set(corrupt)))
 
 
+def _buckets(t_ns: npt.NDArray[np.int64], values: F64,
+             level: int) -> tuple[list[int], npt.NDArray[np.int64], F64, F64, F64]:
+    """Aggregates of samples ``t_ns`` (n,) [ns], ``values`` (n, c) over the buckets of
+    ``level`` [s] they touch (NaN samples skipped): bucket starts (m,) [s], and counts, minima,
+    maxima and sums, each (m, c); a bucket-channel without samples has count 0."""
+    ok = ~np.isnan(values)
+    bucket = (t_ns // (level * SEC)) * level
+    starts = np.concatenate(([0], np.flatnonzero(np.diff(bucket)) + 1))
+    return (bucket[starts].tolist(), np.add.reduceat(ok.astype(np.int64), starts, axis=0),
+            np.minimum.reduceat(np.where(ok, values, np.inf), starts, axis=0),
+            np.maximum.reduceat(np.where(ok, values, -np.inf), starts, axis=0),
+            np.add.reduceat(np.where(ok, values, 0.0), starts, axis=0))
+
+
 def accumulate(acc: dict[Key, Agg], channels: Sequence[str], t_ns: npt.NDArray[np.int64],
                values: F64) -> None:
     """Add samples to in-memory 1-s and 1-min bucket aggregates (NaN samples are skipped).
@@ -287,17 +301,9 @@ def accumulate(acc: dict[Key, Agg], channels: Sequence[str], t_ns: npt.NDArray[n
     """
     if t_ns.size == 0:
         return
-    ok = ~np.isnan(values)
-    vmin, vmax = np.where(ok, values, np.inf), np.where(ok, values, -np.inf)
-    vsum, cnt = np.where(ok, values, 0.0), ok.astype(np.int64)
     for level in LEVELS_S:
-        bucket = (t_ns // (level * SEC)) * level
-        starts = np.concatenate(([0], np.flatnonzero(np.diff(bucket)) + 1))
-        mins = np.minimum.reduceat(vmin, starts, axis=0)
-        maxs = np.maximum.reduceat(vmax, starts, axis=0)
-        sums = np.add.reduceat(vsum, starts, axis=0)
-        cnts = np.add.reduceat(cnt, starts, axis=0)
-        for i, b in enumerate(bucket[starts].tolist()):
+        buckets, cnts, mins, maxs, sums = _buckets(t_ns, values, level)
+        for i, b in enumerate(buckets):
             for j, ch in enumerate(channels):
                 if cnts[i, j] > 0:
                     acc[(ch, level, b)] = [int(cnts[i, j]), float(mins[i, j]),
@@ -310,17 +316,11 @@ _COLUMNS = ("machine_pk", "channel", "level_s", "bucket_s", "n", "vmin", "vmax",
 def _second_rows(machine_pk: int, channels: Sequence[str], t_ns: npt.NDArray[np.int64],
                  values: F64) -> list[tuple[int, str, int, int, int, float, float, float]]:
     """The 1-s bucket rows (``_COLUMNS`` order) of samples ``t_ns`` (n,) [ns], ``values``
-    (n, c): what :func:`accumulate` computes for level 1, built column-wise (a span of a
-    minute is ≈ 10³ rows)."""
-    ok = ~np.isnan(values)
-    bucket = t_ns // SEC
-    starts = np.concatenate(([0], np.flatnonzero(np.diff(bucket)) + 1))
-    mins = np.minimum.reduceat(np.where(ok, values, np.inf), starts, axis=0)
-    maxs = np.maximum.reduceat(np.where(ok, values, -np.inf), starts, axis=0)
-    sums = np.add.reduceat(np.where(ok, values, 0.0), starts, axis=0)
-    cnts = np.add.reduceat(ok.astype(np.int64), starts, axis=0)
+    (n, c): :func:`_buckets` at level 1, the rows built column-wise (a span of a minute is
+    ≈ 10³ rows)."""
+    buckets, cnts, mins, maxs, sums = _buckets(t_ns, values, 1)
     bi, ci = np.nonzero(cnts > 0)
-    b = bucket[starts][bi].tolist()
+    b = [buckets[i] for i in bi.tolist()]
     names = [channels[j] for j in ci.tolist()]
     return list(zip([machine_pk] * len(b), names, [1] * len(b), b,
                     cnts[bi, ci].tolist(), mins[bi, ci].tolist(), maxs[bi, ci].tolist(),
