@@ -30,6 +30,7 @@ from cranetwin.bus.subjects import (
 from cranetwin.errors import StorageUnavailableError
 from cranetwin.samples import SampleBlock
 from cranetwin.storage import Store
+from cranetwin.storage.nats_loop import run_bounded
 from cranetwin.storage.sharding import partition_of
 
 pytestmark = pytest.mark.timeout(120)
@@ -262,7 +263,7 @@ def run_writer(store: Store, cfg: BusConfig, until: Any, timeout_s: float = 30.0
         except BaseException as exc:  # the crash under test
             out.append(exc)
 
-    t = threading.Thread(target=lambda: asyncio.run(main()))
+    t = threading.Thread(target=lambda: run_bounded(main()))
     t.start()
     t.join(timeout_s + 20)
     assert not t.is_alive()
@@ -444,3 +445,84 @@ def test_full_stream_refuses_publishing_until_a_writer_drains_it(sqlite_url: str
     finally:
         sink.close()
         delete_stream(cfg)
+
+
+def test_writer_stops_in_bounded_time_when_nats_calls_hang(bus: BusConfig,
+                                                           sqlite_url: str) -> None:
+    """Fault: after the writer is up, every NATS call its shutdown makes (unsubscribe, the lag
+    poll, close) hangs and swallows its cancellation, as nats-py's calls can while it
+    reconnects. ``stop()`` still ends ``run`` within a few shutdown steps (it hung before)."""
+    import time
+    import types
+
+    import nats
+
+    from cranetwin.bus.consumer import SHUTDOWN_STEP_S
+
+    stuck = threading.Event()
+
+    async def stubborn(*_a: Any, **_k: Any) -> None:
+        while True:  # a call that ignores cancellation
+            try:
+                await asyncio.sleep(3600)
+            except asyncio.CancelledError:
+                continue
+
+    async def connect(*a: Any, **k: Any) -> Any:
+        nc = await nats.connect(*a, **k)
+        real_sub, real_jsm, real_close = nc.subscribe, nc.jsm, nc.close
+
+        async def subscribe(*sa: Any, **sk: Any) -> Any:
+            sub = await real_sub(*sa, **sk)
+            real_unsub = sub.unsubscribe
+
+            async def unsubscribe(*ua: Any, **uk: Any) -> Any:
+                return await (stubborn() if stuck.is_set() else real_unsub(*ua, **uk))
+
+            sub.unsubscribe = unsubscribe
+            return sub
+
+        def jsm(*ja: Any, **jk: Any) -> Any:
+            m = real_jsm(*ja, **jk)
+            real_info = m.consumer_info
+
+            async def consumer_info(*ca: Any, **ck: Any) -> Any:
+                return await (stubborn() if stuck.is_set() else real_info(*ca, **ck))
+
+            m.consumer_info = consumer_info
+            return m
+
+        async def close() -> None:
+            await stubborn()
+
+        nc.subscribe, nc.jsm, nc.close = subscribe, jsm, close
+        nc._cranetwin_real_close = real_close  # closed for real at the end of the test
+        return nc
+
+    store = Store.open(sqlite_url)
+    writer = StoreWriter(store, bus, range(bus.partitions), None,
+                         WriterConfig(fetch_wait_s=0.1, lag_interval_s=0.05))
+    writer._nats = types.SimpleNamespace(js=nats.js, connect=connect)
+    took: list[float] = []
+
+    async def main() -> None:
+        task = asyncio.create_task(writer.run())
+        await asyncio.wait_for(writer.ready.wait(), 20)
+        await asyncio.sleep(0.3)  # the lag poll runs (for real)
+        stuck.set()
+        await asyncio.sleep(0.3)  # ... and now hangs
+        t0 = time.monotonic()
+        writer.stop()
+        await task
+        took.append(time.monotonic() - t0)
+        with contextlib.suppress(Exception):
+            await writer._nc._cranetwin_real_close()
+
+    import contextlib
+
+    t = threading.Thread(target=lambda: run_bounded(main()), daemon=True)
+    t.start()
+    t.join(60)
+    store.close()
+    assert not t.is_alive(), "run() (or the loop's cleanup) did not return after stop()"
+    assert took and took[0] < 3 * SHUTDOWN_STEP_S + 2.0

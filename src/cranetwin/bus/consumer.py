@@ -127,6 +127,26 @@ def _delivered(reply: str | None) -> int:
     return int(t[k]) if t[k].isdigit() else 1
 
 
+SHUTDOWN_STEP_S = 3.0
+"""Longest wait for each step of the writer's shutdown (unsubscribe, background tasks, close)
+[s]: after :meth:`StoreWriter.stop` ``run`` returns within a few of these even when NATS does
+not answer (what is not acked is delivered again to the next writer)."""
+
+
+async def _within(aw: Awaitable[Any], timeout_s: float, what: str) -> None:
+    """Await ``aw`` for at most ``timeout_s`` [s]; never raises. Unlike ``asyncio.wait_for`` it
+    does not wait for a cancelled call to finish (one that swallows the cancellation would
+    hold the caller forever)."""
+    task = asyncio.ensure_future(aw)
+    done, _ = await asyncio.wait({task}, timeout=timeout_s)
+    if not done:
+        task.cancel()
+        log.warning("store-writer: %s did not finish within %.0f s on shutdown; left behind",
+                    what, timeout_s)
+    elif not task.cancelled() and task.exception() is not None:
+        log.debug("store-writer: %s on shutdown: %s", what, task.exception())
+
+
 class StoreWriter:
     """Consumes partitions of the fleet bus into ``store`` (see the module docstring).
 
@@ -157,6 +177,7 @@ class StoreWriter:
         self._nc: Any = None
         self._pending: list[tuple[int, Any]] = []  # (partition, message)
         self._arrived = asyncio.Event()
+        self._closing = False  # the background loops end at their next turn
 
     def stop(self) -> None:
         """Ask :meth:`run` to finish the batch in hand and return (call on its loop)."""
@@ -216,10 +237,19 @@ class StoreWriter:
         if msg.reply:
             await self._nc.publish(msg.reply, what)
 
+    async def _ack(self, msg: Any, what: bytes) -> None:
+        """:meth:`_reply` after the commit; a reply lost to a reconnect is not an error (the
+        message is delivered again and stored as a duplicate, then acked)."""
+        try:
+            await self._reply(msg, what)
+        except Exception as exc:
+            self._log_once("ack", "an ack was not sent (the message will be delivered again): "
+                           "%s", exc)
+
     async def _keep_in_progress(self, msgs: list[Any]) -> None:
         """Tell JetStream the batch in hand and the messages waiting behind it are being worked
         on (a long database outage), so they are not delivered again meanwhile."""
-        while True:
+        while not self._closing:
             await asyncio.sleep(max(self.bus.ack_wait_s / 3, 0.1))
             for m in [*msgs, *(m for _, m in self._pending)]:
                 with contextlib.suppress(Exception):
@@ -282,7 +312,7 @@ class StoreWriter:
                 self._log_once(f"refused:{reason}", "block of %s (epoch %d, seq %d) refused by "
                                "storage after its machine was acknowledged (%s): %s",
                                b.machine_id, b.epoch, b.seq, reason, o.detail)
-                await self._reply(m, b"+TERM")
+                await self._ack(m, b"+TERM")
                 continue
             if o.status == "stored":
                 new.append(b)
@@ -291,7 +321,7 @@ class StoreWriter:
                 mt.stored_samples.inc(b.n)
             else:
                 c.duplicates += 1
-            await self._reply(m, b"+ACK")
+            await self._ack(m, b"+ACK")
             mt.of(p)[1].inc()
         if self.live is not None and new:
             live = self.live
@@ -302,7 +332,7 @@ class StoreWriter:
 
     async def _report(self) -> None:
         last, t_last = 0, time.monotonic()
-        while True:
+        while not self._closing:
             await asyncio.sleep(self.config.report_interval_s)
             now = time.monotonic()
             c = self.counters
@@ -314,7 +344,7 @@ class StoreWriter:
 
     async def _lag(self, jsm: Any) -> None:
         """Every ``lag_interval_s``: each partition's messages not acked yet, from JetStream."""
-        while True:
+        while not self._closing:
             for p in self.partitions:
                 try:
                     info = await jsm.consumer_info(self.bus.stream, durable_name(self.bus, p))
@@ -326,7 +356,7 @@ class StoreWriter:
             await asyncio.sleep(self.config.lag_interval_s)
 
     async def _rollups(self) -> None:
-        while True:
+        while not self._closing:
             await asyncio.sleep(self.config.rollup_interval_s)
             await asyncio.to_thread(self._rollup)
 
@@ -382,13 +412,21 @@ class StoreWriter:
                 del self._pending[:self.config.batch_max]
                 await self._handle(batch)
         finally:
-            for sub in subs:  # no more deliveries; what is not acked is delivered again
-                with contextlib.suppress(Exception):
-                    await sub.unsubscribe()
+            # Bounded whatever the connection does: nats-py swallows a cancellation inside some
+            # of its calls while it reconnects, so nothing here waits on a cancelled call to
+            # finish, and the loops also end by the flag.
+            self._closing = True
+            if subs:  # no more deliveries; what is not acked is delivered again
+                await _within(asyncio.gather(*(s.unsubscribe() for s in subs),
+                                             return_exceptions=True),
+                              SHUTDOWN_STEP_S, "unsubscribe")
             for t in tasks:
                 t.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(nc.close(), 5)
+            if tasks:
+                _, left = await asyncio.wait(tasks, timeout=SHUTDOWN_STEP_S)
+                if left:
+                    log.warning("store-writer: %d background task(s) did not end on "
+                                "shutdown; left behind", len(left))
+            await _within(nc.close(), SHUTDOWN_STEP_S, "close")
         await asyncio.to_thread(self._rollup, True)
         return self.counters.as_dict()

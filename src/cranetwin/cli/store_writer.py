@@ -87,6 +87,7 @@ def store_writer(
     from cranetwin.cli.ingest import parse_bind
     from cranetwin.storage import open_store, store_spec
     from cranetwin.storage.live import open_bus
+    from cranetwin.storage.nats_loop import run_bounded
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: "
                         "%(message)s")
@@ -133,7 +134,7 @@ def store_writer(
             finally:
                 task.cancel()
 
-        final = asyncio.run(main())
+        final = run_bounded(main())
     finally:
         if server is not None:
             server.shutdown()

@@ -126,9 +126,17 @@ class SessionLocks:
         return [Holder(int(a), int(b), int(p)) for a, b, p in rows]
 
     def close(self) -> None:
-        """End the session (its locks are released)."""
+        """End the session (its locks are released).
+
+        The locks are released by a statement first: the server ends a closed session's
+        backend a moment after the socket closes, and until then its locks still look held to
+        every other session (a worker leaving in order must free its partitions at once)."""
         conn, self._conn = self._conn, None
         if conn is not None:  # invalidated: really closed, never handed back to the pool
+            try:
+                conn.exec_driver_sql("SELECT pg_advisory_unlock_all()").scalar()
+            except SQLAlchemyError:
+                pass  # a dead session holds nothing
             try:
                 conn.invalidate()
                 conn.close()

@@ -18,7 +18,7 @@ import asyncio
 import concurrent.futures
 import logging
 import threading
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
 from urllib.parse import urlsplit, urlunsplit
 
@@ -169,6 +169,32 @@ class NatsLoop:
         self._thread.join(timeout_s)
         if not self._thread.is_alive():
             self._loop.close()
+
+
+def run_bounded(main: Coroutine[Any, Any, T], cleanup_s: float = 3.0) -> T:
+    """``asyncio.run(main)``, except that the tasks ``main`` leaves behind get ``cleanup_s`` [s]
+    to end after their cancellation instead of forever: nats-py swallows a cancellation in
+    some of its calls while it reconnects, and ``asyncio.run`` would then never return (a
+    process that was asked to stop would hang)."""
+    loop = asyncio.new_event_loop()
+    asyncio.set_event_loop(loop)
+    try:
+        return loop.run_until_complete(main)
+    finally:
+        try:
+            rest = asyncio.all_tasks(loop)
+            for t in rest:
+                t.cancel()
+            if rest:
+                _, left = loop.run_until_complete(asyncio.wait(rest, timeout=cleanup_s))
+                if left:
+                    log.warning("%d task(s) did not end within %.0f s of their cancellation; "
+                                "left behind", len(left), cleanup_s)
+            loop.run_until_complete(loop.shutdown_asyncgens())
+            loop.run_until_complete(loop.shutdown_default_executor())
+        finally:
+            asyncio.set_event_loop(None)
+            loop.close()
 
 
 def is_unavailable(exc: BaseException, nats: Any) -> bool:
