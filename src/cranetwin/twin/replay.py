@@ -54,8 +54,8 @@ from cranetwin.twin import force_model
 from cranetwin.twin.buffer import RowBuffer
 from cranetwin.twin.channels import choose_smoothing
 from cranetwin.twin.checks import rod_position_problem
-from cranetwin.twin.known_payload import at_instants, fully_known
 from cranetwin.twin.chunk import ChunkRows, PayloadSetting, Timing, chunk
+from cranetwin.twin.known_payload import at_instants, fully_known
 from cranetwin.twin.options import END_STOP_MARGIN_M, HasSamples, ReplayOptions
 from cranetwin.twin.plan import ReplayPlan
 from cranetwin.twin.result import TwinResult
