@@ -302,3 +302,41 @@ def test_calibration_with_a_known_payload_series_fits_only_the_tool_mass_error()
         assert fit.coulomb == pytest.approx(SYN_TRUE[fit.name].coulomb, rel=0.15), fit
     low = calibrate(syn.samples, m, payload_kg=known - 30.0)
     assert low.extra_mass_kg == pytest.approx(30.0, abs=2.0)
+
+
+@pytest.mark.timeout(60)
+def test_cli_hands_a_mapped_payload_column_to_the_fit(monkeypatch: pytest.MonkeyPatch,
+                                                      tmp_path: object) -> None:
+    """``cranetwin calibrate FILE --mapping MAP``: the mapping's payload column goes to the
+    fit (``--payload-column compare``: not), and the mass line names the tool-mass error."""
+    from pathlib import Path
+
+    import numpy as np
+    from typer.testing import CliRunner
+
+    import cranetwin.importer as imp
+    import cranetwin.twin.calibration as calmod
+    from cranetwin.cli import app
+    from cranetwin.importer import ImportedFile
+    from cranetwin.samples import SampleArrays
+    from cranetwin.twin.calibration import Calibration
+
+    series = np.array([0.0, 300.0, np.nan])
+    got = ImportedFile(SampleArrays("m", np.arange(3.0), ("a",), np.zeros((3, 1))),
+                       object(), series)  # type: ignore[arg-type]
+    seen: list[object] = []
+
+    def fake(samples: object, machine: object, **kw: object) -> Calibration:
+        seen.append(kw.get("payload_kg"))
+        return Calibration((), 1.5, 0.2, 90.0, 1000, (), (1, 100),
+                           payload_known=kw.get("payload_kg") is not None)
+
+    monkeypatch.setattr(calmod, "calibrate", fake)
+    monkeypatch.setattr(imp, "read_file", lambda path, machine, mapping: got)
+    args = ["calibrate", str(Path(str(tmp_path)) / "log.csv"), "--mapping", "map.toml"]
+    out = CliRunner().invoke(app, args, terminal_width=200)
+    assert out.exit_code == 0, out.output
+    assert seen[-1] is series and "Tool mass error" in out.output and "+1.50" in out.output
+    out = CliRunner().invoke(app, [*args, "--payload-column", "compare"], terminal_width=200)
+    assert out.exit_code == 0, out.output
+    assert seen[-1] is None and "beyond the file's tool mass" in out.output

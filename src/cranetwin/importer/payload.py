@@ -2,11 +2,13 @@
 ``[payload]`` table (docs/IMPORT.md) — and the twin's payload estimate compared with it, lift
 by lift.
 
-The known payload is not a sensor channel: it is not stored with the samples and does not go
-into the twin's inverse dynamics (the twin takes a constant ``payload`` or estimates it). It
-rides along with a file's samples (:attr:`cranetwin.importer.ImportedFile.payload_kg`) and
-``cranetwin replay`` / ``report --recording`` / :func:`cranetwin.importer.replay.replay_table`
-put it next to the estimate and report the estimate's error per lift.
+The known payload is not a sensor channel: it is not stored with the samples. It rides along
+with a file's samples (:attr:`cranetwin.importer.ImportedFile.payload_kg`); ``cranetwin
+replay`` / ``report --recording`` / ``calibrate`` and
+:func:`cranetwin.importer.replay.replay_table` feed it into the twin's inverse dynamics where
+it is known (:mod:`cranetwin.twin.known_payload`; the estimate where it is NaN), or, with
+``payload_column="compare"`` (``--payload-column compare``), put it next to the estimate and
+report the estimate's error per lift.
 
 A lift is a maximal stretch where the known payload is at least ``min_kg`` for at least
 ``min_duration_s``. Its error is the median estimate minus the median known payload over the
