@@ -213,3 +213,8 @@ def test_cli_replay_uses_the_payload_column_in_the_dynamics(machine: Machine, lo
     r = CliRunner().invoke(app, ["replay", str(g), "--mapping", str(m), "--out",
                                  str(tmp_path / "x.csv"), "-q", "--payload-column", "fit"])
     assert r.exit_code != 0 and "expected use or compare" in str(r.exception or r.output)
+    r = CliRunner().invoke(app, ["report", "--recording", str(g), "--mapping", str(m),
+                                 "--format", "csv", "--out", str(tmp_path / "rep"), "-q"])
+    assert r.exit_code == 0, r.output
+    assert "used in the inverse dynamics at 83.3 % of the samples" in r.output, r.output
+    assert "payload estimate vs known payload" not in r.output

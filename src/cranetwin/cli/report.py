@@ -170,6 +170,10 @@ def report(
         typer.echo(f"warning: {line}", err=True)
     for note in src.machine.unknowns():
         typer.echo(f"note: {note}", err=True)
+    share = src.known_used_share() if isinstance(src, ImportedFileSource) else None
+    if share is not None:
+        typer.echo(f"known payload (the mapping's [payload] column) used in the inverse "
+                   f"dynamics at {100.0 * share:.1f} % of the samples, the estimate elsewhere")
     lifts = getattr(src, "lifts", None)
     if lifts is not None:  # a known payload series: the twin's estimate against it
         from cranetwin.importer.payload import summary_line

@@ -271,10 +271,12 @@ def iter_replay_table(source: Source, machine: Machine,
     if grid_hz is None:
         grid_hz = float(round(1.0 / period))
     use = uses_known(known, payload, payload_column)
+    gap_s = 5.0 * period if opt.max_gap_s is None else opt.max_gap_s  # the replay's limit
     for res in iter_replay(samples, machine, grid_hz, known if use else payload, opt):
         if res.n:
             cols = result_columns(res, machine)
-            grid_known = None if known is None else on_grid(res.t_s, samples.t_s, known)
+            grid_known = (None if known is None
+                          else on_grid(res.t_s, samples.t_s, known, gap_s))
             if grid_known is not None:
                 cols = _with_known(cols, grid_known, not use)
             if notes is not None:

@@ -332,6 +332,16 @@ class ImportedFileSource:
     def total(self) -> int:
         return int(self.samples.t_s.shape[0])
 
+    def known_used_share(self) -> float | None:
+        """Share of the samples whose known payload the twin's dynamics use (0 … 1), or None
+        when no known payload series is used (none, ``"compare"``, or a constant given)."""
+        from cranetwin.importer.replay import uses_known
+
+        if not uses_known(self.known_payload_kg, self.payload_kg, self.payload_column):
+            return None
+        assert self.known_payload_kg is not None
+        return float(np.isfinite(self.known_payload_kg).mean())
+
     def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
         from cranetwin.importer.replay import check_samples, uses_known
         from cranetwin.signal import SmoothingChoice
@@ -344,6 +354,7 @@ class ImportedFileSource:
         smoothing: dict[str, SmoothingChoice] = {}
         pairs: list[tuple[F64, F64, F64]] = []
         use = uses_known(self.known_payload_kg, self.payload_kg, self.payload_column)
+        gap_s = 5.0 * float(np.median(np.diff(self.samples.t_s[:1000])))  # the replay's limit
         for res in iter_replay(self.samples, self.machine, grid_hz=self.grid_hz,
                                payload=self.known_payload_kg if use else self.payload_kg):
             if not res.n:
@@ -353,7 +364,7 @@ class ImportedFileSource:
             n = int(np.searchsorted(self.samples.t_s, res.t_s[-1], side="right")) - done
             done += n
             if self.known_payload_kg is not None:
-                known = on_grid(res.t_s, self.samples.t_s, self.known_payload_kg)
+                known = on_grid(res.t_s, self.samples.t_s, self.known_payload_kg, gap_s)
                 if not use:
                     pairs.append((res.t_s, known, res.payload_kg))
                 res = replace(res, payload_kg=np.where(np.isfinite(known), known,
