@@ -152,3 +152,15 @@ def test_streaming_with_a_known_series_equals_batch_across_seams() -> None:
         TwinStream(m, s.channels, opt, 300.0).push(s.take(slice(0, 10)), part[:10])
     with pytest.raises(TwinError, match="shape"):
         replay(s, m, grid_hz=100.0, payload=part[:-1])
+
+
+@pytest.mark.timeout(60)
+def test_at_instants_takes_a_sample_missed_by_rounding() -> None:
+    """Regular instants origin + k·period miss epoch sample times by rounding: the sample's
+    own value, even next to an unknown neighbour."""
+    t = 1.767e9 + np.arange(5) * 0.01
+    k = np.array([np.nan, 300.0, np.nan, 310.0, 320.0])
+    grid = 1.767e9 + np.array([0.01 + 2e-7, 0.03 - 2e-7, 0.035])
+    # (the midpoint: epoch seconds carry 0.24 µs of rounding, 1e-6 of the step's ramp)
+    np.testing.assert_allclose(at_instants(grid, t, k, 0.05), [300.0, 310.0, 315.0],
+                               rtol=1e-6)

@@ -24,6 +24,9 @@ import numpy.typing as npt
 
 F64 = npt.NDArray[np.float64]
 
+SAME_INSTANT_S = 1e-6
+"""An instant this close to a sample time [s] is that sample's instant (:func:`at_instants`)."""
+
 
 def at_instants(t_s: F64, sample_t_s: F64, known_kg: F64, max_gap_s: float) -> F64:
     """The known payload at the instants ``t_s`` (module docstring).
@@ -35,23 +38,24 @@ def at_instants(t_s: F64, sample_t_s: F64, known_kg: F64, max_gap_s: float) -> F
         max_gap_s: Longest spacing of two samples interpolated across [s].
 
     Returns:
-        Shape (m,) [kg]; NaN where not known.
+        Shape (m,) [kg]; NaN where not known. An instant within ``SAME_INSTANT_S`` of a
+        sample time takes that sample's value (a regular instant computed as origin + k·period
+        may miss the sample's float time by rounding; epoch seconds resolve 0.24 µs).
     """
     out = np.full(t_s.shape, np.nan)
     n = sample_t_s.shape[0]
     if n == 0 or t_s.shape[0] == 0:
         return out
-    hi = np.searchsorted(sample_t_s, t_s, side="left")
-    inside = (hi < n) & (t_s >= sample_t_s[0])
-    hi_c = np.clip(hi, 0, n - 1)
-    exact = inside & (sample_t_s[hi_c] == t_s)
-    out[exact] = known_kg[hi_c[exact]]
-    between = inside & ~exact & (hi > 0)
-    b = hi_c[between]
+    hi = np.clip(np.searchsorted(sample_t_s, t_s), 0, n - 1)
+    lo = np.clip(hi - 1, 0, n - 1)
+    near = np.where(np.abs(sample_t_s[hi] - t_s) <= np.abs(t_s - sample_t_s[lo]), hi, lo)
+    same = np.abs(sample_t_s[near] - t_s) <= SAME_INSTANT_S
+    out[same] = known_kg[near[same]]
+    between = ~same & (t_s > sample_t_s[0]) & (t_s < sample_t_s[-1])
+    b = hi[between]
     t0, t1 = sample_t_s[b - 1], sample_t_s[b]
     y0, y1 = known_kg[b - 1], known_kg[b]
-    w = (t_s[between] - t0) / (t1 - t0)
-    val = y0 + w * (y1 - y0)
+    val = y0 + (t_s[between] - t0) / (t1 - t0) * (y1 - y0)
     val[~(t1 - t0 <= max_gap_s)] = np.nan  # NaN y0 or y1 already gives NaN
     out[between] = val
     return out
@@ -72,4 +76,4 @@ def fully_known(known_kg: F64 | None) -> bool:
     return known_kg is not None and bool(np.isfinite(known_kg).all())
 
 
-__all__ = ["at_instants", "fully_known", "with_known"]
+__all__ = ["SAME_INSTANT_S", "at_instants", "fully_known", "with_known"]
