@@ -1,6 +1,7 @@
 """A known payload as a time series: the mapping's [payload] column read with a file's (or
-columns') samples, put next to the twin's estimate by replay, report --recording and the Python
-API, with the estimate's error per lift."""
+columns') samples; used in the twin's inverse dynamics by replay, report --recording and the
+Python API (the default), or put next to the twin's estimate with the estimate's error per lift
+(``compare``)."""
 
 from __future__ import annotations
 
@@ -57,7 +58,7 @@ def test_payload_column_is_read_at_the_sample_times(machine: Machine, logged: Lo
 @pytest.mark.timeout(300)
 def test_replay_compares_the_estimate_per_lift(machine: Machine, logged: Logged) -> None:
     f, m, _, _ = logged
-    table = replay_table(f, machine, m)
+    table = replay_table(f, machine, m, payload_column="compare")
     assert table.units["payload_known_kg"] == "kg" and table.units["payload_error_kg"] == "kg"
     names = list(table.columns)
     assert names.index("payload_known_kg") == names.index("payload_std_kg") + 1
@@ -69,7 +70,8 @@ def test_replay_compares_the_estimate_per_lift(machine: Machine, logged: Logged)
     assert abs(lift.known_kg - 312.3) < 0.1
     assert abs(lift.error_pct) < 5.0, lift.line()
     # a wrong known payload is caught: the same estimate against twice the truth
-    wrong = replay_table(f, machine, m, known_payload_kg=2 * read_file(f, machine, m).payload_kg)
+    wrong = replay_table(f, machine, m, known_payload_kg=2 * read_file(f, machine, m).payload_kg,
+                         payload_column="compare")
     assert wrong.lifts is not None and wrong.lifts[0].error_pct < -40.0
 
 
@@ -119,14 +121,16 @@ def test_cli_replay_and_report_print_the_error_per_lift(machine: Machine, logged
 
     f, m, _, _ = logged
     r = CliRunner().invoke(app, ["replay", str(f), "--mapping", str(m), "--out",
-                                 str(tmp_path / "twin.csv"), "-q"])
+                                 str(tmp_path / "twin.csv"), "-q", "--payload-column",
+                                 "compare"])
     assert r.exit_code == 0, r.output
     assert "payload estimate vs known payload over 1 lift(s)" in r.output, r.output
     assert "known 312.3 kg" in r.output
     header = (tmp_path / "twin.csv").read_text().split("\n", 1)[0].split(",")
     assert "payload_known_kg" in header and "payload_error_kg" in header
     r = CliRunner().invoke(app, ["report", "--recording", str(f), "--mapping", str(m),
-                                 "--format", "csv", "--out", str(tmp_path / "rep"), "-q"])
+                                 "--format", "csv", "--out", str(tmp_path / "rep"), "-q",
+                                 "--payload-column", "compare"])
     assert r.exit_code == 0, r.output
     assert "payload estimate vs known payload over 1 lift(s)" in r.output, r.output
 
@@ -136,12 +140,16 @@ def test_report_source_analyses_the_known_payload(machine: Machine, logged: Logg
     from cranetwin.reports.sources import ImportedFileSource
 
     f, m, t, truth = logged
-    src = ImportedFileSource(machine, f, m)
-    hist = [h for h, _ in src.chunks() if h is not None]
-    th = np.concatenate([h.t_s for h in hist])
-    ph = np.concatenate([h.payload_kg for h in hist])
-    np.testing.assert_allclose(ph, np.interp(th, t, truth), rtol=1e-9, atol=1e-6)
-    assert src.lifts is not None and len(src.lifts) == 1
+    for column in ("compare", "use"):
+        src = ImportedFileSource(machine, f, m, payload_column=column)  # type: ignore[arg-type]
+        hist = [h for h, _ in src.chunks() if h is not None]
+        th = np.concatenate([h.t_s for h in hist])
+        ph = np.concatenate([h.payload_kg for h in hist])
+        np.testing.assert_allclose(ph, np.interp(th, t, truth), rtol=1e-9, atol=1e-6)
+        if column == "compare":
+            assert src.lifts is not None and len(src.lifts) == 1
+        else:  # used, not compared
+            assert src.lifts is None
 
 
 @pytest.mark.timeout(60)
@@ -155,3 +163,58 @@ def test_payload_logged_slower_than_the_sensors_is_held_half_its_spacing() -> No
     assert got[250] == 410.0 and np.isnan(got[251])  # beyond half the rows' 1 s spacing
     far = payload_at(t, raw_t[:1], np.array([5.0]), 10_000_000)  # one row: half a period
     assert far[0] == 5.0 and np.all(np.isnan(far[1:]))
+
+
+@pytest.mark.timeout(600)
+def test_cli_replay_uses_the_payload_column_in_the_dynamics(machine: Machine, logged: Logged,
+                                                            tmp_path: Path) -> None:
+    """By default the mapped column is the dynamics' payload where known; an empty stretch
+    of it falls back to the estimate; ``--payload-column compare`` and a constant
+    ``--payload`` keep the estimate (or the constant) in the dynamics."""
+    from cranetwin.cli import app
+
+    f, m, t, truth = logged
+    rows = f.read_text().splitlines()
+    gone = range(1 + 1200, 1 + 1700)  # samples 12 … 17 s of the lift: the column is empty
+    for i in gone:
+        rows[i] = rows[i].rsplit(",", 1)[0] + ","
+    g = tmp_path / "logger_gap.csv"
+    g.write_text("\n".join(rows) + "\n")
+
+    def run(*extra: str) -> tuple[str, dict[str, np.ndarray]]:
+        out = tmp_path / "twin.csv"
+        r = CliRunner().invoke(app, ["replay", str(g), "--mapping", str(m), "--out", str(out),
+                                     "-q", *extra])
+        assert r.exit_code == 0, r.output
+        names = out.read_text().split("\n", 1)[0].split(",")
+        data = np.loadtxt(out, delimiter=",", skiprows=1)
+        return r.output, {n: data[:, i] for i, n in enumerate(names)}
+
+    said, used = run()
+    assert "used in the inverse dynamics at 83.3 % of the samples" in said, said
+    assert "payload_known_kg" in used and "payload_error_kg" not in used
+    assert used["t_s"].shape == t.shape  # one row per sample (the CSV keeps 10 digits of t)
+    known = np.ones(t.shape, dtype=bool)
+    known[[i - 1 for i in gone]] = False
+    np.testing.assert_allclose(used["payload_kg"][known], truth[known], rtol=1e-9, atol=1e-6)
+    assert np.all(used["payload_std_kg"][known] == 0.0)
+    assert np.all(np.isnan(used["payload_known_kg"][~known]))
+    _, compared = run("--payload-column", "compare")
+    # the empty stretch: the estimate, as when only compared
+    np.testing.assert_allclose(used["payload_kg"][~known], compared["payload_kg"][~known],
+                               rtol=0, atol=1e-9)
+    assert np.all(used["payload_std_kg"][~known] > 0.0)
+    # elsewhere the dynamics differ: the known payload against the estimate that lags a grab
+    lift = "torque_id.theta1"
+    assert np.abs(used[lift] - compared[lift])[known].max() > 1e3
+    said, const = run("--payload", "100")
+    np.testing.assert_allclose(const["payload_kg"], 100.0)
+    assert "payload_error_kg" in const and "payload estimate vs known payload" in said
+    r = CliRunner().invoke(app, ["replay", str(g), "--mapping", str(m), "--out",
+                                 str(tmp_path / "x.csv"), "-q", "--payload-column", "fit"])
+    assert r.exit_code != 0 and "expected use or compare" in str(r.exception or r.output)
+    r = CliRunner().invoke(app, ["report", "--recording", str(g), "--mapping", str(m),
+                                 "--format", "csv", "--out", str(tmp_path / "rep"), "-q"])
+    assert r.exit_code == 0, r.output
+    assert "used in the inverse dynamics at 83.3 % of the samples" in r.output, r.output
+    assert "payload estimate vs known payload" not in r.output

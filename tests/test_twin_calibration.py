@@ -160,7 +160,7 @@ def test_cli_warns_about_unphysical_friction(monkeypatch: pytest.MonkeyPatch,
                              rms_after_n=5.0)
                  for n, b in (("lift", 420.0), ("jib", -46.0), ("extension", 390.0)))
     fake = Calibration(fits, 0.1, 0.02, 90.0, 1000, (0.0, 0.0, 0.0), (1, 100))
-    monkeypatch.setattr(calmod, "calibrate", lambda samples, machine: fake)
+    monkeypatch.setattr(calmod, "calibrate", lambda samples, machine, **kw: fake)
     monkeypatch.setattr(Recording, "load", staticmethod(lambda path: Recording.__new__(Recording)))
     monkeypatch.setattr(Recording, "samples", None, raising=False)
     out = CliRunner().invoke(app, ["calibrate", str(Path(str(tmp_path)) / "r.npz")],
@@ -276,3 +276,67 @@ def test_calibration_under_sensor_noise_never_answers_nonsense(level: float) -> 
             assert any(note.startswith(name) for note in fit.notes), fit
         if "b" not in fit.prior:
             assert 0.3 < fit.viscous / SYN_TRUE[fit.name].viscous < 3.0, fit
+
+
+@pytest.mark.timeout(900)
+def test_calibration_with_a_known_payload_series_fits_only_the_tool_mass_error() -> None:
+    """220 kg for the first half, 320 kg after, logged as a known series: one mass column
+    (the tool-mass error, 0 here; 30 kg when the logger reads 30 kg low), friction fitted
+    across the change; where the series is NaN those instants are left out. Without the
+    series the same run is split into two segments
+    (``test_calibration_splits_a_run_whose_payload_changes``)."""
+    import numpy as np
+
+    m = load_machine("patu655")
+    syn = make(m, duration_s=240.0, payload=lambda t: np.where(t < 120.0, 220.0, 320.0),
+               fine_hz=None, friction=SYN_TRUE, scale=0.3, quantize=True)
+    known = syn.payload.copy()
+    known[(syn.samples.t_s > 40.0) & (syn.samples.t_s < 60.0)] = np.nan
+    cal = calibrate(syn.samples, m, payload_kg=known)
+    _physical(cal)
+    assert cal.payload_known and len(cal.segments) == 1
+    assert abs(cal.extra_mass_kg) < 2.0, cal.extra_mass_kg  # measured 0.9 kg
+    assert cal.excluded_s["payload not known"] == pytest.approx(20.0, abs=1.5)
+    assert cal.excluded_s["payload change"] == pytest.approx(2.0, abs=0.2)
+    for fit in cal.cylinders:
+        assert fit.coulomb == pytest.approx(SYN_TRUE[fit.name].coulomb, rel=0.15), fit
+    low = calibrate(syn.samples, m, payload_kg=known - 30.0)
+    assert low.extra_mass_kg == pytest.approx(30.0, abs=2.0)
+
+
+@pytest.mark.timeout(60)
+def test_cli_hands_a_mapped_payload_column_to_the_fit(monkeypatch: pytest.MonkeyPatch,
+                                                      tmp_path: object) -> None:
+    """``cranetwin calibrate FILE --mapping MAP``: the mapping's payload column goes to the
+    fit (``--payload-column compare``: not), and the mass line names the tool-mass error."""
+    from pathlib import Path
+
+    import numpy as np
+    from typer.testing import CliRunner
+
+    import cranetwin.importer as imp
+    import cranetwin.twin.calibration as calmod
+    from cranetwin.cli import app
+    from cranetwin.importer import ImportedFile
+    from cranetwin.samples import SampleArrays
+    from cranetwin.twin.calibration import Calibration
+
+    series = np.array([0.0, 300.0, np.nan])
+    got = ImportedFile(SampleArrays("m", np.arange(3.0), ("a",), np.zeros((3, 1))),
+                       object(), series)  # type: ignore[arg-type]
+    seen: list[object] = []
+
+    def fake(samples: object, machine: object, **kw: object) -> Calibration:
+        seen.append(kw.get("payload_kg"))
+        return Calibration((), 1.5, 0.2, 90.0, 1000, (), (1, 100),
+                           payload_known=kw.get("payload_kg") is not None)
+
+    monkeypatch.setattr(calmod, "calibrate", fake)
+    monkeypatch.setattr(imp, "read_file", lambda path, machine, mapping: got)
+    args = ["calibrate", str(Path(str(tmp_path)) / "log.csv"), "--mapping", "map.toml"]
+    out = CliRunner().invoke(app, args, terminal_width=200)
+    assert out.exit_code == 0, out.output
+    assert seen[-1] is series and "Tool mass error" in out.output and "+1.50" in out.output
+    out = CliRunner().invoke(app, [*args, "--payload-column", "compare"], terminal_width=200)
+    assert out.exit_code == 0, out.output
+    assert seen[-1] is None and "beyond the file's tool mass" in out.output

@@ -29,14 +29,23 @@ def register(app: typer.Typer) -> None:
         mapping: Path | None = typer.Option(None, "--mapping", help="Mapping TOML of your "
                                             "own file (docs/IMPORT.md)."),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
+        payload_column: str = typer.Option("use", "--payload-column", help="A known "
+                                           "payload column of your file (the mapping's "
+                                           "[payload]): 'use' it (the fitted mass is then "
+                                           "the tool-mass error alone), or 'compare': fit the "
+                                           "carried mass per segment as without one."),
     ) -> None:
         """Estimate cylinder friction (Fc, vc, b; Eq. 2) and the payload/tool mass by least
         squares, and report the force residual before and after; say per parameter whether
         the recording determines it (else the machine file's value is kept)."""
+        from cranetwin.errors import TwinError
         from cranetwin.reports.sources import is_simulator_recording
         from cranetwin.twin.calibration import calibrate
 
+        if payload_column not in ("use", "compare"):
+            raise TwinError(f"--payload-column {payload_column!r}: expected use or compare")
         m = load_machine(machine)
+        known = None
         if mapping is None and is_simulator_recording(recording):
             from cranetwin.sim import Recording
 
@@ -44,8 +53,10 @@ def register(app: typer.Typer) -> None:
         else:
             from cranetwin.importer import read_file
 
-            samples = read_file(recording, m, mapping).samples
-        cal = calibrate(samples, m)
+            got = read_file(recording, m, mapping)
+            samples = got.samples
+            known = got.payload_kg if payload_column == "use" else None
+        cal = calibrate(samples, m, payload_kg=known)
         if as_json:
             typer.echo(json.dumps(asdict(cal)))
             return
@@ -74,6 +85,11 @@ def register(app: typer.Typer) -> None:
         if cal.mass_note:
             con.print(f"[yellow]Mass at the load point not identified: {cal.mass_note}"
                       "[/yellow]")
+        elif cal.payload_known:
+            con.print(f"Tool mass error (the known payload column subtracted): "
+                      f"{cal.extra_mass_kg:+.2f} ± {cal.extra_mass_std_kg:.2f} kg statistical "
+                      f"against the file's {cal.tool_mass_file_kg:g} kg ({cal.samples_used} "
+                      "instants)")
         else:
             con.print(f"Mass at the load point beyond the file's tool mass "
                       f"({cal.tool_mass_file_kg:g} kg): {cal.extra_mass_kg:.2f} ± "

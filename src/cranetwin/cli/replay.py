@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -29,8 +30,14 @@ def replay_cmd(
     t_to: str | None = typer.Option(None, "--to", help="End, exclusive."),
     db: str | None = typer.Option(None, "--db", help="Storage URL (default: "
                                   "CRANETWIN_DATABASE_URL or sqlite:///cranetwin.db)."),
-    payload: float | None = typer.Option(None, "--payload", help="Known payload [kg] "
-                                         "(default: estimated)."),
+    payload: float | None = typer.Option(None, "--payload", help="Known constant payload "
+                                         "[kg] (default: estimated; a known payload column "
+                                         "is then only compared)."),
+    payload_column: str = typer.Option("use", "--payload-column", help="A known payload "
+                                       "column (the mapping's [payload]): 'use' it in the "
+                                       "inverse dynamics where known (the estimate "
+                                       "elsewhere), or only 'compare' the estimate with it "
+                                       "per lift."),
     grid_hz: float | None = typer.Option(None, "--grid-hz", help="Output rate [Hz], an "
                                          "integer multiple of the sample rate (default: the "
                                          "sample rate)."),
@@ -38,13 +45,16 @@ def replay_cmd(
 ) -> None:
     """Replay samples through the twin and write joint q/qd/qdd, rod s/v, pressures, cylinder
     forces, joint torques and reaction wrenches, tip position, payload ± σ and gap flags; with
-    a known payload column (the mapping's [payload]), it and the estimate's error per lift."""
+    a known payload column (the mapping's [payload]), the dynamics use it where known
+    (--payload-column compare: the estimate's error per lift instead)."""
     from cranetwin.importer.payload import summary_line
     from cranetwin.importer.replay import (
+        PayloadColumn,
         ReplayNotes,
         column_units,
         iter_replay_table,
         load_source_and_payload,
+        uses_known,
         write_table,
     )
 
@@ -69,7 +79,11 @@ def replay_cmd(
         if source.t_s.shape[0] == 0:
             raise TwinError(f"no samples of {machine!r} stored in [{t_from}, {t_to})")
         known = None
-    units = column_units(m, source.channels, known is not None)
+    if payload_column not in ("use", "compare"):
+        raise TwinError(f"--payload-column {payload_column!r}: expected use or compare")
+    column: PayloadColumn = "use" if payload_column == "use" else "compare"
+    use = uses_known(known, payload, column)
+    units = column_units(m, source.channels, known is not None, not use)
     notes = ReplayNotes.empty()
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[rows]}"
                   " rows"), TimeElapsedColumn(), disable=quiet) as bar:
@@ -77,12 +91,18 @@ def replay_cmd(
 
         def chunks() -> Iterator[dict[str, F64]]:
             for ch in iter_replay_table(source, m, payload=payload, grid_hz=grid_hz,
-                                        notes=notes, known_payload_kg=known):
+                                        notes=notes, known_payload_kg=known,
+                                        payload_column=column):
                 bar.update(task, rows=bar.tasks[task].fields["rows"] + ch["t_s"].shape[0])
                 yield ch
 
         rows = write_table(chunks(), out, units)
     typer.echo(f"{out}: {rows} rows × {len(units)} columns (docs/IMPORT.md lists them)")
+    if use:
+        assert known is not None
+        typer.echo(f"known payload (the mapping's [payload] column) used in the inverse "
+                   f"dynamics at {100.0 * float(np.isfinite(known).mean()):.1f} % of the "
+                   "samples, the estimate elsewhere")
     lifts = notes.lifts()
     if lifts is not None:  # a known payload series: the estimate's error per lift
         typer.echo(summary_line(lifts))

@@ -95,6 +95,10 @@ def report(
     payload: float | None = typer.Option(None, "--payload", help="Known payload [kg] of a "
                                          "user's --recording file (default: estimated; a "
                                          "known payload column: the mapping's [payload])."),
+    payload_column: str = typer.Option("use", "--payload-column", help="A known payload "
+                                       "column of a --recording file: 'use' it in the "
+                                       "inverse dynamics where known, or only 'compare' the "
+                                       "estimate with it per lift."),
     demo: bool = typer.Option(False, "--demo", help="Synthetic 8-hour shifts with a few "
                               "injected misuse events."),
     days: int = typer.Option(30, "--days", help="Days of --demo data."),
@@ -122,7 +126,10 @@ def report(
     if demo:
         src = DemoSource(load_machine(machine or "patu655"), days=days, rate_hz=rate_hz)
     elif recording is not None and (mapping is not None or not is_simulator_recording(recording)):
-        src = ImportedFileSource(load_machine(machine or "patu655"), recording, mapping, payload)
+        if payload_column not in ("use", "compare"):
+            raise ReportError(f"--payload-column {payload_column!r}: expected use or compare")
+        src = ImportedFileSource(load_machine(machine or "patu655"), recording, mapping, payload,
+                                 payload_column="use" if payload_column == "use" else "compare")
         if src.import_report.rows_refused:
             typer.echo(src.import_report.summary(), err=True)
     elif recording is not None:
@@ -163,6 +170,10 @@ def report(
         typer.echo(f"warning: {line}", err=True)
     for note in src.machine.unknowns():
         typer.echo(f"note: {note}", err=True)
+    share = src.known_used_share() if isinstance(src, ImportedFileSource) else None
+    if share is not None:
+        typer.echo(f"known payload (the mapping's [payload] column) used in the inverse "
+                   f"dynamics at {100.0 * share:.1f} % of the samples, the estimate elsewhere")
     lifts = getattr(src, "lifts", None)
     if lifts is not None:  # a known payload series: the twin's estimate against it
         from cranetwin.importer.payload import summary_line

@@ -2,11 +2,13 @@
 ``[payload]`` table (docs/IMPORT.md) — and the twin's payload estimate compared with it, lift
 by lift.
 
-The known payload is not a sensor channel: it is not stored with the samples and does not go
-into the twin's inverse dynamics (the twin takes a constant ``payload`` or estimates it). It
-rides along with a file's samples (:attr:`cranetwin.importer.ImportedFile.payload_kg`) and
-``cranetwin replay`` / ``report --recording`` / :func:`cranetwin.importer.replay.replay_table`
-put it next to the estimate and report the estimate's error per lift.
+The known payload is not a sensor channel: it is not stored with the samples. It rides along
+with a file's samples (:attr:`cranetwin.importer.ImportedFile.payload_kg`); ``cranetwin
+replay`` / ``report --recording`` / ``calibrate`` and
+:func:`cranetwin.importer.replay.replay_table` feed it into the twin's inverse dynamics where
+it is known (:mod:`cranetwin.twin.known_payload`; the estimate where it is NaN), or, with
+``payload_column="compare"`` (``--payload-column compare``), put it next to the estimate and
+report the estimate's error per lift.
 
 A lift is a maximal stretch where the known payload is at least ``min_kg`` for at least
 ``min_duration_s``. Its error is the median estimate minus the median known payload over the
@@ -56,19 +58,17 @@ def payload_at(t_ns: I64, raw_t_ns: I64, raw_kg: F64, period_ns: int) -> F64:
     return out
 
 
-def on_grid(t_s: F64, sample_t_s: F64, known_kg: F64) -> F64:
-    """The known payload at grid instants ``t_s`` [s]: linear between samples, NaN where a
-    neighbouring sample's payload is not known or outside the samples' span."""
-    out = np.full(t_s.shape, np.nan)
+def on_grid(t_s: F64, sample_t_s: F64, known_kg: F64,
+            max_gap_s: float = float("inf")) -> F64:
+    """The known payload at grid instants ``t_s`` [s]: linear between the two samples around
+    an instant when both are known and at most ``max_gap_s`` apart (the replay's gap limit,
+    5 sample periods by default there), the sample's value at a sample time, NaN elsewhere —
+    as the twin's dynamics take it (:func:`cranetwin.twin.known_payload.at_instants`)."""
+    from cranetwin.twin.known_payload import at_instants  # (reading a file needs no twin)
+
     if sample_t_s.size < 2:
-        return out
-    hi = np.clip(np.searchsorted(sample_t_s, t_s), 1, sample_t_s.size - 1)
-    lo = hi - 1
-    ok = (t_s >= sample_t_s[0]) & (t_s <= sample_t_s[-1])
-    ok &= np.isfinite(known_kg[lo]) & np.isfinite(known_kg[hi])
-    fin = np.where(np.isfinite(known_kg), known_kg, 0.0)
-    out[ok] = np.interp(t_s[ok], sample_t_s, fin)
-    return out
+        return np.full(t_s.shape, np.nan)
+    return at_instants(t_s, sample_t_s, known_kg, max_gap_s)
 
 
 @dataclass(frozen=True)

@@ -23,11 +23,13 @@ column                             unit               what
 ``wrench.<joint>.fx|fy|fz``        N                  joint reaction force, child body frame
 ``wrench.<joint>.mx|my|mz``        N·m                joint reaction moment, child body frame
 ``tip.x``, ``tip.y``, ``tip.z``    m                  load point in the world frame
-``payload_kg``                     kg                 payload (given, or estimated)
-``payload_std_kg``                 kg                 one-sigma uncertainty of the estimate
+``payload_kg``                     kg                 payload used (given, known, or estimated)
+``payload_std_kg``                 kg                 one-sigma uncertainty of the estimate (0
+                                                      where given or known)
 ``payload_known_kg``               kg                 only with a known payload series (the
                                                       mapping's ``[payload]`` column): it
-``payload_error_kg``               kg                 ``payload_kg − payload_known_kg``
+``payload_error_kg``               kg                 only when the series is compared, not
+                                                      used: ``payload_kg − payload_known_kg``
 ``gap``                            0/1                1 where a dropout was bridged
 ``missing.<channel>``              0/1                1 where that input channel's sample nearest
                                                       the instant is missing (NaN) or over 0.6
@@ -40,6 +42,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -58,16 +61,33 @@ from cranetwin.twin.observability import ForceObservability, ForceRange
 F64 = npt.NDArray[np.float64]
 WRENCH = ("fx", "fy", "fz", "mx", "my", "mz")
 
+PayloadColumn = Literal["use", "compare"]
+"""What a known payload series (the mapping's ``[payload]`` column) does: ``"use"`` (the
+default) — it is the payload of the twin's inverse dynamics where known, the estimate fills
+where it is NaN; ``"compare"`` — the twin estimates the payload (or takes a constant
+``payload``) and the series is only compared with it, lift by lift (docs/IMPORT.md)."""
+
+
+def uses_known(known: F64 | None, payload: float | None, payload_column: PayloadColumn) -> bool:
+    """Whether the known series goes into the dynamics: there is one, the column is to be
+    used, and no constant ``payload`` was given (a constant given explicitly wins; the series
+    is then compared with it)."""
+    if payload_column not in ("use", "compare"):
+        raise TwinError(f"payload column: {payload_column!r}; expected 'use' or 'compare'")
+    return known is not None and payload is None and payload_column == "use"
+
 
 def column_units(machine: Machine, channels: Sequence[str] | None = None,
-                 known_payload: bool = False) -> dict[str, str]:
+                 known_payload: bool = False, compared: bool = True) -> dict[str, str]:
     """Every output column name, in order, with its unit (see the module docstring).
 
     Args:
         machine: The machine.
         channels: The input channels (their ``missing.<channel>`` flags); None = every channel
             of the machine.
-        known_payload: With the known payload's columns.
+        known_payload: With the known payload's column(s).
+        compared: With ``payload_error_kg`` too (the series compared with the estimate, not
+            used in the dynamics).
     """
     out: dict[str, str] = {"t_s": "s"}
     lin = {j.name: j.kind == "prismatic" for j in machine.joints}
@@ -88,7 +108,10 @@ def column_units(machine: Machine, channels: Sequence[str] | None = None,
     out.update({"tip.x": "m", "tip.y": "m", "tip.z": "m", "payload_kg": "kg",
                 "payload_std_kg": "kg"})
     if known_payload:
-        out.update({"payload_known_kg": "kg", "payload_error_kg": "kg"})
+        out["payload_known_kg"] = "kg"
+        if compared:
+            out["payload_error_kg"] = "kg"
+
     out["gap"] = "1"
     out.update({f"missing.{c.name}": "1" for c in machine.channels
                 if channels is None or c.name in channels})
@@ -201,7 +224,8 @@ def iter_replay_table(source: Source, machine: Machine,
                       payload: float | None = None, grid_hz: float | None = None,
                       options: ReplayOptions | None = None,
                       notes: ReplayNotes | None = None,
-                      known_payload_kg: F64 | None = None) -> Iterator[dict[str, F64]]:
+                      known_payload_kg: F64 | None = None,
+                      payload_column: PayloadColumn = "use") -> Iterator[dict[str, F64]]:
     """Replay samples (or a CSV/Parquet/MDF4 file read with ``mapping``) chunk by chunk.
 
     Args:
@@ -217,10 +241,13 @@ def iter_replay_table(source: Source, machine: Machine,
         notes: Filled with the window's force ranges and smoothing choices as the chunks
             pass (:class:`ReplayNotes`: which cylinder forces are observable), and with the
             payload estimate against a known payload series (:meth:`ReplayNotes.lifts`).
-        known_payload_kg: A known payload series at the samples' times [kg], shape (n,)
-            (default: a file's or columns' ``[payload]`` column, if the mapping names one):
-            adds ``payload_known_kg`` and ``payload_error_kg``; the twin still estimates the
-            payload (or uses ``payload``) and the series is compared with it, not fed in.
+        known_payload_kg: A known payload series at the samples' times [kg], shape (n,),
+            NaN where not known (default: a file's or columns' ``[payload]`` column, if the
+            mapping names one): adds ``payload_known_kg``.
+        payload_column: :data:`PayloadColumn`: ``"use"`` the series in the inverse dynamics
+            where known (the estimate elsewhere; not with a constant ``payload``, which
+            wins); ``"compare"`` the twin estimates the payload (or uses ``payload``) and the
+            series is compared with it (``payload_error_kg``, :meth:`ReplayNotes.lifts`).
 
     Yields:
         Consecutive chunks of named columns (:func:`column_units` of the input's channels).
@@ -243,26 +270,31 @@ def iter_replay_table(source: Source, machine: Machine,
     period = opt.sample_period_s or float(np.median(np.diff(samples.t_s)))
     if grid_hz is None:
         grid_hz = float(round(1.0 / period))
-    for res in iter_replay(samples, machine, grid_hz, payload, opt):
+    use = uses_known(known, payload, payload_column)
+    gap_s = 5.0 * period if opt.max_gap_s is None else opt.max_gap_s  # the replay's limit
+    for res in iter_replay(samples, machine, grid_hz, known if use else payload, opt):
         if res.n:
             cols = result_columns(res, machine)
-            grid_known = None if known is None else on_grid(res.t_s, samples.t_s, known)
+            grid_known = (None if known is None
+                          else on_grid(res.t_s, samples.t_s, known, gap_s))
             if grid_known is not None:
-                cols = _with_known(cols, grid_known)
+                cols = _with_known(cols, grid_known, not use)
             if notes is not None:
-                notes.add(res, grid_known)
+                notes.add(res, None if use else grid_known)
             cols.update(channel_flags(samples, res.t_s, period))
             yield cols
 
 
-def _with_known(cols: dict[str, F64], known: F64) -> dict[str, F64]:
-    """``cols`` with ``payload_known_kg`` and ``payload_error_kg`` after ``payload_std_kg``."""
+def _with_known(cols: dict[str, F64], known: F64, compared: bool) -> dict[str, F64]:
+    """``cols`` with ``payload_known_kg`` (and ``payload_error_kg`` if ``compared``) after
+    ``payload_std_kg``."""
     out: dict[str, F64] = {}
     for k, v in cols.items():
         out[k] = v
         if k == "payload_std_kg":
             out["payload_known_kg"] = known
-            out["payload_error_kg"] = cols["payload_kg"] - known
+            if compared:
+                out["payload_error_kg"] = cols["payload_kg"] - known
     return out
 
 
@@ -276,7 +308,7 @@ class ReplayTable:
         columns: Column name → values, shape (m,) each, in :func:`column_units` order.
         units: Column name → unit.
         lifts: The payload estimate's error per lift against a known payload series
-            (None without one).
+            (None without one, or when it was used rather than compared).
     """
 
     columns: dict[str, F64]
@@ -294,16 +326,20 @@ class ReplayTable:
 def replay_table(source: Source, machine: Machine,
                  mapping: Mapping | str | Path | None = None, *, payload: float | None = None,
                  grid_hz: float | None = None, options: ReplayOptions | None = None,
-                 known_payload_kg: F64 | None = None) -> ReplayTable:
-    """:func:`iter_replay_table` collected into one :class:`ReplayTable` (with the payload
-    error per lift when a known payload series is given or mapped)."""
+                 known_payload_kg: F64 | None = None,
+                 payload_column: PayloadColumn = "use") -> ReplayTable:
+    """:func:`iter_replay_table` collected into one :class:`ReplayTable` (a known payload
+    series given or mapped: used in the dynamics, or with ``payload_column="compare"`` the
+    estimate's error per lift)."""
     samples, known = load_source_and_payload(source, machine, mapping)
     if known_payload_kg is not None:
         known = np.asarray(known_payload_kg, dtype=float)
     notes = ReplayNotes.empty()
     parts = list(iter_replay_table(samples, machine, payload=payload, grid_hz=grid_hz,
-                                   options=options, notes=notes, known_payload_kg=known))
-    units = column_units(machine, samples.channels, known is not None)
+                                   options=options, notes=notes, known_payload_kg=known,
+                                   payload_column=payload_column))
+    units = column_units(machine, samples.channels, known is not None,
+                         not uses_known(known, payload, payload_column))
     if not parts:
         raise TwinError("the replay produced no output")
     cols = {k: np.concatenate([p[k] for p in parts]) for k in units}

@@ -22,6 +22,7 @@ from cranetwin.model import Machine, load_machine
 from cranetwin.testing.histories import Misuse, SyntheticCrane
 
 if TYPE_CHECKING:
+    from cranetwin.importer.replay import PayloadColumn
     from cranetwin.sim import Recording
     from cranetwin.storage import StoreSpec
     from cranetwin.twin import TwinResult
@@ -291,9 +292,11 @@ class ImportedFileSource:
     its mapping and analysed on the twin's replay of its samples (not on any truth file).
 
     A known payload series (the mapping's ``[payload]`` column) is the analysis's payload
-    where it is known (the twin's estimate elsewhere), and the estimate is compared with it
-    per lift (``lifts``, after :meth:`chunks`); the twin's joint loads still come from its
-    estimate (or ``payload_kg``).
+    where it is known (the twin's estimate elsewhere). With ``payload_column="use"`` (the
+    default) the twin's inverse dynamics use it too (joint loads, wrenches; not with a
+    constant ``payload_kg``, which wins); with ``"compare"`` the twin's joint loads come from
+    its estimate (or ``payload_kg``) and the estimate is compared with the series per lift
+    (``lifts``, after :meth:`chunks`).
 
     Attributes:
         machine: The machine recorded.
@@ -301,6 +304,8 @@ class ImportedFileSource:
         mapping: Its mapping TOML (None: the default mapping).
         payload_kg: Known constant payload [kg], or None to estimate it.
         grid_hz: Replay grid [Hz], a multiple of the sample rate.
+        payload_column: A known payload series: ``"use"`` or ``"compare"``
+            (:data:`cranetwin.importer.replay.PayloadColumn`).
     """
 
     machine: Machine
@@ -309,6 +314,7 @@ class ImportedFileSource:
     payload_kg: float | None = None
     grid_hz: float = 100.0
     label: str = ""
+    payload_column: PayloadColumn = "use"
 
     def __post_init__(self) -> None:
         from cranetwin.importer import read_file
@@ -326,8 +332,18 @@ class ImportedFileSource:
     def total(self) -> int:
         return int(self.samples.t_s.shape[0])
 
+    def known_used_share(self) -> float | None:
+        """Share of the samples whose known payload the twin's dynamics use (0 … 1), or None
+        when no known payload series is used (none, ``"compare"``, or a constant given)."""
+        from cranetwin.importer.replay import uses_known
+
+        if not uses_known(self.known_payload_kg, self.payload_kg, self.payload_column):
+            return None
+        assert self.known_payload_kg is not None
+        return float(np.isfinite(self.known_payload_kg).mean())
+
     def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
-        from cranetwin.importer.replay import check_samples
+        from cranetwin.importer.replay import check_samples, uses_known
         from cranetwin.signal import SmoothingChoice
         from cranetwin.twin import iter_replay
         from cranetwin.twin.observability import ForceRange, unobservable
@@ -337,8 +353,10 @@ class ImportedFileSource:
         forces = ForceRange()
         smoothing: dict[str, SmoothingChoice] = {}
         pairs: list[tuple[F64, F64, F64]] = []
+        use = uses_known(self.known_payload_kg, self.payload_kg, self.payload_column)
+        gap_s = 5.0 * float(np.median(np.diff(self.samples.t_s[:1000])))  # the replay's limit
         for res in iter_replay(self.samples, self.machine, grid_hz=self.grid_hz,
-                               payload=self.payload_kg):
+                               payload=self.known_payload_kg if use else self.payload_kg):
             if not res.n:
                 continue
             forces.add(res.cyl_force)
@@ -346,8 +364,9 @@ class ImportedFileSource:
             n = int(np.searchsorted(self.samples.t_s, res.t_s[-1], side="right")) - done
             done += n
             if self.known_payload_kg is not None:
-                known = on_grid(res.t_s, self.samples.t_s, self.known_payload_kg)
-                pairs.append((res.t_s, known, res.payload_kg))
+                known = on_grid(res.t_s, self.samples.t_s, self.known_payload_kg, gap_s)
+                if not use:
+                    pairs.append((res.t_s, known, res.payload_kg))
                 res = replace(res, payload_kg=np.where(np.isfinite(known), known,
                                                        res.payload_kg))
             h = history_from_twin(self.machine, res)

@@ -36,6 +36,17 @@ vc search included, is repeated with two passes of a moving average twice that w
 simulated 10-minute runs the lift's residual drops from ~110 N to ~15 N, and b moved from up
 to +28 % to within 9 %).
 
+A known payload series (a logger's load cell, the import mapping's ``[payload]`` column) at
+the sample times: the mass at the load point is then the known payload plus one constant tool-
+mass error. Its joint loads (known·g) are moved to the left-hand side and one mass column
+(shared by the whole run, no segments) is fitted: ``extra_mass_kg`` is the tool-mass error
+alone. Instants where the series is not known (NaN) and within 1 s of a change of it are left
+out; the replay behind the fit uses the series too (:mod:`cranetwin.twin.known_payload`). The
+residual "before" then has the known payload in it (file friction, no tool-mass error); the
+choice of the low-pass below still compares with the force the whole mass makes, as without a
+series (else the smaller "before" alone sent a 240 s synthetic run to the wide filter, where
+the lift's Fc was lost).
+
 Excitation: b is the slope of force over speed. With white pressure noise (the sensor model's
 12.5 kPa) the standard error of the lift's b on a 10-minute ``random`` run is ~5 %, so 10 % is
 about 2σ and may be missed on some sensor seeds whatever the estimator (docs/ACCURACY.md).
@@ -55,6 +66,7 @@ from cranetwin.samples import SampleArrays
 from cranetwin.twin.calibration_data import (
     correlation_time,
     jackknife_std,
+    known_payload_changes,
     payload_segments,
     res_rate,
     sample_rate,
@@ -72,6 +84,7 @@ from cranetwin.twin.calibration_fit import (
     residual_before,
     vc_rises,
 )
+from cranetwin.twin.known_payload import at_instants
 from cranetwin.twin.options import END_STOP_MARGIN_M, ReplayOptions
 from cranetwin.twin.replay import replay
 
@@ -147,7 +160,9 @@ class Calibration:
         cylinders: Friction fits, in ``machine.cylinders`` order.
         extra_mass_kg: Mass at the load point beyond the file's tool mass (payload + tool error)
             of the longest constant-mass segment (``segments``; one when the payload did not
-            change) [kg]; NaN when that mass is not identified (``mass_note`` says why).
+            change) [kg]; NaN when that mass is not identified (``mass_note`` says why). With
+            a known payload series: beyond the tool mass and that payload, i.e. the tool-mass
+            error (one segment).
         extra_mass_std_kg: Its statistical standard error [kg]: residuals' correlation
             time and a jackknife over time blocks taken into account, model error not (on
             simulated 10-minute runs the error was 0.1–0.3 kg against a stated 0.02 kg).
@@ -160,8 +175,10 @@ class Calibration:
             Coulomb column was corrected for, in ``machine.cylinders`` order [m/s].
         segments: The constant-mass segments the payload changes split the run into.
         excluded_s: Seconds left out, by reason (``"end stop"``, ``"payload change"``,
-            ``"dropout"``).
+            ``"dropout"``; with a known payload series also ``"payload not known"``).
         mass_note: Why ``extra_mass_kg`` is NaN, else "".
+        payload_known: A known payload series was given (``extra_mass_kg`` is the tool-mass
+            error).
     """
 
     cylinders: tuple[CylinderFit, ...]
@@ -175,10 +192,11 @@ class Calibration:
     segments: tuple[MassSegment, ...] = ()
     excluded_s: dict[str, float] = field(default_factory=dict)
     mass_note: str = ""
+    payload_known: bool = False
 
 
 def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
-              decimate: int = 10) -> Calibration:
+              decimate: int = 10, payload_kg: F64 | None = None) -> Calibration:
     """Estimate friction (Fc, vc, b per cylinder) and the carried mass by least squares.
 
     Before the fit, instants are left out where a rod touches an end stop (within
@@ -195,6 +213,8 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
         machine: The machine file being calibrated.
         trim_s: Seconds dropped at each end (spline end effects) [s].
         decimate: Use every ``decimate``-th grid instant (1 kHz grid).
+        payload_kg: A known payload series at the sample times, shape (n,) [kg], NaN where
+            not known (module docstring), or None: the carried mass is fitted per segment.
 
     Returns:
         :class:`Calibration`.
@@ -207,7 +227,7 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
     # Pressures by fixed (linear) windows: the adaptive ICI choice is nonlinear and biased the
     # viscous coefficient by ~10 % in tests.
     window_s = 4.0
-    res = replay(samples, machine, grid_hz=1000.0, payload=None,
+    res = replay(samples, machine, grid_hz=1000.0, payload=payload_kg,
                  options=ReplayOptions(payload_window_s=window_s, adaptive_pressures=False))
     keep = (res.t_s >= res.t_s[0] + trim_s) & (res.t_s <= res.t_s[-1] - trim_s)
     idx = np.flatnonzero(keep)[::decimate]
@@ -221,12 +241,24 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
     margin = np.maximum(END_STOP_SHARE * stroke, END_STOP_MARGIN_M)
     rod = res.rod_s[idx]
     stop = np.any((rod <= margin) | (rod >= stroke - margin), axis=1)
-    seg, n_seg, near, changes = payload_segments(res, t, 1.0 / sample_rate(samples), window_s)
     gap = res.gap[idx]
-    ok = ~(stop | near | gap)
+    known = None
+    if payload_kg is None:
+        seg, n_seg, near, changes = payload_segments(res, t, 1.0 / sample_rate(samples),
+                                                     window_s)
+        unknown = np.zeros(t.shape[0], dtype=bool)
+    else:  # one mass column, the tool-mass error: the known payload's loads move to y
+        known = at_instants(t, samples.t_s, np.asarray(payload_kg, dtype=np.float64),
+                            5.0 / sample_rate(samples))
+        near, _ = known_payload_changes(t, known)
+        seg, n_seg, changes = np.zeros(t.shape[0], dtype=np.int64), 1, []
+        unknown = ~np.isfinite(known)
+    ok = ~(stop | near | gap | unknown)
     excluded = {"end stop": float(stop.sum() * dt_i),
                 "payload change": float((near & ~stop).sum() * dt_i),
                 "dropout": float((gap & ~stop & ~near).sum() * dt_i)}
+    if known is not None:
+        excluded["payload not known"] = float((unknown & ~stop & ~near & ~gap).sum() * dt_i)
     q, qd, qdd = res.q[idx], res.qd[idx], res.qdd[idx]
     tau0 = physics.joint_torques(machine, q, qd, qdd, 0.0)
     g_all = physics.joint_torques(machine, q, qd, qdd, 1.0) - tau0
@@ -236,6 +268,9 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
                            for c, cyl in enumerate(cyls)])
     y = hyd - tau0[:, cj] / arm  # what friction and the extra mass must explain [N]
     g = g_all[:, cj] / arm
+    y_all = y  # the force with the whole carried mass in it (the filter choice's reference)
+    if known is not None:  # (0 where not known: those instants are left out, and a NaN
+        y = y - np.nan_to_num(known)[:, None] * g  # would spread through the moving sums)
     v = res.rod_v[idx]
     # "filter both sides": the accelerations come smoothed over the derivative window, the
     # pressures carry the fast hydraulic oscillations they miss; the same moving average on
@@ -250,15 +285,18 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
         raise TwinError(
             f"calibration needs more usable data: {usable[0]} instants left for filters of "
             f"{w_} instants after leaving out {excluded['end stop']:.1f} s of end-stop "
-            f"contact, {excluded['payload change']:.1f} s around payload changes and "
-            f"{excluded['dropout']:.1f} s of dropouts")
+            f"contact, {excluded['payload change']:.1f} s around payload changes, "
+            f"{excluded['dropout']:.1f} s of dropouts"
+            + (f" and {excluded['payload not known']:.1f} s where the known payload is not "
+               "known" if known is not None else ""))
     vc0 = np.array([c.friction.coulomb_velocity for c in cyls])
     sigma_v = velocity_noise_std(res, samples, machine)
     no_fix = Fixed({}, np.zeros(nc, dtype=bool))
     filt = filters[0]
     try:
         x, r, vc, _ = fit_friction(y, g, v, vc0, filt, sigma_v, lay, no_fix)
-        before = [residual_before(y, v, cyls, c, filt[1], filt[0], lay) for c in range(nc)]
+        before = [residual_before(y_all, v, cyls, c, filt[1], filt[0], lay)
+                  for c in range(nc)]
         n = before[0].shape[0]
         ratio = max(float(np.sqrt(np.mean(r[c * n:(c + 1) * n] ** 2) / np.mean(before[c] ** 2)))
                     for c in range(nc))
@@ -315,7 +353,7 @@ def calibrate(samples: SampleArrays, machine: Machine, trim_s: float = 1.0,
                        ms.std_kg, machine.load_point.tool_mass_kg, n,
                        tuple(float(x[n_seg + 2 + 3 * c]) for c in range(nc)), (passes, width),
                        tuple(float(sv) for sv in sigma_v), tuple(segs), excluded,
-                       "" if ms.identified else ms.note)
+                       "" if ms.identified else ms.note, known is not None)
 
 
 def _identify(x: F64, r: F64, vc: F64, data: tuple[F64, F64, F64, F64],

@@ -1,7 +1,7 @@
 """What :mod:`cranetwin.twin.calibration` needs to know about its data: sample and grid rates,
 the rod-velocity noise the Coulomb column is corrected for, the constant-mass segments between
-payload changes, and the statistics of correlated residuals (integrated autocorrelation time,
-a delete-one-block jackknife).
+payload changes (of the estimate, or of a known payload series), and the statistics of
+correlated residuals (integrated autocorrelation time, a delete-one-block jackknife).
 """
 
 from __future__ import annotations
@@ -81,6 +81,27 @@ def payload_segments(res: TwinResult, t: F64, sample_period: float,
         seg += (t > tc).astype(np.int64)
         near |= np.abs(t - tc) <= smear / 2.0 + 1.0
     return seg, len(changes) + 1, near, changes
+
+
+def known_payload_changes(t: F64, known_kg: F64,
+                          away_s: float = 1.0) -> tuple[npt.NDArray[np.bool_], list[float]]:
+    """Instants of ``t`` [s] within ``away_s`` of a change of a known payload series
+    ``known_kg`` (at those instants [kg], NaN where not known), and the change times [s].
+
+    A change is a step of more than ``PAYLOAD_STEP_KG`` between neighbouring known instants
+    (within ``away_s`` of each other); it is left out of the fit as the estimate's changes
+    are (:func:`payload_segments`): a grab or release brings contact and swinging the
+    model does not know, and the logger's timing of the step may be off by a sample."""
+    near = np.zeros(t.shape[0], dtype=bool)
+    ok = np.flatnonzero(np.isfinite(known_kg))
+    if ok.shape[0] < 2:
+        return near, []
+    step = np.abs(np.diff(known_kg[ok])) > PAYLOAD_STEP_KG
+    step &= np.diff(t[ok]) <= away_s
+    changes = [float(0.5 * (t[ok[i]] + t[ok[i + 1]])) for i in np.flatnonzero(step)]
+    for tc in changes:
+        near |= np.abs(t - tc) <= away_s
+    return near, changes
 
 
 def correlation_time(x: F64, max_lag_fraction: float = 0.1) -> float:

@@ -17,6 +17,7 @@ import numpy.typing as npt
 from cranetwin.errors import TwinError
 from cranetwin.signal import SmoothingChoice, knot_pieces, natural_pieces, newton_derivative
 from cranetwin.twin import force_model, gridpass
+from cranetwin.twin.known_payload import fully_known, with_known
 from cranetwin.twin.plan import ReplayPlan
 from cranetwin.twin.result import TwinResult
 from cranetwin.twin.stages import (
@@ -47,6 +48,8 @@ class ChunkRows(NamedTuple):
             (:func:`cranetwin.twin.force_model.residual_range`).
         raw: The regularised, unsmoothed pressures at samples r0 … (pA then pB per cylinder,
             (m, 2·n_c) [Pa]); m = 0 when no force is model-based.
+        known: A known payload series at samples e0 … e1, (e1 − e0 + 1,) [kg], NaN where not
+            known (:mod:`cranetwin.twin.known_payload`); None: none.
     """
 
     ka: int
@@ -60,6 +63,7 @@ class ChunkRows(NamedTuple):
     gap: F64
     r0: int
     raw: F64
+    known: F64 | None = None
 
 
 class Timing(NamedTuple):
@@ -71,7 +75,8 @@ class Timing(NamedTuple):
 
 
 class PayloadSetting(NamedTuple):
-    """A known payload [kg] (or None: estimated) and the regression's weights (n_c,),
+    """A constant known payload [kg] (or None: estimated where no series is known,
+    :attr:`ChunkRows.known`) and the regression's weights (n_c,),
     independent fractions (n_c,), prefilter half and half window [samples], raw force noise
     per cylinder (n_c,) [N]."""
 
@@ -156,20 +161,24 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
     n_ks = ks.stop - ks.start
     use = force_model.model_cylinders(plan, choices)
     modelled = bool(use.any()) and rows.raw.shape[0] > 0
+    known = rows.known if payload.known is None else np.full(ne, float(payload.known))
+    estimated = not fully_known(known)
     regs = (payload_regressors(plan, (q_s, qd_s, qdd_s))
-            if modelled or payload.known is None else None)
-    if f_s is None and (modelled or payload.known is None):
+            if modelled or estimated else None)
+    if f_s is None and (modelled or estimated):
         f_s = eq12(plan, smp[:, qi.pa : qi.pa + nc], smp[:, qi.pb : qi.pb + nc],
                    smp[:, rod_v])
-    if payload.known is not None:
-        m_all = np.full(ne, float(payload.known))
-        mk = np.full(n_ks, float(payload.known))
+    if not estimated:
+        assert known is not None
+        m_all = known
+        mk = np.ascontiguousarray(known[ks])
         sk = np.zeros(n_ks)
     else:
         assert f_s is not None
-        m_all, s_all = estimate_payload(plan, (q_s, qd_s, qdd_s), f_s, arm_s,
-                                        (payload.weights, payload.frac, payload.prefilter_half,
-                                         payload.half_window, payload.noise), regs)
+        m_all, s_all = with_known(known, *estimate_payload(
+            plan, (q_s, qd_s, qdd_s), f_s, arm_s,
+            (payload.weights, payload.frac, payload.prefilter_half, payload.half_window,
+             payload.noise), regs))
         mk, sk = np.ascontiguousarray(m_all[ks]), np.ascontiguousarray(s_all[ks])
     dynamic = plan.opt.wrench_acceleration == "dynamic"
     # the joints whose loads are measured: every cylinder's, every drive's with a torque

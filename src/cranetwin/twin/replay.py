@@ -9,8 +9,9 @@ Pipeline (paper Sect. 2, with the steps it leaves open made explicit)::
       ─ cylinder forces, Eq. 1–2 (or, where the pressures cannot resolve a force, the
         inverse dynamics corrected by the smoothed pressure residual,
         :mod:`cranetwin.twin.force_model`) ─ actuator joint loads F·ds/dq
-      ─ payload by sliding-window least squares (if not given) ─ inverse dynamics (RNEA):
-        joint loads, residual, joint reaction wrenches
+      ─ payload by sliding-window least squares (where not known: a constant, or a series
+        with NaN where not known, :mod:`cranetwin.twin.known_payload`) ─ inverse dynamics
+        (RNEA): joint loads, residual, joint reaction wrenches
 
 Everything runs per *chunk* of samples with enough overlap that every output instant sees the
 same data as a whole-recording computation would: Savitzky–Golay is a finite filter, the
@@ -54,6 +55,7 @@ from cranetwin.twin.buffer import RowBuffer
 from cranetwin.twin.channels import choose_smoothing
 from cranetwin.twin.checks import rod_position_problem
 from cranetwin.twin.chunk import ChunkRows, PayloadSetting, Timing, chunk
+from cranetwin.twin.known_payload import at_instants, fully_known
 from cranetwin.twin.options import END_STOP_MARGIN_M, HasSamples, ReplayOptions
 from cranetwin.twin.plan import ReplayPlan
 from cranetwin.twin.result import TwinResult
@@ -86,7 +88,9 @@ class TwinStream:
         machine: Machine description.
         channels: Column names of the sample arrays that will be pushed.
         options: Replay settings.
-        payload: Known payload [kg] (scalar) or None to estimate it from the pressures.
+        payload: Known constant payload [kg], or None to estimate it from the pressures
+            (where a known payload series pushed with the samples, :meth:`push`, is NaN or
+            absent).
     """
 
     def __init__(self, machine: Machine, channels: tuple[str, ...],
@@ -99,6 +103,10 @@ class TwinStream:
         nch = self.plan.nch
         self._raw_t = np.empty(0)
         self._raw_v = np.empty((0, nch))
+        # a known payload series: at the raw samples (NaN: not known), at the regular
+        # instants (twin.known_payload); None until a series is pushed
+        self._raw_k: F64 | None = None
+        self._known: RowBuffer | None = None
         self._origin: float | None = None
         self._period: float | None = self.opt.sample_period_s
         self._r = 0
@@ -162,9 +170,13 @@ class TwinStream:
             raise TwinError("smoothing can only be set before data are pushed")
         self._choices = tuple(choices)
 
-    def push(self, samples: SampleArrays) -> TwinResult | None:
-        """Add samples (in time order, after those pushed before); return what became final."""
-        parts = list(self.push_iter(samples))
+    def push(self, samples: SampleArrays, payload_kg: F64 | None = None) -> TwinResult | None:
+        """Add samples (in time order, after those pushed before); return what became final.
+
+        ``payload_kg``: a known payload at these samples, shape (n,) [kg], NaN where not known
+        (:mod:`cranetwin.twin.known_payload`); None: not known (NaN) at these samples.
+        Not with a constant ``payload``."""
+        parts = list(self.push_iter(samples, payload_kg))
         return TwinResult.concat(parts) if parts else None
 
     def flush(self) -> TwinResult | None:
@@ -172,7 +184,8 @@ class TwinStream:
         parts = list(self.flush_iter())
         return TwinResult.concat(parts) if parts else None
 
-    def push_iter(self, samples: SampleArrays) -> Iterator[TwinResult]:
+    def push_iter(self, samples: SampleArrays,
+                  payload_kg: F64 | None = None) -> Iterator[TwinResult]:
         """Like :meth:`push`, one chunk at a time (bounded memory for long recordings)."""
         if self._finished:
             raise TwinError("stream already flushed")
@@ -181,6 +194,7 @@ class TwinStream:
             return
         if self._raw_t.shape[0] and not t[0] > self._raw_t[-1]:
             raise TwinError("pushed samples must come after the samples pushed before")
+        self._push_known(t.shape[0], payload_kg)
         vals = np.asarray(samples.values, dtype=np.float64)
         if self.plan.cols != list(range(vals.shape[1])):
             vals = vals[:, self.plan.cols]
@@ -191,6 +205,32 @@ class TwinStream:
         if self._raw_t.shape[0] >= ROD_CHECK_SAMPLES:
             self._check_rods()
         yield from self._advance(final=False)
+
+    def _push_known(self, n: int, payload_kg: F64 | None) -> None:
+        """Keep a known payload series with the raw samples (NaN where none was pushed)."""
+        if payload_kg is not None:
+            k = np.asarray(payload_kg, dtype=np.float64)
+            if k.shape != (n,):
+                raise TwinError(f"known payload has shape {k.shape}; the samples ({n},)")
+            if self.payload is not None:
+                raise TwinError("a known payload series and a constant payload: give one")
+            if self._raw_k is None:  # the samples pushed before: not known
+                self._raw_k = np.full(self._raw_t.shape[0], np.nan)
+                self._known = RowBuffer(1)
+                self._known.base = self._reg.base
+                if self._reg.end > self._reg.base:
+                    self._known.append(np.full((self._reg.end - self._reg.base, 1), np.nan))
+        elif self._raw_k is None:
+            return
+        else:
+            k = np.full(n, np.nan)
+        assert self._raw_k is not None
+        self._raw_k = np.concatenate([self._raw_k, k])
+
+    def _known_rows(self, k0: int, k1: int) -> F64 | None:
+        """The known payload at regular samples [k0, k1) [kg] (NaN: not known), or None
+        when no series was pushed."""
+        return None if self._known is None else self._known.get(k0, k1)[:, 0]
 
     def _check_rods(self) -> None:
         """Refuse rod positions that are no stroke positions (:mod:`cranetwin.twin.checks`),
@@ -267,6 +307,11 @@ class TwinStream:
             raise TwinError("internal: regularised samples do not continue the stream")
         self._reg.append(reg.values[k0 - kr0 : k_hi - kr0 + 1])
         self._gap.append(np.any(reg.gap, axis=1)[k0 - kr0 : k_hi - kr0 + 1].astype(float))
+        if self._known is not None and k_hi >= k0:
+            assert self._raw_k is not None
+            limit = 5.0 * p if self.opt.max_gap_s is None else self.opt.max_gap_s
+            self._known.append(at_instants(reg.t[k0 - kr0 : k_hi - kr0 + 1], self._raw_t,
+                                           self._raw_k, limit)[:, None])
         # keep raw samples that the next regularisation needs (lookahead of context)
         keep_t = self._origin + (k_hi + 1) * p - look - 2 * p
         keep = int(np.searchsorted(self._raw_t, keep_t))
@@ -274,6 +319,8 @@ class TwinStream:
         if keep > 0:
             self._raw_t = self._raw_t[keep:]
             self._raw_v = self._raw_v[keep:]
+            if self._raw_k is not None:
+                self._raw_k = self._raw_k[keep:]
 
     def _stage_smooth(self, final: bool) -> None:
         assert self._choices is not None and self._period is not None
@@ -312,14 +359,20 @@ class TwinStream:
             if a < 0:
                 raise TwinError("internal: cylinder states do not continue the stream")
             self._cs.append(cs[a:])
+        known = self._known_rows(lo, hi)
         if self.payload is not None:
             mass = np.full(q.shape[0], float(self.payload))
+        elif fully_known(known):
+            assert known is not None
+            mass = np.nan_to_num(np.maximum(known, 0.0))
         else:
             ps = self._payload_setting()
-            mass, _ = estimate_payload(plan, (q, qd, qdd), f, arm,
-                                       (ps.weights, ps.frac, ps.prefilter_half, ps.half_window,
-                                        ps.noise))
-            mass = np.nan_to_num(np.maximum(mass, 0.0))
+            est, _ = estimate_payload(plan, (q, qd, qdd), f, arm,
+                                      (ps.weights, ps.frac, ps.prefilter_half, ps.half_window,
+                                       ps.noise))
+            if known is not None:
+                est = np.where(np.isfinite(known), known, est)
+            mass = np.nan_to_num(np.maximum(est, 0.0))
         sl = slice(k0 - lo, k_hi - lo)
         nj = self.machine.n_joints
         mm = np.empty((k_hi - k0, nj, nj))
@@ -361,6 +414,8 @@ class TwinStream:
             self._reg.trim(min(need, self._reg.end))
             self._gap.trim(min(need, self._gap.end))
             self._cs.trim(min(need, self._cs.end))
+            if self._known is not None:
+                self._known.trim(min(need, self._known.end))
 
     def _chunk(self, ka: int, kb: int, last: bool, ready: int, final: bool) -> TwinResult:
         """Outputs at samples [ka, kb): the rows :func:`cranetwin.twin.chunk.chunk` needs.
@@ -381,7 +436,8 @@ class TwinStream:
         cached = self.plan.use_cs and e1 < f1 and self._cs.base <= e0 and e1 < self._cs.end
         rows = ChunkRows(ka, kb, last, f0, e0, e1, self._sm.get(f0, f1 + 1),
                          self._cs.get(e0, e1 + 1) if cached else None,
-                         self._gap.get(ka, kb)[:, 0], r0, self._raw_pressures(r0, r1))
+                         self._gap.get(ka, kb)[:, 0], r0, self._raw_pressures(r0, r1),
+                         self._known_rows(e0, e1 + 1))
         return chunk(self.plan, rows, Timing(self._period, self._origin, self._r),
                      self._payload_setting(), self._choices)
 
@@ -396,7 +452,7 @@ class TwinStream:
 
 
 def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: float = 1000.0,
-                payload: float | None = None, options: ReplayOptions | None = None,
+                payload: float | F64 | None = None, options: ReplayOptions | None = None,
                 block_samples: int = 6000) -> Iterator[TwinResult]:
     """Replay a whole recording chunk by chunk (bounded memory); see :func:`replay`.
 
@@ -417,7 +473,14 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
         opt = ReplayOptions(**{**opt.__dict__,
                                "sample_period_s": nominal_period(samples.t_s,
                                                                  samples.period_ns)})
-    stream = TwinStream(machine, samples.channels, opt, payload)
+    series: F64 | None = None
+    if payload is not None and np.ndim(payload) > 0:
+        series = np.asarray(payload, dtype=np.float64)
+        if series.shape != (n,):
+            raise TwinError(f"known payload series has shape {series.shape}; the samples "
+                            f"({n},)")
+    stream = TwinStream(machine, samples.channels, opt,
+                        None if payload is None or series is not None else float(payload))
     if opt.smoothing is None and n >= 4 and opt.sample_period_s is not None:
         cols = [samples.channels.index(c) for c in stream.cmap.names]
         # (gathered even when no column moves: the gather yields a column-major copy that the
@@ -429,12 +492,14 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
         del reg
     for i in range(0, n, block_samples):
         j = min(n, i + block_samples)
-        yield from stream.push_iter(samples.take(slice(i, j)))
+        yield from stream.push_iter(samples.take(slice(i, j)),
+                                    None if series is None else series[i:j])
     yield from stream.flush_iter()
 
 
 def replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: float = 1000.0,
-           payload: float | None = None, options: ReplayOptions | None = None) -> TwinResult:
+           payload: float | F64 | None = None, options: ReplayOptions | None = None
+           ) -> TwinResult:
     """Reconstruct the machine's motion and loads from its sensor samples.
 
     Args:
@@ -443,7 +508,10 @@ def replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: float 
             dropouts are allowed.
         machine: Machine description.
         grid_hz: Output grid rate [Hz], an integer multiple of the sample rate.
-        payload: Known payload [kg], or None to estimate it (sliding-window least squares).
+        payload: Known payload [kg]: a constant, or a series at the sample times, shape
+            (n,), NaN where not known (the estimate there; :mod:`cranetwin.twin.known_payload`);
+            None to estimate it everywhere (sliding-window least squares). Where known,
+            ``payload_kg`` is it and ``payload_std_kg`` 0.
         options: Further settings (:class:`ReplayOptions`).
 
     Returns:

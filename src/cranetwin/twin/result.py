@@ -39,16 +39,17 @@ class TwinResult:
         cyl_force: Cylinder forces, Eq. 1–2 (friction at rod_v), shape (m, n_cyl) [N].
         actuator_torque: Joint loads of the actuators: F·ds/dq for cylinders, measured drive
             torque minus drive friction for torque drives, shape (m, n_joints) [N·m or N].
-        id_torque: Inverse-dynamics joint loads of (q, qd, qdd) with the payload estimate,
-            shape (m, n_joints) [N·m or N].
+        id_torque: Inverse-dynamics joint loads of (q, qd, qdd) with the payload used
+            (``payload_kg``), shape (m, n_joints) [N·m or N].
         residual: actuator_torque − id_torque, shape (m, n_joints); what the model does not
             explain (sensor noise, friction and model errors, wrong payload).
         joint_wrench: Joint reaction wrenches [fx, fy, fz, mx, my, mz] in the child body's frame
             at the joint origin (``physics.inverse_dynamics`` convention), shape
             (m, n_joints, 6) [N, N·m]: the load history of the structure.
-        payload_kg: Payload used (given, or estimated by sliding-window least squares),
-            shape (m,) [kg].
-        payload_std_kg: One-sigma uncertainty of the estimate, shape (m,) [kg] (0 if given).
+        payload_kg: Payload used (given: a constant, or a series where it is known; else
+            estimated by sliding-window least squares), shape (m,) [kg].
+        payload_std_kg: One-sigma uncertainty of the estimate, shape (m,) [kg] (0 where
+            given).
         gap: True where an input channel had to be bridged across a dropout, shape (m,).
         smoothing: The Savitzky–Golay choice per working channel name.
     """
