@@ -21,7 +21,8 @@ import argparse
 import hashlib
 import json
 import os
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +79,38 @@ def simulated(name: str, p: CraneParams = PATU655, cache: bool = True) -> Run:
     return run
 
 
+def _telescope_63(p: CraneParams) -> CraneParams:
+    cyl = (p.cyl[0], p.cyl[1], replace(p.cyl[2], bore_m=0.063, rod_m=0.036))
+    return replace(p, cyl=cyl)
+
+
+def _friction_x4(p: CraneParams) -> CraneParams:
+    cyl = tuple(replace(c, fc_n=4 * c.fc_n, b_nspm=4 * c.b_nspm) for c in p.cyl)
+    return replace(p, cyl=cyl)  # type: ignore[arg-type]
+
+
+def _light(p: CraneParams) -> CraneParams:
+    return replace(p, lift=replace(p.lift, mass_kg=p.lift.mass_kg / 2),
+                   jib=replace(p.jib, mass_kg=p.jib.mass_kg / 2),
+                   ext=replace(p.ext, mass_kg=p.ext.mass_kg / 2), tool_kg=p.tool_kg / 2)
+
+
+VARIANTS: dict[str, Callable[[CraneParams], CraneParams]] = {
+    "telescope-63mm": _telescope_63, "friction-x4": _friction_x4, "light": _light}
+"""Cranes that differ from the machine file the twin replays with (``--variant``): telescope
+cylinder 63/36 mm instead of 50/32 (the file's values are assumed), every cylinder's friction
+×4, booms and tool at half mass."""
+
+MAPPING_ERRORS: dict[str, tuple[str, str]] = {
+    "ext-offset+200mm": ("offset = 1500.0", "offset = 1700.0"),
+    "lift-offset+50mm": ("offset = 820.0", "offset = 870.0"),
+    "ext-pA-pB-swapped": ('[channels.ext_pA]\ncolumn = "Tele p piston [bar]"',
+                          '[channels.ext_pA]\ncolumn = "Tele p rod [bar]"'),
+}
+"""A user's mistakes in the mapping (``--mapping-error``): the telescope's or the lift's
+pin-to-pin offset wrong, the telescope's chamber pressures swapped (``old``, ``new`` text)."""
+
+
 # --- the logger's file -----------------------------------------------------------------------
 
 LOGGER_COLUMNS = {
@@ -101,7 +134,7 @@ def write_logger_csv(run: Run, path: str | Path) -> None:
     for k, cyl in enumerate(CYLINDERS):
         cols[LOGGER_COLUMNS[f"{CHANNEL_OF[cyl]}_s"]] = np.round(run.length_m[:, k] * 1e3, 2)
     cols[LOGGER_COLUMNS["slew_torque"]] = np.round(run.slew_torque_nm / 1e3, 3)
-    cols[LOGGER_COLUMNS["slew_angle"]] = np.round(np.degrees(run.q[:, 0]), 3)
+    cols[LOGGER_COLUMNS["slew_angle"]] = np.round(run.q[:, 0] * (180.0 / np.pi), 3)
     cols["Scale [kg]"] = np.round(run.payload_kg, 1)
     lines = [",".join(cols)]
     rows = np.column_stack(list(cols.values()))
@@ -109,9 +142,23 @@ def write_logger_csv(run: Run, path: str | Path) -> None:
     Path(path).write_text("\n".join(lines) + "\n")
 
 
-def mapping_toml(p: CraneParams = PATU655) -> str:
+def mapping_toml(p: CraneParams = PATU655, error: str | None = None) -> str:
     """The logger's mapping (docs/IMPORT.md): relative time, bar, pin-to-pin mm with the
-    cylinders' closed lengths as offsets, kN·m, degrees, a known payload column."""
+    cylinders' closed lengths as offsets, kN·m, degrees, a known payload column; with one of
+    :data:`MAPPING_ERRORS` when ``error`` names it."""
+    text = _mapping_toml(p)
+    if error is None:
+        return text
+    old, new = MAPPING_ERRORS[error]
+    if old not in text:
+        raise ValueError(f"mapping error {error!r} does not apply")
+    if error.endswith("swapped"):
+        text = text.replace('[channels.ext_pB]\ncolumn = "Tele p rod [bar]"',
+                            '[channels.ext_pB]\ncolumn = "Tele p piston [bar]"')
+    return text.replace(old, new)
+
+
+def _mapping_toml(p: CraneParams) -> str:
     out = [f'[time]\ncolumn = "t [s]"\nformat = "relative_s"\nstart = {START_EPOCH_S:.0f}\n'
            "period_s = 0.01\n"]
     for k, cyl in enumerate(CYLINDERS):
@@ -165,9 +212,11 @@ def _nrmse(est: F64, truth: F64) -> float:
 
 
 def replay_run(run: Run, workdir: str | Path, level: float = 0.0, seed: int = 0,
-               distribution: str = "uniform", scale: str = "full") -> Comparison:
-    """Write the run as a logger's file, import it with the mapping, add sensor error, replay
-    it against the built-in ``patu655`` and compare with the truth."""
+               distribution: str = "uniform", scale: str = "full",
+               mapping_error: str | None = None) -> Comparison:
+    """Write the run as a logger's file, import it with the mapping (with ``mapping_error``
+    of :data:`MAPPING_ERRORS` if given), add sensor error, replay it against the built-in
+    ``patu655`` and compare with the truth."""
     from cranetwin.importer import read_file
     from cranetwin.importer.replay import ReplayNotes, iter_replay_table
     from cranetwin.model import load_machine
@@ -175,10 +224,11 @@ def replay_run(run: Run, workdir: str | Path, level: float = 0.0, seed: int = 0,
 
     machine = load_machine("patu655")
     wd = Path(workdir)
-    csv, toml = wd / f"{run.name}.csv", wd / f"{run.name}.toml"
+    csv, toml = wd / f"{run.name}.csv", wd / f"{run.name}-{mapping_error or 'ok'}.toml"
     if not csv.exists():
         write_logger_csv(run, csv)
-        toml.write_text(mapping_toml())
+    if not toml.exists():
+        toml.write_text(mapping_toml(error=mapping_error))
     got = read_file(csv, machine, toml)
     samples = got.samples
     if level > 0:
@@ -226,21 +276,27 @@ def _steady(t: F64, payload: F64, margin_s: float = 1.5) -> npt.NDArray[np.bool_
 LEVELS = (0.0, 0.01, 0.02, 0.05)
 
 
-def table(seeds: int = 3, workdir: str | Path | None = None) -> list[Comparison]:
-    """Every scenario × (noise-free; uniform error of full and of recorded range at 1, 2, 5 %)
-    × seeds."""
+def table(seeds: int = 3, workdir: str | Path | None = None, variant: str | None = None,
+          mapping_error: str | None = None, scenarios: tuple[str, ...] = SCENARIOS,
+          scales: tuple[str, ...] = ("full", "recorded")) -> list[Comparison]:
+    """Every scenario × (noise-free; uniform error of ``scales`` at 1, 2, 5 %) × seeds, the
+    crane simulated as :data:`PATU655` or its ``variant`` (:data:`VARIANTS`), the mapping with
+    ``mapping_error`` (:data:`MAPPING_ERRORS`)."""
     import tempfile
 
+    p = PATU655 if variant is None else VARIANTS[variant](PATU655)
     out: list[Comparison] = []
     with tempfile.TemporaryDirectory() as tmp:
-        wd = Path(workdir or tmp)
-        for name in SCENARIOS:
-            run = simulated(name)
-            out.append(replay_run(run, wd))
-            for scale in ("full", "recorded"):
+        wd = Path(workdir or tmp) / (variant or "patu655")
+        wd.mkdir(parents=True, exist_ok=True)
+        for name in scenarios:
+            run = simulated(name, p)
+            out.append(replay_run(run, wd, mapping_error=mapping_error))
+            for scale in scales:
                 for level in LEVELS[1:]:
                     for seed in range(seeds):
-                        out.append(replay_run(run, wd, level, seed, "uniform", scale))
+                        out.append(replay_run(run, wd, level, seed, "uniform", scale,
+                                              mapping_error))
     return out
 
 
@@ -260,7 +316,8 @@ def markdown(rows: list[Comparison]) -> str:
         group = [r for r in rows if (r.scenario, r.scale, r.level) == key]
 
         def mean(attr: str, group: list[Comparison] = group) -> F64:
-            return np.mean([getattr(r, attr) for r in group], axis=0)
+            return np.asarray(np.mean([getattr(r, attr) for r in group], axis=0),
+                              dtype=np.float64)
 
         def fmt(v: F64, digits: int = 2) -> str:
             return " / ".join(f"{x * 100:.{digits}f}" for x in v)
@@ -285,8 +342,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--json", action="store_true", help="every replay as JSON lines")
     ap.add_argument("--workdir", default=None, help="keep the logger CSV and mapping here")
+    ap.add_argument("--variant", choices=sorted(VARIANTS), default=None,
+                    help="simulate a crane that differs from the machine file")
+    ap.add_argument("--mapping-error", choices=sorted(MAPPING_ERRORS), default=None,
+                    help="replay with a mistaken mapping")
+    ap.add_argument("--scenario", choices=SCENARIOS, action="append", default=None)
+    ap.add_argument("--scale", choices=("full", "recorded"), action="append", default=None)
     a = ap.parse_args(argv)
-    rows = table(a.seeds, a.workdir)
+    rows = table(a.seeds, a.workdir, a.variant, a.mapping_error,
+                 tuple(a.scenario or SCENARIOS), tuple(a.scale or ("full", "recorded")))
     if a.json:
         for r in rows:
             print(json.dumps(r.__dict__))

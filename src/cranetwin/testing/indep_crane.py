@@ -38,7 +38,7 @@ steps (the mass jumps at the tip), sampled at 100 Hz (:func:`simulate`).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -266,7 +266,7 @@ def mass_matrix(p: CraneParams, q: F64, payload_kg: float) -> F64:
     """M(q), shape (..., 4, 4), q (..., 4)."""
     jac = _fd_jacobian(lambda x: points(p, x), q, p.fd_h)          # (..., 5, 3, 4)
     mk = masses(p, payload_kg)
-    mt = np.einsum("b,...bxi,...bxj->...ij", mk, jac, jac)
+    mt: F64 = np.einsum("b,...bxi,...bxj->...ij", mk, jac, jac)
     return mt + _rot_mass(p, q)
 
 
@@ -469,12 +469,11 @@ class Run:
     payload_kg: F64
     energy_j: F64
     nfev: int = 0
-    extra: dict[str, F64] = field(default_factory=dict)
 
     def save(self, path: str) -> None:
         """Write to an ``.npz`` file."""
         arrays = {k: getattr(self, k) for k in self.__dataclass_fields__
-                  if k not in ("name", "nfev", "extra")}
+                  if k not in ("name", "nfev")}
         np.savez(path, name=np.array(self.name), nfev=np.array(self.nfev), **arrays)
 
     @staticmethod
