@@ -179,3 +179,27 @@ def test_every_force_above_4_percent_is_flagged_at_5_percent_full_range_error(
     missed = [(c, f, s) for c, f, s, ok in zip(indep_crane.CYLINDERS, cmp.forces, cmp.share,
                                                 cmp.observable, strict=True) if f > 0.04 and ok]
     assert not missed, missed
+
+
+@pytest.mark.timeout(60)
+def test_independent_geometry_and_mass_matrix_agree_with_the_machine_file() -> None:
+    """The same crane as ``patu655`` (a cross-check only: the simulation never calls the
+    project's physics): rod positions, M(q) and gravity at random poses."""
+    from cranetwin import physics
+    from cranetwin.model import load_machine
+
+    m = load_machine("patu655")
+    rng = np.random.default_rng(0)
+    q = np.column_stack([rng.uniform(-1, 1, 12), rng.uniform(-0.3, 1.4, 12),
+                         rng.uniform(-2.9, -0.1, 12), rng.uniform(0, 1.1, 12)])
+    closed = np.array([c.closed_m for c in P.cyl])
+    np.testing.assert_allclose(indep_crane.cylinder_lengths(P, q) - closed,
+                               physics.cylinder_lengths(m, q), atol=1e-12)
+    for payload in (0.0, 300.0):
+        mm = physics.mass_matrix(m, q, payload)
+        np.testing.assert_allclose(indep_crane.mass_matrix(P, q, payload), mm,
+                                   atol=1e-8 * np.abs(mm).max())
+        for i in range(3):
+            d = indep_crane.dynamics(P, q[i], np.zeros(NQ), payload)
+            np.testing.assert_allclose(-d.qg, physics.gravity_torques(m, q[i], payload)[0],
+                                       atol=1e-6)

@@ -332,8 +332,12 @@ def markdown(rows: list[Comparison]) -> str:
         lines.append(f"| {key[0]} | {err} | {fmt(mean('joints')[1:], digits)} | "
                      f"{fmt(mean('rods'), digits)} | {fmt(mean('forces'), digits)} | "
                      f"{fmt(mean('force_input'), digits)} | {flags} | "
-                     f"{float(mean('payload_rmse_kg')):.1f} |")
+                     f"{_kg(float(mean('payload_rmse_kg')))} |")
     return "\n".join(lines)
+
+
+def _kg(x: float) -> str:
+    return "–" if not np.isfinite(x) else f"{x:.1f}"
 
 
 def main(argv: list[str] | None = None) -> int:
