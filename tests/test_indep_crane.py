@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from cranetwin.testing import indep_check, indep_crane
+import indep_check
+from cranetwin.testing import indep_crane
 from cranetwin.testing.indep_crane import NQ, PATU655, SPA, SPB, SQ, SQD, CraneParams
 
 P = PATU655

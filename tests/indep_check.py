@@ -10,9 +10,11 @@ inject_error`, uniform, of full or recorded range) and replayed by
 positions and cylinder forces are compared with the simulation's truth (NRMSE over the truth's
 range, docs/ACCURACY.md) together with the force observability flag of each cylinder.
 
-``python -m cranetwin.testing.indep_check`` prints the table of docs/ACCURACY.md ("Independent
-crane simulation"). Simulations are cached as ``.npz`` under ``CRANETWIN_CACHE_DIR``/indep,
-keyed by the simulation's source text.
+``python tests/indep_check.py`` prints the table of docs/ACCURACY.md ("Independent crane
+simulation"). Simulations are cached as ``.npz`` under ``CRANETWIN_CACHE_DIR``/indep, keyed by
+the simulation's source text. This module lives with the tests, not in ``cranetwin.testing``:
+it drives the importer, which the synthetic-data package may not import (docs/ARCHITECTURE.md);
+the simulation itself is :mod:`cranetwin.testing.indep_crane`.
 """
 
 from __future__ import annotations
@@ -341,7 +343,7 @@ def _kg(x: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m cranetwin.testing.indep_check [--seeds N] [--json]``."""
+    """``python tests/indep_check.py [--seeds N] [--json] [--variant …] [--mapping-error …]``."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--json", action="store_true", help="every replay as JSON lines")
