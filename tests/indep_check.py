@@ -1,6 +1,6 @@
 """The twin on a recording it did not make: the independent crane simulation through the user path.
 
-:mod:`cranetwin.testing.indep_crane` simulates the PATU 655 without any of the project's
+:mod:`cranetwin.testing.indep_sim` simulates the PATU 655 without any of the project's
 physics. Its run is written as a data logger would (:func:`write_logger_csv`: pressures in bar,
 cylinder **pin-to-pin lengths** in mm, slew in degrees, torque in kN·m, time relative to a
 start), read back with a mapping TOML (:func:`mapping_toml`, docs/IMPORT.md: ``pin_to_pin``
@@ -14,7 +14,7 @@ range, docs/ACCURACY.md) together with the force observability flag of each cyli
 simulation"). Simulations are cached as ``.npz`` under ``CRANETWIN_CACHE_DIR``/indep, keyed by
 the simulation's source text. This module lives with the tests, not in ``cranetwin.testing``:
 it drives the importer, which the synthetic-data package may not import (docs/ARCHITECTURE.md);
-the simulation itself is :mod:`cranetwin.testing.indep_crane`.
+the simulation itself is :mod:`cranetwin.testing.indep_sim`.
 """
 
 from __future__ import annotations
@@ -30,8 +30,9 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from cranetwin.testing import indep_crane, indep_scenarios
-from cranetwin.testing.indep_crane import CYLINDERS, PATU655, CraneParams, Run
+from cranetwin.testing import indep_crane, indep_scenarios, indep_sim
+from cranetwin.testing.indep_crane import CYLINDERS, PATU655, CraneParams
+from cranetwin.testing.indep_sim import Run
 
 F64 = npt.NDArray[np.float64]
 
@@ -51,14 +52,14 @@ def _cache_dir() -> Path:
 
 def _source_key(p: CraneParams, name: str) -> str:
     h = hashlib.sha256()
-    for mod in (indep_crane, indep_scenarios):
+    for mod in (indep_crane, indep_sim, indep_scenarios):
         h.update(Path(str(mod.__file__)).read_bytes())
     h.update(repr(p).encode())
     h.update(name.encode())
     return h.hexdigest()[:16]
 
 
-def scenario(p: CraneParams, name: str) -> indep_crane.Scenario:
+def scenario(p: CraneParams, name: str) -> indep_sim.Scenario:
     """A scenario of :data:`SCENARIOS` by name."""
     if name == "valve-steps":
         return indep_scenarios.valve_steps(p)
@@ -72,7 +73,7 @@ def simulated(name: str, p: CraneParams = PATU655, cache: bool = True) -> Run:
     path = _cache_dir() / f"{name}-{_source_key(p, name)}.npz"
     if cache and path.exists():
         return Run.load(str(path))
-    run = indep_crane.simulate(p, scenario(p, name))
+    run = indep_sim.simulate(p, scenario(p, name))
     if cache:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.npz")

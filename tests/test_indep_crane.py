@@ -1,9 +1,10 @@
 """The twin on data the project did not make: an independent PATU 655 simulation.
 
-:mod:`cranetwin.testing.indep_crane` shares no code with the twin's physics (Lagrangian with
-finite-difference Jacobians instead of RNEA, its own cylinder and four-bar geometry, its own
-hydraulics). These tests check the simulation against laws (energy, hand statics), then the
-twin against it through the user path (logger CSV, mapping TOML, import, replay).
+:mod:`cranetwin.testing.indep_crane` and :mod:`~cranetwin.testing.indep_sim` share no code
+with the twin's physics (Lagrangian with finite-difference Jacobians instead of RNEA, its own
+cylinder and four-bar geometry, its own hydraulics). These tests check the simulation against
+laws (energy, hand statics), then the twin against it through the user path (logger CSV,
+mapping TOML, import, replay).
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import indep_check
-from cranetwin.testing import indep_crane
-from cranetwin.testing.indep_crane import NQ, PATU655, SPA, SPB, SQ, SQD, CraneParams
+from cranetwin.testing import indep_crane, indep_sim
+from cranetwin.testing.indep_crane import NQ, PATU655, CraneParams
+from cranetwin.testing.indep_sim import SPA, SPB, SQ, SQD
 
 P = PATU655
 
@@ -43,10 +45,10 @@ def _energy_drift(p: CraneParams, duration_s: float = 0.3) -> tuple[float, float
     """(largest |ΔE| of kinetic + gravity + oil energy, largest |Δ| of kinetic + gravity) [J]
     over a free motion: valves closed, no friction, slewing at 0.6 rad/s, boom moving."""
     q0 = np.array([0.0, 0.6, -1.2, 0.5])
-    x0 = indep_crane.holding_state(p, q0, 200.0, p_low_pa=5.0e6)   # no chamber near tank
+    x0 = indep_sim.holding_state(p, q0, 200.0, p_low_pa=5.0e6)   # no chamber near tank
     x0[SQD] = [0.6, 0.15, -0.2, 0.1]
     closed = lambda t, x: (np.zeros(3), 0.0)  # noqa: E731
-    sol = solve_ivp(lambda t, y: indep_crane.rhs(p, t, y, 200.0, closed), (0.0, duration_s),
+    sol = solve_ivp(lambda t, y: indep_sim.rhs(p, t, y, 200.0, closed), (0.0, duration_s),
                     x0, method="DOP853", rtol=1e-9, atol=1e-9,
                     t_eval=np.linspace(0.0, duration_s, 31))
     assert sol.success
@@ -78,7 +80,7 @@ def test_independent_crane_conserves_energy_with_valves_closed_and_no_friction(
         d = real(p, q, qd, m)
         return indep_crane.Dynamics(d.m, np.zeros(NQ), d.qg, d.length, d.dldq)
 
-    monkeypatch.setattr(indep_crane, "dynamics", no_coriolis)
+    monkeypatch.setattr(indep_sim, "dynamics", no_coriolis)
     wrong, _ = _energy_drift(p)
     assert wrong > 100 * max(drift, 1e-3), (wrong, drift)
 
@@ -98,7 +100,7 @@ def test_holding_pressures_balance_gravity_by_hand_statics(payload: float) -> No
     by hand (lift about O1, jib through the four-bar's two-force brackets about O2, telescope
     along the jib), not from the simulation's Jacobians."""
     q = np.array([0.3, 0.5, -1.3, 0.6])
-    x = indep_crane.holding_state(P, q, payload)
+    x = indep_sim.holding_state(P, q, payload)
     force = np.array([x[SPA][k] * c.a1 - x[SPB][k] * c.a2 for k, c in enumerate(P.cyl)])
     pts = indep_crane.points(P, q)                         # world (x, y, z)
     planar = np.column_stack([pts[:, 0] * np.cos(q[0]) + pts[:, 1] * np.sin(q[0]), pts[:, 2]])
@@ -135,7 +137,7 @@ def test_holding_pressures_balance_gravity_by_hand_statics(payload: float) -> No
 
 @pytest.mark.timeout(30)
 def test_independent_crane_imports_none_of_the_twin_physics() -> None:
-    code = ("import sys, cranetwin.testing.indep_crane, cranetwin.testing.indep_scenarios\n"
+    code = ("import sys, cranetwin.testing.indep_sim, cranetwin.testing.indep_scenarios\n"
             "bad = [m for m in sys.modules if m.split('.')[1:2] and m.split('.')[1] in "
             "('physics', 'model', 'sim', 'twin')]\nprint(bad)\nassert not bad")
     src = str(Path(indep_crane.__file__).parents[2])
@@ -145,7 +147,7 @@ def test_independent_crane_imports_none_of_the_twin_physics() -> None:
 
 
 @lru_cache(maxsize=1)
-def _run() -> indep_crane.Run:
+def _run() -> indep_sim.Run:
     """20 s of valve steps (lift, jib, telescope, slewing), cached under CRANETWIN_CACHE_DIR
     (≈ 30 CPU s when not cached)."""
     return indep_check.simulated("valve-steps")

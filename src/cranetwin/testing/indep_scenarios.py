@@ -1,4 +1,4 @@
-"""Operator programs for the independent crane simulation (:mod:`cranetwin.testing.indep_crane`).
+"""Operator programs for the independent crane simulation (:mod:`cranetwin.testing.indep_sim`).
 
 * :func:`valve_steps` — open-loop valve-voltage steps and ramps of the lift, jib and telescope
   valves (like Figure 3 of Zhidchenko & Handroos 2022, with the telescope moving too) and a
@@ -16,16 +16,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from cranetwin.testing.indep_crane import (
-    NC,
-    SQ,
-    SQD,
-    CraneParams,
-    Scenario,
-    cylinder_lengths,
-    holding_state,
-    joints_from_rods,
-)
+from cranetwin.testing.indep_crane import NC, CraneParams, cylinder_lengths, joints_from_rods
+from cranetwin.testing.indep_sim import SQ, SQD, Scenario, holding_state
 
 F64 = npt.NDArray[np.float64]
 
