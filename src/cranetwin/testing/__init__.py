@@ -11,6 +11,10 @@ Nothing outside tests, benchmarks, the web preview and warm-up may treat these a
   with injectable misuse (analytics tests, ``cranetwin report --demo``, the analytics benchmark).
 * :mod:`cranetwin.testing.views` — scripted crane motion in the API's JSON shapes (web preview
   and web tests; forces are a quasi-static estimate, not physics).
+* :mod:`cranetwin.testing.indep_crane`, :mod:`~cranetwin.testing.indep_sim`,
+  :mod:`~cranetwin.testing.indep_scenarios` — a PATU 655 simulated without any of the project's
+  physics (Lagrangian, own geometry and hydraulics; numpy + scipy): the twin checked on data it
+  did not make (``tests/indep_check.py``, docs/ACCURACY.md).
 
 Each module is imported on its own (``from cranetwin.testing.blocks import tiled_blocks``); this
 package imports none of them, so importing it costs nothing.
