@@ -256,6 +256,8 @@ def test_status_reports_live_fanout_and_prometheus_metrics(store: Store) -> None
     with running_daemon(store, bus=bus, metrics_host="127.0.0.1", metrics_port=0) as d:
         assert drive([sender], d.address, 30)
         assert d.metrics_url is not None and d.metrics_url.startswith("http://127.0.0.1:")
+        # an ack is counted after its sendto returns: the sender may have it a moment earlier
+        wait_for(lambda: d.snapshot()["acks_sent"] >= 1)
         text = urllib.request.urlopen(d.metrics_url, timeout=5).read().decode()
         s = udp()
         s.sendto(b"junk", d.address)  # one dropped datagram, to see a labelled counter
