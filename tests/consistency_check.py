@@ -102,50 +102,43 @@ def indep(seeds: int, scales: tuple[str, ...]) -> None:
                           flush=True)
 
 
-BAD_CYLINDER = {"telescope-63mm": ("extension",), "friction-x4": ("lift", "jib", "extension"),
+BAD_CYLINDER = {"telescope-63mm": ("extension",), "friction-x4": ("extension",),
                 "light": ("lift", "jib", "extension"), "ext-offset+200mm": ("extension",),
                 "lift-offset+50mm": ("lift",), "ext-pA-pB-swapped": ("extension",)}
-"""The cylinders each model error concerns."""
+"""The cylinder(s) each model error concerns (friction ×4: the telescope, whose force it
+changes by 8 %; the lift's and jib's by < 1 %)."""
 
 
 def summary(path: str) -> None:
-    """False alarms (no model error, any cylinder flagged) and misses (a model error, its
-    cylinder(s) not flagged), with the statistic's quantiles."""
+    """False alarms (no model error, any cylinder flagged) per error model, the statistic's
+    quantiles, and per model error: replays with any cylinder flagged, and with its own."""
     rows = [json.loads(line) for line in Path(path).read_text().splitlines()
             if line.startswith("{")]
-    good = [r for r in rows if not r["bad"]]
     groups: dict[str, list[dict[str, Any]]] = {}
-    for r in good:
-        key = f"{r['kind']} {r['error']}/{r['scale']}"
-        groups.setdefault(key, []).append(r)
+    for r in rows:
+        if not r["bad"]:
+            groups.setdefault(f"{r['kind']} {r['error']}/{r['scale']}", []).append(r)
     print("no model error: replays with any cylinder flagged (false alarms)")
     for key, rs in sorted(groups.items()):
         alarms = [r for r in rs if any(not c["consistent"] for c in r["cylinders"])]
         sh = np.array([c["share"] or 0 for r in rs for c in r["cylinders"]])
         nr = np.array([c["noise_ratio"] or 0 for r in rs for c in r["cylinders"]])
         print(f"  {key}: {len(alarms)}/{len(rs)}; share median {np.median(sh):.3f} max "
-              f"{sh.max():.3f}; noise ratio median {np.median(nr):.2f} max {nr.max():.2f}")
-        for r in alarms:
-            bad = [c for c in r["cylinders"] if not c["consistent"]]
-            print("     ", r.get("crane"), r["scenario"], r.get("rate", 100), r["level"],
-                  [(c["cylinder"], c["share"], c["noise_ratio"]) for c in bad])
-    print("model error: replays whose erroneous cylinder(s) are not all flagged (misses)")
-    bad_groups: dict[str, list[dict[str, Any]]] = {}
+              f"{sh.max():.3f}; noise ratio median {np.median(nr):.2f} max {nr.max():.1f}")
+    print("model error: replays flagged on any cylinder / on its own cylinder(s)")
+    bad: dict[str, list[dict[str, Any]]] = {}
     for r in rows:
         if r["bad"]:
-            bad_groups.setdefault(f"{r['bad']} {r['scale']} {r['level']}", []).append(r)
-    for key, rs in bad_groups.items():
-        cyls = BAD_CYLINDER[rs[0]["bad"]]
-        miss = 0
-        stats = []
-        hints = []
-        for r in rs:
-            cs = [c for c in r["cylinders"] if c["cylinder"] in cyls]
-            miss += any(c["consistent"] for c in cs)
-            stats += [(c["cylinder"][:3], c["share"], c["noise_ratio"]) for c in cs]
-            hints += [c["hint"] for c in r["cylinders"] if c["hint"]]
-        st = "; ".join(f"{n} {s:.3f}/{x:.1f}" for n, s, x in stats[:3])
-        print(f"  {key}: missed {miss}/{len(rs)}  (share/ratio: {st}) hints {sorted(set(hints))}")
+            bad.setdefault(r["bad"], []).append(r)
+    for key, rs in bad.items():
+        cyls = BAD_CYLINDER[key]
+        anyc = sum(any(not c["consistent"] for c in r["cylinders"]) for r in rs)
+        own = sum(all(not c["consistent"] for c in r["cylinders"] if c["cylinder"] in cyls)
+                  for r in rs)
+        sh = [c["share"] for r in rs for c in r["cylinders"] if c["cylinder"] in cyls]
+        hints = sorted({c["hint"] for r in rs for c in r["cylinders"] if c["hint"]})
+        print(f"  {key}: any {anyc}/{len(rs)}, own {own}/{len(rs)}; own share "
+              f"{min(sh):.3f}–{max(sh):.3f}; hints {hints}")
 
 
 def main(argv: list[str] | None = None) -> int:
