@@ -143,6 +143,28 @@ class ForceObservabilityOut(BaseModel):
     observable: bool = Field(description="share ≤ 0.1; false: the force is mostly sensor error")
 
 
+class ModelConsistencyOut(BaseModel):
+    """Whether one cylinder's pressures agree with the inverse dynamics of the measured motion
+    in the replayed window (docs/ACCURACY.md, 'Model consistency')."""
+
+    cylinder: str
+    typical_n: float | None = Field(description="median |1 s mean| of the force residual "
+                                                "F − F_id [N]")
+    residual_rms_n: float | None = Field(description="RMS of the 1 s means [N]")
+    raw_rms_n: float | None = Field(description="RMS of the force residual per sample [N]")
+    range_n: float | None = Field(description="range of F_id's 1 s means [N]")
+    level_n: float | None = Field(description="RMS of F_id, the force the motion needs [N]")
+    share: float | None = Field(description="typical_n / level_n")
+    noise_n: float | None = Field(description="what sensor noise leaves in a 1 s mean [N]")
+    noise_ratio: float | None = Field(description="typical_n / noise_n")
+    consistent: bool = Field(description="false: share > 0.1 and noise_ratio > 3 — the machine "
+                                         "file or the mapping does not describe this cylinder")
+    c_a: float | None = Field(description="residual's coefficient on A_A·p_A")
+    c_b: float | None = Field(description="residual's coefficient on −A_B·p_B")
+    r2: float | None = Field(description="share of the residual the pressure fit explains")
+    hint: str | None = Field(description="likely cause (swapped chambers) or null")
+
+
 class TwinOut(BaseModel):
     """Replay of a window (twin output resampled to ``rate_hz``)."""
 
@@ -171,6 +193,10 @@ class TwinOut(BaseModel):
         default_factory=list,
         description="per cylinder: can the pressures resolve its force in the replayed window "
                     "(docs/ACCURACY.md, 'Unobservable forces')")
+    model_consistency: list[ModelConsistencyOut] = Field(
+        default_factory=list,
+        description="per cylinder: do its pressures agree with the motion's inverse dynamics "
+                    "beyond sensor noise (docs/ACCURACY.md, 'Model consistency')")
 
 
 class Series(BaseModel):

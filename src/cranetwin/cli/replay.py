@@ -112,6 +112,10 @@ def replay_cmd(
 
     for line in unobservable(notes.force_observability(m)):
         typer.echo(f"warning: {line}", err=True)
+    from cranetwin.twin.consistency import inconsistent
+
+    for line in inconsistent(notes.model_consistency(m)):
+        typer.echo(f"warning: {line}", err=True)
 
 
 def register(app: typer.Typer) -> None:

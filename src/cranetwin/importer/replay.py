@@ -56,6 +56,7 @@ from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import SmoothingChoice
 from cranetwin.twin import ReplayOptions, TwinResult, iter_replay
+from cranetwin.twin.consistency import ModelConsistency, ResidualStats
 from cranetwin.twin.observability import ForceObservability, ForceRange
 
 F64 = npt.NDArray[np.float64]
@@ -194,13 +195,20 @@ class ReplayNotes:
     forces: ForceRange
     smoothing: dict[str, SmoothingChoice]
     payload: list[tuple[F64, F64, F64]] = field(default_factory=list)
+    residuals: ResidualStats = field(default_factory=ResidualStats)
 
     @staticmethod
     def empty() -> ReplayNotes:
         return ReplayNotes(ForceRange(), {})
 
-    def add(self, res: TwinResult, known_kg: F64 | None = None) -> None:
+    def add(self, res: TwinResult, known_kg: F64 | None = None,
+            machine: Machine | None = None) -> None:
+        """Take in a chunk (with ``machine``: also its residuals, for
+        :meth:`model_consistency`)."""
         self.forces.add(res.cyl_force)
+        if machine is not None:
+            self.residuals.add(machine, res.t_s, res.q, res.residual, res.id_torque, res.p_a,
+                               res.p_b, res.gap)
         if not self.smoothing:
             self.smoothing.update(res.smoothing)
         if known_kg is not None:
@@ -217,6 +225,11 @@ class ReplayNotes:
     def force_observability(self, machine: Machine) -> tuple[ForceObservability, ...]:
         """Per cylinder, whether the pressures resolve its force over the replayed window."""
         return self.forces.assess(machine, self.smoothing)
+
+    def model_consistency(self, machine: Machine) -> tuple[ModelConsistency, ...]:
+        """Per cylinder, whether its pressures agree with the motion's inverse dynamics over
+        the replayed window (:mod:`cranetwin.twin.consistency`)."""
+        return self.residuals.assess(machine, self.smoothing)
 
 
 def iter_replay_table(source: Source, machine: Machine,
@@ -280,7 +293,7 @@ def iter_replay_table(source: Source, machine: Machine,
             if grid_known is not None:
                 cols = _with_known(cols, grid_known, not use)
             if notes is not None:
-                notes.add(res, None if use else grid_known)
+                notes.add(res, None if use else grid_known, machine)
             cols.update(channel_flags(samples, res.t_s, period))
             yield cols
 

@@ -324,7 +324,7 @@ class ImportedFileSource:
         self.known_payload_kg = got.payload_kg
         self.lifts: list[LiftError] | None = None
         self.import_report = got.report
-        self.warnings: list[str] = []  # forces the pressures do not resolve (after chunks())
+        self.warnings: list[str] = []  # unresolved or inconsistent forces (after chunks())
         self.label = self.label or (f"recording {self.path.name} ({got.report.rows_accepted} "
                                     f"samples, {got.report.rows_refused} rows refused), "
                                     "replayed by the twin")
@@ -346,11 +346,13 @@ class ImportedFileSource:
         from cranetwin.importer.replay import check_samples, uses_known
         from cranetwin.signal import SmoothingChoice
         from cranetwin.twin import iter_replay
+        from cranetwin.twin.consistency import ResidualStats, inconsistent
         from cranetwin.twin.observability import ForceRange, unobservable
 
         check_samples(self.samples, self.machine)
         done = 0
         forces = ForceRange()
+        residuals = ResidualStats()
         smoothing: dict[str, SmoothingChoice] = {}
         pairs: list[tuple[F64, F64, F64]] = []
         use = uses_known(self.known_payload_kg, self.payload_kg, self.payload_column)
@@ -360,6 +362,8 @@ class ImportedFileSource:
             if not res.n:
                 continue
             forces.add(res.cyl_force)
+            residuals.add(self.machine, res.t_s, res.q, res.residual, res.id_torque, res.p_a,
+                          res.p_b, res.gap)
             smoothing = smoothing or res.smoothing
             n = int(np.searchsorted(self.samples.t_s, res.t_s[-1], side="right")) - done
             done += n
@@ -375,5 +379,6 @@ class ImportedFileSource:
             t, known, est = (np.concatenate(x) for x in zip(*pairs, strict=True))
             self.lifts = lift_errors(t, known, est)
         self.warnings = unobservable(forces.assess(self.machine, smoothing))
+        self.warnings += inconsistent(residuals.assess(self.machine, smoothing))
         if self.warnings:
             self.label += "; " + "; ".join(self.warnings)

@@ -114,6 +114,7 @@ def twin_json(machine: Machine, res: TwinResult, t0_s: float, t1_s: float,
                     "std_kg": _r(res.payload_std_kg[idx], 2)},
         "tool_force": tool_force_json(machine, q, res.residual[idx]) if len(idx) else None,
         "force_observability": [v.as_json() for v in res.force_observability(machine)],
+        "model_consistency": [v.as_json() for v in res.model_consistency(machine)],
     }
 
 

@@ -14,6 +14,7 @@ from cranetwin.model import Machine
 from cranetwin.signal import SmoothingChoice
 
 if TYPE_CHECKING:
+    from cranetwin.twin.consistency import ModelConsistency
     from cranetwin.twin.observability import ForceObservability
 
 F64 = npt.NDArray[np.float64]
@@ -92,6 +93,15 @@ class TwinResult:
         rng = ForceRange()
         rng.add(self.cyl_force)
         return rng.assess(machine, self.smoothing)
+
+    def model_consistency(self, machine: Machine) -> tuple[ModelConsistency, ...]:
+        """Per cylinder, whether its pressures agree with the inverse dynamics of the motion
+        beyond what sensor noise explains (:mod:`cranetwin.twin.consistency`): a wrong bore,
+        friction, pin offset or swapped chambers in the machine file or the mapping."""
+        from cranetwin.twin.consistency import assess
+
+        return assess(machine, self.t_s, self.q, self.residual, self.id_torque, self.p_a,
+                      self.p_b, self.gap, self.smoothing)
 
     def tip_path(self, machine: Machine) -> F64:
         """World position of the load point, shape (m, 3) [m] (computed on demand)."""
