@@ -99,7 +99,8 @@ class ModelConsistency(NamedTuple):
     def message(self) -> str:
         """One line naming the cylinder and the numbers."""
         verdict = ("consistent" if self.consistent else
-                   "INCONSISTENT with the machine file or the mapping")
+                   "INCONSISTENT with the machine file, the mapping or the pressure "
+                   "sensors' calibration")
         text = (f"cylinder {self.cylinder!r}: pressures and motion {verdict}: force "
                 f"residual {self.typical_n:.0f} N (median over {BLOCK_S:g} s means; RMS "
                 f"{self.raw_rms_n:.0f} N) = {100 * self.share:.0f} % of the force the motion "
