@@ -40,7 +40,7 @@ def _verdicts(tmp: Path, variant: str | None = None, mapping_error: str | None =
     return {v.cylinder: v for v in notes.model_consistency(m)}
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(180)  # a cold cache simulates the crane first (35 s quiet)
 @pytest.mark.parametrize("level", [0.0, 0.02])
 def test_a_crane_that_matches_its_machine_file_is_consistent(tmp_path: Path,
                                                                level: float) -> None:
@@ -50,7 +50,7 @@ def test_a_crane_that_matches_its_machine_file_is_consistent(tmp_path: Path,
     assert not inconsistent(tuple(got.values()))
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(180)  # a cold cache simulates the crane first (35 s quiet)
 def test_swapped_chambers_are_inconsistent_and_named(tmp_path: Path) -> None:
     got = _verdicts(tmp_path, mapping_error="ext-pA-pB-swapped")
     ext = got["extension"]
@@ -60,7 +60,7 @@ def test_swapped_chambers_are_inconsistent_and_named(tmp_path: Path) -> None:
     assert got["lift"].consistent and got["jib"].consistent
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(180)  # a cold cache simulates the crane first (35 s quiet)
 def test_a_telescope_bore_unlike_the_machine_file_is_inconsistent(tmp_path: Path) -> None:
     got = _verdicts(tmp_path, variant="telescope-63mm")
     ext = got["extension"]
@@ -71,7 +71,7 @@ def test_a_telescope_bore_unlike_the_machine_file_is_inconsistent(tmp_path: Path
     assert got["lift"].consistent and got["jib"].consistent
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(180)  # a cold cache simulates the crane first (35 s quiet)
 def test_the_replay_command_warns_of_swapped_chambers(tmp_path: Path) -> None:
     from cranetwin.cli import app
 
@@ -86,7 +86,7 @@ def test_the_replay_command_warns_of_swapped_chambers(tmp_path: Path) -> None:
     assert len(lines) == 1 and "'extension'" in lines[0] and "swapped" in lines[0], bad.stderr
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(180)  # a cold cache simulates the crane first (35 s quiet)
 def test_the_result_and_the_api_object_carry_the_verdicts(tmp_path: Path) -> None:
     """The whole result's verdicts (a correct mapping) reach the API's twin object."""
     from cranetwin.importer import read_file
