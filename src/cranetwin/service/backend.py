@@ -20,6 +20,7 @@ from __future__ import annotations
 import secrets
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from typing import Any
@@ -247,6 +248,29 @@ class Backend:
         """(first, last) stored sample time [s], or None when nothing is stored."""
         return self.store.data_range(machine_id)
 
+    def data_ranges(self, machine_ids: list[str]) -> dict[str, tuple[int, tuple[float, float] |
+                                                                        None]]:
+        """:meth:`data_range` of many machines, one statement per engine (an index probe per
+        machine each way): machine → (its primary key, (first, last) or None). Unregistered
+        machines are left out."""
+        from sqlalchemy import func, select
+
+        from cranetwin.storage.blocks import BlockRow
+        from cranetwin.storage.machines import MachineRow
+
+        b, m = BlockRow, MachineRow
+        lo = select(func.min(b.t_start_ns)).where(b.machine_pk == m.id).scalar_subquery()
+        hi = select(func.max(b.t_end_ns)).where(b.machine_pk == m.id).scalar_subquery()
+        out: dict[str, tuple[int, tuple[float, float] | None]] = {}
+        for engine, ids in self.store.engines_of(machine_ids):
+            with Session(engine) as s:
+                for mid, pk, a, z in s.execute(select(m.machine_id, m.id, lo, hi)
+                                               .where(m.machine_id.in_(ids))):
+                    out[mid] = (int(pk), None if a is None else (int(a) / 1e9, int(z) / 1e9))
+        with self._lock:
+            self._pks.update({mid: v[0] for mid, v in out.items()})
+        return out
+
     def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
         """Samples with t in [t0_s, t1_s]."""
         out: SampleArrays = self.store.read_samples(machine_id, t0_s, t1_s)
@@ -331,6 +355,22 @@ class Backend:
             self._progress_cache[machine_id] = p
         return p
 
+    def progress_many(self, machine_ids: list[str]) -> dict[str, Progress]:
+        """:meth:`progress` of many machines, one statement per engine (machines without a
+        progress row left out)."""
+        from sqlalchemy import select
+
+        row_t = keyrepo.TwinProgressRow
+        out: dict[str, Progress] = {}
+        for engine, ids in self.store.engines_of(machine_ids):
+            with Session(engine) as s:
+                for row in s.scalars(select(row_t).where(row_t.machine_id.in_(ids))):
+                    out[row.machine_id] = Progress(**{f: getattr(row, f)
+                                                      for f in Progress.__dataclass_fields__})
+        with self._lock:
+            self._progress_cache.update(out)
+        return out
+
     def cached_progress(self, machine_id: str) -> Progress | None:
         """Last progress seen by this process (no database read; for the live stream)."""
         with self._lock:
@@ -386,20 +426,29 @@ class Backend:
             raise _WatermarkMoved
 
     def commit_window(self, prog: Progress, expected_watermark_s: float | None,
-                      channels: list[str], t_s: F64, values: F64) -> bool:
+                      channels: list[str], t_s: F64, values: F64,
+                      also: Callable[[Session, int], None] | None = None) -> bool:
         """Derived summaries of one window and the new progress, in one transaction, committed
         only if the stored watermark is still ``expected_watermark_s`` (None: no row yet).
 
+        Args:
+            also: Further writes of the window in the same transaction, given the session and
+                the machine's primary key (the twin worker's analytics part, lift seconds and
+                events).
+
         Returns:
             Whether it was committed. False: another worker committed this window first; nothing
-            of this one was written (summaries included).
+            of this one was written (summaries and ``also`` included).
         """
         try:
             with self.session(prog.machine_id) as s, s.begin():
-                if t_s.size:
+                if t_s.size or also is not None:
                     pk = self._pk(s, prog.machine_id)
+                if t_s.size:
                     t_ns = np.round(t_s * 1e9).astype(np.int64)
                     summ.replace(s, pk, channels, t_ns, values)
+                if also is not None:
+                    also(s, pk)
                 self._put_progress(s, prog, expected_watermark_s)
         except (_WatermarkMoved, IntegrityError):
             return False

@@ -12,6 +12,7 @@ from typing import Any
 from sqlalchemy import BigInteger, ForeignKey, Index, String, Text, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column
 
+from cranetwin.errors import StorageError
 from cranetwin.storage.base import Base
 
 
@@ -50,6 +51,30 @@ class Event:
     kind: str
     severity: str = "warning"
     evidence: dict[str, Any] = field(default_factory=dict)
+
+
+def insert_ignoring_stored(dialect: str) -> Any:
+    """The insert of event rows that skips those already stored (same machine, time, kind),
+    returning the new rows' ids (execute it with a list of row dicts)."""
+    from sqlalchemy.dialects import postgresql, sqlite
+
+    ins = postgresql.insert(EventRow) if dialect == "postgresql" else sqlite.insert(EventRow)
+    return ins.on_conflict_do_nothing(
+        index_elements=["machine_pk", "t_ns", "kind"]).returning(EventRow.id)
+
+
+def add_in(session: Any, machine_pk: int, events: list[Event]) -> int:
+    """Store events of one machine inside the caller's transaction (see
+    :meth:`cranetwin.storage.Store.add_events`); returns how many were new."""
+    if not events:
+        return 0
+    for e in events:
+        if e.severity not in SEVERITIES:
+            raise StorageError(f"event severity {e.severity!r} must be one of {SEVERITIES}")
+    rows = [{"machine_pk": machine_pk, "t_ns": int(round(e.t_s * 1e9)), "kind": e.kind,
+             "severity": e.severity, "evidence_json": json.dumps(e.evidence)} for e in events]
+    stmt = insert_ignoring_stored(session.get_bind().dialect.name)
+    return len(session.execute(stmt, rows).all())
 
 
 def to_event(machine_id: str, row: EventRow) -> Event:

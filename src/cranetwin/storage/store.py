@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 from sqlalchemy import Engine, func, select
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session
 
@@ -520,10 +519,7 @@ class Store:
             rows = [{"machine_pk": self._machine_pk(s, e.machine_id), "t_ns": _ns(e.t_s),
                      "kind": e.kind, "severity": e.severity,
                      "evidence_json": json.dumps(e.evidence)} for e in events]
-            ins = (postgresql.insert(EventRow) if self.dialect == "postgresql"
-                   else sqlite.insert(EventRow))
-            stmt = ins.on_conflict_do_nothing(
-                index_elements=["machine_pk", "t_ns", "kind"]).returning(EventRow.id)
+            stmt = events_mod.insert_ignoring_stored(self.dialect)
             return len(s.execute(stmt, rows).all())
 
     def events(self, machine_id: str, t0_s: float, t1_s: float, kinds: Iterable[str] | None = None,
