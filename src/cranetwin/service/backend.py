@@ -417,11 +417,9 @@ class Backend:
             s.add(row_t(**values))
             s.flush()  # a concurrent insert fails here (primary key)
             return
-        res = s.execute(sa_update(row_t)
-                        .where(row_t.machine_id == prog.machine_id,
-                               row_t.watermark_s == expected_watermark_s)
-                        .values(**values)
-                        .execution_options(synchronize_session=False))
+        params = {f"p_{k}": v for k, v in values.items()}
+        params["p_expected_watermark_s"] = expected_watermark_s
+        res = s.execute(_progress_update(), params)
         if getattr(res, "rowcount", 0) != 1:
             raise _WatermarkMoved
 
@@ -455,6 +453,22 @@ class Backend:
         with self._lock:
             self._progress_cache[prog.machine_id] = prog
         return True
+
+
+@lru_cache(maxsize=1)
+def _progress_update() -> Any:
+    """``UPDATE twin_progress`` of every field where the machine and the watermark match
+    (built once; the parameters are ``p_`` and the fields, ``updated_s`` and
+    ``expected_watermark_s``)."""
+    from sqlalchemy import bindparam
+
+    row_t = keyrepo.TwinProgressRow
+    cols = [*Progress.__dataclass_fields__, "updated_s"]
+    return (sa_update(row_t)
+            .where(row_t.machine_id == bindparam("p_machine_id"),
+                   row_t.watermark_s == bindparam("p_expected_watermark_s"))
+            .values({c: bindparam(f"p_{c}") for c in cols if c != "machine_id"})
+            .execution_options(synchronize_session=False))
 
 
 class _WatermarkMoved(Exception):

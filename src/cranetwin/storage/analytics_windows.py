@@ -9,6 +9,7 @@ window) replaces it. Plain functions over an engine, so the storage core is not 
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 from sqlalchemy import (
@@ -58,20 +59,23 @@ def window_row(machine_id: str, level_s: int, t0_s: float, t1_s: float, n: int, 
             "n": n, "data": data, "operating_s": operating_s, "idle_s": idle_s}
 
 
+@lru_cache(maxsize=2)
+def _upsert(dialect: str) -> Any:
+    """The upsert of window rows (built once: executed with a list of rows)."""
+    ins = postgresql.insert(AnalyticsWindowRow) if dialect == "postgresql" else sqlite.insert(
+        AnalyticsWindowRow)
+    ex = ins.excluded
+    return ins.on_conflict_do_update(
+        index_elements=["machine_id", "level_s", "t0_ns"],
+        set_={"t1_ns": ex.t1_ns, "n": ex.n, "data": ex.data, "operating_s": ex.operating_s,
+              "idle_s": ex.idle_s})
+
+
 def put_rows(session: Session, rows: list[dict[str, Any]]) -> None:
     """Store (or replace) rows of :func:`window_row` in one statement, inside the caller's
     transaction (a window's part, lift seconds and progress commit together)."""
-    if not rows:
-        return
-    dialect = session.get_bind().dialect.name
-    ins = postgresql.insert(AnalyticsWindowRow) if dialect == "postgresql" else sqlite.insert(
-        AnalyticsWindowRow)
-    stmt = ins.values(rows)
-    ex = stmt.excluded
-    session.execute(stmt.on_conflict_do_update(
-        index_elements=["machine_id", "level_s", "t0_ns"],
-        set_={"t1_ns": ex.t1_ns, "n": ex.n, "data": ex.data, "operating_s": ex.operating_s,
-              "idle_s": ex.idle_s}))
+    if rows:
+        session.execute(_upsert(session.get_bind().dialect.name), rows)
 
 
 def put_window(engine: Engine, machine_id: str, level_s: int, t0_s: float, t1_s: float, n: int,

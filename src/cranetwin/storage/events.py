@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 from sqlalchemy import BigInteger, ForeignKey, Index, String, Text, UniqueConstraint
@@ -53,6 +54,7 @@ class Event:
     evidence: dict[str, Any] = field(default_factory=dict)
 
 
+@lru_cache(maxsize=2)
 def insert_ignoring_stored(dialect: str) -> Any:
     """The insert of event rows that skips those already stored (same machine, time, kind),
     returning the new rows' ids (execute it with a list of row dicts)."""
