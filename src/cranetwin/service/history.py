@@ -276,12 +276,17 @@ class DutyToDate:
 
 
 def update_duty(engine: Any, machine: Machine, machine_id: str, first_s: float,
-                until_s: float) -> DutyToDate:
+                until_s: float, stored: DutyToDate | None = None) -> DutyToDate:
     """The machine's duty to date folded up to ``until_s`` (the worker's progress mark) and
     stored; built from the stored parts of [first minute, until_s) when none is stored (or it
-    was dropped after late data)."""
-    rows = aw.windows(engine, machine_id, DUTY_LEVEL, -1e9, 1e9)
-    duty: DutyToDate | None = None
+    was dropped after late data).
+
+    Args:
+        stored: The duty this caller returned last time, when it knows nothing else has
+            written or dropped it since (it is then not read back); it is folded on in place.
+    """
+    rows = [] if stored is not None else aw.windows(engine, machine_id, DUTY_LEVEL, -1e9, 1e9)
+    duty: DutyToDate | None = stored
     if rows and rows[0][3].startswith(PART_MAGIC):  # another version: rebuilt
         try:
             obj = pickle.loads(zlib.decompress(rows[0][3][len(PART_MAGIC):]))

@@ -70,6 +70,7 @@ from cranetwin.service.liftcount import seconds_row
 if TYPE_CHECKING:
     from cranetwin.samples import SampleArrays
     from cranetwin.service.backend import Backend, MachineRecord, Progress
+    from cranetwin.service.history import DutyToDate
     from cranetwin.service.metrics import Metrics
     from cranetwin.service.ownership import Ownership
     from cranetwin.service.replayer import Replayer
@@ -130,11 +131,24 @@ class TwinWorker:
         look-back of the next window's events), kept while nothing else can have written its
         parts: dropped when the worker's partitions change, when the machine is not owned, when
         a commit finds the watermark moved, and when late data redoes windows."""
+        self._duty: dict[str, DutyToDate] = {}
+        """Machine → the duty to date this worker stored last (not read back while valid: kept
+        and dropped as :attr:`_last_part`)."""
         self._owned: frozenset[int] | None = None
         self._pool: ThreadPoolExecutor | None = None
         self.stop_event = threading.Event()
         """Set to stop: checked between windows, so the window being replayed is finished and
         committed first (a second or so)."""
+
+    def _forget(self, machine_id: str | None = None) -> None:
+        """Drop what this worker keeps of a machine's stored rows (:attr:`_last_part`,
+        :attr:`_duty`), of every machine when None: something else may have written them."""
+        if machine_id is None:
+            self._last_part.clear()
+            self._duty.clear()
+        else:
+            self._last_part.pop(machine_id, None)
+            self._duty.pop(machine_id, None)
 
     def _engine(self, rec: MachineRecord) -> Any:
         """The engine holding the machine's rows (its shard when storage is sharded)."""
@@ -205,7 +219,7 @@ class TwinWorker:
             due = self.clock() + self.settings.worker_interval_s
             owned = frozenset(own.owned)
             if owned != self._owned:  # what another worker may have written meanwhile
-                self._last_part.clear()
+                self._forget()
                 self._owned = owned
         self._rollup()
         pool = self._thread_pool()
@@ -231,11 +245,11 @@ class TwinWorker:
                     due = self.clock() + self.settings.worker_interval_s
                     if frozenset(own.owned) != self._owned:  # the pass's reads are stale
                         reads = None
-                        self._last_part.clear()
+                        self._forget()
                         self._owned = frozenset(own.owned)
                 if not own.owns(rec.machine_id):
                     self._marks.pop(rec.machine_id, None)
-                    self._last_part.pop(rec.machine_id, None)
+                    self._forget(rec.machine_id)
                     continue
             pre = reads if reads is not None and rec.machine_id in reads.ranges else None
             if pool is None:
@@ -336,7 +350,7 @@ class TwinWorker:
         try:
             return self._catch_up(rec, max_windows, reads)
         except BaseException:
-            self._last_part.pop(rec.machine_id, None)
+            self._forget(rec.machine_id)
             raise
 
     def _catch_up(self, rec: MachineRecord, max_windows: int | None,
@@ -383,7 +397,7 @@ class TwinWorker:
                     new = dc_replace(prog, watermark_s=math.floor(nxt / win) * win)
                     if not self.backend.save_progress(new, expected):
                         log.info("machine %s: watermark moved by another worker", mid)
-                        self._last_part.pop(mid, None)
+                        self._forget(mid)
                         break
                     prog, expected = new, new.watermark_s
                     continue
@@ -483,18 +497,15 @@ class TwinWorker:
 
     def _previous_part(self, rec: MachineRecord, w0: float) -> bytes | None:
         """The data of the last stored minute part inside [w0 − 60 s, w0), or None: the one
-        this worker committed last when it is still valid (:attr:`_last_part`), else read."""
+        this worker committed last when it is still valid (:attr:`_last_part`: only windows
+        processed forward set it, so it is the newest part before the watermark), else read."""
         from cranetwin.storage import analytics_windows as aw
 
         seen = self._last_part.get(rec.machine_id)
         if seen is not None and seen[1] <= w0:
             return seen[2] if seen[0] >= w0 - 60 else None
         prev = aw.windows(self._engine(rec), rec.machine_id, 60, w0 - 60, w0)
-        if not prev:
-            return None
-        a, z, _n, data = prev[-1]
-        self._last_part[rec.machine_id] = (a, z, data)
-        return data
+        return prev[-1][3] if prev else None
 
     def _quiet(self, machine_id: str, last_sample_s: float) -> bool:
         """Whether the machine's newest sample has stayed the same for ``quiet_s`` of this
@@ -542,7 +553,7 @@ class TwinWorker:
             if top is not None and top != mark:
                 set_mark(top)
             return prog, 0
-        self._last_part.pop(mid, None)  # parts behind the watermark are written again
+        self._forget(mid)  # parts behind the watermark are written again
         grid: set[float] = set()
         for a, b in late:
             w = math.floor((a - m) / win) * win
@@ -618,9 +629,11 @@ class TwinWorker:
         used: :class:`cranetwin.service.history.DutyToDate`)."""
         from cranetwin.service.history import update_duty
 
+        known = self._duty.pop(rec.machine_id, None)  # back only once it is stored
         try:
-            update_duty(self._engine(rec), self.backend.model_of(rec), rec.machine_id,
-                        first_s, until_s)
+            self._duty[rec.machine_id] = update_duty(
+                self._engine(rec), self.backend.model_of(rec), rec.machine_id, first_s,
+                until_s, known)
         except CraneTwinError as exc:
             log.warning("machine %s: duty to date not updated: %s", rec.machine_id, exc)
 
@@ -748,7 +761,7 @@ class TwinWorker:
 
         if not self.backend.commit_window(new, expected, names, t, values,
                                           also if rows else None):
-            self._last_part.pop(rec.machine_id, None)
+            self._forget(rec.machine_id)
             return None
         if part is not None and redo_w0 is None:
             self._last_part[rec.machine_id] = (w0, w1, part["data"])
