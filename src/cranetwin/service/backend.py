@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import update as sa_update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -417,9 +416,10 @@ class Backend:
             s.add(row_t(**values))
             s.flush()  # a concurrent insert fails here (primary key)
             return
-        params = {f"p_{k}": v for k, v in values.items()}
-        params["p_expected_watermark_s"] = expected_watermark_s
-        res = s.execute(_progress_update(), params)
+        conn = s.connection()
+        sql, cols = _progress_update(conn.dialect.paramstyle)
+        res = conn.exec_driver_sql(sql, tuple(values[c] for c in cols[:-2])
+                                   + (prog.machine_id, expected_watermark_s))
         if getattr(res, "rowcount", 0) != 1:
             raise _WatermarkMoved
 
@@ -455,20 +455,16 @@ class Backend:
         return True
 
 
-@lru_cache(maxsize=1)
-def _progress_update() -> Any:
-    """``UPDATE twin_progress`` of every field where the machine and the watermark match
-    (built once; the parameters are ``p_`` and the fields, ``updated_s`` and
-    ``expected_watermark_s``)."""
-    from sqlalchemy import bindparam
-
-    row_t = keyrepo.TwinProgressRow
-    cols = [*Progress.__dataclass_fields__, "updated_s"]
-    return (sa_update(row_t)
-            .where(row_t.machine_id == bindparam("p_machine_id"),
-                   row_t.watermark_s == bindparam("p_expected_watermark_s"))
-            .values({c: bindparam(f"p_{c}") for c in cols if c != "machine_id"})
-            .execution_options(synchronize_session=False))
+@lru_cache(maxsize=4)
+def _progress_update(paramstyle: str) -> tuple[str, tuple[str, ...]]:
+    """``UPDATE twin_progress`` of every field where the machine and the watermark match, in the
+    driver's parameter style (built once), and its parameters in order (the fields but the
+    machine, ``updated_s``, then ``machine_id`` and the expected watermark)."""
+    ph = "?" if paramstyle == "qmark" else "%s"
+    cols = tuple(c for c in [*Progress.__dataclass_fields__, "updated_s"] if c != "machine_id")
+    sql = (f"UPDATE twin_progress SET {', '.join(f'{c} = {ph}' for c in cols)} "
+           f"WHERE machine_id = {ph} AND watermark_s = {ph}")
+    return sql, (*cols, "machine_id", "watermark_s")
 
 
 class _WatermarkMoved(Exception):

@@ -9,7 +9,6 @@ window) replaces it. Plain functions over an engine, so the storage core is not 
 
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import Any
 
 from sqlalchemy import (
@@ -24,7 +23,6 @@ from sqlalchemy import (
     select,
     text,
 )
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Mapped, Session, mapped_column
 from sqlalchemy.sql.elements import ColumnElement, TextClause
 
@@ -59,23 +57,19 @@ def window_row(machine_id: str, level_s: int, t0_s: float, t1_s: float, n: int, 
             "n": n, "data": data, "operating_s": operating_s, "idle_s": idle_s}
 
 
-@lru_cache(maxsize=2)
-def _upsert(dialect: str) -> Any:
-    """The upsert of window rows (built once: executed with a list of rows)."""
-    ins = postgresql.insert(AnalyticsWindowRow) if dialect == "postgresql" else sqlite.insert(
-        AnalyticsWindowRow)
-    ex = ins.excluded
-    return ins.on_conflict_do_update(
-        index_elements=["machine_id", "level_s", "t0_ns"],
-        set_={"t1_ns": ex.t1_ns, "n": ex.n, "data": ex.data, "operating_s": ex.operating_s,
-              "idle_s": ex.idle_s})
+_COLUMNS = ("machine_id", "level_s", "t0_ns", "t1_ns", "n", "data", "operating_s", "idle_s")
+_UPSERT = ("ON CONFLICT (machine_id, level_s, t0_ns) DO UPDATE SET "
+           + ", ".join(f"{c} = EXCLUDED.{c}" for c in _COLUMNS[3:]))
 
 
 def put_rows(session: Session, rows: list[dict[str, Any]]) -> None:
     """Store (or replace) rows of :func:`window_row` in one statement, inside the caller's
     transaction (a window's part, lift seconds and progress commit together)."""
+    from cranetwin.storage.bulk import insert_rows
+
     if rows:
-        session.execute(_upsert(session.get_bind().dialect.name), rows)
+        insert_rows(session.connection(), "analytics_windows", _COLUMNS,
+                    [tuple(r[c] for c in _COLUMNS) for r in rows], _UPSERT)
 
 
 def put_window(engine: Engine, machine_id: str, level_s: int, t0_s: float, t1_s: float, n: int,

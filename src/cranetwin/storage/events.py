@@ -73,10 +73,15 @@ def add_in(session: Any, machine_pk: int, events: list[Event]) -> int:
     for e in events:
         if e.severity not in SEVERITIES:
             raise StorageError(f"event severity {e.severity!r} must be one of {SEVERITIES}")
-    rows = [{"machine_pk": machine_pk, "t_ns": int(round(e.t_s * 1e9)), "kind": e.kind,
-             "severity": e.severity, "evidence_json": json.dumps(e.evidence)} for e in events]
-    stmt = insert_ignoring_stored(session.get_bind().dialect.name)
-    return len(session.execute(stmt, rows).all())
+    from cranetwin.storage.bulk import insert_rows
+
+    rows = [(machine_pk, int(round(e.t_s * 1e9)), e.kind, e.severity, json.dumps(e.evidence))
+            for e in events]
+    return len(insert_rows(session.connection(), "events", _COLUMNS, rows, _IGNORE_STORED))
+
+
+_COLUMNS = ("machine_pk", "t_ns", "kind", "severity", "evidence_json")
+_IGNORE_STORED = "ON CONFLICT (machine_pk, t_ns, kind) DO NOTHING RETURNING id"
 
 
 def to_event(machine_id: str, row: EventRow) -> Event:
