@@ -227,7 +227,8 @@ class TwinWorker:
         failed: list[BaseException] = []
         machines = self.backend.list_machines()
         mine = [r.machine_id for r in machines if own is None or own.owns(r.machine_id)]
-        reads: PassReads | None = read_pass(self.backend, mine, self.settings.worker_window_s)
+        reads: PassReads | None = read_pass(self.backend, mine, self.settings.worker_window_s,
+                                            self._first_span)
 
         def result(f: Future[int]) -> int:  # a failed machine fails the pass at its end
             exc = f.exception()
@@ -384,8 +385,10 @@ class TwinWorker:
                 break
             k = self._span_windows(w0, dr[1], quiet,
                                    None if max_windows is None else max_windows - done)
-            samples = self.backend.read_samples(mid, w0 - s.twin_margin_s,
-                                                w0 + k * win + s.twin_margin_s)
+            a, z = w0 - s.twin_margin_s, w0 + k * win + s.twin_margin_s
+            ahead = reads.samples.pop(mid, None) if reads is not None else None
+            samples = (ahead[2] if ahead is not None and ahead[:2] == (a, z)
+                       else self.backend.read_samples(mid, a, z))
             new: Progress | None
             if not np.any((samples.t_s >= w0) & (samples.t_s < w0 + win)):
                 # no sample in the first window: where do the samples go on (a gap is
@@ -419,6 +422,17 @@ class TwinWorker:
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
+
+    def _first_span(self, w0: float, newest_s: float) -> tuple[float, float] | None:
+        """The sample range [from, to) [s] a machine's turn reads first when its watermark is
+        ``w0`` and its newest sample ``newest_s`` (not quiet, nothing redone), or None when no
+        window is ready (:func:`cranetwin.service.workerpass.read_pass` reads it ahead)."""
+        s = self.settings
+        win = s.worker_window_s
+        if w0 + win + s.worker_settle_s > newest_s:
+            return None
+        k = self._span_windows(w0, newest_s, False, self.max_windows_per_pass)
+        return w0 - s.twin_margin_s, w0 + k * win + s.twin_margin_s
 
     def _span_windows(self, w0: float, newest_s: float, quiet: bool,
                       budget: int | None) -> int:

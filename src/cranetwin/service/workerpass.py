@@ -14,12 +14,14 @@ them when its ownership changes in the pass and reads per machine for the rest o
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from cranetwin.storage import analytics_windows as aw
 
 if TYPE_CHECKING:
+    from cranetwin.samples import SampleArrays
     from cranetwin.service.backend import Backend, Progress
 
 
@@ -33,22 +35,36 @@ class PassReads:
         late: Machine → (stored mark, this pass's mark, late blocks [(t_start s, t_end s)])
             (PostgreSQL; a machine left out is read alone, e.g. one with a mark of the
             earlier kind).
+        samples: Machine → (from s, to s, its samples read for [from, to)): the first span
+            the pass expects to replay (taken by the machine's turn if it asks for the same
+            range; it reads alone otherwise).
         marks: Machine → mark to store at the end of the pass (filled while processing).
     """
 
     ranges: dict[str, tuple[float, float] | None]
     progress: dict[str, Progress]
     late: dict[str, tuple[int | None, int, list[tuple[float, float]]]]
+    samples: dict[str, tuple[float, float, SampleArrays]] = field(default_factory=dict)
     marks: dict[str, int] = field(default_factory=dict)
 
 
-def read_pass(backend: Backend, machine_ids: list[str], window_s: float) -> PassReads:
+MAX_PREFETCH_S = 30.0
+"""Longest first span whose samples the pass reads ahead [s] (bounds the memory of a pass
+that catches up: 500 machines × 30 s × 10 Hz × 20 channels ≈ 24 MB)."""
+
+
+def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
+              first_span: Callable[[float, float], tuple[float, float] | None] | None = None,
+              ) -> PassReads:
     """The reads of a pass over ``machine_ids`` (a few statements per engine).
 
     Args:
         backend: Store adapter.
         machine_ids: The machines the pass processes.
         window_s: The worker's window [s] (the watermark of a machine without progress).
+        first_span: (watermark, newest sample) → the sample range [from, to) [s] of the first
+            span the machine's turn will replay, None when nothing is ready (None: no samples
+            read ahead).
     """
     got = backend.data_ranges(machine_ids)
     ranges = {m: v[1] for m, v in got.items()}
@@ -77,7 +93,37 @@ def read_pass(backend: Backend, machine_ids: list[str], window_s: float) -> Pass
         by_pk = {got[m][0]: m for m in ids}
         for pk, (mark, _wm) in bounds.items():
             late[by_pk[pk]] = (mark, top, found.get(pk, []))
-    return PassReads(ranges, progress, late)
+    reads = PassReads(ranges, progress, late)
+    if first_span is not None:
+        _read_samples(backend, reads, got, window_s, first_span)
+    return reads
+
+
+def _read_samples(backend: Backend, reads: PassReads,
+                  got: dict[str, tuple[int, tuple[float, float] | None]], window_s: float,
+                  first_span: Callable[[float, float], tuple[float, float] | None]) -> None:
+    """The samples of each machine's first span, one statement per engine."""
+    from sqlalchemy.orm import Session
+
+    from cranetwin.storage import blocks
+    from cranetwin.storage.store import assemble_samples, sample_bounds_ns
+
+    want: dict[str, tuple[float, float]] = {}
+    for m, r in reads.ranges.items():
+        if r is None:
+            continue
+        p = reads.progress.get(m)
+        wm = p.watermark_s if p is not None else math.floor(r[0] / window_s) * window_s
+        span = first_span(wm, r[1])
+        if span is not None and span[1] - span[0] <= MAX_PREFETCH_S:
+            want[m] = span
+    for engine, ids in backend.store.engines_of(list(want)):
+        ns = {m: sample_bounds_ns(*want[m]) for m in ids}
+        with Session(engine) as s:
+            stored = blocks.read_ranges(s, {got[m][0]: (a, z - 1) for m, (a, z) in ns.items()})
+        for m in ids:
+            a, z = ns[m]
+            reads.samples[m] = (*want[m], assemble_samples(m, stored[got[m][0]], a, z))
 
 
 def flush_marks(backend: Backend, reads: PassReads) -> None:
