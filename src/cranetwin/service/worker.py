@@ -30,6 +30,16 @@ conditional on the watermark the window started from, so a second worker on the 
 (two processes by mistake, or during a hand-over) finds the window done and rolls its own
 replay back instead of counting it twice.
 
+Cost per machine and pass (what bounds the machines per worker core at short windows): the
+pass reads the data ranges, progress rows, late-data marks and late blocks of all its machines,
+and each machine's first span of samples, in a few statements
+(:mod:`cranetwin.service.workerpass`); a span's derived summaries, analytics part, lift seconds,
+events and progress are one transaction of fixed statements; the new late-data marks are written
+in one statement at the end of the pass. The worker keeps what only it writes while it owns a
+machine — the last analytics part it committed (the next window's event look-back) and the duty
+to date — and drops them when its partitions change, when a commit finds the watermark moved and
+when late data is redone.
+
 Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
 --partitions …``) a worker processes only the machines of the partitions it owns, re-checked
 between machines at most every ``worker_interval_s`` (never inside a window), and reports per
