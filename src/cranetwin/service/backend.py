@@ -20,13 +20,13 @@ from __future__ import annotations
 import secrets
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import update as sa_update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -247,6 +247,29 @@ class Backend:
         """(first, last) stored sample time [s], or None when nothing is stored."""
         return self.store.data_range(machine_id)
 
+    def data_ranges(self, machine_ids: list[str]) -> dict[str, tuple[int, tuple[float, float] |
+                                                                        None]]:
+        """:meth:`data_range` of many machines, one statement per engine (an index probe per
+        machine each way): machine → (its primary key, (first, last) or None). Unregistered
+        machines are left out."""
+        from sqlalchemy import func, select
+
+        from cranetwin.storage.blocks import BlockRow
+        from cranetwin.storage.machines import MachineRow
+
+        b, m = BlockRow, MachineRow
+        lo = select(func.min(b.t_start_ns)).where(b.machine_pk == m.id).scalar_subquery()
+        hi = select(func.max(b.t_end_ns)).where(b.machine_pk == m.id).scalar_subquery()
+        out: dict[str, tuple[int, tuple[float, float] | None]] = {}
+        for engine, ids in self.store.engines_of(machine_ids):
+            with Session(engine) as s:
+                for mid, pk, a, z in s.execute(select(m.machine_id, m.id, lo, hi)
+                                               .where(m.machine_id.in_(ids))):
+                    out[mid] = (int(pk), None if a is None else (int(a) / 1e9, int(z) / 1e9))
+        with self._lock:
+            self._pks.update({mid: v[0] for mid, v in out.items()})
+        return out
+
     def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
         """Samples with t in [t0_s, t1_s]."""
         out: SampleArrays = self.store.read_samples(machine_id, t0_s, t1_s)
@@ -331,6 +354,22 @@ class Backend:
             self._progress_cache[machine_id] = p
         return p
 
+    def progress_many(self, machine_ids: list[str]) -> dict[str, Progress]:
+        """:meth:`progress` of many machines, one statement per engine (machines without a
+        progress row left out)."""
+        from sqlalchemy import select
+
+        row_t = keyrepo.TwinProgressRow
+        out: dict[str, Progress] = {}
+        for engine, ids in self.store.engines_of(machine_ids):
+            with Session(engine) as s:
+                for row in s.scalars(select(row_t).where(row_t.machine_id.in_(ids))):
+                    out[row.machine_id] = Progress(**{f: getattr(row, f)
+                                                      for f in Progress.__dataclass_fields__})
+        with self._lock:
+            self._progress_cache.update(out)
+        return out
+
     def cached_progress(self, machine_id: str) -> Progress | None:
         """Last progress seen by this process (no database read; for the live stream)."""
         with self._lock:
@@ -377,35 +416,55 @@ class Backend:
             s.add(row_t(**values))
             s.flush()  # a concurrent insert fails here (primary key)
             return
-        res = s.execute(sa_update(row_t)
-                        .where(row_t.machine_id == prog.machine_id,
-                               row_t.watermark_s == expected_watermark_s)
-                        .values(**values)
-                        .execution_options(synchronize_session=False))
+        conn = s.connection()
+        sql, cols = _progress_update(conn.dialect.paramstyle)
+        res = conn.exec_driver_sql(sql, tuple(values[c] for c in cols[:-2])
+                                   + (prog.machine_id, expected_watermark_s))
         if getattr(res, "rowcount", 0) != 1:
             raise _WatermarkMoved
 
     def commit_window(self, prog: Progress, expected_watermark_s: float | None,
-                      channels: list[str], t_s: F64, values: F64) -> bool:
+                      channels: list[str], t_s: F64, values: F64,
+                      also: Callable[[Session, int], None] | None = None) -> bool:
         """Derived summaries of one window and the new progress, in one transaction, committed
         only if the stored watermark is still ``expected_watermark_s`` (None: no row yet).
 
+        Args:
+            also: Further writes of the window in the same transaction, given the session and
+                the machine's primary key (the twin worker's analytics part, lift seconds and
+                events).
+
         Returns:
             Whether it was committed. False: another worker committed this window first; nothing
-            of this one was written (summaries included).
+            of this one was written (summaries and ``also`` included).
         """
         try:
             with self.session(prog.machine_id) as s, s.begin():
-                if t_s.size:
+                if t_s.size or also is not None:
                     pk = self._pk(s, prog.machine_id)
+                if t_s.size:
                     t_ns = np.round(t_s * 1e9).astype(np.int64)
                     summ.replace(s, pk, channels, t_ns, values)
+                if also is not None:
+                    also(s, pk)
                 self._put_progress(s, prog, expected_watermark_s)
         except (_WatermarkMoved, IntegrityError):
             return False
         with self._lock:
             self._progress_cache[prog.machine_id] = prog
         return True
+
+
+@lru_cache(maxsize=4)
+def _progress_update(paramstyle: str) -> tuple[str, tuple[str, ...]]:
+    """``UPDATE twin_progress`` of every field where the machine and the watermark match, in the
+    driver's parameter style (built once), and its parameters in order (the fields but the
+    machine, ``updated_s``, then ``machine_id`` and the expected watermark)."""
+    ph = "?" if paramstyle == "qmark" else "%s"
+    cols = tuple(c for c in [*Progress.__dataclass_fields__, "updated_s"] if c != "machine_id")
+    sql = (f"UPDATE twin_progress SET {', '.join(f'{c} = {ph}' for c in cols)} "
+           f"WHERE machine_id = {ph} AND watermark_s = {ph}")
+    return sql, (*cols, "machine_id", "watermark_s")
 
 
 class _WatermarkMoved(Exception):

@@ -100,14 +100,29 @@ def window_history(backend: Any, replayer: Any, machine: Machine, machine_id: st
     return h
 
 
+def part_row(machine: Machine, machine_id: str, w0: float, w1: float, h: LoadHistory,
+             operating_s: float = 0.0, idle_s: float = 0.0,
+             ) -> tuple[AnalyticsPart, dict[str, Any]] | None:
+    """The part of minute window [w0, w1) and its row (with the worker's operating and idle
+    time of the window [s]; :func:`cranetwin.storage.analytics_windows.put_rows` stores or
+    replaces it), or None when the history makes no part."""
+    part = AnalyticsState(machine).part(h)
+    if part is None:
+        return None
+    return part, aw.window_row(machine_id, MINUTE_S, w0, w1, part.n, dump_part(part),
+                               operating_s, idle_s)
+
+
 def store_part(engine: Any, machine: Machine, machine_id: str, w0: float, w1: float,
                h: LoadHistory, operating_s: float = 0.0, idle_s: float = 0.0) -> None:
     """Store the part of minute window [w0, w1) (replacing one stored before), with the
     worker's operating and idle time of the window [s]."""
-    part = AnalyticsState(machine).part(h)
-    if part is not None:
-        aw.put_window(engine, machine_id, MINUTE_S, w0, w1, part.n, dump_part(part),
-                      operating_s, idle_s)
+    from sqlalchemy.orm import Session
+
+    got = part_row(machine, machine_id, w0, w1, h, operating_s, idle_s)
+    if got is not None:
+        with Session(engine) as s, s.begin():
+            aw.put_rows(s, [got[1]])
 
 
 def roll_up(engine: Any, machine: Machine, machine_id: str, t0_s: float, t1_s: float) -> int:
@@ -261,12 +276,17 @@ class DutyToDate:
 
 
 def update_duty(engine: Any, machine: Machine, machine_id: str, first_s: float,
-                until_s: float) -> DutyToDate:
+                until_s: float, stored: DutyToDate | None = None) -> DutyToDate:
     """The machine's duty to date folded up to ``until_s`` (the worker's progress mark) and
     stored; built from the stored parts of [first minute, until_s) when none is stored (or it
-    was dropped after late data)."""
-    rows = aw.windows(engine, machine_id, DUTY_LEVEL, -1e9, 1e9)
-    duty: DutyToDate | None = None
+    was dropped after late data).
+
+    Args:
+        stored: The duty this caller returned last time, when it knows nothing else has
+            written or dropped it since (it is then not read back); it is folded on in place.
+    """
+    rows = [] if stored is not None else aw.windows(engine, machine_id, DUTY_LEVEL, -1e9, 1e9)
+    duty: DutyToDate | None = stored
     if rows and rows[0][3].startswith(PART_MAGIC):  # another version: rebuilt
         try:
             obj = pickle.loads(zlib.decompress(rows[0][3][len(PART_MAGIC):]))

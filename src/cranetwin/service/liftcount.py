@@ -30,11 +30,21 @@ LIFT_LEVEL = -3
 MINUTE_S = 60
 
 
+def seconds_row(machine_id: str, w0: float, w1: float, means: F64,
+                rated_at: F64) -> dict[str, Any]:
+    """The row of the lift seconds of minute [w0, w1) (:func:`cranetwin.storage.
+    analytics_windows.put_rows` stores or replaces it)."""
+    data = np.concatenate([means, rated_at]).astype("<f8").tobytes()
+    return aw.window_row(machine_id, LIFT_LEVEL, w0, w1, int(means.size), data)
+
+
 def store_seconds(engine: Any, machine_id: str, w0: float, w1: float, means: F64,
                   rated_at: F64) -> None:
     """Store (replace) the lift seconds of minute [w0, w1)."""
-    data = np.concatenate([means, rated_at]).astype("<f8").tobytes()
-    aw.put_window(engine, machine_id, LIFT_LEVEL, w0, w1, int(means.size), data)
+    from sqlalchemy.orm import Session
+
+    with Session(engine) as s, s.begin():
+        aw.put_rows(s, [seconds_row(machine_id, w0, w1, means, rated_at)])
 
 
 def recount(engine: Any, machine: Machine, prog: Progress,

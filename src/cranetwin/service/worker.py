@@ -30,6 +30,16 @@ conditional on the watermark the window started from, so a second worker on the 
 (two processes by mistake, or during a hand-over) finds the window done and rolls its own
 replay back instead of counting it twice.
 
+Cost per machine and pass (what bounds the machines per worker core at short windows): the
+pass reads the data ranges, progress rows, late-data marks and late blocks of all its machines,
+and each machine's first span of samples, in a few statements
+(:mod:`cranetwin.service.workerpass`); a span's derived summaries, analytics part, lift seconds,
+events and progress are one transaction of fixed statements; the new late-data marks are written
+in one statement at the end of the pass. The worker keeps what only it writes while it owns a
+machine — the last analytics part it committed (the next window's event look-back) and the duty
+to date — and drops them when its partitions change, when a commit finds the watermark moved and
+when late data is redone.
+
 Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
 --partitions …``) a worker processes only the machines of the partitions it owns, re-checked
 between machines at most every ``worker_interval_s`` (never inside a window), and reports per
@@ -65,13 +75,16 @@ from cranetwin.service.derived import (
     update_counters,
 )
 from cranetwin.service.history import window_rows
-from cranetwin.service.liftcount import store_seconds
+from cranetwin.service.liftcount import seconds_row
 
 if TYPE_CHECKING:
+    from cranetwin.samples import SampleArrays
     from cranetwin.service.backend import Backend, MachineRecord, Progress
+    from cranetwin.service.history import DutyToDate
     from cranetwin.service.metrics import Metrics
     from cranetwin.service.ownership import Ownership
     from cranetwin.service.replayer import Replayer
+    from cranetwin.service.workerpass import PassReads
     from cranetwin.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -123,10 +136,29 @@ class TwinWorker:
         """Least time between two checks of one machine's service schedules [s of ``clock``]
         (each merges its stored analytics when it has lift or damage items)."""
         self._next_schedule_check: dict[str, float] = {}
+        self._last_part: dict[str, tuple[float, float, bytes]] = {}
+        """Machine → (start, end, data) of the last analytics part this worker committed (the
+        look-back of the next window's events), kept while nothing else can have written its
+        parts: dropped when the worker's partitions change, when the machine is not owned, when
+        a commit finds the watermark moved, and when late data redoes windows."""
+        self._duty: dict[str, DutyToDate] = {}
+        """Machine → the duty to date this worker stored last (not read back while valid: kept
+        and dropped as :attr:`_last_part`)."""
+        self._owned: frozenset[int] | None = None
         self._pool: ThreadPoolExecutor | None = None
         self.stop_event = threading.Event()
         """Set to stop: checked between windows, so the window being replayed is finished and
         committed first (a second or so)."""
+
+    def _forget(self, machine_id: str | None = None) -> None:
+        """Drop what this worker keeps of a machine's stored rows (:attr:`_last_part`,
+        :attr:`_duty`), of every machine when None: something else may have written them."""
+        if machine_id is None:
+            self._last_part.clear()
+            self._duty.clear()
+        else:
+            self._last_part.pop(machine_id, None)
+            self._duty.pop(machine_id, None)
 
     def _engine(self, rec: MachineRecord) -> Any:
         """The engine holding the machine's rows (its shard when storage is sharded)."""
@@ -188,15 +220,25 @@ class TwinWorker:
         Returns:
             Windows processed (0 = every machine is caught up).
         """
+        from cranetwin.service.workerpass import flush_marks, read_pass
+
         total = 0
         own = self.ownership
         if own is not None:
             own.refresh()
             due = self.clock() + self.settings.worker_interval_s
+            owned = frozenset(own.owned)
+            if owned != self._owned:  # what another worker may have written meanwhile
+                self._forget()
+                self._owned = owned
         self._rollup()
         pool = self._thread_pool()
         pending: list[Future[int]] = []
         failed: list[BaseException] = []
+        machines = self.backend.list_machines()
+        mine = [r.machine_id for r in machines if own is None or own.owns(r.machine_id)]
+        reads: PassReads | None = read_pass(self.backend, mine, self.settings.worker_window_s,
+                                            self._first_span)
 
         def result(f: Future[int]) -> int:  # a failed machine fails the pass at its end
             exc = f.exception()
@@ -205,23 +247,31 @@ class TwinWorker:
                 return 0
             return f.result()
 
-        for rec in self.backend.list_machines():
+        for rec in machines:
             if self.stop_requested():
                 break
             if own is not None:
                 if self.clock() >= due:  # between machines too: a joiner waits no whole pass
                     own.refresh()
                     due = self.clock() + self.settings.worker_interval_s
+                    if frozenset(own.owned) != self._owned:  # the pass's reads are stale
+                        reads = None
+                        self._forget()
+                        self._owned = frozenset(own.owned)
                 if not own.owns(rec.machine_id):
                     self._marks.pop(rec.machine_id, None)
+                    self._forget(rec.machine_id)
                     continue
+            pre = reads if reads is not None and rec.machine_id in reads.ranges else None
             if pool is None:
-                total += self.catch_up(rec, self.max_windows_per_pass)
+                total += self.catch_up(rec, self.max_windows_per_pass, pre)
                 continue
-            pending.append(pool.submit(self.catch_up, rec, self.max_windows_per_pass))
+            pending.append(pool.submit(self.catch_up, rec, self.max_windows_per_pass, pre))
             if len(pending) >= 2 * self.settings.worker_threads:  # ownership re-checked often
                 total += result(pending.pop(0))
         total += sum(result(f) for f in pending)
+        if reads is not None and reads.marks:
+            flush_marks(self.backend, reads)
         if failed:
             raise failed[0]  # after every machine of the pass had its turn
         self._partition_metrics()
@@ -297,25 +347,43 @@ class TwinWorker:
             log.info("retention: dropped %s, kept %d expired partition(s) not yet processed",
                      res.dropped, len(res.kept))
 
-    def catch_up(self, rec: MachineRecord, max_windows: int | None = None) -> int:
+    def catch_up(self, rec: MachineRecord, max_windows: int | None = None,
+                 reads: PassReads | None = None) -> int:
         """Process the ready windows of one machine, oldest first; returns how many.
 
         Stops early when :attr:`stop_requested`, or when another worker moved the machine's
         watermark (it is processing the same machine; the next pass re-reads the progress).
+
+        Args:
+            reads: The pass's reads holding this machine (:mod:`cranetwin.service.workerpass`;
+                None: read them for this machine alone).
         """
+        try:
+            return self._catch_up(rec, max_windows, reads)
+        except BaseException:
+            self._forget(rec.machine_id)
+            raise
+
+    def _catch_up(self, rec: MachineRecord, max_windows: int | None,
+                  reads: PassReads | None) -> int:
         from cranetwin.service.backend import Progress
 
         s = self.settings
         win = s.worker_window_s
-        dr = self.backend.data_range(rec.machine_id)
+        mid = rec.machine_id
+        if reads is not None:
+            dr = reads.ranges[mid]
+            stored = reads.progress.get(mid) if dr is not None else None
+        else:
+            dr = self.backend.data_range(mid)
+            stored = self.backend.progress(mid) if dr is not None else None
         if dr is None:
             return 0
-        stored = self.backend.progress(rec.machine_id)
         expected = stored.watermark_s if stored is not None else None
         prog = stored if stored is not None else Progress.empty(
             rec.machine_id, math.floor(dr[0] / win) * win)
         done = 0
-        redone = self._redo_late(rec, prog)  # the first pass only sets the block mark
+        redone = self._redo_late(rec, prog, reads)  # the first pass only sets the block mark
         if redone is None:
             return 0
         prog, done = redone
@@ -325,24 +393,33 @@ class TwinWorker:
             w0 = prog.watermark_s
             if w0 + win + s.worker_settle_s > dr[1] and not (quiet and w0 <= dr[1]):
                 break
-            nxt = self.backend.next_sample_time(rec.machine_id, w0)
-            if nxt is None:
-                break
+            k = self._span_windows(w0, dr[1], quiet,
+                                   None if max_windows is None else max_windows - done)
+            a, z = w0 - s.twin_margin_s, w0 + k * win + s.twin_margin_s
+            ahead = reads.samples.pop(mid, None) if reads is not None else None
+            samples = (ahead[2] if ahead is not None and ahead[:2] == (a, z)
+                       else self.backend.read_samples(mid, a, z))
             new: Progress | None
-            if nxt >= w0 + win:  # nothing in this window: skip the gap in one step
-                new = dc_replace(prog, watermark_s=math.floor(nxt / win) * win)
-                if not self.backend.save_progress(new, expected):
-                    log.info("machine %s: watermark moved by another worker", rec.machine_id)
+            if not np.any((samples.t_s >= w0) & (samples.t_s < w0 + win)):
+                # no sample in the first window: where do the samples go on (a gap is
+                # skipped in one step)? A sample in it answers that without asking
+                nxt = self.backend.next_sample_time(mid, w0)
+                if nxt is None:
                     break
-            else:
-                k = self._span_windows(w0, dr[1], quiet,
-                                       None if max_windows is None else max_windows - done)
-                new = self.process_window(rec, prog, expected, until_s=w0 + k * win)
-                if new is None:
-                    log.info("machine %s: window %.0f committed by another worker",
-                             rec.machine_id, w0)
-                    break
-                done += k
+                if nxt >= w0 + win:
+                    new = dc_replace(prog, watermark_s=math.floor(nxt / win) * win)
+                    if not self.backend.save_progress(new, expected):
+                        log.info("machine %s: watermark moved by another worker", mid)
+                        self._forget(mid)
+                        break
+                    prog, expected = new, new.watermark_s
+                    continue
+            new = self.process_window(rec, prog, expected, until_s=w0 + k * win,
+                                      samples=samples)
+            if new is None:
+                log.info("machine %s: window %.0f committed by another worker", mid, w0)
+                break
+            done += k
             prog, expected = new, new.watermark_s
         self._roll_up(rec, start_wm, prog.watermark_s)
         if done or prog.watermark_s != start_wm:
@@ -355,6 +432,17 @@ class TwinWorker:
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
+
+    def _first_span(self, w0: float, newest_s: float) -> tuple[float, float] | None:
+        """The sample range [from, to) [s] a machine's turn reads first when its watermark is
+        ``w0`` and its newest sample ``newest_s`` (not quiet, nothing redone), or None when no
+        window is ready (:func:`cranetwin.service.workerpass.read_pass` reads it ahead)."""
+        s = self.settings
+        win = s.worker_window_s
+        if w0 + win + s.worker_settle_s > newest_s:
+            return None
+        k = self._span_windows(w0, newest_s, False, self.max_windows_per_pass)
+        return w0 - s.twin_margin_s, w0 + k * win + s.twin_margin_s
 
     def _span_windows(self, w0: float, newest_s: float, quiet: bool,
                       budget: int | None) -> int:
@@ -386,34 +474,40 @@ class TwinWorker:
         k = min(ready, in_minute, budget if budget is not None else ready)
         return max(1, k)
 
-    def _store_analytics(self, rec: MachineRecord, machine: Machine, res: object,
-                         keep: npt.NDArray[np.bool_], w0: float, w1: float,
-                         times: tuple[float, float] = (0.0, 0.0)) -> None:
-        """Store the window's analytics part (:mod:`cranetwin.service.history`: what any
-        range's analytics merge from) and its events, before the window's commit: a redone
+    def _analytics(self, rec: MachineRecord, machine: Machine, res: object,
+                   keep: npt.NDArray[np.bool_], w0: float, w1: float,
+                   times: tuple[float, float] = (0.0, 0.0),
+                   ) -> tuple[dict[str, Any] | None, list[Any]]:
+        """The window's analytics part row (:mod:`cranetwin.service.history`: what any range's
+        analytics merge from) and its events, stored with the window's commit: a redone
         window replaces its part, and storage ignores events stored before (unique on machine,
-        time, kind).
+        time, kind). Returns (part row or None, events).
 
         The events are found the way a report merges parts: the previous minute's stored part
-        is folded first, so the look-back detectors (force rates, end-stop entries) see the
-        samples before the window, and a run that started before the window is not a new
-        event here. A window stores the events that start in it (a run still open at its end
-        is stored as it stands; a report joins it with its continuation, same start)."""
+        is folded first (:meth:`_previous_part`), so the look-back detectors (force rates,
+        end-stop entries) see the samples before the window, and a run that started before
+        the window is not a new event here. A window stores the events that start in it (a run
+        still open at its end is stored as it stands; a report joins it with its continuation,
+        same start)."""
         from cranetwin.analytics import EventDetector
         from cranetwin.service.analytics import load_history, stored_events
-        from cranetwin.service.history import load_part, store_part
-        from cranetwin.storage import analytics_windows as aw
+        from cranetwin.service.history import load_part, part_row
 
         if int(np.count_nonzero(keep)) < 2:
-            return
-        engine = self._engine(rec)
+            return None, []
         try:
             h = load_history(machine, res, keep)
-            store_part(engine, machine, rec.machine_id, w0, w1, h, *times)
+            got = part_row(machine, rec.machine_id, w0, w1, h, *times)
+        except CraneTwinError as exc:
+            log.warning("machine %s: analytics of window %.0f failed: %s", rec.machine_id, w0,
+                        exc)
+            return None, []
+        row = got[1] if got is not None else None
+        try:
             det = EventDetector(machine)
-            prev = aw.windows(engine, rec.machine_id, 60, w0 - 60, w0)
-            if prev:
-                part = load_part(prev[-1][3])
+            prev = self._previous_part(rec, w0)
+            if prev is not None:
+                part = load_part(prev)
                 if part.t_last < float(h.t_s[0]):
                     det.apply(part.events)
             det.update(h)
@@ -422,9 +516,20 @@ class TwinWorker:
         except CraneTwinError as exc:
             log.warning("machine %s: analytics of window %.0f failed: %s", rec.machine_id, w0,
                         exc)
-            return
-        if events:
-            self.backend.store.add_events(events)
+            return row, []
+        return row, events
+
+    def _previous_part(self, rec: MachineRecord, w0: float) -> bytes | None:
+        """The data of the last stored minute part inside [w0 − 60 s, w0), or None: the one
+        this worker committed last when it is still valid (:attr:`_last_part`: only windows
+        processed forward set it, so it is the newest part before the watermark), else read."""
+        from cranetwin.storage import analytics_windows as aw
+
+        seen = self._last_part.get(rec.machine_id)
+        if seen is not None and seen[1] <= w0:
+            return seen[2] if seen[0] >= w0 - 60 else None
+        prev = aw.windows(self._engine(rec), rec.machine_id, 60, w0 - 60, w0)
+        return prev[-1][3] if prev else None
 
     def _quiet(self, machine_id: str, last_sample_s: float) -> bool:
         """Whether the machine's newest sample has stayed the same for ``quiet_s`` of this
@@ -437,23 +542,42 @@ class TwinWorker:
             return False
         return now - seen[1] >= self.quiet_s
 
-    def _redo_late(self, rec: MachineRecord, prog: Progress) -> tuple[Progress, int] | None:
+    def _redo_late(self, rec: MachineRecord, prog: Progress,
+                   reads: PassReads | None = None) -> tuple[Progress, int] | None:
         """Redo the windows behind the watermark that received samples since the last pass
         (late data, backfills): blocks stored after the machine's block mark that start before
         the watermark mark their windows, and the windows whose replay margin reaches into
         them. Returns (progress, windows redone), None if another worker moved the watermark.
-        Hour and day parts over redone windows are rolled up again."""
+        Hour and day parts over redone windows are rolled up again.
+
+        With the pass's ``reads`` holding the machine, its mark and late blocks come from them
+        and its new mark is stored at the end of the pass (:mod:`cranetwin.service.workerpass`).
+        """
         from cranetwin.service.history import drop_duty, roll_up
         from cranetwin.storage import analytics_windows as aw
 
         engine = self._engine(rec)
         win, m = self.settings.worker_window_s, self.settings.twin_margin_s
-        mark = aw.block_mark(engine, rec.machine_id)
-        top, late = aw.new_blocks_before(engine, rec.machine_id, mark, prog.watermark_s)
+        mid = rec.machine_id
+        got = reads.late.get(mid) if reads is not None else None
+        top: int | None
+        if got is not None:
+            mark, top, late = got
+        else:
+            mark = aw.block_mark(engine, mid)
+            top, late = aw.new_blocks_before(engine, mid, mark, prog.watermark_s)
+
+        def set_mark(new_mark: int) -> None:
+            if got is not None and reads is not None:
+                reads.marks[mid] = new_mark
+            else:
+                aw.set_block_mark(engine, mid, new_mark)
+
         if not late:
             if top is not None and top != mark:
-                aw.set_block_mark(engine, rec.machine_id, top)
+                set_mark(top)
             return prog, 0
+        self._forget(mid)  # parts behind the watermark are written again
         grid: set[float] = set()
         for a, b in late:
             w = math.floor((a - m) / win) * win
@@ -483,7 +607,7 @@ class TwinWorker:
         except CraneTwinError as exc:
             log.warning("machine %s: roll-up after late data failed: %s", rec.machine_id, exc)
         if top is not None:
-            aw.set_block_mark(engine, rec.machine_id, top)
+            set_mark(top)
         log.info("machine %s: %d window(s) redone for late data", rec.machine_id, done)
         return prog, done
 
@@ -529,9 +653,11 @@ class TwinWorker:
         used: :class:`cranetwin.service.history.DutyToDate`)."""
         from cranetwin.service.history import update_duty
 
+        known = self._duty.pop(rec.machine_id, None)  # back only once it is stored
         try:
-            update_duty(self._engine(rec), self.backend.model_of(rec), rec.machine_id,
-                        first_s, until_s)
+            self._duty[rec.machine_id] = update_duty(
+                self._engine(rec), self.backend.model_of(rec), rec.machine_id, first_s,
+                until_s, known)
         except CraneTwinError as exc:
             log.warning("machine %s: duty to date not updated: %s", rec.machine_id, exc)
 
@@ -568,7 +694,7 @@ class TwinWorker:
     def process_window(self, rec: MachineRecord, prog: Progress,
                        expected_watermark_s: float | None,
                        redo_w0: float | None = None, until_s: float | None = None,
-                       ) -> Progress | None:
+                       samples: SampleArrays | None = None) -> Progress | None:
         """Replay [watermark, until_s) (default: one window), commit its summaries and progress
         together.
 
@@ -584,6 +710,7 @@ class TwinWorker:
                 :meth:`_recount_lifts` after the redo.
             until_s: End of the span [s]: a whole number of windows after its start (one
                 window when None); with ``redo_w0``, the end of the stored span redone.
+            samples: The machine's samples of the span and its margins, if already read.
 
         Returns:
             The new progress, or None when another worker committed the window first (nothing
@@ -599,7 +726,8 @@ class TwinWorker:
         w1 = w0 + s.worker_window_s if until_s is None else until_s
         n_windows = max(1, round((w1 - w0) / s.worker_window_s))
         m = s.twin_margin_s
-        samples = self.backend.read_samples(rec.machine_id, w0 - m, w1 + m)
+        if samples is None:
+            samples = self.backend.read_samples(rec.machine_id, w0 - m, w1 + m)
         new = dc_replace(prog, watermark_s=w1, windows=prog.windows + n_windows)
         count = True
         old: tuple[float, float] | None = None
@@ -636,14 +764,31 @@ class TwinWorker:
             o = old or (0.0, 0.0)  # are recounted after the redo (:meth:`_recount_lifts`)
             new = dc_replace(new, operating_s=new.operating_s - o[0] + times[0],
                              idle_s=new.idle_s - o[1] + times[1])
+        rows: list[dict[str, Any]] = []
+        events: list[Any] = []
+        part: dict[str, Any] | None = None
         if t.size:
             if redo_w0 is None:
                 new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
-            store_seconds(self._engine(rec), rec.machine_id, w0, w1,
-                          *lift_seconds(machine, t, res.payload_kg[keep], reach))
-            self._store_analytics(rec, machine, res, keep, w0, w1, times)
-        if not self.backend.commit_window(new, expected, names, t, values):
+            rows.append(seconds_row(rec.machine_id, w0, w1,
+                                    *lift_seconds(machine, t, res.payload_kg[keep], reach)))
+            part, events = self._analytics(rec, machine, res, keep, w0, w1, times)
+            if part is not None:
+                rows.append(part)
+
+        def also(session: Any, machine_pk: int) -> None:
+            from cranetwin.storage import analytics_windows as aw
+            from cranetwin.storage import events as ev
+
+            aw.put_rows(session, rows)
+            ev.add_in(session, machine_pk, events)
+
+        if not self.backend.commit_window(new, expected, names, t, values,
+                                          also if rows else None):
+            self._forget(rec.machine_id)
             return None
+        if part is not None and redo_w0 is None:
+            self._last_part[rec.machine_id] = (w0, w1, part["data"])
         if self.metrics is not None:
             self.metrics.worker_windows.labels(rec.machine_id).inc()
         return new

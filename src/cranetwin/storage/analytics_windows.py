@@ -9,6 +9,8 @@ window) replaces it. Plain functions over an engine, so the storage core is not 
 
 from __future__ import annotations
 
+from typing import Any
+
 from sqlalchemy import (
     BigInteger,
     Engine,
@@ -21,7 +23,6 @@ from sqlalchemy import (
     select,
     text,
 )
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Mapped, Session, mapped_column
 from sqlalchemy.sql.elements import ColumnElement, TextClause
 
@@ -49,21 +50,36 @@ def _ns(t_s: float) -> int:
     return int(round(t_s * SEC))
 
 
+def window_row(machine_id: str, level_s: int, t0_s: float, t1_s: float, n: int, data: bytes,
+               operating_s: float = 0.0, idle_s: float = 0.0) -> dict[str, Any]:
+    """The row of window [t0_s, t1_s) of ``level_s`` (:func:`put_rows` writes it)."""
+    return {"machine_id": machine_id, "level_s": level_s, "t0_ns": _ns(t0_s), "t1_ns": _ns(t1_s),
+            "n": n, "data": data, "operating_s": operating_s, "idle_s": idle_s}
+
+
+_COLUMNS = ("machine_id", "level_s", "t0_ns", "t1_ns", "n", "data", "operating_s", "idle_s")
+_UPSERT = ("ON CONFLICT (machine_id, level_s, t0_ns) DO UPDATE SET "
+           + ", ".join(f"{c} = EXCLUDED.{c}" for c in _COLUMNS[3:]))
+
+
+def put_rows(session: Session, rows: list[dict[str, Any]]) -> None:
+    """Store (or replace) rows of :func:`window_row` in one statement, inside the caller's
+    transaction (a window's part, lift seconds and progress commit together)."""
+    from cranetwin.storage.bulk import insert_rows
+
+    if rows:
+        insert_rows(session.connection(), "analytics_windows", _COLUMNS,
+                    [tuple(r[c] for c in _COLUMNS) for r in rows], _UPSERT)
+
+
 def put_window(engine: Engine, machine_id: str, level_s: int, t0_s: float, t1_s: float, n: int,
                data: bytes, operating_s: float = 0.0, idle_s: float = 0.0) -> None:
     """Store (or replace) the part of window [t0_s, t1_s) of ``level_s``, with the operating
     and idle time the twin worker counted for it (so a redone window replaces its share of the
     cumulative counters instead of adding it again)."""
-    row = {"machine_id": machine_id, "level_s": level_s, "t0_ns": _ns(t0_s), "t1_ns": _ns(t1_s),
-           "n": n, "data": data, "operating_s": operating_s, "idle_s": idle_s}
-    ins = (postgresql.insert(AnalyticsWindowRow) if engine.dialect.name == "postgresql"
-           else sqlite.insert(AnalyticsWindowRow))
-    stmt = ins.values(**row).on_conflict_do_update(
-        index_elements=["machine_id", "level_s", "t0_ns"],
-        set_={"t1_ns": row["t1_ns"], "n": n, "data": data, "operating_s": operating_s,
-              "idle_s": idle_s})
     with Session(engine) as s, s.begin():
-        s.execute(stmt)
+        put_rows(s, [window_row(machine_id, level_s, t0_s, t1_s, n, data, operating_s,
+                                idle_s)])
 
 
 def windows(engine: Engine, machine_id: str, level_s: int, t0_s: float,
@@ -134,10 +150,16 @@ def block_mark(engine: Engine, machine_id: str) -> int | None:
     return _mark(engine, machine_id, MARK_LEVEL)
 
 
+def mark_row(dialect: str, machine_id: str, mark: int) -> dict[str, Any]:
+    """The row keeping ``mark`` (:func:`set_block_mark`; several written by :func:`put_rows`)."""
+    level = XMARK_LEVEL if dialect == "postgresql" else MARK_LEVEL
+    return window_row(machine_id, level, 0.0, mark / SEC, 0, b"")
+
+
 def set_block_mark(engine: Engine, machine_id: str, mark: int) -> None:
     """Store the mark :func:`new_blocks_before` returned (PostgreSQL: a commit-order mark)."""
-    level = XMARK_LEVEL if engine.dialect.name == "postgresql" else MARK_LEVEL
-    put_window(engine, machine_id, level, 0.0, mark / SEC, 0, b"")
+    with Session(engine) as s, s.begin():
+        put_rows(s, [mark_row(engine.dialect.name, machine_id, mark)])
 
 
 def new_blocks_before(engine: Engine, machine_id: str, after: int | None,
@@ -182,3 +204,57 @@ def new_blocks_before(engine: Engine, machine_id: str, after: int | None,
             where.append(b.id > after)
         rows = s.execute(select(b.t_start_ns, b.t_end_ns).where(*where)).all()
         return int(top), [(a / SEC, c / SEC) for a, c in rows]
+
+
+def block_marks(engine: Engine, machine_ids: list[str]) -> dict[str, tuple[int | None, bool]]:
+    """:func:`block_mark` of many machines in one statement: ``machine → (mark, legacy)``
+    (``legacy``: PostgreSQL with only a block id mark, which :func:`new_blocks_before` uses
+    once; None: no mark yet)."""
+    w = AnalyticsWindowRow
+    pg = engine.dialect.name == "postgresql"
+    got: dict[str, dict[int, int]] = {}
+    with Session(engine) as s:
+        for mid, level, t1 in s.execute(select(w.machine_id, w.level_s, w.t1_ns).where(
+                w.machine_id.in_(machine_ids), w.level_s.in_((MARK_LEVEL, XMARK_LEVEL)))):
+            got.setdefault(mid, {})[int(level)] = int(t1)
+    out: dict[str, tuple[int | None, bool]] = {}
+    for mid in machine_ids:
+        m = got.get(mid, {})
+        if pg and XMARK_LEVEL in m:
+            out[mid] = (m[XMARK_LEVEL], False)
+        else:
+            mark = m.get(MARK_LEVEL)
+            out[mid] = (mark, pg and mark is not None)
+    return out
+
+
+def snapshot_xmin(engine: Engine) -> int:
+    """PostgreSQL: ``pg_snapshot_xmin`` now (the next commit-order mark of
+    :func:`new_blocks_before`)."""
+    with Session(engine) as s:
+        return int(s.scalar(text("SELECT pg_snapshot_xmin(pg_current_snapshot())::text::bigint")))
+
+
+def new_blocks_before_many(engine: Engine, bounds: dict[int, tuple[int, float]],
+                           top: int) -> dict[int, list[tuple[float, float]]]:
+    """PostgreSQL, :func:`new_blocks_before` of many machines in one statement: per machine
+    primary key, the blocks written by transactions in [its mark, ``top``) (a commit-order
+    mark, :func:`snapshot_xmin`) that start before its ``before_s``. ``bounds``: machine
+    primary key → (mark, before_s). Returns machine primary key → [(t_start s, t_end s), ...]
+    (machines without such blocks left out)."""
+    if not bounds:
+        return {}
+    pks = list(bounds)
+    stmt = text(
+        "SELECT b.machine_pk, b.t_start_ns, b.t_end_ns FROM unnest(CAST(:pks AS integer[]), "
+        "CAST(:los AS text[]), CAST(:ts AS bigint[])) AS v(pk, lo, t) "
+        "JOIN sample_blocks b ON b.machine_pk = v.pk AND b.t_start_ns < v.t "
+        "AND b.writer_xid >= CAST(v.lo AS xid8) "
+        "AND b.writer_xid < CAST(CAST(:hi AS text) AS xid8)").bindparams(
+        pks=pks, los=[str(bounds[p][0]) for p in pks], ts=[_ns(bounds[p][1]) for p in pks],
+        hi=top)
+    out: dict[int, list[tuple[float, float]]] = {}
+    with Session(engine) as s:
+        for pk, a, c in s.execute(stmt):
+            out.setdefault(int(pk), []).append((a / SEC, c / SEC))
+    return out

@@ -437,15 +437,39 @@ def read_range(session: Session, machine_pk: int, t0_ns: int, t1_ns: int) -> lis
                    BlockRow.t_end_ns >= clamp_ns(t0_ns),
                    BlockRow.t_start_ns >= clamp_ns(clamp_ns(t0_ns) - MAX_SPAN_NS))
             .order_by(BlockRow.t_start_ns, BlockRow.epoch, BlockRow.seq))
-    out = []
-    for seq, t0, period, chans, res, data in session.execute(stmt):
-        resolution = tuple(float(r) for r in json.loads(res))
-        steps, missing = codec.decode_ints(data)
-        if steps.shape[1] != len(resolution):
-            raise codec.CodecError(f"block seq {seq}: {steps.shape[1]} channels stored, "
-                                   f"{len(resolution)} resolutions")
-        out.append(StoredBlock(int(seq), int(t0), int(period), tuple(json.loads(chans)),
-                               resolution, steps, missing))
+    return [_stored(*row) for row in session.execute(stmt)]
+
+
+def _stored(seq: int, t0: int, period: int, chans: str, res: str, data: bytes) -> StoredBlock:
+    resolution = tuple(float(r) for r in json.loads(res))
+    steps, missing = codec.decode_ints(data)
+    if steps.shape[1] != len(resolution):
+        raise codec.CodecError(f"block seq {seq}: {steps.shape[1]} channels stored, "
+                               f"{len(resolution)} resolutions")
+    return StoredBlock(int(seq), int(t0), int(period), tuple(json.loads(chans)), resolution,
+                       steps, missing)
+
+
+def read_ranges(session: Session, bounds: dict[int, tuple[int, int]],
+                ) -> dict[int, list[StoredBlock]]:
+    """:func:`read_range` of many machines in one statement (PostgreSQL; one per machine
+    elsewhere): machine primary key → (t0_ns, t1_ns) → its blocks, ordered as there."""
+    if session.get_bind().dialect.name != "postgresql":
+        return {pk: read_range(session, pk, a, z) for pk, (a, z) in bounds.items()}
+    pks = list(bounds)
+    lo = [clamp_ns(bounds[p][0]) for p in pks]
+    stmt = text(
+        "SELECT b.machine_pk, b.seq, b.t_start_ns, b.period_ns, b.channels, b.resolution, b.data "
+        "FROM unnest(CAST(:pks AS integer[]), CAST(:los AS bigint[]), CAST(:his AS bigint[]), "
+        "CAST(:from_ AS bigint[])) AS v(pk, lo, hi, from_) JOIN sample_blocks b "
+        "ON b.machine_pk = v.pk AND b.t_start_ns <= v.hi AND b.t_end_ns >= v.lo "
+        "AND b.t_start_ns >= v.from_ "
+        "ORDER BY b.machine_pk, b.t_start_ns, b.epoch, b.seq").bindparams(
+        pks=pks, los=lo, his=[clamp_ns(bounds[p][1]) for p in pks],
+        from_=[clamp_ns(x - MAX_SPAN_NS) for x in lo])
+    out: dict[int, list[StoredBlock]] = {pk: [] for pk in pks}
+    for pk, *row in session.execute(stmt):
+        out[int(pk)].append(_stored(*row))
     return out
 
 

@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 from sqlalchemy import BigInteger, ForeignKey, Index, String, Text, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column
 
+from cranetwin.errors import StorageError
 from cranetwin.storage.base import Base
 
 
@@ -50,6 +52,36 @@ class Event:
     kind: str
     severity: str = "warning"
     evidence: dict[str, Any] = field(default_factory=dict)
+
+
+@lru_cache(maxsize=2)
+def insert_ignoring_stored(dialect: str) -> Any:
+    """The insert of event rows that skips those already stored (same machine, time, kind),
+    returning the new rows' ids (execute it with a list of row dicts)."""
+    from sqlalchemy.dialects import postgresql, sqlite
+
+    ins = postgresql.insert(EventRow) if dialect == "postgresql" else sqlite.insert(EventRow)
+    return ins.on_conflict_do_nothing(
+        index_elements=["machine_pk", "t_ns", "kind"]).returning(EventRow.id)
+
+
+def add_in(session: Any, machine_pk: int, events: list[Event]) -> int:
+    """Store events of one machine inside the caller's transaction (see
+    :meth:`cranetwin.storage.Store.add_events`); returns how many were new."""
+    if not events:
+        return 0
+    for e in events:
+        if e.severity not in SEVERITIES:
+            raise StorageError(f"event severity {e.severity!r} must be one of {SEVERITIES}")
+    from cranetwin.storage.bulk import insert_rows
+
+    rows = [(machine_pk, int(round(e.t_s * 1e9)), e.kind, e.severity, json.dumps(e.evidence))
+            for e in events]
+    return len(insert_rows(session.connection(), "events", _COLUMNS, rows, _IGNORE_STORED))
+
+
+_COLUMNS = ("machine_pk", "t_ns", "kind", "severity", "evidence_json")
+_IGNORE_STORED = "ON CONFLICT (machine_pk, t_ns, kind) DO NOTHING RETURNING id"
 
 
 def to_event(machine_id: str, row: EventRow) -> Event:

@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 from sqlalchemy import Engine, func, select
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session
 
@@ -367,33 +366,11 @@ class Store:
         Returns:
             ``SampleArrays`` with t_s, t_ns shape (n,) strictly increasing, values (n, c).
         """
-        t0 = blocks_mod.clamp_ns(_ns(t0_s) - _EPS_NS)
-        t1 = blocks_mod.clamp_ns(_ns(t1_s) - _EPS_NS)
+        t0, t1 = sample_bounds_ns(t0_s, t1_s)
         with self._session() as s:
             stored = blocks_mod.read_range(s, self._machine_pk(s, machine_id), t0, t1 - 1)
-        chans: dict[str, int] = {}
-        for b in stored:
-            for c in b.channels:
-                chans.setdefault(c, len(chans))
-        if not stored:
-            return SampleArrays(machine_id, np.zeros(0), (), np.zeros((0, 0)),
-                                t_ns=np.zeros(0, dtype=np.int64))
-        t_all = np.concatenate([b.times_ns() for b in stored])
-        vals: F64 = np.full((t_all.size, len(chans)), np.nan)
-        keep = (t_all >= t0) & (t_all < t1)
-        periods: set[int] = set()
-        row = 0
-        for b in stored:
-            cols = [chans[c] for c in b.channels]
-            vals[row:row + b.n, cols] = b.values
-            if keep[row:row + b.n].any():
-                periods.add(b.period_ns)
-            row += b.n
-        t_all, vals = t_all[keep], vals[keep]
-        t_u, first = np.unique(t_all, return_index=True)  # sorted, first occurrence kept
-        period = next(iter(periods)) if len(periods) == 1 else None
-        return SampleArrays(machine_id, t_u.astype(np.float64) / 1e9, tuple(chans), vals[first],
-                            period_ns=period, t_ns=t_u)
+        return assemble_samples(machine_id, stored, t0, t1)
+
 
     def data_range(self, machine_id: str) -> tuple[float, float] | None:
         """Time span of the stored samples of one machine (one index probe).
@@ -520,10 +497,7 @@ class Store:
             rows = [{"machine_pk": self._machine_pk(s, e.machine_id), "t_ns": _ns(e.t_s),
                      "kind": e.kind, "severity": e.severity,
                      "evidence_json": json.dumps(e.evidence)} for e in events]
-            ins = (postgresql.insert(EventRow) if self.dialect == "postgresql"
-                   else sqlite.insert(EventRow))
-            stmt = ins.on_conflict_do_nothing(
-                index_elements=["machine_pk", "t_ns", "kind"]).returning(EventRow.id)
+            stmt = events_mod.insert_ignoring_stored(self.dialect)
             return len(s.execute(stmt, rows).all())
 
     def events(self, machine_id: str, t0_s: float, t1_s: float, kinds: Iterable[str] | None = None,
@@ -539,3 +513,37 @@ class Store:
             if limit is not None:
                 stmt = stmt.limit(limit)
             return [events_mod.to_event(machine_id, r) for r in s.scalars(stmt)]
+
+
+def sample_bounds_ns(t0_s: float, t1_s: float) -> tuple[int, int]:
+    """The bounds [ns] :meth:`Store.read_samples` reads (blocks overlapping [t0, t1 − 1])."""
+    return (blocks_mod.clamp_ns(_ns(t0_s) - _EPS_NS), blocks_mod.clamp_ns(_ns(t1_s) - _EPS_NS))
+
+
+def assemble_samples(machine_id: str, stored: list[blocks_mod.StoredBlock], t0: int,
+                     t1: int) -> SampleArrays:
+    """The samples of ``stored`` (read for :func:`sample_bounds_ns` ``t0``, ``t1``) with
+    t0 ≤ t < t1, as :meth:`Store.read_samples` returns them."""
+    chans: dict[str, int] = {}
+    for b in stored:
+        for c in b.channels:
+            chans.setdefault(c, len(chans))
+    if not stored:
+        return SampleArrays(machine_id, np.zeros(0), (), np.zeros((0, 0)),
+                            t_ns=np.zeros(0, dtype=np.int64))
+    t_all = np.concatenate([b.times_ns() for b in stored])
+    vals: F64 = np.full((t_all.size, len(chans)), np.nan)
+    keep = (t_all >= t0) & (t_all < t1)
+    periods: set[int] = set()
+    row = 0
+    for b in stored:
+        cols = [chans[c] for c in b.channels]
+        vals[row:row + b.n, cols] = b.values
+        if keep[row:row + b.n].any():
+            periods.add(b.period_ns)
+        row += b.n
+    t_all, vals = t_all[keep], vals[keep]
+    t_u, first = np.unique(t_all, return_index=True)  # sorted, first occurrence kept
+    period = next(iter(periods)) if len(periods) == 1 else None
+    return SampleArrays(machine_id, t_u.astype(np.float64) / 1e9, tuple(chans), vals[first],
+                        period_ns=period, t_ns=t_u)

@@ -1,0 +1,138 @@
+"""What the twin worker reads once per pass for all the machines it owns, instead of once per
+machine: the stored data ranges, the progress rows, and on PostgreSQL the late-data marks and
+the late blocks behind each watermark (:meth:`cranetwin.service.worker.TwinWorker._redo_late`).
+
+A pass over 500 machines then costs a handful of statements for these instead of seven per
+machine; the new late-data marks are written in one statement at the end of the pass
+(:func:`flush_marks`). The reads are taken at the start of the pass, in this order: data ranges,
+then the commit-order mark (``pg_snapshot_xmin``), so a block that commits after the mark starts
+after the newest sample the pass processes up to (as when each machine read its own). They are
+only valid while the worker keeps the partitions it owned when it read them: the worker drops
+them when its ownership changes in the pass and reads per machine for the rest of it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from cranetwin.storage import analytics_windows as aw
+
+if TYPE_CHECKING:
+    from cranetwin.samples import SampleArrays
+    from cranetwin.service.backend import Backend, Progress
+
+
+@dataclass
+class PassReads:
+    """The pass's reads of the machines it owned when it started.
+
+    Attributes:
+        ranges: Machine → (first, last) stored sample time [s], or None (nothing stored).
+        progress: Machine → stored progress (machines without a progress row left out).
+        late: Machine → (stored mark, this pass's mark, late blocks [(t_start s, t_end s)])
+            (PostgreSQL; a machine left out is read alone, e.g. one with a mark of the
+            earlier kind).
+        samples: Machine → (from s, to s, its samples read for [from, to)): the first span
+            the pass expects to replay (taken by the machine's turn if it asks for the same
+            range; it reads alone otherwise).
+        marks: Machine → mark to store at the end of the pass (filled while processing).
+    """
+
+    ranges: dict[str, tuple[float, float] | None]
+    progress: dict[str, Progress]
+    late: dict[str, tuple[int | None, int, list[tuple[float, float]]]]
+    samples: dict[str, tuple[float, float, SampleArrays]] = field(default_factory=dict)
+    marks: dict[str, int] = field(default_factory=dict)
+
+
+MAX_PREFETCH_S = 30.0
+"""Longest first span whose samples the pass reads ahead [s] (bounds the memory of a pass
+that catches up: 500 machines × 30 s × 10 Hz × 20 channels ≈ 24 MB)."""
+
+
+def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
+              first_span: Callable[[float, float], tuple[float, float] | None] | None = None,
+              ) -> PassReads:
+    """The reads of a pass over ``machine_ids`` (a few statements per engine).
+
+    Args:
+        backend: Store adapter.
+        machine_ids: The machines the pass processes.
+        window_s: The worker's window [s] (the watermark of a machine without progress).
+        first_span: (watermark, newest sample) → the sample range [from, to) [s] of the first
+            span the machine's turn will replay, None when nothing is ready (None: no samples
+            read ahead).
+    """
+    got = backend.data_ranges(machine_ids)
+    ranges = {m: v[1] for m, v in got.items()}
+    stored = [m for m, r in ranges.items() if r is not None]
+    progress = backend.progress_many(stored) if stored else {}
+    late: dict[str, tuple[int | None, int, list[tuple[float, float]]]] = {}
+    for engine, ids in backend.store.engines_of(stored):
+        if engine.dialect.name != "postgresql":
+            continue
+        marks = aw.block_marks(engine, ids)
+        top = aw.snapshot_xmin(engine)  # after the data ranges (module docstring)
+        bounds: dict[int, tuple[int, float]] = {}
+        for m in ids:
+            mark, legacy = marks[m]
+            if legacy:
+                continue
+            if mark is None:
+                late[m] = (None, top, [])
+                continue
+            p = progress.get(m)
+            r = ranges[m]
+            assert r is not None
+            wm = p.watermark_s if p is not None else math.floor(r[0] / window_s) * window_s
+            bounds[got[m][0]] = (mark, wm)
+        found = aw.new_blocks_before_many(engine, bounds, top)
+        by_pk = {got[m][0]: m for m in ids}
+        for pk, (mark, _wm) in bounds.items():
+            late[by_pk[pk]] = (mark, top, found.get(pk, []))
+    reads = PassReads(ranges, progress, late)
+    if first_span is not None:
+        _read_samples(backend, reads, got, window_s, first_span)
+    return reads
+
+
+def _read_samples(backend: Backend, reads: PassReads,
+                  got: dict[str, tuple[int, tuple[float, float] | None]], window_s: float,
+                  first_span: Callable[[float, float], tuple[float, float] | None]) -> None:
+    """The samples of each machine's first span, one statement per engine."""
+    from sqlalchemy.orm import Session
+
+    from cranetwin.storage import blocks
+    from cranetwin.storage.store import assemble_samples, sample_bounds_ns
+
+    want: dict[str, tuple[float, float]] = {}
+    for m, r in reads.ranges.items():
+        if r is None:
+            continue
+        p = reads.progress.get(m)
+        wm = p.watermark_s if p is not None else math.floor(r[0] / window_s) * window_s
+        span = first_span(wm, r[1])
+        if span is not None and span[1] - span[0] <= MAX_PREFETCH_S:
+            want[m] = span
+    for engine, ids in backend.store.engines_of(list(want)):
+        ns = {m: sample_bounds_ns(*want[m]) for m in ids}
+        with Session(engine) as s:
+            stored = blocks.read_ranges(s, {got[m][0]: (a, z - 1) for m, (a, z) in ns.items()})
+        for m in ids:
+            a, z = ns[m]
+            reads.samples[m] = (*want[m], assemble_samples(m, stored[got[m][0]], a, z))
+
+
+def flush_marks(backend: Backend, reads: PassReads) -> None:
+    """Store the marks the pass moved (one statement per engine)."""
+    from sqlalchemy.orm import Session
+
+    marks = dict(reads.marks)
+    for engine, ids in backend.store.engines_of(list(marks)):
+        rows = [aw.mark_row(engine.dialect.name, m, marks[m]) for m in ids]
+        with Session(engine) as s, s.begin():
+            aw.put_rows(s, rows)
+    reads.marks.clear()
