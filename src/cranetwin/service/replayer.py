@@ -68,6 +68,10 @@ class Replayer:
         with self._lock:
             hit = self._choices.get(key)
         choices = hit[1] if hit is not None and now - hit[0] < REFRESH_S else None
+        n = samples.t_s.shape[0]
+        if choices is not None and any(not c.adaptive and c.window > n for c in choices):
+            choices = None  # a window longer than these samples: choose on them (as before
+            # the choice was kept; a span of low-rate samples after a smooth stretch failed)
         period = sample_period_s(samples) if samples.t_s.shape[0] >= 2 else None
         opts = ReplayOptions(grid_hz=grid_hz, smoothing=choices, sample_period_s=period,
                              theta0_initial=theta0_initial)

@@ -1,0 +1,30 @@
+"""The service's replayer keeps a machine's smoothing choice between replays; a later replay with
+fewer samples than a kept window chooses on its own samples instead of failing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cranetwin.model import load_machine
+from cranetwin.service.replayer import Replayer
+from cranetwin.testing.blocks import kinematic_samples
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def test_a_short_span_after_a_long_smooth_one_is_replayed() -> None:
+    machine = load_machine("patu655")
+    rate = 10.0
+    long = kinematic_samples(machine, 40.0, rate_hz=rate)
+    rp = Replayer()
+    first = rp.replay("m", machine, long, rate)
+    kept = [c.window for c in first.smoothing.values() if not c.adaptive]
+    short_n = 60  # 6 s at 10 Hz, as a worker's span with its margins
+    assert max(kept) > short_n, "the case needs a kept window longer than the short span"
+    later = kinematic_samples(machine, 46.0, rate_hz=rate)
+    keep = later.t_s >= later.t_s[-1] - (short_n - 0.5) / rate
+    short = later.take(keep)
+    assert short.t_s.shape[0] == short_n
+    res = rp.replay("m", machine, short, rate)
+    assert res.n > 0 and np.all(np.isfinite(res.cyl_force))
