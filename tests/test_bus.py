@@ -6,6 +6,7 @@ stream afterwards."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 import threading
 import uuid
@@ -517,8 +518,6 @@ def test_writer_stops_in_bounded_time_when_nats_calls_hang(bus: BusConfig,
         took.append(time.monotonic() - t0)
         with contextlib.suppress(Exception):
             await writer._nc._cranetwin_real_close()
-
-    import contextlib
 
     t = threading.Thread(target=lambda: run_bounded(main()), daemon=True)
     t.start()
