@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import typer
@@ -48,7 +49,8 @@ def test_unknown_or_no_command_gets_the_whole_application() -> None:
     assert _names(build_app(["--help"])) == full
 
 
-@pytest.mark.parametrize("argv", [["export", "--help"], ["send", "--help"], ["keys", "--help"]])
+@pytest.mark.parametrize("argv", [["export", "--help"], ["send", "--help"], ["keys", "--help"],
+                                  ["import", "--help"]])
 def test_a_light_command_does_not_import_the_numerics(argv: list[str]) -> None:
     code = (f"import sys; from cranetwin.cli import build_app; build_app({argv!r}); "
             "print(sorted(m for m in ('scipy.signal', 'numba', 'cranetwin.signal', "
@@ -56,6 +58,24 @@ def test_a_light_command_does_not_import_the_numerics(argv: list[str]) -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=60, check=True).stdout.strip()
     assert out == "[]", out
+
+
+@pytest.mark.timeout(120)
+def test_importing_a_file_into_storage_loads_no_twin_numerics(tmp_path: Path) -> None:
+    """`cranetwin import` reads, checks and stores; the replay's smoothing (scipy.signal, numba)
+    is not needed and cost 1–2 CPU s per command when the rod check lived in the twin."""
+    code = ("import sys; from pathlib import Path;"
+            " from cranetwin.bench.importer import write_files;"
+            " from cranetwin.importer import import_file; from cranetwin.model import load_machine;"
+            " from cranetwin.storage import Store; m = load_machine('patu655');"
+            " d = Path(sys.argv[1]); csv_path, _ = write_files(m, 500, d);"
+            " st = Store.open(f'sqlite:///{d}/a.db'); st.add_machine('a', 5, b'b' * 32);"
+            " n = import_file(csv_path, m, st, 'a').samples_stored; st.close();"
+            " print(n, sorted(k for k in ('scipy.signal', 'numba', 'cranetwin.signal',"
+            " 'cranetwin.physics', 'cranetwin.twin') if k in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True,
+                         text=True, timeout=100, check=True).stdout.strip()
+    assert out == "500 []", out
 
 
 def test_the_console_command_runs_through_the_lazy_path() -> None:

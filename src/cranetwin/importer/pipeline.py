@@ -29,8 +29,8 @@ from cranetwin.codec import QuantiseError, dequantise, quantise
 from cranetwin.importer.mapping import ChannelMap, ImportFileError, Mapping
 from cranetwin.importer.readers import Chunk, Refusal
 from cranetwin.model import Machine
+from cranetwin.model.positions import rod_position_problem
 from cranetwin.samples import SampleBlock
-from cranetwin.twin.checks import rod_position_problem
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -188,7 +188,7 @@ def estimate_period_ns(t: I64, jitter: float) -> int:
 def position_problem(name: str, values: F64, stroke_m: float, closed_m: float,
                      unit_factor_m: float) -> str | None:
     """Why the rod positions of one cylinder cannot be stroke positions, or None: the twin's
-    check (:func:`cranetwin.twin.checks.rod_position_problem`, more than half outside the
+    check (:func:`cranetwin.model.positions.rod_position_problem`, more than half outside the
     stroke) with what to declare in the mapping.
 
     Args:

@@ -48,12 +48,12 @@ import numpy.typing as npt
 
 from cranetwin.errors import TwinError
 from cranetwin.model import Machine
+from cranetwin.model.positions import rod_position_problem
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import SmoothingChoice, nominal_period, regularize
 from cranetwin.twin import force_model
 from cranetwin.twin.buffer import RowBuffer
 from cranetwin.twin.channels import choose_smoothing
-from cranetwin.twin.checks import rod_position_problem
 from cranetwin.twin.chunk import ChunkRows, PayloadSetting, Timing, chunk
 from cranetwin.twin.known_payload import at_instants, fully_known
 from cranetwin.twin.options import END_STOP_MARGIN_M, HasSamples, ReplayOptions
@@ -233,7 +233,7 @@ class TwinStream:
         return None if self._known is None else self._known.get(k0, k1)[:, 0]
 
     def _check_rods(self) -> None:
-        """Refuse rod positions that are no stroke positions (:mod:`cranetwin.twin.checks`),
+        """Refuse rod positions that are no stroke positions (:mod:`cranetwin.model.positions`),
         once, on the first ``ROD_CHECK_SAMPLES`` samples (or all, if the stream is shorter):
         nearly all of them outside the stroke is a convention or unit mix-up, which clipping
         would hide."""

@@ -1,4 +1,4 @@
-"""Checks of the twin's input against the machine description, made before any replay work.
+"""Rod positions in the machine description's convention, checked before any replay or import work.
 
 Rod positions must be stroke positions s ∈ [0, stroke] [m]: pin-to-pin lengths or millimetres
 fed as strokes would otherwise be clipped to an end of the stroke without a word (every rod at
