@@ -1,4 +1,4 @@
-"""``cranetwin send``: stream a (simulated) machine's sensor samples to an ingest daemon.
+"""``cranetwin send``: stream sensor samples (simulated, or a recorded file) to an ingest daemon.
 
 The secret comes from a file (``--key-file``, not readable by other users) or the environment
 (``$CRANETWIN_MACHINE_KEY``), never from the command line. Every datagram is journaled on disk
@@ -117,6 +117,14 @@ def send(
                                  "random for the PATU 655; one shipped for --model, e.g. "
                                  "dig-cycle for bobcat435; or a file), or 'synthetic' for "
                                  "built-in motion."),
+    file: Path | None = typer.Option(
+        None, "--file", help="Send a recording instead of simulating: a CSV, Parquet or MDF4 "
+        "logger file, read and checked as `cranetwin import` reads it (with --mapping). Its rows "
+        "go out at the file's sample period (× --speed) on the sender's clock, once (with "
+        "--loop: cyclically); time gaps in the file are closed up.", show_default=False),
+    mapping: Path | None = typer.Option(None, "--mapping", help="Mapping TOML of --file "
+                                        "(columns, units, conventions; docs/IMPORT.md).",
+                                        show_default=False),
     host: str = typer.Option("127.0.0.1:5005", help="Ingest daemon, HOST:PORT."),
     speed: float = typer.Option(1.0, help="Multiple of real time."),
     machines: int = typer.Option(1, min=1, help="Simulated fleet size."),
@@ -152,6 +160,7 @@ def send(
         RecordingSource,
         SampleSource,
         SyntheticSource,
+        file_source,
         parse_host,
         run_fleet,
         simulator_source,
@@ -184,6 +193,20 @@ def send(
         if missing:
             raise CraneTwinError(f"--from-journal-only: no journal at {', '.join(missing)}")
         sources = [None] * len(keys)
+    elif file is not None:
+        rec = file_source(keys[0], m, file, mapping)
+        period_s = rec.period_s
+        step = max(1, rec.values.shape[0] // machines)
+        sources = [RecordingSource(rec.values, offset=i * step, anchored=True)
+                   for i in range(machines)]
+        if duration is None and not loop:
+            duration = rec.values.shape[0] * period_s  # the file once
+        if rec.gaps:
+            typer.echo(f"{file}: {rec.gaps} time gap(s), {rec.gap_s:.3g} s in all, closed up: "
+                       "rows are sent back to back on the sender's clock", err=True)
+        if rec.payload_column is not None:
+            typer.echo(f"{file}: the payload column {rec.payload_column!r} is not sent (the wire "
+                       "carries sensor channels only); `cranetwin import` stores it", err=True)
     elif scenario == "synthetic":
         sources = [SyntheticSource(k, period_s, seed=seed + i) for i, k in enumerate(keys)]
     elif loop:

@@ -49,14 +49,15 @@ from cranetwin.protocol import (
     decode_status,
     peek_header,
 )
+from cranetwin.samples import SampleArrays
 
 log = logging.getLogger(__name__)
 F64 = npt.NDArray[np.float64]
 
 __all__ = [
-    "RecordingSource", "SampleSource", "SenderError", "SenderStats", "SyntheticSource",
-    "SimulatorStream", "journal_owner", "parse_host", "resume_row", "run_fleet", "run_sender",
-    "simulator_source", "simulator_stream",
+    "FileRecording", "RecordingSource", "SampleSource", "SenderError", "SenderStats",
+    "SyntheticSource", "SimulatorStream", "file_source", "journal_owner", "parse_host",
+    "resume_row", "run_fleet", "run_sender", "simulator_source", "simulator_stream",
 ]
 
 
@@ -130,16 +131,25 @@ class RecordingSource:
     Args:
         values: Samples, shape (n, c), layout column order [channel units].
         offset: Row to start from (shifts machines of a fleet against each other).
+        anchored: Count rows from the first row read instead of the sender's absolute sample
+            clock, so the first sample sent is row ``offset`` (a user's file starts with its
+            first row).
     """
 
-    def __init__(self, values: F64, offset: int = 0) -> None:
+    def __init__(self, values: F64, offset: int = 0, anchored: bool = False) -> None:
         values = np.asarray(values, dtype=np.float64)
         if values.ndim != 2 or values.shape[0] < 1:
             raise SenderError("a recording source needs at least one row of samples")
         self.values = values
         self.offset = offset
+        self.anchored = anchored
+        self._first: int | None = None
 
     def read(self, i0: int, m: int) -> F64:
+        if self.anchored:
+            if self._first is None:
+                self._first = i0
+            i0 -= self._first
         idx = (self.offset + i0 + np.arange(m)) % self.values.shape[0]
         out: F64 = self.values[idx]
         return out
@@ -253,14 +263,60 @@ def simulator_source(key: MachineKey, model: Any, scenario: str, *, duration_s: 
           else load_scenario(scenario, machine=getattr(model, "name", None)))
     rec = simulate(model, sc, duration_s=min(duration_s, sc.duration_s), seed=seed,
                    wrenches=False)
-    s = rec.samples
+    return _in_layout(rec.samples, key, "simulated")
+
+
+def _in_layout(s: SampleArrays, key: MachineKey, what: str) -> tuple[F64, float]:
+    """``s``'s values in the key's layout order, shape (n, c), and its median period [s]."""
     try:
         cols = [s.channels.index(n) for n in key.layout.names]
     except ValueError as exc:
-        raise SenderError(f"simulated channels {s.channels} lack one of {key.layout.names}") \
+        raise SenderError(f"{what} channels {s.channels} lack one of {key.layout.names}") \
             from exc
     period = float(np.median(np.diff(s.t_s))) if s.t_s.size > 1 else 0.01
     return np.ascontiguousarray(s.values[:, cols]), period
+
+
+@dataclass(frozen=True)
+class FileRecording:
+    """A user's recording read for sending (:func:`file_source`).
+
+    Attributes:
+        values: Samples in the key's layout order, shape (n, c) [channel units]; NaN = missing.
+        period_s: The recording's median sample period [s], the sender's period.
+        gaps: Number of places where the recording's time jumps by more than 1.5 periods.
+        gap_s: Recording time those jumps skip in all [s] (the sender's clock does not skip it:
+            the live time base is the sender's, rows are sent back to back).
+        payload_column: The mapping's payload column, if any (not sent: the wire carries
+            sensor channels only; ``cranetwin import`` stores it).
+    """
+
+    values: F64
+    period_s: float
+    gaps: int
+    gap_s: float
+    payload_column: str | None
+
+
+def file_source(key: MachineKey, model: Any, path: str | Path,
+                mapping: str | Path | None = None) -> FileRecording:
+    """A logger file (CSV, Parquet, MDF4), read through the importer's checks and conversion
+    (:func:`cranetwin.importer.read_file`, the same as ``cranetwin import``), as rows to send.
+
+    Raises:
+        SenderError: A layout channel the file does not map.
+        cranetwin.importer.ImportFileError: The file or the mapping is not usable (rows are
+            refused, never clipped, as on import).
+    """
+    from cranetwin.importer import load_mapping, read_file
+
+    m = load_mapping(mapping, model)
+    got = read_file(path, model, m)
+    values, period = _in_layout(got.samples, key, f"{Path(path).name}'s")
+    dt = np.diff(got.samples.t_s)
+    jumps = dt > 1.5 * period
+    return FileRecording(values, period, int(jumps.sum()), float((dt[jumps] - period).sum()),
+                         m.payload_column)
 
 
 # --- the asyncio shell -------------------------------------------------------------------------
