@@ -40,7 +40,6 @@ def _recording(tmp_path: Path, rows: int, gap_after: int | None = None) -> Path:
 def test_send_file_stores_every_row_of_the_recording_once(sqlite_url: str, tmp_path: Path,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     from conftest import running_daemon
-
     from cranetwin.importer import read_file
     from cranetwin.model import load_machine
 
