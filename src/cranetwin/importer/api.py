@@ -345,12 +345,13 @@ def import_file(path: str | Path, machine: Machine, store: Store, machine_id: st
     ``duplicate``). Rows are refused, not clipped (see :class:`ImportReport`).
 
     With the mapping's ``[payload]`` column, the column is read first (a pass over the time
-    and that column; refused values counted in the report) and, after each batch of blocks, the
-    known payload at the sample times of every block of the batch that is stored (now or
-    before) is stored as one run per block (:meth:`Store.write_payload_runs`; values as
-    :func:`read_file` gives them, NaN where not known): importing the file again stores it
-    once, and importing it again *with* the column adds the series to samples imported
-    without it (the column is no part of the import's identity).
+    and that column; refused values counted in the report), and before each batch of blocks
+    the known payload at each block's sample times is stored as one run per block
+    (:meth:`Store.write_payload_runs`; values as :func:`read_file` gives them, NaN where not
+    known), so a twin worker that sees the blocks finds it; the runs of blocks that storage
+    then refuses are deleted again. Importing the file again stores it once, and importing it
+    again *with* the column adds the series to samples imported without it (the column is no
+    part of the import's identity).
 
     Args:
         path: CSV, Parquet or MDF4 file.
@@ -384,29 +385,37 @@ def import_file(path: str | Path, machine: Machine, store: Store, machine_id: st
         _report_payload(pipe.report, rows)
         own = int(np.median(np.diff(rows.t_ns))) if rows.t_ns.size > 1 else 0
 
-    def payload_runs(durable: list[SampleBlock]) -> list[PayloadRun]:
-        """The known payload of each durable block, at its sample times (rows near them)."""
+    def payload_runs(blocks: list[SampleBlock]) -> list[PayloadRun]:
+        """The known payload of each block (in time order), at its sample times."""
         assert rows is not None
-        if not durable:
+        if not blocks:
             return []
-        t = [b.times_ns() for b in durable]
+        t = [b.times_ns() for b in blocks]
         reach = max(pipe.period_ns, own, 1) // 2 + 1
         lo = np.searchsorted(rows.t_ns, int(t[0][0]) - reach, side="left")
         hi = np.searchsorted(rows.t_ns, int(t[-1][-1]) + reach, side="right")
         kg = payload_at(np.concatenate(t), rows.t_ns[lo:hi], rows.kg[lo:hi], pipe.period_ns,
                         own_ns=own)
         runs, at = [], 0
-        for b in durable:
+        for b in blocks:
             runs.append(PayloadRun(int(b.t0_ns), int(b.period_ns), kg[at:at + b.n]))
             at += b.n
         return runs
 
     def record(batch: list[SampleBlock]) -> None:
+        new_runs: set[int] = set()
+        if rows is not None:  # before the blocks: a worker that sees them finds the payload
+            got = store.write_payload_runs(machine_id, payload_runs(
+                sorted(batch, key=lambda b: int(b.t0_ns))))
+            out.payload_runs_stored += got.stored
+            out.payload_runs_duplicate += got.duplicate
+            out.payload_runs_differing += got.differing
+            new_runs.update(got.new_starts)
         res = store.write_batch(batch)
-        durable: list[SampleBlock] = []
+        dropped: list[int] = []
         for b, o in zip(batch, res.outcomes, strict=True):
-            if o.durable:
-                durable.append(b)
+            if not o.durable and int(b.t0_ns) in new_runs:
+                dropped.append(int(b.t0_ns))
             if o.status == "stored":
                 out.stored += 1
                 out.samples_stored += b.n
@@ -416,12 +425,8 @@ def import_file(path: str | Path, machine: Machine, store: Store, machine_id: st
                 out.refused[str(o.reason)] += 1
                 if not out.refused_detail:
                     out.refused_detail = f"seq {b.seq}: {o.reason}: {o.detail}"
-        if rows is not None and durable:
-            got = store.write_payload_runs(machine_id, payload_runs(
-                sorted(durable, key=lambda b: int(b.t0_ns))))
-            out.payload_runs_stored += got.stored
-            out.payload_runs_duplicate += got.duplicate
-            out.payload_runs_differing += got.differing
+        if dropped:  # the blocks were refused: so is their payload
+            out.payload_runs_stored -= store.delete_payload_runs(machine_id, dropped)
 
     # one writer thread: reading and converting the next batch overlaps storage's encoding and
     # commit of this one (batches stay in file order; one writer, as storage assumes)

@@ -127,17 +127,15 @@ class PayloadWrite:
         duplicate: Runs already stored with the same values.
         differing: Runs whose (machine, start) is stored with other values (kept as stored).
         values_stored: Values of the runs newly stored (NaN ones included).
+        new_starts: Start times [ns] of the runs newly stored (for
+            :meth:`cranetwin.storage.Store.delete_payload_runs`).
     """
 
     stored: int = 0
     duplicate: int = 0
     differing: int = 0
     values_stored: int = 0
-
-    def __add__(self, other: PayloadWrite) -> PayloadWrite:
-        return PayloadWrite(self.stored + other.stored, self.duplicate + other.duplicate,
-                            self.differing + other.differing,
-                            self.values_stored + other.values_stored)
+    new_starts: tuple[int, ...] = ()
 
 
 def check_run(run: PayloadRun) -> str | None:
@@ -244,7 +242,19 @@ def write(session: Session, machine_pk: int, runs: Sequence[PayloadRun]) -> Payl
                 _decode(got[2], got[1]), r.payload_kg, equal_nan=True):
             same += 1
     return PayloadWrite(len(new), same, len(old) - same,
-                        sum(r.n for r in runs if r.t0_ns in new))
+                        sum(r.n for r in runs if r.t0_ns in new), tuple(sorted(new)))
+
+
+def delete(session: Session, machine_pk: int, starts: Sequence[int]) -> int:
+    """Delete the runs of a machine that start at ``starts`` [ns]; returns how many were."""
+    row = PayloadRunRow
+    gone = 0
+    for i in range(0, len(starts), 5000):
+        chunk = [int(t) for t in starts[i:i + 5000]]
+        gone += session.query(row).filter(row.machine_pk == machine_pk,
+                                          row.t_start_ns.in_(chunk)).delete(
+            synchronize_session=False)
+    return gone
 
 
 def read(session: Session, machine_id: str, machine_pk: int, t0_ns: int,
@@ -273,4 +283,4 @@ def read(session: Session, machine_id: str, machine_pk: int, t0_ns: int,
 
 
 __all__ = ["MAX_RUN", "PayloadRun", "PayloadRunRow", "PayloadSeries", "PayloadWrite",
-           "check_run", "read", "runs_of", "write"]
+           "check_run", "delete", "read", "runs_of", "write"]

@@ -305,6 +305,9 @@ class ShardedStore(Store):
         cuts the series and comes here)."""
         return self._one(machine_id, lambda s: s.write_payload_runs(machine_id, runs))
 
+    def delete_payload_runs(self, machine_id: str, starts_ns: Sequence[int]) -> int:
+        return self._one(machine_id, lambda s: s.delete_payload_runs(machine_id, starts_ns))
+
     def read_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadSeries:
         return self._one(machine_id, lambda s: s.read_payload(machine_id, t0_s, t1_s))
 

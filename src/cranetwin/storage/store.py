@@ -462,6 +462,18 @@ class Store:
             raise StorageError(f"could not store {len(runs)} payload run(s): "
                                f"{exc}".splitlines()[0]) from exc
 
+    def delete_payload_runs(self, machine_id: str, starts_ns: Sequence[int]) -> int:
+        """Delete the stored payload runs of a machine that start at ``starts_ns`` [ns] (the
+        importer: runs it stored for blocks that storage then refused); returns how many.
+
+        Raises:
+            UnknownMachineError: No such machine.
+        """
+        if not starts_ns:
+            return 0
+        with self._session() as s, s.begin():
+            return payloads_mod.delete(s, self._machine_pk(s, machine_id), starts_ns)
+
     def read_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadSeries:
         """The stored known payload of one machine with t0_s ≤ t < t1_s, oldest first, with
         the bounds of :meth:`read_samples` (so it covers the samples that call returns).
