@@ -428,8 +428,9 @@ class Store:
         Args:
             machine_id: The machine.
             payload_kg: Payload [kg], shape (n,); NaN = not known (stored as such).
-            t_s: Times [s since the Unix epoch], shape (n,), strictly increasing (rounded to
-                the ns); or
+            t_s: Times [s since the Unix epoch], shape (n,), strictly increasing, rounded to
+                the µs (float64 epoch seconds resolve ≈ 0.24 µs: rounded to the ns, a regular
+                series would not be regular); or
             t_ns: the exact times [ns] instead.
 
         Raises:
@@ -439,7 +440,7 @@ class Store:
         if (t_s is None) == (t_ns is None):
             raise StorageError("write_payload: give t_s or t_ns (one of them)")
         t = (np.asarray(t_ns, dtype=np.int64) if t_ns is not None
-             else np.rint(np.asarray(t_s, dtype=np.float64) * 1e9).astype(np.int64))
+             else np.rint(np.asarray(t_s, dtype=np.float64) * 1e6).astype(np.int64) * 1000)
         return self.write_payload_runs(machine_id, payloads_mod.runs_of(t, payload_kg))
 
     def write_payload_runs(self, machine_id: str, runs: Sequence[PayloadRun]) -> PayloadWrite:
