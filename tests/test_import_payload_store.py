@@ -216,3 +216,24 @@ def test_cli_replay_of_a_stored_range_uses_the_stored_payload(imported: str, log
     assert "known payload" not in said and "payload_known_kg" not in plain
     assert np.all(plain["payload_std_kg"] > 0.0)
     assert np.abs(known["torque_id.theta1"] - plain["torque_id.theta1"]).max() > 1e3
+
+
+@pytest.mark.timeout(30)
+def test_payload_limit_from_the_mapping_or_the_rated_chart(machine: Machine) -> None:
+    from cranetwin.importer import ImportFileError, mapping_from_dict
+    from cranetwin.importer.payload import PayloadCheck, payload_limit_kg
+
+    assert payload_limit_kg(machine, None) == 3000.0  # 3 × 1000 kg, the chart's largest
+    m = mapping_from_dict({"payload": {"column": "w", "unit": "t", "max": 2.5},
+                           "checks": {"range_tolerance": 0.1}}, machine)
+    assert m.payload_max_kg == 2500.0 and payload_limit_kg(machine, m.payload_max_kg) == 2500.0
+    with pytest.raises(ImportFileError, match="payload.max must be a number > 0"):
+        mapping_from_dict({"payload": {"column": "w", "max": -1}}, machine)
+    check = PayloadCheck("w", "t", 1000.0, 2500.0, 0.1)
+    kg = np.array([0.0, 2750.0, 2750.5, -1e-3, np.nan, np.inf])
+    out, neg, high = check.apply(kg, np.arange(1, 7), None)
+    assert [r.row for r in neg] == [4] and [r.row for r in high] == [3, 6]
+    assert out[0] == 0.0 and out[1] == 2750.0 and np.isnan(out[2:]).all()
+    unbounded = PayloadCheck("w", "kg", 1.0, None)
+    out, neg, high = unbounded.apply(np.array([1e9, -0.1]), np.arange(1, 3), None)
+    assert out[0] == 1e9 and [r.row for r in neg] == [2] and not high

@@ -18,9 +18,9 @@ lift's middle half: the estimate's sliding window (2 s) straddles pick-up and se
 ends of a lift say how fast the estimate follows, not how right it is.
 
 A file's payload value is refused (with row and column, never clipped; the row's samples are
-kept and the payload is not known there) when it is negative or above the largest accepted
-payload (:func:`payload_limit_kg`), beyond the mapping's ``checks.range_tolerance`` share of
-that limit (:class:`PayloadCheck`).
+kept and the payload is not known there) when it is negative, or above the largest accepted
+payload (:func:`payload_limit_kg`) by more than the mapping's ``checks.range_tolerance`` share
+of it (:class:`PayloadCheck`).
 """
 
 from __future__ import annotations
@@ -57,8 +57,9 @@ def payload_limit_kg(machine: Machine, max_kg: float | None) -> float | None:
 
 @dataclass(frozen=True)
 class PayloadCheck:
-    """The accepted range of a payload column: [−tol, max + tol] [kg], tol = ``tolerance`` ·
-    max (0 without a max); values in the column's ``unit`` are ``scale`` kg."""
+    """The accepted range of a payload column: [0, max + tolerance · max] [kg] (no upper
+    bound without a max; a negative payload is never accepted, as storage refuses it); values
+    in the column's ``unit`` are ``scale`` kg."""
 
     column: str
     unit: str
@@ -86,12 +87,11 @@ class PayloadCheck:
             rows: 1-based data row numbers, shape (n,).
             lines: CSV line numbers, shape (n,), or None.
         """
-        tol = 0.0 if self.max_kg is None else self.tolerance * self.max_kg
         with np.errstate(invalid="ignore"):
-            neg = kg < -tol
+            neg = kg < 0.0
             high = np.isinf(kg) & ~neg
             if self.max_kg is not None:
-                high |= kg > self.max_kg + tol
+                high |= kg > self.max_kg * (1.0 + self.tolerance)
 
         def refusals(mask: npt.NDArray[np.bool_], kind: str) -> list[Refusal]:
             return [Refusal(int(rows[i]), self.column,
