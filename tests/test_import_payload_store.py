@@ -142,8 +142,27 @@ def imported(machine: Machine, logged: Logged,
     yield db
 
 
+@pytest.mark.timeout(300)
+def test_payload_of_blocks_storage_refuses_is_not_kept(machine: Machine, logged: Logged,
+                                                       tmp_path: Path) -> None:
+    """Samples stored without a payload; another file over the same times (other bytes: its
+    blocks overlap and are refused) brings a payload column: its runs, written before the
+    blocks, are deleted again, and the stored samples keep no payload."""
+    db = f"sqlite:///{tmp_path / 'c.db'}"
+    other = tmp_path / "other.csv"
+    other.write_text(logged.csv.read_text().replace("\n", "\r\n"))  # same rows, other bytes
+    with Store.open(db) as store:
+        store.add_machine("known", 1, SECRET)
+        first = import_file(logged.csv, machine, store, "known")
+        got = import_file(other, machine, store, "known", logged.mapping)
+        assert got.stored == 0 and got.refused["overlap"] == first.stored
+        assert got.payload_runs_stored == 0 and _runs(store) == 0
+        assert store.read_payload("known", 0.0, 4e9).n == 0
+
+
 @pytest.mark.timeout(600)
-def test_worker_and_replayer_use_the_stored_payload(imported: str, logged: Logged) -> None:
+def test_worker_and_replayer_use_the_stored_payload(db_url: str, machine: Machine,
+                                                    logged: Logged) -> None:
     """The twin worker's window and the service's replays of a stored range take the stored
     payload where known (σ 0, the known value); a machine without one gets the estimate, which
     differs from it."""
@@ -152,8 +171,12 @@ def test_worker_and_replayer_use_the_stored_payload(imported: str, logged: Logge
     from cranetwin.service.worker import TwinWorker
     from cranetwin.settings import Settings
 
-    b = Backend.open(imported)
+    b = Backend.open(db_url)
     try:
+        b.store.add_machine("known", 1, SECRET)
+        b.store.add_machine("plain", 2, SECRET[::-1])
+        import_file(logged.csv, machine, b.store, "known", logged.mapping)
+        import_file(logged.csv, machine, b.store, "plain")
         worker = TwinWorker(b, Settings(database_url="unused", worker_in_process=False))
         assert worker.catch_up(b.machine("known")) == 1
         assert worker.catch_up(b.machine("plain")) == 1
