@@ -260,3 +260,32 @@ def test_payload_limit_from_the_mapping_or_the_rated_chart(machine: Machine) -> 
     unbounded = PayloadCheck("w", "kg", 1.0, None)
     out, neg, high = unbounded.apply(np.array([1e9, -0.1]), np.arange(1, 3), None)
     assert out[0] == 1e9 and [r.row for r in neg] == [2] and not high
+
+
+@pytest.mark.timeout(300)
+def test_api_twin_route_gives_the_stored_payload(imported: str, logged: Logged) -> None:
+    """GET /machines/{id}/twin: ``payload.kg`` is the stored known payload and ``std_kg`` 0
+    where one was imported; the estimate (σ > 0) for a machine without one."""
+    from fastapi.testclient import TestClient
+
+    from cranetwin.api import create_app
+    from cranetwin.settings import Settings
+
+    app = create_app(Settings(database_url=imported, worker_in_process=False))
+    with TestClient(app) as client:
+        key = app.state.services.backend.create_key("viewer", "test")[1]
+
+        def twin(mid: str) -> dict[str, list[float]]:
+            r = client.get(f"/api/v1/machines/{mid}/twin", headers={"X-API-Key": key},
+                           params={"from": T0 + 10.0, "to": T0 + 30.0, "rate_hz": 100})
+            assert r.status_code == 200, r.text
+            return dict(r.json()["payload"])
+
+        known = twin("known")
+        i = np.round((np.array(known["t"]) - T0) * 100.0).astype(int)
+        assert i[0] == 1000 and 1900 < i.size <= 2000
+        np.testing.assert_allclose(known["kg"], logged.truth_kg[i], rtol=0, atol=0.006)
+        assert np.all(np.array(known["std_kg"]) == 0.0)
+        plain = twin("plain")
+        assert np.all(np.array(plain["std_kg"]) > 0.0)
+        assert np.max(np.abs(np.array(plain["kg"]) - logged.truth_kg[i])) > 20.0
