@@ -289,3 +289,41 @@ def test_api_twin_route_gives_the_stored_payload(imported: str, logged: Logged) 
         plain = twin("plain")
         assert np.all(np.array(plain["std_kg"]) > 0.0)
         assert np.max(np.abs(np.array(plain["kg"]) - logged.truth_kg[i])) > 20.0
+
+
+@pytest.mark.postgres
+@pytest.mark.timeout(300)
+def test_import_into_a_sharded_store_puts_the_payload_on_the_machines_shard(
+        machine: Machine, logged: Logged) -> None:
+    import uuid
+
+    import psycopg
+
+    from conftest import PG_URL, _pg_conninfo, pg_unreachable_reason
+    from cranetwin.storage.sharding import partition_of
+    from cranetwin.storage.shardmap import ShardMap
+    from cranetwin.storage.shards import ShardedStore
+
+    reason = pg_unreachable_reason()
+    if reason:
+        pytest.skip(reason)
+    names = [f"t_{uuid.uuid4().hex[:12]}" for _ in range(2)]
+    with psycopg.connect(_pg_conninfo(), autocommit=True) as conn:
+        for n in names:
+            conn.execute(f'CREATE SCHEMA "{n}"')
+    sep = "&" if "?" in PG_URL else "?"
+    urls = [f"{PG_URL}{sep}options=-csearch_path%3D{n}" for n in names]
+    st = ShardedStore.open_map(ShardMap.parse({"0-1": urls[0], "2-3": urls[1]}, 4))
+    try:
+        mid = next(f"crane-{w}" for w in range(1, 99) if partition_of(f"crane-{w}", 4) >= 2)
+        st.add_machine(mid, 7, SECRET)
+        got = import_file(logged.csv, machine, st, mid, logged.mapping)
+        assert got.stored > 1 and got.payload_runs_stored == got.stored
+        assert [_runs(s) for s in st.shards] == [0, got.stored]  # the machine's shard only
+        back = st.read_payload(mid, T0 - 1.0, T0 + 200.0)
+        np.testing.assert_allclose(back.payload_kg, logged.truth_kg, rtol=1e-9, atol=1e-6)
+    finally:
+        st.close()
+        with psycopg.connect(_pg_conninfo(), autocommit=True) as conn:
+            for n in names:
+                conn.execute(f'DROP SCHEMA "{n}" CASCADE')
