@@ -1,7 +1,8 @@
 """``cranetwin import FILE --machine ID``: a user's CSV, Parquet or MDF4 recording into storage.
 
-Exit status: 0 when every row was imported, 1 when some rows were refused (the others are
-stored; the summary names row, column and reason), 2 on an error (nothing of the file stored
+Exit status: 0 when every row was imported, 1 when some rows (or known payload values of the
+mapping's ``[payload]`` column) were refused (the others are stored; the summary names row,
+column and reason), 2 on an error (nothing of the file stored
 when the error is about the file, its mapping or a convention mix-up). docs/IMPORT.md.
 """
 
@@ -70,7 +71,11 @@ def import_cmd(
             "samples_stored": res.samples_stored, "period_ns": rep.period_ns,
             "max_time_shift_ns": rep.max_time_shift_ns, "channels": list(rep.channels),
             "absent": list(rep.absent), "t_first_ns": rep.t_first_ns,
-            "t_last_ns": rep.t_last_ns, "epoch": res.epoch}))
+            "t_last_ns": rep.t_last_ns, "epoch": res.epoch,
+            "payload_rows": rep.payload_rows, "payload_refused": rep.payload_refused,
+            "payload_runs_stored": res.payload_runs_stored,
+            "payload_runs_duplicate": res.payload_runs_duplicate,
+            "payload_runs_differing": res.payload_runs_differing}))
     else:
         typer.echo(rep.summary())
         typer.echo(f"{res.stored} block(s) stored ({res.samples_stored} samples), "
@@ -80,7 +85,12 @@ def import_cmd(
                       f"{res.refused_detail})" if res.refused else "")
                    + f"; times moved to the run grid by at most "
                      f"{rep.max_time_shift_ns / 1e6:.3g} ms")
-    if rep.rows_refused or res.refused:
+        if res.payload_runs_stored or res.payload_runs_duplicate or res.payload_runs_differing:
+            typer.echo(f"known payload: {res.payload_runs_stored} run(s) stored (one per "
+                       f"block), {res.payload_runs_duplicate} already stored"
+                       + (f", {res.payload_runs_differing} already stored with other values "
+                          "(kept as stored)" if res.payload_runs_differing else ""))
+    if rep.rows_refused or res.refused or rep.payload_refused:
         raise typer.Exit(1)
 
 

@@ -45,8 +45,9 @@ def replay_cmd(
 ) -> None:
     """Replay samples through the twin and write joint q/qd/qdd, rod s/v, pressures, cylinder
     forces, joint torques and reaction wrenches, tip position, payload ± σ and gap flags; with
-    a known payload column (the mapping's [payload]), the dynamics use it where known
-    (--payload-column compare: the estimate's error per lift instead)."""
+    a known payload column (the mapping's [payload]; for a stored range, the one the import
+    stored), the dynamics use it where known (--payload-column compare: the estimate's error
+    per lift instead)."""
     from cranetwin.importer.payload import summary_line
     from cranetwin.importer.replay import (
         PayloadColumn,
@@ -63,6 +64,7 @@ def replay_cmd(
             raise TwinError("give FILE, or --machine ID --from --to [--db]: not both")
         m = load_machine(machine or "patu655")
         source, known = load_source_and_payload(file, m, mapping)
+        where = "the mapping's [payload] column"
     else:
         if machine is None or t_from is None or t_to is None:
             raise TwinError("give FILE [--mapping MAP], or --machine ID --from T0 --to T1")
@@ -70,15 +72,20 @@ def replay_cmd(
             raise TwinError("--mapping is for a FILE")
         from cranetwin.cli.importer import machine_of
         from cranetwin.cli.report import parse_time
+        from cranetwin.service.replayer import Replayer, sample_period_s
         from cranetwin.settings import Settings, load_settings
         from cranetwin.storage import open_store, store_spec
 
         with open_store(store_spec(load_settings(Settings, database_url=db))) as store:
             m = machine_of(store.get_machine(machine).model, machine)
             source = store.read_samples(machine, parse_time(t_from), parse_time(t_to))
-        if source.t_s.shape[0] == 0:
-            raise TwinError(f"no samples of {machine!r} stored in [{t_from}, {t_to})")
-        known = None
+            if source.t_s.shape[0] == 0:
+                raise TwinError(f"no samples of {machine!r} stored in [{t_from}, {t_to})")
+            # the known payload stored with them (an imported [payload] column), as the
+            # service's replays take it
+            known = Replayer(store.read_payload).known_payload(
+                machine, source, sample_period_s(source) if source.t_s.shape[0] >= 2 else None)
+        where = "stored with the samples"
     if payload_column not in ("use", "compare"):
         raise TwinError(f"--payload-column {payload_column!r}: expected use or compare")
     column: PayloadColumn = "use" if payload_column == "use" else "compare"
@@ -100,7 +107,7 @@ def replay_cmd(
     typer.echo(f"{out}: {rows} rows × {len(units)} columns (docs/IMPORT.md lists them)")
     if use:
         assert known is not None
-        typer.echo(f"known payload (the mapping's [payload] column) used in the inverse "
+        typer.echo(f"known payload ({where}) used in the inverse "
                    f"dynamics at {100.0 * float(np.isfinite(known).mean()):.1f} % of the "
                    "samples, the estimate elsewhere")
     lifts = notes.lifts()

@@ -15,7 +15,7 @@ import numpy.typing as npt
 
 from cranetwin.importer.mapping import ChannelMap, ImportFileError, Mapping, load_mapping
 from cranetwin.importer.mdf import mdf_start_s
-from cranetwin.importer.payload import payload_at
+from cranetwin.importer.payload import PayloadCheck, payload_at, payload_limit_kg
 from cranetwin.importer.pipeline import (
     BLOCK_SAMPLES,
     ImportReport,
@@ -25,6 +25,7 @@ from cranetwin.importer.pipeline import (
 )
 from cranetwin.importer.readers import (
     Chunk,
+    Refusal,
     TimeKind,
     detect_format,
     file_columns,
@@ -133,39 +134,100 @@ def read_file(path: str | Path, machine: Machine, mapping: Mapping | str | Path 
               *, machine_id: str | None = None,
               progress: Progress | None = None) -> ImportedFile:
     """Read a CSV, Parquet or MDF4 file into :class:`SampleArrays` as storage would return it
-    after :func:`import_file` (same checks, conversion, quantisation and time grid).
+    after :func:`import_file` (same checks, conversion, quantisation and time grid), with the
+    mapping's payload column as :func:`import_file` stores it.
 
     Raises:
         ImportFileError: As :func:`iter_blocks`; also when no row was accepted.
     """
     m = mapping if isinstance(mapping, Mapping) else load_mapping(mapping, machine)
+    rows = _file_payload_rows(Path(path), m, machine) if m.payload_column is not None else None
     pipe, blocks = iter_blocks(path, machine, m, machine_id, progress=progress)
     got = _collect(pipe, blocks, str(path))
-    if m.payload_column is None:
+    if rows is None:
         return got
-    return replace(got, payload_kg=_file_payload(Path(path), m, got.samples, pipe))
+    _report_payload(pipe.report, rows)
+    t_ns = got.samples.t_ns if got.samples.t_ns is not None else np.rint(
+        got.samples.t_s * 1e9).astype(np.int64)
+    return replace(got, payload_kg=payload_at(t_ns, rows.t_ns, rows.kg, pipe.report.period_ns))
 
 
-def _file_payload(p: Path, m: Mapping, samples: SampleArrays, pipe: Pipeline) -> F64:
-    """The mapping's payload column at the samples' times (a second pass over the file that
-    reads the time and that column only)."""
+@dataclass(frozen=True)
+class PayloadRows:
+    """The mapping's payload column as read, checked (:class:`PayloadCheck`) and converted.
+
+    Attributes:
+        t_ns: Row times [ns since the epoch], shape (m,) (rows without a usable time dropped).
+        kg: Payload per row [kg], shape (m,); NaN = empty or refused.
+        negative, high: The refusals (negative; above the largest accepted), with row and
+            column.
+        check: The check applied.
+    """
+
+    t_ns: npt.NDArray[np.int64]
+    kg: F64
+    negative: list[Refusal]
+    high: list[Refusal]
+    check: PayloadCheck
+
+
+def _payload_check(m: Mapping, machine: Machine) -> PayloadCheck:
     assert m.payload_column is not None
+    return PayloadCheck(m.payload_column, m.payload_unit, m.payload_scale,
+                        payload_limit_kg(machine, m.payload_max_kg), m.range_tolerance)
+
+
+def _file_payload_rows(p: Path, m: Mapping, machine: Machine,
+                       progress: Progress | None = None) -> PayloadRows:
+    """The mapping's payload column of a file (a pass over the file that reads the time and
+    that column only), before any sample is read or stored.
+
+    Raises:
+        ImportFileError: The file has no such column.
+    """
+    assert m.payload_column is not None
+    if not p.is_file():
+        raise ImportFileError(f"{p}: no such file")
     fmt = detect_format(p)
-    if m.payload_column not in set(file_columns(p, fmt, m.delimiter)):
+    delim = "\t" if fmt == "csv" and m.delimiter == "," and p.suffix.lower() == ".tsv" \
+        else m.delimiter
+    if m.payload_column not in set(file_columns(p, fmt, delim)):
         raise ImportFileError(f"{p}: no payload column {m.payload_column!r} (the mapping's "
                               "[payload] column)")
+    start_s = m.start_s
+    time_map = m
+    if fmt == "mdf":
+        time_map = replace(m, time_format="relative_s")
+        if start_s is None:
+            start_s = mdf_start_s(p)
+    check = _payload_check(m, machine)
     ts: list[npt.NDArray[np.int64]] = []
     vs: list[F64] = []
-    time_map = replace(m, time_format="relative_s") if fmt == "mdf" else m
-    for chunk in iter_chunks(p, fmt, [m.payload_column], m.time_column, _time_kind(m),
-                             m.delimiter):
-        t, tbad = raw_time_ns(chunk.time, time_map, pipe.start_s)
+    neg: list[Refusal] = []
+    high: list[Refusal] = []
+    for chunk in iter_chunks(p, fmt, [m.payload_column], m.time_column, _time_kind(time_map),
+                             delim):
+        t, tbad = raw_time_ns(chunk.time, time_map, start_s)
         keep = ~(tbad | chunk.bad)
+        rows = np.arange(chunk.first_row, chunk.first_row + chunk.n)[keep]
+        kg, n_, h_ = check.apply(chunk.columns[m.payload_column][keep] * m.payload_scale, rows,
+                                 None if chunk.lines is None else chunk.lines[keep])
         ts.append(t[keep])
-        vs.append(chunk.columns[m.payload_column][keep] * m.payload_scale)
-    t_ns = samples.t_ns if samples.t_ns is not None else np.rint(samples.t_s * 1e9).astype(
-        np.int64)
-    return payload_at(t_ns, np.concatenate(ts), np.concatenate(vs), pipe.report.period_ns)
+        vs.append(kg)
+        neg += n_
+        high += h_
+        if progress is not None:
+            progress(chunk.done, chunk.total)
+    return PayloadRows(np.concatenate(ts) if ts else np.zeros(0, dtype=np.int64),
+                       np.concatenate(vs) if vs else np.zeros(0), neg, high, check)
+
+
+def _report_payload(rep: ImportReport, rows: PayloadRows) -> None:
+    """Count the payload column's rows and refusals in the import's report."""
+    rep.payload_rows = int(np.isfinite(rows.kg).sum())
+    rep.payload_refused = len(rows.negative) + len(rows.high)
+    rep.refuse(rows.negative, rows.check.negative_kind)
+    rep.refuse(rows.high, rows.check.high_kind)
 
 
 def _collect(pipe: Pipeline, blocks: Iterable[SampleBlock], what: str) -> ImportedFile:
@@ -233,10 +295,13 @@ def read_columns(columns: Columns, machine: Machine, mapping: Mapping | str | Pa
                               "column) in the columns given")
     kg = np.asarray(columns[m.payload_column], dtype=np.float64) * m.payload_scale
     t, tbad = raw_time_ns(raw_t, m, pipe.start_s)
+    keep = ~tbad
+    check = _payload_check(m, machine)
+    kg_ok, neg, high = check.apply(kg[keep], np.arange(1, n + 1)[keep], None)
+    _report_payload(pipe.report, PayloadRows(t[keep], kg_ok, neg, high, check))
     t_ns = got.samples.t_ns if got.samples.t_ns is not None else np.rint(
         got.samples.t_s * 1e9).astype(np.int64)
-    return replace(got, payload_kg=payload_at(t_ns, t[~tbad], kg[~tbad],
-                                              pipe.report.period_ns))
+    return replace(got, payload_kg=payload_at(t_ns, t[keep], kg_ok, pipe.report.period_ns))
 
 
 @dataclass
@@ -251,6 +316,12 @@ class ImportSummary:
             daemon already stored samples in that time range).
         refused_detail: The first refused block's detail line, or "".
         epoch: The import's epoch (its block identity with ``seq``).
+        samples_stored: Samples of the blocks newly stored.
+        payload_runs_stored: Known payload runs newly stored (one per block stored or already
+            stored, at its sample times; only with the mapping's ``[payload]`` column).
+        payload_runs_duplicate: Payload runs already stored with the same values.
+        payload_runs_differing: Payload runs already stored with other values (kept as
+            stored: e.g. the same file imported before with another ``[payload]`` unit).
     """
 
     report: ImportReport
@@ -260,6 +331,9 @@ class ImportSummary:
     refused_detail: str = ""
     epoch: int = 0
     samples_stored: int = 0
+    payload_runs_stored: int = 0
+    payload_runs_duplicate: int = 0
+    payload_runs_differing: int = 0
 
 
 def import_file(path: str | Path, machine: Machine, store: Store, machine_id: str,
@@ -270,25 +344,78 @@ def import_file(path: str | Path, machine: Machine, store: Store, machine_id: st
     Importing the same file with the same mapping again stores nothing new (every block is a
     ``duplicate``). Rows are refused, not clipped (see :class:`ImportReport`).
 
+    With the mapping's ``[payload]`` column, the column is read first (a pass over the time
+    and that column; refused values counted in the report), and before each batch of blocks
+    the known payload at each block's sample times is stored as one run per block
+    (:meth:`Store.write_payload_runs`; values as :func:`read_file` gives them, NaN where not
+    known), so a twin worker that sees the blocks finds it; the runs of blocks that storage
+    then refuses are deleted again. Importing the file again stores it once, and importing it
+    again *with* the column adds the series to samples imported without it (the column is no
+    part of the import's identity).
+
     Args:
         path: CSV, Parquet or MDF4 file.
         machine: The machine description of ``machine_id``.
         store: A :class:`cranetwin.storage.Store`.
         machine_id: The registered machine.
         mapping: A :class:`Mapping`, a TOML file or None (default mapping).
-        progress: See :data:`Progress`.
+        progress: See :data:`Progress` (with a payload column: both passes, as one).
         batch_blocks: Blocks per transaction.
 
     Raises:
-        ImportFileError: See :func:`iter_blocks`.
+        ImportFileError: See :func:`iter_blocks`; a payload column the file lacks (nothing
+            stored).
         StorageError: The database failed (the batches before stay stored; run it again).
     """
-    pipe, blocks = iter_blocks(path, machine, mapping, machine_id, progress=progress)
+    from cranetwin.storage.payloads import PayloadRun
+
+    m = mapping if isinstance(mapping, Mapping) else load_mapping(mapping, machine)
+    rows: PayloadRows | None = None
+    first = progress
+    if m.payload_column is not None:
+        outer = progress
+        half = None if outer is None else (lambda d, t: outer(d, 2 * t))
+        rows = _file_payload_rows(Path(path), m, machine, progress=half)
+        first = None if outer is None else (lambda d, t: outer(t + d, 2 * t))
+        order = np.argsort(rows.t_ns, kind="stable")
+        rows = replace(rows, t_ns=rows.t_ns[order], kg=rows.kg[order])
+    pipe, blocks = iter_blocks(path, machine, m, machine_id, progress=first)
     out = ImportSummary(pipe.report, epoch=pipe.epoch)
+    if rows is not None:
+        _report_payload(pipe.report, rows)
+        own = int(np.median(np.diff(rows.t_ns))) if rows.t_ns.size > 1 else 0
+
+    def payload_runs(blocks: list[SampleBlock]) -> list[PayloadRun]:
+        """The known payload of each block (in time order), at its sample times."""
+        assert rows is not None
+        if not blocks:
+            return []
+        t = [b.times_ns() for b in blocks]
+        reach = max(pipe.period_ns, own, 1) // 2 + 1
+        lo = np.searchsorted(rows.t_ns, int(t[0][0]) - reach, side="left")
+        hi = np.searchsorted(rows.t_ns, int(t[-1][-1]) + reach, side="right")
+        kg = payload_at(np.concatenate(t), rows.t_ns[lo:hi], rows.kg[lo:hi], pipe.period_ns,
+                        own_ns=own)
+        runs, at = [], 0
+        for b in blocks:
+            runs.append(PayloadRun(int(b.t0_ns), int(b.period_ns), kg[at:at + b.n]))
+            at += b.n
+        return runs
 
     def record(batch: list[SampleBlock]) -> None:
+        new_runs: set[int] = set()
+        if rows is not None:  # before the blocks: a worker that sees them finds the payload
+            got = store.write_payload_runs(machine_id, payload_runs(
+                sorted(batch, key=lambda b: int(b.t0_ns))))
+            out.payload_runs_stored += got.stored
+            out.payload_runs_duplicate += got.duplicate
+            out.payload_runs_differing += got.differing
+            new_runs.update(got.new_starts)
         res = store.write_batch(batch)
+        dropped: list[int] = []
         for b, o in zip(batch, res.outcomes, strict=True):
+            if not o.durable and int(b.t0_ns) in new_runs:
+                dropped.append(int(b.t0_ns))
             if o.status == "stored":
                 out.stored += 1
                 out.samples_stored += b.n
@@ -298,6 +425,8 @@ def import_file(path: str | Path, machine: Machine, store: Store, machine_id: st
                 out.refused[str(o.reason)] += 1
                 if not out.refused_detail:
                     out.refused_detail = f"seq {b.seq}: {o.reason}: {o.detail}"
+        if dropped:  # the blocks were refused: so is their payload
+            out.payload_runs_stored -= store.delete_payload_runs(machine_id, dropped)
 
     # one writer thread: reading and converting the next batch overlaps storage's encoding and
     # commit of this one (batches stay in file order; one writer, as storage assumes)

@@ -33,6 +33,8 @@ position; the time from a column ``t_s`` (or ``time``) in epoch seconds. See doc
     [payload]                       # a known payload as a time series (not a sensor channel)
     column = "hook_load"
     unit = "kg"                     # kg | t
+    max = 5000.0                    # largest accepted payload, in `unit` (default: 3 × the
+                                    # machine's largest rated payload; none without a chart)
 """
 
 from __future__ import annotations
@@ -133,6 +135,8 @@ class Mapping:
         payload_column: Column of a known payload [``payload_unit``] (None: none).
         payload_unit: Unit of that column (kg or t).
         payload_scale: Factor from ``payload_unit`` to kg (derived).
+        payload_max_kg: Largest accepted payload [kg] as the mapping gives it (None: the
+            default, :func:`cranetwin.importer.payload.payload_limit_kg`).
         source: Where the mapping came from (file path or ``<default>``).
         text: Canonical JSON of what the mapping said (part of the import's identity).
     """
@@ -148,13 +152,15 @@ class Mapping:
     payload_column: str | None = None
     payload_unit: str = "kg"
     payload_scale: float = 1.0
+    payload_max_kg: float | None = None
     source: str = "<default>"
     text: str = "{}"
     extra: dict[str, Any] = field(default_factory=dict)
 
     def identity(self) -> bytes:
         """Bytes that change whenever the mapping would change what is stored."""
-        skip = ("source", "text", "extra", "payload_column", "payload_unit", "payload_scale")
+        skip = ("source", "text", "extra", "payload_column", "payload_unit", "payload_scale",
+                "payload_max_kg")
         d = {k: v for k, v in asdict(self).items() if k not in skip}  # the payload: not stored
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).digest()
 
@@ -239,13 +245,18 @@ def mapping_from_dict(data: dict[str, Any], machine: Machine,
         raise ImportFileError(f"{source}: checks.range_tolerance must be ≥ 0, got {rtol!r}")
 
     pay = dict(data.get("payload", {}))
-    _check_keys(pay, {"column", "unit"}, f"{source}: [payload]")
+    _check_keys(pay, {"column", "unit", "max"}, f"{source}: [payload]")
     pay_col = pay.get("column")
     if pay and not (isinstance(pay_col, str) and pay_col):
         raise ImportFileError(f"{source}: payload.column must name the file's payload column, "
                               f"got {pay_col!r}")
     pay_unit = str(pay.get("unit", "kg"))
     pay_scale = unit_factor(pay_unit, "kg", f"{source}: payload.unit")
+    pay_max = pay.get("max")
+    if pay_max is not None and not (isinstance(pay_max, int | float) and pay_max > 0
+                                    and math.isfinite(pay_max)):
+        raise ImportFileError(f"{source}: payload.max must be a number > 0 (in payload.unit), "
+                              f"got {pay_max!r}")
 
     given = dict(data.get("channels", {}))
     known = {c.name: c for c in machine.channels}
@@ -288,5 +299,6 @@ def mapping_from_dict(data: dict[str, Any], machine: Machine,
         start_s=start_s, period_s=None if period is None else float(period),
         jitter=float(jitter), delimiter=delim, range_tolerance=float(rtol),
         payload_column=None if pay_col is None else str(pay_col), payload_unit=pay_unit,
-        payload_scale=pay_scale, source=source,
+        payload_scale=pay_scale,
+        payload_max_kg=None if pay_max is None else float(pay_max) * pay_scale, source=source,
         text=json.dumps(data, sort_keys=True, default=str))

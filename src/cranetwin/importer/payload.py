@@ -2,9 +2,11 @@
 ``[payload]`` table (docs/IMPORT.md) — and the twin's payload estimate compared with it, lift
 by lift.
 
-The known payload is not a sensor channel: it is not stored with the samples. It rides along
-with a file's samples (:attr:`cranetwin.importer.ImportedFile.payload_kg`); ``cranetwin
-replay`` / ``report --recording`` / ``calibrate`` and
+The known payload is not a sensor channel: it is not in the sample blocks. It rides along
+with a file's samples (:attr:`cranetwin.importer.ImportedFile.payload_kg`), and ``cranetwin
+import`` stores it next to them (:mod:`cranetwin.storage.payloads`, one run per stored block at
+its sample times) for the replays of stored ranges; ``cranetwin replay`` / ``report
+--recording`` / ``calibrate`` and
 :func:`cranetwin.importer.replay.replay_table` feed it into the twin's inverse dynamics where
 it is known (:mod:`cranetwin.twin.known_payload`; the estimate where it is NaN), or, with
 ``payload_column="compare"`` (``--payload-column compare``), put it next to the estimate and
@@ -14,6 +16,11 @@ A lift is a maximal stretch where the known payload is at least ``min_kg`` for a
 ``min_duration_s``. Its error is the median estimate minus the median known payload over the
 lift's middle half: the estimate's sliding window (2 s) straddles pick-up and set-down, so the
 ends of a lift say how fast the estimate follows, not how right it is.
+
+A file's payload value is refused (with row and column, never clipped; the row's samples are
+kept and the payload is not known there) when it is negative, or above the largest accepted
+payload (:func:`payload_limit_kg`) by more than the mapping's ``checks.range_tolerance`` share
+of it (:class:`PayloadCheck`).
 """
 
 from __future__ import annotations
@@ -24,14 +31,80 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from cranetwin.importer.readers import Refusal
+from cranetwin.model import Machine
+
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
 MIN_LIFT_KG = 50.0
 MIN_LIFT_S = 2.0
+RATED_FACTOR = 3.0
+"""Default largest accepted payload: this many times the machine's largest rated payload (a
+reading no crane of that chart could hold: a logger's glitch, or the wrong unit)."""
 
 
-def payload_at(t_ns: I64, raw_t_ns: I64, raw_kg: F64, period_ns: int) -> F64:
+def payload_limit_kg(machine: Machine, max_kg: float | None) -> float | None:
+    """Largest accepted payload [kg]: the mapping's ``[payload] max`` (``max_kg``), else
+    :data:`RATED_FACTOR` × the largest payload of the machine's rated-load chart, else None (no
+    chart: no upper check)."""
+    if max_kg is not None:
+        return float(max_kg)
+    if machine.rated_load is None:
+        return None
+    return RATED_FACTOR * float(max(machine.rated_load.payload_kg))
+
+
+@dataclass(frozen=True)
+class PayloadCheck:
+    """The accepted range of a payload column: [0, max + tolerance · max] [kg] (no upper
+    bound without a max; a negative payload is never accepted, as storage refuses it); values
+    in the column's ``unit`` are ``scale`` kg."""
+
+    column: str
+    unit: str
+    scale: float
+    max_kg: float | None
+    tolerance: float = 0.0
+
+    @property
+    def negative_kind(self) -> str:
+        """The report's kind of refusal for a negative payload."""
+        return "negative payload"
+
+    @property
+    def high_kind(self) -> str:
+        """The report's kind of refusal for a payload above the max (or infinite)."""
+        return ("infinite payload" if self.max_kg is None
+                else f"payload above the largest accepted, {self.max_kg:g} kg")
+
+    def apply(self, kg: F64, rows: I64, lines: I64 | None
+              ) -> tuple[F64, list[Refusal], list[Refusal]]:
+        """``kg`` with the refused values NaN, and the refusals: (negative, above the max).
+
+        Args:
+            kg: Payload per row [kg], shape (n,); NaN = empty (not known, not refused).
+            rows: 1-based data row numbers, shape (n,).
+            lines: CSV line numbers, shape (n,), or None.
+        """
+        with np.errstate(invalid="ignore"):
+            neg = kg < 0.0
+            high = np.isinf(kg) & ~neg
+            if self.max_kg is not None:
+                high |= kg > self.max_kg * (1.0 + self.tolerance)
+
+        def refusals(mask: npt.NDArray[np.bool_], kind: str) -> list[Refusal]:
+            return [Refusal(int(rows[i]), self.column,
+                            f"{kg[i] / self.scale:g} {self.unit}: {kind}",
+                            None if lines is None else int(lines[i]))
+                    for i in np.flatnonzero(mask)]
+
+        out = np.where(neg | high, np.nan, kg)
+        return out, refusals(neg, self.negative_kind), refusals(high, self.high_kind)
+
+
+def payload_at(t_ns: I64, raw_t_ns: I64, raw_kg: F64, period_ns: int,
+               own_ns: int | None = None) -> F64:
     """The known payload [kg] at the sample times ``t_ns``: the value of the file's row
     nearest in time, if within half a period (else NaN) — the samples' period, or the rows'
     own median spacing where that is longer (a payload logged more slowly than the sensors,
@@ -43,6 +116,8 @@ def payload_at(t_ns: I64, raw_t_ns: I64, raw_kg: F64, period_ns: int) -> F64:
             by the caller).
         raw_kg: Payload of each row [kg], shape (m,); NaN = not known.
         period_ns: The samples' period [ns].
+        own_ns: The rows' own median spacing [ns], when the caller passes a slice of the rows
+            around ``t_ns`` (None: from ``raw_t_ns``).
     """
     out = np.full(t_ns.shape, np.nan)
     if raw_t_ns.size == 0 or t_ns.size == 0:
@@ -52,7 +127,7 @@ def payload_at(t_ns: I64, raw_t_ns: I64, raw_kg: F64, period_ns: int) -> F64:
     hi = np.clip(np.searchsorted(rt, t_ns), 0, rt.size - 1)
     lo = np.clip(hi - 1, 0, rt.size - 1)
     near = np.where(np.abs(rt[hi] - t_ns) <= np.abs(t_ns - rt[lo]), hi, lo)
-    own = int(np.median(np.diff(rt))) if rt.size > 1 else 0
+    own = own_ns if own_ns is not None else int(np.median(np.diff(rt))) if rt.size > 1 else 0
     ok = np.abs(rt[near] - t_ns) <= max(period_ns, own, 1) // 2
     out[ok] = rv[near[ok]]
     return out
@@ -147,4 +222,5 @@ def summary_line(lifts: list[LiftError]) -> str:
             f"{np.nanmax(np.abs(err)):.1f} kg")
 
 
-__all__ = ["LiftError", "lift_errors", "on_grid", "payload_at", "summary_line"]
+__all__ = ["LiftError", "PayloadCheck", "lift_errors", "on_grid", "payload_at",
+           "payload_limit_kg", "summary_line"]

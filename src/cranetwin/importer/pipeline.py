@@ -71,6 +71,9 @@ class ImportReport:
         max_time_shift_ns: Largest distance of a sample's time from its block's grid [ns].
         t_first_ns: First accepted sample time [ns since the epoch], or None.
         t_last_ns: Last accepted sample time [ns], or None.
+        payload_rows: Rows with a known payload accepted (the mapping's ``[payload]`` column).
+        payload_refused: Payload values refused (negative or above the largest accepted; the
+            rows' samples are kept, the payload is not known there).
     """
 
     rows_read: int = 0
@@ -85,6 +88,8 @@ class ImportReport:
     max_time_shift_ns: int = 0
     t_first_ns: int | None = None
     t_last_ns: int | None = None
+    payload_rows: int = 0
+    payload_refused: int = 0
 
     @property
     def rows_refused(self) -> int:
@@ -103,6 +108,9 @@ class ImportReport:
                f"block(s), period {self.period_ns / 1e6:g} ms"]
         if self.absent:
             out.append(f"optional channel(s) not in the file: {', '.join(self.absent)}")
+        if self.payload_rows or self.payload_refused:
+            out.append(f"known payload: {self.payload_rows} row(s) accepted, "
+                       f"{self.payload_refused} value(s) refused (not known there)")
         for (col, kind), k in sorted(self.refused.items()):
             out.append(f"  refused {k} row(s): column {col!r}: {kind}")
         if self.first_refusals:

@@ -110,7 +110,7 @@ class FleetService:
         self.metrics = metrics if metrics is not None else Metrics()
         self.twin_cache: LruCache[bytes] = LruCache(settings.twin_cache_entries,
                                                     settings.twin_cache_bytes)
-        self.replayer = Replayer()
+        self.replayer = Replayer(backend.store.read_payload)
         self.worker: TwinWorker | None = None
         self.live_payload: dict[str, LivePayload] = {}
         """Live payload estimators of the machines watched live (created by their follower)."""

@@ -10,17 +10,29 @@ machine and channel layout reuse the choice (``ReplayOptions.smoothing``) until
 The sample period is the one the data carry (:attr:`SampleArrays.period_ns`, what the wire and
 storage hold); it is estimated from the sample times only for data that carry none
 (:func:`sample_period_s`).
+
+A known payload stored for the samples' span (:meth:`cranetwin.storage.Store.read_payload`, the
+imported ``[payload]`` column, docs/IMPORT.md) is the payload of the replay's inverse dynamics
+where known, the estimate elsewhere: it is carried to the sample times by
+:func:`cranetwin.twin.known_payload.at_instants` (at a stored time its value; the replay's gap
+limit between stored times) and passed as ``payload=``. Where none is stored the replay is as
+without one.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
+
+import numpy as np
 
 from cranetwin.model import Machine
-from cranetwin.samples import SampleArrays
+from cranetwin.samples import F64, SampleArrays
 from cranetwin.signal import SmoothingChoice, nominal_period
+from cranetwin.storage.payloads import PayloadSeries
 from cranetwin.twin import ReplayOptions, TwinResult, replay
+from cranetwin.twin.known_payload import at_instants
 
 MIN_CHOICE_S = 20.0
 REFRESH_S = 3600.0
@@ -48,10 +60,21 @@ def sample_rate_hz(samples: SampleArrays) -> float:
     return max(1.0, float(round(1.0 / sample_period_s(samples))))
 
 
-class Replayer:
-    """Thread-safe replay with per-(machine, channels) cached smoothing choices."""
+PayloadReader = Callable[[str, float, float], PayloadSeries]
+"""(machine id, t0 [s], t1 [s]) → the stored known payload with t0 ≤ t < t1
+(:meth:`cranetwin.storage.Store.read_payload`)."""
 
-    def __init__(self) -> None:
+
+class Replayer:
+    """Thread-safe replay with per-(machine, channels) cached smoothing choices.
+
+    Args:
+        payload_of: Reads a machine's stored known payload (module docstring); None: always
+            estimated.
+    """
+
+    def __init__(self, payload_of: PayloadReader | None = None) -> None:
+        self.payload_of = payload_of
         self._choices: dict[tuple[str, tuple[str, ...]],
                             tuple[float, tuple[SmoothingChoice, ...]]] = {}
         self._lock = threading.Lock()
@@ -75,9 +98,25 @@ class Replayer:
         period = sample_period_s(samples) if samples.t_s.shape[0] >= 2 else None
         opts = ReplayOptions(grid_hz=grid_hz, smoothing=choices, sample_period_s=period,
                              theta0_initial=theta0_initial)
-        res = replay(samples, machine, grid_hz=grid_hz, options=opts)
+        known = self.known_payload(machine_id, samples, period)
+        res = replay(samples, machine, grid_hz=grid_hz, payload=known, options=opts)
         span = float(samples.t_s[-1] - samples.t_s[0]) if samples.t_s.shape[0] else 0.0
         if choices is None and span >= MIN_CHOICE_S and res.smoothing:
             with self._lock:
                 self._choices[key] = (now, tuple(res.smoothing.values()))
         return res
+
+    def known_payload(self, machine_id: str, samples: SampleArrays,
+                      period_s: float | None) -> F64 | None:
+        """The stored known payload at the sample times [kg], shape (n,), NaN where not
+        known; None when none is stored for them (or no reader is set)."""
+        n = samples.t_s.shape[0]
+        if self.payload_of is None or n == 0:
+            return None
+        p = period_s if period_s is not None else 0.0
+        got = self.payload_of(machine_id, float(samples.t_s[0]), float(samples.t_s[-1]) + p
+                              + 1e-3)
+        if not got.known:
+            return None
+        kg = at_instants(samples.t_s, got.t_s, got.payload_kg, 5.0 * p)
+        return kg if bool(np.isfinite(kg).any()) else None

@@ -117,7 +117,7 @@ class TwinWorker:
                  ownership: Ownership | None = None, schedule_check_s: float = 60.0) -> None:
         from cranetwin.service.replayer import Replayer
 
-        self.replayer = replayer if replayer is not None else Replayer()
+        self.replayer = replayer if replayer is not None else Replayer(backend.store.read_payload)
         self.backend = backend
         self.settings = settings
         self.metrics = metrics

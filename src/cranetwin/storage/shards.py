@@ -42,6 +42,7 @@ from cranetwin.storage.engine import BUSY_TIMEOUT_S, display_url, make_engine, m
 from cranetwin.storage.events import Event
 from cranetwin.storage.machines import MachineInfo
 from cranetwin.storage.partitions import RetentionResult
+from cranetwin.storage.payloads import PayloadRun, PayloadSeries, PayloadWrite
 from cranetwin.storage.shardmap import ShardMap, ShardMapError, StoreSpec, store_spec
 from cranetwin.storage.store import StorageStats, Store
 from cranetwin.storage.summaries import Summaries
@@ -297,6 +298,18 @@ class ShardedStore(Store):
         parts = self._all(lambda s: s.stats())
         return StorageStats(sum(p.blocks for p in parts), sum(p.samples for p in parts),
                             sum(p.data_bytes for p in parts))
+
+    # -- known payload --------------------------------------------------------------------------
+    def write_payload_runs(self, machine_id: str, runs: Sequence[PayloadRun]) -> PayloadWrite:
+        """:meth:`Store.write_payload_runs` on the machine's shard (:meth:`Store.write_payload`
+        cuts the series and comes here)."""
+        return self._one(machine_id, lambda s: s.write_payload_runs(machine_id, runs))
+
+    def delete_payload_runs(self, machine_id: str, starts_ns: Sequence[int]) -> int:
+        return self._one(machine_id, lambda s: s.delete_payload_runs(machine_id, starts_ns))
+
+    def read_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadSeries:
+        return self._one(machine_id, lambda s: s.read_payload(machine_id, t0_s, t1_s))
 
     # -- summaries ------------------------------------------------------------------------------
     def summaries(self, machine_id: str, channels: Iterable[str], t0_s: float, t1_s: float,

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from sqlalchemy import Engine, func, select
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session
@@ -22,12 +23,14 @@ from cranetwin.storage import blocks as blocks_mod
 from cranetwin.storage import events as events_mod
 from cranetwin.storage import machines as machines_mod
 from cranetwin.storage import partitions as partitions_mod
+from cranetwin.storage import payloads as payloads_mod
 from cranetwin.storage import summaries as summaries_mod
 from cranetwin.storage import writes as writes_mod
 from cranetwin.storage.dberrors import is_unavailable, unavailable
 from cranetwin.storage.engine import BUSY_TIMEOUT_S, DEFAULT_URL, make_engine, migrate
 from cranetwin.storage.events import Event, EventRow
 from cranetwin.storage.machines import MachineInfo, MachineRow, UnknownMachineError
+from cranetwin.storage.payloads import PayloadRun, PayloadSeries, PayloadWrite
 from cranetwin.storage.summaries import Summaries
 from cranetwin.storage.writes import WriteResult
 
@@ -414,6 +417,78 @@ class Store:
                 stmt = stmt.where(b.machine_pk == self._machine_pk(s, machine_id))
             nb, ns, nbytes = s.execute(stmt).one()
         return StorageStats(int(nb), int(ns), int(nbytes))
+
+    # -- known payload --------------------------------------------------------------------
+    def write_payload(self, machine_id: str, payload_kg: F64, *, t_s: F64 | None = None,
+                      t_ns: npt.NDArray[np.int64] | None = None) -> PayloadWrite:
+        """Store a known payload series of one machine in one transaction
+        (:mod:`cranetwin.storage.payloads`): cut into runs of equal spacing, each stored once
+        (writing the same series again stores nothing new).
+
+        Args:
+            machine_id: The machine.
+            payload_kg: Payload [kg], shape (n,); NaN = not known (stored as such).
+            t_s: Times [s since the Unix epoch], shape (n,), strictly increasing, rounded to
+                the µs (float64 epoch seconds resolve ≈ 0.24 µs: rounded to the ns, a regular
+                series would not be regular); or
+            t_ns: the exact times [ns] instead.
+
+        Raises:
+            UnknownMachineError: No such machine.
+            StorageError: Bad shapes or times, a negative or infinite payload (nothing stored).
+        """
+        if (t_s is None) == (t_ns is None):
+            raise StorageError("write_payload: give t_s or t_ns (one of them)")
+        t = (np.asarray(t_ns, dtype=np.int64) if t_ns is not None
+             else np.rint(np.asarray(t_s, dtype=np.float64) * 1e6).astype(np.int64) * 1000)
+        return self.write_payload_runs(machine_id, payloads_mod.runs_of(t, payload_kg))
+
+    def write_payload_runs(self, machine_id: str, runs: Sequence[PayloadRun]) -> PayloadWrite:
+        """:meth:`write_payload` of runs already cut (the importer: one per sample block, at
+        the block's sample times).
+
+        Raises:
+            UnknownMachineError: No such machine.
+            StorageUnavailableError: The database is unavailable (nothing stored).
+            StorageError: A run cannot be stored (nothing stored).
+        """
+        if not runs:
+            return PayloadWrite()
+        try:
+            with self._session() as s, s.begin():
+                return payloads_mod.write(s, self._machine_pk(s, machine_id), runs)
+        except SQLAlchemyError as exc:
+            if is_unavailable(exc):
+                raise unavailable(f"storing {len(runs)} payload run(s)", exc) from exc
+            raise StorageError(f"could not store {len(runs)} payload run(s): "
+                               f"{exc}".splitlines()[0]) from exc
+
+    def delete_payload_runs(self, machine_id: str, starts_ns: Sequence[int]) -> int:
+        """Delete the stored payload runs of a machine that start at ``starts_ns`` [ns] (the
+        importer: runs it stored for blocks that storage then refused); returns how many.
+
+        Raises:
+            UnknownMachineError: No such machine.
+        """
+        if not starts_ns:
+            return 0
+        with self._session() as s, s.begin():
+            return payloads_mod.delete(s, self._machine_pk(s, machine_id), starts_ns)
+
+    def read_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadSeries:
+        """The stored known payload of one machine with t0_s ≤ t < t1_s, oldest first, with
+        the bounds of :meth:`read_samples` (so it covers the samples that call returns).
+
+        Returns:
+            :class:`~cranetwin.storage.payloads.PayloadSeries`: ``t_s``, ``t_ns`` and
+            ``payload_kg`` [kg] shape (n,), NaN where not known; empty when none is stored.
+
+        Raises:
+            UnknownMachineError: No such machine.
+        """
+        t0, t1 = sample_bounds_ns(t0_s, t1_s)
+        with self._session() as s:
+            return payloads_mod.read(s, machine_id, self._machine_pk(s, machine_id), t0, t1)
 
     # -- summaries ------------------------------------------------------------------------
     def summaries(self, machine_id: str, channels: Iterable[str], t0_s: float, t1_s: float,

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from alembic import context
 
-from cranetwin.storage import blocks, events, machines, summaries  # noqa: F401  (register tables)
+from cranetwin.storage import (  # noqa: F401  (register tables)
+    blocks,
+    events,
+    machines,
+    payloads,
+    summaries,
+)
 from cranetwin.storage.base import Base
 
 connection = context.config.attributes["connection"]

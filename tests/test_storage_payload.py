@@ -1,0 +1,203 @@
+"""A known payload stored as a time series (``payload_runs``), on SQLite and PostgreSQL: exact
+read-back with NaN where not known, one run stored once, refusals, the migration onto a
+database with data, and a sharded store writing to the machine's shard."""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from sqlalchemy import func, inspect, select, text
+from sqlalchemy.orm import Session
+
+from conftest import PG_URL, _pg_conninfo, pg_unreachable_reason
+from cranetwin.errors import StorageError
+from cranetwin.samples import SampleBlock
+from cranetwin.storage import Store, UnknownMachineError
+from cranetwin.storage.engine import make_engine, migrate
+from cranetwin.storage.payloads import MAX_RUN, PayloadRun, PayloadRunRow, runs_of
+from cranetwin.storage.sharding import partition_of
+from cranetwin.storage.shardmap import ShardMap
+from cranetwin.storage.shards import ShardedStore
+
+T0_NS = 1_767_225_600 * 10**9 + 250_000_000
+PERIOD = 10_000_000  # 100 Hz
+SECRET = b"0123456789abcdef0123456789abcdef"
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def _series(n: int = 500) -> tuple[np.ndarray, np.ndarray]:
+    t = T0_NS + np.arange(n, dtype=np.int64) * PERIOD
+    kg = np.where((np.arange(n) // 50) % 2 == 1, 300.0 + np.arange(n) * 0.25, 0.0)
+    kg[120:140] = np.nan  # not known there
+    return t, kg
+
+
+def _rows(store: Store) -> int:
+    with Session(store.engine) as s:
+        return int(s.scalar(select(func.count()).select_from(PayloadRunRow)) or 0)
+
+
+@pytest.fixture
+def store(db_url: str) -> Iterator[Store]:
+    s = Store.open(db_url)
+    s.add_machine("crane-1", 1, SECRET)
+    s.add_machine("crane-2", 2, SECRET[::-1])
+    yield s
+    s.close()
+
+
+def test_write_then_read_gives_the_series_back_exactly(store: Store) -> None:
+    t, kg = _series()
+    got = store.write_payload("crane-1", kg, t_ns=t)
+    assert (got.stored, got.duplicate, got.differing, got.values_stored) == (1, 0, 0, 500)
+    back = store.read_payload("crane-1", t[0] / 1e9, t[-1] / 1e9 + 1.0)
+    assert np.array_equal(back.t_ns, t)
+    assert np.array_equal(back.payload_kg, kg, equal_nan=True)  # NaN where not known
+    assert back.t_s.shape == back.payload_kg.shape == (500,) and back.known
+    # a range as read_samples bounds it: t0 ≤ t < t1 on the float seconds of sample times
+    part = store.read_payload("crane-1", float(t[100]) / 1e9, float(t[200]) / 1e9)
+    assert np.array_equal(part.t_ns, t[100:200])
+    assert store.read_payload("crane-2", 0.0, 4e9).n == 0  # another machine: nothing
+    assert not store.read_payload("crane-2", 0.0, 4e9).known
+
+
+def test_the_same_series_twice_is_stored_once(store: Store) -> None:
+    t, kg = _series()
+    store.write_payload("crane-1", kg, t_ns=t)
+    again = store.write_payload("crane-1", kg, t_ns=t)
+    assert (again.stored, again.duplicate, again.differing, again.values_stored) == (0, 1, 0, 0)
+    assert _rows(store) == 1
+    other = store.write_payload("crane-1", kg + 1.0, t_ns=t)  # stored with other values: kept
+    assert (other.stored, other.duplicate, other.differing) == (0, 0, 1)
+    back = store.read_payload("crane-1", t[0] / 1e9, t[-1] / 1e9 + 1.0)
+    assert np.array_equal(back.payload_kg, kg, equal_nan=True)
+    # seconds instead of ns: rounded to the µs, the regular series is one run again
+    secs = store.write_payload("crane-2", kg, t_s=t / 1e9)
+    assert secs.stored == 1
+    back2 = store.read_payload("crane-2", t[0] / 1e9, t[-1] / 1e9 + 1.0)
+    assert np.array_equal(back2.t_ns, t)
+
+
+def test_overlapping_runs_read_each_time_once_from_the_earlier_run(store: Store) -> None:
+    t, kg = _series()
+    store.write_payload_runs("crane-1", [PayloadRun(int(t[0]), PERIOD, kg[:300])])
+    store.write_payload_runs("crane-1", [PayloadRun(int(t[200]), PERIOD, kg[200:] + 7.0)])
+    back = store.read_payload("crane-1", t[0] / 1e9, t[-1] / 1e9 + 1.0)
+    assert np.array_equal(back.t_ns, t)
+    assert np.array_equal(back.payload_kg[:300], kg[:300], equal_nan=True)
+    assert np.array_equal(back.payload_kg[300:], kg[300:] + 7.0)
+    assert store.delete_payload_runs("crane-1", [int(t[200])]) == 1
+    assert store.read_payload("crane-1", t[0] / 1e9, t[-1] / 1e9 + 1.0).n == 300
+
+
+@pytest.mark.parametrize(("bad", "match"), [(-0.5, "finite and ≥ 0"), (np.inf, "finite")])
+def test_a_negative_or_infinite_payload_is_refused_and_nothing_stored(
+        store: Store, bad: float, match: str) -> None:
+    t, kg = _series()
+    kg[400] = bad
+    with pytest.raises(StorageError, match=match):
+        store.write_payload("crane-1", kg, t_ns=t)
+    assert _rows(store) == 0
+    with pytest.raises(StorageError, match="strictly increasing"):
+        store.write_payload("crane-1", kg[::-1], t_ns=t[::-1])
+    with pytest.raises(StorageError, match="t_s or t_ns"):
+        store.write_payload("crane-1", kg)
+    with pytest.raises(UnknownMachineError):
+        store.write_payload("nope", kg[:3], t_ns=t[:3])
+
+
+@pytest.mark.timeout(10)
+def test_runs_of_cuts_at_each_change_of_spacing_the_same_way_every_time() -> None:
+    t = np.concatenate([np.arange(0, 10) * 10, 95 + np.arange(0, 5) * 20, [300, 301, 350]])
+    t = t.astype(np.int64) + T0_NS
+    v = np.arange(t.size, dtype=np.float64)
+    runs = runs_of(t, v)
+    assert [(r.t0_ns - T0_NS, r.period_ns, r.n) for r in runs] == [
+        (0, 10, 10), (95, 20, 5), (300, 1, 2), (350, 0, 1)]
+    assert np.array_equal(np.concatenate([r.times_ns() for r in runs]), t)
+    assert np.array_equal(np.concatenate([r.payload_kg for r in runs]), v)
+    assert [r.t0_ns for r in runs_of(t, v)] == [r.t0_ns for r in runs]
+    long = runs_of(T0_NS + np.arange(MAX_RUN + 5, dtype=np.int64), np.zeros(MAX_RUN + 5))
+    assert [r.n for r in long] == [MAX_RUN, 5]
+
+
+def _block(machine: str) -> SampleBlock:
+    k = np.arange(40, dtype=np.float64).reshape(10, 4)
+    return SampleBlock(machine, 0, T0_NS, PERIOD, ("lift_pA", "lift_pB", "lift_s",
+                                                   "slew_torque"), (1.0, 1.0, 1e-4, 1.0),
+                       k * np.array([1.0, 1.0, 1e-4, 1.0]))
+
+
+def test_migration_onto_a_database_with_data_keeps_it(db_url: str) -> None:
+    """A database at the previous head (0006c) with a machine and samples: opening it migrates
+    to the new head, every row stays, and the payload table is there and works."""
+    engine = make_engine(db_url)
+    migrate(engine, "0006c")
+    assert "payload_runs" not in inspect(engine).get_table_names()
+    old = Store(engine)
+    old.add_machine("crane-1", 1, SECRET)
+    assert old.write_blocks([_block("crane-1")]) == 1
+    before = old.read_samples("crane-1", T0_NS / 1e9, T0_NS / 1e9 + 1.0)
+    old.close()
+    with Store.open(db_url) as st:
+        assert "payload_runs" in inspect(st.engine).get_table_names()
+        with st.engine.connect() as c:
+            assert c.execute(text("SELECT version_num FROM alembic_version")).scalar() == "0007k"
+        after = st.read_samples("crane-1", T0_NS / 1e9, T0_NS / 1e9 + 1.0)
+        assert np.array_equal(after.t_ns, before.t_ns)
+        assert np.array_equal(after.values, before.values, equal_nan=True)
+        assert [m.machine_id for m in st.machines()] == ["crane-1"]
+        t, kg = _series()
+        assert st.write_payload("crane-1", kg, t_ns=t).stored == 1
+        assert st.read_payload("crane-1", t[0] / 1e9, t[-1] / 1e9 + 1.0).n == 500
+
+
+@pytest.fixture
+def two_schemas() -> Iterator[tuple[str, str]]:
+    """Two PostgreSQL schemas standing for two shards."""
+    reason = pg_unreachable_reason()
+    if reason:
+        pytest.skip(reason)
+    import psycopg
+
+    names = [f"t_{uuid.uuid4().hex[:12]}" for _ in range(2)]
+    with psycopg.connect(_pg_conninfo(), autocommit=True) as conn:
+        for n in names:
+            conn.execute(f'CREATE SCHEMA "{n}"')
+    sep = "&" if "?" in PG_URL else "?"
+    yield (f"{PG_URL}{sep}options=-csearch_path%3D{names[0]}",
+           f"{PG_URL}{sep}options=-csearch_path%3D{names[1]}")
+    with psycopg.connect(_pg_conninfo(), autocommit=True) as conn:
+        for n in names:
+            conn.execute(f'DROP SCHEMA "{n}" CASCADE')
+
+
+@pytest.mark.postgres
+def test_sharded_store_writes_and_reads_on_the_machines_shard(
+        two_schemas: tuple[str, str]) -> None:
+    urls = two_schemas
+    shard_map = ShardMap.parse({"0-1": urls[0], "2-3": urls[1]}, 4)
+    a = next(f"crane-{w}" for w in range(1, 99) if partition_of(f"crane-{w}", 4) < 2)
+    b = next(f"crane-{w}" for w in range(1, 99) if partition_of(f"crane-{w}", 4) >= 2)
+    st = ShardedStore.open_map(shard_map)
+    try:
+        st.add_machine(a, 1, SECRET)
+        st.add_machine(b, 2, SECRET)
+        t, kg = _series()
+        assert st.write_payload(a, kg, t_ns=t).stored == 1
+        assert st.write_payload(b, kg * 2.0, t_ns=t).stored == 1
+        assert st.write_payload(b, kg * 2.0, t_ns=t).duplicate == 1
+        assert np.array_equal(st.read_payload(b, t[0] / 1e9, t[-1] / 1e9 + 1).payload_kg,
+                              kg * 2.0, equal_nan=True)
+        assert [_rows(s) for s in st.shards] == [1, 1]  # each on its own shard
+        with Store.open(urls[1]) as direct:  # b's shard holds b's series only
+            assert np.array_equal(direct.read_payload(b, 0.0, 4e9).payload_kg, kg * 2.0,
+                                  equal_nan=True)
+        assert st.delete_payload_runs(a, [int(t[0])]) == 1
+        assert st.read_payload(a, 0.0, 4e9).n == 0
+    finally:
+        st.close()
