@@ -17,6 +17,7 @@ from typer.testing import CliRunner
 
 from cranetwin.importer import import_file, read_file
 from cranetwin.model import Machine, load_machine
+from cranetwin.samples import SampleArrays
 from cranetwin.storage import Store
 from cranetwin.storage.payloads import PayloadRunRow
 
@@ -327,3 +328,44 @@ def test_import_into_a_sharded_store_puts_the_payload_on_the_machines_shard(
         with psycopg.connect(_pg_conninfo(), autocommit=True) as conn:
             for n in names:
                 conn.execute(f'DROP SCHEMA "{n}" CASCADE')
+
+
+@pytest.mark.timeout(120)
+def test_cli_calibrate_of_a_stored_range_fits_with_the_stored_payload(
+        imported: str, logged: Logged, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``cranetwin calibrate --machine ID --from --to``: the stored range's samples and the
+    known payload stored with them go to the fit (``--payload-column compare``: not); without a
+    stored series the fit estimates the mass."""
+    import cranetwin.twin.calibration as calmod
+    from cranetwin.cli import app
+    from cranetwin.twin.calibration import Calibration
+
+    seen: list[tuple[object, object]] = []
+
+    def fake(samples: object, machine: object, **kw: object) -> Calibration:
+        seen.append((samples, kw.get("payload_kg")))
+        return Calibration((), 0.5, 0.1, 90.0, 1000, (), (1, 100),
+                           payload_known=kw.get("payload_kg") is not None)
+
+    monkeypatch.setattr(calmod, "calibrate", fake)
+
+    def run(mid: str, *extra: str) -> str:
+        r = CliRunner().invoke(app, ["calibrate", "--machine", mid, "--from", str(T0 + 5.0),
+                                     "--to", str(T0 + 45.0), "--db", imported, *extra],
+                               terminal_width=200)
+        assert r.exit_code == 0, r.output
+        return r.output
+
+    said = run("known")
+    samples, kg = seen[-1]
+    assert isinstance(kg, np.ndarray) and isinstance(samples, SampleArrays)
+    t = samples.t_s
+    assert t.shape[0] == 4000 and t[0] == pytest.approx(T0 + 5.0)
+    np.testing.assert_allclose(kg, logged.truth_kg[500:4500], rtol=1e-9, atol=1e-6)
+    assert "Tool mass error" in said and f"known [{T0 + 5.0}" in said
+    run("known", "--payload-column", "compare")
+    assert seen[-1][1] is None
+    run("plain")
+    assert seen[-1][1] is None
+    bad = CliRunner().invoke(app, ["calibrate", "--machine", "known", "--from", str(T0)])
+    assert bad.exit_code != 0

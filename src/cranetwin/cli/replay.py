@@ -72,19 +72,17 @@ def replay_cmd(
             raise TwinError("--mapping is for a FILE")
         from cranetwin.cli.importer import machine_of
         from cranetwin.cli.report import parse_time
-        from cranetwin.service.replayer import Replayer, sample_period_s
+        from cranetwin.service.replayer import read_range
         from cranetwin.settings import Settings, load_settings
         from cranetwin.storage import open_store, store_spec
 
         with open_store(store_spec(load_settings(Settings, database_url=db))) as store:
             m = machine_of(store.get_machine(machine).model, machine)
-            source = store.read_samples(machine, parse_time(t_from), parse_time(t_to))
-            if source.t_s.shape[0] == 0:
-                raise TwinError(f"no samples of {machine!r} stored in [{t_from}, {t_to})")
-            # the known payload stored with them (an imported [payload] column), as the
+            # with the known payload stored with them (an imported [payload] column), as the
             # service's replays take it
-            known = Replayer(store.read_payload).known_payload(
-                machine, source, sample_period_s(source) if source.t_s.shape[0] >= 2 else None)
+            source, known = read_range(store, machine, parse_time(t_from), parse_time(t_to))
+        if source.t_s.shape[0] == 0:
+            raise TwinError(f"no samples of {machine!r} stored in [{t_from}, {t_to})")
         where = "stored with the samples"
     if payload_column not in ("use", "compare"):
         raise TwinError(f"--payload-column {payload_column!r}: expected use or compare")

@@ -217,7 +217,7 @@ class StoreSource:
         from cranetwin.service.replayer import Replayer
 
         backend = Backend(self.store)
-        replayer = Replayer()
+        replayer = Replayer(self.store.read_payload)  # the stored known payload, as the worker
         prog = backend.progress(self.machine_id)
 
         def edge(a: float, b: float) -> LoadHistory | None:
@@ -253,15 +253,17 @@ class StoreSource:
             return float(row.operating_s), float(row.watermark_s - dr[0])
 
     def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
+        from cranetwin.service.replayer import read_range
         from cranetwin.twin import iter_replay
 
         t = self.t0_s
         last = -np.inf
         while t < self.t1_s:
             t_next = min(t + WINDOW_S, self.t1_s)
-            samples = self.store.read_samples(self.machine_id, t, t_next)
+            samples, known = read_range(self.store, self.machine_id, t, t_next)
             if samples.t_s.shape[0] >= 16:
-                for res in iter_replay(samples, self.machine, grid_hz=self.grid_hz):
+                for res in iter_replay(samples, self.machine, grid_hz=self.grid_hz,
+                                       payload=known):
                     h = history_from_twin(self.machine, res) if res.n else None
                     if h is not None and h.n:
                         h = h.slice(int(np.searchsorted(h.t_s, last, side="right")), h.n)

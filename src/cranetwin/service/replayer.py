@@ -24,6 +24,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
@@ -120,3 +121,26 @@ class Replayer:
             return None
         kg = at_instants(samples.t_s, got.t_s, got.payload_kg, 5.0 * p)
         return kg if bool(np.isfinite(kg).any()) else None
+
+
+class RangeReader(Protocol):
+    """What :func:`read_range` reads from (:class:`cranetwin.storage.Store`, sharded or not)."""
+
+    def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays: ...
+
+    def read_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadSeries: ...
+
+
+def read_range(store: RangeReader, machine_id: str, t0_s: float, t1_s: float
+               ) -> tuple[SampleArrays, F64 | None]:
+    """A stored range's samples (t0_s ≤ t < t1_s [s]) and the known payload stored with them
+    at the sample times [kg], shape (n,), NaN where not known (None: none stored), as every
+    replay of stored data takes it (``cranetwin replay --machine``, ``calibrate --machine``,
+    the report's direct path; the worker's windows through :class:`Replayer`)."""
+    samples = store.read_samples(machine_id, t0_s, t1_s)
+    n = samples.t_s.shape[0]
+    if n == 0:
+        return samples, None
+    known = Replayer(store.read_payload).known_payload(
+        machine_id, samples, sample_period_s(samples) if n >= 2 else None)
+    return samples, known
