@@ -101,8 +101,10 @@ def test_payload_sigma_covers_a_constant_pressure_offset_given_the_stated_accura
 def test_systematic_part_is_the_stated_budget_less_the_estimated_noise() -> None:
     from cranetwin.twin.payload import systematic_std
 
+    """Bounds subtract: uniform noise of σ fills ±√3·σ of the stated ±a, the offset may have
+    the rest, so σ_b = a/√3 − σ (0 when the noise fills the bound or nothing is stated)."""
     got = systematic_std(np.array([5.0, 3.0, 0.0, 4.0]), np.array([3.0, 4.0, 2.0, 0.0]))
-    np.testing.assert_allclose(got, [4.0, 0.0, 0.0, 4.0])
+    np.testing.assert_allclose(got, [2.0, 0.0, 0.0, 4.0])
 
 
 def _stream(samples: SampleArrays, machine: Machine, opt: ReplayOptions) -> TwinResult:

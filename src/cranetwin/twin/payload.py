@@ -27,13 +27,15 @@ neither is the textbook σ²/(N−1))::
   one when the window lies within the prefilter (the joints' errors then share their cause,
   the accelerations smoothed over the long derivative window that position noise brings).
 
-* σ_b, the sensors' systematic error. ``Channel.accuracy`` is a ± bound a of each pressure
-  sensor's whole error, taken as uniform (variance a²/3;
-  :func:`cranetwin.twin.observability.stated_force_sigma` turns the two chambers' into a
-  rod-force σ_s,c per cylinder). The part of that budget the data show as noise (σ_c, already
-  in σ_p) averages out; the rest may be an offset, a gain error or a coarse staircase, the same
-  over the window, which neither averages out nor shows much in the residual scatter:
-  ``σ_b,c² = max(σ_s,c² − σ_c², 0)`` (:func:`systematic_std`). It is propagated as a constant
+* σ_b, the sensors' systematic error. ``Channel.accuracy`` is a ± bound a on each pressure
+  sensor's whole error; an error uniform within it has σ = a/√3
+  (:func:`cranetwin.twin.observability.stated_force_sigma` turns the two chambers' into a
+  rod-force σ_s,c per cylinder). The part of the bound the data show as noise averages out
+  (σ_c, already in σ_p; uniform noise of σ_c fills ±√3·σ_c); what the bound leaves, ±(a −
+  √3·σ_c), may be an offset, a gain error or a coarse staircase, the same over the window,
+  which neither averages out nor shows much in the residual scatter. Taken as uniform in it:
+  ``σ_b,c = max(σ_s,c − σ_c, 0)`` (:func:`systematic_std`; bounds subtract, not variances:
+  a noise estimate 3 % low leaves 3 % of σ_s, not 24 %). It is propagated as a constant
   force error δ_c per cylinder, independent between cylinders: δm̂ = Σ_c δ_c·Σ_k w_c·g_c,k /
   Σ w_c·g_c², hence ``σ_b² = Σ_c σ_b,c²·(Σ_k w_c·g_c,k)² / (Σ w_c·g_c²)²`` and
   σ_m̂² = σ_p² + σ_e² + σ_b². Without a stated accuracy σ_b = 0: the σ then covers random
@@ -245,12 +247,12 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
 
 
 def systematic_std(stated_std: F64, noise_std: F64) -> F64:
-    """σ_b,c = sqrt(max(σ_s,c² − σ_c², 0)) per cylinder (module docstring): the stated
-    accuracy's force σ ``stated_std`` (n_c,) [N] less the noise estimated from the data
-    ``noise_std`` (n_c,) [N]; 0 where nothing is stated."""
+    """σ_b,c = max(σ_s,c − σ_c, 0) per cylinder (module docstring): the stated accuracy's
+    force σ ``stated_std`` (n_c,) [N] less the noise estimated from the data ``noise_std``
+    (n_c,) [N]; 0 where nothing is stated."""
     s = np.asarray(stated_std, dtype=np.float64)
     n = np.asarray(noise_std, dtype=np.float64)
-    return np.sqrt(np.maximum(s * s - n * n, 0.0))
+    return np.maximum(s - n, 0.0)
 
 
 def _squares(std: F64 | None, n_c: int, name: str) -> F64:
