@@ -20,9 +20,16 @@ from rich.table import Table
 from cranetwin.errors import SimulationError
 from cranetwin.model import Machine
 from cranetwin.sim.family import CraneVariant, crane_family, decimate, variant_machine
-from cranetwin.sim.sensor_error import DISTRIBUTIONS, inject_error
+from cranetwin.sim.sensor_error import DISTRIBUTIONS, data_sheet, inject_error
 from cranetwin.twin.noise_family import CaseResult, CaseSpec, evaluate_case
-from cranetwin.twin.noise_targets import Target, evaluate, in_scope
+from cranetwin.twin.noise_targets import (
+    GroupSummary,
+    Target,
+    evaluate,
+    group_summary,
+    in_scope,
+    stated_cases,
+)
 
 FAMILY_SIZE = 8
 LOG_PAYLOAD_KG = 300.0
@@ -100,7 +107,9 @@ def run_family(base: Machine, plan: FamilyPlan,
                                             seed, payload)
                             noisy = inject_error(clean, m, plan.level, seed,
                                                  error, scale)  # type: ignore[arg-type]
-                            out.append(evaluate_case(noisy, m, rec.truth, spec))
+                            sheet = data_sheet(clean, m, plan.level,
+                                               scale)  # type: ignore[arg-type]
+                            out.append(evaluate_case(noisy, m, rec.truth, spec, sheet))
                             if progress is not None:
                                 progress(f"{len(out)}/{plan.size} {variant.name} {name} "
                                          f"{rate:g} Hz {error}/{scale}")
@@ -148,18 +157,44 @@ def target_table(targets: list[Target]) -> Table:
     return t
 
 
+def summary_table(groups: list[GroupSummary], title: str) -> Table:
+    """One row per error model and normalisation: payload z, lift means, flag counts."""
+    t = Table(title=title)
+    for col in ("error", "RMS z", "lifts", "lift bias [%]", "mean |lift err| [%]",
+                "RMS lift z", "> 4 % flagged", "flagged / all"):
+        t.add_column(col)
+    for g in groups:
+        t.add_row(g.group, f"{g.rms_z:.2f}", str(g.lifts), _pct(g.lift_bias),
+                  _pct(g.lift_abs), f"{g.lift_rms_z:.2f}", f"{g.over_flagged} / {g.over}",
+                  f"{g.flagged} / {g.cylinders}")
+    return t
+
+
 def as_json(plan: FamilyPlan, cases: list[CaseResult], targets: list[Target]) -> dict[str, Any]:
-    """The plan, every case and every target as plain data."""
+    """The plan, every case, every target and the per-group figures as plain data, without
+    and (``*_stated``) with the stated accuracy."""
+    stated = stated_cases(cases)
     return {"level": plan.level, "seeds": plan.seeds, "rates_hz": list(plan.rates_hz),
             "scenarios": [list(s) for s in plan.scenarios], "errors": list(plan.errors),
             "scales": list(plan.scales), "cranes": [asdict(v) for v in plan.cranes],
             "cases": [c.as_json() for c in cases],
-            "targets": [{**asdict(g), "passed": g.passed} for g in targets]}
+            "targets": [{**asdict(g), "passed": g.passed} for g in targets],
+            "targets_stated": [{**asdict(g), "passed": g.passed} for g in evaluate(stated)],
+            "groups": [asdict(g) for g in group_summary(cases)],
+            "groups_stated": [asdict(g) for g in group_summary(stated)]}
 
 
 def print_family(cases: list[CaseResult], plan: FamilyPlan, console: Console) -> list[Target]:
-    """Print the case table and the targets; return the targets."""
+    """Print the case table, the targets and the per-group figures, without and with the
+    stated accuracy; return the targets without it."""
     targets = evaluate(cases)
+    stated = stated_cases(cases)
     console.print(case_table(cases, plan.level))
     console.print(target_table(targets))
+    console.print(summary_table(group_summary(cases), "Without a stated accuracy"))
+    if stated:
+        st = target_table(evaluate(stated))
+        st.title = "Targets given the data sheet (each channel's accuracy = the error's bound)"
+        console.print(st)
+        console.print(summary_table(group_summary(stated), "Given the data sheet"))
     return targets

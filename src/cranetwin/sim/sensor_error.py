@@ -31,6 +31,54 @@ DISTRIBUTIONS: tuple[Distribution, ...] = ("uniform", "gaussian", "quantised", "
 Scale = Literal["full", "recorded"]
 
 
+def error_ranges(samples: SampleArrays, machine: Machine, scale: Scale,
+                 quantities: Iterable[str] = NOISY_QUANTITIES) -> F64:
+    """R per column of ``samples`` (``samples.channels`` order) [channel unit]: the sensor's
+    full range (``"full"``) or the range the column recorded (``"recorded"``, max − min); 0
+    for the columns of other quantities or not in the machine.
+
+    Raises:
+        SimulationError: ``"full"`` on a channel whose sensor range is unknown.
+    """
+    wanted = set(quantities)
+    known = {c.name: c for c in machine.channels}
+    r = np.zeros(len(samples.channels))
+    for j, name in enumerate(samples.channels):
+        ch = known.get(name)
+        if ch is None or ch.quantity not in wanted:
+            continue
+        if scale == "full":
+            if ch.full_range is None:
+                raise SimulationError(f"channel {name!r}: sensor range unknown (no min/max); "
+                                      "use scale=\"recorded\"")
+            r[j] = ch.full_range
+        else:
+            col = samples.values[:, j]
+            col = col[np.isfinite(col)]
+            r[j] = float(col.max() - col.min()) if col.size else 0.0
+    return r
+
+
+def data_sheet(samples: SampleArrays, machine: Machine, level: float, scale: Scale,
+               quantities: Iterable[str] = NOISY_QUANTITIES) -> Machine:
+    """The machine with each error-bearing channel's stated accuracy (``Channel.accuracy``)
+    set to the bound of :func:`inject_error`'s error, e·R (R of :func:`error_ranges`): what a
+    data sheet would state for sensors that err that much. ``samples`` are the clean ones
+    (for ``"recorded"``: the error's R was taken from them). Channels with R = 0 keep theirs.
+
+    Raises:
+        SimulationError: A negative level, or as :func:`error_ranges`.
+    """
+    if level < 0:
+        raise SimulationError(f"error level must be >= 0, got {level}")
+    bound = dict(zip(samples.channels, level * error_ranges(samples, machine, scale,
+                                                            quantities), strict=True))
+    chans = [ch.model_copy(update={"accuracy": bound[ch.name]})
+             if bound.get(ch.name, 0.0) > 0 else ch for ch in machine.channels]
+    return Machine.model_validate({**machine.model_dump(), "channels":
+                                   [c.model_dump() for c in chans]})
+
+
 def inject_error(samples: SampleArrays, machine: Machine, level: float, seed: int,
                  distribution: Distribution = "uniform", scale: Scale = "full",
                  quantities: Iterable[str] = NOISY_QUANTITIES) -> SampleArrays:
@@ -61,22 +109,7 @@ def inject_error(samples: SampleArrays, machine: Machine, level: float, seed: in
     if distribution not in DISTRIBUTIONS or scale not in ("full", "recorded"):
         raise SimulationError(f"unknown error model {distribution!r} / {scale!r}")
     rng = np.random.default_rng(seed)
-    wanted = set(quantities)
-    known = {c.name: c for c in machine.channels}
-    r = np.zeros(len(samples.channels))
-    for j, name in enumerate(samples.channels):
-        ch = known.get(name)
-        if ch is None or ch.quantity not in wanted:
-            continue
-        if scale == "full":
-            if ch.full_range is None:
-                raise SimulationError(f"channel {name!r}: sensor range unknown (no min/max); "
-                                      "use scale=\"recorded\"")
-            r[j] = ch.full_range
-        else:
-            col = samples.values[:, j]
-            col = col[np.isfinite(col)]
-            r[j] = float(col.max() - col.min()) if col.size else 0.0
+    r = error_ranges(samples, machine, scale, quantities)
     shape = samples.values.shape
     amp = (level * r)[None, :]
     if distribution == "quantised":

@@ -19,12 +19,18 @@ default and the fixed windows are compared on the same instants):
 * the payload's z = (estimate − truth)/σ over steady lifts (payload on, no grab or release
   within 1.5 s) and each complete lift's mean (:mod:`cranetwin.twin.lifts`) against the truth.
 
+Given ``stated`` (the machine with the sensors' stated accuracy, as a data sheet gives it:
+:func:`cranetwin.sim.sensor_error.data_sheet`) the default is replayed once more with it and
+scored the same way (:attr:`CaseResult.stated`): the stated accuracy enters the observability
+flag, the choice of model-based forces and the payload's σ (:mod:`cranetwin.twin.payload`);
+the fixed windows and the pressure-only replay do not use it and are shared.
+
 NRMSE = RMSE / (max − min of the truth) over the run (:func:`cranetwin.signal.nrmse`).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -136,6 +142,8 @@ class CaseResult:
         z_sq_sum, z_count: Σ z² and the number of steady-lift instants (pooled RMS z).
         lift_errors: Per complete lift, (mean estimate − truth) / truth.
         lift_z: Per complete lift, (mean estimate − truth) / its stated σ.
+        stated: The same scores of the replay given the sensors' stated accuracy (None: not
+            run); its cylinders share ``fixed``, ``position_input`` and ``pressure_only``.
     """
 
     spec: CaseSpec
@@ -144,6 +152,7 @@ class CaseResult:
     z_count: int = 0
     lift_errors: tuple[float, ...] = field(default_factory=tuple)
     lift_z: tuple[float, ...] = field(default_factory=tuple)
+    stated: CaseResult | None = None
 
     @property
     def rms_z(self) -> float:
@@ -167,7 +176,8 @@ class CaseResult:
                                "model_based": c.model_based} for c in self.cylinders],
                 "rms_z": num(self.rms_z), "z_count": self.z_count,
                 "lift_errors": [num(x) for x in self.lift_errors],
-                "lift_z": [num(x) for x in self.lift_z]}
+                "lift_z": [num(x) for x in self.lift_z],
+                "stated": None if self.stated is None else self.stated.as_json()}
 
 
 def truth_rows(truth_t: F64, t: F64) -> npt.NDArray[np.intp]:
@@ -226,21 +236,21 @@ def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[floa
 
 
 def evaluate_case(noisy: SampleArrays, machine: Machine, truth: CaseTruth,
-                  spec: CaseSpec) -> CaseResult:
-    """Replay one case (default, pressure-only default, every fixed pressure window) and
-    score it.
+                  spec: CaseSpec, stated: Machine | None = None) -> CaseResult:
+    """Replay one case (default, pressure-only default, every fixed pressure window; and the
+    default given the stated accuracy) and score it.
 
     Args:
         noisy: The samples with the error injected, at ``spec.rate_hz``.
         machine: The crane (the same description the samples were simulated with).
         truth: The simulator's truth on a grid holding the sample instants.
         spec: The case.
+        stated: ``machine`` with the sensors' stated accuracy (module docstring); None: not
+            run.
     """
     res = replay(noisy, machine, grid_hz=spec.rate_hz)
     rows = truth_rows(truth.t_s, res.t_s)
     true_f = truth.cyl_force[rows]
-    true_s = truth.rod_s[rows]
-    force = nrmse(res.cyl_force, true_f)
     fixed = []
     for w in FIXED_WINDOWS:
         opts = ReplayOptions(smoothing=fixed_choices(res.smoothing, machine, w))
@@ -249,18 +259,35 @@ def evaluate_case(noisy: SampleArrays, machine: Machine, truth: CaseTruth,
     plain = replay(noisy, machine, grid_hz=spec.rate_hz,
                    options=ReplayOptions(model_forces="off"))
     pressure_only = nrmse(plain.cyl_force, true_f)
-    pos = nrmse(res.rod_s, true_s)
     names = {c.name: c for c in machine.channels}
     pos_cols = [next(n for n, c in names.items()
                      if c.source == cyl.name and c.quantity == "position")
                 for cyl in machine.cylinders]
     raw_s = np.column_stack([noisy.column(n) for n in pos_cols])
     pos_in = nrmse(raw_s, truth.rod_s[truth_rows(truth.t_s, noisy.t_s)])
+    shared = (tuple(tuple(float(f[k]) for f in fixed) for k in range(len(machine.cylinders))),
+              pos_in, pressure_only)
+    out = _scored(res, machine, truth, spec, shared)
+    if stated is None:
+        return out
+    again = replay(noisy, stated, grid_hz=spec.rate_hz)
+    return replace(out, stated=_scored(again, stated, truth, spec, shared))
+
+
+def _scored(res: TwinResult, machine: Machine, truth: CaseTruth, spec: CaseSpec,
+            shared: tuple[tuple[tuple[float, ...], ...], F64, F64]) -> CaseResult:
+    """The scores of one default replay ``res``; ``shared`` = (the fixed windows' NRMSE per
+    cylinder, the input's position NRMSE (n_c,), the pressure-only NRMSE (n_c,))."""
+    fixed, pos_in, pressure_only = shared
+    rows = truth_rows(truth.t_s, res.t_s)
+    true_f = truth.cyl_force[rows]
+    force = nrmse(res.cyl_force, true_f)
+    pos = nrmse(res.rod_s, truth.rod_s[rows])
     verdicts = res.force_observability(machine)
     supply = machine.hydraulics.supply_pressure_pa if machine.hydraulics else float("nan")
     span = np.nanmax(true_f, axis=0) - np.nanmin(true_f, axis=0)
     cyls = tuple(CylinderScore(
-        cyl.name, float(force[k]), tuple(float(f[k]) for f in fixed), float(pos[k]),
+        cyl.name, float(force[k]), fixed[k], float(pos[k]),
         float(pos_in[k]), float(span[k] / (cyl.area_a_m2 * supply)), verdicts[k].observable,
         float(verdicts[k].share), float(pressure_only[k]),
         res.smoothing[_pressure_a(machine, k)].model_based)

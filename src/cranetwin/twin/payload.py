@@ -27,6 +27,21 @@ neither is the textbook σ²/(N−1))::
   one when the window lies within the prefilter (the joints' errors then share their cause,
   the accelerations smoothed over the long derivative window that position noise brings).
 
+* σ_b, the sensors' systematic error. ``Channel.accuracy`` is a ± bound a on each pressure
+  sensor's whole error; an error uniform within it has σ = a/√3
+  (:func:`cranetwin.twin.observability.stated_force_sigma` turns the two chambers' into a
+  rod-force σ_s,c per cylinder). The part of the bound the data show as noise averages out
+  (σ_c, already in σ_p; uniform noise of σ_c fills ±√3·σ_c); what the bound leaves, ±(a −
+  √3·σ_c), may be an offset, a gain error or a coarse staircase, the same over the window,
+  which neither averages out nor shows much in the residual scatter. Taken as uniform in it:
+  ``σ_b,c = max(σ_s,c − σ_c, 0)`` (:func:`systematic_std`; bounds subtract, not variances:
+  a noise estimate 3 % low leaves 3 % of σ_s, not 24 %). It is propagated as a constant
+  force error δ_c per cylinder, independent between cylinders: δm̂ = Σ_c δ_c·Σ_k w_c·g_c,k /
+  Σ w_c·g_c², hence ``σ_b² = Σ_c σ_b,c²·(Σ_k w_c·g_c,k)² / (Σ w_c·g_c²)²`` and
+  σ_m̂² = σ_p² + σ_e² + σ_b². Without a stated accuracy σ_b = 0: the σ then covers random
+  error only (the noise the replay estimates from the data and the residual scatter), not an
+  offset of the sensors.
+
 Measured on simulated lifts (docs/ACCURACY.md "Payload uncertainty"): see there for the RMS
 of error/σ at 1, 2, 5 % sensor error; the previous σ (the window's scatter over
 N·Σ risk_c/σ_c² samples) was 3–9× too small.
@@ -59,11 +74,13 @@ class JointLoads(NamedTuple):
 class PayloadWindow(NamedTuple):
     """The regression's settings: each cylinder's joint index ``joints`` (n_c,), weights 1/σ²
     per cylinder joint (n_c,) [1/N²], the raw force noise ``noise_var`` σ_c² per cylinder
-    (n_c,) [N²], the prefilter's and the fit's half windows [instants]."""
+    (n_c,) [N²], the variance of each cylinder's systematic force error ``bias_var`` σ_b,c²
+    (n_c,) [N²] (module docstring), the prefilter's and the fit's half windows [instants]."""
 
     joints: npt.NDArray[np.int64]
     weights: F64
     noise_var: F64
+    bias_var: F64
     prefilter_half: int
     half_window: int
 
@@ -96,11 +113,11 @@ def box_gain(n, p):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def _window_estimate(sums, cnt, n_c, p, wsig):  # type: ignore[no-untyped-def]
+def _window_estimate(sums, cnt, n_c, p, wsig, bias_var):  # type: ignore[no-untyped-def]
     """Payload [kg] and its standard error (module docstring) from one window's weighted sums
-    ``sums`` = (Σ w·g², Σ w·g·r, Σ w·r², Σ w²·g²·σ²) over ``cnt`` instants of ``n_c`` joints
-    after a ``p``-point prefilter, ``wsig`` = Σ w_c·σ_c² (NaN and inf when the window has no
-    excitation, Σg² = 0)."""
+    ``sums`` = (Σ w·g², Σ w·g·r, Σ w·r², Σ w²·g²·σ², then Σ_k w_c·g_c,k per joint c) over
+    ``cnt`` instants of ``n_c`` joints after a ``p``-point prefilter, ``wsig`` = Σ w_c·σ_c²,
+    ``bias_var`` σ_b,c² per joint (NaN and inf when the window has no excitation, Σg² = 0)."""
     sgg = sums[0]
     sgr = sums[1]
     if not sgg > 0.0:
@@ -111,29 +128,32 @@ def _window_estimate(sums, cnt, n_c, p, wsig):  # type: ignore[no-untyped-def]
     n_eff = 1.0 + n_c * cnt / p
     var_e = excess / max(n_eff - 1.0, 1.0) / sgg
     var_p = box_gain(cnt, float(p)) * sums[3] / (sgg * sgg)
-    return m, np.sqrt(var_e + var_p)
+    var_b = 0.0
+    for c in range(bias_var.shape[0]):
+        var_b += bias_var[c] * sums[4 + c] * sums[4 + c]
+    return m, np.sqrt(var_e + var_p + var_b / (sgg * sgg))
 
 
 @njit(cache=True)
-def _window_sums(per, half, pf, n_c, wsig, m_out, std_out):  # type: ignore[no-untyped-def]
-    """The estimate at every instant from the per-instant sums ``per`` (n, 4)."""
-    n = per.shape[0]
-    cp = np.zeros((n + 1, 4))
+def _window_sums(per, half, pf, n_c, wsig, bias_var, m_out, std_out):  # type: ignore[no-untyped-def]
+    """The estimate at every instant from the per-instant sums ``per`` (n, 4 + n_c)."""
+    n, ns = per.shape
+    cp = np.zeros((n + 1, ns))
     for i in range(n):
-        for j in range(4):
+        for j in range(ns):
             cp[i + 1, j] = cp[i, j] + per[i, j]
-    sums = np.empty(4)
+    sums = np.empty(ns)
     for i in range(n):
         hi = min(i + half + 1, n)
         lo = max(i - half, 0)
-        for j in range(4):
+        for j in range(ns):
             sums[j] = cp[hi, j] - cp[lo, j]
         m_out[i], std_out[i] = _window_estimate(sums, float(hi - lo), float(n_c),
-                                                2 * pf + 1, wsig)
+                                                2 * pf + 1, wsig, bias_var)
 
 
 @njit(cache=True)
-def _windowed_payload(g, r, weights, noise_var, pf, half, m_out, std_out):  # type: ignore[no-untyped-def]
+def _windowed_payload(g, r, weights, noise_var, bias_var, pf, half, m_out, std_out):  # type: ignore[no-untyped-def]
     n, k = g.shape
     if pf > 0:  # centred moving average of both sides over [i − pf, i + pf]
         gs = np.empty((n, k))
@@ -148,7 +168,7 @@ def _windowed_payload(g, r, weights, noise_var, pf, half, m_out, std_out):  # ty
     else:
         gs = g
         rs = r
-    per = np.empty((n, 4))
+    per = np.empty((n, 4 + k))
     for i in range(n):
         a = 0.0
         b = 0.0
@@ -160,11 +180,12 @@ def _windowed_payload(g, r, weights, noise_var, pf, half, m_out, std_out):  # ty
             b += wg * rs[i, j]
             c += rs[i, j] * rs[i, j] * weights[j]
             d += wg * wg * noise_var[j]
+            per[i, 4 + j] = wg
         per[i, 0] = a
         per[i, 1] = b
         per[i, 2] = c
         per[i, 3] = d
-    _window_sums(per, half, pf, k, np.sum(weights * noise_var), m_out, std_out)
+    _window_sums(per, half, pf, k, np.sum(weights * noise_var), bias_var, m_out, std_out)
 
 
 @njit(cache=True)
@@ -175,7 +196,7 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
     the running sums of g and r are formed with them, the per-instant window sums with the
     running sums of those, so the data are passed over twice."""
     t0, t1, force, arm = loads
-    joints, weights, noise_var, pf, half = win
+    joints, weights, noise_var, bias_var, pf, half = win
     n, k = arm.shape
     keep = n if pf == 0 else 0  # g, r themselves only without the prefilter
     g = np.empty((keep, k))
@@ -196,7 +217,7 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
                 r[i, c] = ri
             cg[i + 1, c] = cg[i, c] + gi
             cr[i + 1, c] = cr[i, c] + ri
-    per = np.empty((n, 4))  # per instant: Σ w·g², Σ w·g·r, Σ w·r², Σ w²·g²·σ²
+    per = np.empty((n, 4 + k))  # per instant: Σ w·g², Σ w·g·r, Σ w·r², Σ w²·g²·σ², w_c·g_c
     for i in range(n):
         hi = min(i + pf + 1, n)
         lo = max(i - pf, 0)
@@ -217,15 +238,40 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
             sb += wg * rs
             sc += rs * rs * weights[c]
             sd += wg * wg * noise_var[c]
+            per[i, 4 + c] = wg
         per[i, 0] = sa
         per[i, 1] = sb
         per[i, 2] = sc
         per[i, 3] = sd
-    _window_sums(per, half, pf, k, np.sum(weights * noise_var), m_out, std_out)
+    _window_sums(per, half, pf, k, np.sum(weights * noise_var), bias_var, m_out, std_out)
+
+
+def systematic_std(stated_std: F64, noise_std: F64) -> F64:
+    """σ_b,c = max(σ_s,c − σ_c, 0) per cylinder (module docstring): the stated accuracy's
+    force σ ``stated_std`` (n_c,) [N] less the noise estimated from the data ``noise_std``
+    (n_c,) [N]; 0 where nothing is stated."""
+    s = np.asarray(stated_std, dtype=np.float64)
+    n = np.asarray(noise_std, dtype=np.float64)
+    return np.maximum(s - n, 0.0)
+
+
+def _squares(std: F64 | None, n_c: int, name: str) -> F64:
+    """σ² per joint, shape (n_c,) (zeros for None).
+
+    Raises:
+        TwinError: Not of shape (n_c,).
+    """
+    if std is None:
+        return np.zeros(n_c)
+    a = np.asarray(std, dtype=np.float64)
+    if a.shape != (n_c,):
+        raise TwinError(f"{name} must have shape ({n_c},), got {a.shape}")
+    return np.ascontiguousarray(a * a)
 
 
 def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_window: int,
-                     independent_fraction: F64, noise_std: F64 | None = None) -> tuple[F64, F64]:
+                     independent_fraction: F64, noise_std: F64 | None = None,
+                     bias_std: F64 | None = None) -> tuple[F64, F64]:
     """Sliding-window weighted least-squares payload (module docstring), in one compiled pass.
 
     g and r are first averaged over centred windows of ``2·prefilter_half + 1`` instants
@@ -242,6 +288,8 @@ def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_win
             (n_c,), in (0, 1]; checked, not used by the σ any more (module docstring).
         noise_std: Raw (unsmoothed) noise of r per joint, shape (n_c,) [N·m or N]; None: 0
             (σ from the residual scatter alone).
+        bias_std: Systematic (constant over the window) error of r per joint, shape (n_c,)
+            [N·m or N]; None: 0 (σ_b = 0: the σ covers random error only).
 
     Returns:
         (m̂, σ_m̂), each shape (k,) [kg]; NaN estimate and inf σ where g vanishes.
@@ -252,18 +300,20 @@ def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_win
         raise TwinError(f"independent_fraction must have shape ({g.shape[1]},)")
     m = np.empty(g.shape[0])
     std = np.empty(g.shape[0])
-    nv = np.zeros(g.shape[1]) if noise_std is None else np.asarray(noise_std, np.float64) ** 2
+    nv = _squares(noise_std, g.shape[1], "noise_std")
+    bv = _squares(bias_std, g.shape[1], "bias_std")
     _windowed_payload(np.ascontiguousarray(g, dtype=np.float64),
                       np.ascontiguousarray(r, dtype=np.float64),
                       np.ascontiguousarray(weights, dtype=np.float64),
-                      np.ascontiguousarray(nv), int(prefilter_half), int(half_window), m, std)
+                      nv, bv, int(prefilter_half), int(half_window), m, std)
     return m, std
 
 
 def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
                        joints: npt.NDArray[np.int64], weights: F64, prefilter_half: int,
                        half_window: int, independent_fraction: F64,
-                       noise_std: F64 | None = None) -> tuple[F64, F64]:
+                       noise_std: F64 | None = None,
+                       bias_std: F64 | None = None) -> tuple[F64, F64]:
     """:func:`windowed_payload` from the inverse dynamics at 0 and 1 kg and the cylinder
     forces, in one compiled pass: g = (tau1 − tau0)/arm and r = (F·arm − tau0)/arm at the
     cylinder joints (per unit of rod force: F·arm is the actuator load F·ds/dq).
@@ -275,6 +325,8 @@ def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
         joints: Joint index of each cylinder, (n_c,).
         weights, prefilter_half, half_window, independent_fraction: as :func:`windowed_payload`.
         noise_std: Raw noise of each cylinder's force, (n_c,) [N]; None: 0.
+        bias_std: Systematic error of each cylinder's force σ_b,c, (n_c,) [N] (from the stated
+            accuracy, :func:`cranetwin.twin.observability.stated_force_sigma`); None: 0.
 
     Returns:
         (m̂, σ_m̂), each shape (k,) [kg].
@@ -285,10 +337,11 @@ def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
     m = np.empty(arm.shape[0])
     std = np.empty(arm.shape[0])
     c = np.ascontiguousarray
-    nv = np.zeros(arm.shape[1]) if noise_std is None else np.asarray(noise_std, np.float64) ** 2
+    nv = _squares(noise_std, arm.shape[1], "noise_std")
+    bv = _squares(bias_std, arm.shape[1], "bias_std")
     loads = JointLoads(c(tau0, dtype=np.float64), c(tau1, dtype=np.float64),
                        c(force, dtype=np.float64), c(arm, dtype=np.float64))
-    win = PayloadWindow(c(joints, dtype=np.int64), c(weights, dtype=np.float64), c(nv),
+    win = PayloadWindow(c(joints, dtype=np.int64), c(weights, dtype=np.float64), nv, bv,
                         int(prefilter_half), int(half_window))
     _regression_payload(loads, win, m, std)
     return m, std

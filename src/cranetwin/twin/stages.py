@@ -32,7 +32,8 @@ from cranetwin.signal.savgol import savgol_columns
 from cranetwin.twin import kintable
 from cranetwin.twin.channels import ChannelMap
 from cranetwin.twin.gridpass import Quantities
-from cranetwin.twin.payload import regression_payload
+from cranetwin.twin.observability import stated_force_sigma
+from cranetwin.twin.payload import regression_payload, systematic_std
 
 if TYPE_CHECKING:
     from cranetwin.twin.plan import ReplayPlan
@@ -354,10 +355,16 @@ def estimate_payload(plan: ReplayPlan, motion: tuple[F64, F64, F64], f: F64, arm
     (n, n_j) (windows cut at its ends) from the cylinder forces f and moment arms (n, n_c);
     setting = (weights, independent fractions, prefilter half, half window, raw force noise
     per cylinder [N]) (:mod:`cranetwin.twin.payload`); ``regressors``: the
-    :func:`payload_regressors` of ``motion`` if already computed."""
+    :func:`payload_regressors` of ``motion`` if already computed. The σ includes what the
+    pressure sensors' stated accuracy leaves beyond the estimated noise as a systematic force
+    error per cylinder (:func:`cranetwin.twin.payload.systematic_std`; none stated: random
+    error only)."""
     t0, t1 = payload_regressors(plan, motion) if regressors is None else regressors
     weights, frac, pf, half, noise = setting
-    return regression_payload(t0, t1, f, arm, plan.cyl_joint, weights, pf, half, frac, noise)
+    m = plan.machine
+    stated = np.array([stated_force_sigma(m, c) for c in range(len(m.cylinders))])
+    return regression_payload(t0, t1, f, arm, plan.cyl_joint, weights, pf, half, frac, noise,
+                              systematic_std(stated, noise))
 
 
 def margins(choices: tuple[SmoothingChoice, ...] | None, nch: int, period: float,
