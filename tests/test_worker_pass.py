@@ -5,6 +5,8 @@ another worker and back neither skips nor doubles a window nor leaves a stale pa
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -80,7 +82,14 @@ def test_pass_finds_late_blocks_once(pg_url: str, base: SampleArrays) -> None:
     progress = {m: b.progress(m) for m in ids}
     late = ids[1]
     b.store.write_blocks(_blocks(late, base, T0 + 10.0, 30.0, 2000))  # the hole of minute 0
-    assert w.run_once() >= 1
+    # A pass takes late blocks up to pg_snapshot_xmin, the oldest transaction still running
+    # anywhere on the server: on a shared server another session's open transaction holds it
+    # back until that ends (seen once in a full run beside other PostgreSQL work). The late
+    # blocks are then found by a later pass, still once.
+    deadline = time.monotonic() + 120.0
+    while (redone := w.run_once()) == 0 and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert redone >= 1
     for m in ids:
         after = _parts(b, m)
         assert [(a, z) for a, z, _ in after] == [(a, z) for a, z, _ in before[m]], m
