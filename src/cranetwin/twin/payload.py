@@ -40,7 +40,9 @@ neither is the textbook σ²/(N−1))::
   Σ w_c·g_c², hence ``σ_b² = Σ_c σ_b,c²·(Σ_k w_c·g_c,k)² / (Σ w_c·g_c²)²`` and
   σ_m̂² = σ_p² + σ_e² + σ_b². Without a stated accuracy σ_b = 0: the σ then covers random
   error only (the noise the replay estimates from the data and the residual scatter), not an
-  offset of the sensors.
+  offset of the sensors. σ_b is also given on its own (``sys_std_out``,
+  ``TwinResult.payload_sys_std_kg``): unlike σ_p and σ_e it does not average down over a lift
+  (:mod:`cranetwin.twin.lifts`).
 
 Measured on simulated lifts (docs/ACCURACY.md "Payload uncertainty"): see there for the RMS
 of error/σ at 1, 2, 5 % sensor error; the previous σ (the window's scatter over
