@@ -7,6 +7,7 @@ they fail)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from functools import lru_cache
 
@@ -257,3 +258,19 @@ def test_cli_prints_the_family_table_and_a_verdict_per_target() -> None:
     plan, cases = _quick()
     assert case_table(cases, 0.05).row_count == 4
     assert target_table(evaluate(cases)).row_count == 6
+
+
+@pytest.mark.timeout(60)
+def test_group_summary_counts_the_noise_share_flag_apart_from_the_floor() -> None:
+    """A force flagged by its systematic floor alone (error share 5 %, under the 10 %) counts
+    as flagged but not in the noise-share-only counts; the lift z with all of σ over √k is
+    pooled apart."""
+    from cranetwin.twin.noise_targets import group_summary
+
+    a = _case(0.06, 0.06, 0.01, False, 1.0, 0.02)  # error share 0.05, flagged
+    noisy = dataclasses.replace(a.cylinders[0], error_share=0.2)
+    b = dataclasses.replace(a, cylinders=(noisy,), lift_z=(1.0,), lift_z_all_random=(2.0,))
+    (g,) = group_summary([a, b])
+    assert (g.over, g.over_flagged, g.over_flagged_noise) == (2, 2, 1)
+    assert (g.flagged, g.flagged_noise) == (2, 1)
+    assert g.lift_rms_z_all_random == pytest.approx(2.0)

@@ -173,13 +173,17 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
         m_all = known
         mk = np.ascontiguousarray(known[ks])
         sk = np.zeros(n_ks)
+        bk = np.zeros(n_ks)
     else:
         assert f_s is not None
+        b_all = np.empty(ne)
         m_all, s_all = with_known(known, *estimate_payload(
             plan, (q_s, qd_s, qdd_s), f_s, arm_s,
             (payload.weights, payload.frac, payload.prefilter_half, payload.half_window,
-             payload.noise), regs))
+             payload.noise), regs, b_all))
+        _, b_all = with_known(known, m_all, b_all)
         mk, sk = np.ascontiguousarray(m_all[ks]), np.ascontiguousarray(s_all[ks])
+        bk = b_all[ks]
     dynamic = plan.opt.wrench_acceleration == "dynamic"
     # the joints whose loads are measured: every cylinder's, every drive's with a torque
     full = sorted(plan.cyl_joint.tolist()
@@ -230,9 +234,25 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
         t_s=t, q=out.q, qd=out.qd, qdd=out.qdd, rod_s=out.rod_s, rod_v=out.rod_v,
         p_a=out.pa, p_b=out.pb, cyl_force=out.force, actuator_torque=out.tau_act,
         id_torque=out.tau_id, residual=out.resid, joint_wrench=out.wrench,
-        payload_kg=out.mass, payload_std_kg=out.std, gap=gap_g,
+        payload_kg=out.mass, payload_std_kg=out.std,
+        payload_sys_std_kg=_at_grid(bk, r, n), gap=gap_g,
         smoothing=dict(zip(plan.cmap.choice_names, choices, strict=True)),
     )
+
+
+def _at_grid(at_samples: F64, r: int, n: int) -> F64:
+    """A per-sample series (samples ka … , (ns,)) at the chunk's n grid rows, linear between
+    samples as the grid pass carries the payload and its σ (row g: sample g // r, fraction
+    (g mod r)/r; past the last sample its value)."""
+    if r == 1:
+        return np.array(at_samples[:n], dtype=np.float64)
+    g = np.arange(n)
+    s0 = g // r
+    fr = (g - s0 * r) / r
+    u1 = np.minimum(s0 + 1, at_samples.shape[0] - 1)
+    a: F64 = at_samples[s0]
+    out: F64 = a + fr * (at_samples[u1] - a)
+    return out
 
 
 def _model_residual(plan: ReplayPlan, rows: ChunkRows, e0: int,

@@ -41,7 +41,7 @@ from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import SmoothingChoice, nrmse
 from cranetwin.signal.window import DEFAULT_WINDOWS
-from cranetwin.twin.lifts import result_lifts
+from cranetwin.twin.lifts import lift_payloads, payload_smear_s, result_lifts
 from cranetwin.twin.options import ReplayOptions
 from cranetwin.twin.replay import replay
 from cranetwin.twin.result import TwinResult
@@ -112,6 +112,9 @@ class CylinderScore:
             (``ReplayOptions(model_forces="off")``: LPA-ICI pressures, Eq. 1–2).
         model_based: The default chose the model-based force for this cylinder
             (:mod:`cranetwin.twin.force_model`).
+        systematic_share: The verdict's systematic floor / replayed force range (0 without a
+            stated accuracy); ``error_share`` > ``RESOLVABLE_SHARE`` alone is the flag
+            without the floor.
     """
 
     cylinder: str
@@ -124,6 +127,7 @@ class CylinderScore:
     error_share: float
     pressure_only: float = float("nan")
     model_based: bool = False
+    systematic_share: float = 0.0
 
     @property
     def best_fixed(self) -> tuple[int, float]:
@@ -142,6 +146,9 @@ class CaseResult:
         z_sq_sum, z_count: Σ z² and the number of steady-lift instants (pooled RMS z).
         lift_errors: Per complete lift, (mean estimate − truth) / truth.
         lift_z: Per complete lift, (mean estimate − truth) / its stated σ.
+        lift_z_all_random: The same with the lift σ that takes all of the instants' σ as
+            averaging down over the lift (:func:`cranetwin.twin.lifts.lift_payloads` without
+            the systematic part; the lift σ before issue 16), for comparison.
         stated: The same scores of the replay given the sensors' stated accuracy (None: not
             run); its cylinders share ``fixed``, ``position_input`` and ``pressure_only``.
     """
@@ -153,6 +160,7 @@ class CaseResult:
     lift_errors: tuple[float, ...] = field(default_factory=tuple)
     lift_z: tuple[float, ...] = field(default_factory=tuple)
     stated: CaseResult | None = None
+    lift_z_all_random: tuple[float, ...] = field(default_factory=tuple)
 
     @property
     def rms_z(self) -> float:
@@ -173,10 +181,13 @@ class CaseResult:
                                "range_share": num(c.range_share), "observable": c.observable,
                                "error_share": num(c.error_share),
                                "pressure_only": num(c.pressure_only),
-                               "model_based": c.model_based} for c in self.cylinders],
+                               "model_based": c.model_based,
+                               "systematic_share": num(c.systematic_share)}
+                              for c in self.cylinders],
                 "rms_z": num(self.rms_z), "z_count": self.z_count,
                 "lift_errors": [num(x) for x in self.lift_errors],
                 "lift_z": [num(x) for x in self.lift_z],
+                "lift_z_all_random": [num(x) for x in self.lift_z_all_random],
                 "stated": None if self.stated is None else self.stated.as_json()}
 
 
@@ -213,8 +224,10 @@ def _pressure_a(machine: Machine, cylinder: int) -> str:
                 if ch.source == name and ch.quantity == "pressure_a")
 
 
-def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[float, int, list[float],
-                                                                      list[float]]:
+def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[
+        float, int, list[float], list[float], list[float]]:
+    """Σ z², count, lift errors, lift z and lift z with all of σ divided by √k
+    (:attr:`CaseResult.lift_z_all_random`)."""
     steady = np.ones(res.n, dtype=bool)
     for c in np.flatnonzero(np.diff(truth_p) != 0):
         steady &= np.abs(res.t_s - res.t_s[c]) > STEADY_AWAY_S
@@ -222,8 +235,12 @@ def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[floa
     z = (res.payload_kg[ok] - truth_p[ok]) / res.payload_std_kg[ok]
     errors: list[float] = []
     zs: list[float] = []
+    z0: list[float] = []
     if spec.nominal_payload_kg > 0:
-        for lf in result_lifts(res, 1.0 / spec.rate_hz, LIFT_THRESHOLD * spec.nominal_payload_kg):
+        period, thr = 1.0 / spec.rate_hz, LIFT_THRESHOLD * spec.nominal_payload_kg
+        all_random = lift_payloads(res.t_s, res.payload_kg, res.payload_std_kg,
+                                   payload_smear_s(res, period), thr)
+        for lf, lf0 in zip(result_lifts(res, period, thr), all_random, strict=True):
             sel = (res.t_s >= lf.t0_s) & (res.t_s <= lf.t1_s)
             if not lf.complete or not np.isfinite(lf.payload_kg) or not sel.any():
                 continue
@@ -232,7 +249,8 @@ def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[floa
                 continue
             errors.append((lf.payload_kg - true) / true)
             zs.append((lf.payload_kg - true) / lf.std_kg)
-    return float(np.sum(z**2)), int(z.shape[0]), errors, zs
+            z0.append((lf.payload_kg - true) / lf0.std_kg)
+    return float(np.sum(z**2)), int(z.shape[0]), errors, zs, z0
 
 
 def evaluate_case(noisy: SampleArrays, machine: Machine, truth: CaseTruth,
@@ -290,7 +308,7 @@ def _scored(res: TwinResult, machine: Machine, truth: CaseTruth, spec: CaseSpec,
         cyl.name, float(force[k]), fixed[k], float(pos[k]),
         float(pos_in[k]), float(span[k] / (cyl.area_a_m2 * supply)), verdicts[k].observable,
         float(verdicts[k].share), float(pressure_only[k]),
-        res.smoothing[_pressure_a(machine, k)].model_based)
+        res.smoothing[_pressure_a(machine, k)].model_based, float(verdicts[k].systematic_share))
         for k, cyl in enumerate(machine.cylinders))
-    zsq, zn, errs, lz = _payload_scores(res, truth.payload_kg[rows], spec)
-    return CaseResult(spec, cyls, zsq, zn, tuple(errs), tuple(lz))
+    zsq, zn, errs, lz, lz0 = _payload_scores(res, truth.payload_kg[rows], spec)
+    return CaseResult(spec, cyls, zsq, zn, tuple(errs), tuple(lz), lift_z_all_random=tuple(lz0))

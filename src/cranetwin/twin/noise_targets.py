@@ -29,8 +29,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from cranetwin.twin.noise_family import CaseResult, CylinderScore
+from cranetwin.twin.observability import FORCE_ACCURACY_TARGET, RESOLVABLE_SHARE
 
-FORCE_MAX = 0.04
+FORCE_MAX = FORCE_ACCURACY_TARGET
 IN_SCOPE_SHARE = 0.10
 VS_FIXED = 1.10
 POSITION_RATIO = 0.5
@@ -174,6 +175,10 @@ class GroupSummary:
         over_flagged: Of those, flagged not observable.
         flagged: All cylinder cases flagged not observable.
         cylinders: All cylinder cases.
+        over_flagged_noise, flagged_noise: The same counts for the flag by the noise share
+            alone (without the systematic floor, :mod:`cranetwin.twin.observability`).
+        lift_rms_z_all_random: RMS lift z with all of the σ divided by √k
+            (:attr:`CaseResult.lift_z_all_random`; NaN: no lift).
     """
 
     group: str
@@ -186,6 +191,14 @@ class GroupSummary:
     over_flagged: int
     flagged: int
     cylinders: int
+    over_flagged_noise: int = 0
+    flagged_noise: int = 0
+    lift_rms_z_all_random: float = float("nan")
+
+
+def _noise_flag(c: CylinderScore) -> bool:
+    """Flagged by the noise share alone (the verdict without the systematic floor)."""
+    return not c.error_share <= RESOLVABLE_SHARE
 
 
 def group_summary(cases: Sequence[CaseResult]) -> list[GroupSummary]:
@@ -197,6 +210,7 @@ def group_summary(cases: Sequence[CaseResult]) -> list[GroupSummary]:
         rms = float(np.sqrt(sum(c.z_sq_sum for c in items) / n)) if n else nan
         errs = np.array([e for c in items for e in c.lift_errors])
         lz = np.array([z for c in items for z in c.lift_z])
+        lz0 = np.array([z for c in items for z in c.lift_z_all_random])
         cyls = [c for case in items for c in case.cylinders]
         over = [c for c in cyls if c.force > FORCE_MAX]
         out.append(GroupSummary(
@@ -204,5 +218,6 @@ def group_summary(cases: Sequence[CaseResult]) -> list[GroupSummary]:
             float(np.abs(errs).mean()) if errs.size else nan,
             float(np.sqrt(np.mean(lz**2))) if lz.size else nan, len(over),
             sum(not c.observable for c in over), sum(not c.observable for c in cyls),
-            len(cyls)))
+            len(cyls), sum(_noise_flag(c) for c in over), sum(_noise_flag(c) for c in cyls),
+            float(np.sqrt(np.mean(lz0**2))) if lz0.size else nan))
     return out

@@ -14,7 +14,18 @@ so σ_F is compared unsmoothed.
 When σ_F exceeds ``RESOLVABLE_SHARE`` (10 %) of the range of the cylinder's replayed force
 (max − min over the window), the force is flagged as not observable: its shape is then mostly
 sensor error (a small telescope cylinder of a few kN behind 0–250 bar sensors: ±1 % of the
-pressure range is ±490 N of force). The flag travels with the replay: :func:`assess`
+pressure range is ±490 N of force).
+
+The systematic floor. Smoothing removes noise; it does not remove what the stated accuracy
+leaves beyond the noise seen in the data (an offset, a gain error, a coarse staircase), so the
+replayed force's error cannot fall below that part, σ_b,F = max(σ_stated − σ_noise, 0)
+(:func:`systematic_force_sigma`, the same σ_b,c the payload's σ carries,
+:func:`cranetwin.twin.payload.systematic_std`). When σ_b,F exceeds ``FORCE_ACCURACY_TARGET``
+(4 %, the force accuracy the twin is held to: docs/ACCURACY.md "Noise family", target
+``force``) of the range, the force is flagged too, whatever the noise share: it cannot meet
+that accuracy. Without a stated accuracy σ_b,F = 0 and only the noise share flags.
+
+The flag travels with the replay: :func:`assess`
 returns one :class:`ForceObservability` per cylinder, :class:`ForceRange` collects the range
 chunk by chunk for streamed replays.
 """
@@ -31,11 +42,19 @@ import numpy.typing as npt
 
 from cranetwin.model import Machine
 from cranetwin.signal import SmoothingChoice
+from cranetwin.twin.payload import systematic_std
 
 F64 = npt.NDArray[np.float64]
 
 RESOLVABLE_SHARE = 0.10
 """A force is observable when its per-sample error σ_F is at most this share of its range."""
+
+FORCE_ACCURACY_TARGET = 0.04
+"""The force accuracy the twin is held to: NRMSE (RMS error over the true force's range) at
+most 4 % (issue 16's target, docs/ACCURACY.md "Noise family"). A force whose systematic error
+floor σ_b,F exceeds this share of its range is flagged not observable (module docstring)."""
+
+Cause = Literal["noise share", "systematic floor"]
 
 
 class ForceObservability(NamedTuple):
@@ -47,7 +66,11 @@ class ForceObservability(NamedTuple):
         source: Where σ_p came from: the sensors' stated accuracy or the data's noise.
         range_n: Range of the replayed force in the window, max − min [N].
         share: sigma_n / range_n (inf for a constant force).
-        observable: share ≤ ``RESOLVABLE_SHARE``.
+        observable: share ≤ ``RESOLVABLE_SHARE`` and systematic_share ≤
+            ``FORCE_ACCURACY_TARGET``.
+        systematic_n: The systematic floor σ_b,F [N] (module docstring; 0 without a stated
+            accuracy).
+        systematic_share: systematic_n / range_n (inf for a constant force with a floor).
     """
 
     cylinder: str
@@ -56,21 +79,45 @@ class ForceObservability(NamedTuple):
     range_n: float
     share: float
     observable: bool
+    systematic_n: float = 0.0
+    systematic_share: float = 0.0
+
+    @property
+    def causes(self) -> tuple[Cause, ...]:
+        """Why the force is not observable (empty when it is): the noise share over
+        ``RESOLVABLE_SHARE``, the systematic floor over ``FORCE_ACCURACY_TARGET``, or both."""
+        out: list[Cause] = []
+        if not self.share <= RESOLVABLE_SHARE:
+            out.append("noise share")
+        if not self.systematic_share <= FORCE_ACCURACY_TARGET:
+            out.append("systematic floor")
+        return tuple(out)
 
     def message(self) -> str:
-        """One line naming the cylinder and the numbers."""
-        verdict = "observable" if self.observable else "NOT observable"
-        return (f"cylinder {self.cylinder!r}: force {verdict}: pressure error "
+        """One line naming the cylinder, the numbers and, when flagged, the cause."""
+        verdict = "observable" if self.observable else \
+            f"NOT observable ({' and '.join(self.causes)})"
+        line = (f"cylinder {self.cylinder!r}: force {verdict}: pressure error "
                 f"±{self.sigma_n:.0f} N (1σ, {self.source}) against a force range of "
                 f"{self.range_n:.0f} N "
                 f"({100 * self.share:.0f} %; limit {100 * RESOLVABLE_SHARE:.0f} %)")
+        if self.systematic_n > 0:
+            line += (f"; systematic floor ±{self.systematic_n:.0f} N (stated accuracy beyond "
+                     f"the noise) = {100 * self.systematic_share:.1f} % "
+                     f"(limit {100 * FORCE_ACCURACY_TARGET:.0f} %)")
+        return line
 
     def as_json(self) -> dict[str, Any]:
-        """Plain numbers for the API (``share`` None when infinite)."""
-        share = None if not math.isfinite(self.share) else round(self.share, 4)
+        """Plain numbers for the API (shares None when infinite)."""
+        def num(x: float) -> float | None:
+            return None if not math.isfinite(x) else round(x, 4)
+
         return {"cylinder": self.cylinder, "sigma_n": round(self.sigma_n, 1),
-                "source": self.source, "range_n": round(self.range_n, 1), "share": share,
-                "observable": self.observable}
+                "source": self.source, "range_n": round(self.range_n, 1),
+                "share": num(self.share), "observable": self.observable,
+                "systematic_n": round(self.systematic_n, 1),
+                "systematic_share": num(self.systematic_share),
+                "causes": list(self.causes)}
 
 
 def stated_force_sigma(machine: Machine, cylinder: int) -> float:
@@ -88,16 +135,33 @@ def stated_force_sigma(machine: Machine, cylinder: int) -> float:
     return math.hypot(cyl.area_a_m2 * acc["pressure_a"], cyl.area_b_m2 * acc["pressure_b"])
 
 
-def force_sigma(machine: Machine, cylinder: int,
-                smoothing: Mapping[str, SmoothingChoice]) -> tuple[float, Literal[
-                    "stated accuracy", "estimated noise"]]:
-    """(σ_F [N], its source) for one cylinder: the larger of the stated accuracy's and the
-    estimated noise's (the pressure pair's smoothing choice, keyed by the pA channel's name)."""
+def systematic_force_sigma(machine: Machine, noise_n: F64) -> F64:
+    """σ_b,F per cylinder, shape (n_c,) [N]: what the stated accuracy leaves beyond the raw
+    force noise ``noise_n`` (n_c,) [N] estimated from the data
+    (:func:`cranetwin.twin.payload.systematic_std`; 0 where nothing is stated). The payload's
+    σ and the observability flag both take it from here."""
+    stated = np.array([stated_force_sigma(machine, c) for c in range(len(machine.cylinders))])
+    return systematic_std(stated, np.asarray(noise_n, dtype=np.float64))
+
+
+def estimated_force_noise(machine: Machine, cylinder: int,
+                          smoothing: Mapping[str, SmoothingChoice]) -> float:
+    """Raw force noise σ [N] the replay estimated for one cylinder (the pressure pair's
+    smoothing choice, keyed by the pA channel's name; 0 when it has none)."""
     cyl = machine.cylinders[cylinder]
     est = 0.0
     for ch in machine.channels:
         if ch.source == cyl.name and ch.quantity == "pressure_a" and ch.name in smoothing:
             est = max(smoothing[ch.name].sigma, 0.0)
+    return est
+
+
+def force_sigma(machine: Machine, cylinder: int,
+                smoothing: Mapping[str, SmoothingChoice]) -> tuple[float, Literal[
+                    "stated accuracy", "estimated noise"]]:
+    """(σ_F [N], its source) for one cylinder: the larger of the stated accuracy's and the
+    estimated noise's (:func:`estimated_force_noise`)."""
+    est = estimated_force_noise(machine, cylinder, smoothing)
     stated = stated_force_sigma(machine, cylinder)
     return (stated, "stated accuracy") if stated >= est else (est, "estimated noise")
 
@@ -112,13 +176,24 @@ def assess(machine: Machine, smoothing: Mapping[str, SmoothingChoice], force_min
         force_min_n, force_max_n: Smallest and largest replayed force per cylinder, (n_c,) [N].
     """
     out = []
+    noise = np.array([estimated_force_noise(machine, k, smoothing)
+                      for k in range(len(machine.cylinders))])
+    floor = systematic_force_sigma(machine, noise)
     for k, cyl in enumerate(machine.cylinders):
         sigma, source = force_sigma(machine, k, smoothing)
         span = float(force_max_n[k] - force_min_n[k])
-        share = sigma / span if span > 0 else (0.0 if sigma == 0 else math.inf)
-        out.append(ForceObservability(cyl.name, sigma, source, span, share,
-                                      bool(share <= RESOLVABLE_SHARE)))
+        share = _share(sigma, span)
+        sys_share = _share(float(floor[k]), span)
+        out.append(ForceObservability(
+            cyl.name, sigma, source, span, share,
+            bool(share <= RESOLVABLE_SHARE and sys_share <= FORCE_ACCURACY_TARGET),
+            float(floor[k]), sys_share))
     return tuple(out)
+
+
+def _share(sigma: float, span: float) -> float:
+    """sigma / span; 0 for no error, inf for an error on a constant force."""
+    return sigma / span if span > 0 else (0.0 if sigma == 0 else math.inf)
 
 
 @dataclass

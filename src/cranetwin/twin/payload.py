@@ -40,7 +40,9 @@ neither is the textbook σ²/(N−1))::
   Σ w_c·g_c², hence ``σ_b² = Σ_c σ_b,c²·(Σ_k w_c·g_c,k)² / (Σ w_c·g_c²)²`` and
   σ_m̂² = σ_p² + σ_e² + σ_b². Without a stated accuracy σ_b = 0: the σ then covers random
   error only (the noise the replay estimates from the data and the residual scatter), not an
-  offset of the sensors.
+  offset of the sensors. σ_b is also given on its own (``sys_std_out``,
+  ``TwinResult.payload_sys_std_kg``): unlike σ_p and σ_e it does not average down over a lift
+  (:mod:`cranetwin.twin.lifts`).
 
 Measured on simulated lifts (docs/ACCURACY.md "Payload uncertainty"): see there for the RMS
 of error/σ at 1, 2, 5 % sensor error; the previous σ (the window's scatter over
@@ -117,11 +119,12 @@ def _window_estimate(sums, cnt, n_c, p, wsig, bias_var):  # type: ignore[no-unty
     """Payload [kg] and its standard error (module docstring) from one window's weighted sums
     ``sums`` = (Σ w·g², Σ w·g·r, Σ w·r², Σ w²·g²·σ², then Σ_k w_c·g_c,k per joint c) over
     ``cnt`` instants of ``n_c`` joints after a ``p``-point prefilter, ``wsig`` = Σ w_c·σ_c²,
-    ``bias_var`` σ_b,c² per joint (NaN and inf when the window has no excitation, Σg² = 0)."""
+    ``bias_var`` σ_b,c² per joint; also σ_b alone, the part of the standard error that does
+    not average out over time (NaN, inf and inf when the window has no excitation, Σg² = 0)."""
     sgg = sums[0]
     sgr = sums[1]
     if not sgg > 0.0:
-        return np.nan, np.inf
+        return np.nan, np.inf, np.inf
     m = sgr / sgg
     rss = max(sums[2] - m * sgr, 0.0)
     excess = max(rss - cnt * wsig / p, 0.0)
@@ -131,12 +134,14 @@ def _window_estimate(sums, cnt, n_c, p, wsig, bias_var):  # type: ignore[no-unty
     var_b = 0.0
     for c in range(bias_var.shape[0]):
         var_b += bias_var[c] * sums[4 + c] * sums[4 + c]
-    return m, np.sqrt(var_e + var_p + var_b / (sgg * sgg))
+    var_b /= sgg * sgg
+    return m, np.sqrt(var_e + var_p + var_b), np.sqrt(var_b)
 
 
 @njit(cache=True)
-def _window_sums(per, half, pf, n_c, wsig, bias_var, m_out, std_out):  # type: ignore[no-untyped-def]
-    """The estimate at every instant from the per-instant sums ``per`` (n, 4 + n_c)."""
+def _window_sums(per, half, pf, n_c, wsig, bias_var, m_out, std_out, sys_out):  # type: ignore[no-untyped-def]
+    """The estimate, its σ and its systematic σ_b at every instant from the per-instant sums
+    ``per`` (n, 4 + n_c)."""
     n, ns = per.shape
     cp = np.zeros((n + 1, ns))
     for i in range(n):
@@ -148,12 +153,12 @@ def _window_sums(per, half, pf, n_c, wsig, bias_var, m_out, std_out):  # type: i
         lo = max(i - half, 0)
         for j in range(ns):
             sums[j] = cp[hi, j] - cp[lo, j]
-        m_out[i], std_out[i] = _window_estimate(sums, float(hi - lo), float(n_c),
-                                                2 * pf + 1, wsig, bias_var)
+        m_out[i], std_out[i], sys_out[i] = _window_estimate(sums, float(hi - lo), float(n_c),
+                                                            2 * pf + 1, wsig, bias_var)
 
 
 @njit(cache=True)
-def _windowed_payload(g, r, weights, noise_var, bias_var, pf, half, m_out, std_out):  # type: ignore[no-untyped-def]
+def _windowed_payload(g, r, weights, noise_var, bias_var, pf, half, m_out, std_out, sys_out):  # type: ignore[no-untyped-def]
     n, k = g.shape
     if pf > 0:  # centred moving average of both sides over [i − pf, i + pf]
         gs = np.empty((n, k))
@@ -185,11 +190,12 @@ def _windowed_payload(g, r, weights, noise_var, bias_var, pf, half, m_out, std_o
         per[i, 1] = b
         per[i, 2] = c
         per[i, 3] = d
-    _window_sums(per, half, pf, k, np.sum(weights * noise_var), bias_var, m_out, std_out)
+    _window_sums(per, half, pf, k, np.sum(weights * noise_var), bias_var, m_out, std_out,
+                 sys_out)
 
 
 @njit(cache=True)
-def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-def]
+def _regression_payload(loads, win, m_out, std_out, sys_out):  # type: ignore[no-untyped-def]
     """g = (t1 − t0)/arm and r = (force·arm − t0)/arm at the cylinder joints (:class:`JointLoads`
     ``loads``, :class:`PayloadWindow` ``win``), then
     :func:`_windowed_payload` (the same operations in the same order, so the same result):
@@ -243,7 +249,8 @@ def _regression_payload(loads, win, m_out, std_out):  # type: ignore[no-untyped-
         per[i, 1] = sb
         per[i, 2] = sc
         per[i, 3] = sd
-    _window_sums(per, half, pf, k, np.sum(weights * noise_var), bias_var, m_out, std_out)
+    _window_sums(per, half, pf, k, np.sum(weights * noise_var), bias_var, m_out, std_out,
+                 sys_out)
 
 
 def systematic_std(stated_std: F64, noise_std: F64) -> F64:
@@ -269,9 +276,24 @@ def _squares(std: F64 | None, n_c: int, name: str) -> F64:
     return np.ascontiguousarray(a * a)
 
 
+def _sys_out(out: F64 | None, k: int) -> F64:
+    """The array σ_b is written to: ``out`` (checked: float64, shape (k,), contiguous) or a
+    scratch array.
+
+    Raises:
+        TwinError: ``out`` is not a contiguous float64 array of shape (k,).
+    """
+    if out is None:
+        return np.empty(k)
+    if out.shape != (k,) or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise TwinError(f"sys_std_out must be a contiguous float64 array of shape ({k},)")
+    return out
+
+
 def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_window: int,
                      independent_fraction: F64, noise_std: F64 | None = None,
-                     bias_std: F64 | None = None) -> tuple[F64, F64]:
+                     bias_std: F64 | None = None,
+                     sys_std_out: F64 | None = None) -> tuple[F64, F64]:
     """Sliding-window weighted least-squares payload (module docstring), in one compiled pass.
 
     g and r are first averaged over centred windows of ``2·prefilter_half + 1`` instants
@@ -290,6 +312,8 @@ def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_win
             (σ from the residual scatter alone).
         bias_std: Systematic (constant over the window) error of r per joint, shape (n_c,)
             [N·m or N]; None: 0 (σ_b = 0: the σ covers random error only).
+        sys_std_out: If given, shape (k,): filled with σ_b [kg], the part of σ_m̂ from
+            ``bias_std`` (it does not average out over time; inf where g vanishes).
 
     Returns:
         (m̂, σ_m̂), each shape (k,) [kg]; NaN estimate and inf σ where g vanishes.
@@ -302,10 +326,11 @@ def windowed_payload(g: F64, r: F64, weights: F64, prefilter_half: int, half_win
     std = np.empty(g.shape[0])
     nv = _squares(noise_std, g.shape[1], "noise_std")
     bv = _squares(bias_std, g.shape[1], "bias_std")
+    sys = _sys_out(sys_std_out, g.shape[0])
     _windowed_payload(np.ascontiguousarray(g, dtype=np.float64),
                       np.ascontiguousarray(r, dtype=np.float64),
                       np.ascontiguousarray(weights, dtype=np.float64),
-                      nv, bv, int(prefilter_half), int(half_window), m, std)
+                      nv, bv, int(prefilter_half), int(half_window), m, std, sys)
     return m, std
 
 
@@ -313,7 +338,8 @@ def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
                        joints: npt.NDArray[np.int64], weights: F64, prefilter_half: int,
                        half_window: int, independent_fraction: F64,
                        noise_std: F64 | None = None,
-                       bias_std: F64 | None = None) -> tuple[F64, F64]:
+                       bias_std: F64 | None = None,
+                       sys_std_out: F64 | None = None) -> tuple[F64, F64]:
     """:func:`windowed_payload` from the inverse dynamics at 0 and 1 kg and the cylinder
     forces, in one compiled pass: g = (tau1 − tau0)/arm and r = (F·arm − tau0)/arm at the
     cylinder joints (per unit of rod force: F·arm is the actuator load F·ds/dq).
@@ -327,6 +353,7 @@ def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
         noise_std: Raw noise of each cylinder's force, (n_c,) [N]; None: 0.
         bias_std: Systematic error of each cylinder's force σ_b,c, (n_c,) [N] (from the stated
             accuracy, :func:`cranetwin.twin.observability.stated_force_sigma`); None: 0.
+        sys_std_out: If given, shape (k,): filled with σ_b [kg] (:func:`windowed_payload`).
 
     Returns:
         (m̂, σ_m̂), each shape (k,) [kg].
@@ -343,5 +370,5 @@ def regression_payload(tau0: F64, tau1: F64, force: F64, arm: F64,
                        c(force, dtype=np.float64), c(arm, dtype=np.float64))
     win = PayloadWindow(c(joints, dtype=np.int64), c(weights, dtype=np.float64), nv, bv,
                         int(prefilter_half), int(half_window))
-    _regression_payload(loads, win, m, std)
+    _regression_payload(loads, win, m, std, _sys_out(sys_std_out, arm.shape[0]))
     return m, std

@@ -51,6 +51,10 @@ class TwinResult:
             estimated by sliding-window least squares), shape (m,) [kg].
         payload_std_kg: One-sigma uncertainty of the estimate, shape (m,) [kg] (0 where
             given).
+        payload_sys_std_kg: The systematic part of ``payload_std_kg``, σ_b, shape (m,) [kg]:
+            what the pressure sensors' stated accuracy leaves beyond their noise
+            (:mod:`cranetwin.twin.payload`), which does not average out over a lift
+            (:mod:`cranetwin.twin.lifts`); 0 without a stated accuracy and where given.
         gap: True where an input channel had to be bridged across a dropout, shape (m,).
         smoothing: The Savitzky–Golay choice per working channel name.
     """
@@ -70,6 +74,7 @@ class TwinResult:
     joint_wrench: F64
     payload_kg: F64
     payload_std_kg: F64
+    payload_sys_std_kg: F64
     gap: B
     smoothing: dict[str, SmoothingChoice] = field(default_factory=dict)
 

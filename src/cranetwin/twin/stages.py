@@ -32,8 +32,8 @@ from cranetwin.signal.savgol import savgol_columns
 from cranetwin.twin import kintable
 from cranetwin.twin.channels import ChannelMap
 from cranetwin.twin.gridpass import Quantities
-from cranetwin.twin.observability import stated_force_sigma
-from cranetwin.twin.payload import regression_payload, systematic_std
+from cranetwin.twin.observability import systematic_force_sigma
+from cranetwin.twin.payload import regression_payload
 
 if TYPE_CHECKING:
     from cranetwin.twin.plan import ReplayPlan
@@ -350,21 +350,21 @@ def payload_regressors(plan: ReplayPlan, motion: tuple[F64, F64, F64]) -> tuple[
 
 def estimate_payload(plan: ReplayPlan, motion: tuple[F64, F64, F64], f: F64, arm: F64,
                      setting: tuple[F64, F64, int, int, F64],
-                     regressors: tuple[F64, F64] | None = None) -> tuple[F64, F64]:
+                     regressors: tuple[F64, F64] | None = None,
+                     sys_std_out: F64 | None = None) -> tuple[F64, F64]:
     """Payload and its standard error (n,) [kg] at every instant of motion = (q, qd, qdd)
     (n, n_j) (windows cut at its ends) from the cylinder forces f and moment arms (n, n_c);
     setting = (weights, independent fractions, prefilter half, half window, raw force noise
     per cylinder [N]) (:mod:`cranetwin.twin.payload`); ``regressors``: the
     :func:`payload_regressors` of ``motion`` if already computed. The σ includes what the
     pressure sensors' stated accuracy leaves beyond the estimated noise as a systematic force
-    error per cylinder (:func:`cranetwin.twin.payload.systematic_std`; none stated: random
-    error only)."""
+    error per cylinder (:func:`cranetwin.twin.observability.systematic_force_sigma`; none
+    stated: random error only); ``sys_std_out`` (n,), if given, receives that part of the σ
+    alone [kg] (it does not average out over a lift, :mod:`cranetwin.twin.lifts`)."""
     t0, t1 = payload_regressors(plan, motion) if regressors is None else regressors
     weights, frac, pf, half, noise = setting
-    m = plan.machine
-    stated = np.array([stated_force_sigma(m, c) for c in range(len(m.cylinders))])
     return regression_payload(t0, t1, f, arm, plan.cyl_joint, weights, pf, half, frac, noise,
-                              systematic_std(stated, noise))
+                              systematic_force_sigma(plan.machine, noise), sys_std_out)
 
 
 def margins(choices: tuple[SmoothingChoice, ...] | None, nch: int, period: float,
