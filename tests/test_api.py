@@ -233,6 +233,12 @@ def test_twin_recovers_the_known_payload_and_matches_the_kinematics(ctx: Ctx) ->
     util = np.array(j["utilisation"]["lift"])
     assert np.all((util >= 0) & (util <= 1))
     assert np.array(j["wrenches"]).shape == (3000, 4, 6)
+    # every field of the observability verdict survives the response model
+    obs = j["force_observability"]
+    assert [o["cylinder"] for o in obs] == ["lift", "jib", "extension"]
+    for o in obs:
+        assert {"systematic_n", "systematic_share", "causes"} <= set(o), o
+        assert o["observable"] == (o["causes"] == []), o
 
 
 def test_twin_second_call_is_served_from_cache(ctx: Ctx) -> None:

@@ -140,7 +140,17 @@ class ForceObservabilityOut(BaseModel):
                                     "'estimated noise' (from the data)")
     range_n: float = Field(description="range of the replayed force in the window [N]")
     share: float | None = Field(description="sigma_n / range_n (null for a constant force)")
-    observable: bool = Field(description="share ≤ 0.1; false: the force is mostly sensor error")
+    observable: bool = Field(description="share ≤ 0.1 and systematic_share ≤ 0.04; false: the "
+                                         "force is mostly sensor error, or the sensors' stated "
+                                         "accuracy alone can put it off by more than the 4 % "
+                                         "accuracy target")
+    systematic_n: float = Field(0.0, description="the systematic floor [N]: what the stated "
+                                "accuracy beyond the measured noise (offset, gain) leaves in "
+                                "the force after any smoothing (0 without a stated accuracy)")
+    systematic_share: float | None = Field(0.0, description="systematic_n / range_n (null for "
+                                           "a constant force with a floor)")
+    causes: list[Literal["noise share", "systematic floor"]] = Field(
+        default_factory=list, description="why the force is not observable (empty when it is)")
 
 
 class ModelConsistencyOut(BaseModel):
