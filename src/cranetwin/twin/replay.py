@@ -98,7 +98,7 @@ class TwinStream:
         self.machine = machine
         self.opt = options or ReplayOptions()
         self.payload = payload
-        self.plan = ReplayPlan.build(machine, channels, self.opt)
+        self.plan = ReplayPlan.of(machine, channels, self.opt)
         self.cmap = self.plan.cmap
         nch = self.plan.nch
         self._raw_t = np.empty(0)
