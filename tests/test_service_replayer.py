@@ -28,3 +28,21 @@ def test_a_short_span_after_a_long_smooth_one_is_replayed() -> None:
     assert short.t_s.shape[0] == short_n
     res = rp.replay("m", machine, short, rate)
     assert res.n > 0 and np.all(np.isfinite(res.cyl_force))
+
+
+def test_a_span_a_little_longer_than_a_kept_window_is_replayed() -> None:
+    """More samples than the kept window, but fewer than it plus the stream's look-ahead (50
+    samples): the replay smoothed the first part of the span before the rest was in, on fewer
+    rows than the window, and failed (seen on the fleet senders' data at 10 Hz: 18-s spans,
+    window 131)."""
+    machine = load_machine("patu655")
+    rate = 10.0
+    rp = Replayer()
+    first = rp.replay("m", machine, kinematic_samples(machine, 40.0, rate_hz=rate), rate)
+    kept = max(c.window for c in first.smoothing.values() if not c.adaptive)
+    n = kept + 20
+    later = kinematic_samples(machine, 80.0, rate_hz=rate)
+    span = later.take(later.t_s >= later.t_s[-1] - (n - 0.5) / rate)
+    assert span.t_s.shape[0] == n
+    res = rp.replay("m", machine, span, rate)
+    assert res.n == n and np.all(np.isfinite(res.cyl_force))
