@@ -23,6 +23,8 @@ def test_binary_arrays_refuse_what_they_cannot_carry() -> None:
     assert pg_binary_array(["a", 3], str) is None
     assert pg_binary_array([True, False], int) is None
     assert pg_binary_array([1, 2], bool) is None
+    assert pg_binary_array([2**63], int) is None  # beyond int8: never wrapped
+    assert pg_binary_array(np.array([1, 2], dtype=np.uint64), int) is None
     assert pg_binary_array([1, 2], int) is not None
     assert pg_binary_array(np.array([1.0, math.nan]), float) is not None
     assert pg_binary_array([], float) is not None

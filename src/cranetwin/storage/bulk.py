@@ -56,7 +56,7 @@ _BYTEA = (17, _array_type("_ByteaArray", 1001))
 _ELEMENT = {float: _F8, int: _I8, str: _TEXT, bytes: _BYTEA}
 _HEAD = struct.Struct(">iiIii")
 _LEN = struct.Struct(">i")
-_NUMERIC = {float: (">f8", "fiu"), int: (">i8", "iu")}
+_NUMERIC = {float: (">f8", "fi"), int: (">i8", "i")}  # (unsigned: psycopg)
 _REGISTERED: weakref.WeakSet[Any] = weakref.WeakSet()
 
 
