@@ -34,7 +34,8 @@ def test_binary_arrays_refuse_what_they_cannot_carry() -> None:
 def test_rows_stored_through_binary_arrays_read_back_equal(pg_url: str) -> None:
     store = Store.open(pg_url)
     store.add_machine("m", 1, b"k" * 32)
-    pk = store.engine.connect().execute(text("SELECT id FROM machines")).scalar_one()
+    with store.engine.connect() as c:
+        pk = c.execute(text("SELECT id FROM machines")).scalar_one()
     rng = np.random.default_rng(0)
     vals = rng.standard_normal(50) * 1e6
     vals[3] = math.nan
