@@ -7,6 +7,12 @@ replay of a machine with at least ``MIN_CHOICE_S`` of data chooses, and later re
 machine and channel layout reuse the choice (``ReplayOptions.smoothing``) until
 ``REFRESH_S`` has passed.
 
+A span with fewer samples than a kept window (the worker's spans of a few seconds at 10 Hz,
+where the fixed windows reach 131 samples) cannot use the machine's choice: it chooses on its own
+samples, and that choice is kept for the machine's next spans of the same number of samples
+(``SHORT_KEPT`` lengths per machine and channel layout, refreshed as the others): choosing cost
+more than the rest of such a span's replay, at every span.
+
 The sample period is the one the data carry (:attr:`SampleArrays.period_ns`, what the wire and
 storage hold); it is estimated from the sample times only for data that carry none
 (:func:`sample_period_s`).
@@ -37,6 +43,9 @@ from cranetwin.twin.known_payload import at_instants
 
 MIN_CHOICE_S = 20.0
 REFRESH_S = 3600.0
+SHORT_KEPT = 4
+"""Span lengths [samples] whose own choice is kept per machine and channel layout (the worker's
+spans take one or two lengths in steady state)."""
 
 
 def sample_period_s(samples: SampleArrays) -> float:
@@ -78,6 +87,9 @@ class Replayer:
         self.payload_of = payload_of
         self._choices: dict[tuple[str, tuple[str, ...]],
                             tuple[float, tuple[SmoothingChoice, ...]]] = {}
+        self._short: dict[tuple[str, tuple[str, ...]],
+                          dict[int, tuple[float, tuple[SmoothingChoice, ...]]]] = {}
+        """(machine, channels) → samples of a short span → (time, its own choice)."""
         self._lock = threading.Lock()
 
     def replay(self, machine_id: str, machine: Machine, samples: SampleArrays, grid_hz: float,
@@ -93,18 +105,30 @@ class Replayer:
             hit = self._choices.get(key)
         choices = hit[1] if hit is not None and now - hit[0] < REFRESH_S else None
         n = samples.t_s.shape[0]
-        if choices is not None and any(not c.adaptive and c.window > n for c in choices):
-            choices = None  # a window longer than these samples: choose on them (as before
-            # the choice was kept; a span of low-rate samples after a smooth stretch failed)
+        short = choices is not None and any(not c.adaptive and c.window > n for c in choices)
+        if short:  # a window longer than these samples: choose on them (as before the choice
+            # was kept; a span of low-rate samples after a smooth stretch failed), or take
+            # the choice made so on the machine's last span of as many samples
+            with self._lock:
+                got = self._short.get(key, {}).get(n)
+            choices = got[1] if got is not None and now - got[0] < REFRESH_S else None
         period = sample_period_s(samples) if samples.t_s.shape[0] >= 2 else None
         opts = ReplayOptions(grid_hz=grid_hz, smoothing=choices, sample_period_s=period,
                              theta0_initial=theta0_initial)
         known = self.known_payload(machine_id, samples, period)
         res = replay(samples, machine, grid_hz=grid_hz, payload=known, options=opts)
         span = float(samples.t_s[-1] - samples.t_s[0]) if samples.t_s.shape[0] else 0.0
-        if choices is None and span >= MIN_CHOICE_S and res.smoothing:
-            with self._lock:
-                self._choices[key] = (now, tuple(res.smoothing.values()))
+        if choices is None and res.smoothing:
+            if short:
+                with self._lock:
+                    kept = self._short.setdefault(key, {})
+                    kept.pop(n, None)
+                    kept[n] = (now, tuple(res.smoothing.values()))
+                    while len(kept) > SHORT_KEPT:  # the length chosen longest ago goes
+                        del kept[next(iter(kept))]
+            elif span >= MIN_CHOICE_S:
+                with self._lock:
+                    self._choices[key] = (now, tuple(res.smoothing.values()))
         return res
 
     def known_payload(self, machine_id: str, samples: SampleArrays,

@@ -98,13 +98,19 @@ def regularize(t: npt.ArrayLike, values: npt.ArrayLike, period: float | None = N
     grid = o + np.arange(k0, k1 + 1, dtype=np.float64) * p
     out = np.empty((grid.shape[0], va.shape[1]))
     gap = np.zeros(out.shape, dtype=bool)
+    # channels valid at the same samples share their knots: one spline for all of them (the
+    # spline's arithmetic is per column, so each column is what a spline of its own gives);
+    # a dropout of one channel then costs one more spline, not one per channel
+    groups: dict[bytes, list[int]] = {}
     for j in range(va.shape[1]):
-        ok = finite[:, j]
+        groups.setdefault(finite[:, j].tobytes(), []).append(j)
+    for cols in groups.values():  # in order of each group's first channel
+        ok = finite[:, cols[0]]
         if ok.sum() < 2:
-            raise SignalError(f"channel {j} has fewer than 2 valid samples")
+            raise SignalError(f"channel {cols[0]} has fewer than 2 valid samples")
         tj = ta[ok]
-        out[:, j] = NaturalCubicSpline(tj, va[ok, j])(grid)
+        out[:, cols] = NaturalCubicSpline(tj, va[ok][:, cols])(grid)
         pos = np.clip(np.searchsorted(tj, grid), 1, tj.shape[0] - 1)
         lo, hi = tj[pos - 1], tj[pos]
-        gap[:, j] = (hi - lo > gap_limit) & (grid > lo) & (grid < hi)
+        gap[:, cols] = ((hi - lo > gap_limit) & (grid > lo) & (grid < hi))[:, None]
     return Regular(grid, out, gap)

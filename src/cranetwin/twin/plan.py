@@ -13,7 +13,8 @@ Smoothed sample rows (the stream's buffer, width ``plan.width``)::
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -90,7 +91,27 @@ class ReplayPlan:
         return self.nch + self.n_int + 2 * self.nd
 
     @staticmethod
+    def of(machine: Machine, channels: tuple[str, ...], opt: ReplayOptions) -> ReplayPlan:
+        """:meth:`build`, the constants kept per machine and channel set: a replay of a few
+        seconds (the twin worker's spans) otherwise spends about a tenth of its time on the
+        kinematics tables and the rest of the plan. Only ``generated_kernels`` and ``velocity``
+        of the options enter the constants; the plan returned carries ``opt`` itself."""
+        key = (id(machine), channels, opt.generated_kernels, opt.velocity)
+        with _PLANS_LOCK:
+            hit = _PLANS.get(key)
+        if hit is None or hit[0] is not machine:  # (the machine is held: its id is not reused)
+            plan = ReplayPlan.build(machine, channels, opt)
+            with _PLANS_LOCK:
+                if len(_PLANS) >= MAX_PLANS:
+                    del _PLANS[next(iter(_PLANS))]
+                _PLANS[key] = (machine, plan)
+            return plan
+        return hit[1] if hit[1].opt == opt else replace(hit[1], opt=opt)
+
+    @staticmethod
     def build(machine: Machine, channels: tuple[str, ...], opt: ReplayOptions) -> ReplayPlan:
+        """The plan of a replay of ``machine`` from a recording with ``channels`` (every
+        constant computed anew; :meth:`of` keeps them)."""
         cmap = ChannelMap.build(machine, channels)
         nch = len(cmap.names)
         nd = len(cmap.derivative_channels)
@@ -131,3 +152,10 @@ class ReplayPlan:
             kernels=batch_kernels(params, opt.generated_kernels),
             use_cs=n_int == 1 and opt.velocity == "spline" and len(free) == 1,
             layout=spline_layout(cmap, nch, opt.velocity, integrated, qi, drive_free))
+
+
+MAX_PLANS = 32
+"""Plans :meth:`ReplayPlan.of` keeps (oldest dropped first): one per machine description and
+channel set in use."""
+_PLANS: dict[tuple[int, tuple[str, ...], bool, str], tuple[Machine, ReplayPlan]] = {}
+_PLANS_LOCK = threading.Lock()

@@ -98,7 +98,7 @@ class TwinStream:
         self.machine = machine
         self.opt = options or ReplayOptions()
         self.payload = payload
-        self.plan = ReplayPlan.build(machine, channels, self.opt)
+        self.plan = ReplayPlan.of(machine, channels, self.opt)
         self.cmap = self.plan.cmap
         nch = self.plan.nch
         self._raw_t = np.empty(0)
@@ -332,6 +332,8 @@ class TwinStream:
             return
         lo = max(self._reg.base, k0 - hw)
         hi = n_reg if final else min(n_reg, k_hi + hw)
+        if not final and hi - lo < self._longest_window():
+            return  # the stream's start, shorter than a window: wait for more (or the end)
         # the end fits only where the kept block reaches within a window of the data's ends
         out = smooth_rows(self.plan, self._choices, self._reg.get(lo, hi), self._period,
                           (k0 - lo < hw, hi - k_hi < hw))
@@ -339,6 +341,12 @@ class TwinStream:
             raise TwinError("internal: smoothing does not continue the stream")
         self._sm.append(out[k0 - lo : k_hi - lo])
         self._sm_valid = k_hi
+
+    def _longest_window(self) -> int:
+        """Longest fixed smoothing window of the channels [samples] (what
+        :func:`cranetwin.twin.stages.smooth_rows` needs at least)."""
+        assert self._choices is not None
+        return max([1] + [c.window for c in self._choices[: self.plan.nch] if not c.adaptive])
 
     def _stage_integrate(self, final: bool) -> None:
         """The integrated free joints' angles at the samples whose payload window is final."""
