@@ -101,3 +101,23 @@ def running_daemon(store: Any, bus: Any = None, **config: Any) -> Iterator[Any]:
         t.join(60)
         assert not t.is_alive(), "daemon did not shut down"
         assert not errors, errors
+
+
+def offset_pressures(samples: Any, machine: Any, level: float, seed: int,
+                     channels: tuple[str, ...] = ("lift_pA", "lift_pB", "jib_pA", "jib_pB",
+                                                  "ext_pA", "ext_pB")) -> Any:
+    """``samples`` with a constant offset per channel of ``channels``, uniform within
+    ±``level`` × the channel's full range (seeded): a sensor's offset within its stated
+    accuracy."""
+    import dataclasses
+
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    vals = samples.values.copy()
+    ranges = {c.name: c.full_range for c in machine.channels}
+    for name in channels:
+        r = ranges[name]
+        assert r is not None
+        vals[:, samples.channels.index(name)] += rng.uniform(-1.0, 1.0) * level * r
+    return dataclasses.replace(samples, values=vals)

@@ -5,14 +5,12 @@ the force observability flag's systematic floor (:mod:`cranetwin.twin.observabil
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import numpy.typing as npt
 import pytest
 
+from conftest import offset_pressures
 from cranetwin.model import Machine, load_machine
-from cranetwin.samples import SampleArrays
 from cranetwin.signal import inject_uniform_noise
 from cranetwin.testing.recordings import make
 
@@ -27,19 +25,6 @@ PAYLOAD_KG = 150.0
 @pytest.fixture(scope="module")
 def machine() -> Machine:
     return load_machine("patu655")
-
-
-def _offset(samples: SampleArrays, machine: Machine, seed: int) -> SampleArrays:
-    """Samples with a constant offset per pressure channel, uniform within the stated bound
-    ±LEVEL × full range (seeded)."""
-    rng = np.random.default_rng(seed)
-    vals = samples.values.copy()
-    ranges = {c.name: c.full_range for c in machine.channels}
-    for name in PRESSURES:
-        r = ranges[name]
-        assert r is not None
-        vals[:, samples.channels.index(name)] += rng.uniform(-1.0, 1.0) * LEVEL * r
-    return dataclasses.replace(samples, values=vals)
 
 
 @pytest.mark.timeout(30)
@@ -86,8 +71,8 @@ def test_lift_mean_sigma_covers_a_constant_pressure_offset(machine: Machine) -> 
                        quantities=("pressure_a", "pressure_b"))
     z_new, z_old = [], []
     for seed in range(DRAWS):
-        noisy = inject_uniform_noise(_offset(s.samples, machine, seed), machine, 0.001,
-                                     seed=seed)
+        offset = offset_pressures(s.samples, machine, LEVEL, seed, PRESSURES)
+        noisy = inject_uniform_noise(offset, machine, 0.001, seed=seed)
         res = replay(noisy, sheet)
         assert np.all(res.payload_sys_std_kg <= res.payload_std_kg)
         assert np.median(res.payload_sys_std_kg) > 0.5 * np.median(res.payload_std_kg)

@@ -4,12 +4,11 @@ systematic force error per cylinder (:mod:`cranetwin.twin.payload`)."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import numpy.typing as npt
 import pytest
 
+from conftest import offset_pressures
 from cranetwin.model import Machine, load_machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import inject_uniform_noise
@@ -27,19 +26,6 @@ DRAWS = 4  # offset draws, seeds 0 … DRAWS − 1
 @pytest.fixture(scope="module")
 def machine() -> Machine:
     return load_machine("patu655")
-
-
-def _offset(samples: SampleArrays, machine: Machine, seed: int) -> SampleArrays:
-    """Samples with a constant offset per pressure channel, uniform within the stated bound
-    ±LEVEL × full range (seeded)."""
-    rng = np.random.default_rng(seed)
-    vals = samples.values.copy()
-    ranges = {c.name: c.full_range for c in machine.channels}
-    for name in PRESSURES:
-        r = ranges[name]
-        assert r is not None
-        vals[:, samples.channels.index(name)] += rng.uniform(-1.0, 1.0) * LEVEL * r
-    return dataclasses.replace(samples, values=vals)
 
 
 @pytest.mark.timeout(120)
@@ -84,8 +70,8 @@ def test_payload_sigma_covers_a_constant_pressure_offset_given_the_stated_accura
     zsq: dict[str, list[F64]] = {"without": [], "with": []}
     errs = []
     for seed in range(DRAWS):
-        noisy = inject_uniform_noise(_offset(s.samples, machine, seed), machine, 0.001,
-                                     seed=seed)
+        offset = offset_pressures(s.samples, machine, LEVEL, seed, PRESSURES)
+        noisy = inject_uniform_noise(offset, machine, 0.001, seed=seed)
         for name, m in (("without", machine), ("with", sheet)):
             res = replay(noisy, m)
             err = res.payload_kg[INNER] - 150.0
