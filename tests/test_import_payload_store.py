@@ -129,6 +129,36 @@ def test_payload_out_of_range_is_refused_with_row_and_column(machine: Machine, l
         np.testing.assert_allclose(got.payload_kg[ok], logged.truth_kg[ok], rtol=1e-9, atol=1e-6)
 
 
+@pytest.mark.timeout(300)
+def test_a_load_cells_zero_offset_within_the_tolerance_is_read_as_zero(
+        machine: Machine, logged: Logged, tmp_path: Path) -> None:
+    """With ``[checks] range_tolerance = 0.01`` (30 kg of the 3000 kg accepted), −20 kg at an
+    empty hook is read as 0 kg and counted, −50 kg is refused as before; the exit status says
+    only the refusal."""
+    from cranetwin.cli import app
+
+    rows = logged.csv.read_text().splitlines()
+    for row, val in ((3, "-0.02"), (4, "-0.05")):
+        rows[row] = rows[row].rsplit(",", 1)[0] + "," + val
+    f = tmp_path / "zero.csv"
+    f.write_text("\n".join(rows) + "\n")
+    mapping = tmp_path / "tol.toml"
+    mapping.write_text(MAP + "\n[checks]\nrange_tolerance = 0.01\n")
+    db = f"sqlite:///{tmp_path / 'z.db'}"
+    with Store.open(db) as store:
+        store.add_machine("known", 1, SECRET)
+    r = CliRunner().invoke(app, ["import", str(f), "--machine", "known", "--mapping",
+                                 str(mapping), "--db", db, "-q"])
+    assert r.exit_code == 1, r.output
+    assert "1 value(s) refused (not known there), 1 below zero within the tolerance read as " \
+           "0 kg" in r.output, r.output
+    assert "row 4 (line 5), column 'hook_t': -0.05 t: negative payload, beyond −30 kg" \
+           in r.output, r.output
+    with Store.open(db) as store:
+        got = store.read_payload("known", T0 - 1.0, T0 + 200.0)
+    assert got.payload_kg[2] == 0.0 and np.isnan(got.payload_kg[3])
+
+
 @pytest.fixture(scope="module")
 def imported(machine: Machine, logged: Logged,
              tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
@@ -254,13 +284,14 @@ def test_payload_limit_from_the_mapping_or_the_rated_chart(machine: Machine) -> 
     with pytest.raises(ImportFileError, match="payload.max must be a number > 0"):
         mapping_from_dict({"payload": {"column": "w", "max": -1}}, machine)
     check = PayloadCheck("w", "t", 1000.0, 2500.0, 0.1)
-    kg = np.array([0.0, 2750.0, 2750.5, -1e-3, np.nan, np.inf])
-    out, neg, high = check.apply(kg, np.arange(1, 7), None)
+    kg = np.array([0.0, 2750.0, 2750.5, -250.5, np.nan, np.inf, -1e-3])
+    out, neg, high, zeroed = check.apply(kg, np.arange(1, 8), None)
     assert [r.row for r in neg] == [4] and [r.row for r in high] == [3, 6]
-    assert out[0] == 0.0 and out[1] == 2750.0 and np.isnan(out[2:]).all()
+    assert out[0] == 0.0 and out[1] == 2750.0 and np.isnan(out[2:6]).all()
+    assert out[6] == 0.0 and zeroed == 1  # below zero within 0.1 × 2500 kg: read as 0
     unbounded = PayloadCheck("w", "kg", 1.0, None)
-    out, neg, high = unbounded.apply(np.array([1e9, -0.1]), np.arange(1, 3), None)
-    assert out[0] == 1e9 and [r.row for r in neg] == [2] and not high
+    out, neg, high, zeroed = unbounded.apply(np.array([1e9, -0.1]), np.arange(1, 3), None)
+    assert out[0] == 1e9 and [r.row for r in neg] == [2] and not high and zeroed == 0
 
 
 @pytest.mark.timeout(300)

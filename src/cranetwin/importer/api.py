@@ -162,6 +162,7 @@ class PayloadRows:
         negative, high: The refusals (negative; above the largest accepted), with row and
             column.
         check: The check applied.
+        zeroed: Values below zero within the tolerance, read as 0 kg.
     """
 
     t_ns: npt.NDArray[np.int64]
@@ -169,6 +170,7 @@ class PayloadRows:
     negative: list[Refusal]
     high: list[Refusal]
     check: PayloadCheck
+    zeroed: int = 0
 
 
 def _payload_check(m: Mapping, machine: Machine) -> PayloadCheck:
@@ -205,27 +207,30 @@ def _file_payload_rows(p: Path, m: Mapping, machine: Machine,
     vs: list[F64] = []
     neg: list[Refusal] = []
     high: list[Refusal] = []
+    zeroed = 0
     for chunk in iter_chunks(p, fmt, [m.payload_column], m.time_column, _time_kind(time_map),
                              delim):
         t, tbad = raw_time_ns(chunk.time, time_map, start_s)
         keep = ~(tbad | chunk.bad)
         rows = np.arange(chunk.first_row, chunk.first_row + chunk.n)[keep]
-        kg, n_, h_ = check.apply(chunk.columns[m.payload_column][keep] * m.payload_scale, rows,
-                                 None if chunk.lines is None else chunk.lines[keep])
+        got = check.apply(chunk.columns[m.payload_column][keep] * m.payload_scale, rows,
+                          None if chunk.lines is None else chunk.lines[keep])
         ts.append(t[keep])
-        vs.append(kg)
-        neg += n_
-        high += h_
+        vs.append(got.kg)
+        neg += got.negative
+        high += got.high
+        zeroed += got.zeroed
         if progress is not None:
             progress(chunk.done, chunk.total)
     return PayloadRows(np.concatenate(ts) if ts else np.zeros(0, dtype=np.int64),
-                       np.concatenate(vs) if vs else np.zeros(0), neg, high, check)
+                       np.concatenate(vs) if vs else np.zeros(0), neg, high, check, zeroed)
 
 
 def _report_payload(rep: ImportReport, rows: PayloadRows) -> None:
     """Count the payload column's rows and refusals in the import's report."""
     rep.payload_rows = int(np.isfinite(rows.kg).sum())
     rep.payload_refused = len(rows.negative) + len(rows.high)
+    rep.payload_zeroed = rows.zeroed
     rep.refuse(rows.negative, rows.check.negative_kind)
     rep.refuse(rows.high, rows.check.high_kind)
 
@@ -297,8 +302,10 @@ def read_columns(columns: Columns, machine: Machine, mapping: Mapping | str | Pa
     t, tbad = raw_time_ns(raw_t, m, pipe.start_s)
     keep = ~tbad
     check = _payload_check(m, machine)
-    kg_ok, neg, high = check.apply(kg[keep], np.arange(1, n + 1)[keep], None)
-    _report_payload(pipe.report, PayloadRows(t[keep], kg_ok, neg, high, check))
+    checked = check.apply(kg[keep], np.arange(1, n + 1)[keep], None)
+    kg_ok = checked.kg
+    _report_payload(pipe.report, PayloadRows(t[keep], kg_ok, checked.negative, checked.high,
+                                             check, checked.zeroed))
     t_ns = got.samples.t_ns if got.samples.t_ns is not None else np.rint(
         got.samples.t_s * 1e9).astype(np.int64)
     return replace(got, payload_kg=payload_at(t_ns, t[keep], kg_ok, pipe.report.period_ns))

@@ -18,15 +18,17 @@ lift's middle half: the estimate's sliding window (2 s) straddles pick-up and se
 ends of a lift say how fast the estimate follows, not how right it is.
 
 A file's payload value is refused (with row and column, never clipped; the row's samples are
-kept and the payload is not known there) when it is negative, or above the largest accepted
-payload (:func:`payload_limit_kg`) by more than the mapping's ``checks.range_tolerance`` share
-of it (:class:`PayloadCheck`).
+kept and the payload is not known there) when it is below zero, or above the largest accepted
+payload (:func:`payload_limit_kg`), by more than the mapping's ``checks.range_tolerance`` share
+of that payload (:class:`PayloadCheck`). A value below zero within the tolerance (a load cell's
+zero offset at an empty hook) is read as 0 kg and counted in the import's report.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -55,11 +57,29 @@ def payload_limit_kg(machine: Machine, max_kg: float | None) -> float | None:
     return RATED_FACTOR * float(max(machine.rated_load.payload_kg))
 
 
+class Checked(NamedTuple):
+    """A payload column after :meth:`PayloadCheck.apply`.
+
+    Attributes:
+        kg: Payload per row [kg], shape (n,); NaN = empty or refused; 0 where it was below zero
+            within the tolerance.
+        negative, high: The refusals (below zero beyond the tolerance; above the largest
+            accepted), with row and column.
+        zeroed: Values below zero within the tolerance, read as 0 kg.
+    """
+
+    kg: F64
+    negative: list[Refusal]
+    high: list[Refusal]
+    zeroed: int
+
+
 @dataclass(frozen=True)
 class PayloadCheck:
-    """The accepted range of a payload column: [0, max + tolerance · max] [kg] (no upper
-    bound without a max; a negative payload is never accepted, as storage refuses it); values
-    in the column's ``unit`` are ``scale`` kg."""
+    """The accepted range of a payload column: [−tolerance · max, max + tolerance · max] [kg],
+    values below zero read as 0 kg (storage keeps no negative payload; without a max there is
+    no upper bound and no tolerance below zero); values in the column's ``unit`` are ``scale``
+    kg."""
 
     column: str
     unit: str
@@ -70,7 +90,11 @@ class PayloadCheck:
     @property
     def negative_kind(self) -> str:
         """The report's kind of refusal for a negative payload."""
-        return "negative payload"
+        if self.max_kg is None:
+            return "negative payload"
+        return (f"negative payload, beyond −{self.tolerance * self.max_kg:g} kg (the mapping's "
+                "[checks] range_tolerance × the largest accepted payload: a load cell's zero "
+                "offset within it is read as 0 kg)")
 
     @property
     def high_kind(self) -> str:
@@ -78,17 +102,19 @@ class PayloadCheck:
         return ("infinite payload" if self.max_kg is None
                 else f"payload above the largest accepted, {self.max_kg:g} kg")
 
-    def apply(self, kg: F64, rows: I64, lines: I64 | None
-              ) -> tuple[F64, list[Refusal], list[Refusal]]:
-        """``kg`` with the refused values NaN, and the refusals: (negative, above the max).
+    def apply(self, kg: F64, rows: I64, lines: I64 | None) -> Checked:
+        """``kg`` with the refused values NaN and those below zero within the tolerance 0, and
+        the refusals.
 
         Args:
             kg: Payload per row [kg], shape (n,); NaN = empty (not known, not refused).
             rows: 1-based data row numbers, shape (n,).
             lines: CSV line numbers, shape (n,), or None.
         """
+        floor = 0.0 if self.max_kg is None else -self.tolerance * self.max_kg
         with np.errstate(invalid="ignore"):
-            neg = kg < 0.0
+            below = kg < 0.0
+            neg = kg < floor
             high = np.isinf(kg) & ~neg
             if self.max_kg is not None:
                 high |= kg > self.max_kg * (1.0 + self.tolerance)
@@ -99,8 +125,10 @@ class PayloadCheck:
                             None if lines is None else int(lines[i]))
                     for i in np.flatnonzero(mask)]
 
-        out = np.where(neg | high, np.nan, kg)
-        return out, refusals(neg, self.negative_kind), refusals(high, self.high_kind)
+        zeroed = below & ~neg
+        out = np.where(neg | high, np.nan, np.where(zeroed, 0.0, kg))
+        return Checked(out, refusals(neg, self.negative_kind), refusals(high, self.high_kind),
+                       int(zeroed.sum()))
 
 
 def payload_at(t_ns: I64, raw_t_ns: I64, raw_kg: F64, period_ns: int,

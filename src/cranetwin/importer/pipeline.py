@@ -74,6 +74,7 @@ class ImportReport:
         payload_rows: Rows with a known payload accepted (the mapping's ``[payload]`` column).
         payload_refused: Payload values refused (negative or above the largest accepted; the
             rows' samples are kept, the payload is not known there).
+        payload_zeroed: Payload values below zero within the tolerance, read as 0 kg.
     """
 
     rows_read: int = 0
@@ -90,6 +91,7 @@ class ImportReport:
     t_last_ns: int | None = None
     payload_rows: int = 0
     payload_refused: int = 0
+    payload_zeroed: int = 0
 
     @property
     def rows_refused(self) -> int:
@@ -110,7 +112,9 @@ class ImportReport:
             out.append(f"optional channel(s) not in the file: {', '.join(self.absent)}")
         if self.payload_rows or self.payload_refused:
             out.append(f"known payload: {self.payload_rows} row(s) accepted, "
-                       f"{self.payload_refused} value(s) refused (not known there)")
+                       f"{self.payload_refused} value(s) refused (not known there)"
+                       + (f", {self.payload_zeroed} below zero within the tolerance read as "
+                          "0 kg" if self.payload_zeroed else ""))
         for (col, kind), k in sorted(self.refused.items()):
             out.append(f"  refused {k} row(s): column {col!r}: {kind}")
         if self.first_refusals:
