@@ -194,7 +194,11 @@ def send(
             raise CraneTwinError(f"--from-journal-only: no journal at {', '.join(missing)}")
         sources = [None] * len(keys)
     elif file is not None:
-        rec = file_source(keys[0], m, file, mapping)
+        from cranetwin.importer import load_mapping, read_file
+
+        file_map = load_mapping(mapping, m)
+        rec = file_source(keys[0], read_file(file, m, file_map).samples, Path(file).name,
+                          file_map.payload_column)
         period_s = rec.period_s
         step = max(1, rec.values.shape[0] // machines)
         sources = [RecordingSource(rec.values, offset=i * step, anchored=True)

@@ -298,25 +298,26 @@ class FileRecording:
     payload_column: str | None
 
 
-def file_source(key: MachineKey, model: Any, path: str | Path,
-                mapping: str | Path | None = None) -> FileRecording:
-    """A logger file (CSV, Parquet, MDF4), read through the importer's checks and conversion
-    (:func:`cranetwin.importer.read_file`, the same as ``cranetwin import``), as rows to send.
+def file_source(key: MachineKey, samples: SampleArrays, name: str,
+                payload_column: str | None = None) -> FileRecording:
+    """A user's recording, already read and converted (``cranetwin send --file`` reads it with
+    :func:`cranetwin.importer.read_file`, the same checks as ``cranetwin import``), as rows to
+    send.
+
+    Args:
+        key: The machine key whose layout orders the channels.
+        samples: The recording, times shape (n,) [s], values shape (n, c) [channel units].
+        name: The file's name, for messages.
+        payload_column: The mapping's payload column, if any (reported as not sent).
 
     Raises:
-        SenderError: A layout channel the file does not map.
-        cranetwin.importer.ImportFileError: The file or the mapping is not usable (rows are
-            refused, never clipped, as on import).
+        SenderError: A layout channel the recording does not have.
     """
-    from cranetwin.importer import load_mapping, read_file
-
-    m = load_mapping(mapping, model)
-    got = read_file(path, model, m)
-    values, period = _in_layout(got.samples, key, f"{Path(path).name}'s")
-    dt = np.diff(got.samples.t_s)
+    values, period = _in_layout(samples, key, f"{name}'s")
+    dt = np.diff(samples.t_s)
     jumps = dt > 1.5 * period
     return FileRecording(values, period, int(jumps.sum()), float((dt[jumps] - period).sum()),
-                         m.payload_column)
+                         payload_column)
 
 
 # --- the asyncio shell -------------------------------------------------------------------------

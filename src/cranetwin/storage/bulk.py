@@ -25,6 +25,7 @@ import numpy as np
 from sqlalchemy import Connection
 from sqlalchemy.dialects import postgresql
 
+from cranetwin.errors import MissingExtraError
 from cranetwin.storage.base import Base
 
 MAX_PARAMS = 30000
@@ -65,8 +66,11 @@ def _register(dbapi_conn: Any) -> None:
     connection)."""
     if dbapi_conn in _REGISTERED:
         return
-    from psycopg.adapt import Dumper
-    from psycopg.pq import Format
+    try:
+        from psycopg.adapt import Dumper
+        from psycopg.pq import Format
+    except ImportError as exc:  # only reached with a psycopg connection, but say so if not
+        raise MissingExtraError("postgres", "PostgreSQL bulk inserts") from exc
 
     for _elem, cls in _ELEMENT.values():
         dumper = type(f"{cls.__name__}Dumper", (Dumper,),
