@@ -76,7 +76,7 @@ def simulated(name: str, p: CraneParams = PATU655, cache: bool = True) -> Run:
     run = indep_sim.simulate(p, scenario(p, name))
     if cache:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")  # xdist workers may race
         run.save(str(tmp))
         tmp.replace(path)
     return run
