@@ -584,21 +584,28 @@ class TwinWorker:
             else:
                 aw.set_block_mark(engine, mid, new_mark)
 
-        grid: set[float] = set()
-        for a, b in [*late, *(r.span_s for r in requests)]:
-            w = math.floor((a - m) / win) * win
-            while w < min(b + m, prog.watermark_s):
-                grid.add(float(w))
-                w += win
-        if not grid:  # nothing behind the watermark (requests ahead of it: nothing to redo)
+        def windows_of(ranges: list[tuple[float, float]]) -> list[float]:
+            grid: set[float] = set()
+            for a, b in ranges:
+                w = math.floor((a - m) / win) * win
+                while w < min(b + m, prog.watermark_s):
+                    grid.add(float(w))
+                    w += win
+            return sorted(grid)
+
+        grid = windows_of(late)
+        spans = set(self._stored_spans(engine, mid, grid)) if grid else set()
+        grid = windows_of([r.span_s for r in requests])
+        if grid:  # a known payload changes only windows already processed
+            spans.update(self._stored_spans(engine, mid, grid, only_stored=True))
+        if not spans:  # nothing behind the watermark (requests ahead of it: nothing to redo)
             if top is not None and top != mark:
                 set_mark(top)
             redo.done(engine, mid, requests)
             return prog, 0
         self._forget(mid)  # parts behind the watermark are written again
-        spans = self._stored_spans(engine, rec.machine_id, sorted(grid))
         done = 0
-        for w0, w1 in spans:
+        for w0, w1 in sorted(spans):
             if self.stop_requested():
                 return prog, done  # the mark stays: the rest is found again next pass
             new = self.process_window(rec, prog, prog.watermark_s, redo_w0=w0, until_s=w1)
@@ -610,7 +617,7 @@ class TwinWorker:
         if recounted is None:
             return None
         prog = recounted
-        lo, hi = spans[0][0], spans[-1][1]
+        lo, hi = min(spans)[0], max(spans)[1]
         aw.delete_windows(engine, rec.machine_id, lo, hi, levels=(3600, 86400))
         drop_duty(engine, rec.machine_id)  # rebuilt from the parts at the end of the pass
         try:
@@ -625,11 +632,13 @@ class TwinWorker:
                  rec.machine_id, done)
         return prog, done
 
-    def _stored_spans(self, engine: Any, machine_id: str,
-                      grid: list[float]) -> list[tuple[float, float]]:
+    def _stored_spans(self, engine: Any, machine_id: str, grid: list[float],
+                      only_stored: bool = False) -> list[tuple[float, float]]:
         """The spans to redo for the windows starting at ``grid`` (sorted) [s]: the stored
         span holding a window (it was replayed as one, :meth:`_span_windows`) is redone whole,
-        a window inside no stored span alone. Returns ``(start, end)`` pairs, sorted, distinct."""
+        a window inside no stored span alone (left out with ``only_stored``: a known payload
+        changes nothing of a window never processed). Returns ``(start, end)`` pairs, sorted,
+        distinct."""
         from cranetwin.storage import analytics_windows as aw
 
         win = self.settings.worker_window_s
@@ -642,7 +651,7 @@ class TwinWorker:
                 i += 1
             if i < len(stored) and stored[i][0] <= w < stored[i][1]:
                 out.add((stored[i][0], stored[i][1]))
-            else:
+            elif not only_stored:
                 out.add((w, w + win))
         return sorted(out)
 
