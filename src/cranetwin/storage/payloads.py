@@ -14,6 +14,12 @@ whose key is stored with other values is not overwritten (the first stays; the w
 it as ``differing``). Runs written by different calls may overlap in time; a read then gives
 each time once, from the run that starts earliest.
 
+Deleting (:func:`delete_range`, ``cranetwin payload delete``) removes the values of a time
+range, cutting a run that straddles a bound; the store records the changed times for the twin
+worker in the same transaction (:mod:`cranetwin.storage.redo`), as it does for runs newly
+stored. Retention drops the runs starting in a dropped time partition of the samples
+(:func:`drop_starting_in`).
+
 What a run may hold (:func:`check_run`): times 0 ≤ t_start ≤ t_end <
 :data:`cranetwin.storage.blocks.T_LIMIT_NS`, a span of at most
 :data:`cranetwin.storage.blocks.MAX_SPAN_NS` (6 h: reads bound t_start from below by it, as
