@@ -13,6 +13,7 @@ import pytest
 from cranetwin.model import load_machine
 from cranetwin.samples import SampleArrays
 from cranetwin.service.backend import Backend, Progress
+from cranetwin.service.history import stored_duty
 from cranetwin.service.worker import TwinWorker
 from cranetwin.settings import Settings
 from cranetwin.storage import analytics_windows as aw
@@ -62,6 +63,7 @@ def _state(b: Backend) -> dict[str, object]:
     summ = b.summaries(MID, ["payload", "torque:theta1", "force:lift"], T0, T0 + 300, 1000)
     return {
         "progress": p,
+        "duty": stored_duty(eng, MID),  # (work cycles, Σ ratio³, until): damage to date
         "parts": {a: d for a, _, _, d in aw.windows(eng, MID, 60, T0 - 600, T0 + 3600)},
         "seconds": {a: d for a, _, _, d in aw.windows(eng, MID, -3, T0 - 600, T0 + 3600)},
         "times": {a: aw.window_times(eng, MID, 60, a) for a, *_ in
@@ -78,6 +80,8 @@ def _same(a: dict[str, object], b: dict[str, object]) -> None:
     for k in Progress.__dataclass_fields__:
         x, y = getattr(pa, k), getattr(pb, k)
         assert x == (pytest.approx(y, rel=1e-9, abs=1e-6) if isinstance(y, float) else y), k
+    da, db = a["duty"], b["duty"]
+    assert da is not None and db == pytest.approx(da, rel=1e-12), "duty"
     for k in ("parts", "seconds", "times", "events"):
         assert a[k] == b[k], k
     sa, sb = a["summaries"], b["summaries"]
@@ -120,6 +124,9 @@ def test_payload_stored_then_deleted_behind_the_worker_is_processed_again_once(
     assert p1.max_payload_kg == pytest.approx(HEAVY_KG, rel=0.01)
     assert p0.max_payload_kg == pytest.approx(400.0, rel=0.05)
     assert p1.payload_total_kg > p0.payload_total_kg + 2 * (HEAVY_KG - 500.0)
+    d0, d1 = without["duty"], with_known["duty"]
+    assert isinstance(d0, tuple) and isinstance(d1, tuple)
+    assert d1[0] == d0[0] and d1[1] > d0[1]  # the same work cycles, heavier: more damage
     s0, s1 = without["summaries"], with_known["summaries"]
     assert isinstance(s0, dict) and isinstance(s1, dict)
     t, _, hi0, _ = s0["payload"]

@@ -200,6 +200,14 @@ def test_sharded_store_writes_and_reads_on_the_machines_shard(
                                   equal_nan=True)
         assert st.delete_payload_runs(a, [int(t[0])]) == 1
         assert st.read_payload(a, 0.0, 4e9).n == 0
+        # list and delete on b's shard; the redo requests live beside its analytics
+        assert [x.values for x in st.payload_stretches(b)] == [500]
+        assert st.delete_payload(b, 0.0, float(t[250]) / 1e9).values_deleted == 250
+        assert st.read_payload(b, 0.0, 4e9).n == 250 and _rows(st.shards[1]) == 1
+        from cranetwin.storage import redo
+
+        assert set(redo.pending(st.engine_for(b), [a, b])) == {b}
+        assert set(redo.pending(st.engine_for(a), [a, b])) == {a}  # its write and delete
     finally:
         st.close()
 

@@ -387,6 +387,7 @@ class TwinWorker:
         if redone is None:
             return 0
         prog, done = redone
+        redid = done > 0  # the duty to date was dropped: rebuilt at the end of the turn
         start_wm = prog.watermark_s
         quiet = self._quiet(rec.machine_id, dr[1])
         while (max_windows is None or done < max_windows) and not self.stop_requested():
@@ -424,8 +425,10 @@ class TwinWorker:
         self._roll_up(rec, start_wm, prog.watermark_s)
         if done or prog.watermark_s != start_wm:
             # the duty to date folds every minute since its last update: once a minute of data
-            # (or when the machine went quiet) is enough, not once per short window
-            if quiet or math.floor(prog.watermark_s / 60.0) != math.floor(start_wm / 60.0):
+            # (or when the machine went quiet, or windows were redone) is enough, not once per
+            # short window
+            if (quiet or redid
+                    or math.floor(prog.watermark_s / 60.0) != math.floor(start_wm / 60.0)):
                 self._update_duty(rec, dr[0], prog.watermark_s)
         self._check_schedules(rec)
         self._marks[rec.machine_id] = (dr[1], prog.watermark_s)
