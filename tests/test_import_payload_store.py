@@ -400,3 +400,79 @@ def test_cli_calibrate_of_a_stored_range_fits_with_the_stored_payload(
     assert seen[-1][1] is None
     bad = CliRunner().invoke(app, ["calibrate", "--machine", "known", "--from", str(T0)])
     assert bad.exit_code != 0
+
+
+@pytest.mark.timeout(600)
+def test_cli_import_list_and_delete_of_a_payload_behind_the_worker(
+        db_url: str, machine: Machine, logged: Logged) -> None:
+    """``cranetwin import`` of the payload column for samples the worker has processed has
+    their window processed again with it; ``cranetwin payload list`` shows the series and
+    ``cranetwin payload delete`` removes it, after which the window is the estimate's again."""
+    from cranetwin.cli import app
+    from cranetwin.service.backend import Backend
+    from cranetwin.service.worker import TwinWorker
+    from cranetwin.settings import Settings
+
+    def cli(*args: str) -> str:
+        r = CliRunner().invoke(app, [*args, "--db", db_url])
+        assert r.exit_code == 0, r.output
+        return r.output
+
+    sec = np.floor(logged.t_s - T0).astype(int)
+    inside = sec < 60
+    truth_mean = np.bincount(sec[inside], logged.truth_kg[inside]) / np.bincount(sec[inside])
+    b = Backend.open(db_url)
+    try:
+        b.store.add_machine("known", 1, SECRET)
+        import_file(logged.csv, machine, b.store, "known")  # the samples, without the column
+        worker = TwinWorker(b, Settings(database_url="unused", worker_in_process=False),
+                            clock=lambda: 0.0)
+        rec = b.machine("known")
+
+        def window() -> np.ndarray:
+            sm = b.store.summaries("known", ["payload"], T0, T0 + 60.0, max_points=60)
+            return np.asarray(sm.mean[:, 0])
+
+        assert worker.catch_up(rec) == 1
+        estimate = window()
+        assert np.max(np.abs(estimate - truth_mean)) > 20.0
+        said = cli("import", str(logged.csv), "--machine", "known", "--mapping",
+                   str(logged.mapping), "-q")
+        assert "known payload:" in said and "run(s) stored" in said, said
+        assert worker.catch_up(rec) == 1  # the processed window, with the known payload
+        np.testing.assert_allclose(window(), truth_mean, rtol=0, atol=1e-3)
+        assert worker.catch_up(rec) == 0
+
+        listed = cli("payload", "list", "--machine", "known")
+        lines = listed.strip().splitlines()
+        assert len(lines) == 1 and "2026-01-01T00:00:00.000Z – 2026-01-01T00:01:40.000Z" in \
+            lines[0] and f"{logged.t_s.size} value(s), {logged.t_s.size} known" in lines[0], \
+            listed
+        import json
+
+        js = json.loads(cli("payload", "list", "--machine", "known", "--json"))
+        assert js[0]["max_kg"] == pytest.approx(logged.truth_kg.max(), abs=1e-6)
+
+        said = cli("payload", "delete", "--machine", "known", "--from", str(T0 + 50.0),
+                   "--to", "2026-01-01T00:01:10", "--json")
+        got = json.loads(said)
+        assert got["values_deleted"] == 2000 and got["runs_cut"] >= 1, got
+        kept = b.store.read_payload("known", T0, T0 + 200.0)
+        assert kept.n == logged.t_s.size - 2000
+        assert not np.any((kept.t_s >= T0 + 50.0) & (kept.t_s < T0 + 70.0))
+        assert worker.catch_up(rec) == 1  # the window: estimated from 50 s on again
+        w = window()
+        np.testing.assert_allclose(w[:48], truth_mean[:48], rtol=0, atol=1e-3)
+        np.testing.assert_allclose(w[52:], estimate[52:], rtol=0, atol=1e-3)
+
+        said = cli("payload", "delete", "--machine", "known", "--all")
+        assert f"{logged.t_s.size - 2000} value(s) deleted" in said, said
+        assert b.store.read_payload("known", 0.0, 4e9).n == 0
+        assert "no known payload stored" in cli("payload", "list", "--machine", "known")
+        assert worker.catch_up(rec) == 1
+        np.testing.assert_allclose(window(), estimate, rtol=0, atol=1e-6)
+        r = CliRunner().invoke(app, ["payload", "delete", "--machine", "known", "--from",
+                                     str(T0), "--db", db_url])
+        assert r.exit_code != 0 and "--all" in str(r.exception), r.output  # (main(): status 2)
+    finally:
+        b.close()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Iterator
+from dataclasses import replace as dc_replace
 
 import numpy as np
 import pytest
@@ -199,5 +200,92 @@ def test_sharded_store_writes_and_reads_on_the_machines_shard(
                                   equal_nan=True)
         assert st.delete_payload_runs(a, [int(t[0])]) == 1
         assert st.read_payload(a, 0.0, 4e9).n == 0
+        # list and delete on b's shard; the redo requests live beside its analytics
+        assert [x.values for x in st.payload_stretches(b)] == [500]
+        assert st.delete_payload(b, 0.0, float(t[250]) / 1e9).values_deleted == 250
+        assert st.read_payload(b, 0.0, 4e9).n == 250 and _rows(st.shards[1]) == 1
+        from cranetwin.storage import redo
+
+        assert set(redo.pending(st.engine_for(b), [a, b])) == {b}
+        assert set(redo.pending(st.engine_for(a), [a, b])) == {a}  # its write and delete
     finally:
         st.close()
+
+
+def test_delete_cuts_runs_at_the_bounds_and_asks_for_the_redo(store: Store) -> None:
+    """Deleting [a, b) removes exactly what ``read_payload(a, b)`` returns: a run inside goes
+    whole, one straddling a bound is cut there (the rest stays, readable as before); the
+    changed known times are recorded for the twin worker (merged, NaN values not)."""
+    from cranetwin.storage import redo
+
+    t, kg = _series()  # one run: 500 values, NaN at 120-139
+    store.write_payload("crane-1", kg, t_ns=t)
+    t2 = t[-1] + 3600 * 10**9 + np.arange(50, dtype=np.int64) * PERIOD  # an hour later
+    store.write_payload("crane-1", np.full(50, 80.0), t_ns=t2)
+    asked = redo.pending(store.engine, ["crane-1", "crane-2"])
+    assert set(asked) == {"crane-1"}
+    assert [(r.t0_ns, r.t1_ns) for r in asked["crane-1"]] == [
+        (int(t[0]), int(t[-1])), (int(t2[0]), int(t2[-1]))]  # two stretches, an hour apart
+    assert redo.done(store.engine, "crane-1", asked["crane-1"]) == 2
+    all_s = store.payload_stretches("crane-1")
+    assert [(s.t_first_ns, s.t_last_ns, s.runs, s.values, s.known) for s in all_s] == [
+        (int(t[0]), int(t[-1]), 1, 500, 480), (int(t2[0]), int(t2[-1]), 1, 50, 50)]
+    assert (all_s[0].min_kg, all_s[0].max_kg) == (0.0, float(np.nanmax(kg)))
+    assert store.payload_stretches("crane-2") == []
+
+    a, b = float(t[100]) / 1e9, float(t[150]) / 1e9  # a cut inside the run, NaN 120-139 in
+    gone = store.delete_payload("crane-1", a, b)
+    assert (gone.runs_deleted, gone.runs_cut, gone.values_deleted, gone.known_deleted) == (
+        0, 1, 50, 30)
+    assert gone.changed_ns == ((int(t[100]), int(t[149])),)
+    back = store.read_payload("crane-1", t[0] / 1e9, t[-1] / 1e9 + 1.0)
+    keep = np.r_[0:100, 150:500]
+    assert np.array_equal(back.t_ns, t[keep])
+    assert np.array_equal(back.payload_kg, kg[keep], equal_nan=True)
+    assert [(s.t_first_ns, s.t_last_ns, s.runs) for s in store.payload_stretches(
+        "crane-1", t[0] / 1e9, t[-1] / 1e9 + 1.0)] == [(int(t[0]), int(t[99]), 1),
+                                                        (int(t[150]), int(t[-1]), 1)]
+    asked = redo.pending(store.engine, ["crane-1"])["crane-1"]
+    assert [(r.t0_ns, r.t1_ns) for r in asked] == [(int(t[100]), int(t[149]))]
+    # a request on the same start while the worker redoes: its version moves, it stays
+    store.write_payload_runs("crane-1", [PayloadRun(int(t[100]), PERIOD, np.full(3, 5.0))])
+    assert redo.done(store.engine, "crane-1", asked) == 0
+    assert [r.version for r in redo.pending(store.engine, ["crane-1"])["crane-1"]] == [2]
+    # NaN only deleted: nothing to redo; everything: the rest goes, and only that is asked
+    gone = store.delete_payload("crane-1", float(t[100]) / 1e9, float(t[103]) / 1e9)
+    assert gone.values_deleted == 3 and gone.changed_ns == ((int(t[100]), int(t[102])),)
+    gone = store.delete_payload("crane-1", -np.inf, np.inf)
+    assert (gone.runs_deleted, gone.runs_cut, gone.values_deleted) == (3, 0, 100 + 350 + 50)
+    assert store.read_payload("crane-1", 0.0, 4e9).n == 0 and _rows(store) == 0
+    with pytest.raises(UnknownMachineError):
+        store.delete_payload("nope", 0.0, 1.0)
+
+
+@pytest.mark.postgres
+def test_retention_drops_the_payload_runs_of_a_dropped_partition(pg_url: str) -> None:
+    """A run goes with the time partition its start falls in, as a sample block does: the run
+    of a block reaching from February into March goes with February."""
+    import datetime as dt
+
+    from cranetwin.service.backend import Backend, Progress
+
+    def ns(*args: int) -> int:
+        return int(dt.datetime(*args, tzinfo=dt.UTC).timestamp()) * 10**9
+
+    feb, end, mar = ns(2026, 2, 10), ns(2026, 2, 28, 23, 59, 59) + 950 * 10**6, ns(2026, 3, 5)
+    b = Backend.open(pg_url)
+    s = b.store
+    s.add_machine("crane-1", 1, SECRET)
+    blocks = [dc_replace(_block("crane-1"), seq=i, t0_ns=t) for i, t in enumerate((feb, end,
+                                                                                  mar))]
+    assert [o.status for o in s.write_batch(blocks).outcomes] == ["stored"] * 3
+    s.write_payload_runs("crane-1", [PayloadRun(t, PERIOD, np.full(10, 100.0 + i))
+                                     for i, t in enumerate((feb, end, mar))])
+    s.rollup()
+    b.reset_progress(Progress.empty("crane-1", (mar + 10 * 86_400 * 10**9) / 1e9))
+    res = s.maintain_partitions(ns(2026, 4, 20) / 1e9, keep_days=30)
+    assert res.dropped == ["sample_blocks_p20260201"] and res.payload_runs == 2
+    left = s.read_payload("crane-1", 0.0, 4e9)
+    assert np.array_equal(left.t_ns, mar + np.arange(10, dtype=np.int64) * PERIOD)
+    assert s.read_samples("crane-1", 0.0, 4e9).t_s.size == 10
+    b.close()

@@ -387,6 +387,7 @@ class TwinWorker:
         if redone is None:
             return 0
         prog, done = redone
+        redid = done > 0  # the duty to date was dropped: rebuilt at the end of the turn
         start_wm = prog.watermark_s
         quiet = self._quiet(rec.machine_id, dr[1])
         while (max_windows is None or done < max_windows) and not self.stop_requested():
@@ -424,8 +425,10 @@ class TwinWorker:
         self._roll_up(rec, start_wm, prog.watermark_s)
         if done or prog.watermark_s != start_wm:
             # the duty to date folds every minute since its last update: once a minute of data
-            # (or when the machine went quiet) is enough, not once per short window
-            if quiet or math.floor(prog.watermark_s / 60.0) != math.floor(start_wm / 60.0):
+            # (or when the machine went quiet, or windows were redone) is enough, not once per
+            # short window
+            if (quiet or redid
+                    or math.floor(prog.watermark_s / 60.0) != math.floor(start_wm / 60.0)):
                 self._update_duty(rec, dr[0], prog.watermark_s)
         self._check_schedules(rec)
         self._marks[rec.machine_id] = (dr[1], prog.watermark_s)
@@ -477,11 +480,12 @@ class TwinWorker:
     def _analytics(self, rec: MachineRecord, machine: Machine, res: object,
                    keep: npt.NDArray[np.bool_], w0: float, w1: float,
                    times: tuple[float, float] = (0.0, 0.0),
-                   ) -> tuple[dict[str, Any] | None, list[Any]]:
+                   ) -> tuple[dict[str, Any] | None, list[Any] | None]:
         """The window's analytics part row (:mod:`cranetwin.service.history`: what any range's
         analytics merge from) and its events, stored with the window's commit: a redone
-        window replaces its part, and storage ignores events stored before (unique on machine,
-        time, kind). Returns (part row or None, events).
+        window replaces its part and its events (storage keeps an event found again as it is
+        stored: unique on machine, time, kind). Returns (part row or None, events or None when
+        they could not be found: a redone window then keeps the events stored).
 
         The events are found the way a report merges parts: the previous minute's stored part
         is folded first (:meth:`_previous_part`), so the look-back detectors (force rates,
@@ -501,7 +505,7 @@ class TwinWorker:
         except CraneTwinError as exc:
             log.warning("machine %s: analytics of window %.0f failed: %s", rec.machine_id, w0,
                         exc)
-            return None, []
+            return None, None
         row = got[1] if got is not None else None
         try:
             det = EventDetector(machine)
@@ -516,7 +520,7 @@ class TwinWorker:
         except CraneTwinError as exc:
             log.warning("machine %s: analytics of window %.0f failed: %s", rec.machine_id, w0,
                         exc)
-            return row, []
+            return row, None
         return row, events
 
     def _previous_part(self, rec: MachineRecord, w0: float) -> bytes | None:
@@ -550,11 +554,18 @@ class TwinWorker:
         them. Returns (progress, windows redone), None if another worker moved the watermark.
         Hour and day parts over redone windows are rolled up again.
 
-        With the pass's ``reads`` holding the machine, its mark and late blocks come from them
-        and its new mark is stored at the end of the pass (:mod:`cranetwin.service.workerpass`).
+        A known payload stored or deleted for processed samples is found the same way: its
+        redo requests (:mod:`cranetwin.storage.redo`) mark their ranges like late blocks, and
+        are deleted once their windows are redone (those ahead of the watermark at once: their
+        windows are replayed with the payload when they come).
+
+        With the pass's ``reads`` holding the machine, its mark, late blocks and redo requests
+        come from them and its new mark is stored at the end of the pass
+        (:mod:`cranetwin.service.workerpass`).
         """
         from cranetwin.service.history import drop_duty, roll_up
         from cranetwin.storage import analytics_windows as aw
+        from cranetwin.storage import redo
 
         engine = self._engine(rec)
         win, m = self.settings.worker_window_s, self.settings.twin_margin_s
@@ -567,26 +578,37 @@ class TwinWorker:
             mark = aw.block_mark(engine, mid)
             top, late = aw.new_blocks_before(engine, mid, mark, prog.watermark_s)
 
+        requests = (reads.redo.get(mid, []) if reads is not None
+                    else redo.pending(engine, [mid]).get(mid, []))
+
         def set_mark(new_mark: int) -> None:
             if got is not None and reads is not None:
                 reads.marks[mid] = new_mark
             else:
                 aw.set_block_mark(engine, mid, new_mark)
 
-        if not late:
+        def windows_of(ranges: list[tuple[float, float]]) -> list[float]:
+            grid: set[float] = set()
+            for a, b in ranges:
+                w = math.floor((a - m) / win) * win
+                while w < min(b + m, prog.watermark_s):
+                    grid.add(float(w))
+                    w += win
+            return sorted(grid)
+
+        grid = windows_of(late)
+        spans = set(self._stored_spans(engine, mid, grid)) if grid else set()
+        grid = windows_of([r.span_s for r in requests])
+        if grid:  # a known payload changes only windows already processed
+            spans.update(self._stored_spans(engine, mid, grid, only_stored=True))
+        if not spans:  # nothing behind the watermark (requests ahead of it: nothing to redo)
             if top is not None and top != mark:
                 set_mark(top)
+            redo.done(engine, mid, requests)
             return prog, 0
         self._forget(mid)  # parts behind the watermark are written again
-        grid: set[float] = set()
-        for a, b in late:
-            w = math.floor((a - m) / win) * win
-            while w < min(b + m, prog.watermark_s):
-                grid.add(float(w))
-                w += win
-        spans = self._stored_spans(engine, rec.machine_id, sorted(grid))
         done = 0
-        for w0, w1 in spans:
+        for w0, w1 in sorted(spans):
             if self.stop_requested():
                 return prog, done  # the mark stays: the rest is found again next pass
             new = self.process_window(rec, prog, prog.watermark_s, redo_w0=w0, until_s=w1)
@@ -598,7 +620,7 @@ class TwinWorker:
         if recounted is None:
             return None
         prog = recounted
-        lo, hi = spans[0][0], spans[-1][1]
+        lo, hi = min(spans)[0], max(spans)[1]
         aw.delete_windows(engine, rec.machine_id, lo, hi, levels=(3600, 86400))
         drop_duty(engine, rec.machine_id)  # rebuilt from the parts at the end of the pass
         try:
@@ -608,14 +630,18 @@ class TwinWorker:
             log.warning("machine %s: roll-up after late data failed: %s", rec.machine_id, exc)
         if top is not None:
             set_mark(top)
-        log.info("machine %s: %d window(s) redone for late data", rec.machine_id, done)
+        redo.done(engine, mid, requests)
+        log.info("machine %s: %d window(s) redone for late data or a known payload",
+                 rec.machine_id, done)
         return prog, done
 
-    def _stored_spans(self, engine: Any, machine_id: str,
-                      grid: list[float]) -> list[tuple[float, float]]:
+    def _stored_spans(self, engine: Any, machine_id: str, grid: list[float],
+                      only_stored: bool = False) -> list[tuple[float, float]]:
         """The spans to redo for the windows starting at ``grid`` (sorted) [s]: the stored
         span holding a window (it was replayed as one, :meth:`_span_windows`) is redone whole,
-        a window inside no stored span alone. Returns ``(start, end)`` pairs, sorted, distinct."""
+        a window inside no stored span alone (left out with ``only_stored``: a known payload
+        changes nothing of a window never processed). Returns ``(start, end)`` pairs, sorted,
+        distinct."""
         from cranetwin.storage import analytics_windows as aw
 
         win = self.settings.worker_window_s
@@ -628,7 +654,7 @@ class TwinWorker:
                 i += 1
             if i < len(stored) and stored[i][0] <= w < stored[i][1]:
                 out.add((stored[i][0], stored[i][1]))
-            else:
+            elif not only_stored:
                 out.add((w, w + win))
         return sorted(out)
 
@@ -765,7 +791,7 @@ class TwinWorker:
             new = dc_replace(new, operating_s=new.operating_s - o[0] + times[0],
                              idle_s=new.idle_s - o[1] + times[1])
         rows: list[dict[str, Any]] = []
-        events: list[Any] = []
+        events: list[Any] | None = []
         part: dict[str, Any] | None = None
         if t.size:
             if redo_w0 is None:
@@ -777,11 +803,16 @@ class TwinWorker:
                 rows.append(part)
 
         def also(session: Any, machine_pk: int) -> None:
+            from cranetwin.analytics.events import KINDS
             from cranetwin.storage import analytics_windows as aw
             from cranetwin.storage import events as ev
 
             aw.put_rows(session, rows)
-            ev.add_in(session, machine_pk, events)
+            if redo_w0 is not None and events is not None:  # the window's events replaced
+                ev.replace_in(session, machine_pk, round(w0 * 1e9), round(w1 * 1e9), KINDS,
+                              events)
+            else:
+                ev.add_in(session, machine_pk, events or [])
 
         if not self.backend.commit_window(new, expected, names, t, values,
                                           also if rows else None):

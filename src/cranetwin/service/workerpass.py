@@ -1,6 +1,7 @@
 """What the twin worker reads once per pass for all the machines it owns, instead of once per
-machine: the stored data ranges, the progress rows, and on PostgreSQL the late-data marks and
-the late blocks behind each watermark (:meth:`cranetwin.service.worker.TwinWorker._redo_late`).
+machine: the stored data ranges, the progress rows, on PostgreSQL the late-data marks and
+the late blocks behind each watermark, and the redo requests of a known payload stored or
+deleted (:meth:`cranetwin.service.worker.TwinWorker._redo_late`).
 
 A pass over 500 machines then costs a handful of statements for these instead of seven per
 machine; the new late-data marks are written in one statement at the end of the pass
@@ -19,6 +20,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from cranetwin.storage import analytics_windows as aw
+from cranetwin.storage import redo as redo_mod
+from cranetwin.storage.redo import RedoRequest
 
 if TYPE_CHECKING:
     from cranetwin.samples import SampleArrays
@@ -39,11 +42,14 @@ class PassReads:
             the pass expects to replay (taken by the machine's turn if it asks for the same
             range; it reads alone otherwise).
         marks: Machine → mark to store at the end of the pass (filled while processing).
+        redo: Machine → its redo requests (:mod:`cranetwin.storage.redo`: a known payload
+            stored or deleted), read for every machine with samples (one left out has none).
     """
 
     ranges: dict[str, tuple[float, float] | None]
     progress: dict[str, Progress]
     late: dict[str, tuple[int | None, int, list[tuple[float, float]]]]
+    redo: dict[str, list[RedoRequest]] = field(default_factory=dict)
     samples: dict[str, tuple[float, float, SampleArrays]] = field(default_factory=dict)
     marks: dict[str, int] = field(default_factory=dict)
 
@@ -93,7 +99,10 @@ def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
         by_pk = {got[m][0]: m for m in ids}
         for pk, (mark, _wm) in bounds.items():
             late[by_pk[pk]] = (mark, top, found.get(pk, []))
-    reads = PassReads(ranges, progress, late)
+    redo: dict[str, list[RedoRequest]] = {}
+    for engine, ids in backend.store.engines_of(stored):  # after the progress rows (a
+        redo.update(redo_mod.pending(engine, ids))        # request read after a commit)
+    reads = PassReads(ranges, progress, late, redo)
     if first_span is not None:
         _read_samples(backend, reads, got, window_s, first_span)
     return reads

@@ -1,16 +1,27 @@
 """Events found by analytics (overload, end-stop impact, over-pressure, ...), with evidence.
 
-Unique on (machine, time, kind): writing the same event again (a replay re-run) stores it once.
+Unique on (machine, time, kind): writing the same event again (a replay re-run) stores it once;
+a window the twin worker processes again replaces its events (:func:`replace_in`).
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any
 
-from sqlalchemy import BigInteger, ForeignKey, Index, String, Text, UniqueConstraint
+from sqlalchemy import (
+    BigInteger,
+    ForeignKey,
+    Index,
+    String,
+    Text,
+    UniqueConstraint,
+    delete,
+    select,
+)
 from sqlalchemy.orm import Mapped, mapped_column
 
 from cranetwin.errors import StorageError
@@ -78,6 +89,24 @@ def add_in(session: Any, machine_pk: int, events: list[Event]) -> int:
     rows = [(machine_pk, int(round(e.t_s * 1e9)), e.kind, e.severity, json.dumps(e.evidence))
             for e in events]
     return len(insert_rows(session.connection(), "events", _COLUMNS, rows, _IGNORE_STORED))
+
+
+def replace_in(session: Any, machine_pk: int, t0_ns: int, t1_ns: int, kinds: Sequence[str],
+               events: list[Event]) -> int:
+    """Store ``events`` of one machine, found anew for [t0_ns, t1_ns), inside the caller's
+    transaction, and delete the events of ``kinds`` stored in that range that are not among
+    them (same time and kind): a window processed again replaces its events. An event found
+    again keeps its row (its id and alarm state); a deleted one takes its alarm state with it.
+    Returns how many were new."""
+    keep = {(int(round(e.t_s * 1e9)), e.kind) for e in events}
+    r = EventRow
+    stale = [int(i) for i, t, k in session.execute(
+        select(r.id, r.t_ns, r.kind).where(r.machine_pk == machine_pk, r.t_ns >= t0_ns,
+                                           r.t_ns < t1_ns, r.kind.in_(list(kinds))))
+             if (int(t), str(k)) not in keep]
+    if stale:
+        session.execute(delete(r).where(r.id.in_(stale)))
+    return add_in(session, machine_pk, events)
 
 
 _COLUMNS = ("machine_pk", "t_ns", "kind", "severity", "evidence_json")

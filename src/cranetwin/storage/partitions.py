@@ -27,6 +27,10 @@ block of a machine with no twin-worker watermark, or ending after the watermark 
 replay margin (the next window's replay still reads it), or a minute marked for the 1-min
 summary rollup. Such a partition is kept and reported, and dropped by a later call once the
 worker has passed it. Dropping is ``DROP TABLE`` of the partition: instant, no dead tuples.
+The known payload runs stored with those samples (``payload_runs``, not partitioned) go in the
+same transaction: every run that starts in the dropped partition's range, whole — the rule of
+the sample blocks (a block lives in the partition of its start, and one reaching past the
+partition's end goes with it), so a run the importer stored for a block goes with that block.
 
 The unique key is (machine_pk, epoch, seq, t_start_ns): PostgreSQL requires the partition column
 in every unique key. A retransmitted block carries the same seq and the same t_start, so it still
@@ -260,10 +264,13 @@ class RetentionResult:
     Attributes:
         dropped: Names of the partitions dropped.
         kept: (name, why) of expired partitions kept because analytics has not processed them.
+        payload_runs: Known payload runs deleted with the dropped partitions (those starting
+            in their ranges, :func:`cranetwin.storage.payloads.drop_starting_in`).
     """
 
     dropped: list[str]
     kept: list[tuple[str, str]]
+    payload_runs: int = 0
 
 
 def _unprocessed(conn: Connection, p: Partition, margin_s: float) -> str | None:
@@ -301,13 +308,18 @@ def drop_expired(engine: Engine, keep_days: float, now_s: float,
     if keep_days <= 0:
         raise StorageError(f"retention of {keep_days} days; expected > 0")
     cutoff = int((now_s - keep_days * 86400.0) * SEC)
+    from cranetwin.storage.payloads import drop_starting_in
+
     dropped: list[str] = []
     kept: list[tuple[str, str]] = []
+    runs = 0
     with engine.begin() as conn:
         if not is_partitioned(conn):
             return RetentionResult([], [])
         conn.exec_driver_sql("SELECT pg_advisory_xact_lock(%s)", (_lock_key(conn),))
         conn.exec_driver_sql(f"SET LOCAL lock_timeout = '{LOCK_TIMEOUT}'")
+        has_payload = conn.exec_driver_sql(
+            "SELECT to_regclass('payload_runs') IS NOT NULL").scalar()
         for p in list_partitions(conn):
             if p.hi_ns > cutoff:
                 continue
@@ -317,9 +329,11 @@ def drop_expired(engine: Engine, keep_days: float, now_s: float,
                 log.warning("retention: partition %s kept: %s", p.name, why)
                 continue
             conn.exec_driver_sql(f'DROP TABLE "{p.name}"')
+            n = drop_starting_in(conn, p.lo_ns, p.hi_ns) if has_payload else 0
+            runs += n
             dropped.append(p.name)
-            log.info("retention: dropped partition %s", p.name)
-    return RetentionResult(dropped, kept)
+            log.info("retention: dropped partition %s (and %d known payload run(s))", p.name, n)
+    return RetentionResult(dropped, kept, runs)
 
 
 def maintain(engine: Engine, now_s: float, *, ahead: int = 2, interval: str | None = None,

@@ -14,6 +14,12 @@ whose key is stored with other values is not overwritten (the first stays; the w
 it as ``differing``). Runs written by different calls may overlap in time; a read then gives
 each time once, from the run that starts earliest.
 
+Deleting (:func:`delete_range`, ``cranetwin payload delete``) removes the values of a time
+range, cutting a run that straddles a bound; the store records the changed times for the twin
+worker in the same transaction (:mod:`cranetwin.storage.redo`), as it does for runs newly
+stored. Retention drops the runs starting in a dropped time partition of the samples
+(:func:`drop_starting_in`).
+
 What a run may hold (:func:`check_run`): times 0 ≤ t_start ≤ t_end <
 :data:`cranetwin.storage.blocks.T_LIMIT_NS`, a span of at most
 :data:`cranetwin.storage.blocks.MAX_SPAN_NS` (6 h: reads bound t_start from below by it, as
@@ -26,10 +32,21 @@ from __future__ import annotations
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from sqlalchemy import BigInteger, ForeignKey, Index, Integer, LargeBinary, select, tuple_
+from sqlalchemy import (
+    BigInteger,
+    Connection,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    select,
+    text,
+    tuple_,
+)
 from sqlalchemy.orm import Mapped, Session, mapped_column
 
 from cranetwin.errors import StorageError
@@ -245,31 +262,180 @@ def write(session: Session, machine_pk: int, runs: Sequence[PayloadRun]) -> Payl
                         sum(r.n for r in runs if r.t0_ns in new), tuple(sorted(new)))
 
 
-def delete(session: Session, machine_pk: int, starts: Sequence[int]) -> int:
-    """Delete the runs of a machine that start at ``starts`` [ns]; returns how many were."""
+def delete(session: Session, machine_pk: int, starts: Sequence[int]) -> PayloadDelete:
+    """Delete the runs of a machine that start at ``starts`` [ns], whole, in the caller's
+    transaction."""
     row = PayloadRunRow
-    gone = 0
+    gone = values = known = 0
+    changed: list[tuple[int, int]] = []
     for i in range(0, len(starts), 5000):
         chunk = [int(t) for t in starts[i:i + 5000]]
+        for t_start, period, n, data in session.execute(
+                select(row.t_start_ns, row.period_ns, row.n, row.data)
+                .where(row.machine_pk == machine_pk, row.t_start_ns.in_(chunk))):
+            run = PayloadRun(int(t_start), int(period), _decode(bytes(data), int(n)))
+            values += run.n
+            known += int(np.count_nonzero(np.isfinite(run.payload_kg)))
+            span = known_span(run)
+            if span is not None:
+                changed.append(span)
         gone += session.query(row).filter(row.machine_pk == machine_pk,
                                           row.t_start_ns.in_(chunk)).delete(
             synchronize_session=False)
-    return gone
+    return PayloadDelete(gone, 0, values, known, tuple(changed))
+
+
+def known_span(run: PayloadRun) -> tuple[int, int] | None:
+    """(first, last) time [ns] of the run's known (not NaN) values, or None when none is."""
+    f = np.flatnonzero(np.isfinite(run.payload_kg))
+    if f.size == 0:
+        return None
+    return run.t0_ns + int(f[0]) * run.period_ns, run.t0_ns + int(f[-1]) * run.period_ns
+
+
+@dataclass(frozen=True)
+class PayloadDelete:
+    """What :func:`delete_range` did.
+
+    Attributes:
+        runs_deleted: Runs deleted whole.
+        runs_cut: Runs that straddled a bound of the range: their values inside it deleted,
+            those outside stored again as runs of their own.
+        values_deleted: Values deleted (NaN ones included).
+        known_deleted: Known (not NaN) values deleted.
+        changed_ns: (first, last) time [ns] of each stretch of known values deleted (what
+            :func:`cranetwin.storage.redo.request` records).
+    """
+
+    runs_deleted: int = 0
+    runs_cut: int = 0
+    values_deleted: int = 0
+    known_deleted: int = 0
+    changed_ns: tuple[tuple[int, int], ...] = ()
+
+
+def _overlapping(machine_pk: int, t0_ns: int, t1_ns: int) -> Any:
+    """The runs of a machine holding a time in [t0_ns, t1_ns), oldest first."""
+    row = PayloadRunRow
+    return (select(row.t_start_ns, row.period_ns, row.n, row.data)
+            .where(row.machine_pk == machine_pk, row.t_start_ns <= clamp_ns(t1_ns - 1),
+                   row.t_end_ns >= clamp_ns(t0_ns),
+                   row.t_start_ns >= clamp_ns(clamp_ns(t0_ns) - MAX_SPAN_NS))
+            .order_by(row.t_start_ns))
+
+
+def delete_range(session: Session, machine_pk: int, t0_ns: int, t1_ns: int) -> PayloadDelete:
+    """Delete the stored values of a machine with t0_ns ≤ t < t1_ns, in the caller's
+    transaction: a run inside the range goes whole; a run straddling a bound is cut there (its
+    values outside the range are stored again, as one run before the range — same start, so
+    the same key — and one after it)."""
+    row = PayloadRunRow
+    gone: list[int] = []
+    pieces: list[PayloadRun] = []
+    cut = values = known = 0
+    changed: list[tuple[int, int]] = []
+    for t_start, period, n, data in session.execute(_overlapping(machine_pk, t0_ns, t1_ns)):
+        run = PayloadRun(int(t_start), int(period), _decode(bytes(data), int(n)))
+        t = run.times_ns()
+        inside = (t >= t0_ns) & (t < t1_ns)
+        if not inside.any():
+            continue
+        gone.append(run.t0_ns)
+        values += int(np.count_nonzero(inside))
+        k = inside & np.isfinite(run.payload_kg)
+        known += int(np.count_nonzero(k))
+        if k.any():
+            changed.append((int(t[k][0]), int(t[k][-1])))
+        for keep in (t < t0_ns, t >= t1_ns):
+            idx = np.flatnonzero(keep)
+            if idx.size:
+                pieces.append(PayloadRun(int(t[idx[0]]), run.period_ns if idx.size > 1 else 0,
+                                         run.payload_kg[idx].copy()))
+        cut += int(not inside.all())
+    for i in range(0, len(gone), 5000):
+        session.query(row).filter(row.machine_pk == machine_pk,
+                                  row.t_start_ns.in_(gone[i:i + 5000])).delete(
+            synchronize_session=False)
+    if pieces:
+        write(session, machine_pk, pieces)
+    return PayloadDelete(len(gone) - cut, cut, values, known, tuple(changed))
+
+
+@dataclass(frozen=True)
+class Stretch:
+    """Stored runs of one machine following each other without a gap (:func:`stretches`).
+
+    Attributes:
+        t_first_ns, t_last_ns: First and last stored time [ns since the Unix epoch].
+        runs: Runs in it.
+        values: Values stored (NaN ones included).
+        known: Known (not NaN) values.
+        min_kg, max_kg: Smallest and largest known value [kg] (NaN when none is known).
+    """
+
+    t_first_ns: int
+    t_last_ns: int
+    runs: int
+    values: int
+    known: int
+    min_kg: float
+    max_kg: float
+
+
+GAP_PERIODS = 5
+"""Runs are one stretch when the next starts at most this many of their sample periods after
+the previous ends (the replay's gap limit, docs/IMPORT.md)."""
+
+
+def stretches(session: Session, machine_pk: int, t0_ns: int, t1_ns: int) -> list[Stretch]:
+    """The stored series of a machine over [t0_ns, t1_ns) as stretches of runs (runs
+    starting in the range, whole; read in batches, one run decoded at a time)."""
+    row = PayloadRunRow
+    stmt = (select(row.t_start_ns, row.period_ns, row.n, row.data)
+            .where(row.machine_pk == machine_pk, row.t_start_ns >= clamp_ns(t0_ns),
+                   row.t_start_ns < clamp_ns(t1_ns))
+            .order_by(row.t_start_ns).execution_options(yield_per=1000))
+    out: list[Stretch] = []
+    cur: list[Any] | None = None  # first, last, runs, values, known, min, max, period
+    for t_start, period, n, data in session.execute(stmt):
+        v = _decode(bytes(data), int(n))
+        fin = v[np.isfinite(v)]
+        lo, hi = (float(fin.min()), float(fin.max())) if fin.size else (np.nan, np.nan)
+        end = int(t_start) + (int(n) - 1) * int(period)
+        if cur is not None and int(t_start) - cur[1] <= GAP_PERIODS * max(cur[7], int(period)):
+            cur[1] = max(cur[1], end)
+            cur[2] += 1
+            cur[3] += int(n)
+            cur[4] += int(fin.size)
+            cur[5] = float(np.fmin(cur[5], lo))
+            cur[6] = float(np.fmax(cur[6], hi))
+            cur[7] = int(period)
+            continue
+        if cur is not None:
+            out.append(Stretch(*cur[:7]))
+        cur = [int(t_start), end, 1, int(n), int(fin.size), lo, hi, int(period)]
+    if cur is not None:
+        out.append(Stretch(*cur[:7]))
+    return out
+
+
+def drop_starting_in(conn: Connection, lo_ns: int, hi_ns: int) -> int:
+    """Delete the runs of every machine that start in [lo_ns, hi_ns) (retention drops a time
+    partition of the samples, :func:`cranetwin.storage.partitions.drop_expired`: a run goes
+    with the partition its start falls in, as a sample block does); returns how many."""
+    res = conn.execute(text(
+        "DELETE FROM payload_runs WHERE machine_pk IN (SELECT id FROM machines) "
+        "AND t_start_ns >= :lo AND t_start_ns < :hi"), {"lo": int(lo_ns), "hi": int(hi_ns)})
+    return int(getattr(res, "rowcount", 0) or 0)
 
 
 def read(session: Session, machine_id: str, machine_pk: int, t0_ns: int,
          t1_ns: int) -> PayloadSeries:
     """The stored known payload of a machine with t0_ns ≤ t < t1_ns, oldest first (a time
     held by two runs once, from the run starting earlier)."""
-    row = PayloadRunRow
-    stmt = (select(row.t_start_ns, row.period_ns, row.n, row.data)
-            .where(row.machine_pk == machine_pk, row.t_start_ns <= clamp_ns(t1_ns - 1),
-                   row.t_end_ns >= clamp_ns(t0_ns),
-                   row.t_start_ns >= clamp_ns(clamp_ns(t0_ns) - MAX_SPAN_NS))
-            .order_by(row.t_start_ns))
     ts: list[I64] = []
     vs: list[F64] = []
-    for t_start, period, n, data in session.execute(stmt):
+    for t_start, period, n, data in session.execute(_overlapping(machine_pk, t0_ns, t1_ns)):
         run = PayloadRun(int(t_start), int(period), _decode(bytes(data), int(n)))
         ts.append(run.times_ns())
         vs.append(run.payload_kg)
@@ -282,5 +448,6 @@ def read(session: Session, machine_id: str, machine_pk: int, t0_ns: int,
     return PayloadSeries(machine_id, t_u.astype(np.int64), v[keep][first])
 
 
-__all__ = ["MAX_RUN", "PayloadRun", "PayloadRunRow", "PayloadSeries", "PayloadWrite",
-           "check_run", "delete", "read", "runs_of", "write"]
+__all__ = ["GAP_PERIODS", "MAX_RUN", "PayloadDelete", "PayloadRun", "PayloadRunRow",
+           "PayloadSeries", "PayloadWrite", "Stretch", "check_run", "delete", "delete_range",
+           "drop_starting_in", "known_span", "read", "runs_of", "stretches", "write"]

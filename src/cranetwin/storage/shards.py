@@ -42,7 +42,13 @@ from cranetwin.storage.engine import BUSY_TIMEOUT_S, display_url, make_engine, m
 from cranetwin.storage.events import Event
 from cranetwin.storage.machines import MachineInfo
 from cranetwin.storage.partitions import RetentionResult
-from cranetwin.storage.payloads import PayloadRun, PayloadSeries, PayloadWrite
+from cranetwin.storage.payloads import (
+    PayloadDelete,
+    PayloadRun,
+    PayloadSeries,
+    PayloadWrite,
+    Stretch,
+)
 from cranetwin.storage.shardmap import ShardMap, ShardMapError, StoreSpec, store_spec
 from cranetwin.storage.store import StorageStats, Store
 from cranetwin.storage.summaries import Summaries
@@ -275,13 +281,16 @@ class ShardedStore(Store):
                             keep_days: float | None = None,
                             margin_s: float = 0.0) -> RetentionResult:
         """Time partitions ahead and retention on every shard (names prefixed ``shard<i>:``)."""
-        out = RetentionResult([], [])
+        dropped: list[str] = []
+        kept: list[tuple[str, str]] = []
+        runs = 0
         for i, r in enumerate(self._all(lambda s: s.maintain_partitions(
                 now_s, ahead=ahead, interval=interval, keep_days=keep_days,
                 margin_s=margin_s))):
-            out.dropped.extend(f"shard{i}:{n}" for n in r.dropped)
-            out.kept.extend((f"shard{i}:{n}", why) for n, why in r.kept)
-        return out
+            dropped.extend(f"shard{i}:{n}" for n in r.dropped)
+            kept.extend((f"shard{i}:{n}", why) for n, why in r.kept)
+            runs += r.payload_runs
+        return RetentionResult(dropped, kept, runs)
 
     def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
         return self._one(machine_id, lambda s: s.read_samples(machine_id, t0_s, t1_s))
@@ -310,6 +319,13 @@ class ShardedStore(Store):
 
     def read_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadSeries:
         return self._one(machine_id, lambda s: s.read_payload(machine_id, t0_s, t1_s))
+
+    def delete_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadDelete:
+        return self._one(machine_id, lambda s: s.delete_payload(machine_id, t0_s, t1_s))
+
+    def payload_stretches(self, machine_id: str, t0_s: float | None = None,
+                          t1_s: float | None = None) -> list[Stretch]:
+        return self._one(machine_id, lambda s: s.payload_stretches(machine_id, t0_s, t1_s))
 
     # -- summaries ------------------------------------------------------------------------------
     def summaries(self, machine_id: str, channels: Iterable[str], t0_s: float, t1_s: float,

@@ -24,13 +24,20 @@ from cranetwin.storage import events as events_mod
 from cranetwin.storage import machines as machines_mod
 from cranetwin.storage import partitions as partitions_mod
 from cranetwin.storage import payloads as payloads_mod
+from cranetwin.storage import redo
 from cranetwin.storage import summaries as summaries_mod
 from cranetwin.storage import writes as writes_mod
 from cranetwin.storage.dberrors import is_unavailable, unavailable
 from cranetwin.storage.engine import BUSY_TIMEOUT_S, DEFAULT_URL, make_engine, migrate
 from cranetwin.storage.events import Event, EventRow
 from cranetwin.storage.machines import MachineInfo, MachineRow, UnknownMachineError
-from cranetwin.storage.payloads import PayloadRun, PayloadSeries, PayloadWrite
+from cranetwin.storage.payloads import (
+    PayloadDelete,
+    PayloadRun,
+    PayloadSeries,
+    PayloadWrite,
+    Stretch,
+)
 from cranetwin.storage.summaries import Summaries
 from cranetwin.storage.writes import WriteResult
 
@@ -456,7 +463,11 @@ class Store:
             return PayloadWrite()
         try:
             with self._session() as s, s.begin():
-                return payloads_mod.write(s, self._machine_pk(s, machine_id), runs)
+                res = payloads_mod.write(s, self._machine_pk(s, machine_id), runs)
+                new = set(res.new_starts)
+                redo.request(s, machine_id, [span for r in runs if r.t0_ns in new
+                                             if (span := payloads_mod.known_span(r))])
+                return res
         except SQLAlchemyError as exc:
             if is_unavailable(exc):
                 raise unavailable(f"storing {len(runs)} payload run(s)", exc) from exc
@@ -473,7 +484,37 @@ class Store:
         if not starts_ns:
             return 0
         with self._session() as s, s.begin():
-            return payloads_mod.delete(s, self._machine_pk(s, machine_id), starts_ns)
+            res = payloads_mod.delete(s, self._machine_pk(s, machine_id), starts_ns)
+            redo.request(s, machine_id, res.changed_ns)
+            return res.runs_deleted
+
+    def delete_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadDelete:
+        """Delete the stored known payload of one machine with t0_s ≤ t < t1_s, in one
+        transaction (:func:`cranetwin.storage.payloads.delete_range`: runs straddling a bound
+        are cut there), and record the changed times for the twin worker to process again
+        (:mod:`cranetwin.storage.redo`).
+
+        Raises:
+            UnknownMachineError: No such machine.
+        """
+        t0, t1 = _payload_bounds_ns(t0_s, t1_s)
+        with self._session() as s, s.begin():
+            res = payloads_mod.delete_range(s, self._machine_pk(s, machine_id), t0, t1)
+            redo.request(s, machine_id, res.changed_ns)
+            return res
+
+    def payload_stretches(self, machine_id: str, t0_s: float | None = None,
+                          t1_s: float | None = None) -> list[Stretch]:
+        """The stored known payload of one machine as stretches of runs without a gap
+        (:func:`cranetwin.storage.payloads.stretches`), of the runs starting in [t0_s, t1_s)
+        (None: unbounded).
+
+        Raises:
+            UnknownMachineError: No such machine.
+        """
+        t0, t1 = _payload_bounds_ns(t0_s, t1_s)
+        with self._session() as s:
+            return payloads_mod.stretches(s, self._machine_pk(s, machine_id), t0, t1)
 
     def read_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadSeries:
         """The stored known payload of one machine with t0_s ≤ t < t1_s, oldest first, with
@@ -593,6 +634,13 @@ class Store:
 def sample_bounds_ns(t0_s: float, t1_s: float) -> tuple[int, int]:
     """The bounds [ns] :meth:`Store.read_samples` reads (blocks overlapping [t0, t1 − 1])."""
     return (blocks_mod.clamp_ns(_ns(t0_s) - _EPS_NS), blocks_mod.clamp_ns(_ns(t1_s) - _EPS_NS))
+
+
+def _payload_bounds_ns(t0_s: float | None, t1_s: float | None) -> tuple[int, int]:
+    """The bounds [ns] of :meth:`Store.read_payload` for [t0_s, t1_s) (None: unbounded), so
+    a delete removes exactly what that read returns."""
+    return sample_bounds_ns(-np.inf if t0_s is None else t0_s,
+                            np.inf if t1_s is None else t1_s)
 
 
 def assemble_samples(machine_id: str, stored: list[blocks_mod.StoredBlock], t0: int,
