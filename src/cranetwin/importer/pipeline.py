@@ -296,12 +296,16 @@ class Pipeline:
         v = np.empty((n, len(self.maps)))
         for j, m in enumerate(self.maps):
             np.multiply(chunk.columns[m.column], self.scale[j], out=v[:, j])
-        v += self.shift
+        if self.shift.any():  # (adding 0 changes no value's step)
+            v += self.shift
         if not self._checked:
             self._check_conventions(v[~bad])
-        with np.errstate(invalid="ignore"):
-            out = (v < self.lo) | (v > self.hi)
-        out[bad] = False
+        if not self._within_range(chunk):
+            with np.errstate(invalid="ignore"):
+                out = (v < self.lo) | (v > self.hi)
+            out[bad] = False
+        else:
+            out = np.zeros(0, dtype=bool)
         if out.any():
             for j, m in enumerate(self.maps):
                 if out[:, j].any():
@@ -332,8 +336,8 @@ class Pipeline:
         if tg.size == 0:
             return []
         self._last_t = int(tg[-1])
-        try:
-            k, miss = quantise(v[good], self.res)
+        try:  # every row accepted (the usual case): no copy of the chunk
+            k, miss = quantise(v if good.size == n else v[good], self.res)
         except QuantiseError as exc:
             raise ImportFileError(f"values cannot be quantised: {exc}") from exc
         rep.rows_accepted += int(tg.size)
@@ -363,6 +367,22 @@ class Pipeline:
     # -- helpers ------------------------------------------------------------------------------
     def _time_name(self) -> str:
         return self.mapping.time_column or "(time)"
+
+    def _within_range(self, chunk: Chunk) -> bool:
+        """True when every value of ``chunk`` lies within its channel's accepted range (NaN
+        aside), decided from each raw column's extremes without a pass over the converted
+        values: ``x · scale + shift`` is monotonic in floating point too, so the extremes map
+        to the converted extremes exactly. False: check value by value."""
+        for j, m in enumerate(self.maps):
+            raw = chunk.columns[m.column]
+            if raw.size == 0:
+                continue
+            ext = np.array([np.fmin.reduce(raw), np.fmax.reduce(raw)]) * self.scale[j]
+            ext += self.shift[j]
+            with np.errstate(invalid="ignore"):
+                if (ext < self.lo[j]).any() or (ext > self.hi[j]).any():
+                    return False
+        return True
 
     def _check_conventions(self, v: F64) -> None:
         self._checked = True
