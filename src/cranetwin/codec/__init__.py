@@ -44,6 +44,7 @@ from cranetwin.codec.quantise import (
 
 __all__ = [
     "EXACT_STEPS", "QuantiseError", "block_byte_planes", "byte_planes", "byte_width",
-    "carry_through_gaps", "deltas", "dequantise", "from_byte_planes", "on_grid", "pack_rows", "quantise", "row_widths",
-    "undelta", "unpack_rows", "unzigzag", "unzigzag_array", "zigzag", "zigzag_array",
+    "carry_through_gaps", "deltas", "dequantise", "from_byte_planes", "on_grid", "pack_rows",
+    "quantise", "row_widths", "undelta", "unpack_rows", "unzigzag", "unzigzag_array", "zigzag",
+    "zigzag_array",
 ]

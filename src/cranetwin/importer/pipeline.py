@@ -16,6 +16,7 @@ stores it once.
 
 from __future__ import annotations
 
+import bisect
 import hashlib
 from collections import Counter
 from dataclasses import dataclass, field
@@ -221,6 +222,48 @@ def position_problem(name: str, values: F64, stroke_m: float, closed_m: float,
                               "offset in the mapping")
 
 
+class _OpenRows:
+    """The quantised rows of the open run, kept as the chunks appended them: a block's rows are
+    a view of one chunk's arrays, or (a block across two chunks) a copy of that block only,
+    never of the whole chunk."""
+
+    def __init__(self) -> None:
+        self._parts: list[tuple[I64, B]] = []  # (steps, missing), shape (m, c) each
+        self._first: list[int] = []  # row index of each part's first row
+
+    def append(self, k: I64, miss: B) -> None:
+        """Add rows after the last; k, miss: shape (m, c)."""
+        if k.shape[0]:
+            last = self._first[-1] + self._parts[-1][0].shape[0] if self._parts else 0
+            self._parts.append((k, miss))
+            self._first.append(last)
+
+    def rows(self, i: int, j: int) -> tuple[I64, B]:
+        """Rows [i, j) (0 ≤ i < j ≤ rows held): steps and missing, shape (j − i, c)."""
+        p = bisect.bisect_right(self._first, i) - 1
+        k, miss = self._parts[p]
+        a = i - self._first[p]
+        if j - self._first[p] <= k.shape[0]:
+            return k[a:j - self._first[p]], miss[a:j - self._first[p]]
+        ks, ms = [k[a:]], [miss[a:]]
+        while self._first[p] + self._parts[p][0].shape[0] < j:
+            p += 1
+            k, miss = self._parts[p]
+            ks.append(k[:j - self._first[p]])
+            ms.append(miss[:j - self._first[p]])
+        return np.concatenate(ks), np.concatenate(ms)
+
+    def drop(self, i: int) -> None:
+        """Forget rows before i; row i becomes row 0."""
+        parts, first = self._parts, self._first
+        self._parts, self._first = [], []
+        for (k, miss), f in zip(parts, first, strict=True):
+            if f + k.shape[0] > i:
+                a = max(0, i - f)
+                self._parts.append((k[a:], miss[a:]))
+                self._first.append(f + a - i)
+
+
 class Pipeline:
     """Turns chunks into blocks for one machine (see the module docstring).
 
@@ -260,8 +303,7 @@ class Pipeline:
         self._checked = False
         # the open run: samples not yet cut into a block
         self._t = np.zeros(0, dtype=np.int64)
-        self._k = np.zeros((0, len(present)), dtype=np.int64)
-        self._miss = np.zeros((0, len(present)), dtype=bool)
+        self._open = _OpenRows()
         self._positions: list[tuple[int, float, float, float]] = []
         cyl = {c.name: c for c in machine.cylinders}
         for j, c in enumerate(chans):
@@ -393,8 +435,7 @@ class Pipeline:
 
     def _append(self, t: I64, k: I64, miss: B) -> None:
         self._t = np.concatenate([self._t, t])
-        self._k = np.concatenate([self._k, k])
-        self._miss = np.concatenate([self._miss, miss])
+        self._open.append(k, miss)
 
     def _cut(self, final: bool) -> list[SampleBlock]:
         t = self._t
@@ -421,8 +462,7 @@ class Pipeline:
         if final:
             self.report.runs += 1
         self._t = self._t[keep_from:]
-        self._k = self._k[keep_from:]
-        self._miss = self._miss[keep_from:]
+        self._open.drop(keep_from)
         return blocks
 
     def _block(self, i: int, j: int) -> SampleBlock:
@@ -436,8 +476,8 @@ class Pipeline:
         rep = self.report
         rep.max_time_shift_ns = max(rep.max_time_shift_ns, shift)
         rep.blocks += 1
-        k = np.ascontiguousarray(self._k[i:j])
-        miss = self._miss[i:j]
+        k, miss = self._open.rows(i, j)
+        k = np.ascontiguousarray(k)
         vals = dequantise(k, miss, self.res)
         blk = SampleBlock(self.machine_id, self._seq, int(t[0]), int(p), self.names,
                           tuple(float(x) for x in self.res), vals, epoch=self.epoch, steps=k)

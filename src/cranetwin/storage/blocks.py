@@ -248,11 +248,13 @@ def block_rows(items: Sequence[tuple[int, SampleBlock]]) -> list[tuple[object, .
         Per item, its row, or why its values cannot be stored (an infinite value, or one more
         than 2**52 resolution steps from zero); one such block does not affect the others.
     """
-    groups: dict[tuple[int, ...], list[int]] = {}
+    groups: dict[tuple[int, int, bool], list[int]] = {}
     for i, (_, b) in enumerate(items):
-        groups.setdefault(b.values.shape, []).append(i)
+        n, c = b.values.shape
+        wire = b.steps is not None and b.steps.shape == (n, c)
+        groups.setdefault((n, c, wire), []).append(i)
     out: list[tuple[object, ...] | str] = [""] * len(items)
-    for (n, c), idxs in groups.items():
+    for (n, c, _), idxs in groups.items():
         per = max(1, GROUP_VALUES // (n * c))
         for a in range(0, len(idxs), per):
             _group_rows(items, idxs[a:a + per], out)
@@ -263,16 +265,17 @@ def _channel_major(arrays: list[npt.NDArray[Any]], dtype: type) -> npt.NDArray[A
     """B arrays of shape (n, c) as one C-contiguous array of shape (c, B, n) and ``dtype`` (cast
     as ``astype`` does)."""
     n, c = arrays[0].shape
-    out = np.empty((c, len(arrays), n), dtype=dtype)
+    out: npt.NDArray[Any] = np.empty((c, len(arrays), n), dtype=dtype)
     np.stack([a.T for a in arrays], axis=1, out=out, casting="unsafe")
     return out
 
 
 def _group_rows(items: Sequence[tuple[int, SampleBlock]], idxs: list[int],
                 out: list[tuple[object, ...] | str]) -> None:
-    """:func:`block_rows` of the blocks ``items[i]`` for i in ``idxs`` (all of one shape (n, c)),
-    into ``out[i]``. Arrays are channel-major, shape (c, B, n): each block's channel is a
-    contiguous run of samples, as the blob and the summaries take them."""
+    """:func:`block_rows` of the blocks ``items[i]`` for i in ``idxs`` (all of one shape (n, c),
+    all with the wire's steps or all without), into ``out[i]``. Arrays are channel-major, shape
+    (c, B, n): each block's channel is a contiguous run of samples, as the blob and the
+    summaries take them."""
     blks = [items[i][1] for i in idxs]
     n, c = blks[0].values.shape
     missing = np.isnan(np.stack([b.values for b in blks], dtype=np.float64, casting="unsafe"))
