@@ -1,8 +1,10 @@
 """Storage's block rows against a plain per-block oracle: the vectorised encoding (channel-major
 passes over groups of blocks) stores exactly the bytes the layout in
-``cranetwin.storage.codec``'s docstring describes, and the per-second summaries exactly what a
-loop over seconds and channels computes; any batch, cut into any groups, gives every block the
-row it gets alone (streaming = batch)."""
+``cranetwin.storage.codec``'s docstring describes (deflated with the run-length strategy; with
+the default strategy, byte for byte what was written before it), they decode to the block's
+steps and mask, and the per-second summaries are exactly what a loop over seconds and channels
+computes; any batch, cut into any groups, gives every block the row it gets alone (streaming =
+batch)."""
 
 from __future__ import annotations
 
@@ -22,8 +24,9 @@ pytestmark = pytest.mark.timeout(120)
 SEC = 10**9
 
 
-def _oracle_blob(k: np.ndarray, mask: np.ndarray) -> bytes:
-    """The blob of the codec's docstring, built plane by plane with shifts (no views)."""
+def _oracle_blob(k: np.ndarray, mask: np.ndarray) -> tuple[bytes, bytes]:
+    """Header and (uncompressed) body of the blob of the codec's docstring, built plane by
+    plane with shifts (no views)."""
     n, c = k.shape
     kt = k.T.astype(np.int64)
     d = np.diff(kt, axis=1, prepend=np.zeros((c, 1), dtype=np.int64)).reshape(-1)
@@ -34,7 +37,7 @@ def _oracle_blob(k: np.ndarray, mask: np.ndarray) -> bytes:
                     for p in range(width))
     if mask.any():
         body += np.packbits(mask.T.reshape(-1)).tobytes()
-    return struct.pack("<BBBxII", 1, width, int(mask.any()), n, c) + zlib.compress(body, 1)
+    return struct.pack("<BBBxII", 1, width, int(mask.any()), n, c), body
 
 
 def _oracle_summary(k: np.ndarray, mask: np.ndarray, t0: int, period: int) -> np.ndarray:
@@ -50,6 +53,11 @@ def _oracle_summary(k: np.ndarray, mask: np.ndarray, t0: int, period: int) -> np
                 v = k[sel, j]
                 out[:, i, j] = sel.sum(), v.min(), v.max(), v.sum()
     return out.reshape(4 * m, c)
+
+
+def _deflate_rle(body: bytes) -> bytes:
+    z = zlib.compressobj(1, zlib.DEFLATED, 15, 8, zlib.Z_RLE)
+    return z.compress(body) + z.flush()
 
 
 @st.composite
@@ -100,7 +108,11 @@ def test_block_rows_store_the_oracles_bytes_in_any_grouping(batch: list[SampleBl
         k = b.steps if b.steps is not None else np.rint(
             np.where(mask, 0.0, b.values) / np.asarray(b.resolution)).astype(np.int64)
         summary, data = row[9], row[10]
-        assert data == _oracle_blob(k, mask)
+        head, body = _oracle_blob(k, mask)
+        assert data[:12] == head and zlib.decompress(data[12:]) == body
+        assert data == head + _deflate_rle(body)  # storage's strategy, level 1
+        # the encoder's default strategy: the bytes written before the run-length strategy
+        assert codec.encode_many(k[None], mask[None])[0] == head + zlib.compress(body, 1)
         assert np.array_equal(codec.decode_plain(summary),
                               _oracle_summary(k, mask, b.t0_ns, b.period_ns))
         kk, mm = codec.decode_ints(data)

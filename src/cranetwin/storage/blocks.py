@@ -306,7 +306,7 @@ def _group_rows(items: Sequence[tuple[int, SampleBlock]], idxs: list[int],
         mask = np.ascontiguousarray(mask[:, ok, :])
     kb = k.transpose(1, 2, 0)  # (B, n, c) views of the channel-major arrays
     mb = mask.transpose(1, 2, 0) if mask.any() else None
-    data = codec.encode_many(kb, mb)
+    data = codec.encode_many(kb, mb, strategy=codec.BLOCK_STRATEGY)
     t0s = [int(items[i][1].t0_ns) for i in good]
     periods = [int(items[i][1].period_ns) for i in good]
     t0 = np.array(t0s, dtype=np.int64)

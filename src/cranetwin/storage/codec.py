@@ -5,7 +5,11 @@ Values are quantised at the channel resolution to integers (lossless for values 
 multiples of the resolution, as sensors send them), differenced along time per channel,
 zigzag-mapped to unsigned integers of the smallest width that holds them (1, 2, 4 or 8 bytes),
 byte-shuffled (all low bytes, then the next byte plane, ...) and deflated with zlib. Missing
-samples (NaN) are kept as a packed bit mask. Layout of the blob::
+samples (NaN) are kept as a packed bit mask. Storage writes its blocks with zlib's run-length
+strategy (:data:`BLOCK_STRATEGY`): the planes are runs of zeros and near-random low bytes, which
+back-references barely shorten (the default strategy's search took half of an import's CPU);
+any deflate stream inflates alike, so every blob, whatever strategy wrote it, decodes the same.
+Layout of the blob::
 
     offset  size  field
     0       1     format version (1)
@@ -34,6 +38,10 @@ F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
 VERSION = 1
+BLOCK_STRATEGY = zlib.Z_RLE
+"""zlib strategy of the blocks storage writes (:func:`cranetwin.storage.blocks.block_rows`):
+on the bench's 1 h recording 2× faster than the default and 7 % smaller, on a simulated one
+1.7× faster and 8 % smaller."""
 _HEAD = struct.Struct("<BBBxII")
 _LIMIT = 2.0**52  # |quantised value| beyond which float64 → int64 is no longer exact
 
@@ -165,7 +173,15 @@ def decode(blob: bytes, resolution: Sequence[float]) -> F64:
     return intcodec.dequantise(k, mask, resolution)
 
 
-def encode_many(k: I64, mask: npt.NDArray[np.bool_] | None, level: int = 1) -> list[bytes]:
+def _deflate(body: bytes | memoryview, level: int, strategy: int) -> bytes:
+    if strategy == zlib.Z_DEFAULT_STRATEGY:
+        return zlib.compress(body, level)
+    z = zlib.compressobj(level, zlib.DEFLATED, 15, 8, strategy)
+    return z.compress(body) + z.flush()
+
+
+def encode_many(k: I64, mask: npt.NDArray[np.bool_] | None, level: int = 1,
+                strategy: int = zlib.Z_DEFAULT_STRATEGY) -> list[bytes]:
     """Blobs of B equally shaped integer arrays at once (vectorised over blocks).
 
     One pass per stage over all blocks, each writing one array: channel-major deltas, zigzag in
@@ -177,6 +193,7 @@ def encode_many(k: I64, mask: npt.NDArray[np.bool_] | None, level: int = 1) -> l
         k: Integer steps, shape (B, n, c); mask: missing samples, shape (B, n, c), or None when
             no sample is missing.
         level: zlib level (0 stored … 1 fastest … 9 smallest).
+        strategy: zlib strategy (storage's blocks: :data:`BLOCK_STRATEGY`).
 
     Returns:
         B blobs; ``decode_ints(blobs[i])`` gives back ``(k[i], mask[i])``.
@@ -199,9 +216,9 @@ def encode_many(k: I64, mask: npt.NDArray[np.bool_] | None, level: int = 1) -> l
             if has_mask[b]:
                 assert mask is not None
                 body = planes[row].tobytes() + np.packbits(mask[b].T.reshape(-1)).tobytes()
-                out[b] = head + zlib.compress(body, level)
+                out[b] = head + _deflate(body, level, strategy)
             else:
-                out[b] = head + zlib.compress(planes[row], level)
+                out[b] = head + _deflate(memoryview(planes[row]), level, strategy)
     return out
 
 
