@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from cranetwin.importer import (
@@ -313,3 +315,86 @@ def test_blank_and_comment_lines_are_skipped_rows_keep_their_numbers(
     assert rep.rows_read == rec.t_s.size and rep.rows_refused == 1
     (r,) = rep.first_refusals
     assert (r.row, r.column, r.line) == (50, "lift_s", 54)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), p_unit=st.sampled_from(["Pa", "bar", "psi", "MPa"]),
+       s_unit=st.sampled_from(["m", "mm", "in"]), pin=st.booleans(),
+       tol=st.sampled_from([0.0, 0.013]))
+def test_range_refusals_are_exactly_the_values_outside_after_conversion(
+        machine: Machine, seed: int, p_unit: str, s_unit: str, pin: bool, tol: float) -> None:
+    """Values a float step inside and outside each channel's accepted range, in other units
+    and pin-to-pin: a row is refused iff one of its converted values lies outside, whether the
+    chunk's extremes already decide it or not."""
+    from cranetwin.importer import read_columns
+    from cranetwin.importer.pipeline import Pipeline
+
+    spec: dict[str, dict[str, object]] = {
+        c.name: {"unit": p_unit} for c in machine.channels if c.quantity == "pressure"}
+    spec.update({c.name: {"unit": s_unit, "convention": "pin_to_pin" if pin else "stroke"}
+                 for c in machine.channels if c.name in ("lift_s", "jib_s")})
+    m = mapping_from_dict({"channels": spec, "checks": {"range_tolerance": tol}}, machine)
+    pipe = Pipeline(machine, m, "m", 1, list(m.channels))
+    rng = np.random.default_rng(seed)
+    n, c = 400, len(m.channels)
+    lo_raw = (pipe.lo - pipe.shift) / pipe.scale  # the accepted range in the file's units
+    hi_raw = (pipe.hi - pipe.shift) / pipe.scale
+    finite = np.isfinite(lo_raw) & np.isfinite(hi_raw)
+    raw = lo_raw + rng.random((n, c)) * np.where(finite, hi_raw - lo_raw, 1.0)
+    raw[:, ~finite] = rng.normal(size=(n, (~finite).sum()))
+    edge = rng.random((n, c)) < (0.02 if rng.random() < 0.5 else 0.0)  # sometimes none
+    for j in np.flatnonzero(finite):
+        for i in np.flatnonzero(edge[:, j]):
+            b = lo_raw[j] if rng.random() < 0.5 else hi_raw[j]
+            raw[i, j] = np.nextafter(b, rng.choice([-np.inf, np.inf])) if rng.random() < 0.7 \
+                else b
+    conv = raw * pipe.scale + pipe.shift
+    outside = ((conv < pipe.lo) | (conv > pipe.hi)).any(axis=1)
+    cols = {cm.column: raw[:, j] for j, cm in enumerate(m.channels)}
+    cols["t_s"] = T0 + np.arange(n) / 100
+    if outside.all():
+        with pytest.raises(ImportFileError):
+            read_columns(cols, machine, m)
+        return
+    got = read_columns(cols, machine, m)
+    assert got.report.rows_refused == int(outside.sum())
+    assert got.samples.values.shape[0] == n - int(outside.sum())
+    refused_rows = {r.row for r in got.report.first_refusals}
+    assert refused_rows <= set((np.flatnonzero(outside) + 1).tolist())
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), cuts=st.lists(st.integers(1, 299), max_size=8),
+       block=st.integers(1, 40))
+def test_blocks_do_not_depend_on_how_the_file_is_chunked(machine: Machine, seed: int,
+                                                         cuts: list[int], block: int) -> None:
+    """Rows fed in any chunks (gaps, dropouts, refused rows included) give the blocks and the
+    report of one chunk: streaming = batch."""
+    from cranetwin.importer.pipeline import Pipeline
+    from cranetwin.importer.readers import Chunk
+
+    rng = np.random.default_rng(seed)
+    n = 300
+    m = mapping_from_dict({}, machine)
+    chans = [machine.channel(cm.channel) for cm in m.channels]
+    lo = np.array([c.min for c in chans])
+    hi = np.array([c.max for c in chans])
+    v = lo + rng.random((n, len(chans))) * (hi - lo)
+    v[rng.random(v.shape) < 0.05] = np.nan
+    v[rng.integers(n), 0] = hi[0] * 2  # one row refused (out of range)
+    dt_s = np.where(rng.random(n) < 0.03, 0.5, 0.01)  # gaps start new runs
+    t = T0 + np.cumsum(dt_s)
+    cols = {cm.column: v[:, j] for j, cm in enumerate(m.channels)}
+
+    def run(bounds: list[int]) -> tuple[list[tuple[object, ...]], str]:
+        pipe = Pipeline(machine, m, "m", 5, list(m.channels), block_samples=block)
+        out = []
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            if b > a:
+                out += pipe.feed(Chunk(a + 1, t[a:b], {c: x[a:b] for c, x in cols.items()},
+                                       np.zeros(b - a, dtype=bool), [], None, b, n))
+        out += pipe.finish()
+        return [(b.seq, b.t0_ns, b.period_ns, b.steps.tobytes(), np.isnan(b.values).tobytes())
+                for b in out], pipe.report.summary()
+
+    assert run(sorted({0, n, *cuts})) == run([0, n])

@@ -17,6 +17,7 @@ its blob (header, zlib) around them. Imports numpy only.
 from __future__ import annotations
 
 from cranetwin.codec.bitpack import (
+    block_byte_planes,
     byte_planes,
     byte_width,
     from_byte_planes,
@@ -42,7 +43,8 @@ from cranetwin.codec.quantise import (
 )
 
 __all__ = [
-    "EXACT_STEPS", "QuantiseError", "byte_planes", "byte_width", "carry_through_gaps", "deltas",
-    "dequantise", "from_byte_planes", "on_grid", "pack_rows", "quantise", "row_widths",
-    "undelta", "unpack_rows", "unzigzag", "unzigzag_array", "zigzag", "zigzag_array",
+    "EXACT_STEPS", "QuantiseError", "block_byte_planes", "byte_planes", "byte_width",
+    "carry_through_gaps", "deltas", "dequantise", "from_byte_planes", "on_grid", "pack_rows",
+    "quantise", "row_widths", "undelta", "unpack_rows", "unzigzag", "unzigzag_array", "zigzag",
+    "zigzag_array",
 ]

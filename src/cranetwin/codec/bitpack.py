@@ -5,8 +5,9 @@ row, each value most significant bit first, the stream padded with zero bits to 
 With values ``d − min(d)`` of a channel's deltas and ``w = bit_length(max(d) − min(d))`` this is
 frame-of-reference packing: smooth sensor signals need 3–6 bits per sample.
 
-Byte planes (:func:`byte_planes`): values of w bytes (1, 2, 4 or 8) stored as all low bytes,
-then all next bytes, …, which a general-purpose compressor (zlib) then squeezes well.
+Byte planes (:func:`byte_planes`, :func:`block_byte_planes`): values of w bytes (1, 2, 4 or 8)
+stored as all low bytes, then all next bytes, …, which a general-purpose compressor (zlib) then
+squeezes well.
 """
 
 from __future__ import annotations
@@ -118,6 +119,22 @@ def byte_planes(z: U64, width: int) -> U8:
     b = z.astype(np.dtype(_PLANE_TYPES[width]).newbyteorder("<"))
     planes = b.view(np.uint8).reshape(*lead, m, width)
     return np.ascontiguousarray(np.swapaxes(planes, -1, -2)).reshape(*lead, width * m)
+
+
+def block_byte_planes(z: U64, width: int) -> U8:
+    """:func:`byte_planes` of many blocks held channel-major side by side, in one pass.
+
+    Args:
+        z: Shape (c, B, n): block b's values are ``z[:, b, :]``, in (channel, sample) order.
+        width: 1, 2, 4 or 8 [bytes]; every value below 2**(8·width).
+
+    Returns:
+        Shape (B, width · c · n): row b is ``byte_planes(z[:, b, :].reshape(-1), width)``.
+    """
+    c, nb, n = z.shape
+    b = z.astype(np.dtype(_PLANE_TYPES[width]).newbyteorder("<"), copy=False)
+    planes = b.view(np.uint8).reshape(c, nb, n, width).transpose(1, 3, 0, 2)
+    return np.ascontiguousarray(planes).reshape(nb, width * c * n)
 
 
 def from_byte_planes(buf: bytes | memoryview, width: int, count: int) -> U64:

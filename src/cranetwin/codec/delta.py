@@ -28,9 +28,19 @@ def unzigzag(z: int) -> int:
     return (z >> 1) ^ -(z & 1)
 
 
-def zigzag_array(d: I64) -> U64:
-    """:func:`zigzag` elementwise on an int64 array."""
-    return ((d << 1) ^ (d >> 63)).view(np.uint64)
+def zigzag_array(d: I64, *, in_place: bool = False) -> U64:
+    """:func:`zigzag` elementwise on an int64 array.
+
+    Args:
+        d: Any shape.
+        in_place: Overwrite ``d`` (which must be a writeable int64 array) and return it viewed
+            as uint64: no new array of ``d``'s size.
+    """
+    sign = d >> 63  # 0 or -1 (all bits set)
+    z = d if in_place else d.copy()
+    z <<= 1
+    z ^= sign
+    return z.view(np.uint64)
 
 
 def unzigzag_array(z: U64) -> I64:
@@ -47,10 +57,15 @@ def deltas(k: I64, axis: int = 0, *, first: bool = False) -> I64:
         first: Keep the first element as the difference from 0 (same length as ``k``);
             otherwise the result is one shorter along ``axis``.
     """
-    if first:
-        shape = list(k.shape)
-        shape[axis] = 1
-        return np.diff(k, axis=axis, prepend=np.zeros(shape, dtype=np.int64))
+    if first:  # d[0] = k[0], then the differences: one new array, no padded copy of k
+        k = np.asarray(k, dtype=np.int64)
+        out = np.empty(k.shape, dtype=np.int64)
+        head = [slice(None)] * k.ndim
+        tail, prev = list(head), list(head)
+        head[axis], tail[axis], prev[axis] = slice(0, 1), slice(1, None), slice(None, -1)
+        out[tuple(head)] = k[tuple(head)]
+        np.subtract(k[tuple(tail)], k[tuple(prev)], out=out[tuple(tail)])
+        return out
     return np.diff(k, axis=axis)
 
 

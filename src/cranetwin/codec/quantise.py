@@ -55,8 +55,11 @@ def quantise(values: F64, resolution: Sequence[float] | npt.ArrayLike, *,
     if not np.all(np.isfinite(res) & (res > 0)):
         raise QuantiseError(f"resolutions must be finite and > 0, got {res.tolist()}")
     missing = np.isnan(v)
-    q = np.rint(np.where(missing, 0.0, v) / res)
-    if not np.all(np.abs(q) < limit):
+    q = v / res  # one array for every stage: rounded and checked in place
+    if missing.any():
+        np.copyto(q, 0.0, where=missing)
+    np.rint(q, out=q)
+    if q.size and not (-limit < q.min() and q.max() < limit):  # ±inf fail here too
         raise QuantiseError(f"values are infinite or beyond ±{limit:.0f} steps of their "
                             "resolution")
     return q.astype(np.int64), missing
@@ -70,9 +73,9 @@ def dequantise(k: I64, missing: Mask | None, resolution: Sequence[float] | npt.A
         missing: Shape (n, c), or None for none missing.
         resolution: Step per channel, length c [channel units].
     """
-    out = k.astype(np.float64) * _res(resolution, k.shape[1])
-    if missing is not None:
-        out[missing] = np.nan
+    out: F64 = np.multiply(k, _res(resolution, k.shape[1]), dtype=np.float64)
+    if missing is not None and missing.any():
+        np.copyto(out, np.nan, where=missing)
     return out
 
 

@@ -16,6 +16,7 @@ stores it once.
 
 from __future__ import annotations
 
+import bisect
 import hashlib
 from collections import Counter
 from dataclasses import dataclass, field
@@ -221,6 +222,48 @@ def position_problem(name: str, values: F64, stroke_m: float, closed_m: float,
                               "offset in the mapping")
 
 
+class _OpenRows:
+    """The quantised rows of the open run, kept as the chunks appended them: a block's rows are
+    a view of one chunk's arrays, or (a block across two chunks) a copy of that block only,
+    never of the whole chunk."""
+
+    def __init__(self) -> None:
+        self._parts: list[tuple[I64, B]] = []  # (steps, missing), shape (m, c) each
+        self._first: list[int] = []  # row index of each part's first row
+
+    def append(self, k: I64, miss: B) -> None:
+        """Add rows after the last; k, miss: shape (m, c)."""
+        if k.shape[0]:
+            last = self._first[-1] + self._parts[-1][0].shape[0] if self._parts else 0
+            self._parts.append((k, miss))
+            self._first.append(last)
+
+    def rows(self, i: int, j: int) -> tuple[I64, B]:
+        """Rows [i, j) (0 ≤ i < j ≤ rows held): steps and missing, shape (j − i, c)."""
+        p = bisect.bisect_right(self._first, i) - 1
+        k, miss = self._parts[p]
+        a = i - self._first[p]
+        if j - self._first[p] <= k.shape[0]:
+            return k[a:j - self._first[p]], miss[a:j - self._first[p]]
+        ks, ms = [k[a:]], [miss[a:]]
+        while self._first[p] + self._parts[p][0].shape[0] < j:
+            p += 1
+            k, miss = self._parts[p]
+            ks.append(k[:j - self._first[p]])
+            ms.append(miss[:j - self._first[p]])
+        return np.concatenate(ks), np.concatenate(ms)
+
+    def drop(self, i: int) -> None:
+        """Forget rows before i; row i becomes row 0."""
+        parts, first = self._parts, self._first
+        self._parts, self._first = [], []
+        for (k, miss), f in zip(parts, first, strict=True):
+            if f + k.shape[0] > i:
+                a = max(0, i - f)
+                self._parts.append((k[a:], miss[a:]))
+                self._first.append(f + a - i)
+
+
 class Pipeline:
     """Turns chunks into blocks for one machine (see the module docstring).
 
@@ -260,8 +303,7 @@ class Pipeline:
         self._checked = False
         # the open run: samples not yet cut into a block
         self._t = np.zeros(0, dtype=np.int64)
-        self._k = np.zeros((0, len(present)), dtype=np.int64)
-        self._miss = np.zeros((0, len(present)), dtype=bool)
+        self._open = _OpenRows()
         self._positions: list[tuple[int, float, float, float]] = []
         cyl = {c.name: c for c in machine.cylinders}
         for j, c in enumerate(chans):
@@ -296,12 +338,16 @@ class Pipeline:
         v = np.empty((n, len(self.maps)))
         for j, m in enumerate(self.maps):
             np.multiply(chunk.columns[m.column], self.scale[j], out=v[:, j])
-        v += self.shift
+        if self.shift.any():  # (adding 0 changes no value's step)
+            v += self.shift
         if not self._checked:
             self._check_conventions(v[~bad])
-        with np.errstate(invalid="ignore"):
-            out = (v < self.lo) | (v > self.hi)
-        out[bad] = False
+        if not self._within_range(chunk):
+            with np.errstate(invalid="ignore"):
+                out = (v < self.lo) | (v > self.hi)
+            out[bad] = False
+        else:
+            out = np.zeros(0, dtype=bool)
         if out.any():
             for j, m in enumerate(self.maps):
                 if out[:, j].any():
@@ -332,8 +378,8 @@ class Pipeline:
         if tg.size == 0:
             return []
         self._last_t = int(tg[-1])
-        try:
-            k, miss = quantise(v[good], self.res)
+        try:  # every row accepted (the usual case): no copy of the chunk
+            k, miss = quantise(v if good.size == n else v[good], self.res)
         except QuantiseError as exc:
             raise ImportFileError(f"values cannot be quantised: {exc}") from exc
         rep.rows_accepted += int(tg.size)
@@ -364,6 +410,22 @@ class Pipeline:
     def _time_name(self) -> str:
         return self.mapping.time_column or "(time)"
 
+    def _within_range(self, chunk: Chunk) -> bool:
+        """True when every value of ``chunk`` lies within its channel's accepted range (NaN
+        aside), decided from each raw column's extremes without a pass over the converted
+        values: ``x · scale + shift`` is monotonic in floating point too, so the extremes map
+        to the converted extremes exactly. False: check value by value."""
+        for j, m in enumerate(self.maps):
+            raw = chunk.columns[m.column]
+            if raw.size == 0:
+                continue
+            ext = np.array([np.fmin.reduce(raw), np.fmax.reduce(raw)]) * self.scale[j]
+            ext += self.shift[j]
+            with np.errstate(invalid="ignore"):
+                if (ext < self.lo[j]).any() or (ext > self.hi[j]).any():
+                    return False
+        return True
+
     def _check_conventions(self, v: F64) -> None:
         self._checked = True
         for j, stroke, closed, f_m in self._positions:
@@ -373,8 +435,7 @@ class Pipeline:
 
     def _append(self, t: I64, k: I64, miss: B) -> None:
         self._t = np.concatenate([self._t, t])
-        self._k = np.concatenate([self._k, k])
-        self._miss = np.concatenate([self._miss, miss])
+        self._open.append(k, miss)
 
     def _cut(self, final: bool) -> list[SampleBlock]:
         t = self._t
@@ -401,8 +462,7 @@ class Pipeline:
         if final:
             self.report.runs += 1
         self._t = self._t[keep_from:]
-        self._k = self._k[keep_from:]
-        self._miss = self._miss[keep_from:]
+        self._open.drop(keep_from)
         return blocks
 
     def _block(self, i: int, j: int) -> SampleBlock:
@@ -416,8 +476,8 @@ class Pipeline:
         rep = self.report
         rep.max_time_shift_ns = max(rep.max_time_shift_ns, shift)
         rep.blocks += 1
-        k = np.ascontiguousarray(self._k[i:j])
-        miss = self._miss[i:j]
+        k, miss = self._open.rows(i, j)
+        k = np.ascontiguousarray(k)
         vals = dequantise(k, miss, self.res)
         blk = SampleBlock(self.machine_id, self._seq, int(t[0]), int(p), self.names,
                           tuple(float(x) for x in self.res), vals, epoch=self.epoch, steps=k)

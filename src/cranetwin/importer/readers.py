@@ -320,7 +320,7 @@ def read_parquet(path: Path, needed: list[str], time_column: str | None, time_ki
             t = np.asarray(pc.fill_null(tarr.cast(pa.string()), "").to_numpy(
                 zero_copy_only=False), dtype=str)
         else:
-            t = pc.fill_null(tarr, 0).cast(
+            t = (pc.fill_null(tarr, 0) if tarr.null_count else tarr).cast(
                 pa.int64() if time_kind == "int" else pa.float64()).to_numpy()
         if tarr.null_count:
             nulls = np.asarray(tarr.is_null().to_numpy(zero_copy_only=False))
@@ -333,7 +333,10 @@ def read_parquet(path: Path, needed: list[str], time_column: str | None, time_ki
             if not (pa.types.is_floating(arr.type) or pa.types.is_integer(arr.type)
                     or pa.types.is_decimal(arr.type)):
                 raise ImportFileError(f"{path}: column {c!r} is {arr.type}, not numbers")
-            cols[c] = np.ascontiguousarray(pc.fill_null(arr.cast(pa.float64()), nan).to_numpy())
+            arr = arr.cast(pa.float64())
+            if arr.null_count:
+                arr = pc.fill_null(arr, nan)
+            cols[c] = np.ascontiguousarray(arr.to_numpy())
         yield Chunk(row, t, cols, bad, refusals, None, min(row - 1 + n, total), total)
         row += n
 

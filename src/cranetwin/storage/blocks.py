@@ -105,18 +105,25 @@ COLUMNS = ("machine_pk", "epoch", "seq", "t_start_ns", "t_end_ns", "period_ns", 
            "resolution", "summary", "data")
 
 
-def per_second(k: I64, mask: npt.NDArray[np.bool_], t0_ns: npt.NDArray[np.int64],
+def per_second(k: I64, mask: npt.NDArray[np.bool_] | None, t0_ns: npt.NDArray[np.int64],
                period_ns: npt.NDArray[np.int64]) -> list[I64]:
     """Aggregates of quantised samples per whole second, for B equally shaped blocks.
 
+    Each statistic is one ``reduceat`` over all blocks along time, channel-major (a segment is
+    one second of one block); without missing samples the counts are the segment lengths and no
+    masked copy of ``k`` is made. Fastest when ``k`` (and ``mask``) are (B, n, c) views of
+    contiguous channel-major arrays of shape (c, B, n), as :func:`block_rows` passes them.
+
     Args:
-        k: Quantised values, shape (B, n, c); mask: missing samples, shape (B, n, c).
+        k: Quantised values, shape (B, n, c); mask: missing samples, shape (B, n, c), or None
+            when no sample is missing.
         t0_ns: First sample time of each block, shape (B,) [ns].
         period_ns: Sample period of each block, shape (B,) [ns].
 
     Returns:
         Per block, shape (4·m, c) for the m seconds from floor(t0 / 1 s): rows [0, m) counts,
-        [m, 2m) minima, [2m, 3m) maxima, [3m, 4m) sums of k; min = max = 0 where count is 0.
+        [m, 2m) minima, [2m, 3m) maxima, [3m, 4m) sums of k (wrapping modulo 2**64); min = max
+        = 0 where count is 0.
     """
     nb, n, c = k.shape
     sec = (t0_ns[:, None] + np.arange(n, dtype=np.int64) * period_ns[:, None]) // SEC
@@ -124,18 +131,27 @@ def per_second(k: I64, mask: npt.NDArray[np.bool_], t0_ns: npt.NDArray[np.int64]
     change = np.ones((nb, n), dtype=bool)
     change[:, 1:] = idx[:, 1:] != idx[:, :-1]
     starts = np.flatnonzero(change.ravel())
-    flat_k, flat_m = k.reshape(nb * n, c), mask.reshape(nb * n, c)
-    big = np.iinfo(np.int64).max
     seg_b, seg_row = starts // n, idx.ravel()[starts]
     m_max = int(idx[:, -1].max()) + 1
+    flat_k = np.ascontiguousarray(k.transpose(2, 0, 1)).reshape(c, nb * n)  # (c, B·n)
     out = np.zeros((nb, 4, m_max, c), dtype=np.int64)
-    out[seg_b, 0, seg_row] = np.add.reduceat((~flat_m).astype(np.int64), starts, axis=0)
-    out[seg_b, 1, seg_row] = np.minimum.reduceat(np.where(flat_m, big, flat_k), starts, axis=0)
-    out[seg_b, 2, seg_row] = np.maximum.reduceat(np.where(flat_m, -big, flat_k), starts, axis=0)
-    out[seg_b, 3, seg_row] = np.add.reduceat(np.where(flat_m, 0, flat_k), starts, axis=0)
-    empty = out[:, 0] == 0
-    out[:, 1][empty] = 0
-    out[:, 2][empty] = 0
+    if mask is None or not mask.any():
+        out[seg_b, 0, seg_row] = np.diff(starts, append=nb * n)[:, None]
+        out[seg_b, 1, seg_row] = np.minimum.reduceat(flat_k, starts, axis=1).T
+        out[seg_b, 2, seg_row] = np.maximum.reduceat(flat_k, starts, axis=1).T
+        out[seg_b, 3, seg_row] = np.add.reduceat(flat_k, starts, axis=1).T
+    else:
+        flat_m = np.ascontiguousarray(mask.transpose(2, 0, 1)).reshape(c, nb * n)
+        big = np.iinfo(np.int64).max
+        out[seg_b, 0, seg_row] = np.add.reduceat((~flat_m).astype(np.int64), starts, axis=1).T
+        out[seg_b, 1, seg_row] = np.minimum.reduceat(np.where(flat_m, big, flat_k), starts,
+                                                     axis=1).T
+        out[seg_b, 2, seg_row] = np.maximum.reduceat(np.where(flat_m, -big, flat_k), starts,
+                                                     axis=1).T
+        out[seg_b, 3, seg_row] = np.add.reduceat(np.where(flat_m, 0, flat_k), starts, axis=1).T
+        empty = out[:, 0] == 0
+        out[:, 1][empty] = 0
+        out[:, 2][empty] = 0
     ms = idx[:, -1] + 1
     return [out[b, :, :ms[b]].reshape(4 * int(ms[b]), c) for b in range(nb)]
 
@@ -214,9 +230,17 @@ def check_block(b: SampleBlock) -> str | None:
     return None
 
 
+GROUP_VALUES = 1 << 18
+"""Most values (samples × channels) :func:`block_rows` encodes in one vectorised pass: a
+datagram's blocks by the thousand, an import's 6000-sample blocks a few at a time. Each pass's
+arrays (a few MB) stay in the CPU cache and in memory the allocator reuses; one pass over a
+whole batch of large blocks spent more time in fresh pages (page faults) than in arithmetic."""
+
+
 def block_rows(items: Sequence[tuple[int, SampleBlock]]) -> list[tuple[object, ...] | str]:
     """Column values (in :data:`COLUMNS` order) for (machine_pk, block) pairs: compresses the
-    samples and their per-second summaries, vectorised over blocks of equal shape.
+    samples and their per-second summaries, vectorised over blocks of equal shape (at most
+    :data:`GROUP_VALUES` values per pass).
 
     The blocks must have passed :func:`check_block`.
 
@@ -224,62 +248,90 @@ def block_rows(items: Sequence[tuple[int, SampleBlock]]) -> list[tuple[object, .
         Per item, its row, or why its values cannot be stored (an infinite value, or one more
         than 2**52 resolution steps from zero); one such block does not affect the others.
     """
-    groups: dict[tuple[int, ...], list[int]] = {}
+    groups: dict[tuple[int, int, bool], list[int]] = {}
     for i, (_, b) in enumerate(items):
-        groups.setdefault(b.values.shape, []).append(i)
+        n, c = b.values.shape
+        wire = b.steps is not None and b.steps.shape == (n, c)
+        groups.setdefault((n, c, wire), []).append(i)
     out: list[tuple[object, ...] | str] = [""] * len(items)
-    for idxs in groups.values():
-        values = np.stack([items[i][1].values for i in idxs]).astype(np.float64, copy=False)
-        mask = np.isnan(values)
-        wire = [st for i in idxs if (st := items[i][1].steps) is not None
-                and st.shape == values.shape[1:]]
-        if len(wire) == len(idxs):
-            k = np.stack(wire).astype(np.int64, copy=False)  # the wire's steps, kept as they are
-            ok = np.all((k > -_STEP_LIMIT) & (k < _STEP_LIMIT), axis=(1, 2))
-        else:
-            res = np.stack([np.asarray(items[i][1].resolution, dtype=np.float64)
-                            for i in idxs])[:, None, :]
-            scaled = np.rint(np.where(mask, 0.0, values) / res)
-            ok = np.all(np.abs(scaled) < _VALUE_LIMIT, axis=(1, 2))
-            k = scaled.astype(np.int64) if ok.all() else np.where(
-                ok[:, None, None], scaled, 0.0).astype(np.int64)
-        if ok.all():
-            good = idxs
-        else:
-            for bad in np.flatnonzero(~ok).tolist():
-                out[idxs[bad]] = "values are infinite or too large for their resolution"
-            if not ok.any():
-                continue
-            good = [i for i, g in zip(idxs, ok.tolist(), strict=True) if g]
-            k = k[ok]
-            mask = mask[ok]
-        data = codec.encode_many(k, mask)
-        t0s = [int(items[i][1].t0_ns) for i in good]
-        periods = [int(items[i][1].period_ns) for i in good]
-        t0 = np.array(t0s, dtype=np.int64)
-        period = np.array(periods, dtype=np.int64)
-        n = k.shape[1]
-        secs = (t0 + (n - 1) * period) // SEC - t0 // SEC + 1
-        spans = np.unique(secs)
-        if spans.size == 1:
-            summ = per_second(k, mask, t0, period)
-        else:  # equal spans together: a long block pads no short one
-            summ = [np.zeros((0, 0), dtype=np.int64)] * len(good)
-            for m in spans:
-                sel = np.flatnonzero(secs == m)
-                for jj, agg in zip(sel.tolist(),
-                                   per_second(k[sel], mask[sel], t0[sel], period[sel]),
-                                   strict=True):
-                    summ[jj] = agg
-        for j, i in enumerate(good):
-            pk, b = items[i]
-            ch, r = b.channels, b.resolution
-            chans, resj = _layout(ch if type(ch) is tuple else tuple(ch),
-                                  r if type(r) is tuple else tuple(float(x) for x in r))
-            t0j, pj = t0s[j], periods[j]
-            out[i] = (pk, int(b.epoch), int(b.seq), t0j, t0j + (n - 1) * pj, pj, n, chans, resj,
-                      codec.encode_plain(summ[j]), data[j])
+    for (n, c, _), idxs in groups.items():
+        per = max(1, GROUP_VALUES // (n * c))
+        for a in range(0, len(idxs), per):
+            _group_rows(items, idxs[a:a + per], out)
     return out
+
+
+def _channel_major(arrays: list[npt.NDArray[Any]], dtype: type) -> npt.NDArray[Any]:
+    """B arrays of shape (n, c) as one C-contiguous array of shape (c, B, n) and ``dtype`` (cast
+    as ``astype`` does)."""
+    n, c = arrays[0].shape
+    out: npt.NDArray[Any] = np.empty((c, len(arrays), n), dtype=dtype)
+    np.stack([a.T for a in arrays], axis=1, out=out, casting="unsafe")
+    return out
+
+
+def _group_rows(items: Sequence[tuple[int, SampleBlock]], idxs: list[int],
+                out: list[tuple[object, ...] | str]) -> None:
+    """:func:`block_rows` of the blocks ``items[i]`` for i in ``idxs`` (all of one shape (n, c),
+    all with the wire's steps or all without), into ``out[i]``. Arrays are channel-major, shape
+    (c, B, n): each block's channel is a contiguous run of samples, as the blob and the
+    summaries take them."""
+    blks = [items[i][1] for i in idxs]
+    n, c = blks[0].values.shape
+    missing = np.isnan(np.stack([b.values for b in blks], dtype=np.float64, casting="unsafe"))
+    mask = (np.ascontiguousarray(missing.transpose(2, 0, 1)) if missing.any()
+            else np.zeros((c, len(blks), n), dtype=bool))
+    wire = [st for b in blks if (st := b.steps) is not None and st.shape == b.values.shape]
+    if len(wire) == len(blks):  # the wire's steps, kept as they are
+        k = _channel_major(wire, np.int64)
+        ok = (np.ones(len(blks), dtype=bool) if -_STEP_LIMIT < k.min() and k.max() < _STEP_LIMIT
+              else np.all((k > -_STEP_LIMIT) & (k < _STEP_LIMIT), axis=(0, 2)))
+    else:
+        res = np.array([np.asarray(b.resolution, dtype=np.float64) for b in blks]).T[:, :, None]
+        values = _channel_major([b.values for b in blks], np.float64)
+        scaled = np.rint(np.where(mask, 0.0, values) / res)
+        ok = (np.ones(len(blks), dtype=bool)
+              if -_VALUE_LIMIT < scaled.min() and scaled.max() < _VALUE_LIMIT  # ±inf fail here
+              else np.all(np.abs(scaled) < _VALUE_LIMIT, axis=(0, 2)))
+        k = scaled.astype(np.int64) if ok.all() else np.where(
+            ok[None, :, None], scaled, 0.0).astype(np.int64)
+    good = idxs
+    if not ok.all():
+        for bad in np.flatnonzero(~ok).tolist():
+            out[idxs[bad]] = "values are infinite or too large for their resolution"
+        if not ok.any():
+            return
+        good = [i for i, g in zip(idxs, ok.tolist(), strict=True) if g]
+        k = np.ascontiguousarray(k[:, ok, :])
+        mask = np.ascontiguousarray(mask[:, ok, :])
+    kb = k.transpose(1, 2, 0)  # (B, n, c) views of the channel-major arrays
+    mb = mask.transpose(1, 2, 0) if mask.any() else None
+    data = codec.encode_many(kb, mb, strategy=codec.BLOCK_STRATEGY)
+    t0s = [int(items[i][1].t0_ns) for i in good]
+    periods = [int(items[i][1].period_ns) for i in good]
+    t0 = np.array(t0s, dtype=np.int64)
+    period = np.array(periods, dtype=np.int64)
+    secs = (t0 + (n - 1) * period) // SEC - t0 // SEC + 1
+    spans = np.unique(secs)
+    if spans.size == 1:
+        summ = per_second(kb, mb, t0, period)
+    else:  # equal spans together: a long block pads no short one
+        summ = [np.zeros((0, 0), dtype=np.int64)] * len(good)
+        for m in spans:
+            sel = np.flatnonzero(secs == m)
+            for jj, agg in zip(sel.tolist(),
+                               per_second(kb[sel], None if mb is None else mb[sel], t0[sel],
+                                          period[sel]),
+                               strict=True):
+                summ[jj] = agg
+    for j, i in enumerate(good):
+        pk, b = items[i]
+        ch, r = b.channels, b.resolution
+        chans, resj = _layout(ch if type(ch) is tuple else tuple(ch),
+                              r if type(r) is tuple else tuple(float(x) for x in r))
+        t0j, pj = t0s[j], periods[j]
+        out[i] = (pk, int(b.epoch), int(b.seq), t0j, t0j + (n - 1) * pj, pj, n, chans, resj,
+                  codec.encode_plain(summ[j]), data[j])
 
 
 Key = tuple[int, int, int]

@@ -5,7 +5,11 @@ Values are quantised at the channel resolution to integers (lossless for values 
 multiples of the resolution, as sensors send them), differenced along time per channel,
 zigzag-mapped to unsigned integers of the smallest width that holds them (1, 2, 4 or 8 bytes),
 byte-shuffled (all low bytes, then the next byte plane, ...) and deflated with zlib. Missing
-samples (NaN) are kept as a packed bit mask. Layout of the blob::
+samples (NaN) are kept as a packed bit mask. Storage writes its blocks with zlib's run-length
+strategy (:data:`BLOCK_STRATEGY`): the planes are runs of zeros and near-random low bytes, which
+back-references barely shorten (the default strategy's search took half of an import's CPU);
+any deflate stream inflates alike, so every blob, whatever strategy wrote it, decodes the same.
+Layout of the blob::
 
     offset  size  field
     0       1     format version (1)
@@ -34,6 +38,10 @@ F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
 VERSION = 1
+BLOCK_STRATEGY = zlib.Z_RLE
+"""zlib strategy of the blocks storage writes (:func:`cranetwin.storage.blocks.block_rows`):
+on the bench's 1 h recording 2× faster than the default and 7 % smaller, on a simulated one
+1.7× faster and 8 % smaller."""
 _HEAD = struct.Struct("<BBBxII")
 _LIMIT = 2.0**52  # |quantised value| beyond which float64 → int64 is no longer exact
 
@@ -76,9 +84,7 @@ def encode(values: F64, resolution: Sequence[float], level: int = 6) -> bytes:
 
 def encode_ints(k: I64, mask: npt.NDArray[np.bool_] | None = None, level: int = 6) -> bytes:
     """Compress an integer array, shape (n, c), with an optional missing-value mask (n, c)."""
-    if mask is None:
-        mask = np.zeros(k.shape, dtype=bool)
-    return encode_many(k[None], mask[None], level)[0]
+    return encode_many(k[None], None if mask is None else mask[None], level)[0]
 
 
 def decode_ints(blob: bytes) -> tuple[I64, npt.NDArray[np.bool_]]:
@@ -167,32 +173,52 @@ def decode(blob: bytes, resolution: Sequence[float]) -> F64:
     return intcodec.dequantise(k, mask, resolution)
 
 
-def encode_many(k: I64, mask: npt.NDArray[np.bool_], level: int = 1) -> list[bytes]:
+def _deflate(body: bytes | memoryview, level: int, strategy: int) -> bytes:
+    if strategy == zlib.Z_DEFAULT_STRATEGY:
+        return zlib.compress(body, level)
+    z = zlib.compressobj(level, zlib.DEFLATED, 15, 8, strategy)
+    return z.compress(body) + z.flush()
+
+
+def encode_many(k: I64, mask: npt.NDArray[np.bool_] | None, level: int = 1,
+                strategy: int = zlib.Z_DEFAULT_STRATEGY) -> list[bytes]:
     """Blobs of B equally shaped integer arrays at once (vectorised over blocks).
 
+    One pass per stage over all blocks, each writing one array: channel-major deltas, zigzag in
+    place, the byte planes of the blocks of each width, then zlib per block. Fastest when ``k``
+    is a (B, n, c) view of a contiguous channel-major array of shape (c, B, n) (as
+    :func:`cranetwin.storage.blocks.block_rows` passes it): no transposing copy then.
+
     Args:
-        k: Integer steps, shape (B, n, c); mask: missing samples, shape (B, n, c).
-        level: zlib level (1 fastest … 9 smallest).
+        k: Integer steps, shape (B, n, c); mask: missing samples, shape (B, n, c), or None when
+            no sample is missing.
+        level: zlib level (0 stored … 1 fastest … 9 smallest).
+        strategy: zlib strategy (storage's blocks: :data:`BLOCK_STRATEGY`).
 
     Returns:
         B blobs; ``decode_ints(blobs[i])`` gives back ``(k[i], mask[i])``.
     """
     nb, n, c = k.shape
-    kt = np.ascontiguousarray(k.transpose(0, 2, 1))  # (B, c, n): channel-major per block
-    z = intcodec.zigzag_array(intcodec.deltas(kt, axis=2, first=True)).reshape(nb, c * n)
-    top = z.max(axis=1) if z.size else np.zeros(nb, dtype=np.uint64)
-    has_mask: npt.NDArray[np.bool_] = np.asarray(mask.reshape(nb, -1).any(axis=1))
+    kt = np.ascontiguousarray(k.transpose(2, 0, 1))  # (c, B, n): time last, per channel
+    z = intcodec.zigzag_array(intcodec.deltas(kt, axis=2, first=True), in_place=True)
+    top = z.max(axis=(0, 2)) if z.size else np.zeros(nb, dtype=np.uint64)
+    has_mask = (np.zeros(nb, dtype=bool) if mask is None
+                else np.asarray(mask.any(axis=(1, 2))))
     widths = np.array([intcodec.byte_width(int(t)) for t in top.tolist()], dtype=np.int64)
     out: list[bytes] = [b""] * nb
     for width in np.unique(widths).tolist():
-        idx = np.flatnonzero(widths == width)
-        planes = intcodec.byte_planes(z[idx], width)
+        sel = widths == width
+        idx = np.flatnonzero(sel)
+        zs = z if sel.all() else z[:, idx, :]
+        planes = intcodec.block_byte_planes(zs, width)  # (B', width · c · n) bytes
         for row, b in enumerate(idx.tolist()):
-            body = planes[row].tobytes()
+            head = _HEAD.pack(VERSION, width, int(has_mask[b]), n, c)
             if has_mask[b]:
-                body += np.packbits(mask[b].T.reshape(-1)).tobytes()
-            out[b] = _HEAD.pack(VERSION, width, int(has_mask[b]), n, c) + zlib.compress(body,
-                                                                                          level)
+                assert mask is not None
+                body = planes[row].tobytes() + np.packbits(mask[b].T.reshape(-1)).tobytes()
+                out[b] = head + _deflate(body, level, strategy)
+            else:
+                out[b] = head + _deflate(memoryview(planes[row]), level, strategy)
     return out
 
 
