@@ -415,7 +415,7 @@ class TwinWorker:
                     prog, expected = new, new.watermark_s
                     continue
             new = self.process_window(rec, prog, expected, until_s=w0 + k * win,
-                                      samples=samples)
+                                      samples=samples, reads=reads)
             if new is None:
                 log.info("machine %s: window %.0f committed by another worker", mid, w0)
                 break
@@ -589,7 +589,8 @@ class TwinWorker:
         for w0, w1 in spans:
             if self.stop_requested():
                 return prog, done  # the mark stays: the rest is found again next pass
-            new = self.process_window(rec, prog, prog.watermark_s, redo_w0=w0, until_s=w1)
+            new = self.process_window(rec, prog, prog.watermark_s, redo_w0=w0, until_s=w1,
+                                      reads=reads)
             if new is None:
                 return None
             prog = new
@@ -694,7 +695,8 @@ class TwinWorker:
     def process_window(self, rec: MachineRecord, prog: Progress,
                        expected_watermark_s: float | None,
                        redo_w0: float | None = None, until_s: float | None = None,
-                       samples: SampleArrays | None = None) -> Progress | None:
+                       samples: SampleArrays | None = None,
+                       reads: PassReads | None = None) -> Progress | None:
         """Replay [watermark, until_s) (default: one window), commit its summaries and progress
         together.
 
@@ -711,6 +713,8 @@ class TwinWorker:
             until_s: End of the span [s]: a whole number of windows after its start (one
                 window when None); with ``redo_w0``, the end of the stored span redone.
             samples: The machine's samples of the span and its margins, if already read.
+            reads: The pass's reads holding this machine (its stored known payload runs:
+                a span outside them reads none).
 
         Returns:
             The new progress, or None when another worker committed the window first (nothing
@@ -742,8 +746,11 @@ class TwinWorker:
             if n_in < 8:
                 raise CraneTwinError(f"only {n_in} samples in the window")
             grid_hz = sample_rate_hz(samples)
+            stored = reads is None or reads.payload_stored(  # a second more either side
+                rec.machine_id, float(samples.t_s[0]) - 1.0, float(samples.t_s[-1]) + 1.0)
             res = self.replayer.replay(rec.machine_id, machine, samples, grid_hz,
-                                       theta0_initial=prog.theta0_rad or 0.0)
+                                       theta0_initial=prog.theta0_rad or 0.0,
+                                       payload_stored=stored)
         except CraneTwinError as exc:
             log.warning("machine %s window %.0f–%.0f not replayed: %s", rec.machine_id, w0, w1,
                         exc)

@@ -38,6 +38,8 @@ class PassReads:
         samples: Machine → (from s, to s, its samples read for [from, to)): the first span
             the pass expects to replay (taken by the machine's turn if it asks for the same
             range; it reads alone otherwise).
+        payload: Machine → (first, last) time [s] of its stored known payload runs (machines
+            without any left out): a span outside it reads none (:meth:`payload_stored`).
         marks: Machine → mark to store at the end of the pass (filled while processing).
     """
 
@@ -45,7 +47,20 @@ class PassReads:
     progress: dict[str, Progress]
     late: dict[str, tuple[int | None, int, list[tuple[float, float]]]]
     samples: dict[str, tuple[float, float, SampleArrays]] = field(default_factory=dict)
+    payload: dict[str, tuple[float, float]] = field(default_factory=dict)
     marks: dict[str, int] = field(default_factory=dict)
+
+    def payload_stored(self, machine_id: str, t0_s: float, t1_s: float) -> bool:
+        """Whether a known payload may be stored for [t0_s, t1_s] of the machine: False only
+        when the pass read the machine's payload runs and none reaches into that span (its
+        replay then reads none). Only for a machine whose late blocks the pass read too
+        (:attr:`late`): the payload runs are read after that commit-order mark, so a block
+        stored later, whose payload this read may not have seen, is late data of the next
+        pass; a machine that reads its own mark later could mark such a block done."""
+        if machine_id not in self.late:
+            return True
+        got = self.payload.get(machine_id)
+        return got is not None and got[0] <= t1_s and got[1] >= t0_s
 
 
 MAX_PREFETCH_S = 30.0
@@ -93,10 +108,31 @@ def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
         by_pk = {got[m][0]: m for m in ids}
         for pk, (mark, _wm) in bounds.items():
             late[by_pk[pk]] = (mark, top, found.get(pk, []))
-    reads = PassReads(ranges, progress, late)
+    reads = PassReads(ranges, progress, late, payload=_payload_ranges(backend, got, stored))
     if first_span is not None:
         _read_samples(backend, reads, got, window_s, first_span)
     return reads
+
+
+def _payload_ranges(backend: Backend, got: dict[str, tuple[int, tuple[float, float] | None]],
+                    ids: list[str]) -> dict[str, tuple[float, float]]:
+    """Per machine, (first, last) time [s] of its stored known payload runs, one statement per
+    engine. Read after the data ranges and the late blocks: the importer stores a block's
+    payload before the block, so every block those reads saw has its payload seen here (a
+    block stored after them is late data of the next pass, replayed again then)."""
+    from sqlalchemy.orm import Session
+
+    from cranetwin.storage.payloads import stored_ranges
+
+    out: dict[str, tuple[float, float]] = {}
+    for engine, part in backend.store.engines_of(ids):
+        with Session(engine) as s:
+            found = stored_ranges(s, [got[m][0] for m in part])
+        for m in part:
+            r = found.get(got[m][0])
+            if r is not None:
+                out[m] = (r[0] / 1e9, r[1] / 1e9)
+    return out
 
 
 def _read_samples(backend: Backend, reads: PassReads,
