@@ -84,6 +84,7 @@ if TYPE_CHECKING:
     from cranetwin.service.metrics import Metrics
     from cranetwin.service.ownership import Ownership
     from cranetwin.service.replayer import Replayer
+    from cranetwin.service.workercommit import PassCommit
     from cranetwin.service.workerpass import PassReads
     from cranetwin.settings import Settings
 
@@ -220,25 +221,43 @@ class TwinWorker:
         Returns:
             Windows processed (0 = every machine is caught up).
         """
+        from cranetwin.service.workercommit import PassCommit
         from cranetwin.service.workerpass import flush_marks, read_pass
 
         total = 0
         own = self.ownership
         if own is not None:
             own.refresh()
-            due = self.clock() + self.settings.worker_interval_s
             owned = frozenset(own.owned)
             if owned != self._owned:  # what another worker may have written meanwhile
                 self._forget()
                 self._owned = owned
         self._rollup()
         pool = self._thread_pool()
-        pending: list[Future[int]] = []
-        failed: list[BaseException] = []
         machines = self.backend.list_machines()
         mine = [r.machine_id for r in machines if own is None or own.owns(r.machine_id)]
         reads: PassReads | None = read_pass(self.backend, mine, self.settings.worker_window_s,
                                             self._first_span)
+        batch = PassCommit(self.backend)
+        try:
+            total += self._pass(machines, reads, batch, pool)
+        finally:  # what the machines done so far replayed, also when one failed
+            self._commit(batch)
+        if reads is not None and reads.marks:
+            flush_marks(self.backend, reads)
+        self._partition_metrics()
+        if own is None or 0 in own.owned:
+            self._upkeep()
+        return total
+
+    def _pass(self, machines: list[MachineRecord], reads: PassReads | None, batch: PassCommit,
+              pool: ThreadPoolExecutor | None) -> int:
+        """The machines' turns of :meth:`run_once`; returns windows processed."""
+        own = self.ownership
+        due = self.clock() + self.settings.worker_interval_s
+        total = 0
+        pending: list[Future[int]] = []
+        failed: list[BaseException] = []
 
         def result(f: Future[int]) -> int:  # a failed machine fails the pass at its end
             exc = f.exception()
@@ -263,21 +282,37 @@ class TwinWorker:
                     self._forget(rec.machine_id)
                     continue
             pre = reads if reads is not None and rec.machine_id in reads.ranges else None
+            if batch.due():  # between turns: no machine adds to it meanwhile
+                total += sum(result(f) for f in pending)
+                pending.clear()
+                self._commit(batch)
             if pool is None:
-                total += self.catch_up(rec, self.max_windows_per_pass, pre)
+                total += self.catch_up(rec, self.max_windows_per_pass, pre, batch)
                 continue
-            pending.append(pool.submit(self.catch_up, rec, self.max_windows_per_pass, pre))
+            pending.append(pool.submit(self.catch_up, rec, self.max_windows_per_pass, pre,
+                                       batch))
             if len(pending) >= 2 * self.settings.worker_threads:  # ownership re-checked often
                 total += result(pending.pop(0))
         total += sum(result(f) for f in pending)
-        if reads is not None and reads.marks:
-            flush_marks(self.backend, reads)
         if failed:
             raise failed[0]  # after every machine of the pass had its turn
-        self._partition_metrics()
-        if own is None or 0 in own.owned:
-            self._upkeep()
         return total
+
+    def _commit(self, batch: PassCommit) -> None:
+        """Commit the pass's collected spans (:mod:`cranetwin.service.workercommit`)."""
+        try:
+            won, lost, parts = batch.commit()
+        except BaseException:
+            self._forget()  # nothing of it stored: what was kept of those spans is not
+            raise
+        self._last_part.update(parts)
+        for mid in sorted(lost):
+            log.info("machine %s: span committed by another worker", mid)
+            self._forget(mid)
+        if self.metrics is not None:
+            for mid, n in won.items():
+                if n:
+                    self.metrics.worker_windows.labels(mid).inc(n)
 
     def _rollup(self) -> None:
         """Roll the raw 1-min summaries up, at most every ``worker_rollup_s`` (0: never).
@@ -348,7 +383,7 @@ class TwinWorker:
                      res.dropped, len(res.kept))
 
     def catch_up(self, rec: MachineRecord, max_windows: int | None = None,
-                 reads: PassReads | None = None) -> int:
+                 reads: PassReads | None = None, batch: PassCommit | None = None) -> int:
         """Process the ready windows of one machine, oldest first; returns how many.
 
         Stops early when :attr:`stop_requested`, or when another worker moved the machine's
@@ -357,15 +392,17 @@ class TwinWorker:
         Args:
             reads: The pass's reads holding this machine (:mod:`cranetwin.service.workerpass`;
                 None: read them for this machine alone).
+            batch: Collect the spans for the pass's commit (:mod:`cranetwin.service.
+                workercommit`; None: each span is committed at once).
         """
         try:
-            return self._catch_up(rec, max_windows, reads)
+            return self._catch_up(rec, max_windows, reads, batch)
         except BaseException:
             self._forget(rec.machine_id)
             raise
 
     def _catch_up(self, rec: MachineRecord, max_windows: int | None,
-                  reads: PassReads | None) -> int:
+                  reads: PassReads | None, batch: PassCommit | None) -> int:
         from cranetwin.service.backend import Progress
 
         s = self.settings
@@ -408,30 +445,46 @@ class TwinWorker:
                     break
                 if nxt >= w0 + win:
                     new = dc_replace(prog, watermark_s=math.floor(nxt / win) * win)
-                    if not self.backend.save_progress(new, expected):
+                    if not self._save(new, expected, batch):
                         log.info("machine %s: watermark moved by another worker", mid)
                         self._forget(mid)
                         break
                     prog, expected = new, new.watermark_s
                     continue
             new = self.process_window(rec, prog, expected, until_s=w0 + k * win,
-                                      samples=samples, reads=reads)
+                                      samples=samples, reads=reads, batch=batch)
             if new is None:
                 log.info("machine %s: window %.0f committed by another worker", mid, w0)
                 break
             done += k
             prog, expected = new, new.watermark_s
-        self._roll_up(rec, start_wm, prog.watermark_s)
-        if done or prog.watermark_s != start_wm:
-            # the duty to date folds every minute since its last update: once a minute of data
-            # (or when the machine went quiet) is enough, not once per short window
-            if quiet or math.floor(prog.watermark_s / 60.0) != math.floor(start_wm / 60.0):
-                self._update_duty(rec, dr[0], prog.watermark_s)
-        self._check_schedules(rec)
+        end_wm = prog.watermark_s
+
+        def after_commit() -> None:  # what reads the stored parts: after the spans' commit
+            self._roll_up(rec, start_wm, end_wm)
+            if done or end_wm != start_wm:
+                # the duty to date folds every minute since its last update: once a minute of
+                # data (or when the machine went quiet) is enough, not once per short window
+                if quiet or math.floor(end_wm / 60.0) != math.floor(start_wm / 60.0):
+                    self._update_duty(rec, dr[0], end_wm)
+            self._check_schedules(rec)
+
+        if batch is None:
+            after_commit()
+        else:
+            batch.after(mid, after_commit)
         self._marks[rec.machine_id] = (dr[1], prog.watermark_s)
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
+
+    def _save(self, prog: Progress, expected: float | None, batch: PassCommit | None) -> bool:
+        """Store progress alone (a skipped gap, a span not replayed): into ``batch`` when
+        given (True), else at once (False: another worker moved the watermark first)."""
+        if batch is None:
+            return self.backend.save_progress(prog, expected)
+        batch.add(prog, expected)
+        return True
 
     def _first_span(self, w0: float, newest_s: float) -> tuple[float, float] | None:
         """The sample range [from, to) [s] a machine's turn reads first when its watermark is
@@ -476,7 +529,7 @@ class TwinWorker:
 
     def _analytics(self, rec: MachineRecord, machine: Machine, res: object,
                    keep: npt.NDArray[np.bool_], w0: float, w1: float,
-                   times: tuple[float, float] = (0.0, 0.0),
+                   times: tuple[float, float] = (0.0, 0.0), batch: PassCommit | None = None,
                    ) -> tuple[dict[str, Any] | None, list[Any]]:
         """The window's analytics part row (:mod:`cranetwin.service.history`: what any range's
         analytics merge from) and its events, stored with the window's commit: a redone
@@ -505,7 +558,7 @@ class TwinWorker:
         row = got[1] if got is not None else None
         try:
             det = EventDetector(machine)
-            prev = self._previous_part(rec, w0)
+            prev = self._previous_part(rec, w0, batch)
             if prev is not None:
                 part = load_part(prev)
                 if part.t_last < float(h.t_s[0]):
@@ -519,13 +572,17 @@ class TwinWorker:
             return row, []
         return row, events
 
-    def _previous_part(self, rec: MachineRecord, w0: float) -> bytes | None:
+    def _previous_part(self, rec: MachineRecord, w0: float,
+                       batch: PassCommit | None = None) -> bytes | None:
         """The data of the last stored minute part inside [w0 − 60 s, w0), or None: the one
-        this worker committed last when it is still valid (:attr:`_last_part`: only windows
-        processed forward set it, so it is the newest part before the watermark), else read."""
+        of the machine's span waiting in ``batch`` (not stored yet), else the one this worker
+        committed last when it is still valid (:attr:`_last_part`: only windows processed
+        forward set it, so it is the newest part before the watermark), else read."""
         from cranetwin.storage import analytics_windows as aw
 
-        seen = self._last_part.get(rec.machine_id)
+        seen = batch.parts.get(rec.machine_id) if batch is not None else None
+        if seen is None:
+            seen = self._last_part.get(rec.machine_id)
         if seen is not None and seen[1] <= w0:
             return seen[2] if seen[0] >= w0 - 60 else None
         prev = aw.windows(self._engine(rec), rec.machine_id, 60, w0 - 60, w0)
@@ -696,7 +753,8 @@ class TwinWorker:
                        expected_watermark_s: float | None,
                        redo_w0: float | None = None, until_s: float | None = None,
                        samples: SampleArrays | None = None,
-                       reads: PassReads | None = None) -> Progress | None:
+                       reads: PassReads | None = None,
+                       batch: PassCommit | None = None) -> Progress | None:
         """Replay [watermark, until_s) (default: one window), commit its summaries and progress
         together.
 
@@ -715,6 +773,9 @@ class TwinWorker:
             samples: The machine's samples of the span and its margins, if already read.
             reads: The pass's reads holding this machine (its stored known payload runs:
                 a span outside them reads none).
+            batch: Collect the span for the pass's commit instead of committing it now
+                (forward spans only, not with ``redo_w0``); the new progress is returned as
+                if committed (:mod:`cranetwin.service.workercommit`).
 
         Returns:
             The new progress, or None when another worker committed the window first (nothing
@@ -758,7 +819,7 @@ class TwinWorker:
                 self.metrics.worker_errors.labels(rec.machine_id).inc()
             if redo_w0 is not None:
                 return prog
-            return new if self.backend.save_progress(new, expected) else None
+            return new if self._save(new, expected, batch) else None
         keep = window_rows(res, w0, w1)
         names, values = derive(machine, res, keep)
         t = res.t_s[keep]
@@ -779,9 +840,14 @@ class TwinWorker:
                 new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
             rows.append(seconds_row(rec.machine_id, w0, w1,
                                     *lift_seconds(machine, t, res.payload_kg[keep], reach)))
-            part, events = self._analytics(rec, machine, res, keep, w0, w1, times)
+            part, events = self._analytics(rec, machine, res, keep, w0, w1, times, batch)
             if part is not None:
                 rows.append(part)
+        if batch is not None and redo_w0 is None:
+            batch.add(new, expected, names, t, values, rows, events, n_windows)
+            if part is not None:
+                batch.parts[rec.machine_id] = (w0, w1, part["data"])
+            return new
 
         def also(session: Any, machine_pk: int) -> None:
             from cranetwin.storage import analytics_windows as aw
