@@ -6,7 +6,8 @@ SyntheticSource` over the built-in crane's layout, 2-quantum noise, seeded by th
 stored as the ingest daemon stores them (blocks of ``batch_samples`` samples) in a fresh
 database ``h_fleetbench_worker_…`` (dropped at the end). One :class:`~cranetwin.service.worker.
 TwinWorker` with the fleet bench's settings (windows of 4 s, settle 1 s, replay margin 1 s,
-``worker_threads``, no roll-up) first catches up ``history_s`` of data (not timed: smoothing
+``worker_threads``, no roll-up; ``window_s``, ``settle_s``, ``margin_s`` change them: the
+settings' defaults are 60, 2 and 2 s) first catches up ``history_s`` of data (not timed: smoothing
 choices, kernels and caches are warm after it). Then, for each step size of ``steps_s``,
 ``passes`` times: every machine gets ``step_s`` more seconds of data (not timed), and one
 :meth:`TwinWorker.run_once` is timed.

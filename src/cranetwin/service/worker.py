@@ -31,11 +31,15 @@ conditional on the watermark the window started from, so a second worker on the 
 replay back instead of counting it twice.
 
 Cost per machine and pass (what bounds the machines per worker core at short windows): the
-pass reads the data ranges, progress rows, late-data marks and late blocks of all its machines,
-and each machine's first span of samples, in a few statements
-(:mod:`cranetwin.service.workerpass`); a span's derived summaries, analytics part, lift seconds,
-events and progress are one transaction of fixed statements; the new late-data marks are written
-in one statement at the end of the pass. The worker keeps what only it writes while it owns a
+pass reads the data ranges, progress rows, late-data marks, late blocks and stored known-payload
+runs of all its machines, and each machine's first span of samples, in a few statements
+(:mod:`cranetwin.service.workerpass`); the spans the pass replays (derived summaries, analytics
+parts, lift seconds, events and progress of all its machines) are committed together, one
+transaction of fixed statements per engine at the end of the pass or every 100 machines or 2 s
+(:mod:`cranetwin.service.workercommit`: each machine's progress still moves only from the
+watermark its span started from, in the transaction holding its results); the new late-data
+marks are written in one statement at the end of the pass. Late data (:meth:`_redo_late`) is
+redone and committed at once, before the machine's forward spans. The worker keeps what only it writes while it owns a
 machine — the last analytics part it committed (the next window's event look-back) and the duty
 to date — and drops them when its partitions change, when a commit finds the watermark moved and
 when late data is redone.
