@@ -39,10 +39,11 @@ transaction of fixed statements per engine at the end of the pass or every 100 m
 (:mod:`cranetwin.service.workercommit`: each machine's progress still moves only from the
 watermark its span started from, in the transaction holding its results); the new late-data
 marks are written in one statement at the end of the pass. Late data (:meth:`_redo_late`) is
-redone and committed at once, before the machine's forward spans. The worker keeps what only it writes while it owns a
-machine — the last analytics part it committed (the next window's event look-back) and the duty
-to date — and drops them when its partitions change, when a commit finds the watermark moved and
-when late data is redone.
+redone and committed at once, before the machine's forward spans. The worker keeps what only
+it writes while it owns a machine — the last analytics part it committed (the next window's
+event look-back), the duty to date, and which blocks above its late-data mark its last pass
+had seen (:class:`~cranetwin.storage.analytics_windows.Seen`) — and drops them when its
+partitions change, when a commit finds the watermark moved and when late data is redone.
 
 Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
 --partitions …``) a worker processes only the machines of the partitions it owns, re-checked
@@ -91,6 +92,7 @@ if TYPE_CHECKING:
     from cranetwin.service.workercommit import PassCommit
     from cranetwin.service.workerpass import PassReads
     from cranetwin.settings import Settings
+    from cranetwin.storage.analytics_windows import Seen
 
 log = logging.getLogger(__name__)
 
@@ -146,6 +148,11 @@ class TwinWorker:
         look-back of the next window's events), kept while nothing else can have written its
         parts: dropped when the worker's partitions change, when the machine is not owned, when
         a commit finds the watermark moved, and when late data redoes windows."""
+        self._seen: dict[str, tuple[int, Seen, float]] = {}
+        """Machine → (the late-data mark of the pass that last committed its spans, what that
+        pass saw, the watermark it committed): :func:`~cranetwin.service.workerpass.read_pass`
+        leaves the blocks it saw out of the next pass's late data. Kept and dropped as
+        :attr:`_last_part`."""
         self._duty: dict[str, DutyToDate] = {}
         """Machine → the duty to date this worker stored last (not read back while valid: kept
         and dropped as :attr:`_last_part`)."""
@@ -161,9 +168,11 @@ class TwinWorker:
         if machine_id is None:
             self._last_part.clear()
             self._duty.clear()
+            self._seen.clear()
         else:
             self._last_part.pop(machine_id, None)
             self._duty.pop(machine_id, None)
+            self._seen.pop(machine_id, None)
 
     def _engine(self, rec: MachineRecord) -> Any:
         """The engine holding the machine's rows (its shard when storage is sharded)."""
@@ -241,7 +250,7 @@ class TwinWorker:
         machines = self.backend.list_machines()
         mine = [r.machine_id for r in machines if own is None or own.owns(r.machine_id)]
         reads: PassReads | None = read_pass(self.backend, mine, self.settings.worker_window_s,
-                                            self._first_span)
+                                            self._first_span, dict(self._seen))
         batch = PassCommit(self.backend)
         try:
             total += self._pass(machines, reads, batch, pool)
@@ -464,7 +473,16 @@ class TwinWorker:
             prog, expected = new, new.watermark_s
         end_wm = prog.watermark_s
 
+        snap = reads.snapshots.get(mid) if reads is not None and mid in reads.late else None
+        top = reads.late[mid][1] if reads is not None and snap is not None else 0
+
         def after_commit() -> None:  # what reads the stored parts: after the spans' commit
+            if snap is not None and end_wm > start_wm:
+                # every window reaching the blocks committed in the pass's snapshot that start
+                # after start_wm + margin was replayed with them (read after it)
+                from cranetwin.storage.analytics_windows import Seen
+
+                self._seen[mid] = (top, Seen(snap, start_wm + s.twin_margin_s), end_wm)
             self._roll_up(rec, start_wm, end_wm)
             if done or end_wm != start_wm:
                 # the duty to date folds every minute since its last update: once a minute of

@@ -41,6 +41,9 @@ class PassReads:
         payload: Machine → (first, last) time [s] of its stored known payload runs (machines
             without any left out): a span outside it reads none (:meth:`payload_stored`).
         marks: Machine → mark to store at the end of the pass (filled while processing).
+        snapshots: Machine → the snapshot whose xmin is this pass's mark (in :attr:`late`;
+            what the worker remembers of a pass whose spans it committed, :class:`~cranetwin.
+            storage.analytics_windows.Seen`).
     """
 
     ranges: dict[str, tuple[float, float] | None]
@@ -49,6 +52,7 @@ class PassReads:
     samples: dict[str, tuple[float, float, SampleArrays]] = field(default_factory=dict)
     payload: dict[str, tuple[float, float]] = field(default_factory=dict)
     marks: dict[str, int] = field(default_factory=dict)
+    snapshots: dict[str, str] = field(default_factory=dict)
 
     def payload_stored(self, machine_id: str, t0_s: float, t1_s: float) -> bool:
         """Whether a known payload may be stored for [t0_s, t1_s] of the machine: False only
@@ -70,7 +74,7 @@ that catches up: 500 machines × 30 s × 10 Hz × 20 channels ≈ 24 MB)."""
 
 def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
               first_span: Callable[[float, float], tuple[float, float] | None] | None = None,
-              ) -> PassReads:
+              seen: dict[str, tuple[int, aw.Seen, float]] | None = None) -> PassReads:
     """The reads of a pass over ``machine_ids`` (a few statements per engine).
 
     Args:
@@ -80,18 +84,24 @@ def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
         first_span: (watermark, newest sample) → the sample range [from, to) [s] of the first
             span the machine's turn will replay, None when nothing is ready (None: no samples
             read ahead).
+        seen: Machine → (the mark its last pass stored, what that pass saw, the watermark it
+            committed): used when the machine's stored mark and watermark are still those
+            (no other worker moved them), so the blocks it saw are not late data now.
     """
     got = backend.data_ranges(machine_ids)
     ranges = {m: v[1] for m, v in got.items()}
     stored = [m for m, r in ranges.items() if r is not None]
     progress = backend.progress_many(stored) if stored else {}
     late: dict[str, tuple[int | None, int, list[tuple[float, float]]]] = {}
+    snapshots: dict[str, str] = {}
+    seen = seen or {}
     for engine, ids in backend.store.engines_of(stored):
         if engine.dialect.name != "postgresql":
             continue
         marks = aw.block_marks(engine, ids)
-        top = aw.snapshot_xmin(engine)  # after the data ranges (module docstring)
+        top, snap = aw.snapshot(engine)  # after the data ranges (module docstring)
         bounds: dict[int, tuple[int, float]] = {}
+        saw: dict[int, aw.Seen] = {}
         for m in ids:
             mark, legacy = marks[m]
             if legacy:
@@ -104,11 +114,16 @@ def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
             assert r is not None
             wm = p.watermark_s if p is not None else math.floor(r[0] / window_s) * window_s
             bounds[got[m][0]] = (mark, wm)
-        found = aw.new_blocks_before_many(engine, bounds, top)
+            last = seen.get(m)
+            if last is not None and last[0] == mark and p is not None and last[2] == wm:
+                saw[got[m][0]] = last[1]
+        found = aw.new_blocks_before_many(engine, bounds, top, saw)
         by_pk = {got[m][0]: m for m in ids}
         for pk, (mark, _wm) in bounds.items():
             late[by_pk[pk]] = (mark, top, found.get(pk, []))
-    reads = PassReads(ranges, progress, late, payload=_payload_ranges(backend, got, stored))
+        snapshots.update(dict.fromkeys(ids, snap))
+    reads = PassReads(ranges, progress, late, payload=_payload_ranges(backend, got, stored),
+                      snapshots=snapshots)
     if first_span is not None:
         _read_samples(backend, reads, got, window_s, first_span)
     return reads
