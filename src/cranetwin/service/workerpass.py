@@ -1,6 +1,8 @@
 """What the twin worker reads once per pass for all the machines it owns, instead of once per
-machine: the stored data ranges, the progress rows, and on PostgreSQL the late-data marks and
-the late blocks behind each watermark (:meth:`cranetwin.service.worker.TwinWorker._redo_late`).
+machine: the stored data ranges, the progress rows, on PostgreSQL the late-data marks and the
+late blocks behind each watermark (:meth:`cranetwin.service.worker.TwinWorker._redo_late`;
+without the blocks the worker's last pass saw, :class:`~cranetwin.storage.analytics_windows.
+Seen`), and the time ranges of the stored known-payload runs (a span outside them reads none).
 
 A pass over 500 machines then costs a handful of statements for these instead of seven per
 machine; the new late-data marks are written in one statement at the end of the pass
