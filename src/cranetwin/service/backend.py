@@ -360,12 +360,14 @@ class Backend:
         from sqlalchemy import select
 
         row_t = keyrepo.TwinProgressRow
+        fields = list(Progress.__dataclass_fields__)
+        cols = [getattr(row_t, f) for f in fields]  # plain rows: no ORM object per machine
         out: dict[str, Progress] = {}
         for engine, ids in self.store.engines_of(machine_ids):
             with Session(engine) as s:
-                for row in s.scalars(select(row_t).where(row_t.machine_id.in_(ids))):
-                    out[row.machine_id] = Progress(**{f: getattr(row, f)
-                                                      for f in Progress.__dataclass_fields__})
+                for row in s.execute(select(*cols).where(row_t.machine_id.in_(ids))):
+                    p = Progress(**dict(zip(fields, row, strict=True)))
+                    out[p.machine_id] = p
         with self._lock:
             self._progress_cache.update(out)
         return out
