@@ -22,7 +22,8 @@ is then paid once per span, so a worker that falls behind catches up instead of 
 behind. Late data redoes the stored span it falls in.
 
 The summaries of a window and the machine's new progress row (watermark = end of the window,
-cumulative counters) are committed in ONE transaction, and derived summaries are written by
+cumulative counters) are committed in ONE transaction (with the other machines' spans of the
+pass, :mod:`cranetwin.service.workercommit`), and derived summaries are written by
 overwriting their buckets: a crash before the commit leaves the window unprocessed (it is done
 again, once), a crash after it leaves it done. After downtime the worker starts from the
 watermark and catches up; empty stretches (machine off) are skipped in one step. The commit is
