@@ -6,7 +6,8 @@ SyntheticSource` over the built-in crane's layout, 2-quantum noise, seeded by th
 stored as the ingest daemon stores them (blocks of ``batch_samples`` samples) in a fresh
 database ``h_fleetbench_worker_…`` (dropped at the end). One :class:`~cranetwin.service.worker.
 TwinWorker` with the fleet bench's settings (windows of 4 s, settle 1 s, replay margin 1 s,
-``worker_threads``, no roll-up) first catches up ``history_s`` of data (not timed: smoothing
+``worker_threads``, no roll-up; ``window_s``, ``settle_s``, ``margin_s`` change them: the
+settings' defaults are 60, 2 and 2 s) first catches up ``history_s`` of data (not timed: smoothing
 choices, kernels and caches are warm after it). Then, for each step size of ``steps_s``,
 ``passes`` times: every machine gets ``step_s`` more seconds of data (not timed), and one
 :meth:`TwinWorker.run_once` is timed.
@@ -187,7 +188,12 @@ def register(bench_app: typer.Typer) -> None:
                                             "timed pass; several (comma-separated) give the "
                                             "fixed and per-second cost."),
         passes: int = typer.Option(9, min=1, help="Timed passes per step size."),
-        window_s: float = typer.Option(4.0, help="Worker window [s] (the fleet bench's)."),
+        window_s: float = typer.Option(4.0, help="Worker window [s] (the fleet bench's; "
+                                                 "the default setting is 60)."),
+        settle_s: float = typer.Option(1.0, help="worker_settle_s (the fleet bench's; the "
+                                                 "default setting is 2)."),
+        margin_s: float = typer.Option(1.0, help="twin_margin_s (the fleet bench's; the "
+                                                 "default setting is 2)."),
         threads: int = typer.Option(4, min=1, help="worker_threads (the fleet bench's)."),
         pg: str = typer.Option(PG_DEFAULT, help="PostgreSQL server (a database is made)."),
         profile: str = typer.Option("", help="Write a cProfile (CPU time) of the timed passes "
@@ -196,5 +202,6 @@ def register(bench_app: typer.Typer) -> None:
     ) -> None:
         """CPU per machine and pass of the twin worker on PostgreSQL (fleet bench settings)."""
         out = run(machines, rate_hz, history_s, tuple(float(s) for s in steps.split(",")),
-                  passes, window_s, threads=threads, pg=pg, profile=profile or None)
+                  passes, window_s, settle_s, margin_s, threads=threads, pg=pg,
+                  profile=profile or None)
         emit(out, as_json)

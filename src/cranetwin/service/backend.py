@@ -360,12 +360,14 @@ class Backend:
         from sqlalchemy import select
 
         row_t = keyrepo.TwinProgressRow
+        fields = list(Progress.__dataclass_fields__)
+        cols = [getattr(row_t, f) for f in fields]  # plain rows: no ORM object per machine
         out: dict[str, Progress] = {}
         for engine, ids in self.store.engines_of(machine_ids):
             with Session(engine) as s:
-                for row in s.scalars(select(row_t).where(row_t.machine_id.in_(ids))):
-                    out[row.machine_id] = Progress(**{f: getattr(row, f)
-                                                      for f in Progress.__dataclass_fields__})
+                for row in s.execute(select(*cols).where(row_t.machine_id.in_(ids))):
+                    p = Progress(**dict(zip(fields, row, strict=True)))
+                    out[p.machine_id] = p
         with self._lock:
             self._progress_cache.update(out)
         return out
@@ -453,6 +455,132 @@ class Backend:
         with self._lock:
             self._progress_cache[prog.machine_id] = prog
         return True
+
+    def commit_spans(self, commits: list[SpanCommit]) -> set[str]:
+        """The spans of many machines (a worker pass), one transaction per engine: each
+        machine's progress moves only from its expected watermark, and only the machines whose
+        progress moved get their summaries, analytics rows and events written, in the same
+        transaction. On PostgreSQL that is a fixed number of statements for all the machines
+        (progress, then summaries, rows, events of the winners); elsewhere one
+        :meth:`commit_window` per machine.
+
+        A crash or an error before the commit leaves every machine of the engine as it was
+        (the worker replays them again); a machine whose watermark another worker moved is
+        left out, nothing of its spans written.
+
+        Returns:
+            The machines committed.
+        """
+        from cranetwin.storage import analytics_windows as aw
+        from cranetwin.storage import events as ev
+
+        by_id = {c.prog.machine_id: c for c in commits}
+        won: set[str] = set()
+        for engine, ids in self.store.engines_of(sorted(by_id)):
+            if engine.dialect.name != "postgresql":
+                for mid in ids:
+                    if self._commit_one(by_id[mid]):
+                        won.add(mid)
+                continue
+            with Session(engine) as s, s.begin():
+                got = _put_progress_many(s, [by_id[m] for m in ids])
+                groups: dict[tuple[str, ...], list[tuple[int, Any, F64]]] = {}
+                rows: list[dict[str, Any]] = []
+                events: list[tuple[int, list[Any]]] = []
+                for mid in ids:
+                    if mid not in got:
+                        continue
+                    c = by_id[mid]
+                    pk = self._pk(s, mid)
+                    for t_s, values in c.spans:
+                        groups.setdefault(tuple(c.channels), []).append(
+                            (pk, np.round(t_s * 1e9).astype(np.int64), values))
+                    rows += c.rows
+                    events.append((pk, c.events))
+                ev.add_many(s, events)
+                for chans, spans in groups.items():
+                    summ.replace_many(s, chans, spans)
+                aw.put_rows(s, rows)
+            won |= got
+        with self._lock:
+            self._progress_cache.update({m: by_id[m].prog for m in won})
+        return won
+
+    def _commit_one(self, c: SpanCommit) -> bool:
+        """:meth:`commit_spans` of one machine, one transaction (any database)."""
+        from cranetwin.storage import analytics_windows as aw
+        from cranetwin.storage import events as ev
+
+        try:
+            with self.session(c.prog.machine_id) as s, s.begin():
+                pk = self._pk(s, c.prog.machine_id)
+                summ.replace_many(s, c.channels, [
+                    (pk, np.round(t * 1e9).astype(np.int64), v) for t, v in c.spans])
+                aw.put_rows(s, c.rows)
+                ev.add_in(s, pk, c.events)
+                self._put_progress(s, c.prog, c.expected_watermark_s)
+        except (_WatermarkMoved, IntegrityError):
+            return False
+        with self._lock:
+            self._progress_cache[c.prog.machine_id] = c.prog
+        return True
+
+
+def _put_progress_many(s: Session, commits: list[SpanCommit]) -> set[str]:
+    """PostgreSQL: move the progress rows of ``commits`` each from its expected watermark
+    (an update of the rows that have one, an insert of the rows that have none), two statements
+    at most; returns the machines whose row moved."""
+    from cranetwin.storage.bulk import insert_rows, pg_array_casts, pg_columns
+
+    now = time.time()
+    fields = [c for c in Progress.__dataclass_fields__ if c != "machine_id"]
+    cols = ("machine_id", *fields, "updated_s")
+    upd = [c for c in commits if c.expected_watermark_s is not None]
+    new = [c for c in commits if c.expected_watermark_s is None]
+    won: set[str] = set()
+    if upd:
+        names = ("machine_id", "watermark_s", *cols[1:])  # the expected watermark, then row
+        data: list[list[Any]] = [[c.prog.machine_id for c in upd],
+                                 [c.expected_watermark_s for c in upd]]
+        data += [[getattr(c.prog, f) for c in upd] for f in fields] + [[now] * len(upd)]
+        casts = pg_array_casts("twin_progress", names)
+        sets = ", ".join(f"{c} = v.{c}" for c in cols[1:])
+        sql = (f"UPDATE twin_progress AS p SET {sets} FROM unnest({', '.join(casts)}) AS "
+               f"v(machine_id, expected_s, {', '.join(cols[1:])}) WHERE p.machine_id = "
+               "v.machine_id AND p.watermark_s = v.expected_s RETURNING p.machine_id")
+        conn = s.connection()
+        won |= {r[0] for r in conn.exec_driver_sql(sql, pg_columns(conn, "twin_progress",
+                                                                   names, data))}
+    if new:
+        rows = [(c.prog.machine_id, *(getattr(c.prog, f) for f in fields), now) for c in new]
+        won |= {r[0] for r in insert_rows(s.connection(), "twin_progress", cols, rows,
+                                          "ON CONFLICT (machine_id) DO NOTHING "
+                                          "RETURNING machine_id")}
+    return won
+
+
+@dataclass
+class SpanCommit:
+    """What one machine's spans of a worker pass commit together (:meth:`Backend.commit_spans`).
+
+    Attributes:
+        prog: The machine's progress after its last span.
+        expected_watermark_s: The stored watermark its first span started from (None: no
+            progress row stored yet).
+        channels: Derived channel names of the spans' values.
+        spans: Per span, (grid times (k,) [s], derived values (k, c)).
+        rows: Analytics-window rows (parts, lift seconds) of the spans.
+        events: Events found in the spans.
+        windows: Windows the spans hold.
+    """
+
+    prog: Progress
+    expected_watermark_s: float | None
+    channels: list[str]
+    spans: list[tuple[F64, F64]]
+    rows: list[dict[str, Any]]
+    events: list[Any]
+    windows: int = 0
 
 
 @lru_cache(maxsize=4)

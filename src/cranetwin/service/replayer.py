@@ -93,8 +93,12 @@ class Replayer:
         self._lock = threading.Lock()
 
     def replay(self, machine_id: str, machine: Machine, samples: SampleArrays, grid_hz: float,
-               theta0_initial: float = 0.0) -> TwinResult:
+               theta0_initial: float = 0.0, payload_stored: bool = True) -> TwinResult:
         """Replay ``samples`` on a grid of ``grid_hz`` (a multiple of the sample rate).
+
+        Args:
+            payload_stored: False when the caller knows no known payload is stored for these
+                samples (the twin worker's pass read the machine's payload runs): not read.
 
         Raises:
             TwinError: The samples cannot be replayed (too few, channels missing, …).
@@ -115,7 +119,7 @@ class Replayer:
         period = sample_period_s(samples) if samples.t_s.shape[0] >= 2 else None
         opts = ReplayOptions(grid_hz=grid_hz, smoothing=choices, sample_period_s=period,
                              theta0_initial=theta0_initial)
-        known = self.known_payload(machine_id, samples, period)
+        known = self.known_payload(machine_id, samples, period) if payload_stored else None
         res = replay(samples, machine, grid_hz=grid_hz, payload=known, options=opts)
         span = float(samples.t_s[-1] - samples.t_s[0]) if samples.t_s.shape[0] else 0.0
         if choices is None and res.smoothing:

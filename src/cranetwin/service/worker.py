@@ -22,7 +22,8 @@ is then paid once per span, so a worker that falls behind catches up instead of 
 behind. Late data redoes the stored span it falls in.
 
 The summaries of a window and the machine's new progress row (watermark = end of the window,
-cumulative counters) are committed in ONE transaction, and derived summaries are written by
+cumulative counters) are committed in ONE transaction (with the other machines' spans of the
+pass, :mod:`cranetwin.service.workercommit`), and derived summaries are written by
 overwriting their buckets: a crash before the commit leaves the window unprocessed (it is done
 again, once), a crash after it leaves it done. After downtime the worker starts from the
 watermark and catches up; empty stretches (machine off) are skipped in one step. The commit is
@@ -31,14 +32,19 @@ conditional on the watermark the window started from, so a second worker on the 
 replay back instead of counting it twice.
 
 Cost per machine and pass (what bounds the machines per worker core at short windows): the
-pass reads the data ranges, progress rows, late-data marks and late blocks of all its machines,
-and each machine's first span of samples, in a few statements
-(:mod:`cranetwin.service.workerpass`); a span's derived summaries, analytics part, lift seconds,
-events and progress are one transaction of fixed statements; the new late-data marks are written
-in one statement at the end of the pass. The worker keeps what only it writes while it owns a
-machine — the last analytics part it committed (the next window's event look-back) and the duty
-to date — and drops them when its partitions change, when a commit finds the watermark moved and
-when late data is redone.
+pass reads the data ranges, progress rows, late-data marks, late blocks and stored known-payload
+runs of all its machines, and each machine's first span of samples, in a few statements
+(:mod:`cranetwin.service.workerpass`); the spans the pass replays (derived summaries, analytics
+parts, lift seconds, events and progress of all its machines) are committed together, one
+transaction of fixed statements per engine at the end of the pass or every 100 machines or 2 s
+(:mod:`cranetwin.service.workercommit`: each machine's progress still moves only from the
+watermark its span started from, in the transaction holding its results); the new late-data
+marks are written in one statement at the end of the pass. Late data (:meth:`_redo_late`) is
+redone and committed at once, before the machine's forward spans. The worker keeps what only
+it writes while it owns a machine — the last analytics part it committed (the next window's
+event look-back), the duty to date, and which blocks above its late-data mark its last pass
+had seen (:class:`~cranetwin.storage.analytics_windows.Seen`) — and drops them when its
+partitions change, when a commit finds the watermark moved and when late data is redone.
 
 Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
 --partitions …``) a worker processes only the machines of the partitions it owns, re-checked
@@ -84,8 +90,10 @@ if TYPE_CHECKING:
     from cranetwin.service.metrics import Metrics
     from cranetwin.service.ownership import Ownership
     from cranetwin.service.replayer import Replayer
+    from cranetwin.service.workercommit import PassCommit
     from cranetwin.service.workerpass import PassReads
     from cranetwin.settings import Settings
+    from cranetwin.storage.analytics_windows import Seen
 
 log = logging.getLogger(__name__)
 
@@ -141,6 +149,11 @@ class TwinWorker:
         look-back of the next window's events), kept while nothing else can have written its
         parts: dropped when the worker's partitions change, when the machine is not owned, when
         a commit finds the watermark moved, and when late data redoes windows."""
+        self._seen: dict[str, tuple[int, Seen, float]] = {}
+        """Machine → (the late-data mark of the pass that last committed its spans, what that
+        pass saw, the watermark it committed): :func:`~cranetwin.service.workerpass.read_pass`
+        leaves the blocks it saw out of the next pass's late data. Kept and dropped as
+        :attr:`_last_part`."""
         self._duty: dict[str, DutyToDate] = {}
         """Machine → the duty to date this worker stored last (not read back while valid: kept
         and dropped as :attr:`_last_part`)."""
@@ -156,9 +169,11 @@ class TwinWorker:
         if machine_id is None:
             self._last_part.clear()
             self._duty.clear()
+            self._seen.clear()
         else:
             self._last_part.pop(machine_id, None)
             self._duty.pop(machine_id, None)
+            self._seen.pop(machine_id, None)
 
     def _engine(self, rec: MachineRecord) -> Any:
         """The engine holding the machine's rows (its shard when storage is sharded)."""
@@ -220,25 +235,43 @@ class TwinWorker:
         Returns:
             Windows processed (0 = every machine is caught up).
         """
+        from cranetwin.service.workercommit import PassCommit
         from cranetwin.service.workerpass import flush_marks, read_pass
 
         total = 0
         own = self.ownership
         if own is not None:
             own.refresh()
-            due = self.clock() + self.settings.worker_interval_s
             owned = frozenset(own.owned)
             if owned != self._owned:  # what another worker may have written meanwhile
                 self._forget()
                 self._owned = owned
         self._rollup()
         pool = self._thread_pool()
-        pending: list[Future[int]] = []
-        failed: list[BaseException] = []
         machines = self.backend.list_machines()
         mine = [r.machine_id for r in machines if own is None or own.owns(r.machine_id)]
         reads: PassReads | None = read_pass(self.backend, mine, self.settings.worker_window_s,
-                                            self._first_span)
+                                            self._first_span, dict(self._seen))
+        batch = PassCommit(self.backend)
+        try:
+            total += self._pass(machines, reads, batch, pool)
+        finally:  # what the machines done so far replayed, also when one failed
+            self._commit(batch)
+        if reads is not None and reads.marks:
+            flush_marks(self.backend, reads)
+        self._partition_metrics()
+        if own is None or 0 in own.owned:
+            self._upkeep()
+        return total
+
+    def _pass(self, machines: list[MachineRecord], reads: PassReads | None, batch: PassCommit,
+              pool: ThreadPoolExecutor | None) -> int:
+        """The machines' turns of :meth:`run_once`; returns windows processed."""
+        own = self.ownership
+        due = self.clock() + self.settings.worker_interval_s
+        total = 0
+        pending: list[Future[int]] = []
+        failed: list[BaseException] = []
 
         def result(f: Future[int]) -> int:  # a failed machine fails the pass at its end
             exc = f.exception()
@@ -263,21 +296,37 @@ class TwinWorker:
                     self._forget(rec.machine_id)
                     continue
             pre = reads if reads is not None and rec.machine_id in reads.ranges else None
+            if batch.due():  # between turns: no machine adds to it meanwhile
+                total += sum(result(f) for f in pending)
+                pending.clear()
+                self._commit(batch)
             if pool is None:
-                total += self.catch_up(rec, self.max_windows_per_pass, pre)
+                total += self.catch_up(rec, self.max_windows_per_pass, pre, batch)
                 continue
-            pending.append(pool.submit(self.catch_up, rec, self.max_windows_per_pass, pre))
+            pending.append(pool.submit(self.catch_up, rec, self.max_windows_per_pass, pre,
+                                       batch))
             if len(pending) >= 2 * self.settings.worker_threads:  # ownership re-checked often
                 total += result(pending.pop(0))
         total += sum(result(f) for f in pending)
-        if reads is not None and reads.marks:
-            flush_marks(self.backend, reads)
         if failed:
             raise failed[0]  # after every machine of the pass had its turn
-        self._partition_metrics()
-        if own is None or 0 in own.owned:
-            self._upkeep()
         return total
+
+    def _commit(self, batch: PassCommit) -> None:
+        """Commit the pass's collected spans (:mod:`cranetwin.service.workercommit`)."""
+        try:
+            won, lost, parts = batch.commit()
+        except BaseException:
+            self._forget()  # nothing of it stored: what was kept of those spans is not
+            raise
+        self._last_part.update(parts)
+        for mid in sorted(lost):
+            log.info("machine %s: span committed by another worker", mid)
+            self._forget(mid)
+        if self.metrics is not None:
+            for mid, n in won.items():
+                if n:
+                    self.metrics.worker_windows.labels(mid).inc(n)
 
     def _rollup(self) -> None:
         """Roll the raw 1-min summaries up, at most every ``worker_rollup_s`` (0: never).
@@ -348,7 +397,7 @@ class TwinWorker:
                      res.dropped, len(res.kept))
 
     def catch_up(self, rec: MachineRecord, max_windows: int | None = None,
-                 reads: PassReads | None = None) -> int:
+                 reads: PassReads | None = None, batch: PassCommit | None = None) -> int:
         """Process the ready windows of one machine, oldest first; returns how many.
 
         Stops early when :attr:`stop_requested`, or when another worker moved the machine's
@@ -357,15 +406,17 @@ class TwinWorker:
         Args:
             reads: The pass's reads holding this machine (:mod:`cranetwin.service.workerpass`;
                 None: read them for this machine alone).
+            batch: Collect the spans for the pass's commit (:mod:`cranetwin.service.
+                workercommit`; None: each span is committed at once).
         """
         try:
-            return self._catch_up(rec, max_windows, reads)
+            return self._catch_up(rec, max_windows, reads, batch)
         except BaseException:
             self._forget(rec.machine_id)
             raise
 
     def _catch_up(self, rec: MachineRecord, max_windows: int | None,
-                  reads: PassReads | None) -> int:
+                  reads: PassReads | None, batch: PassCommit | None) -> int:
         from cranetwin.service.backend import Progress
 
         s = self.settings
@@ -409,32 +460,57 @@ class TwinWorker:
                     break
                 if nxt >= w0 + win:
                     new = dc_replace(prog, watermark_s=math.floor(nxt / win) * win)
-                    if not self.backend.save_progress(new, expected):
+                    if not self._save(new, expected, batch):
                         log.info("machine %s: watermark moved by another worker", mid)
                         self._forget(mid)
                         break
                     prog, expected = new, new.watermark_s
                     continue
             new = self.process_window(rec, prog, expected, until_s=w0 + k * win,
-                                      samples=samples)
+                                      samples=samples, reads=reads, batch=batch)
             if new is None:
                 log.info("machine %s: window %.0f committed by another worker", mid, w0)
                 break
             done += k
             prog, expected = new, new.watermark_s
-        self._roll_up(rec, start_wm, prog.watermark_s)
-        if done or prog.watermark_s != start_wm:
-            # the duty to date folds every minute since its last update: once a minute of data
-            # (or when the machine went quiet, or windows were redone) is enough, not once per
-            # short window
-            if (quiet or redid
-                    or math.floor(prog.watermark_s / 60.0) != math.floor(start_wm / 60.0)):
-                self._update_duty(rec, dr[0], prog.watermark_s)
-        self._check_schedules(rec)
+        end_wm = prog.watermark_s
+
+        snap = reads.snapshots.get(mid) if reads is not None and mid in reads.late else None
+        top = reads.late[mid][1] if reads is not None and snap is not None else 0
+
+        def after_commit() -> None:  # what reads the stored parts: after the spans' commit
+            if snap is not None and end_wm > start_wm:
+                # every window reaching the blocks committed in the pass's snapshot that start
+                # after start_wm + margin was replayed with them (read after it)
+                from cranetwin.storage.analytics_windows import Seen
+
+                self._seen[mid] = (top, Seen(snap, start_wm + s.twin_margin_s), end_wm)
+            self._roll_up(rec, start_wm, end_wm)
+            if done or end_wm != start_wm:
+                # the duty to date folds every minute since its last update: once a minute of
+                # data (or when the machine went quiet, or windows were redone) is enough, not
+                # once per short window
+                if (quiet or redid
+                        or math.floor(end_wm / 60.0) != math.floor(start_wm / 60.0)):
+                    self._update_duty(rec, dr[0], end_wm)
+            self._check_schedules(rec)
+
+        if batch is None:
+            after_commit()
+        else:
+            batch.after(mid, after_commit)
         self._marks[rec.machine_id] = (dr[1], prog.watermark_s)
         if self.metrics is not None:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
+
+    def _save(self, prog: Progress, expected: float | None, batch: PassCommit | None) -> bool:
+        """Store progress alone (a skipped gap, a span not replayed): into ``batch`` when
+        given (True), else at once (False: another worker moved the watermark first)."""
+        if batch is None:
+            return self.backend.save_progress(prog, expected)
+        batch.add(prog, expected)
+        return True
 
     def _first_span(self, w0: float, newest_s: float) -> tuple[float, float] | None:
         """The sample range [from, to) [s] a machine's turn reads first when its watermark is
@@ -479,7 +555,7 @@ class TwinWorker:
 
     def _analytics(self, rec: MachineRecord, machine: Machine, res: object,
                    keep: npt.NDArray[np.bool_], w0: float, w1: float,
-                   times: tuple[float, float] = (0.0, 0.0),
+                   times: tuple[float, float] = (0.0, 0.0), batch: PassCommit | None = None,
                    ) -> tuple[dict[str, Any] | None, list[Any] | None]:
         """The window's analytics part row (:mod:`cranetwin.service.history`: what any range's
         analytics merge from) and its events, stored with the window's commit: a redone
@@ -509,7 +585,7 @@ class TwinWorker:
         row = got[1] if got is not None else None
         try:
             det = EventDetector(machine)
-            prev = self._previous_part(rec, w0)
+            prev = self._previous_part(rec, w0, batch)
             if prev is not None:
                 part = load_part(prev)
                 if part.t_last < float(h.t_s[0]):
@@ -523,13 +599,17 @@ class TwinWorker:
             return row, None
         return row, events
 
-    def _previous_part(self, rec: MachineRecord, w0: float) -> bytes | None:
+    def _previous_part(self, rec: MachineRecord, w0: float,
+                       batch: PassCommit | None = None) -> bytes | None:
         """The data of the last stored minute part inside [w0 − 60 s, w0), or None: the one
-        this worker committed last when it is still valid (:attr:`_last_part`: only windows
-        processed forward set it, so it is the newest part before the watermark), else read."""
+        of the machine's span waiting in ``batch`` (not stored yet), else the one this worker
+        committed last when it is still valid (:attr:`_last_part`: only windows processed
+        forward set it, so it is the newest part before the watermark), else read."""
         from cranetwin.storage import analytics_windows as aw
 
-        seen = self._last_part.get(rec.machine_id)
+        seen = batch.parts.get(rec.machine_id) if batch is not None else None
+        if seen is None:
+            seen = self._last_part.get(rec.machine_id)
         if seen is not None and seen[1] <= w0:
             return seen[2] if seen[0] >= w0 - 60 else None
         prev = aw.windows(self._engine(rec), rec.machine_id, 60, w0 - 60, w0)
@@ -611,7 +691,8 @@ class TwinWorker:
         for w0, w1 in sorted(spans):
             if self.stop_requested():
                 return prog, done  # the mark stays: the rest is found again next pass
-            new = self.process_window(rec, prog, prog.watermark_s, redo_w0=w0, until_s=w1)
+            new = self.process_window(rec, prog, prog.watermark_s, redo_w0=w0, until_s=w1,
+                                      reads=reads)
             if new is None:
                 return None
             prog = new
@@ -720,7 +801,9 @@ class TwinWorker:
     def process_window(self, rec: MachineRecord, prog: Progress,
                        expected_watermark_s: float | None,
                        redo_w0: float | None = None, until_s: float | None = None,
-                       samples: SampleArrays | None = None) -> Progress | None:
+                       samples: SampleArrays | None = None,
+                       reads: PassReads | None = None,
+                       batch: PassCommit | None = None) -> Progress | None:
         """Replay [watermark, until_s) (default: one window), commit its summaries and progress
         together.
 
@@ -737,6 +820,11 @@ class TwinWorker:
             until_s: End of the span [s]: a whole number of windows after its start (one
                 window when None); with ``redo_w0``, the end of the stored span redone.
             samples: The machine's samples of the span and its margins, if already read.
+            reads: The pass's reads holding this machine (its stored known payload runs:
+                a span outside them reads none).
+            batch: Collect the span for the pass's commit instead of committing it now
+                (forward spans only, not with ``redo_w0``); the new progress is returned as
+                if committed (:mod:`cranetwin.service.workercommit`).
 
         Returns:
             The new progress, or None when another worker committed the window first (nothing
@@ -768,8 +856,11 @@ class TwinWorker:
             if n_in < 8:
                 raise CraneTwinError(f"only {n_in} samples in the window")
             grid_hz = sample_rate_hz(samples)
+            stored = reads is None or reads.payload_stored(  # a second more either side
+                rec.machine_id, float(samples.t_s[0]) - 1.0, float(samples.t_s[-1]) + 1.0)
             res = self.replayer.replay(rec.machine_id, machine, samples, grid_hz,
-                                       theta0_initial=prog.theta0_rad or 0.0)
+                                       theta0_initial=prog.theta0_rad or 0.0,
+                                       payload_stored=stored)
         except CraneTwinError as exc:
             log.warning("machine %s window %.0f–%.0f not replayed: %s", rec.machine_id, w0, w1,
                         exc)
@@ -777,7 +868,7 @@ class TwinWorker:
                 self.metrics.worker_errors.labels(rec.machine_id).inc()
             if redo_w0 is not None:
                 return prog
-            return new if self.backend.save_progress(new, expected) else None
+            return new if self._save(new, expected, batch) else None
         keep = window_rows(res, w0, w1)
         names, values = derive(machine, res, keep)
         t = res.t_s[keep]
@@ -798,9 +889,14 @@ class TwinWorker:
                 new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
             rows.append(seconds_row(rec.machine_id, w0, w1,
                                     *lift_seconds(machine, t, res.payload_kg[keep], reach)))
-            part, events = self._analytics(rec, machine, res, keep, w0, w1, times)
+            part, events = self._analytics(rec, machine, res, keep, w0, w1, times, batch)
             if part is not None:
                 rows.append(part)
+        if batch is not None and redo_w0 is None:
+            batch.add(new, expected, names, t, values, rows, events, n_windows)
+            if part is not None:
+                batch.parts[rec.machine_id] = (w0, w1, part["data"])
+            return new
 
         def also(session: Any, machine_pk: int) -> None:
             from cranetwin.analytics.events import KINDS

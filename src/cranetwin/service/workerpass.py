@@ -1,7 +1,9 @@
 """What the twin worker reads once per pass for all the machines it owns, instead of once per
-machine: the stored data ranges, the progress rows, on PostgreSQL the late-data marks and
-the late blocks behind each watermark, and the redo requests of a known payload stored or
-deleted (:meth:`cranetwin.service.worker.TwinWorker._redo_late`).
+machine: the stored data ranges, the progress rows, on PostgreSQL the late-data marks and the
+late blocks behind each watermark (:meth:`cranetwin.service.worker.TwinWorker._redo_late`;
+without the blocks the worker's last pass saw, :class:`~cranetwin.storage.analytics_windows.
+Seen`), the redo requests of a known payload stored or deleted, and the time ranges of the
+stored known-payload runs (a span outside them reads none).
 
 A pass over 500 machines then costs a handful of statements for these instead of seven per
 machine; the new late-data marks are written in one statement at the end of the pass
@@ -41,9 +43,14 @@ class PassReads:
         samples: Machine → (from s, to s, its samples read for [from, to)): the first span
             the pass expects to replay (taken by the machine's turn if it asks for the same
             range; it reads alone otherwise).
+        payload: Machine → (first, last) time [s] of its stored known payload runs (machines
+            without any left out): a span outside it reads none (:meth:`payload_stored`).
         marks: Machine → mark to store at the end of the pass (filled while processing).
         redo: Machine → its redo requests (:mod:`cranetwin.storage.redo`: a known payload
             stored or deleted), read for every machine with samples (one left out has none).
+        snapshots: Machine → the snapshot whose xmin is this pass's mark (in :attr:`late`;
+            what the worker remembers of a pass whose spans it committed, :class:`~cranetwin.
+            storage.analytics_windows.Seen`).
     """
 
     ranges: dict[str, tuple[float, float] | None]
@@ -51,7 +58,21 @@ class PassReads:
     late: dict[str, tuple[int | None, int, list[tuple[float, float]]]]
     redo: dict[str, list[RedoRequest]] = field(default_factory=dict)
     samples: dict[str, tuple[float, float, SampleArrays]] = field(default_factory=dict)
+    payload: dict[str, tuple[float, float]] = field(default_factory=dict)
     marks: dict[str, int] = field(default_factory=dict)
+    snapshots: dict[str, str] = field(default_factory=dict)
+
+    def payload_stored(self, machine_id: str, t0_s: float, t1_s: float) -> bool:
+        """Whether a known payload may be stored for [t0_s, t1_s] of the machine: False only
+        when the pass read the machine's payload runs and none reaches into that span (its
+        replay then reads none). Only for a machine whose late blocks the pass read too
+        (:attr:`late`): the payload runs are read after that commit-order mark, so a block
+        stored later, whose payload this read may not have seen, is late data of the next
+        pass; a machine that reads its own mark later could mark such a block done."""
+        if machine_id not in self.late:
+            return True
+        got = self.payload.get(machine_id)
+        return got is not None and got[0] <= t1_s and got[1] >= t0_s
 
 
 MAX_PREFETCH_S = 30.0
@@ -61,7 +82,7 @@ that catches up: 500 machines × 30 s × 10 Hz × 20 channels ≈ 24 MB)."""
 
 def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
               first_span: Callable[[float, float], tuple[float, float] | None] | None = None,
-              ) -> PassReads:
+              seen: dict[str, tuple[int, aw.Seen, float]] | None = None) -> PassReads:
     """The reads of a pass over ``machine_ids`` (a few statements per engine).
 
     Args:
@@ -71,18 +92,24 @@ def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
         first_span: (watermark, newest sample) → the sample range [from, to) [s] of the first
             span the machine's turn will replay, None when nothing is ready (None: no samples
             read ahead).
+        seen: Machine → (the mark its last pass stored, what that pass saw, the watermark it
+            committed): used when the machine's stored mark and watermark are still those
+            (no other worker moved them), so the blocks it saw are not late data now.
     """
     got = backend.data_ranges(machine_ids)
     ranges = {m: v[1] for m, v in got.items()}
     stored = [m for m, r in ranges.items() if r is not None]
     progress = backend.progress_many(stored) if stored else {}
     late: dict[str, tuple[int | None, int, list[tuple[float, float]]]] = {}
+    snapshots: dict[str, str] = {}
+    seen = seen or {}
     for engine, ids in backend.store.engines_of(stored):
         if engine.dialect.name != "postgresql":
             continue
         marks = aw.block_marks(engine, ids)
-        top = aw.snapshot_xmin(engine)  # after the data ranges (module docstring)
+        top, snap = aw.snapshot(engine)  # after the data ranges (module docstring)
         bounds: dict[int, tuple[int, float]] = {}
+        saw: dict[int, aw.Seen] = {}
         for m in ids:
             mark, legacy = marks[m]
             if legacy:
@@ -95,17 +122,43 @@ def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
             assert r is not None
             wm = p.watermark_s if p is not None else math.floor(r[0] / window_s) * window_s
             bounds[got[m][0]] = (mark, wm)
-        found = aw.new_blocks_before_many(engine, bounds, top)
+            last = seen.get(m)
+            if last is not None and last[0] == mark and p is not None and last[2] == wm:
+                saw[got[m][0]] = last[1]
+        found = aw.new_blocks_before_many(engine, bounds, top, saw)
         by_pk = {got[m][0]: m for m in ids}
         for pk, (mark, _wm) in bounds.items():
             late[by_pk[pk]] = (mark, top, found.get(pk, []))
+        snapshots.update(dict.fromkeys(ids, snap))
     redo: dict[str, list[RedoRequest]] = {}
     for engine, ids in backend.store.engines_of(stored):  # after the progress rows (a
         redo.update(redo_mod.pending(engine, ids))        # request read after a commit)
-    reads = PassReads(ranges, progress, late, redo)
+    reads = PassReads(ranges, progress, late, redo,
+                      payload=_payload_ranges(backend, got, stored), snapshots=snapshots)
     if first_span is not None:
         _read_samples(backend, reads, got, window_s, first_span)
     return reads
+
+
+def _payload_ranges(backend: Backend, got: dict[str, tuple[int, tuple[float, float] | None]],
+                    ids: list[str]) -> dict[str, tuple[float, float]]:
+    """Per machine, (first, last) time [s] of its stored known payload runs, one statement per
+    engine. Read after the data ranges and the late blocks: the importer stores a block's
+    payload before the block, so every block those reads saw has its payload seen here (a
+    block stored after them is late data of the next pass, replayed again then)."""
+    from sqlalchemy.orm import Session
+
+    from cranetwin.storage.payloads import stored_ranges
+
+    out: dict[str, tuple[float, float]] = {}
+    for engine, part in backend.store.engines_of(ids):
+        with Session(engine) as s:
+            found = stored_ranges(s, [got[m][0] for m in part])
+        for m in part:
+            r = found.get(got[m][0])
+            if r is not None:
+                out[m] = (r[0] / 1e9, r[1] / 1e9)
+    return out
 
 
 def _read_samples(backend: Backend, reads: PassReads,

@@ -9,6 +9,7 @@ window) replaces it. Plain functions over an engine, so the storage core is not 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from sqlalchemy import (
@@ -235,24 +236,55 @@ def snapshot_xmin(engine: Engine) -> int:
         return int(s.scalar(text("SELECT pg_snapshot_xmin(pg_current_snapshot())::text::bigint")))
 
 
+def snapshot(engine: Engine) -> tuple[int, str]:
+    """PostgreSQL: ``pg_snapshot_xmin`` now (the next commit-order mark of
+    :func:`new_blocks_before`) and the snapshot it is the xmin of (``pg_snapshot`` text:
+    which transactions had committed then, :class:`Seen`)."""
+    with Session(engine) as s:
+        row = s.execute(text("SELECT pg_snapshot_xmin(c)::text::bigint, c::text "
+                             "FROM pg_current_snapshot() AS c")).one()
+        return int(row[0]), str(row[1])
+
+
+@dataclass(frozen=True)
+class Seen:
+    """Blocks a pass has seen although their transactions lie above its mark: those committed
+    in ``snapshot`` (the pass's, whose xmin is the mark) that start after ``after_s`` (s). A
+    pass that read them after taking ``snapshot`` and replayed everything from before
+    ``after_s`` − margin to the watermark has replayed every instant of theirs behind it with
+    them, so they are not late data for the next pass. Without it, every block committed
+    while any transaction on the server was open across it (a storage writer's, another
+    pass's, another database's) came back as late data and redid the span holding it."""
+
+    snapshot: str
+    after_s: float
+
+
 def new_blocks_before_many(engine: Engine, bounds: dict[int, tuple[int, float]],
-                           top: int) -> dict[int, list[tuple[float, float]]]:
+                           top: int, seen: dict[int, Seen] | None = None,
+                           ) -> dict[int, list[tuple[float, float]]]:
     """PostgreSQL, :func:`new_blocks_before` of many machines in one statement: per machine
     primary key, the blocks written by transactions in [its mark, ``top``) (a commit-order
-    mark, :func:`snapshot_xmin`) that start before its ``before_s``. ``bounds``: machine
-    primary key → (mark, before_s). Returns machine primary key → [(t_start s, t_end s), ...]
-    (machines without such blocks left out)."""
+    mark, :func:`snapshot_xmin`) that start before its ``before_s``, except those its ``seen``
+    entry says the last pass has seen (:class:`Seen`). ``bounds``: machine primary key →
+    (mark, before_s). Returns machine primary key → [(t_start s, t_end s), ...] (machines
+    without such blocks left out)."""
     if not bounds:
         return {}
     pks = list(bounds)
+    seen = seen or {}
     stmt = text(
         "SELECT b.machine_pk, b.t_start_ns, b.t_end_ns FROM unnest(CAST(:pks AS integer[]), "
-        "CAST(:los AS text[]), CAST(:ts AS bigint[])) AS v(pk, lo, t) "
+        "CAST(:los AS text[]), CAST(:ts AS bigint[]), CAST(:snaps AS text[]), "
+        "CAST(:afters AS bigint[])) AS v(pk, lo, t, snap, after_ns) "
         "JOIN sample_blocks b ON b.machine_pk = v.pk AND b.t_start_ns < v.t "
         "AND b.writer_xid >= CAST(v.lo AS xid8) "
-        "AND b.writer_xid < CAST(CAST(:hi AS text) AS xid8)").bindparams(
+        "AND b.writer_xid < CAST(CAST(:hi AS text) AS xid8) "
+        "AND NOT (v.snap IS NOT NULL AND b.t_start_ns > v.after_ns AND "
+        "pg_visible_in_snapshot(b.writer_xid, CAST(v.snap AS pg_snapshot)))").bindparams(
         pks=pks, los=[str(bounds[p][0]) for p in pks], ts=[_ns(bounds[p][1]) for p in pks],
-        hi=top)
+        snaps=[seen[p].snapshot if p in seen else None for p in pks],
+        afters=[_ns(seen[p].after_s) if p in seen else 0 for p in pks], hi=top)
     out: dict[int, list[tuple[float, float]]] = {}
     with Session(engine) as s:
         for pk, a, c in s.execute(stmt):

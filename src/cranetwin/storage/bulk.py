@@ -122,7 +122,7 @@ def pg_binary_array(values: Sequence[Any] | np.ndarray, kind: type) -> _Array | 
     return cls(b"".join(parts))
 
 
-def _pg_columns(conn: Connection, table: str, columns: Sequence[str],
+def pg_columns(conn: Connection, table: str, columns: Sequence[str],
                 data: Sequence[Sequence[Any]]) -> tuple[Any, ...]:
     """The statement's parameters: each column as :func:`pg_binary_array` of the type the
     schema maps it to, or as a list for psycopg."""
@@ -160,7 +160,7 @@ def insert_rows(conn: Connection, table: str, columns: Sequence[str],
         cols = ",".join(columns)
         sql = (f"INSERT INTO {table} ({cols}) SELECT * FROM unnest("
                f"{','.join(pg_array_casts(table, columns))}) AS u({cols}) {suffix}")
-        res = conn.exec_driver_sql(sql, _pg_columns(conn, table, columns,
+        res = conn.exec_driver_sql(sql, pg_columns(conn, table, columns,
                                                     list(zip(*rows, strict=True))))
         return [tuple(r) for r in res.all()] if res.returns_rows else []
     ph = "?" if conn.dialect.name == "sqlite" else "%s"

@@ -109,6 +109,22 @@ def replace_in(session: Any, machine_pk: int, t0_ns: int, t1_ns: int, kinds: Seq
     return add_in(session, machine_pk, events)
 
 
+def add_many(session: Any, events: list[tuple[int, list[Event]]]) -> int:
+    """:func:`add_in` of several machines, ``(machine_pk, events)`` each, in one statement."""
+    rows = []
+    for pk, evs in events:
+        for e in evs:
+            if e.severity not in SEVERITIES:
+                raise StorageError(f"event severity {e.severity!r} must be one of {SEVERITIES}")
+            rows.append((pk, int(round(e.t_s * 1e9)), e.kind, e.severity,
+                         json.dumps(e.evidence)))
+    if not rows:
+        return 0
+    from cranetwin.storage.bulk import insert_rows
+
+    return len(insert_rows(session.connection(), "events", _COLUMNS, rows, _IGNORE_STORED))
+
+
 _COLUMNS = ("machine_pk", "t_ns", "kind", "severity", "evidence_json")
 _IGNORE_STORED = "ON CONFLICT (machine_pk, t_ns, kind) DO NOTHING RETURNING id"
 

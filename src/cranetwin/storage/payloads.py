@@ -448,6 +448,27 @@ def read(session: Session, machine_id: str, machine_pk: int, t0_ns: int,
     return PayloadSeries(machine_id, t_u.astype(np.int64), v[keep][first])
 
 
+def stored_ranges(session: Session, machine_pks: Sequence[int]) -> dict[int, tuple[int, int]]:
+    """Per machine primary key, (first run start, last run end) [ns] of its stored runs, in one
+    statement (an index probe per machine each way, as for the blocks' data ranges); machines
+    without runs are left out."""
+    from sqlalchemy import func
+
+    from cranetwin.storage.machines import MachineRow
+
+    row, m = PayloadRunRow, MachineRow
+    lo = select(func.min(row.t_start_ns)).where(row.machine_pk == m.id).scalar_subquery()
+    hi = select(func.max(row.t_end_ns)).where(row.machine_pk == m.id).scalar_subquery()
+    out: dict[int, tuple[int, int]] = {}
+    for i in range(0, len(machine_pks), 5000):
+        pks = [int(p) for p in machine_pks[i:i + 5000]]
+        for pk, a, z in session.execute(select(m.id, lo, hi).where(m.id.in_(pks))):
+            if a is not None:
+                out[int(pk)] = (int(a), int(z))
+    return out
+
+
 __all__ = ["GAP_PERIODS", "MAX_RUN", "PayloadDelete", "PayloadRun", "PayloadRunRow",
            "PayloadSeries", "PayloadWrite", "Stretch", "check_run", "delete", "delete_range",
-           "drop_starting_in", "known_span", "read", "runs_of", "stretches", "write"]
+           "drop_starting_in", "known_span", "read", "runs_of", "stored_ranges", "stretches",
+           "write"]

@@ -379,6 +379,80 @@ def replace(session: Session, machine_pk: int, channels: Sequence[str],
     return len(rows)
 
 
+_PG_DELETE_MANY = (
+    "DELETE FROM summaries s USING unnest(%s::integer[], %s::bigint[], %s::bigint[], "
+    "%s::bigint[], %s::bigint[]) AS r(pk, lo, hi, m_lo, m_hi) WHERE s.machine_pk = r.pk AND "
+    "s.channel = ANY(%s) AND ((s.level_s = 1 AND s.bucket_s BETWEEN r.lo AND r.hi) OR "
+    f"(s.level_s = {MINUTE} AND s.bucket_s >= r.m_lo AND s.bucket_s < r.m_hi))")
+_PG_MINUTES_MANY = (
+    "INSERT INTO summaries (machine_pk, channel, level_s, bucket_s, n, vmin, vmax, vsum) "
+    f"SELECT s.machine_pk, s.channel, {MINUTE}, (s.bucket_s / {MINUTE}) * {MINUTE} AS minute, "
+    "sum(s.n), min(s.vmin), max(s.vmax), sum(s.vsum ORDER BY s.bucket_s) FROM summaries s "
+    "JOIN unnest("
+    "%s::integer[], %s::bigint[], %s::bigint[]) AS r(pk, m_lo, m_hi) ON s.machine_pk = r.pk "
+    "AND s.bucket_s >= r.m_lo AND s.bucket_s < r.m_hi WHERE s.channel = ANY(%s) AND "
+    "s.level_s = 1 GROUP BY s.machine_pk, s.channel, minute")
+
+
+def replace_many(session: Session, channels: Sequence[str],
+                 spans: Sequence[tuple[int, npt.NDArray[np.int64], F64]]) -> int:
+    """:func:`replace` of several spans (of one or several machines, the same derived
+    channels) in three statements on PostgreSQL (one :func:`replace` per span elsewhere).
+    A minute's sum adds its seconds in time order, as :func:`replace`'s index scan does (the
+    same float8 sum to the last bit).
+
+    Args:
+        channels: Channel names, length c.
+        spans: (machine primary key, sample times (n,) [ns], values (n, c)) per span; the
+            spans of one machine do not overlap (their 1-s buckets are distinct).
+
+    Returns:
+        Number of 1-s bucket rows written.
+    """
+    from cranetwin.storage.bulk import insert_rows
+
+    spans = [sp for sp in spans if sp[1].size]
+    conn = session.connection()
+    if conn.dialect.name != "postgresql":
+        return sum(replace(session, pk, channels, t_ns, v) for pk, t_ns, v in spans)
+    if not spans:
+        return 0
+    rows: list[tuple[int, str, int, int, int, float, float, float]] = []
+    pk_r: list[int] = []
+    lo_r: list[int] = []
+    hi_r: list[int] = []
+    mlo_r: list[int] = []
+    mhi_r: list[int] = []
+    minutes: dict[int, list[tuple[int, int]]] = {}
+    for pk, t_ns, values in spans:
+        rows += _second_rows(pk, channels, t_ns, values)
+        lo, hi = int(t_ns[0] // SEC), int(t_ns[-1] // SEC)
+        m_lo, m_hi = (lo // MINUTE) * MINUTE, (hi // MINUTE) * MINUTE + MINUTE
+        for col, v in zip((pk_r, lo_r, hi_r, mlo_r, mhi_r), (pk, lo, hi, m_lo, m_hi),
+                          strict=True):
+            col.append(v)
+        minutes.setdefault(pk, []).append((m_lo, m_hi))
+    chans = list(channels)
+    conn.exec_driver_sql(_PG_DELETE_MANY, (pk_r, lo_r, hi_r, mlo_r, mhi_r, chans))
+    insert_rows(conn, "summaries", _COLUMNS, rows)
+    m_pk: list[int] = []
+    m_lo_r: list[int] = []
+    m_hi_r: list[int] = []
+    for pk, ranges in minutes.items():  # each minute recomputed once: ranges merged
+        merged: list[list[int]] = []
+        for a, z in sorted(ranges):
+            if merged and a <= merged[-1][1]:
+                merged[-1][1] = max(merged[-1][1], z)
+            else:
+                merged.append([a, z])
+        for a, z in merged:
+            m_pk.append(pk)
+            m_lo_r.append(a)
+            m_hi_r.append(z)
+    conn.exec_driver_sql(_PG_MINUTES_MANY, (m_pk, m_lo_r, m_hi_r, chans))
+    return len(rows)
+
+
 @dataclass(frozen=True)
 class Summaries:
     """Bucketed min/max/mean of some channels of one machine.
