@@ -245,17 +245,22 @@ class CrashingStore(Store):
 
 
 def run_writer(store: Store, cfg: BusConfig, until: Any, timeout_s: float = 30.0,
-               batch_max: int = 50) -> dict[str, Any] | BaseException:
+               batch_max: int = 50, batch_wait_s: float = 0.05,
+               on_ready: Any = None) -> dict[str, Any] | BaseException:
     """A StoreWriter over every partition until ``until()`` holds; returns its counters, or the
-    exception it died of."""
+    exception it died of. ``on_ready()`` runs in a thread once it consumes."""
     writer = StoreWriter(store, cfg, range(cfg.partitions), None,
-                         WriterConfig(batch_max=batch_max, fetch_wait_s=0.2))
+                         WriterConfig(batch_max=batch_max, batch_wait_s=batch_wait_s,
+                                      fetch_wait_s=0.2))
     out: list[Any] = []
 
     async def main() -> None:
         task = asyncio.create_task(writer.run())
         loop = asyncio.get_running_loop()
         end = loop.time() + timeout_s
+        if on_ready is not None:
+            await asyncio.wait_for(writer.ready.wait(), timeout_s)
+            await asyncio.to_thread(on_ready)
         while not task.done() and loop.time() < end and not until():
             await asyncio.sleep(0.05)
         writer.stop()
@@ -373,6 +378,37 @@ def test_nats_live_bus_without_a_server_raises_unavailable() -> None:
             bus.subscribe()
     finally:
         bus.close()
+
+
+def test_writer_commits_blocks_arriving_within_its_batch_wait_together(
+        bus: BusConfig, sqlite_url: str) -> None:
+    """Blocks published one by one (as a daemon's small batches arrive) share one transaction
+    when they reach the writer within ``batch_wait_s`` of the first, and the first is not held
+    much longer than that."""
+    import time
+
+    sink = _store(sqlite_url, bus)
+    machines = ["crane-1", "crane-2", "crane-3"]
+    first_acked: list[float] = []
+
+    def publish() -> None:
+        for s in range(6):
+            assert sink.write_batch([block(machines[s % 3], s)]).outcomes[0].status == "stored"
+            if not first_acked:
+                first_acked.append(time.monotonic())
+            time.sleep(0.05)
+
+    store = Store.open(sqlite_url)
+    try:
+        counters = run_writer(store, bus, until=lambda: len(stored_keys(store, machines)) >= 6,
+                              batch_wait_s=2.5, on_ready=publish)
+        done = time.monotonic()
+        assert isinstance(counters, dict)
+        assert counters["stored_blocks"] == 6 and counters["batches"] == 1, counters
+        assert done - first_acked[0] < 2.5 + 3.0  # the wait, the write and the poll
+    finally:
+        store.close()
+        sink.close()
 
 
 # --- faults the storage writer and the stream absorb ----------------------------------------------

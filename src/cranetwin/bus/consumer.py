@@ -6,7 +6,8 @@ the durable consumer ``store-writer-<p>`` (created if missing: push to
 ``ack_wait`` from :class:`~cranetwin.bus.subjects.BusConfig`, at most ``batch_max`` messages
 unacknowledged, which bounds what a writer holds) and::
 
-    delivered messages ─► batch (≤ batch_max) ─► decode ─► Store.write_batch (one transaction)
+    delivered messages ─► batch (≤ batch_max, or what came within batch_wait_s of the oldest)
+                          ─► decode ─► Store.write_batch (one transaction)
                                                           │ unavailable → retried with backoff,
                                                           │ messages kept in progress, none acked
                                                           ▼
@@ -73,16 +74,24 @@ class WriterConfig:
     Attributes:
         batch_max: Messages written per transaction at most; also the most messages each
             partition's consumer leaves unacknowledged with this writer.
+        batch_wait_s: How long the oldest message in hand waits for others to share its
+            transaction (unless ``batch_max`` are in hand sooner) [s]. A transaction's fixed
+            client CPU (≈ 3 ms on PostgreSQL) dwarfs a small block's (≈ 0.1 ms), and the
+            daemons' publishes arrive in bursts of a few blocks: without the wait a writer
+            committed one transaction per 7 blocks where the direct daemon commits one per 17
+            (docs/BUS.md). Delays storage (never a machine's ack) by at most this.
         fetch_wait_s: Longest wait for messages before the loop checks for a stop [s].
         retry_min_s, retry_max_s: First and longest wait between retries of a batch while the
             database is unavailable [s].
         rollup_interval_s: Period of the 1-min summary rollup [s].
         report_interval_s: Period of the counters log line [s].
-        lag_interval_s: Period of the partitions' lag reading from JetStream [s].
+        lag_interval_s: Period of the partitions' lag reading from JetStream [s]; 0: not read
+            (``cranetwin store-writer`` without ``--metrics-bind``: no one could scrape it).
         nak_delay_s: Redelivery delay of a block held back by an unavailable shard [s].
     """
 
     batch_max: int = 1000
+    batch_wait_s: float = 0.25
     fetch_wait_s: float = 1.0
     retry_min_s: float = 0.05
     retry_max_s: float = 5.0
@@ -175,8 +184,9 @@ class StoreWriter:
         self._stop = asyncio.Event()
         self._nats = nats_module()
         self._nc: Any = None
-        self._pending: list[tuple[int, Any]] = []  # (partition, message)
-        self._arrived = asyncio.Event()
+        self._pending: list[tuple[int, Any, float]] = []  # (partition, message, arrival [s])
+        self._arrived = asyncio.Event()  # the first message is in hand
+        self._full = asyncio.Event()  # batch_max messages are in hand
         self._closing = False  # the background loops end at their next turn
 
     def stop(self) -> None:
@@ -226,9 +236,14 @@ class StoreWriter:
     def _on_msg(self, partition: int) -> Callable[[Any], Awaitable[None]]:
         """The subscription callback of one partition."""
 
+        pending, batch_max = self._pending, self.config.batch_max
+
         async def cb(msg: Any) -> None:
-            self._pending.append((partition, msg))
-            self._arrived.set()
+            pending.append((partition, msg, time.monotonic()))
+            if len(pending) == 1:
+                self._arrived.set()
+            elif len(pending) >= batch_max:
+                self._full.set()
 
         return cb
 
@@ -251,7 +266,7 @@ class StoreWriter:
         on (a long database outage), so they are not delivered again meanwhile."""
         while not self._closing:
             await asyncio.sleep(max(self.bus.ack_wait_s / 3, 0.1))
-            for m in [*msgs, *(m for _, m in self._pending)]:
+            for m in [*msgs, *(m for _, m, _ in self._pending)]:
                 with contextlib.suppress(Exception):
                     await self._reply(m, b"+WPI")
 
@@ -330,6 +345,16 @@ class StoreWriter:
             except Exception as exc:  # fan-out is best effort; storage is the truth
                 self._log_once("publish", "live fan-out failed: %s", exc)
 
+    async def _gather(self) -> None:
+        """Wait until ``batch_max`` messages are in hand or the oldest of them has waited
+        ``batch_wait_s`` (one wake-up, not one per message)."""
+        left = self._pending[0][2] + self.config.batch_wait_s - time.monotonic()
+        if left <= 0 or len(self._pending) >= self.config.batch_max:
+            return
+        self._full.clear()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._full.wait(), left)
+
     async def _report(self) -> None:
         last, t_last = 0, time.monotonic()
         while not self._closing:
@@ -397,7 +422,8 @@ class StoreWriter:
                                                cb=self._on_msg(p)))
             tasks.append(asyncio.create_task(self._report()))
             tasks.append(asyncio.create_task(self._rollups()))
-            tasks.append(asyncio.create_task(self._lag(jsm)))
+            if self.config.lag_interval_s > 0:
+                tasks.append(asyncio.create_task(self._lag(jsm)))
             self.ready.set()
             while not self._stop.is_set():
                 for t in tasks:
@@ -408,7 +434,10 @@ class StoreWriter:
                     with contextlib.suppress(TimeoutError):
                         await asyncio.wait_for(self._arrived.wait(), self.config.fetch_wait_s)
                     continue
-                batch = self._pending[:self.config.batch_max]
+                await self._gather()
+                if self._stop.is_set():  # not acked: delivered again to the next writer
+                    break
+                batch = [(p, m) for p, m, _ in self._pending[:self.config.batch_max]]
                 del self._pending[:self.config.batch_max]
                 await self._handle(batch)
         finally:

@@ -70,6 +70,9 @@ def store_writer(
                                     "redis://… or postgresql://… (default: "
                                     "$CRANETWIN_LIVE_BUS_URL, else none)."),
     batch_max: int = typer.Option(1000, min=1, help="Blocks per transaction at most."),
+    batch_wait: float = typer.Option(0.25, min=0.0, help="Longest wait of a delivered block "
+                                     "for others to share its transaction [s] (delays "
+                                     "storage, never a machine's ack)."),
     rollup_interval: float = typer.Option(30.0, min=0.1, help="Seconds between 1-min summary "
                                           "rollups [s] (one more at shutdown)."),
     metrics_bind: str | None = typer.Option(
@@ -104,8 +107,10 @@ def store_writer(
     store = open_store(spec)
     server = None
     try:
-        writer = StoreWriter(store, cfg, parts, live_bus, WriterConfig(batch_max=batch_max,
-                                                                   rollup_interval_s=rollup_interval))
+        writer = StoreWriter(store, cfg, parts, live_bus, WriterConfig(
+            batch_max=batch_max, batch_wait_s=batch_wait, rollup_interval_s=rollup_interval,
+            # the lag gauge costs a JetStream request per partition every 5 s: only when served
+            lag_interval_s=WriterConfig.lag_interval_s if where is not None else 0.0))
         metrics_url = None
         if where is not None:
             from prometheus_client import start_http_server
