@@ -23,7 +23,7 @@ demo: setup
 	$(BIN)/cranetwin fleetdemo
 
 test: system-deps setup
-	@$(BIN)/python -m pytest -q -n 2 --dist loadfile; rc=$$?; \
+	@$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: treating as failure"; exit 1; fi; \
 	exit $$rc
 
