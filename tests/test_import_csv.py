@@ -67,6 +67,8 @@ def _write(path: Path, rng: np.random.Generator, n: int, kind: str, delim: str, 
         if bad and rng.random() < 0.003:
             t = "later"
         note = str(rng.choice(["ok", "", '"a, b"', "NA", "x y"]))
+        if short and rng.random() < 0.005:
+            note = '"two\nlines"'  # one row to pyarrow, two to numpy (which refuses them)
         row = [cells[0], t, cells[1], note, cells[2]]
         if short and rng.random() < 0.005:
             row = row[: rng.integers(1, 4)]
