@@ -15,7 +15,8 @@ def test_bench_import_reports_the_documented_keys() -> None:
     assert out["samples"] == 1800
     for key in ("parquet_samples_per_second", "csv_samples_per_second", "peak_rss_mib",
                 "parquet_command_seconds", "parquet_command_cpu_seconds",
-                "parquet_cpu_seconds", "parquet_cpu_samples_per_second", "csv_cpu_seconds"):
+                "parquet_cpu_seconds", "parquet_cpu_samples_per_second", "csv_cpu_seconds",
+                "csv_peak_rss_mib"):
         assert out[key] > 0, key
     try:
         import pandas  # noqa: F401

@@ -6,7 +6,7 @@ first read loads pyarrow and its pandas shim, about 1.4 CPU s, which on a one-ho
 of the Parquet path's time). What one command costs from a cold start is reported apart:
 ``parquet_command_seconds`` and ``parquet_command_cpu_seconds``, a fresh process that imports
 the Parquet file and nothing else (interpreter, imports and all), the one ``peak_rss_mib`` is
-read from.
+read from (``csv_peak_rss_mib``: the same for the CSV file).
 
 A sample is one instant of every channel (one row of the file, 11 channels of the PATU 655).
 The file is synthetic (a random walk inside each channel's range, on its resolution, 100 Hz)
@@ -174,6 +174,7 @@ def run(hours: float, db: str | None) -> dict[str, Any]:
         t_pq, n_pq, cpu_pq = _import(pq_path, machine, url("parquet"), f"bench-pq-{tag}")
         t_csv, n_csv, cpu_csv = _import(csv_path, machine, url("csv"), f"bench-csv-{tag}")
         rss, cmd_wall, cmd_cpu = _child_peak_rss(pq_path, url("rss"))
+        csv_rss, _, _ = _child_peak_rss(csv_path, url("csv-rss"))
         pd_rows = min(rows, PANDAS_MAX_ROWS)
         t_pd = _pandas(csv_path, url("pandas"), pd_rows)
         out: dict[str, Any] = {
@@ -189,6 +190,7 @@ def run(hours: float, db: str | None) -> dict[str, Any]:
             "speedup_vs_pandas": None if t_pd is None else round((n_pq / t_pq) / (pd_rows / t_pd),
                                                                    2),
             "peak_rss_mib": round(rss, 1),
+            "csv_peak_rss_mib": round(csv_rss, 1),
             "parquet_command_seconds": round(cmd_wall, 2),
             "parquet_command_cpu_seconds": round(cmd_cpu, 2),
             "csv_mib": round(csv_path.stat().st_size / 2**20, 1),

@@ -8,7 +8,8 @@ mapping of columns, units, cylinder position convention and time (docs/IMPORT.md
 * :func:`check_rod_positions`: the convention check on any samples (pin-to-pin lengths or
   millimetres given as stroke positions are refused with a message naming the mix-up).
 
-Parquet and MDF need the ``import`` extra (pyarrow, asammdf); CSV needs numpy only.
+Parquet and MDF need the ``import`` extra (pyarrow, asammdf); CSV needs numpy only (pyarrow,
+where installed, parses it faster).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""Read a user's file in chunks of rows: CSV (numpy), Parquet (pyarrow) and ASAM MDF4 (asammdf,
-:mod:`.mdf`).
+"""Read a user's file in chunks of rows: CSV (pyarrow's parser, numpy's where it cannot),
+Parquet (pyarrow) and ASAM MDF4 (asammdf, :mod:`.mdf`).
 
 Each reader yields :class:`Chunk` s: the raw time column, the raw value columns the mapping
 needs (float64, NaN = missing) and the rows it could not parse, with row, column and reason.
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import csv
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -141,17 +141,23 @@ def csv_header(path: Path, delimiter: str) -> tuple[list[str], int, int]:
 
 
 def read_csv(path: Path, needed: list[str], time_column: str | None, time_kind: TimeKind,
-             delimiter: str = ",", chunk_bytes: int = CSV_CHUNK_BYTES) -> Iterator[Chunk]:
+             delimiter: str = ",", chunk_bytes: int = CSV_CHUNK_BYTES,
+             engine: Literal["auto", "numpy"] = "auto") -> Iterator[Chunk]:
     """Chunks of a CSV file with a header row (``#`` comment lines and blank lines skipped).
 
-    Fast path: numpy's C parser per chunk; a chunk it rejects is parsed row by row to name
-    every bad row and column (text where a number belongs, too few fields).
+    Each chunk is ``chunk_bytes`` of whole lines. With pyarrow installed (``engine="auto"``) its
+    C parser reads a chunk whose every line is one data row (:func:`_csv_arrow`); a chunk it
+    does not take as it is — a ``#`` or blank line, a bad or short row, an empty time, a quoted
+    line break — goes to numpy's parser (the same chunk, so line numbers stay exact), which
+    names every bad row and column (text where a number belongs, too few fields).
     """
     names, header_line, start = csv_header(path, delimiter)
     tcol = _pick_time(names, time_column, path)
     _missing_columns(needed, names, path)
     idx = [names.index(c) for c in needed]
     tidx = names.index(tcol)
+    arrow = _csv_arrow_parser(len(names), idx, tidx, time_kind, delimiter) \
+        if engine == "auto" else None
     total = path.stat().st_size
     row = 1
     line = header_line + 1
@@ -173,20 +179,85 @@ def read_csv(path: Path, needed: list[str], time_column: str | None, time_kind: 
             if not data:
                 break
             done += len(data)
-            lines = data.decode("utf-8", errors="replace").split("\n")
-            if lines and lines[-1] == "":
-                lines.pop()
-            n_lines = len(lines)
+            n_lines = data.count(b"\n") + (not data.endswith(b"\n"))
             line_nos = np.arange(line, line + n_lines, dtype=np.int64)
             line += n_lines
-            if lines:
+            got = arrow(data, n_lines) if arrow is not None else None
+            if got is not None:
+                t, cols = got
+                chunk = Chunk(row, t, dict(zip(needed, cols, strict=True)),
+                              np.zeros(n_lines, dtype=bool), [], line_nos, done, total)
+            else:
+                lines = data.decode("utf-8", errors="replace").split("\n")
+                if lines and lines[-1] == "":
+                    lines.pop()
                 chunk = _csv_chunk(lines, line_nos, row, needed, idx, tcol, tidx, time_kind,
                                    delimiter, done, total)
-                if chunk.n:
-                    yield chunk
-                row += chunk.n
+            if chunk.n:
+                yield chunk
+            row += chunk.n
             if not buf:
                 break
+
+
+ArrowParse = Callable[[bytes, int], "tuple[npt.NDArray[Any], list[F64]] | None"]
+
+
+def _csv_arrow_parser(width: int, idx: list[int], tidx: int, time_kind: TimeKind,
+                      delim: str) -> ArrowParse | None:
+    """pyarrow's CSV parser for chunks of ``width``-field rows, or None without pyarrow.
+
+    The returned function takes a chunk's bytes (whole lines, no header) and its line count,
+    and gives (time, value columns) — time shape (n,) float64, int64 or str, values shape (n,)
+    float64 each in ``idx`` order, NaN where a cell is empty — or None where the chunk is not
+    exactly ``n`` clean rows: then numpy's parser takes it. Only an empty cell is missing
+    (``nan``, ``NaN``, ``inf`` parse as numbers, as numpy's parser reads them); anything
+    else that is not a number, a row with another field count, an empty time, a ``#`` or
+    blank line (they are no rows to pyarrow) or a quoted line break (one row over two lines)
+    makes the chunk numpy's.
+    """
+    try:
+        import pyarrow as pa
+        import pyarrow.csv as pcsv
+    except ImportError:
+        return None
+    cols = [f"c{i}" for i in range(width)]  # header names may repeat; numpy takes the first
+    ttype = {"float": pa.float64(), "int": pa.int64(), "str": pa.string()}[time_kind]
+    types = {cols[i]: pa.float64() for i in idx}
+    types[cols[tidx]] = ttype
+    read = pcsv.ReadOptions(column_names=cols, use_threads=False, block_size=CSV_CHUNK_BYTES * 2)
+    parse = pcsv.ParseOptions(delimiter=delim, quote_char='"', ignore_empty_lines=True)
+    conv = pcsv.ConvertOptions(column_types=types, null_values=[""], true_values=[],
+                               false_values=[], strings_can_be_null=True,
+                               quoted_strings_can_be_null=True,
+                               include_columns=[cols[tidx], *(cols[i] for i in idx)])
+    nan = pa.scalar(float("nan"), pa.float64())
+
+    def parse_chunk(data: bytes, n: int) -> tuple[npt.NDArray[Any], list[F64]] | None:
+        if data.startswith((b"#", b"\n", b"\r\n")) or b"\n#" in data or b"\n\n" in data \
+                or b"\n\r\n" in data:
+            return None
+        try:
+            table = pcsv.read_csv(pa.py_buffer(data), read_options=read, parse_options=parse,
+                                  convert_options=conv)
+        except pa.ArrowInvalid:
+            return None
+        if table.num_rows != n:
+            return None
+        tarr = table.column(0)
+        if tarr.null_count:
+            return None
+        t: npt.NDArray[Any] = (tarr.to_numpy().astype(str) if time_kind == "str"
+                               else np.ascontiguousarray(tarr.to_numpy()))
+        out: list[F64] = []
+        for j in range(1, table.num_columns):
+            arr = table.column(j)
+            if arr.null_count:
+                arr = arr.fill_null(nan)
+            out.append(np.ascontiguousarray(arr.to_numpy(), dtype=np.float64))
+        return t, out
+
+    return parse_chunk
 
 
 def _csv_fast(lines: list[str], idx: list[int], tidx: int, time_kind: TimeKind,
