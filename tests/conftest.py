@@ -125,7 +125,8 @@ def offset_pressures(samples: Any, machine: Any, level: float, seed: int,
 
 # The files whose tests take minutes, run first: `make test` spreads whole files over two
 # processes (pytest-xdist, --dist loadfile --no-loadscope-reorder: in collection order, not by
-# number of tests), so a long file collected last would run alone at the end. Measured with --durations on a clean clone (2026-12-03).
+# number of tests), so a long file collected last would run alone at the end. Measured with
+# --durations on a clean clone (2026-12-03).
 LONG_FILES = ("test_twin_calibration.py", "test_chaos.py", "test_analytics_bench.py",
               "test_fleet_bench.py", "test_api.py", "test_api_schemathesis.py",
               "test_web_e2e.py", "test_mqtt_ingest.py", "test_worker_partitions.py")
