@@ -39,12 +39,17 @@ parts, lift seconds, events and progress of all its machines) are committed toge
 transaction of fixed statements per engine at the end of the pass or every 100 machines or 2 s
 (:mod:`cranetwin.service.workercommit`: each machine's progress still moves only from the
 watermark its span started from, in the transaction holding its results); the new late-data
-marks are written in one statement at the end of the pass. Late data (:meth:`_redo_late`) is
-redone and committed at once, before the machine's forward spans. The worker keeps what only
-it writes while it owns a machine — the last analytics part it committed (the next window's
-event look-back), the duty to date, and which blocks above its late-data mark its last pass
-had seen (:class:`~cranetwin.storage.analytics_windows.Seen`) — and drops them when its
-partitions change, when a commit finds the watermark moved and when late data is redone.
+marks are written in one statement at the end of the pass. A machine whose next window is not
+ready yet (at the defaults, 59 passes in 60: 1-s polls at 60-s windows) is read no further
+than its data range when it has neither late blocks behind its watermark nor redo requests,
+which two statements check for all such machines every pass (:meth:`_idle`): it has no turn,
+and late data or a redo request of it is found by the next pass, as before. Late data
+(:meth:`_redo_late`) is redone and committed at once, before the machine's forward spans.
+The worker keeps what only it writes while it owns a machine — the last analytics part it
+committed (the next window's event look-back), the duty to date, and which blocks above its
+late-data mark its last pass had seen (:class:`~cranetwin.storage.analytics_windows.Seen`)
+— and drops them when its partitions change, when a commit finds the watermark moved and when
+late data is redone.
 
 Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
 --partitions …``) a worker processes only the machines of the partitions it owns, re-checked
