@@ -23,6 +23,8 @@ def test_worker_bench_reports_each_step_and_the_line() -> None:
         assert r["cpu_ms_per_machine_pass"] > 0
         assert r["unreplayed"] == 0
         assert r["statements_per_machine_pass"] > 0
+        per_minute = sum(r["cpu_ms_per_machine_pass_runs"]) * 60.0 / (2 * r["step_s"])
+        assert r["cpu_ms_per_machine_minute"] == pytest.approx(per_minute, rel=0.02, abs=0.05)
     # 8 s per pass: two 4-s windows; 20 s: five (a span may stop at a whole minute)
     assert out["runs"][0]["windows_per_machine_pass"] == 2.0
     assert out["runs"][1]["windows_per_machine_pass"] == 5.0

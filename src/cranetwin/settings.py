@@ -188,7 +188,6 @@ class Settings(BaseSettings):
                                     "one machine's database waits overlap another's work)")
     worker_settle_s: float = Field(
         2.0, ge=0, description="a window is processed once samples this much past its end exist")
-    worker_grid_hz: float = Field(100.0, gt=0, description="twin worker replay grid rate [Hz]")
     worker_metrics_bind: str = Field(
         "0", description="HOST:PORT of `cranetwin worker`'s Prometheus /metrics (HTTP); "
                          "0 = not served")

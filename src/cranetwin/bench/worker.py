@@ -17,7 +17,10 @@ process's CPU time (``time.process_time``: every thread of the worker, not Postg
 machine in the pass, with every pass listed; ``wall_ms_per_machine_pass`` likewise;
 ``statements_per_machine_pass`` (SQL statements the worker sent, counted by a
 ``before_cursor_execute`` hook); ``windows_per_machine_pass``; ``unreplayed`` (spans the
-replay refused, summed over the passes: must be 0). With two or more step sizes,
+replay refused, summed over the passes: must be 0); ``cpu_ms_per_machine_minute`` — the
+CPU time of all the step's passes per machine and minute of data added (what a worker polling
+every ``step_s`` spends per machine-minute: e.g. ``--steps 1 --passes 60`` at 60-s windows is
+the settings' defaults, one pass with a window ready and 59 without). With two or more step sizes,
 ``fixed_ms_per_machine_pass`` and ``ms_per_machine_second`` are the least-squares line through
 the medians (cost = fixed + per-second × step). ``loadavg`` is the 1-min load average at the
 start and the end of the timed passes (the host is shared).
@@ -143,6 +146,7 @@ def run(machines: int = 100, rate_hz: float = 10.0, history_s: float = 70.0,
                 "statements_per_machine_pass": round(statistics.median(stmts), 2),
                 "windows_per_machine_pass": round(statistics.median(wins), 2),
                 "unreplayed": int(_errors(metrics) - unreplayed0),
+                "cpu_ms_per_machine_minute": round(sum(cpu) * 60.0 / (passes * step), 2),
             })
         load1 = os.getloadavg()[0]
         if prof is not None and profile:
@@ -195,6 +199,8 @@ def register(bench_app: typer.Typer) -> None:
         margin_s: float = typer.Option(1.0, help="twin_margin_s (the fleet bench's; the "
                                                  "default setting is 2)."),
         threads: int = typer.Option(4, min=1, help="worker_threads (the fleet bench's)."),
+        batch_samples: int = typer.Option(20, min=1, help="Samples per stored block (the "
+                                                          "daemon's batch)."),
         pg: str = typer.Option(PG_DEFAULT, help="PostgreSQL server (a database is made)."),
         profile: str = typer.Option("", help="Write a cProfile (CPU time) of the timed passes "
                                              "to this file (use --threads 1)."),
@@ -202,6 +208,7 @@ def register(bench_app: typer.Typer) -> None:
     ) -> None:
         """CPU per machine and pass of the twin worker on PostgreSQL (fleet bench settings)."""
         out = run(machines, rate_hz, history_s, tuple(float(s) for s in steps.split(",")),
-                  passes, window_s, settle_s, margin_s, threads=threads, pg=pg,
+                  passes, window_s, settle_s, margin_s, threads=threads,
+                  batch_samples=batch_samples, pg=pg,
                   profile=profile or None)
         emit(out, as_json)

@@ -39,12 +39,17 @@ parts, lift seconds, events and progress of all its machines) are committed toge
 transaction of fixed statements per engine at the end of the pass or every 100 machines or 2 s
 (:mod:`cranetwin.service.workercommit`: each machine's progress still moves only from the
 watermark its span started from, in the transaction holding its results); the new late-data
-marks are written in one statement at the end of the pass. Late data (:meth:`_redo_late`) is
-redone and committed at once, before the machine's forward spans. The worker keeps what only
-it writes while it owns a machine — the last analytics part it committed (the next window's
-event look-back), the duty to date, and which blocks above its late-data mark its last pass
-had seen (:class:`~cranetwin.storage.analytics_windows.Seen`) — and drops them when its
-partitions change, when a commit finds the watermark moved and when late data is redone.
+marks are written in one statement at the end of the pass. A machine whose next window is not
+ready yet (at the defaults, 59 passes in 60: 1-s polls at 60-s windows) is read no further
+than its data range when it has neither late blocks behind its watermark nor redo requests,
+which two statements check for all such machines every pass (:meth:`_idle`): it has no turn,
+and late data or a redo request of it is found by the next pass, as before. Late data
+(:meth:`_redo_late`) is redone and committed at once, before the machine's forward spans.
+The worker keeps what only it writes while it owns a machine — the last analytics part it
+committed (the next window's event look-back), the duty to date, and which blocks above its
+late-data mark its last pass had seen (:class:`~cranetwin.storage.analytics_windows.Seen`)
+— and drops them when its partitions change, when a commit finds the watermark moved and when
+late data is redone.
 
 Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
 --partitions …``) a worker processes only the machines of the partitions it owns, re-checked
@@ -154,6 +159,11 @@ class TwinWorker:
         pass saw, the watermark it committed): :func:`~cranetwin.service.workerpass.read_pass`
         leaves the blocks it saw out of the next pass's late data. Kept and dropped as
         :attr:`_last_part`."""
+        self._known: dict[str, tuple[int, float]] = {}
+        """Machine → (late-data mark below which its blocks have been checked, watermark this
+        worker committed) after a pass that read the machine fully and stored its mark
+        (PostgreSQL): lets later passes skip an idle machine's reads (:meth:`_idle`). Kept
+        and dropped as :attr:`_last_part`, and dropped at the start of every turn."""
         self._duty: dict[str, DutyToDate] = {}
         """Machine → the duty to date this worker stored last (not read back while valid: kept
         and dropped as :attr:`_last_part`)."""
@@ -170,10 +180,12 @@ class TwinWorker:
             self._last_part.clear()
             self._duty.clear()
             self._seen.clear()
+            self._known.clear()
         else:
             self._last_part.pop(machine_id, None)
             self._duty.pop(machine_id, None)
             self._seen.pop(machine_id, None)
+            self._known.pop(machine_id, None)
 
     def _engine(self, rec: MachineRecord) -> Any:
         """The engine holding the machine's rows (its shard when storage is sharded)."""
@@ -235,6 +247,13 @@ class TwinWorker:
         Returns:
             Windows processed (0 = every machine is caught up).
         """
+        try:
+            return self._run_once()
+        except BaseException:
+            self._known.clear()  # a mark of the pass may not be stored: read fully next pass
+            raise
+
+    def _run_once(self) -> int:
         from cranetwin.service.workercommit import PassCommit
         from cranetwin.service.workerpass import flush_marks, read_pass
 
@@ -250,11 +269,14 @@ class TwinWorker:
         pool = self._thread_pool()
         machines = self.backend.list_machines()
         mine = [r.machine_id for r in machines if own is None or own.owns(r.machine_id)]
-        reads: PassReads | None = read_pass(self.backend, mine, self.settings.worker_window_s,
-                                            self._first_span, dict(self._seen))
+        got = self.backend.data_ranges(mine)
+        idle = self._idle(got)
+        reads: PassReads | None = read_pass(
+            self.backend, [m for m in mine if m not in idle], self.settings.worker_window_s,
+            self._first_span, dict(self._seen), got)
         batch = PassCommit(self.backend)
         try:
-            total += self._pass(machines, reads, batch, pool)
+            total += self._pass(machines, reads, batch, pool, idle)
         finally:  # what the machines done so far replayed, also when one failed
             self._commit(batch)
         if reads is not None and reads.marks:
@@ -264,9 +286,44 @@ class TwinWorker:
             self._upkeep()
         return total
 
+    def _idle(self, got: dict[str, tuple[int, tuple[float, float] | None]],
+              ) -> dict[str, tuple[float, float]]:
+        """The machines of this pass whose turn would do nothing (machine → (newest sample
+        [s], watermark [s])): their next window is not ready (watermark + window + settle
+        beyond the newest sample, not quiet: the first test of :meth:`_catch_up`), and they
+        have no late blocks behind the watermark nor redo requests
+        (:func:`~cranetwin.service.workerpass.idle_machines`, two statements for all of them).
+        Only machines this worker read fully before and owns since (:attr:`_known`); on
+        PostgreSQL. The pass reads nothing else of them and skips their turns: an idle
+        machine then costs its data range and its share of those two statements, and late
+        data or a redo request of it is still found by the next pass."""
+        from cranetwin.service.workerpass import idle_machines
+
+        s = self.settings
+        cand: dict[str, tuple[int, float]] = {}
+        for mid, (mark, wm) in self._known.items():
+            dr = got.get(mid, (0, None))[1]
+            if dr is None:
+                continue
+            if wm + s.worker_window_s + s.worker_settle_s > dr[1] and not (
+                    self._quiet(mid, dr[1]) and wm <= dr[1]):
+                cand[mid] = (mark, wm)
+        if not cand:
+            return {}
+        ok = idle_machines(self.backend, got, cand, self._seen)
+        out: dict[str, tuple[float, float]] = {}
+        for mid in ok:
+            self._known[mid] = cand[mid]  # its mark advanced: checked up to this pass
+            dr = got[mid][1]
+            assert dr is not None
+            out[mid] = (dr[1], cand[mid][1])
+        return out
+
     def _pass(self, machines: list[MachineRecord], reads: PassReads | None, batch: PassCommit,
-              pool: ThreadPoolExecutor | None) -> int:
-        """The machines' turns of :meth:`run_once`; returns windows processed."""
+              pool: ThreadPoolExecutor | None,
+              idle: dict[str, tuple[float, float]] | None = None) -> int:
+        """The machines' turns of :meth:`run_once`; returns windows processed. The ``idle``
+        machines (:meth:`_idle`) have no turn, only their lag and schedules looked at."""
         own = self.ownership
         due = self.clock() + self.settings.worker_interval_s
         total = 0
@@ -289,12 +346,20 @@ class TwinWorker:
                     due = self.clock() + self.settings.worker_interval_s
                     if frozenset(own.owned) != self._owned:  # the pass's reads are stale
                         reads = None
+                        idle = None
                         self._forget()
                         self._owned = frozenset(own.owned)
                 if not own.owns(rec.machine_id):
                     self._marks.pop(rec.machine_id, None)
                     self._forget(rec.machine_id)
                     continue
+            if idle is not None and rec.machine_id in idle:
+                newest, wm = idle[rec.machine_id]
+                self._marks[rec.machine_id] = (newest, wm)
+                if self.metrics is not None:
+                    self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, newest - wm))
+                self._check_schedules(rec)
+                continue
             pre = reads if reads is not None and rec.machine_id in reads.ranges else None
             if batch.due():  # between turns: no machine adds to it meanwhile
                 total += sum(result(f) for f in pending)
@@ -409,6 +474,7 @@ class TwinWorker:
             batch: Collect the spans for the pass's commit (:mod:`cranetwin.service.
                 workercommit`; None: each span is committed at once).
         """
+        self._known.pop(rec.machine_id, None)  # set again once this turn is stored
         try:
             return self._catch_up(rec, max_windows, reads, batch)
         except BaseException:
@@ -477,8 +543,14 @@ class TwinWorker:
 
         snap = reads.snapshots.get(mid) if reads is not None and mid in reads.late else None
         top = reads.late[mid][1] if reads is not None and snap is not None else 0
+        if reads is not None and mid in reads.late:  # the mark stored at the end of the pass
+            mark = reads.marks.get(mid, reads.late[mid][0])
+        else:
+            mark = None
 
         def after_commit() -> None:  # what reads the stored parts: after the spans' commit
+            if mark is not None:  # (a failed pass drops it: :meth:`run_once`)
+                self._known[mid] = (mark, end_wm)
             if snap is not None and end_wm > start_wm:
                 # every window reaching the blocks committed in the pass's snapshot that start
                 # after start_wm + margin was replayed with them (read after it)

@@ -82,7 +82,9 @@ that catches up: 500 machines × 30 s × 10 Hz × 20 channels ≈ 24 MB)."""
 
 def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
               first_span: Callable[[float, float], tuple[float, float] | None] | None = None,
-              seen: dict[str, tuple[int, aw.Seen, float]] | None = None) -> PassReads:
+              seen: dict[str, tuple[int, aw.Seen, float]] | None = None,
+              got: dict[str, tuple[int, tuple[float, float] | None]] | None = None,
+              ) -> PassReads:
     """The reads of a pass over ``machine_ids`` (a few statements per engine).
 
     Args:
@@ -95,8 +97,13 @@ def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
         seen: Machine → (the mark its last pass stored, what that pass saw, the watermark it
             committed): used when the machine's stored mark and watermark are still those
             (no other worker moved them), so the blocks it saw are not late data now.
+        got: :meth:`Backend.data_ranges` of ``machine_ids`` if already read this pass (the
+            module docstring's order holds: they were read first).
     """
-    got = backend.data_ranges(machine_ids)
+    if got is None:
+        got = backend.data_ranges(machine_ids)
+    else:
+        got = {m: got[m] for m in machine_ids if m in got}
     ranges = {m: v[1] for m, v in got.items()}
     stored = [m for m, r in ranges.items() if r is not None]
     progress = backend.progress_many(stored) if stored else {}
@@ -138,6 +145,48 @@ def read_pass(backend: Backend, machine_ids: list[str], window_s: float,
     if first_span is not None:
         _read_samples(backend, reads, got, window_s, first_span)
     return reads
+
+
+def idle_machines(backend: Backend, got: dict[str, tuple[int, tuple[float, float] | None]],
+                  known: dict[str, tuple[int, float]],
+                  seen: dict[str, tuple[int, aw.Seen, float]]) -> set[str]:
+    """Of the machines in ``known``, those with neither late blocks nor redo requests now
+    (PostgreSQL; machines on other engines are left out): two statements per engine.
+
+    The pass skips every other read for them when their next window is not ready either
+    (:meth:`cranetwin.service.worker.TwinWorker._idle`). This is a trigger, not the redo
+    itself: a machine it leaves out gets the full reads of :func:`read_pass`, which decide
+    what is late with the stored mark. So a false alarm costs one machine's full reads, and
+    nothing may be missed: the blocks looked at are those written by transactions in
+    [known mark, this snapshot's xmin) that start before the known watermark, the same
+    query as :func:`read_pass`'s with the worker's own record instead of the stored rows.
+
+    Args:
+        backend: Store adapter.
+        got: This pass's :meth:`Backend.data_ranges` (machine → (primary key, range)).
+        known: Machine → (the late-data mark [commit order] below which every block has been
+            checked, the watermark [s] this worker committed): what the worker's last full
+            reads of the machine and its later checks left (kept in memory only while the
+            worker owns the machine). A check that finds nothing advances the mark in
+            ``known`` to this snapshot's xmin (the stored mark stays: the full reads use it).
+        seen: As :func:`read_pass`'s ``seen`` (used when its watermark is still the known).
+    """
+    ids = [m for m in known if m in got and got[m][1] is not None]
+    out: set[str] = set()
+    for engine, part in backend.store.engines_of(ids):
+        if engine.dialect.name != "postgresql":
+            continue
+        top = aw.snapshot_xmin(engine)  # after the data ranges (module docstring)
+        bounds = {got[m][0]: known[m] for m in part}
+        saw = {got[m][0]: seen[m][1] for m in part
+               if m in seen and seen[m][2] == known[m][1]}
+        late = aw.new_blocks_before_many(engine, bounds, top, saw)
+        asked = redo_mod.pending(engine, part)
+        for m in part:
+            if got[m][0] not in late and m not in asked:
+                out.add(m)
+                known[m] = (top, known[m][1])
+    return out
 
 
 def _payload_ranges(backend: Backend, got: dict[str, tuple[int, tuple[float, float] | None]],
