@@ -23,9 +23,11 @@ demo: setup
 	$(BIN)/cranetwin fleetdemo
 
 test: system-deps setup
-	@$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder; rc=$$?; \
-	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: treating as failure"; exit 1; fi; \
-	exit $$rc
+	@$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m "not serial"; \
+	rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest collected no tests: treating as failure"; rc=1; fi; \
+	$(BIN)/python -m pytest -q -m serial; rc2=$$?; \
+	if [ $$rc2 -eq 5 ]; then echo "pytest collected no serial tests: treating as failure"; rc2=1; fi; \
+	if [ $$rc -ne 0 ]; then exit $$rc; fi; exit $$rc2
 
 lint: setup
 	$(BIN)/ruff check src tests

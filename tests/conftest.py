@@ -132,7 +132,19 @@ LONG_FILES = ("test_twin_calibration.py", "test_chaos.py", "test_analytics_bench
               "test_web_e2e.py", "test_mqtt_ingest.py", "test_worker_partitions.py")
 
 
+# The files whose PostgreSQL tests find late data by the server's commit-order mark
+# (pg_snapshot_xmin): a transaction open in any other session holds it back, so these run alone
+# (marked `serial`: `make test` runs them after the parallel part, in one process).
+SERIAL_FILES = ("test_worker_late.py", "test_worker_pass.py", "test_worker_commit.py",
+                "test_worker_idle.py", "test_api_worker_history.py")
+
+
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Put the tests of :data:`LONG_FILES` first, in that order; the rest keep theirs."""
+    """Put the tests of :data:`LONG_FILES` first, in that order (the rest keep theirs), and
+    mark those of :data:`SERIAL_FILES` ``serial``."""
     rank = {name: i for i, name in enumerate(LONG_FILES)}
     items.sort(key=lambda it: rank.get(it.path.name, len(LONG_FILES)))  # stable
+    for it in items:
+        if it.path.name in SERIAL_FILES:
+            it.add_marker(pytest.mark.serial)
