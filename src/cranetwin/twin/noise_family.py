@@ -148,7 +148,7 @@ class CaseResult:
         lift_z: Per complete lift, (mean estimate − truth) / its stated σ.
         lift_z_all_random: The same with the lift σ that takes all of the instants' σ as
             averaging down over the lift (:func:`cranetwin.twin.lifts.lift_payloads` without
-            the systematic part; the lift σ before issue 16), for comparison.
+            the systematic part; the lift σ before the data sheet was used), for comparison.
         stated: The same scores of the replay given the sensors' stated accuracy (None: not
             run); its cylinders share ``fixed``, ``position_input`` and ``pressure_only``.
     """

@@ -51,8 +51,9 @@ RESOLVABLE_SHARE = 0.10
 
 FORCE_ACCURACY_TARGET = 0.04
 """The force accuracy the twin is held to: NRMSE (RMS error over the true force's range) at
-most 4 % (issue 16's target, docs/ACCURACY.md "Noise family"). A force whose systematic error
-floor σ_b,F exceeds this share of its range is flagged not observable (module docstring)."""
+most 4 % (the noise family's force target, docs/ACCURACY.md "Noise family"). A force whose
+systematic error floor σ_b,F exceeds this share of its range is flagged not observable (module
+docstring)."""
 
 Cause = Literal["noise share", "systematic floor"]
 
