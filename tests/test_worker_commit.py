@@ -72,9 +72,7 @@ def _one_by_one(b: Backend, monkeypatch: pytest.MonkeyPatch) -> None:
 @pytest.mark.timeout(300)
 def test_pass_commit_stores_what_machine_by_machine_stores(
         pg_url: str, base: SampleArrays, monkeypatch: pytest.MonkeyPatch) -> None:
-    import uuid
 
-    import psycopg
 
     b = _setup(pg_url, base)
     w = _worker(b)
@@ -82,21 +80,14 @@ def test_pass_commit_stores_what_machine_by_machine_stores(
     together = _stored(b)
     b.close()
     # the same data in another schema, committed machine by machine
-    from conftest import PG_URL, _pg_conninfo
+    from conftest import fresh_pg_schema
 
-    schema = f"t_{uuid.uuid4().hex[:12]}"
-    with psycopg.connect(_pg_conninfo(), autocommit=True) as conn:
-        conn.execute(f'CREATE SCHEMA "{schema}"')
-    try:
-        sep = "&" if "?" in PG_URL else "?"
-        b1 = _setup(f"{PG_URL}{sep}options=-csearch_path%3D{schema}", base)
+    with fresh_pg_schema() as url:
+        b1 = _setup(url, base)
         _one_by_one(b1, monkeypatch)
         assert _worker(b1).run_once() == 3 * 7
         alone = _stored(b1)
         b1.close()
-    finally:
-        with psycopg.connect(_pg_conninfo(), autocommit=True) as conn:
-            conn.execute(f'DROP SCHEMA "{schema}" CASCADE')
     assert len(together["progress"]) == 3 and len(together["windows"]) == 6  # part, lifts
     for k in together:  # to the last bit (a minute's sum adds its seconds in time order)
         assert together[k] == alone[k], k
