@@ -72,8 +72,6 @@ def _one_by_one(b: Backend, monkeypatch: pytest.MonkeyPatch) -> None:
 @pytest.mark.timeout(300)
 def test_pass_commit_stores_what_machine_by_machine_stores(
         pg_url: str, base: SampleArrays, monkeypatch: pytest.MonkeyPatch) -> None:
-
-
     b = _setup(pg_url, base)
     w = _worker(b)
     assert w.run_once() == 3 * 7  # 28 s ready: one span per machine
