@@ -66,27 +66,28 @@ def history_from_twin(machine: Machine, res: TwinResult) -> LoadHistory:
     """A twin replay result as a load history (NaN-free instants only, and none bridged across
     a dropout: the rule of the twin worker's windows, :func:`cranetwin.service.history.window_rows`,
     so a report from a file, from stored samples and from the worker's stored parts count the
-    same instants), with where its payload is steady
-    (:func:`cranetwin.service.analytics.steady_payload`).
+    same instants), with where its payload is steady and the payload net of each lift's empty
+    reading (:func:`cranetwin.service.analytics.lift_payload`).
 
     Args:
         machine: The machine replayed.
         res: A :class:`cranetwin.twin.TwinResult`.
     """
-    from cranetwin.service.analytics import cylinder_loads, steady_payload
+    from cranetwin.service.analytics import cylinder_loads, lift_payload
 
     reach, height = _reach_height(machine, res.q)
     ok = np.isfinite(res.cyl_force).all(axis=1) & np.isfinite(res.joint_wrench).all(axis=(1, 2))
     ok &= np.isfinite(res.payload_kg) & np.isfinite(res.q).all(axis=1)
     ok &= ~np.asarray(res.gap, dtype=bool)
+    steady, net = lift_payload(res)
 
     def k(a: F64) -> F64:
         return a if ok.all() else a[ok]
     return LoadHistory.from_arrays(
         machine, t_s=k(res.t_s), cyl_force=k(res.cyl_force), q=k(res.q), qd=k(res.qd),
-        payload_kg=np.maximum(k(res.payload_kg), 0.0), reach_m=k(reach), height_m=k(height),
+        payload_kg=np.maximum(k(net), 0.0), reach_m=k(reach), height_m=k(height),
         joint_wrench=k(res.joint_wrench), rod_s=k(res.rod_s), rod_v=k(res.rod_v),
-        p_a=k(res.p_a), p_b=k(res.p_b), payload_steady=k(steady_payload(res)),
+        p_a=k(res.p_a), p_b=k(res.p_b), payload_steady=k(steady),
         cyl_load=cylinder_loads(machine, k(res.q), k(res.id_torque), k(res.cyl_force)))
 
 

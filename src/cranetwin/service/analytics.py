@@ -43,16 +43,19 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-def steady_payload(res: Any, threshold_kg: float | None = None,
-                   sample_period_s: float | None = None) -> np.ndarray:
-    """Where a replay's payload estimate is a steady estimate of a lift's load, shape (n,)
-    bool: inside each lift (:func:`cranetwin.twin.lifts.result_lifts`) with the grab and
-    release ramps the estimate's window smears left out. A work cycle's payload is the mean
-    over these instants (:mod:`cranetwin.analytics.productivity`).
+def lift_payload(res: Any, threshold_kg: float | None = None,
+                 sample_period_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A replay's payload as the analytics read it: where it is a steady estimate of a lift's
+    load, shape (n,) bool — inside each lift (:func:`cranetwin.twin.lifts.result_lifts`) with
+    the grab and release ramps the estimate's window smears left out; a work cycle's payload
+    is the mean over these instants (:mod:`cranetwin.analytics.productivity`) — and the
+    estimate net of each lift's empty reading from its grab to its release (the lift's
+    ``tare_kg``: a sensor offset read where the grapple is empty), shape (n,) [kg].
 
     Args:
         res: A :class:`cranetwin.twin.TwinResult` (computed over the whole replay, margins
-            included, so a lift is found the same way in every window that holds it).
+            included, so a lift is found the same way in every window that holds it; its
+            empty reading is what the replay holds of the empty stretches next to it).
         threshold_kg: A lift is where the estimate exceeds this [kg] (None: the work cycles'
             ``grab_kg``).
         sample_period_s: Period of the replayed samples [s] (None: the median step of the
@@ -61,11 +64,16 @@ def steady_payload(res: Any, threshold_kg: float | None = None,
     from cranetwin.analytics import ProductivityConfig
     from cranetwin.twin.lifts import result_lifts, steady_mask
 
+    net = np.array(res.payload_kg, dtype=np.float64, copy=True)
     if res.t_s.shape[0] < 2:
-        return np.zeros(res.t_s.shape, dtype=bool)
+        return np.zeros(res.t_s.shape, dtype=bool), net
     thr = ProductivityConfig().grab_kg if threshold_kg is None else threshold_kg
     dt = float(np.median(np.diff(res.t_s))) if sample_period_s is None else sample_period_s
-    return steady_mask(res.t_s, result_lifts(res, dt, thr))
+    lifts = result_lifts(res, dt, thr)
+    for lf in lifts:
+        if lf.tare_kg != 0.0:
+            net[(res.t_s >= lf.grab_s) & (res.t_s <= lf.release_s)] -= lf.tare_kg
+    return steady_mask(res.t_s, lifts), net
 
 
 def cylinder_loads(machine: Machine, q: np.ndarray, id_torque: np.ndarray,
@@ -93,18 +101,19 @@ def cylinder_loads(machine: Machine, q: np.ndarray, id_torque: np.ndarray,
 
 def load_history(machine: Machine, res: Any, keep: np.ndarray) -> Any:
     """:class:`cranetwin.analytics.LoadHistory` of the kept instants of a replay result, with
-    where its payload is steady (:func:`steady_payload`) and the cylinders' load forces by
-    inverse dynamics (:func:`cylinder_loads`: at a stroke end, what shock loads are taken
-    from)."""
+    where its payload is steady and the payload net of each lift's empty reading
+    (:func:`lift_payload`) and the cylinders' load forces by inverse dynamics
+    (:func:`cylinder_loads`: at a stroke end, what shock loads are taken from)."""
     from cranetwin.analytics import LoadHistory
     from cranetwin.physics import horizontal_reach
 
     q = res.q[keep]
+    steady, net = lift_payload(res)
     return LoadHistory.from_arrays(
         machine, t_s=res.t_s[keep], cyl_force=res.cyl_force[keep], q=q, qd=res.qd[keep],
-        payload_kg=np.maximum(res.payload_kg[keep], 0.0), reach_m=horizontal_reach(machine, q),
+        payload_kg=np.maximum(net[keep], 0.0), reach_m=horizontal_reach(machine, q),
         joint_wrench=res.joint_wrench[keep], rod_s=res.rod_s[keep], rod_v=res.rod_v[keep],
-        p_a=res.p_a[keep], p_b=res.p_b[keep], payload_steady=steady_payload(res)[keep],
+        p_a=res.p_a[keep], p_b=res.p_b[keep], payload_steady=steady[keep],
         cyl_load=cylinder_loads(machine, q, res.id_torque[keep], res.cyl_force[keep]))
 
 
