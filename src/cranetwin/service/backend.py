@@ -270,6 +270,11 @@ class Backend:
             self._pks.update({mid: v[0] for mid, v in out.items()})
         return out
 
+    def payload_version(self, machine_id: str) -> int:
+        """The version of the machine's stored known payload, raised by every change of it
+        in any process (:mod:`cranetwin.storage.payload_version`): one primary-key lookup."""
+        return int(self.store.payload_version(machine_id))
+
     def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
         """Samples with t in [t0_s, t1_s]."""
         out: SampleArrays = self.store.read_samples(machine_id, t0_s, t1_s)

@@ -23,8 +23,8 @@ from cranetwin.storage import blocks as blocks_mod
 from cranetwin.storage import events as events_mod
 from cranetwin.storage import machines as machines_mod
 from cranetwin.storage import partitions as partitions_mod
+from cranetwin.storage import payload_version, redo
 from cranetwin.storage import payloads as payloads_mod
-from cranetwin.storage import redo
 from cranetwin.storage import summaries as summaries_mod
 from cranetwin.storage import writes as writes_mod
 from cranetwin.storage.dberrors import is_unavailable, unavailable
@@ -467,6 +467,8 @@ class Store:
                 new = set(res.new_starts)
                 redo.request(s, machine_id, [span for r in runs if r.t0_ns in new
                                              if (span := payloads_mod.known_span(r))])
+                if res.stored:
+                    payload_version.bump(s, machine_id)
                 return res
         except SQLAlchemyError as exc:
             if is_unavailable(exc):
@@ -486,6 +488,8 @@ class Store:
         with self._session() as s, s.begin():
             res = payloads_mod.delete(s, self._machine_pk(s, machine_id), starts_ns)
             redo.request(s, machine_id, res.changed_ns)
+            if res.runs_deleted:
+                payload_version.bump(s, machine_id)
             return res.runs_deleted
 
     def delete_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadDelete:
@@ -501,7 +505,16 @@ class Store:
         with self._session() as s, s.begin():
             res = payloads_mod.delete_range(s, self._machine_pk(s, machine_id), t0, t1)
             redo.request(s, machine_id, res.changed_ns)
+            if res.runs_deleted or res.runs_cut:
+                payload_version.bump(s, machine_id)
             return res
+
+    def payload_version(self, machine_id: str) -> int:
+        """The version of the machine's stored known payload
+        (:mod:`cranetwin.storage.payload_version`: raised by every change of it, by any
+        process; 0 when it never changed), in one primary-key lookup."""
+        with self._session() as s:
+            return payload_version.read(s, machine_id)
 
     def payload_stretches(self, machine_id: str, t0_s: float | None = None,
                           t1_s: float | None = None) -> list[Stretch]:
