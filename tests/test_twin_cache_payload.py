@@ -106,3 +106,28 @@ def test_payload_version_is_raised_by_every_change_and_only_by_a_change(db_url: 
         starts = [r.t_first_ns for r in a.payload_stretches(MID)]
         assert b.delete_payload_runs(MID, starts[:1]) == 1 and a.payload_version(MID) == 4
         assert a.payload_version("other") == 0
+        # read with the machine (the API's per-request read), not in listings
+        assert a.get_machine(MID).payload_version == 4
+        assert a.get_machine("other").payload_version == 0
+        assert {m.payload_version for m in a.machines()} == {None}
+
+
+def test_twin_key_holds_the_version_read_with_the_record_else_reads_it(db_url: str) -> None:
+    from cranetwin.service.backend import Backend
+    from cranetwin.service.fleet import FleetService
+    from cranetwin.service.timerange import TimeRange
+
+    b = Backend.open(db_url)
+    b.store.add_machine(MID, wire_id=7, secret=b"k" * 32)
+    fleet = FleetService(Settings(database_url=db_url, worker_in_process=False), b)
+    rng = TimeRange(T0, T0 + 10.0)
+    t_ns = round(T0 * 1e9) + np.arange(10, dtype=np.int64) * 10**8
+    b.store.write_payload(MID, np.full(10, 300.0), t_ns=t_ns)
+    listed = next(r for r in b.list_machines() if r.machine_id == MID)
+    assert listed.payload_version is None
+    assert fleet.twin_key(listed, rng, 10.0)[1] == 1  # read
+    assert fleet.twin_key(b.machine(MID), rng, 10.0)[1] == 1  # with the record
+    b.store.delete_payload(MID, T0, T0 + 10.0)
+    assert fleet.twin_key(listed, rng, 10.0)[1] == fleet.twin_key(b.machine(MID), rng,
+                                                                   10.0)[1] == 2
+    b.close()

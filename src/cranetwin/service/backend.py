@@ -53,6 +53,9 @@ class MachineRecord:
         model_source: Built-in name or TOML text, as stored.
         wire_id: Numeric id on the wire.
         location: (latitude [deg], longitude [deg], time [s]) or None.
+        payload_version: Version of the machine's stored known payload when the record was
+            read (:meth:`Backend.machine`: with the record, no query of its own); None when
+            not read (listings).
     """
 
     machine_id: str
@@ -61,6 +64,7 @@ class MachineRecord:
     model_source: str
     wire_id: int | None
     location: tuple[float, float, float] | None
+    payload_version: int | None = None
 
 
 @dataclass(frozen=True)
@@ -142,7 +146,7 @@ class Backend:
         return MachineRecord(machine_id=info.machine_id, name=str(meta.get("name") or
                                                                    info.machine_id),
                              model=model, model_source=source, wire_id=int(info.wire_id),
-                             location=loc)
+                             location=loc, payload_version=info.payload_version)
 
     def list_machines(self) -> list[MachineRecord]:
         """Every registered machine, by id."""

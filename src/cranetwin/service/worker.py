@@ -49,7 +49,9 @@ The worker keeps what only it writes while it owns a machine — the last analyt
 committed (the next window's event look-back), the duty to date, and which blocks above its
 late-data mark its last pass had seen (:class:`~cranetwin.storage.analytics_windows.Seen`)
 — and drops them when its partitions change, when a commit finds the watermark moved and when
-late data is redone.
+late data is redone. A span whose replay or analytics failed is passed (logged, counted) and
+recorded (:mod:`cranetwin.storage.failed_windows`), so that a known payload or late data over
+it later has it processed again like a span that has a part.
 
 Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
 --partitions …``) a worker processes only the machines of the partitions it owns, re-checked
@@ -655,7 +657,9 @@ class TwinWorker:
         analytics merge from) and its events, stored with the window's commit: a redone
         window replaces its part and its events (storage keeps an event found again as it is
         stored: unique on machine, time, kind). Returns (part row or None, events or None when
-        they could not be found: a redone window then keeps the events stored).
+        they could not be found: a redone window then keeps the events stored); (None, None)
+        when the part could not be made (the span is recorded as failed:
+        :mod:`cranetwin.storage.failed_windows`).
 
         The events are found the way a report merges parts: the previous minute's stored part
         is folded first (:meth:`_previous_part`), so the look-back detectors (force rates,

@@ -13,15 +13,17 @@ still v.
 
 It is one row of ``analytics_windows`` (where the redo requests of the same change are kept,
 :mod:`cranetwin.storage.redo`) per machine: level :data:`VERSION_LEVEL`, ``t0_ns`` 0, ``n``
-the version (no row: version 0). Reading it is one primary-key lookup. The row is never
+the version (no row: version 0). Reading it is one primary-key lookup, alone (:func:`read`)
+or as a column of a statement a request makes anyway (:func:`column`). The row is never
 deleted (machines are not), so a version is never used twice for a machine.
 """
 
 from __future__ import annotations
 
-from sqlalchemy import select
+from sqlalchemy import ScalarSelect, select
 from sqlalchemy.dialects import postgresql, sqlite
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import InstrumentedAttribute, Session
+from sqlalchemy.sql.elements import ColumnElement
 
 from cranetwin.storage.analytics_windows import AnalyticsWindowRow
 
@@ -42,6 +44,14 @@ def bump(session: Session, machine_id: str) -> None:
                                               set_={"n": w.n + 1}))
 
 
+def column(machine_id: ColumnElement[str] | InstrumentedAttribute[str]) -> ScalarSelect[int]:
+    """The version as a scalar subquery of ``machine_id``, a column of the outer statement
+    (read together with it: :meth:`cranetwin.storage.Store.get_machine`); NULL when 0."""
+    w = AnalyticsWindowRow
+    return (select(w.n).where(w.machine_id == machine_id, w.level_s == VERSION_LEVEL,
+                              w.t0_ns == 0).scalar_subquery())
+
+
 def read(session: Session, machine_id: str) -> int:
     """The machine's version (0 when its payload never changed)."""
     w = AnalyticsWindowRow
@@ -50,4 +60,4 @@ def read(session: Session, machine_id: str) -> int:
     return int(got) if got is not None else 0
 
 
-__all__ = ["VERSION_LEVEL", "bump", "read"]
+__all__ = ["VERSION_LEVEL", "bump", "column", "read"]

@@ -172,14 +172,21 @@ class Store:
         return machines_mod.to_info(row)
 
     def get_machine(self, machine_id: str) -> MachineInfo:
-        """Public info of one machine.
+        """Public info of one machine, with the version of its stored known payload (read in
+        the statement that reads its newest block: no round trip of its own).
 
         Raises:
             UnknownMachineError: No such machine.
         """
         with self._session() as s:
             row = machines_mod.get_row(s, machine_id)
-            return machines_mod.to_info(row, self._newest_block_ns(s, [row.id]).get(row.id))
+            b, m = blocks_mod.BlockRow, MachineRow
+            newest = (select(func.max(b.t_end_ns)).where(b.machine_pk == m.id)
+                      .correlate(m).scalar_subquery())
+            t, version = s.execute(select(newest, payload_version.column(m.machine_id))
+                                   .where(m.id == row.id)).one()
+            return machines_mod.to_info(row, None if t is None else int(t),
+                                        payload_version=int(version or 0))
 
     def machines(self) -> list[MachineInfo]:
         """Every registered machine, ordered by machine id (no secrets)."""
