@@ -131,3 +131,24 @@ def test_twin_key_holds_the_version_read_with_the_record_else_reads_it(db_url: s
     assert fleet.twin_key(listed, rng, 10.0)[1] == fleet.twin_key(b.machine(MID), rng,
                                                                    10.0)[1] == 2
     b.close()
+
+
+def test_two_api_processes_side_by_side_both_replay_after_a_payload_change(
+        api: tuple[TestClient, Services, str], db_url: str) -> None:
+    """Two API processes on one database (stateless, each with its own replay cache): both
+    cached the window; the payload stored elsewhere, both give the known payload."""
+    client_a, _, key = api  # the key is stored in the database: the second process knows it
+    app_b = create_app(Settings(database_url=db_url, worker_in_process=False, warm_up=False,
+                                heavy_processes=0))
+    with TestClient(app_b) as client_b:
+        before = _twin(client_a, key)[0]
+        assert _twin(client_b, key)[0] == before
+        assert app_b.state.services.fleet.twin_cache.hits == 0
+        assert _twin(client_b, key)[0] == before
+        assert app_b.state.services.fleet.twin_cache.hits == 1
+        t_ns = round((T0 + 60.0) * 1e9) + np.arange(6000, dtype=np.int64) * 10**7
+        with open_store(db_url) as other:
+            other.write_payload(MID, np.full(t_ns.shape, KNOWN_KG), t_ns=t_ns)
+        for client in (client_a, client_b):
+            body, kg = _twin(client, key)
+            assert body != before and np.all(np.abs(kg - KNOWN_KG) < 1.0)
