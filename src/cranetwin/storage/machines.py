@@ -72,7 +72,6 @@ class MachineInfo:
     payload_version: int | None = None
 
 
-
 def to_info(row: MachineRow, newest_block_ns: int | None = None,
             payload_version: int | None = None) -> MachineInfo:
     """Public view of a machine row (drops the secret).
