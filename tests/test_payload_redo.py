@@ -148,3 +148,118 @@ def test_payload_stored_then_deleted_behind_the_worker_is_processed_again_once(
     assert worker.run_once() == 0
     b.close()
     fb.close()
+
+
+@pytest.fixture(scope="module")
+def fresh(base: SampleArrays, tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    """The oracle: the samples and the payload stored before the first window was processed
+    (SQLite)."""
+    fb = _backend(f"sqlite:///{tmp_path_factory.mktemp('fresh')}/fresh.db", base)
+    _write_known(fb)
+    assert _worker(fb).catch_up(fb.machine(MID)) == 4
+    state = _state(fb)
+    fb.close()
+    return state
+
+
+FAILING_W0 = T0 + 60.0
+"""The minute whose processing fails (the first with the known payload)."""
+
+
+def _fail_minute(monkeypatch: pytest.MonkeyPatch, worker: TwinWorker, kind: str) -> list[float]:
+    """Make the replay (``kind`` "replay") or the analytics part ("analytics") of the span
+    starting at :data:`FAILING_W0` raise, as the twin or the analytics do for data they cannot
+    use; returns the list the failed attempts' starts are appended to."""
+    from cranetwin.errors import AnalyticsError, TwinError
+    from cranetwin.service import history
+
+    failed: list[float] = []
+    if kind == "analytics":
+        real_part = history.part_row
+
+        def part_row(machine: object, machine_id: str, w0: float, *a: object) -> object:
+            if w0 == FAILING_W0:
+                failed.append(w0)
+                raise AnalyticsError("injected: the analytics of this minute fail")
+            return real_part(machine, machine_id, w0, *a)  # type: ignore[arg-type]
+
+        monkeypatch.setattr(history, "part_row", part_row)
+    else:
+        real_replay = worker.replayer.replay
+        margin = worker.settings.twin_margin_s
+
+        def replay(machine_id: str, machine: object, samples: SampleArrays, *a: object,
+                   **k: object) -> object:
+            if abs(float(samples.t_s[0]) - (FAILING_W0 - margin)) < 0.5:
+                failed.append(FAILING_W0)
+                raise TwinError("injected: the replay of this minute fails")
+            return real_replay(machine_id, machine, samples, *a, **k)  # type: ignore[arg-type]
+
+        monkeypatch.setattr(worker.replayer, "replay", replay)
+    return failed
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("kind", ["analytics", "replay"])
+def test_a_failed_minute_is_processed_with_a_payload_stored_later(
+        db_url: str, base: SampleArrays, fresh: dict[str, object], kind: str,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A minute whose replay or analytics failed is processed (the progress mark moves on), so
+    it has no part; a known payload stored for it later has it processed again with the
+    payload — and, the failure gone, the result is that of processing with the payload from
+    the start: its windows and operating time counted once."""
+    from cranetwin.storage.failed_windows import FAILED_LEVEL, failed_spans
+
+    b = _backend(db_url, base)
+    worker = _worker(b)
+    rec = b.machine(MID)
+    eng = b.store.engine
+    failed = _fail_minute(monkeypatch, worker, kind)
+    assert worker.catch_up(rec) == 4  # minutes 0-3: the failing one too (processed)
+    assert failed == [FAILING_W0]
+    p = b.progress(MID)
+    assert p is not None and p.watermark_s == T0 + 240 and p.windows == 4
+    assert FAILING_W0 not in {a for a, *_ in aw.windows(eng, MID, 60, T0, T0 + 300)}
+    assert failed_spans(eng, MID, T0, T0 + 300) == [(FAILING_W0, FAILING_W0 + 60)]
+    times = aw.window_times(eng, MID, FAILED_LEVEL, FAILING_W0)
+    assert times is not None and (times[0] > 50.0) == (kind == "analytics")  # what was counted
+
+    monkeypatch.undo()  # the cause is gone; the payload stored over the failed minute
+    _write_known(b)
+    assert worker.catch_up(rec) == 4  # minutes 1 (the failed one), 2 and, by the margin, 0, 3
+    assert failed_spans(eng, MID, T0, T0 + 300) == []
+    assert redo.pending(eng, [MID]) == {}
+    _same(_state(b), fresh)
+    assert worker.catch_up(rec) == 0
+    b.close()
+
+
+@pytest.mark.timeout(300)
+def test_a_minute_failing_again_in_its_redo_is_retried_at_the_next_payload_change(
+        db_url: str, base: SampleArrays, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A minute whose redo for a payload fails (the replay with the payload) is recorded as
+    failed, counted as before; the payload deleted later, the minute is retried and the state
+    is that of processing without a payload at all."""
+    from cranetwin.storage.failed_windows import failed_spans
+
+    b = _backend(db_url, base)
+    worker = _worker(b)
+    rec = b.machine(MID)
+    eng = b.store.engine
+    assert worker.catch_up(rec) == 4
+    without = _state(b)
+    failed = _fail_minute(monkeypatch, worker, "replay")
+    _write_known(b)
+    assert worker.catch_up(rec) == 4  # minutes 0, 2, 3 redone; 1 tried, failed (what it
+    assert failed == [FAILING_W0]     # stored before stays, as counted, until retried)
+    assert failed_spans(eng, MID, T0, T0 + 300) == [(FAILING_W0, FAILING_W0 + 60)]
+    p0, p1 = without["progress"], b.progress(MID)
+    assert isinstance(p0, Progress) and p1 is not None
+    assert (p1.windows, p1.operating_s) == (p0.windows, pytest.approx(p0.operating_s))
+
+    monkeypatch.undo()
+    b.store.delete_payload(MID, T0, T0 + 300)
+    assert worker.catch_up(rec) == 4
+    assert failed_spans(eng, MID, T0, T0 + 300) == []
+    _same(_state(b), without)
+    b.close()

@@ -157,6 +157,52 @@ def test_late_block_into_a_processed_minute_recounts_the_lifts(sqlite_url: str,
     fresh_b.close()
 
 
+@pytest.mark.timeout(300)
+def test_late_block_into_a_minute_whose_replay_failed_counts_it_once(
+        sqlite_url: str, base: SampleArrays, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A minute whose replay failed is passed and recorded (``storage/failed_windows.py``); a
+    late block into it has it processed again, its window counted once (as processed, not as
+    new) and its operating time added once: the state equals a fresh processing."""
+    from cranetwin.errors import TwinError
+    from cranetwin.storage.failed_windows import failed_spans
+
+    b = _backend(sqlite_url)
+    worker = _worker(b)
+    rec = b.machine(MID)
+    b.store.write_blocks(_blocks(base, T0, 70.0, 0))
+    b.store.write_blocks(_blocks(base, T0 + 110.0, 140.0, 1000))
+    real = worker.replayer.replay
+    margin = worker.settings.twin_margin_s
+
+    def replay(machine_id: str, machine: object, samples: SampleArrays, *a: object,
+               **k: object) -> object:
+        if abs(float(samples.t_s[0]) - (T0 + 60.0 - margin)) < 0.5:
+            raise TwinError("injected: the replay of minute 1 fails")
+        return real(machine_id, machine, samples, *a, **k)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(worker.replayer, "replay", replay)
+    assert worker.catch_up(rec) == 4  # minutes 0-3; minute 1 (a 40-s hole) failed
+    assert T0 + 60 not in _minutes(b)
+    assert failed_spans(b.store.engine, MID, T0, T0 + 300) == [(T0 + 60, T0 + 120)]
+    monkeypatch.undo()
+    b.store.write_blocks(_blocks(base, T0 + 70.0, 40.0, 2000))
+    assert worker.catch_up(rec) >= 1  # minute 1 (and its neighbours) redone
+    assert failed_spans(b.store.engine, MID, T0, T0 + 300) == []
+    after = b.progress(MID)
+    fresh_b = _backend(sqlite_url.replace("cranetwin.db", "fresh.db"))
+    fresh_b.store.write_blocks(_blocks(base, T0, 250.0, 0))
+    assert _worker(fresh_b).catch_up(fresh_b.machine(MID)) == 4
+    fresh = fresh_b.progress(MID)
+    assert fresh is not None and after is not None
+    assert after.windows == fresh.windows == 4
+    assert (after.operating_s, after.idle_s) == pytest.approx((fresh.operating_s, fresh.idle_s),
+                                                              abs=0.02)
+    assert _lifts(after) == pytest.approx(_lifts(fresh), rel=1e-9)
+    assert _minutes(b) == _minutes(fresh_b)
+    b.close()
+    fresh_b.close()
+
+
 @pytest.mark.postgres
 @pytest.mark.timeout(120)
 def test_migration_0006c_keeps_blocks_on_the_partitioned_table(pg_url: str,

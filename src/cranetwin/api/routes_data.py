@@ -42,8 +42,9 @@ async def get_twin(
     """Joint coordinates, body poses, tip path, cylinder pins and forces (Eq. 1–2), joint
     torques and reaction wrenches (inverse dynamics), payload estimate — for [from, to) at
     ``rate_hz``. At most CRANETWIN_MAX_TWIN_RANGE_S (120 s) and 12000 output samples per call;
-    results are cached per (machine, window, rate). A heavy request (rate limit and heavy
-    threads: docs/API.md "Service limits")."""
+    results are cached per (machine, known-payload version, window, rate): a payload stored or
+    deleted is replayed at the next call. A heavy request (rate limit and heavy threads:
+    docs/API.md "Service limits")."""
     from cranetwin.service import heavyproc
 
     fleet = services.fleet

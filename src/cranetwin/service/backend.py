@@ -53,6 +53,9 @@ class MachineRecord:
         model_source: Built-in name or TOML text, as stored.
         wire_id: Numeric id on the wire.
         location: (latitude [deg], longitude [deg], time [s]) or None.
+        payload_version: Version of the machine's stored known payload when the record was
+            read (:meth:`Backend.machine`: with the record, no query of its own); None when
+            not read (listings).
     """
 
     machine_id: str
@@ -61,6 +64,7 @@ class MachineRecord:
     model_source: str
     wire_id: int | None
     location: tuple[float, float, float] | None
+    payload_version: int | None = None
 
 
 @dataclass(frozen=True)
@@ -142,7 +146,7 @@ class Backend:
         return MachineRecord(machine_id=info.machine_id, name=str(meta.get("name") or
                                                                    info.machine_id),
                              model=model, model_source=source, wire_id=int(info.wire_id),
-                             location=loc)
+                             location=loc, payload_version=info.payload_version)
 
     def list_machines(self) -> list[MachineRecord]:
         """Every registered machine, by id."""
@@ -269,6 +273,11 @@ class Backend:
         with self._lock:
             self._pks.update({mid: v[0] for mid, v in out.items()})
         return out
+
+    def payload_version(self, machine_id: str) -> int:
+        """The version of the machine's stored known payload, raised by every change of it
+        in any process (:mod:`cranetwin.storage.payload_version`): one primary-key lookup."""
+        return int(self.store.payload_version(machine_id))
 
     def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
         """Samples with t in [t0_s, t1_s]."""

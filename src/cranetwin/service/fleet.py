@@ -243,7 +243,7 @@ class FleetService:
 
     # -- twin -------------------------------------------------------------------------------------
     def twin_window(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> bytes:
-        """Replay of [from, to) at ``rate_hz`` as JSON bytes (cached per machine/window/rate)."""
+        """Replay of [from, to) at ``rate_hz`` as JSON bytes (cached: :meth:`twin_key`)."""
         key = self.twin_key(rec, rng, rate_hz)
         body = self.twin_cache.get(key)
         if body is None:
@@ -253,8 +253,19 @@ class FleetService:
         return body
 
     def twin_key(self, rec: MachineRecord, rng: TimeRange,
-                 rate_hz: float) -> tuple[str, float, float, float]:
-        """The replay cache's key of a twin request, after checking its limits.
+                 rate_hz: float) -> tuple[str, int, float, float, float]:
+        """The replay cache's key of a twin request, after checking its limits: the machine,
+        the version of its stored known payload (:meth:`Backend.payload_version`), the window
+        and the rate.
+
+        A replay depends on the known payload stored for its samples, which any process may
+        store or delete (an import, ``cranetwin payload delete``, another API process): the
+        version read here, before the replay reads the payload, is raised in the transaction
+        of every such change, so a result replayed before a change is never found under the
+        key of a request made after it (an entry stored under an old version is simply not
+        hit again, and ages out of the cache). The version is the one read with ``rec``
+        (:meth:`Backend.machine`, read for the request: no query of its own), else read here
+        (one primary-key lookup).
 
         Raises:
             InvalidRequestError: Window too long, rate too high, too many output samples.
@@ -269,7 +280,11 @@ class FleetService:
             raise InvalidRequestError(
                 "Too many points", f"{n_out:.0f} output samples requested ({rng.duration_s:g} s "
                 f"at {rate_hz:g} Hz); at most {s.max_twin_points} per call")
-        return (rec.machine_id, round(rng.t0_s, 6), round(rng.t1_s, 6), float(rate_hz))
+        version = rec.payload_version
+        if version is None:
+            version = self.backend.payload_version(rec.machine_id)
+        return (rec.machine_id, version, round(rng.t0_s, 6), round(rng.t1_s, 6),
+                float(rate_hz))
 
     def twin_body(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> tuple[bytes, bool]:
         """The replay of a twin request (checked by :meth:`twin_key`) as JSON bytes, and whether

@@ -49,7 +49,9 @@ The worker keeps what only it writes while it owns a machine — the last analyt
 committed (the next window's event look-back), the duty to date, and which blocks above its
 late-data mark its last pass had seen (:class:`~cranetwin.storage.analytics_windows.Seen`)
 — and drops them when its partitions change, when a commit finds the watermark moved and when
-late data is redone.
+late data is redone. A span whose replay or analytics failed is passed (logged, counted) and
+recorded (:mod:`cranetwin.storage.failed_windows`), so that a known payload or late data over
+it later has it processed again like a span that has a part.
 
 Scale-out: with an :class:`~cranetwin.service.ownership.Ownership` (``cranetwin worker
 --partitions …``) a worker processes only the machines of the partitions it owns, re-checked
@@ -87,6 +89,7 @@ from cranetwin.service.derived import (
 )
 from cranetwin.service.history import window_rows
 from cranetwin.service.liftcount import seconds_row
+from cranetwin.storage.failed_windows import failed_row
 
 if TYPE_CHECKING:
     from cranetwin.samples import SampleArrays
@@ -106,6 +109,11 @@ F64 = npt.NDArray[np.float64]
 
 __all__ = ["MOVING_M_S", "MOVING_RAD_S", "TwinWorker", "derive", "derived_channels",
            "update_counters"]
+
+
+class _TooFewSamples(CraneTwinError):
+    """A span with too few samples to replay (not a failure to retry: no known payload
+    changes it, late samples redo it anyway)."""
 
 
 class TwinWorker:
@@ -576,13 +584,29 @@ class TwinWorker:
             self.metrics.worker_lag.labels(rec.machine_id).set(max(0.0, dr[1] - prog.watermark_s))
         return done
 
-    def _save(self, prog: Progress, expected: float | None, batch: PassCommit | None) -> bool:
-        """Store progress alone (a skipped gap, a span not replayed): into ``batch`` when
-        given (True), else at once (False: another worker moved the watermark first)."""
-        if batch is None:
+    def _save(self, prog: Progress, expected: float | None, batch: PassCommit | None,
+              rows: list[dict[str, Any]] | None = None) -> bool:
+        """Store progress without a replay's results (a skipped gap, a span not replayed),
+        with ``rows`` of ``analytics_windows`` (a failed span's): into ``batch`` when given
+        (True), else at once (False: another worker moved the watermark first)."""
+        if batch is not None:
+            batch.add(prog, expected, rows=rows)
+            return True
+        if not rows:
             return self.backend.save_progress(prog, expected)
-        batch.add(prog, expected)
-        return True
+        from cranetwin.storage import analytics_windows as aw
+
+        return self.backend.commit_window(prog, expected, [], np.zeros(0), np.zeros((0, 0)),
+                                          lambda session, _pk: aw.put_rows(session, rows))
+
+    def _put_rows(self, rec: MachineRecord, rows: list[dict[str, Any]]) -> None:
+        """Store (replace) rows of ``analytics_windows`` of the machine at once."""
+        from sqlalchemy.orm import Session
+
+        from cranetwin.storage import analytics_windows as aw
+
+        with Session(self._engine(rec)) as s, s.begin():
+            aw.put_rows(s, rows)
 
     def _first_span(self, w0: float, newest_s: float) -> tuple[float, float] | None:
         """The sample range [from, to) [s] a machine's turn reads first when its watermark is
@@ -633,7 +657,9 @@ class TwinWorker:
         analytics merge from) and its events, stored with the window's commit: a redone
         window replaces its part and its events (storage keeps an event found again as it is
         stored: unique on machine, time, kind). Returns (part row or None, events or None when
-        they could not be found: a redone window then keeps the events stored).
+        they could not be found: a redone window then keeps the events stored); (None, None)
+        when the part could not be made (the span is recorded as failed:
+        :mod:`cranetwin.storage.failed_windows`).
 
         The events are found the way a report merges parts: the previous minute's stored part
         is folded first (:meth:`_previous_part`), so the look-back detectors (force rates,
@@ -751,7 +777,7 @@ class TwinWorker:
         grid = windows_of(late)
         spans = set(self._stored_spans(engine, mid, grid)) if grid else set()
         grid = windows_of([r.span_s for r in requests])
-        if grid:  # a known payload changes only windows already processed
+        if grid:  # a known payload changes only windows already processed (failed ones too)
             spans.update(self._stored_spans(engine, mid, grid, only_stored=True))
         if not spans:  # nothing behind the watermark (requests ahead of it: nothing to redo)
             if top is not None and top != mark:
@@ -791,15 +817,19 @@ class TwinWorker:
     def _stored_spans(self, engine: Any, machine_id: str, grid: list[float],
                       only_stored: bool = False) -> list[tuple[float, float]]:
         """The spans to redo for the windows starting at ``grid`` (sorted) [s]: the stored
-        span holding a window (it was replayed as one, :meth:`_span_windows`) is redone whole,
-        a window inside no stored span alone (left out with ``only_stored``: a known payload
-        changes nothing of a window never processed). Returns ``(start, end)`` pairs, sorted,
-        distinct."""
+        span holding a window (it was replayed as one, :meth:`_span_windows`; a span with a
+        part, or one whose replay or analytics failed, :mod:`cranetwin.storage.failed_windows`)
+        is redone whole, a window inside no stored span alone (left out with ``only_stored``:
+        a known payload changes nothing of a window never processed). Returns ``(start, end)``
+        pairs, sorted, distinct."""
         from cranetwin.storage import analytics_windows as aw
+        from cranetwin.storage.failed_windows import failed_spans
 
         win = self.settings.worker_window_s
         reach = max(60.0, win)
-        stored = aw.windows(engine, machine_id, 60, grid[0] - reach, grid[-1] + win + reach)
+        lo, hi = grid[0] - reach, grid[-1] + win + reach
+        stored = sorted({(a, b) for a, b, _, _ in aw.windows(engine, machine_id, 60, lo, hi)}
+                        | set(failed_spans(engine, machine_id, lo, hi)))
         out: set[tuple[float, float]] = set()
         i = 0
         for w in grid:
@@ -917,16 +947,20 @@ class TwinWorker:
         new = dc_replace(prog, watermark_s=w1, windows=prog.windows + n_windows)
         count = True
         old: tuple[float, float] | None = None
-        if redo_w0 is not None:
-            from cranetwin.storage import analytics_windows as aw
+        if redo_w0 is not None:  # what the progress counted for the span: its part's times,
+            from cranetwin.storage import analytics_windows as aw  # or a failed span's counts
+            from cranetwin.storage import failed_windows
 
-            old = aw.window_times(self._engine(rec), rec.machine_id, 60, w0)
+            engine = self._engine(rec)
+            old = aw.window_times(engine, rec.machine_id, 60, w0)
             count = old is None
+            if old is None and (got := failed_windows.counted(engine, rec.machine_id, w0)):
+                count, old = got[0] == 0, got[1:]
             new = prog if not count else dc_replace(prog, windows=prog.windows + n_windows)
         n_in = int(np.count_nonzero((samples.t_s >= w0) & (samples.t_s < w1)))
         try:
             if n_in < 8:
-                raise CraneTwinError(f"only {n_in} samples in the window")
+                raise _TooFewSamples(f"only {n_in} samples in the window")
             grid_hz = sample_rate_hz(samples)
             stored = reads is None or reads.payload_stored(  # a second more either side
                 rec.machine_id, float(samples.t_s[0]) - 1.0, float(samples.t_s[-1]) + 1.0)
@@ -938,9 +972,15 @@ class TwinWorker:
                         exc)
             if self.metrics is not None:
                 self.metrics.worker_errors.labels(rec.machine_id).inc()
-            if redo_w0 is not None:
+            # retried when its input changes, with what the progress counts for it
+            counted = n_windows if redo_w0 is None or not count else 0
+            failure = [] if isinstance(exc, _TooFewSamples) else [
+                failed_row(rec.machine_id, w0, w1, counted, *(old or (0.0, 0.0)))]
+            if redo_w0 is not None:  # the progress stays as counted before
+                if failure:
+                    self._put_rows(rec, failure)
                 return prog
-            return new if self._save(new, expected, batch) else None
+            return new if self._save(new, expected, batch, failure) else None
         keep = window_rows(res, w0, w1)
         names, values = derive(machine, res, keep)
         t = res.t_s[keep]
@@ -956,6 +996,7 @@ class TwinWorker:
         rows: list[dict[str, Any]] = []
         events: list[Any] | None = []
         part: dict[str, Any] | None = None
+        failed = False
         if t.size:
             if redo_w0 is None:
                 new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
@@ -964,6 +1005,9 @@ class TwinWorker:
             part, events = self._analytics(rec, machine, res, keep, w0, w1, times, batch)
             if part is not None:
                 rows.append(part)
+            elif events is None:  # no part could be made: retried when its input changes
+                failed = True
+                rows.append(failed_row(rec.machine_id, w0, w1, n_windows, *times))
         if batch is not None and redo_w0 is None:
             batch.add(new, expected, names, t, values, rows, events, n_windows)
             if part is not None:
@@ -974,7 +1018,12 @@ class TwinWorker:
             from cranetwin.analytics.events import KINDS
             from cranetwin.storage import analytics_windows as aw
             from cranetwin.storage import events as ev
+            from cranetwin.storage import failed_windows
 
+            if redo_w0 is not None and part is not None:  # a part again: no longer failed
+                failed_windows.clear(session, rec.machine_id, w0)
+            elif redo_w0 is not None and failed:  # the part made from the inputs before is
+                aw.delete_window(session, rec.machine_id, 60, w0)  # not kept
             aw.put_rows(session, rows)
             if redo_w0 is not None and events is not None:  # the window's events replaced
                 ev.replace_in(session, machine_pk, round(w0 * 1e9), round(w1 * 1e9), KINDS,

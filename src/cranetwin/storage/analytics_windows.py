@@ -125,6 +125,14 @@ def delete_windows(engine: Engine, machine_id: str, t0_s: float, t1_s: float,
         return int(getattr(res, "rowcount", 0) or 0)
 
 
+def delete_window(session: Session, machine_id: str, level_s: int, t0_s: float) -> None:
+    """Drop the window of ``level_s`` starting at ``t0_s`` (if any), in the caller's
+    transaction."""
+    w = AnalyticsWindowRow
+    session.execute(delete(w).where(w.machine_id == machine_id, w.level_s == level_s,
+                                    w.t0_ns == _ns(t0_s)))
+
+
 MARK_LEVEL = 0
 """``level_s`` of the row that keeps a machine's block mark (``t1_ns``: the largest sample block
 id the analytics have seen; SQLite, and PostgreSQL before its first commit-order mark)."""

@@ -55,6 +55,9 @@ class MachineInfo:
             clock], or None if nothing was received yet.
         latitude_deg, longitude_deg, altitude_m: Last reported GPS position, or None.
         operating_hours: Last reported operating-hours counter [h], or None.
+        payload_version: Version of its stored known payload
+            (:mod:`cranetwin.storage.payload_version`) when this was read, where read
+            (:meth:`cranetwin.storage.Store.get_machine`); None in listings.
     """
 
     machine_id: str
@@ -66,14 +69,17 @@ class MachineInfo:
     longitude_deg: float | None = None
     altitude_m: float | None = None
     operating_hours: float | None = None
+    payload_version: int | None = None
 
 
-def to_info(row: MachineRow, newest_block_ns: int | None = None) -> MachineInfo:
+def to_info(row: MachineRow, newest_block_ns: int | None = None,
+            payload_version: int | None = None) -> MachineInfo:
     """Public view of a machine row (drops the secret).
 
     Args:
         row: The machine row.
         newest_block_ns: End of the machine's newest stored block [ns], if any.
+        payload_version: Version of its stored known payload, if read.
     """
     seen = [t for t in (row.last_seen_ns, newest_block_ns) if t is not None]
     return MachineInfo(
@@ -82,6 +88,7 @@ def to_info(row: MachineRow, newest_block_ns: int | None = None) -> MachineInfo:
         last_seen_s=max(seen) / 1e9 if seen else None,
         latitude_deg=row.latitude_deg, longitude_deg=row.longitude_deg,
         altitude_m=row.altitude_m, operating_hours=row.operating_hours,
+        payload_version=payload_version,
     )
 
 

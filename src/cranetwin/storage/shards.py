@@ -323,6 +323,9 @@ class ShardedStore(Store):
     def delete_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadDelete:
         return self._one(machine_id, lambda s: s.delete_payload(machine_id, t0_s, t1_s))
 
+    def payload_version(self, machine_id: str) -> int:
+        return self._one(machine_id, lambda s: s.payload_version(machine_id))
+
     def payload_stretches(self, machine_id: str, t0_s: float | None = None,
                           t1_s: float | None = None) -> list[Stretch]:
         return self._one(machine_id, lambda s: s.payload_stretches(machine_id, t0_s, t1_s))

@@ -23,8 +23,8 @@ from cranetwin.storage import blocks as blocks_mod
 from cranetwin.storage import events as events_mod
 from cranetwin.storage import machines as machines_mod
 from cranetwin.storage import partitions as partitions_mod
+from cranetwin.storage import payload_version, redo
 from cranetwin.storage import payloads as payloads_mod
-from cranetwin.storage import redo
 from cranetwin.storage import summaries as summaries_mod
 from cranetwin.storage import writes as writes_mod
 from cranetwin.storage.dberrors import is_unavailable, unavailable
@@ -172,14 +172,21 @@ class Store:
         return machines_mod.to_info(row)
 
     def get_machine(self, machine_id: str) -> MachineInfo:
-        """Public info of one machine.
+        """Public info of one machine, with the version of its stored known payload (read in
+        the statement that reads its newest block: no round trip of its own).
 
         Raises:
             UnknownMachineError: No such machine.
         """
         with self._session() as s:
             row = machines_mod.get_row(s, machine_id)
-            return machines_mod.to_info(row, self._newest_block_ns(s, [row.id]).get(row.id))
+            b, m = blocks_mod.BlockRow, MachineRow
+            newest = (select(func.max(b.t_end_ns)).where(b.machine_pk == m.id)
+                      .correlate(m).scalar_subquery())
+            t, version = s.execute(select(newest, payload_version.column(m.machine_id))
+                                   .where(m.id == row.id)).one()
+            return machines_mod.to_info(row, None if t is None else int(t),
+                                        payload_version=int(version or 0))
 
     def machines(self) -> list[MachineInfo]:
         """Every registered machine, ordered by machine id (no secrets)."""
@@ -467,6 +474,8 @@ class Store:
                 new = set(res.new_starts)
                 redo.request(s, machine_id, [span for r in runs if r.t0_ns in new
                                              if (span := payloads_mod.known_span(r))])
+                if res.stored:
+                    payload_version.bump(s, machine_id)
                 return res
         except SQLAlchemyError as exc:
             if is_unavailable(exc):
@@ -486,6 +495,8 @@ class Store:
         with self._session() as s, s.begin():
             res = payloads_mod.delete(s, self._machine_pk(s, machine_id), starts_ns)
             redo.request(s, machine_id, res.changed_ns)
+            if res.runs_deleted:
+                payload_version.bump(s, machine_id)
             return res.runs_deleted
 
     def delete_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadDelete:
@@ -501,7 +512,16 @@ class Store:
         with self._session() as s, s.begin():
             res = payloads_mod.delete_range(s, self._machine_pk(s, machine_id), t0, t1)
             redo.request(s, machine_id, res.changed_ns)
+            if res.runs_deleted or res.runs_cut:
+                payload_version.bump(s, machine_id)
             return res
+
+    def payload_version(self, machine_id: str) -> int:
+        """The version of the machine's stored known payload
+        (:mod:`cranetwin.storage.payload_version`: raised by every change of it, by any
+        process; 0 when it never changed), in one primary-key lookup."""
+        with self._session() as s:
+            return payload_version.read(s, machine_id)
 
     def payload_stretches(self, machine_id: str, t0_s: float | None = None,
                           t1_s: float | None = None) -> list[Stretch]:
