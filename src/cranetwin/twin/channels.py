@@ -17,6 +17,7 @@ from cranetwin.signal import (
     choose_window,
     estimate_noise_std,
 )
+from cranetwin.signal.quantisation import detect_lattice, reconstruct
 from cranetwin.twin.force_model import smoothed_range, wants_model
 from cranetwin.twin.observability import stated_force_sigma
 
@@ -135,6 +136,11 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
     if not enabled:
         return tuple(out)
     cols = np.ascontiguousarray(np.asarray(values, dtype=np.float64).T)  # one pass, not ten
+    steps = detected_steps(cols)
+    for j, h in enumerate(steps):
+        if h > 0:  # windows chosen on what smooth_rows will smooth: the reconstruction
+            cols[j] = reconstruct(cols[j], h)
+    named = dict(zip(cmap.names, steps, strict=True))
     sigma: dict[int, float] = {}  # noise of each derivative channel, estimated once
     for i, j in enumerate(cmap.derivative_channels):
         sigma[j] = estimate_noise_std(cols[j], cmap.resolution[j])
@@ -150,10 +156,10 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         pair = (SmoothingChoice(max(ICI_WINDOWS), 3, ch.sigma, ch.risk, adaptive=True)
                 if adaptive else ch)
         if model == "on" or (model == "auto" and wants_model(
-                max(stated_force_sigma(machine, c), ch.sigma),
+                max(stated_force_sigma(machine, c, named), ch.sigma),
                 smoothed_range(force, ch.window))):
             pair = replace(pair, model_based=True)
-        out[ia] = out[ib] = pair
+        out[ia], out[ib] = replace(pair, step=steps[ia]), replace(pair, step=steps[ib])
         js = cmap.s[c]
         out[js] = choose_window(cols[js], sigma=sigma.get(js),
                                 resolution=cmap.resolution[js])
@@ -161,4 +167,15 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         if opt is not None:
             out[opt] = choose_window(cols[opt], sigma=sigma.get(opt),
                                      resolution=cmap.resolution[opt])
+    return tuple(replace(c, step=steps[j]) if j < len(steps) and steps[j] > 0
+                 and c.step != steps[j] else c for j, c in enumerate(out))
+
+
+def detected_steps(cols: F64) -> tuple[float, ...]:
+    """The quantisation step of each channel, (c, n) columns in, one step per column out
+    [channel unit] (0: not on a lattice; :func:`cranetwin.signal.quantisation.detect_lattice`)."""
+    out = []
+    for col in cols:
+        lat = detect_lattice(col)
+        out.append(0.0 if lat is None else lat.step)
     return tuple(out)
