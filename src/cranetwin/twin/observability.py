@@ -143,19 +143,24 @@ def channel_steps(smoothing: Mapping[str, SmoothingChoice] | None) -> dict[str, 
 def stated_force_sigma(machine: Machine, cylinder: int,
                        steps: Mapping[str, float] | None = None) -> float:
     """σ_F [N] from the ± bounds (:func:`effective_accuracy`: stated accuracy, or half the
-    detected quantisation step ``steps[name]``) of the cylinder's two pressure channels, or 0
-    when either channel has none."""
+    detected quantisation step ``steps[name]``) of the cylinder's two pressure channels.
+
+    0 when either channel states no accuracy and neither shows a step (a data sheet for one
+    chamber only is taken as incomplete). A detected step is evidence from the data and is
+    kept even when the other chamber shows none (a chamber held at one level, e.g. at tank
+    pressure, shows no step): that chamber then counts 0."""
     cyl = machine.cylinders[cylinder]
-    acc: dict[str, float] = {}
+    acc: dict[str, float | None] = {}
+    detected = False
     for ch in machine.channels:
         if ch.source == cyl.name and ch.quantity in ("pressure_a", "pressure_b"):
-            bound = effective_accuracy(ch.accuracy, (steps or {}).get(ch.name, 0.0))
-            if bound is None:
-                return 0.0
-            acc[ch.quantity] = bound / math.sqrt(3.0)
-    if len(acc) < 2:
+            step = (steps or {}).get(ch.name, 0.0)
+            detected |= step > 0
+            acc[ch.quantity] = effective_accuracy(ch.accuracy, step)
+    if len(acc) < 2 or (not detected and None in acc.values()):
         return 0.0
-    return math.hypot(cyl.area_a_m2 * acc["pressure_a"], cyl.area_b_m2 * acc["pressure_b"])
+    a, b = (acc[q] or 0.0 for q in ("pressure_a", "pressure_b"))
+    return math.hypot(cyl.area_a_m2 * a, cyl.area_b_m2 * b) / math.sqrt(3.0)
 
 
 def systematic_force_sigma(machine: Machine, noise_n: F64,
