@@ -22,6 +22,7 @@ from cranetwin.signal.quantisation import (
 )
 from cranetwin.testing.recordings import Synthetic, make
 from cranetwin.twin import ReplayOptions, TwinResult, TwinStream, replay
+from cranetwin.twin.channels import detected_steps
 from cranetwin.twin.observability import effective_accuracy, stated_force_sigma
 
 
@@ -55,13 +56,13 @@ def test_lattice_data_give_their_step(moves: list[int], exponent: int, mantissa:
 
 @settings(max_examples=200, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(8, 3000),
-       model=st.sampled_from(["uniform", "gaussian", "biased", "signal"]),
+       model=st.sampled_from(["uniform", "gaussian", "biased", "signal", "clusters"]),
        scale=st.floats(1e-6, 1e7), resolution=st.sampled_from([0.0, 1e-3]))
 def test_continuous_noisy_data_are_not_a_lattice(seed: int, n: int, model: str, scale: float,
                                                  resolution: float) -> None:
-    """Noisy continuous data (uniform, Gaussian, offset plus noise, a signal plus noise; also
-    after the sensor's own fine quantisation below the detectable step) are never taken for a
-    lattice."""
+    """Noisy continuous data (uniform, Gaussian, offset plus noise, a signal plus noise, two
+    levels blurred by noise; also after the sensor's own fine quantisation below the detectable
+    step) are never taken for a lattice."""
     rng = np.random.default_rng(seed)
     t = np.arange(n) / 100.0
     base = scale * (1.0 + 0.5 * np.sin(0.7 * t))
@@ -71,8 +72,10 @@ def test_continuous_noisy_data_are_not_a_lattice(seed: int, n: int, model: str, 
         y = base + rng.standard_normal(n) * 0.05 * scale
     elif model == "biased":
         y = base + 0.025 * scale * (rng.uniform(-1, 1) + rng.uniform(-1, 1, n))
-    else:
+    elif model == "signal":
         y = base + rng.standard_normal(n) * 1e-3 * scale
+    else:  # two levels with noise: dense enough that neighbouring values merge within tol
+        y = scale * (1.0 + 1e-4 * rng.integers(0, 2, n) + 1e-5 * rng.uniform(-1, 1, n))
     if resolution:  # a fine quantisation, far below what the tolerance can tell apart
         step = 0.1 * MIN_STEP_TOLS * REL_TOL * float(np.max(np.abs(y)))
         y = np.round(y / step) * step
@@ -124,6 +127,14 @@ def test_reconstruction_of_a_block_with_context_equals_the_whole(lo: int, width:
     ca, cb = max(0, a - 2 * reach), min(q.shape[0], b + 2 * reach)
     part = reconstruct(q[ca:cb], 0.1, reach)
     np.testing.assert_array_equal(part[a - ca : b - ca], whole[a:b])
+
+
+def test_only_a_lattice_coarser_than_the_declared_resolution_counts() -> None:
+    """A channel on its declared resolution is the sensor as described (not reconstructed);
+    twice it or more is a coarse quantisation."""
+    _, q = _staircase()
+    cols = np.vstack([q, q, np.linspace(0.0, 1.0, q.shape[0])])
+    assert detected_steps(cols, (0.1, 0.05, 0.1)) == (0.0, pytest.approx(0.1), 0.0)
 
 
 def test_effective_accuracy_is_the_larger_bound() -> None:

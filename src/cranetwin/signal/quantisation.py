@@ -10,10 +10,11 @@ though: their values lie on a lattice.
 the first test is repetition: at most half as many distinct values as finite samples. The
 distinct values, merged where they differ by no more than the float tolerance
 ``tol = REL_TOL · max|y|``, are then fitted by ``o + k·h`` with h their smallest gap (a signal
-that moves between levels visits neighbouring ones) and k = round((level − o)/h); the fit must
-hold within ``tol`` at every level, h must be at least ``MIN_STEP_TOLS`` tolerances (so that a
-level lands on the lattice by accident with probability ≤ 2/``MIN_STEP_TOLS``) and the lattice may
-span no more cells than there are samples. A single level gives no step.
+that moves between levels visits neighbouring ones) and k = round((level − o)/h); every sample
+must lie within ``tol`` of the fitted lattice, h must be at least ``MIN_STEP_TOLS``
+tolerances (so that a level lands on the lattice by accident with probability
+≤ 2/``MIN_STEP_TOLS``) and the lattice may span no more cells than there are samples. A single
+level gives no step.
 
 **Reconstruction** (:func:`reconstruct`). Where the level changes between samples i−1 and i the
 signal crossed the boundary between the two cells, (q_{i−1} + q_i)/2, at about t = i − ½: its
@@ -109,7 +110,8 @@ def detect_lattice(y: npt.ArrayLike) -> Lattice | None:
     dk = k - km
     h = float(dk @ (levels - levels.mean()) / (dk @ dk))
     o = float(levels.mean() - h * km)
-    if not np.all(np.abs(levels - (o + k * h)) <= tol):
+    # every sample, not only the merged levels: a dense continuum would merge into one level
+    if not np.all(np.abs(x - (o + np.rint((x - o) / h) * h)) <= tol):
         return None
     return Lattice(h, float(levels[0]), int(nl))
 

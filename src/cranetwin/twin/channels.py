@@ -136,7 +136,7 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
     if not enabled:
         return tuple(out)
     cols = np.ascontiguousarray(np.asarray(values, dtype=np.float64).T)  # one pass, not ten
-    steps = detected_steps(cols)
+    steps = detected_steps(cols, cmap.resolution)
     for j, h in enumerate(steps):
         if h > 0:  # windows chosen on what smooth_rows will smooth: the reconstruction
             cols[j] = reconstruct(cols[j], h)
@@ -171,11 +171,20 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
                  and c.step != steps[j] else c for j, c in enumerate(out))
 
 
-def detected_steps(cols: F64) -> tuple[float, ...]:
-    """The quantisation step of each channel, (c, n) columns in, one step per column out
-    [channel unit] (0: not on a lattice; :func:`cranetwin.signal.quantisation.detect_lattice`)."""
+COARSER = 1.5
+"""A lattice counts as a coarse quantisation when its step exceeds the channel's declared
+resolution (``Channel.resolution``) by this factor: at least twice it (an integer multiple),
+with room for the step's rounding."""
+
+
+def detected_steps(cols: F64, resolution: tuple[float, ...]) -> tuple[float, ...]:
+    """The coarse quantisation step of each channel [channel unit]: (c, n) columns and their
+    declared resolutions (c,) in, one step per column out, 0 where the samples are not on a
+    lattice (:func:`cranetwin.signal.quantisation.detect_lattice`) or on one no coarser than
+    the declared resolution (the sensor as the machine file describes it: its noise estimate
+    is already floored at resolution/√12)."""
     out = []
-    for col in cols:
+    for col, res in zip(cols, resolution, strict=True):
         lat = detect_lattice(col)
-        out.append(0.0 if lat is None else lat.step)
+        out.append(0.0 if lat is None or not lat.step > COARSER * res else lat.step)
     return tuple(out)
