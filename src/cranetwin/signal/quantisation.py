@@ -56,6 +56,10 @@ MIN_STEP_TOLS = 1000.0
 lattice point by accident with probability 2·tol/h ≤ 0.2 %."""
 MIN_SAMPLES = 8
 """Fewer finite samples than this give no verdict (too few to show repetition)."""
+_MAX_LEVELS = 2 * (int(2.0 / (MIN_STEP_TOLS * REL_TOL)) + 1)
+"""More merged levels than any lattice :func:`detect_lattice` accepts can show: its cells span
+at most 2·max|y| / (MIN_STEP_TOLS·tol) + 1, and samples within ±tol of one lattice point
+merge into at most two levels."""
 REACH = max(DEFAULT_WINDOWS) // 2
 """Default reach of :func:`reconstruct` [samples]: a level held longer than the longest
 smoothing window (2·REACH + 1) is taken as a rest; shorter ones as passages or turning points,
@@ -92,9 +96,14 @@ def detect_lattice(y: npt.ArrayLike) -> Lattice | None:
     x = a[np.isfinite(a)]
     if x.shape[0] < MIN_SAMPLES:
         return None
-    u = np.unique(x)
-    scale = float(max(abs(u[0]), abs(u[-1])))
+    scale = float(np.max(np.abs(x)))
     tol = REL_TOL * scale
+    sub_n = 2 * _MAX_LEVELS
+    if x.shape[0] > 2 * sub_n:  # cheap exact rejection of continuous data: no subset of a
+        sub = np.sort(x[:: x.shape[0] // sub_n])  # lattice holds more levels than it has
+        if np.count_nonzero(np.diff(sub) > tol) >= _MAX_LEVELS:
+            return None
+    u = np.unique(x)
     levels = u[np.concatenate(([True], np.diff(u) > tol))]
     nl = levels.shape[0]
     if nl < 2 or 2 * nl > x.shape[0]:
