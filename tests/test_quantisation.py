@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from cranetwin.model import Machine, load_machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal.quantisation import (
+    _MAX_LEVELS,
     MIN_STEP_TOLS,
     REL_TOL,
     detect_lattice,
@@ -90,6 +91,20 @@ def test_single_level_gaps_and_short_data() -> None:
     assert lat is not None and lat.step == 25.0 and lat.levels == 3
     assert detect_lattice(np.array([0.0, 1.0, 1.0, 0.0])) is None
     assert detect_lattice(np.full(10, np.nan)) is None
+
+
+def test_long_records_take_the_subset_shortcut_exactly() -> None:
+    """Over 2·2·_MAX_LEVELS samples a strided subset rejects continuous data early; a lattice
+    with as many levels as the detection accepts is still found (the subset cannot show more
+    levels than the whole)."""
+    n = 4 * 2 * _MAX_LEVELS + 7
+    rng = np.random.default_rng(5)
+    assert detect_lattice(1e6 + rng.uniform(-1e5, 1e5, n)) is None
+    levels = int(1.0 / (MIN_STEP_TOLS * REL_TOL)) - 100  # near the most from 0 up
+    k = np.arange(n) % levels  # a sawtooth: each level visited 8 times
+    lat = detect_lattice(k * 0.01)
+    h = 0.01
+    assert lat is not None and lat.step == pytest.approx(h, rel=1e-9)
 
 
 def _staircase(n: int = 3000, h: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
