@@ -130,6 +130,12 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
     Position channels get a second window for their derivatives (rod velocity and
     acceleration), chosen by Lepski's rule (:func:`cranetwin.signal.choose_derivative_window`):
     a second derivative needs far more smoothing than the values.
+
+    A channel whose samples lie on a lattice coarser than its declared resolution
+    (:func:`detected_steps`) carries the step in its choice (``step``) and every window is
+    chosen on its reconstruction (:func:`cranetwin.signal.quantisation.reconstruct`), which
+    :func:`cranetwin.twin.stages.smooth_rows` smooths; half the step bounds its error
+    (:func:`cranetwin.twin.observability.effective_accuracy`).
     """
     none = SmoothingChoice(1, 0, 0.0, 0.0)
     out = [none] * len(cmap.choice_names)
@@ -167,8 +173,8 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         if opt is not None:
             out[opt] = choose_window(cols[opt], sigma=sigma.get(opt),
                                      resolution=cmap.resolution[opt])
-    return tuple(replace(c, step=steps[j]) if j < len(steps) and steps[j] > 0
-                 and c.step != steps[j] else c for j, c in enumerate(out))
+    return tuple(replace(c, step=steps[j]) if j < len(steps) and c.step != steps[j] else c
+                 for j, c in enumerate(out))
 
 
 COARSER = 1.5
