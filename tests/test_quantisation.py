@@ -213,7 +213,9 @@ def test_replay_reconstructs_quantised_channels_and_streams_as_the_batch(
     assert stated_force_sigma(machine, 0) == 0.0  # nothing stated ...
     steps = {n: c.step for n, c in first.smoothing.items()}
     assert stated_force_sigma(machine, 0, steps) > 0.0  # ... the step is the bound
-    # the payload σ carries the systematic part: without the steps it would be zero
+    # the flag's floor and the payload σ carry the systematic part (nothing stated: else 0)
+    verdicts = first.force_observability(machine)
+    assert verdicts[0].systematic_n > 0 and verdicts[0].source == "stated accuracy"
     assert np.nanmax(first.payload_sys_std_kg) > 0
     choices = tuple(first.smoothing.values())
     opt = ReplayOptions(smoothing=choices, sample_period_s=0.01, chunk_samples=700)
