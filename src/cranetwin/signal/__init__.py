@@ -1,5 +1,6 @@
 """Signal processing for the twin: natural cubic splines, Newton-formula differentiation,
-Savitzky–Golay smoothing with automatic window, regularisation, noise injection and NRMSE.
+Savitzky–Golay smoothing with automatic window, regularisation, noise injection, NRMSE and
+coarse quantisation (lattice detection and reconstruction).
 
 Only numpy and scipy (plus the machine model for channel ranges)."""
 
@@ -10,6 +11,7 @@ from cranetwin.signal.differentiate import newton_derivative
 from cranetwin.signal.ici import ICI_WINDOWS, ici_select, ici_smooth, ici_smooth_pair
 from cranetwin.signal.noise import NOISY_QUANTITIES, inject_uniform_noise, nrmse
 from cranetwin.signal.noise_level import estimate_noise_std
+from cranetwin.signal.quantisation import Lattice, detect_lattice, reconstruct
 from cranetwin.signal.resample import Regular, nominal_period, regularize, uniform_grid
 from cranetwin.signal.savgol import centre_weight, savgol_bank, savgol_smooth, sg_filter
 from cranetwin.signal.spline import NaturalCubicSpline, knot_pieces, natural_pieces
@@ -17,6 +19,7 @@ from cranetwin.signal.window import SmoothingChoice, choose_derivative_window, c
 
 __all__ = [
     "ICI_WINDOWS",
+    "Lattice",
     "NOISY_QUANTITIES",
     "NaturalCubicSpline",
     "knot_pieces",
@@ -26,6 +29,7 @@ __all__ = [
     "centre_weight",
     "choose_derivative_window",
     "choose_window",
+    "detect_lattice",
     "estimate_noise_std",
     "ici_select",
     "ici_smooth",
@@ -34,6 +38,7 @@ __all__ = [
     "newton_derivative",
     "nominal_period",
     "nrmse",
+    "reconstruct",
     "regularize",
     "savgol_bank",
     "savgol_smooth",

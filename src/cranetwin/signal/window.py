@@ -42,6 +42,10 @@ class SmoothingChoice:
         model_based: On a cylinder's pressures: its force is estimated from the machine's
             inverse dynamics corrected by the smoothed pressures
             (:mod:`cranetwin.twin.force_model`), not from the smoothed pressures alone.
+        step: The quantisation step detected in the channel's samples [signal unit], 0 for
+            none (:mod:`cranetwin.signal.quantisation`): the samples are reconstructed through
+            their level crossings before they are smoothed, and the channel's error bound is
+            at least step/2 (:func:`cranetwin.twin.observability.effective_accuracy`).
     """
 
     window: int
@@ -50,6 +54,7 @@ class SmoothingChoice:
     risk: float
     adaptive: bool = False
     model_based: bool = False
+    step: float = 0.0
 
 
 def _segments(n: int, seg: int, max_samples: int) -> list[slice]:

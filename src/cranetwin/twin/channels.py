@@ -17,6 +17,7 @@ from cranetwin.signal import (
     choose_window,
     estimate_noise_std,
 )
+from cranetwin.signal.quantisation import detect_lattice, reconstruct
 from cranetwin.twin.force_model import smoothed_range, wants_model
 from cranetwin.twin.observability import stated_force_sigma
 
@@ -129,12 +130,23 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
     Position channels get a second window for their derivatives (rod velocity and
     acceleration), chosen by Lepski's rule (:func:`cranetwin.signal.choose_derivative_window`):
     a second derivative needs far more smoothing than the values.
+
+    A channel whose samples lie on a lattice coarser than its declared resolution
+    (:func:`detected_steps`) carries the step in its choice (``step``) and every window is
+    chosen on its reconstruction (:func:`cranetwin.signal.quantisation.reconstruct`), which
+    :func:`cranetwin.twin.stages.smooth_rows` smooths; half the step bounds its error
+    (:func:`cranetwin.twin.observability.effective_accuracy`).
     """
     none = SmoothingChoice(1, 0, 0.0, 0.0)
     out = [none] * len(cmap.choice_names)
     if not enabled:
         return tuple(out)
     cols = np.ascontiguousarray(np.asarray(values, dtype=np.float64).T)  # one pass, not ten
+    steps = detected_steps(cols, cmap.resolution)
+    for j, h in enumerate(steps):
+        if h > 0:  # windows chosen on what smooth_rows will smooth: the reconstruction
+            cols[j] = reconstruct(cols[j], h)
+    named = dict(zip(cmap.names, steps, strict=True))
     sigma: dict[int, float] = {}  # noise of each derivative channel, estimated once
     for i, j in enumerate(cmap.derivative_channels):
         sigma[j] = estimate_noise_std(cols[j], cmap.resolution[j])
@@ -150,10 +162,10 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         pair = (SmoothingChoice(max(ICI_WINDOWS), 3, ch.sigma, ch.risk, adaptive=True)
                 if adaptive else ch)
         if model == "on" or (model == "auto" and wants_model(
-                max(stated_force_sigma(machine, c), ch.sigma),
+                max(stated_force_sigma(machine, c, named), ch.sigma),
                 smoothed_range(force, ch.window))):
             pair = replace(pair, model_based=True)
-        out[ia] = out[ib] = pair
+        out[ia], out[ib] = replace(pair, step=steps[ia]), replace(pair, step=steps[ib])
         js = cmap.s[c]
         out[js] = choose_window(cols[js], sigma=sigma.get(js),
                                 resolution=cmap.resolution[js])
@@ -161,4 +173,24 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         if opt is not None:
             out[opt] = choose_window(cols[opt], sigma=sigma.get(opt),
                                      resolution=cmap.resolution[opt])
+    return tuple(replace(c, step=steps[j]) if j < len(steps) and c.step != steps[j] else c
+                 for j, c in enumerate(out))
+
+
+COARSER = 1.5
+"""A lattice counts as a coarse quantisation when its step exceeds the channel's declared
+resolution (``Channel.resolution``) by this factor: at least twice it (an integer multiple),
+with room for the step's rounding."""
+
+
+def detected_steps(cols: F64, resolution: tuple[float, ...]) -> tuple[float, ...]:
+    """The coarse quantisation step of each channel [channel unit]: (c, n) columns and their
+    declared resolutions (c,) in, one step per column out, 0 where the samples are not on a
+    lattice (:func:`cranetwin.signal.quantisation.detect_lattice`) or on one no coarser than
+    the declared resolution (the sensor as the machine file describes it: its noise estimate
+    is already floored at resolution/√12)."""
+    out = []
+    for col, res in zip(cols, resolution, strict=True):
+        lat = detect_lattice(col)
+        out.append(0.0 if lat is None or not lat.step > COARSER * res else lat.step)
     return tuple(out)

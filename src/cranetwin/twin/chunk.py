@@ -78,7 +78,8 @@ class PayloadSetting(NamedTuple):
     """A constant known payload [kg] (or None: estimated where no series is known,
     :attr:`ChunkRows.known`) and the regression's weights (n_c,),
     independent fractions (n_c,), prefilter half and half window [samples], raw force noise
-    per cylinder (n_c,) [N]."""
+    per cylinder (n_c,) [N], systematic force error per cylinder (n_c,) [N]
+    (:func:`cranetwin.twin.stages.payload_weights`)."""
 
     known: float | None
     weights: F64
@@ -86,6 +87,7 @@ class PayloadSetting(NamedTuple):
     prefilter_half: int
     half_window: int
     noise: F64
+    systematic: F64
 
 
 def splines(plan: ReplayPlan, knots_t: F64, sm: F64, r: int) -> tuple[F64, I64, I64]:
@@ -180,7 +182,7 @@ def chunk(plan: ReplayPlan, rows: ChunkRows, timing: Timing, payload: PayloadSet
         m_all, s_all = with_known(known, *estimate_payload(
             plan, (q_s, qd_s, qdd_s), f_s, arm_s,
             (payload.weights, payload.frac, payload.prefilter_half, payload.half_window,
-             payload.noise), regs, b_all))
+             payload.noise, payload.systematic), regs, b_all))
         _, b_all = with_known(known, m_all, b_all)
         mk, sk = np.ascontiguousarray(m_all[ks]), np.ascontiguousarray(s_all[ks])
         bk = b_all[ks]

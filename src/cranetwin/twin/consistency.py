@@ -45,7 +45,7 @@ import numpy.typing as npt
 
 from cranetwin.model import Machine
 from cranetwin.signal import SmoothingChoice
-from cranetwin.twin.observability import force_sigma, stated_force_sigma
+from cranetwin.twin.observability import channel_steps, force_sigma, stated_force_sigma
 
 F64 = npt.NDArray[np.float64]
 
@@ -239,7 +239,7 @@ class ResidualStats:
             span = float(self.id_hi[k] - self.id_lo[k])
             level = math.sqrt(float(self.id_sq[k]) / n)
             sigma, _ = force_sigma(machine, k, smoothing)
-            stated = stated_force_sigma(machine, k)
+            stated = stated_force_sigma(machine, k, channel_steps(smoothing))
             est = sigma if sigma > stated else 0.0
             noise = math.hypot(est / math.sqrt(float(np.median(counts[full, k]))), stated)
             share = typ / level if level > 0 else (0.0 if typ == 0 else math.inf)

@@ -211,7 +211,8 @@ def fixed_choices(default: dict[str, SmoothingChoice], machine: Machine,
     out = []
     for name, c in default.items():
         if name in pressures:
-            out.append(SmoothingChoice(window, 3 if window > 1 else 0, c.sigma, float("nan")))
+            out.append(SmoothingChoice(window, 3 if window > 1 else 0, c.sigma, float("nan"),
+                                       step=c.step))
         else:
             out.append(c)
     return tuple(out)

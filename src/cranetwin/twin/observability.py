@@ -8,8 +8,11 @@ A cylinder's force comes from its two chamber pressures, F = A_A·p_A − A_B·p
 per sample, before any smoothing. σ_p is the larger of the sensors' stated accuracy
 (``Channel.accuracy``, a ± bound taken as uniform: σ = accuracy/√3) and the noise the replay
 estimated from the data (:attr:`cranetwin.signal.SmoothingChoice.sigma` of the pressure pair,
-already in N). A stated accuracy is mostly offset and gain error, which no smoothing removes,
-so σ_F is compared unsmoothed.
+already in N). A channel whose samples lie on a coarse lattice
+(:mod:`cranetwin.signal.quantisation`, :attr:`cranetwin.signal.SmoothingChoice.step`) errs by up
+to ±step/2, systematically where the signal is slow: its bound is the larger of the stated
+accuracy and step/2 (:func:`effective_accuracy`), stated or not. A stated accuracy is mostly
+offset and gain error, which no smoothing removes, so σ_F is compared unsmoothed.
 
 When σ_F exceeds ``RESOLVABLE_SHARE`` (10 %) of the range of the cylinder's replayed force
 (max − min over the window), the force is flagged as not observable: its shape is then mostly
@@ -121,27 +124,54 @@ class ForceObservability(NamedTuple):
                 "causes": list(self.causes)}
 
 
-def stated_force_sigma(machine: Machine, cylinder: int) -> float:
-    """σ_F [N] from the stated accuracy of the cylinder's two pressure channels, or 0 when
-    either channel states none."""
+def effective_accuracy(stated: float | None, step: float) -> float | None:
+    """A channel's ± error bound [channel unit]: the larger of its stated accuracy and half
+    the quantisation step detected in its data (``step`` 0: none detected); None when neither
+    is known."""
+    half = 0.5 * step if step > 0 else None
+    if stated is None:
+        return half
+    return stated if half is None else max(stated, half)
+
+
+def channel_steps(smoothing: Mapping[str, SmoothingChoice] | None) -> dict[str, float]:
+    """The quantisation step detected per channel name [channel unit] (0: none), from the
+    replay's smoothing choices."""
+    return {} if smoothing is None else {n: c.step for n, c in smoothing.items()}
+
+
+def stated_force_sigma(machine: Machine, cylinder: int,
+                       steps: Mapping[str, float] | None = None) -> float:
+    """σ_F [N] from the ± bounds (:func:`effective_accuracy`: stated accuracy, or half the
+    detected quantisation step ``steps[name]``) of the cylinder's two pressure channels.
+
+    0 when either channel states no accuracy and neither shows a step (a data sheet for one
+    chamber only is taken as incomplete). A detected step is evidence from the data and is
+    kept even when the other chamber shows none (a chamber held at one level, e.g. at tank
+    pressure, shows no step): that chamber then counts 0."""
     cyl = machine.cylinders[cylinder]
-    acc: dict[str, float] = {}
+    acc: dict[str, float | None] = {}
+    detected = False
     for ch in machine.channels:
         if ch.source == cyl.name and ch.quantity in ("pressure_a", "pressure_b"):
-            if ch.accuracy is None:
-                return 0.0
-            acc[ch.quantity] = ch.accuracy / math.sqrt(3.0)
-    if len(acc) < 2:
+            step = (steps or {}).get(ch.name, 0.0)
+            detected |= step > 0
+            acc[ch.quantity] = effective_accuracy(ch.accuracy, step)
+    if len(acc) < 2 or (not detected and None in acc.values()):
         return 0.0
-    return math.hypot(cyl.area_a_m2 * acc["pressure_a"], cyl.area_b_m2 * acc["pressure_b"])
+    a, b = (acc[q] or 0.0 for q in ("pressure_a", "pressure_b"))
+    return math.hypot(cyl.area_a_m2 * a, cyl.area_b_m2 * b) / math.sqrt(3.0)
 
 
-def systematic_force_sigma(machine: Machine, noise_n: F64) -> F64:
-    """σ_b,F per cylinder, shape (n_c,) [N]: what the stated accuracy leaves beyond the raw
+def systematic_force_sigma(machine: Machine, noise_n: F64,
+                           steps: Mapping[str, float] | None = None) -> F64:
+    """σ_b,F per cylinder, shape (n_c,) [N]: what the stated accuracy (raised to half a
+    detected quantisation step, ``steps`` as :func:`stated_force_sigma`) leaves beyond the raw
     force noise ``noise_n`` (n_c,) [N] estimated from the data
-    (:func:`cranetwin.twin.payload.systematic_std`; 0 where nothing is stated). The payload's
-    σ and the observability flag both take it from here."""
-    stated = np.array([stated_force_sigma(machine, c) for c in range(len(machine.cylinders))])
+    (:func:`cranetwin.twin.payload.systematic_std`; 0 where nothing is stated or detected).
+    The payload's σ and the observability flag both take it from here."""
+    stated = np.array([stated_force_sigma(machine, c, steps)
+                       for c in range(len(machine.cylinders))])
     return systematic_std(stated, np.asarray(noise_n, dtype=np.float64))
 
 
@@ -160,10 +190,11 @@ def estimated_force_noise(machine: Machine, cylinder: int,
 def force_sigma(machine: Machine, cylinder: int,
                 smoothing: Mapping[str, SmoothingChoice]) -> tuple[float, Literal[
                     "stated accuracy", "estimated noise"]]:
-    """(σ_F [N], its source) for one cylinder: the larger of the stated accuracy's and the
-    estimated noise's (:func:`estimated_force_noise`)."""
+    """(σ_F [N], its source) for one cylinder: the larger of the stated accuracy's (or half
+    the detected quantisation step's, :func:`effective_accuracy`) and the estimated noise's
+    (:func:`estimated_force_noise`)."""
     est = estimated_force_noise(machine, cylinder, smoothing)
-    stated = stated_force_sigma(machine, cylinder)
+    stated = stated_force_sigma(machine, cylinder, channel_steps(smoothing))
     return (stated, "stated accuracy") if stated >= est else (est, "estimated noise")
 
 
@@ -179,7 +210,7 @@ def assess(machine: Machine, smoothing: Mapping[str, SmoothingChoice], force_min
     out = []
     noise = np.array([estimated_force_noise(machine, k, smoothing)
                       for k in range(len(machine.cylinders))])
-    floor = systematic_force_sigma(machine, noise)
+    floor = systematic_force_sigma(machine, noise, channel_steps(smoothing))
     for k, cyl in enumerate(machine.cylinders):
         sigma, source = force_sigma(machine, k, smoothing)
         span = float(force_max_n[k] - force_min_n[k])

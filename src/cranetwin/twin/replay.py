@@ -127,7 +127,7 @@ class TwinStream:
         # the first integrated joint (the slew) starts at theta0_initial, any other at 0
         self._slew = [SlewState(theta0=self.opt.theta0_initial if i == 0 else 0.0)
                       for i in range(self.plan.n_int)]
-        self._pw_cache: tuple[tuple[SmoothingChoice, ...], F64, F64, F64] | None = None
+        self._pw_cache: tuple[tuple[SmoothingChoice, ...], F64, F64, F64, F64] | None = None
         self._finished = False
         self._rods_checked = False
 
@@ -159,7 +159,7 @@ class TwinStream:
             hit = (self._choices, *payload_weights(self.plan, self._choices))
             self._pw_cache = hit
         _, half, pf = self._margins()
-        return PayloadSetting(self.payload, hit[1], hit[2], pf // 2, half, hit[3])
+        return PayloadSetting(self.payload, hit[1], hit[2], pf // 2, half, hit[3], hit[4])
 
     # -- public API ----------------------------------------------------------------------------
     def set_smoothing(self, choices: tuple[SmoothingChoice, ...]) -> None:
@@ -377,7 +377,7 @@ class TwinStream:
             ps = self._payload_setting()
             est, _ = estimate_payload(plan, (q, qd, qdd), f, arm,
                                       (ps.weights, ps.frac, ps.prefilter_half, ps.half_window,
-                                       ps.noise))
+                                       ps.noise, ps.systematic))
             if known is not None:
                 est = np.where(np.isfinite(known), known, est)
             mass = np.nan_to_num(np.maximum(est, 0.0))

@@ -28,6 +28,8 @@ from cranetwin.signal import (
     ici_smooth_pair,
     savgol_smooth,
 )
+from cranetwin.signal.quantisation import REACH as RECONSTRUCT_REACH
+from cranetwin.signal.quantisation import reconstruct
 from cranetwin.signal.savgol import savgol_columns
 from cranetwin.twin import kintable
 from cranetwin.twin.channels import ChannelMap
@@ -207,8 +209,15 @@ def smooth_rows(plan: ReplayPlan, choices: tuple[SmoothingChoice, ...], raw: F64
     Pressure pairs chosen adaptive get LPA-ICI decided on their force; other channels their
     Savitzky–Golay window; every derivative channel its value, rate and acceleration from one
     batched filter bank (``edges``: whether the rows reach within a window of the data's
-    start, end: only there are the end fits needed)."""
+    start, end: only there are the end fits needed). A channel on a coarse lattice
+    (:attr:`SmoothingChoice.step` > 0) is reconstructed through its level crossings first
+    (:func:`cranetwin.signal.quantisation.reconstruct`; :func:`margins` adds its reach)."""
     nch = plan.nch
+    quantised = [j for j, c in enumerate(choices[:nch]) if c.step > 0]
+    if quantised:
+        raw = raw.copy()
+        for j in quantised:
+            raw[:, j] = reconstruct(raw[:, j], choices[j].step)
     dcols = list(plan.cmap.derivative_channels)
     out = np.empty((raw.shape[0], plan.width))
     written: set[int] = set()  # the rest is NaN (the integrated angles' columns)
@@ -318,10 +327,12 @@ def sample_states(plan: ReplayPlan, sm: F64) -> tuple[F64, F64, F64, F64, F64, F
 
 
 def payload_weights(plan: ReplayPlan,
-                    choices: tuple[SmoothingChoice, ...]) -> tuple[F64, F64, F64]:
+                    choices: tuple[SmoothingChoice, ...]) -> tuple[F64, F64, F64, F64]:
     """Weights 1/σ² per cylinder joint (n_c,), the independent errors per sample of each
-    (n_c,) and the raw noise of each cylinder's hydraulic force (n_c,) [N], from the
-    pressures' smoothing choices."""
+    (n_c,), the raw noise of each cylinder's hydraulic force (n_c,) [N], from the pressures'
+    smoothing choices, and the systematic force error σ_b,F each cylinder's pressure sensors
+    leave beyond that noise (n_c,) [N] (stated accuracy or half a detected quantisation step,
+    :func:`cranetwin.twin.observability.systematic_force_sigma`; 0 where neither)."""
     m = plan.machine
     weights = np.empty(len(m.cylinders))
     frac = np.empty(len(m.cylinders))
@@ -332,7 +343,8 @@ def payload_weights(plan: ReplayPlan,
         weights[c] = 1.0 / (max(ch.risk, 0.0) + cyl.friction.coulomb ** 2)
         # independent errors per sample ≈ the smoother's variance gain, risk/σ²
         frac[c] = float(np.clip(ch.risk / ch.sigma**2, 1e-3, 1.0)) if ch.sigma > 0 else 1.0
-    return weights, frac, noise
+    steps = {name: c.step for name, c in zip(plan.cmap.names, choices, strict=False)}
+    return weights, frac, noise, systematic_force_sigma(m, noise, steps)
 
 
 def payload_regressors(plan: ReplayPlan, motion: tuple[F64, F64, F64]) -> tuple[F64, F64]:
@@ -349,33 +361,37 @@ def payload_regressors(plan: ReplayPlan, motion: tuple[F64, F64, F64]) -> tuple[
 
 
 def estimate_payload(plan: ReplayPlan, motion: tuple[F64, F64, F64], f: F64, arm: F64,
-                     setting: tuple[F64, F64, int, int, F64],
+                     setting: tuple[F64, F64, int, int, F64, F64],
                      regressors: tuple[F64, F64] | None = None,
                      sys_std_out: F64 | None = None) -> tuple[F64, F64]:
     """Payload and its standard error (n,) [kg] at every instant of motion = (q, qd, qdd)
     (n, n_j) (windows cut at its ends) from the cylinder forces f and moment arms (n, n_c);
     setting = (weights, independent fractions, prefilter half, half window, raw force noise
-    per cylinder [N]) (:mod:`cranetwin.twin.payload`); ``regressors``: the
-    :func:`payload_regressors` of ``motion`` if already computed. The σ includes what the
-    pressure sensors' stated accuracy leaves beyond the estimated noise as a systematic force
-    error per cylinder (:func:`cranetwin.twin.observability.systematic_force_sigma`; none
-    stated: random error only); ``sys_std_out`` (n,), if given, receives that part of the σ
+    per cylinder [N], systematic force error per cylinder [N]) (:mod:`cranetwin.twin.payload`,
+    :func:`payload_weights`); ``regressors``: the :func:`payload_regressors` of ``motion`` if
+    already computed. The σ includes what the pressure sensors' stated accuracy (or half a
+    detected quantisation step) leaves beyond the estimated noise as a systematic force error
+    per cylinder (:func:`cranetwin.twin.observability.systematic_force_sigma`; none stated or
+    detected: random error only); ``sys_std_out`` (n,), if given, receives that part of the σ
     alone [kg] (it does not average out over a lift, :mod:`cranetwin.twin.lifts`)."""
     t0, t1 = payload_regressors(plan, motion) if regressors is None else regressors
-    weights, frac, pf, half, noise = setting
+    weights, frac, pf, half, noise, systematic = setting
     return regression_payload(t0, t1, f, arm, plan.cyl_joint, weights, pf, half, frac, noise,
-                              systematic_force_sigma(plan.machine, noise), sys_std_out)
+                              systematic, sys_std_out)
 
 
 def margins(choices: tuple[SmoothingChoice, ...] | None, nch: int, period: float,
             payload_window_s: float) -> tuple[int, int, int]:
-    """(smoothing half window, payload half window, prefilter width) [samples].
+    """(smoothing half window (with a quantised channel's reconstruction reach), payload half
+    window, prefilter width) [samples].
 
     The prefilter is the moving average applied to the payload regression's force and
     regressor alike: the longest derivative window. The accelerations are smoothed over it,
     the pressures are not; low-passing both removes the mismatch ("filter both sides"),
     which otherwise biases the estimate by tens of kg in fast motion."""
     hw = 0 if choices is None else max(c.window // 2 for c in choices)
+    if choices is not None and any(c.step > 0 for c in choices[:nch]):
+        hw += 2 * RECONSTRUCT_REACH  # the reconstruction's context (:func:`smooth_rows`)
     half = max(1, int(round(payload_window_s / period / 2)))
     pf = 1 if choices is None else max([1] + [c.window for c in choices[nch:]])
     return hw, half, pf
