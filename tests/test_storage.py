@@ -126,37 +126,6 @@ def test_read_samples_merges_channel_layouts_and_nan(store: Store) -> None:
     assert np.array_equal(got.values[10:, 4], b.values[:, 0])
 
 
-def test_read_ahead_gives_the_samples_read_samples_gives_for_every_range_inside(
-        store: Store) -> None:
-    """One read of a wide range, then the samples of ranges inside it: equal to reading each
-    range (the blocks it selects, their order, a layout change and back, a gap, a period
-    change)."""
-    a = make_block("crane-1", 0)
-    b = SampleBlock("crane-1", 2, T0_NS + 100 * PERIOD, PERIOD, ("slew_angle",), (1e-4,),
-                    np.arange(40.0)[:, None] * 1e-4)
-    back = make_block("crane-1", 1, t0_ns=T0_NS + 140 * PERIOD)
-    c = make_block("crane-1", 3, t0_ns=T0_NS + 300 * PERIOD)  # after a 1.6-s gap
-    d = SampleBlock("crane-1", 4, T0_NS + 400 * PERIOD, 2 * PERIOD, CHANNELS, RES,
-                    make_block("crane-1", 4, n=50).values)  # at half the rate
-    store.write_blocks([a, b, back, c, d])
-    lo, hi = (T0_NS - 5 * PERIOD) / 1e9, (T0_NS + 520 * PERIOD) / 1e9
-    ahead = store.read_ahead("crane-1", lo, hi)
-    assert len(ahead.blocks) == 5
-    rng = np.random.default_rng(0)
-    edges = [T0_NS + k * PERIOD for k in (0, 50, 99, 100, 140, 239, 300, 400, 401, 498)]
-    bounds = [(x / 1e9, y / 1e9) for x in edges for y in edges if y > x]
-    bounds += [tuple(sorted(rng.uniform(lo, hi, 2))) for _ in range(40)]
-    for t0, t1 in [(lo, hi), *bounds]:
-        assert ahead.covers(t0, t1)
-        want, got = store.read_samples("crane-1", t0, t1), ahead.samples(t0, t1)
-        assert got.channels == want.channels and got.period_ns == want.period_ns
-        assert np.array_equal(got.t_ns, want.t_ns) and np.array_equal(got.t_s, want.t_s)
-        assert np.array_equal(got.values, want.values, equal_nan=True), (t0, t1)
-    assert not ahead.covers(lo - 1.0, hi) and not ahead.covers(lo, hi + 1e-3)
-    with pytest.raises(ValueError):
-        ahead.samples(lo, hi + 1.0)
-
-
 def _raw_buckets(values: np.ndarray, t_ns: np.ndarray, width_s: int,
                  origin: float, m: int) -> tuple[np.ndarray, ...]:
     idx = ((t_ns // 10**9 - origin) // width_s).astype(int)

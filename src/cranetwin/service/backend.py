@@ -38,7 +38,6 @@ from cranetwin.storage import Store, StoreSpec, open_store
 from cranetwin.storage import apikeys as keyrepo
 from cranetwin.storage import summaries as summ
 from cranetwin.storage.machines import get_row
-from cranetwin.storage.store import ReadAhead
 
 F64 = npt.NDArray[np.float64]
 
@@ -274,12 +273,6 @@ class Backend:
     def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
         """Samples with t in [t0_s, t1_s]."""
         out: SampleArrays = self.store.read_samples(machine_id, t0_s, t1_s)
-        return out
-
-    def read_ahead(self, machine_id: str, t0_s: float, t1_s: float) -> ReadAhead:
-        """The blocks of [t0_s, t1_s), read once; :meth:`ReadAhead.samples` gives those of a
-        range inside it as :meth:`read_samples` would (:meth:`Store.read_ahead`)."""
-        out: ReadAhead = self.store.read_ahead(machine_id, t0_s, t1_s)
         return out
 
     def read_after(self, machine_id: str, after_s: float) -> SampleArrays | None:

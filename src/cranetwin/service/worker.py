@@ -99,16 +99,10 @@ if TYPE_CHECKING:
     from cranetwin.service.workerpass import PassReads
     from cranetwin.settings import Settings
     from cranetwin.storage.analytics_windows import Seen
-    from cranetwin.storage.store import ReadAhead
 
 log = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
-
-READ_AHEAD_S = 300.0
-"""Longest range of a machine's samples a turn reads at once for its next spans [s] (a
-catch-up of many windows reads their samples in one statement per this many seconds instead
-of one per span; bounds the memory a turn holds: 300 s × 100 Hz × 20 channels ≈ 5 MB)."""
 
 __all__ = ["MOVING_M_S", "MOVING_RAD_S", "TwinWorker", "derive", "derived_channels",
            "update_counters"]
@@ -539,7 +533,6 @@ class TwinWorker:
         redid = done > 0  # the duty to date was dropped: rebuilt at the end of the turn
         start_wm = prog.watermark_s
         quiet = self._quiet(rec.machine_id, dr[1])
-        blocks: ReadAhead | None = None  # the samples of this turn's next spans, read once
         while (max_windows is None or done < max_windows) and not self.stop_requested():
             w0 = prog.watermark_s
             if w0 + win + s.worker_settle_s > dr[1] and not (quiet and w0 <= dr[1]):
@@ -548,15 +541,8 @@ class TwinWorker:
                                    None if max_windows is None else max_windows - done)
             a, z = w0 - s.twin_margin_s, w0 + k * win + s.twin_margin_s
             ahead = reads.samples.pop(mid, None)
-            if ahead is not None and ahead[:2] == (a, z):
-                samples = ahead[2]
-            else:
-                if blocks is None or not blocks.covers(a, z):  # this span and the next ones
-                    left = None if max_windows is None else max_windows - done
-                    end = min(a + READ_AHEAD_S, dr[1] + s.twin_margin_s + win,
-                              math.inf if left is None else w0 + left * win + s.twin_margin_s)
-                    blocks = self.backend.read_ahead(mid, a, max(z, end))
-                samples = blocks.samples(a, z)
+            samples = (ahead[2] if ahead is not None and ahead[:2] == (a, z)
+                       else self.backend.read_samples(mid, a, z))
             new: Progress | None
             if not np.any((samples.t_s >= w0) & (samples.t_s < w0 + win)):
                 # no sample in the first window: where do the samples go on (a gap is

@@ -50,7 +50,7 @@ from cranetwin.storage.payloads import (
     Stretch,
 )
 from cranetwin.storage.shardmap import ShardMap, ShardMapError, StoreSpec, store_spec
-from cranetwin.storage.store import ReadAhead, StorageStats, Store
+from cranetwin.storage.store import StorageStats, Store
 from cranetwin.storage.summaries import Summaries
 from cranetwin.storage.writes import BlockOutcome, WriteResult, unavailable_outcome
 
@@ -294,9 +294,6 @@ class ShardedStore(Store):
 
     def read_samples(self, machine_id: str, t0_s: float, t1_s: float) -> SampleArrays:
         return self._one(machine_id, lambda s: s.read_samples(machine_id, t0_s, t1_s))
-
-    def read_ahead(self, machine_id: str, t0_s: float, t1_s: float) -> ReadAhead:
-        return self._one(machine_id, lambda s: s.read_ahead(machine_id, t0_s, t1_s))
 
     def data_range(self, machine_id: str) -> tuple[float, float] | None:
         return self._one(machine_id, lambda s: s.data_range(machine_id))

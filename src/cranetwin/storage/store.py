@@ -381,15 +381,6 @@ class Store:
             stored = blocks_mod.read_range(s, self._machine_pk(s, machine_id), t0, t1 - 1)
         return assemble_samples(machine_id, stored, t0, t1)
 
-    def read_ahead(self, machine_id: str, t0_s: float, t1_s: float) -> ReadAhead:
-        """The stored blocks :meth:`read_samples` reads for [t0_s, t1_s), in one statement,
-        kept to give the samples of any range inside it (:meth:`ReadAhead.samples`) as
-        :meth:`read_samples` would, without reading again."""
-        t0, t1 = sample_bounds_ns(t0_s, t1_s)
-        with self._session() as s:
-            stored = blocks_mod.read_range(s, self._machine_pk(s, machine_id), t0, t1 - 1)
-        return ReadAhead(machine_id, t0, t1, stored)
-
 
     def data_range(self, machine_id: str) -> tuple[float, float] | None:
         """Time span of the stored samples of one machine (one index probe).
@@ -650,42 +641,6 @@ def _payload_bounds_ns(t0_s: float | None, t1_s: float | None) -> tuple[int, int
     a delete removes exactly what that read returns."""
     return sample_bounds_ns(-np.inf if t0_s is None else t0_s,
                             np.inf if t1_s is None else t1_s)
-
-
-@dataclass(frozen=True)
-class ReadAhead:
-    """Blocks read once for a range of one machine (:meth:`Store.read_ahead`), from which
-    the samples of ranges inside it are assembled exactly as :meth:`Store.read_samples` reads
-    them (the twin worker's spans of a catch-up: one read for several spans).
-
-    Attributes:
-        machine_id: The machine.
-        t0_ns, t1_ns: The bounds read (:func:`sample_bounds_ns`) [ns].
-        blocks: The blocks overlapping [t0_ns, t1_ns − 1], ordered as :func:`~cranetwin.
-            storage.blocks.read_range` orders them.
-    """
-
-    machine_id: str
-    t0_ns: int
-    t1_ns: int
-    blocks: list[blocks_mod.StoredBlock]
-
-    def covers(self, t0_s: float, t1_s: float) -> bool:
-        """Whether [t0_s, t1_s) lies inside the range read."""
-        t0, t1 = sample_bounds_ns(t0_s, t1_s)
-        return self.t0_ns <= t0 and t1 <= self.t1_ns
-
-    def samples(self, t0_s: float, t1_s: float) -> SampleArrays:
-        """The samples :meth:`Store.read_samples` returns for [t0_s, t1_s) (inside the range
-        read, :meth:`covers`): assembled from the blocks that read would select."""
-        t0, t1 = sample_bounds_ns(t0_s, t1_s)
-        if not (self.t0_ns <= t0 and t1 <= self.t1_ns):
-            raise ValueError(f"[{t0_s}, {t1_s}) is outside the range read")
-        lo = blocks_mod.clamp_ns(t0 - blocks_mod.MAX_SPAN_NS)
-        hi = blocks_mod.clamp_ns(t1 - 1)
-        sel = [b for b in self.blocks
-               if lo <= b.t0_ns <= hi and b.t0_ns + (b.n - 1) * b.period_ns >= t0]
-        return assemble_samples(self.machine_id, sel, t0, t1)
 
 
 def assemble_samples(machine_id: str, stored: list[blocks_mod.StoredBlock], t0: int,
