@@ -493,9 +493,9 @@ class TwinWorker:
 
     def _read_alone(self, machine_id: str, max_windows: int | None) -> PassReads:
         """The reads of a pass over this machine alone
-        (:func:`~cranetwin.service.workerpass.read_pass`): a turn outside a pass (the API,
-        ``cranetwin worker`` without a pass, the benches) reads its late blocks, leaves out
-        those its last turn saw (:class:`~cranetwin.storage.analytics_windows.Seen`) and
+        (:func:`~cranetwin.service.workerpass.read_pass`): a turn outside a pass (the benches,
+        the tests, or a pass whose partitions changed under it) reads its late blocks, leaves
+        out those its last turn saw (:class:`~cranetwin.storage.analytics_windows.Seen`) and
         stores its mark exactly as a pass does.
 
         Raises:
