@@ -281,7 +281,7 @@ class TwinWorker:
         idle = self._idle(got)
         reads: PassReads | None = read_pass(
             self.backend, [m for m in mine if m not in idle], self.settings.worker_window_s,
-            self._first_span, dict(self._seen), got)
+            self._first_span(self.max_windows_per_pass), dict(self._seen), got)
         batch = PassCommit(self.backend)
         try:
             total += self._pass(machines, reads, batch, pool, idle)
@@ -478,30 +478,56 @@ class TwinWorker:
 
         Args:
             reads: The pass's reads holding this machine (:mod:`cranetwin.service.workerpass`;
-                None: read them for this machine alone).
+                None: read them for this machine alone, the same way, and store its new
+                late-data mark at the end of the turn, :meth:`_read_alone`).
             batch: Collect the spans for the pass's commit (:mod:`cranetwin.service.
                 workercommit`; None: each span is committed at once).
         """
+        from cranetwin.service.workerpass import flush_marks
+
         self._known.pop(rec.machine_id, None)  # set again once this turn is stored
         try:
-            return self._catch_up(rec, max_windows, reads, batch)
+            if reads is not None:
+                return self._catch_up(rec, max_windows, reads, batch)
+            alone = self._read_alone(rec.machine_id, max_windows)
+            try:
+                return self._catch_up(rec, max_windows, alone, batch)
+            finally:  # the mark of what was redone (the redo is committed at once)
+                if alone.marks:
+                    flush_marks(self.backend, alone)
         except BaseException:
             self._forget(rec.machine_id)
             raise
 
+    def _read_alone(self, machine_id: str, max_windows: int | None) -> PassReads:
+        """The reads of a pass over this machine alone
+        (:func:`~cranetwin.service.workerpass.read_pass`): a turn outside a pass (the benches,
+        the tests, or a pass whose partitions changed under it) reads its late blocks, leaves
+        out those its last turn saw (:class:`~cranetwin.storage.analytics_windows.Seen`) and
+        stores its mark exactly as a pass does.
+
+        Raises:
+            UnknownMachineError: No such machine.
+        """
+        from cranetwin.service.workerpass import read_pass
+        from cranetwin.storage.machines import UnknownMachineError
+
+        seen = {machine_id: self._seen[machine_id]} if machine_id in self._seen else {}
+        reads = read_pass(self.backend, [machine_id], self.settings.worker_window_s,
+                          self._first_span(max_windows), seen)
+        if machine_id not in reads.ranges:
+            raise UnknownMachineError(machine_id)
+        return reads
+
     def _catch_up(self, rec: MachineRecord, max_windows: int | None,
-                  reads: PassReads | None, batch: PassCommit | None) -> int:
+                  reads: PassReads, batch: PassCommit | None) -> int:
         from cranetwin.service.backend import Progress
 
         s = self.settings
         win = s.worker_window_s
         mid = rec.machine_id
-        if reads is not None:
-            dr = reads.ranges[mid]
-            stored = reads.progress.get(mid) if dr is not None else None
-        else:
-            dr = self.backend.data_range(mid)
-            stored = self.backend.progress(mid) if dr is not None else None
+        dr = reads.ranges[mid]
+        stored = reads.progress.get(mid) if dr is not None else None
         if dr is None:
             return 0
         expected = stored.watermark_s if stored is not None else None
@@ -522,7 +548,7 @@ class TwinWorker:
             k = self._span_windows(w0, dr[1], quiet,
                                    None if max_windows is None else max_windows - done)
             a, z = w0 - s.twin_margin_s, w0 + k * win + s.twin_margin_s
-            ahead = reads.samples.pop(mid, None) if reads is not None else None
+            ahead = reads.samples.pop(mid, None)
             samples = (ahead[2] if ahead is not None and ahead[:2] == (a, z)
                        else self.backend.read_samples(mid, a, z))
             new: Progress | None
@@ -549,12 +575,10 @@ class TwinWorker:
             prog, expected = new, new.watermark_s
         end_wm = prog.watermark_s
 
-        snap = reads.snapshots.get(mid) if reads is not None and mid in reads.late else None
-        top = reads.late[mid][1] if reads is not None and snap is not None else 0
-        if reads is not None and mid in reads.late:  # the mark stored at the end of the pass
-            mark = reads.marks.get(mid, reads.late[mid][0])
-        else:
-            mark = None
+        snap = reads.snapshots.get(mid) if mid in reads.late else None
+        top = reads.late[mid][1] if snap is not None else 0
+        # the mark stored at the end of the pass (or of the turn alone)
+        mark = reads.marks.get(mid, reads.late[mid][0]) if mid in reads.late else None
 
         def after_commit() -> None:  # what reads the stored parts: after the spans' commit
             if mark is not None:  # (a failed pass drops it: :meth:`run_once`)
@@ -608,16 +632,22 @@ class TwinWorker:
         with Session(self._engine(rec)) as s, s.begin():
             aw.put_rows(s, rows)
 
-    def _first_span(self, w0: float, newest_s: float) -> tuple[float, float] | None:
-        """The sample range [from, to) [s] a machine's turn reads first when its watermark is
-        ``w0`` and its newest sample ``newest_s`` (not quiet, nothing redone), or None when no
-        window is ready (:func:`cranetwin.service.workerpass.read_pass` reads it ahead)."""
+    def _first_span(self, budget: int | None,
+                    ) -> Callable[[float, float], tuple[float, float] | None]:
+        """(watermark ``w0``, newest sample ``newest_s``) → the sample range [from, to) [s] a
+        machine's turn of at most ``budget`` windows (None: no limit) reads first (not quiet,
+        nothing redone), or None when no window is ready
+        (:func:`cranetwin.service.workerpass.read_pass` reads it ahead)."""
         s = self.settings
         win = s.worker_window_s
-        if w0 + win + s.worker_settle_s > newest_s:
-            return None
-        k = self._span_windows(w0, newest_s, False, self.max_windows_per_pass)
-        return w0 - s.twin_margin_s, w0 + k * win + s.twin_margin_s
+
+        def span(w0: float, newest_s: float) -> tuple[float, float] | None:
+            if w0 + win + s.worker_settle_s > newest_s:
+                return None
+            k = self._span_windows(w0, newest_s, False, budget)
+            return w0 - s.twin_margin_s, w0 + k * win + s.twin_margin_s
+
+        return span
 
     def _span_windows(self, w0: float, newest_s: float, quiet: bool,
                       budget: int | None) -> int:
@@ -725,7 +755,7 @@ class TwinWorker:
         return now - seen[1] >= self.quiet_s
 
     def _redo_late(self, rec: MachineRecord, prog: Progress,
-                   reads: PassReads | None = None) -> tuple[Progress, int] | None:
+                   reads: PassReads) -> tuple[Progress, int] | None:
         """Redo the windows behind the watermark that received samples since the last pass
         (late data, backfills): blocks stored after the machine's block mark that start before
         the watermark mark their windows, and the windows whose replay margin reaches into
@@ -737,9 +767,10 @@ class TwinWorker:
         are deleted once their windows are redone (those ahead of the watermark at once: their
         windows are replayed with the payload when they come).
 
-        With the pass's ``reads`` holding the machine, its mark, late blocks and redo requests
-        come from them and its new mark is stored at the end of the pass
-        (:mod:`cranetwin.service.workerpass`).
+        Its redo requests come from the pass's ``reads``, and so do its mark and late blocks
+        when they hold them (PostgreSQL: its new mark is stored at the end of the pass or of
+        the turn, :mod:`cranetwin.service.workerpass`); elsewhere they are read here and the
+        mark stored at once.
         """
         from cranetwin.service.history import drop_duty, roll_up
         from cranetwin.storage import analytics_windows as aw
@@ -748,7 +779,7 @@ class TwinWorker:
         engine = self._engine(rec)
         win, m = self.settings.worker_window_s, self.settings.twin_margin_s
         mid = rec.machine_id
-        got = reads.late.get(mid) if reads is not None else None
+        got = reads.late.get(mid)
         top: int | None
         if got is not None:
             mark, top, late = got
@@ -756,11 +787,10 @@ class TwinWorker:
             mark = aw.block_mark(engine, mid)
             top, late = aw.new_blocks_before(engine, mid, mark, prog.watermark_s)
 
-        requests = (reads.redo.get(mid, []) if reads is not None
-                    else redo.pending(engine, [mid]).get(mid, []))
+        requests = reads.redo.get(mid, [])
 
         def set_mark(new_mark: int) -> None:
-            if got is not None and reads is not None:
+            if got is not None:
                 reads.marks[mid] = new_mark
             else:
                 aw.set_block_mark(engine, mid, new_mark)
