@@ -143,3 +143,27 @@ def test_a_pressure_sensor_offset_is_taken_off_the_replayed_lifts(machine: Machi
             worst_gross = max(worst_gross, abs(gross - 150.0) / 150.0)
             assert abs(lf.payload_kg - 150.0) < max(0.03 * 150.0, 3.0 * lf.std_kg), lf
     assert worst_gross > 0.05  # the offsets did matter
+
+
+@pytest.mark.timeout(300)
+def test_no_tare_on_a_coarse_staircase(machine: Machine) -> None:
+    """Pressures and positions quantised to steps of 10 % of their range: the replay
+    recognises the staircase, and its lifts are not tared (the error differs between the
+    empty and the loaded levels); the same lifts with an offset instead are."""
+    from cranetwin.sim.sensor_error import inject_error
+    from cranetwin.twin import replay
+    from cranetwin.twin.lifts import result_lifts
+
+    def payload(t: F64) -> F64:
+        return np.where(((t >= 6.0) & (t < 18.0)) | ((t >= 26.0) & (t < 38.0)), 150.0, 0.0)
+
+    s = make(machine, duration_s=44.0, payload=payload, with_angle=True, scale=0.5,
+             fine_hz=None)
+    res = replay(inject_error(s.samples, machine, 0.05, 0, "quantised", "full"), machine)
+    assert any(c.step > 0 for c in res.smoothing.values())
+    lifts = result_lifts(res, 0.01, threshold_kg=45.0)
+    assert lifts and all(lf.tare_kg == 0.0 and np.isnan(lf.empty_kg) for lf in lifts)
+    off = replay(inject_uniform_noise(offset_pressures(s.samples, machine, 0.01, 0), machine,
+                                      0.001, seed=0), machine)
+    assert not any(c.step > 0 for c in off.smoothing.values())
+    assert any(lf.tare_kg != 0.0 for lf in result_lifts(off, 0.01, threshold_kg=45.0))
