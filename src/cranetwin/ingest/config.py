@@ -22,7 +22,7 @@ class DaemonConfig:
 
     Attributes:
         host, port: UDP address to bind (port 0 picks a free one; see ``IngestDaemon.address``).
-        queue_max: Accepted datagrams waiting for the writer; beyond it they are dropped
+        queue_max: Accepted datagrams not yet decoded; beyond it they are dropped
             (counted as ``queue_full``) and the sender retransmits.
         batch_max: Datagrams decoded together and blocks written per transaction at most.
         batch_wait_s: How long the event loop gathers a batch after its first datagram before
