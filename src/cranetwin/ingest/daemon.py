@@ -145,6 +145,7 @@ class IngestDaemon(Pipeline):
         self._decoder_done = threading.Event()
         self._threads: dict[str, threading.Thread] = {}
         self._finished: set[str] = set()
+        self._died: set[str] = set()         # threads that died, not yet restarted
         self._in_hand = 0                    # items of the batch the writer is writing
         self._logged: set[str] = set()
         self._log_lock = threading.Lock()

@@ -44,6 +44,7 @@ class Pipeline(DatagramPath):
     _decoder_done: threading.Event
     _threads: dict[str, threading.Thread]
     _finished: set[str]
+    _died: set[str]
     _in_hand: int
 
     # -- decoder thread -------------------------------------------------------------------------
@@ -199,6 +200,7 @@ class Pipeline(DatagramPath):
         except BaseException as exc:  # noqa: BLE001 - reported; the supervisor restarts it
             log.critical("ingest %s thread died (restarted by the supervisor): %r", name, exc,
                          exc_info=exc)
+            self._died.add(name)  # (still alive for a moment: is_alive() cannot tell yet)
             loop = self._loop
             if loop is not None:  # restart now, not at the supervisor's next periodic check
                 with contextlib.suppress(RuntimeError):  # the loop is closed: shutting down
@@ -219,7 +221,8 @@ class Pipeline(DatagramPath):
         if self._abandon.is_set():
             return
         for name, t in list(self._threads.items()):
-            if not t.is_alive() and name not in self._finished:
+            if name in self._died or (not t.is_alive() and name not in self._finished):
+                self._died.discard(name)
                 self.metrics.add(f"{name}_restarts")
                 log.error("restarting the ingest %s thread", name)
                 self._start_thread(name)
