@@ -93,10 +93,11 @@ class Settings(BaseSettings):
         "127.0.0.1:9105", description="HOST:PORT of the ingest daemon's Prometheus /metrics "
                                       "(HTTP); 0 = not served")
     ingest_queue_max: int = Field(50_000, ge=1,
-                                  description="datagrams waiting for the writer at most")
-    ingest_batch_max: int = Field(1000, ge=1, description="blocks written per transaction at most")
-    ingest_batch_wait_s: float = Field(0.05, ge=0, le=10,
-                                       description="time the writer gathers a batch [s]")
+                                  description="datagrams accepted, not yet decoded, at most")
+    ingest_batch_max: int = Field(
+        1000, ge=1, description="datagrams decoded together, blocks per transaction at most")
+    ingest_batch_wait_s: float = Field(
+        0.05, ge=0, le=10, description="time a batch is gathered after its first datagram [s]")
     ingest_max_past_s: float = Field(
         400 * 86400.0, gt=0, description="oldest sample time accepted, before server time [s]")
     ingest_max_future_s: float = Field(

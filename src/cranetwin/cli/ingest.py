@@ -76,14 +76,14 @@ def ingest(
         None, help="Fan-out bus: postgresql://… or redis://H:P (default: "
                    "$CRANETWIN_LIVE_BUS_URL, else none)."),
     queue_max: int | None = typer.Option(None, min=1,
-                                         help="Datagrams waiting for the writer at most "
-                                              "(default 50000)."),
+                                         help="Datagrams accepted and not yet decoded at "
+                                              "most (default 50000)."),
     batch_max: int | None = typer.Option(None, min=1,
-                                         help="Blocks written per transaction at most "
-                                              "(default 1000)."),
+                                         help="Datagrams decoded together, blocks written "
+                                              "per transaction at most (default 1000)."),
     batch_wait: float | None = typer.Option(None, min=0.0,
-                                            help="Seconds the writer gathers a batch [s] "
-                                                 "(default 0.05)."),
+                                            help="Seconds a batch is gathered after its "
+                                                 "first datagram [s] (default 0.05)."),
     max_past: float | None = typer.Option(
         None, help="Oldest sample time accepted, before the server clock [s] (default 400 "
                    "days); older datagrams are refused (bad_time)."),

@@ -22,10 +22,11 @@ class DaemonConfig:
 
     Attributes:
         host, port: UDP address to bind (port 0 picks a free one; see ``IngestDaemon.address``).
-        queue_max: Accepted datagrams waiting for the writer; beyond it they are dropped
+        queue_max: Accepted datagrams not yet decoded; beyond it they are dropped
             (counted as ``queue_full``) and the sender retransmits.
-        batch_max: Blocks written per transaction at most.
-        batch_wait_s: How long the writer gathers a batch after its first item [s].
+        batch_max: Datagrams decoded together and blocks written per transaction at most.
+        batch_wait_s: How long the event loop gathers a batch after its first datagram before
+            handing it to the decoder [s].
         rcvbuf_bytes: Requested SO_RCVBUF [bytes] (the kernel caps it at net.core.rmem_max).
         metrics_host, metrics_port: HTTP address of the Prometheus ``/metrics`` endpoint
             (``metrics_host`` None: not served; port 0 picks a free one, see
@@ -38,7 +39,8 @@ class DaemonConfig:
         shutdown_timeout_s: Longest flush of the queue after SIGTERM while storage is writable [s].
         stall_timeout_s: At shutdown, a database call that has not returned for this long is
             given up (its batch was never acknowledged) [s].
-        supervise_interval_s: Period of the check that restarts a dead decoder/writer thread [s].
+        supervise_interval_s: Period of the backstop check that restarts a dead decoder/writer
+            thread [s] (a dying thread asks for its restart at once).
         limits: What is accepted from authenticated machines: datagram size, time window
             around the server clock [s], sensor range margin (:class:`~cranetwin.protocol.Limits`).
         socket_fd: A bound UDP socket inherited from the parent of ``--processes``
@@ -60,6 +62,6 @@ class DaemonConfig:
     retry_max_s: float = 5.0
     shutdown_timeout_s: float = 60.0
     stall_timeout_s: float = 5.0
-    supervise_interval_s: float = 0.2
+    supervise_interval_s: float = 5.0
     limits: Limits = field(default_factory=Limits)
     socket_fd: int | None = None

@@ -5,9 +5,11 @@ Shape (after uvicorn's ``serve()`` and the sans-IO split of h11/aioquic)::
     socket ─► _IngestProtocol.datagram_received (event loop: bytes, address, receive time)
                  │
                  ▼
-          bounded queue.Queue ── full → dropped["queue_full"] (the sender retransmits)
+          gathered into batches of ≤ batch_max datagrams, handed over batch_wait_s after
+          the first (one queue put and one decoder wake-up per batch); more than queue_max
+          accepted and not yet decoded ── dropped["queue_full"] (the sender retransmits)
                  │
-                 ▼  decoder thread, batches of ≤ batch_max datagrams or batch_wait_s:
+                 ▼  decoder thread (blocks on the queue, no polling):
           Receiver.receive (HMAC first, then replay check, validation, decode)
                  │   replayed → ack;  refused → refusal;  anything else bad → counted, silent
                  ▼  queue of 2 decoded batches (back-pressure)
@@ -16,7 +18,7 @@ Shape (after uvicorn's ``serve()`` and the sans-IO split of h11/aioquic)::
                  ▼
           Receiver.mark_durable, one ack per (machine, epoch, address) ─► socket; LiveBus.publish
 
-The event loop only moves bytes into the queue, so the socket is drained even while a batch is
+The event loop only moves bytes into batches, so the socket is drained even while a batch is
 being decoded and written (a slow loop overflows the kernel buffer and turns into loss).
 Decoding the next batch overlaps the database round trip of the current one. The protocol
 state (:class:`~cranetwin.protocol.Receiver`) is shared by the two threads under one lock.
@@ -70,7 +72,7 @@ from typing import Any
 from prometheus_client import CollectorRegistry, Histogram, start_http_server
 
 from cranetwin.ingest.config import DaemonConfig, IngestConfigError, check_model, layout_of
-from cranetwin.ingest.datagrams import Addr, Item
+from cranetwin.ingest.datagrams import Addr, Item, Raw
 from cranetwin.ingest.keys import MachineKeys
 from cranetwin.ingest.metrics import COUNTERS, Metrics, SnapshotCollector
 from cranetwin.ingest.pipeline import Pipeline, drain
@@ -128,8 +130,14 @@ class IngestDaemon(Pipeline):
         self._clock = clock_ns
         self.keys = MachineKeys(store, self.config.key_refresh_s, self._log_once)
         self._receiver = Receiver(self.keys.lookup, limits=self.config.limits)
-        self._queue: queue.Queue[tuple[bytes, Addr, int]] = queue.Queue(self.config.queue_max)
-        self._decoded: queue.Queue[list[tuple[Item, Addr]]] = queue.Queue(2)
+        # batches gathered by the event loop (bounded by queue_max datagrams in _on_datagram);
+        # None wakes the decoder at shutdown
+        self._queue: queue.Queue[list[Raw] | None] = queue.Queue()
+        self._gathering: list[Raw] = []
+        self._hand_over_at: asyncio.TimerHandle | None = None
+        self._accepted_in = 0                # datagrams accepted (event loop thread only)
+        self._taken_out = 0                  # datagrams taken by the decoder (its thread only)
+        self._decoded: queue.Queue[list[tuple[Item, Addr]] | None] = queue.Queue(2)
         self._rx_lock = threading.Lock()  # the Receiver is shared by decoder and writer
         self._stopping = False
         self._draining = threading.Event()   # shutdown: finish what is queued, then return
@@ -137,6 +145,7 @@ class IngestDaemon(Pipeline):
         self._decoder_done = threading.Event()
         self._threads: dict[str, threading.Thread] = {}
         self._finished: set[str] = set()
+        self._died: set[str] = set()         # threads that died, not yet restarted
         self._in_hand = 0                    # items of the batch the writer is writing
         self._logged: set[str] = set()
         self._log_lock = threading.Lock()
@@ -174,7 +183,7 @@ class IngestDaemon(Pipeline):
 
     def snapshot(self) -> dict[str, Any]:
         """Counters, queue depth and uptime as a JSON-ready dict."""
-        return self.metrics.snapshot(self._queue.qsize(), self.config.queue_max, self._started)
+        return self.metrics.snapshot(self._queue_depth(), self.config.queue_max, self._started)
 
     async def _report(self) -> None:
         last_samples, last_t = 0, time.monotonic()
@@ -291,12 +300,13 @@ class IngestDaemon(Pipeline):
                         tasks: list[asyncio.Task[None]]) -> None:
         cfg = self.config
         t0 = time.monotonic()
-        log.info("ingest shutting down: flushing %d queued datagram(s)", self._queue.qsize())
+        log.info("ingest shutting down: flushing %d queued datagram(s)", self._queue_depth())
         self._stopping = True
         pause = getattr(transport, "pause_reading", None)  # not every loop has it
         if pause is not None:
             pause()
         self._draining.set()
+        self._wake_decoder()
         writer = self._threads.get("writer")
         while writer is not None and not self._abandon.is_set():
             writer = self._threads.get("writer")  # the supervisor may have replaced it
@@ -306,9 +316,9 @@ class IngestDaemon(Pipeline):
             if self.db.outage:
                 log.warning("storage unavailable at shutdown: giving up %d queued datagram(s) "
                             "and the batch in hand (never acknowledged: their senders "
-                            "retransmit)", self._queue.qsize())
+                            "retransmit)", self._queue_depth())
                 self._abandon.set()
-            elif now - self.db.progress > cfg.stall_timeout_s:
+            elif not self.db.idle and now - self.db.progress > cfg.stall_timeout_s:
                 log.warning("a database call has not returned for %.1f s: giving up the "
                             "unwritten batches (never acknowledged)", now - self.db.progress)
                 self._abandon.set()
@@ -320,7 +330,7 @@ class IngestDaemon(Pipeline):
         clean = not self._abandon.is_set()
         if not clean:  # the writer leaves its backoff at once; a call stuck in C is not waited
             await self._wait_threads(1.0)
-            dropped = self._queue.qsize() + sum(len(b) for b in drain(self._decoded))
+            dropped = self._queue_depth() + sum(len(b) for b in drain(self._decoded))
             writer = self._threads.get("writer")
             if writer is not None and writer.is_alive():  # stuck in a database call
                 dropped += self._in_hand

@@ -9,6 +9,7 @@ authenticated datagram is ever answered (see :meth:`DatagramPath._decode`).
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import queue
@@ -33,12 +34,13 @@ from cranetwin.protocol import (
 from cranetwin.protocol.status import StatusReport
 from cranetwin.samples import SampleBlock
 
-__all__ = ["Addr", "DatagramPath", "Item"]
+__all__ = ["Addr", "DatagramPath", "Item", "Raw"]
 
 log = logging.getLogger("cranetwin.ingest.daemon")  # one logger for the daemon's messages
 
 Addr = tuple[Any, ...]
 Item = SampleBlock | StatusReport
+Raw = tuple[bytes, Addr, int]  # a datagram, its sender's address, its receive time [ns]
 
 
 def _is_refusal(datagram: bytes) -> bool:
@@ -55,7 +57,12 @@ class DatagramPath:
     keys: MachineKeys
     _receiver: Receiver
     _rx_lock: threading.Lock
-    _queue: queue.Queue[tuple[bytes, Addr, int]]
+    _queue: queue.Queue[list[Raw] | None]
+    _gathering: list[Raw]
+    _hand_over_at: asyncio.TimerHandle | None
+    _accepted_in: int
+    _taken_out: int
+    _loop: asyncio.AbstractEventLoop | None
     _stopping: bool
     _clock: Callable[[], int]
     _sock: socket.socket | None
@@ -78,16 +85,43 @@ class DatagramPath:
 
     # -- event loop side ------------------------------------------------------------------------
     def _on_datagram(self, data: bytes, addr: Addr) -> None:
+        """Event loop: count the datagram and gather it into the batch being formed.
+
+        The batch goes to the decoder in one queue put, ``batch_wait_s`` after its first
+        datagram or as soon as it holds ``batch_max`` (:meth:`_hand_over`): the decoder thread
+        wakes once per batch, not once per datagram. ``queue_max`` bounds the datagrams accepted
+        and not yet taken by the decoder (gathering or queued).
+        """
         m = self.metrics
         m.received += 1
         m.received_bytes += len(data)
         if self._stopping:  # arrived after shutdown began: not acked, so the sender retries
             m.drop("shutdown")
             return
-        try:
-            self._queue.put_nowait((data, addr, self._clock()))
-        except queue.Full:
+        if self._accepted_in - self._taken_out >= self.config.queue_max:
             m.drop("queue_full")
+            return
+        g = self._gathering
+        g.append((data, addr, self._clock()))
+        self._accepted_in += 1
+        if len(g) >= self.config.batch_max or self._loop is None:
+            self._hand_over()
+        elif self._hand_over_at is None:
+            self._hand_over_at = self._loop.call_later(self.config.batch_wait_s,
+                                                       self._hand_over)
+
+    def _hand_over(self) -> None:
+        """Event loop: the gathered datagrams to the decoder, as one batch."""
+        if self._hand_over_at is not None:
+            self._hand_over_at.cancel()
+            self._hand_over_at = None
+        if self._gathering:
+            batch, self._gathering = self._gathering, []
+            self._queue.put_nowait(batch)
+
+    def _queue_depth(self) -> int:
+        """Datagrams accepted and not yet taken by the decoder."""
+        return max(0, self._accepted_in - self._taken_out)
 
     # -- protocol (the only place that knows the Receiver's API) --------------------------------
     def _rx_receive(self, data: bytes, now: int) -> Item:
@@ -103,7 +137,7 @@ class DatagramPath:
     def _rx_refusal(self, machine_id: str, epoch: int, seq: int, reason: str, now: int) -> bytes:
         return self._receiver.refuse(machine_id, epoch, seq, reason, now)
 
-    def _decode(self, raw: list[tuple[bytes, Addr, int]]) -> list[tuple[Item, Addr]]:
+    def _decode(self, raw: list[Raw]) -> list[tuple[Item, Addr]]:
         """Decoder thread: authenticate and decode; bad datagrams are counted and dropped.
 
         Only an authenticated datagram is ever answered, and only in two ways: a replay of a

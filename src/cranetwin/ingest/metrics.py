@@ -109,7 +109,7 @@ class SnapshotCollector(Collector):
             dropped.add_metric([reason], n)
         yield dropped
         yield GaugeMetricFamily("cranetwin_ingest_queue_depth",
-                                "datagrams waiting for the writer", value=s["queue_depth"])
+                                "datagrams not yet decoded", value=s["queue_depth"])
         yield GaugeMetricFamily("cranetwin_ingest_queue_max",
                                 "capacity of the datagram queue", value=s["queue_max"])
         yield GaugeMetricFamily("cranetwin_ingest_storage_available",

@@ -10,6 +10,7 @@ and :class:`~cranetwin.ingest.daemon.IngestDaemon` (lifecycle); the database sid
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import queue
 import threading
@@ -37,76 +38,91 @@ class Pipeline(DatagramPath):
     bus: LiveBus | None
     db: StorageWriter
     write_latency: Histogram
-    _decoded: queue.Queue[list[tuple[Item, Addr]]]
+    _decoded: queue.Queue[list[tuple[Item, Addr]] | None]
     _draining: threading.Event
     _abandon: threading.Event
     _decoder_done: threading.Event
     _threads: dict[str, threading.Thread]
     _finished: set[str]
+    _died: set[str]
     _in_hand: int
 
     # -- decoder thread -------------------------------------------------------------------------
     def _decoder(self) -> None:
-        """Decoder thread: raw datagrams → decoded batches (overlaps the writer's database
-        round trips, which release the GIL). Returns once draining and the queue is empty."""
-        cfg = self.config
+        """Decoder thread: batches of raw datagrams (gathered by the event loop) → decoded
+        batches (overlaps the writer's round trips, which release the GIL). It blocks until a
+        batch comes (no polling); returns at the wake-up that shutdown queues after the last
+        batch (:meth:`_wake_decoder`)."""
         while True:
-            try:
-                first = self._queue.get(timeout=0.1)
-            except queue.Empty:
+            raw = self._queue.get()
+            if raw is None:
                 if self._draining.is_set():
                     self._decoder_done.set()
+                    self._put_decoded(None)  # wakes the writer: nothing more comes
                     return
                 continue
+            self._taken_out += len(raw)
             try:
-                items = [first]
-                deadline = time.monotonic() + (0.0 if self._draining.is_set()
-                                               else cfg.batch_wait_s)
-                while len(items) < cfg.batch_max:
-                    try:
-                        items.append(self._queue.get(
-                            timeout=max(0.0, deadline - time.monotonic())))
-                    except queue.Empty:
-                        break
-                batch = self._decode(items)
-                while batch:  # blocks while the writer is behind: back-pressure
-                    if self._abandon.is_set():
-                        self.metrics.drop("unwritten_at_shutdown", len(batch))
-                        break
-                    try:
-                        self._decoded.put(batch, timeout=0.2)
-                        break
-                    except queue.Full:
-                        continue
+                batch = self._decode(raw)
+                if batch:
+                    self._put_decoded(batch)
             except Exception as exc:
                 self.metrics.drop("internal_error")
                 self._log_once("decoder", exc, "unexpected error in the decoder loop "
                                "(the loop goes on): %s", exc)
 
+    def _put_decoded(self, batch: list[tuple[Item, Addr]] | None) -> None:
+        """Hand a decoded batch (None: the decoder is done) to the writer; blocks while the
+        writer is behind (back-pressure), gives the batch up once shutdown abandons."""
+        while True:
+            if self._abandon.is_set():
+                if batch:
+                    self.metrics.drop("unwritten_at_shutdown", len(batch))
+                return
+            try:
+                self._decoded.put(batch, timeout=0.2)
+                return
+            except queue.Full:
+                continue
+
+    def _wake_decoder(self) -> None:
+        """Shutdown (event loop, after ``_stopping`` and ``_draining`` are set): the batch
+        being gathered goes to the decoder, then the wake-up that ends it."""
+        self._hand_over()
+        self._queue.put_nowait(None)
+
     # -- writer thread --------------------------------------------------------------------------
     def _writer(self) -> None:
         """Writer thread: decoded batches → one batch write each (merging any that queued up
-        meanwhile) → acks. Returns once draining and everything decoded is written (or
-        abandoned)."""
+        meanwhile) → acks. It blocks until a batch comes or the next rollup is due (no
+        polling; during shutdown it checks every 0.1 s whether to give up); returns once the
+        decoder is done and everything decoded is written (or abandoned)."""
         while True:
             self.db.progress = time.monotonic()
             if self._abandon.is_set():
                 self._discard_decoded()
                 return
+            if self._draining.is_set() and self._decoder_done.is_set() and self._decoded.empty():
+                return
+            wait_s = 0.1 if self._draining.is_set() else self.db.rollup_due_in()
+            self.db.idle = True
             try:
-                first = self._decoded.get(timeout=0.1)
+                first = self._decoded.get(timeout=wait_s)
             except queue.Empty:
-                if self._draining.is_set() and self._decoder_done.is_set():
-                    return
-                if not self._draining.is_set():
-                    self.db.maybe_rollup()
+                self.db.maybe_rollup()
+                continue
+            finally:
+                self.db.idle = False
+            if first is None:  # the decoder is done (shutdown)
                 continue
             items = list(first)
             while len(items) < self.config.batch_max:
                 try:
-                    items.extend(self._decoded.get_nowait())
+                    more = self._decoded.get_nowait()
                 except queue.Empty:
                     break
+                if more is not None:
+                    items.extend(more)
             self._in_hand = len(items)
             try:
                 self._write(items)
@@ -121,11 +137,7 @@ class Pipeline(DatagramPath):
                 self.db.maybe_rollup()
 
     def _discard_decoded(self) -> None:
-        while True:
-            try:
-                batch = self._decoded.get_nowait()
-            except queue.Empty:
-                return
+        for batch in drain(self._decoded):
             self.metrics.drop("unwritten_at_shutdown", len(batch))
 
     def _write(self, items: list[tuple[Item, Addr]]) -> None:
@@ -188,6 +200,11 @@ class Pipeline(DatagramPath):
         except BaseException as exc:  # noqa: BLE001 - reported; the supervisor restarts it
             log.critical("ingest %s thread died (restarted by the supervisor): %r", name, exc,
                          exc_info=exc)
+            self._died.add(name)  # (still alive for a moment: is_alive() cannot tell yet)
+            loop = self._loop
+            if loop is not None:  # restart now, not at the supervisor's next periodic check
+                with contextlib.suppress(RuntimeError):  # the loop is closed: shutting down
+                    loop.call_soon_threadsafe(self._supervise_once)
             return
         self._finished.add(name)
 
@@ -199,11 +216,13 @@ class Pipeline(DatagramPath):
         t.start()
 
     def _supervise_once(self) -> None:
-        """Restart a decoder or writer thread that died (counted)."""
+        """Restart a decoder or writer thread that died (counted). Called by a dying thread
+        through the event loop, and every ``supervise_interval_s`` as a backstop."""
         if self._abandon.is_set():
             return
         for name, t in list(self._threads.items()):
-            if not t.is_alive() and name not in self._finished:
+            if name in self._died or (not t.is_alive() and name not in self._finished):
+                self._died.discard(name)
                 self.metrics.add(f"{name}_restarts")
                 log.error("restarting the ingest %s thread", name)
                 self._start_thread(name)
@@ -217,12 +236,14 @@ class Pipeline(DatagramPath):
                 self._log_once("supervise", exc, "supervisor failed: %s", exc)
 
 
-def drain(q: queue.Queue[list[tuple[Item, Addr]]]) -> list[list[tuple[Item, Addr]]]:
-    """Everything in ``q`` now, without waiting."""
-    out = []
+def drain(q: queue.Queue[list[tuple[Item, Addr]] | None]) -> list[list[tuple[Item, Addr]]]:
+    """Every batch in ``q`` now, without waiting (the decoder's end marker left out)."""
+    out: list[list[tuple[Item, Addr]]] = []
     while True:
         try:
-            out.append(q.get_nowait())
+            batch = q.get_nowait()
         except queue.Empty:
             return out
+        if batch is not None:
+            out.append(batch)
 

@@ -295,8 +295,12 @@ class ProcessGroup:
         self._socks = []
 
     def run(self, on_ready: Callable[[ProcessGroup], None] | None = None,
-            poll_s: float = 0.1) -> dict[str, Any]:
+            backstop_s: float = 5.0) -> dict[str, Any]:
         """Start, supervise until SIGTERM/SIGINT, stop (main thread only).
+
+        The parent sleeps until a signal comes (SIGCHLD when a child exits, SIGTERM/SIGINT) or
+        a restart is due — no polling while the children run; ``backstop_s`` is the longest
+        sleep [s].
 
         Returns:
             :meth:`stop`'s counters.
@@ -304,18 +308,39 @@ class ProcessGroup:
         Raises:
             IngestConfigError: the address cannot be bound, or a child did not start.
         """
+        r, w = os.pipe()
+        os.set_blocking(r, False)
+        os.set_blocking(w, False)
         old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+        old[signal.SIGCHLD] = signal.signal(signal.SIGCHLD, _wake)
+        old_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
         try:
             self.start()
             if on_ready is not None:
                 on_ready(self)
             while not self._signals:
                 self.supervise_once()
-                time.sleep(poll_s)
+                select.select([r], [], [], self._sleep_s(backstop_s))
+                with contextlib.suppress(BlockingIOError):
+                    os.read(r, 4096)
             return self.stop()
         finally:
+            signal.set_wakeup_fd(old_fd)
             for s, h in old.items():
                 signal.signal(s, h)
+            os.close(r)
+            os.close(w)
+
+    def _sleep_s(self, backstop_s: float) -> float:
+        """How long the supervisor may sleep: until the next restart is due, at most
+        ``backstop_s`` [s]."""
+        now = time.monotonic()
+        due = [c.due - now for c in self._children if c.proc is None]
+        return max(0.0, min([backstop_s, *due]))
+
+
+def _wake(signum: int, frame: FrameType | None) -> None:
+    """SIGCHLD: nothing to do here; the signal's wake-up byte ends the supervisor's sleep."""
 
 
 def _last_line(text: str, event: str) -> dict[str, Any]:

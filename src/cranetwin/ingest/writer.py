@@ -67,6 +67,8 @@ class StorageWriter:
     Attributes:
         outage: True from the first failed attempt of an outage until a write succeeds.
         progress: Last time the writer was not inside a database call [monotonic s].
+        idle: True while the writer thread waits for a batch (not in a database call, however
+            old ``progress`` is).
         abandon: Set at shutdown to give up retrying (raises :class:`Abandoned`).
     """
 
@@ -78,6 +80,7 @@ class StorageWriter:
         self._log_once = log_once
         self.outage = False
         self.progress = time.monotonic()
+        self.idle = False
         self.abandon = threading.Event()
         self._outage_since: float | None = None
         self._last_rollup = time.monotonic()
@@ -157,6 +160,10 @@ class StorageWriter:
                                  altitude_m=val(r.altitude_m),
                                  operating_hours=val(r.operating_hours))
         self.metrics.add("status_reports")
+
+    def rollup_due_in(self) -> float:
+        """Time until :meth:`maybe_rollup` next rolls up [s] (0 when due)."""
+        return max(0.0, self._last_rollup + self.config.rollup_interval_s - time.monotonic())
 
     def maybe_rollup(self, force: bool = False) -> None:
         now = time.monotonic()
