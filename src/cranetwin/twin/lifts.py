@@ -222,18 +222,21 @@ def steady_mask(t_s: F64, lifts: list[Lift]) -> npt.NDArray[np.bool_]:
     return out
 
 
-def result_lifts(result: TwinResult, sample_period_s: float, threshold_kg: float,
-                 payload_window_s: float = 2.0) -> list[Lift]:
-    """:func:`lift_payloads` of a replay's estimate (its smear from its smoothing choices, its
-    systematic σ kept apart).
-
-    No tare where the replay recognised a coarse staircase on a channel
+def tare_span_s(result: TwinResult) -> float | None:
+    """The ``tare_span_s`` of :func:`lift_payloads` for a replay's estimate: 30 s, or None (no
+    tare) where the replay recognised a coarse staircase on a channel
     (:attr:`cranetwin.signal.SmoothingChoice.step` > 0, :mod:`cranetwin.signal.quantisation`):
     its error differs from level to level, so the empty reading is not the loaded one's error
     and taking it off adds a second draw of it (on the noise family's quantised cases the lift
     means' mean error went from +8.5 % to +14.4 % with the tare)."""
-    coarse = any(c.step > 0 for c in result.smoothing.values())
+    return None if any(c.step > 0 for c in result.smoothing.values()) else 30.0
+
+
+def result_lifts(result: TwinResult, sample_period_s: float, threshold_kg: float,
+                 payload_window_s: float = 2.0) -> list[Lift]:
+    """:func:`lift_payloads` of a replay's estimate (its smear from its smoothing choices, its
+    systematic σ kept apart, its tare as :func:`tare_span_s`)."""
     return lift_payloads(result.t_s, result.payload_kg, result.payload_std_kg,
                          payload_smear_s(result, sample_period_s, payload_window_s),
                          threshold_kg, payload_sys_std_kg=result.payload_sys_std_kg,
-                         tare_span_s=None if coarse else 30.0)
+                         tare_span_s=tare_span_s(result))

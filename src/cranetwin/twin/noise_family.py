@@ -41,7 +41,7 @@ from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import SmoothingChoice, nrmse
 from cranetwin.signal.window import DEFAULT_WINDOWS
-from cranetwin.twin.lifts import lift_payloads, payload_smear_s, result_lifts
+from cranetwin.twin.lifts import lift_payloads, payload_smear_s, result_lifts, tare_span_s
 from cranetwin.twin.options import ReplayOptions
 from cranetwin.twin.replay import replay
 from cranetwin.twin.result import TwinResult
@@ -240,7 +240,8 @@ def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[
     if spec.nominal_payload_kg > 0:
         period, thr = 1.0 / spec.rate_hz, LIFT_THRESHOLD * spec.nominal_payload_kg
         all_random = lift_payloads(res.t_s, res.payload_kg, res.payload_std_kg,
-                                   payload_smear_s(res, period), thr)
+                                   payload_smear_s(res, period), thr,
+                                   tare_span_s=tare_span_s(res))
         for lf, lf0 in zip(result_lifts(res, period, thr), all_random, strict=True):
             sel = (res.t_s >= lf.t0_s) & (res.t_s <= lf.t1_s)
             if not lf.complete or not np.isfinite(lf.payload_kg) or not sel.any():
