@@ -33,12 +33,13 @@ primary-key lookup, a column of a statement the request makes anyway (:func:`col
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 from sqlalchemy import ScalarSelect, Select, select, text
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import InstrumentedAttribute, Session
-from sqlalchemy.sql.elements import ColumnElement
+from sqlalchemy.sql.elements import ColumnElement, TextClause
 
 from cranetwin.storage.analytics_windows import AnalyticsWindowRow
 from cranetwin.storage.blocks import MAX_SPAN_NS
@@ -63,6 +64,18 @@ _UPSERT = (
     "t1_ns = {greatest}(analytics_windows.t1_ns, excluded.t1_ns)")
 
 
+@functools.lru_cache(maxsize=64)
+def _note_sql(dialect: str, n: int) -> TextClause:
+    """The statement of :func:`note` for ``n`` machines (made once per dialect and count)."""
+    if dialect == "postgresql":
+        cte = ("WITH v(mid, pk, tmin, tend) AS (SELECT * FROM unnest(CAST(:mids AS text[]), "
+               "CAST(:pks AS integer[]), CAST(:tmins AS bigint[]), CAST(:tends AS bigint[]))) ")
+        return text(cte + _UPSERT.format(greatest="greatest"))
+    values = ", ".join(f"(:m{i}, :p{i}, :a{i}, :z{i})" for i in range(n))
+    return text(f"WITH v(mid, pk, tmin, tend) AS (VALUES {values}) "
+                + _UPSERT.format(greatest="max"))
+
+
 def note(session: Session, stored: Sequence[tuple[str, int, int, int]]) -> None:
     """Record newly stored blocks, inside the transaction that stored them (after the insert):
     per machine, raise the version when they start at or before its high-water mark, and raise
@@ -77,22 +90,16 @@ def note(session: Session, stored: Sequence[tuple[str, int, int, int]]) -> None:
         return
     rows = sorted(stored)
     conn = session.connection()
+    params: dict[str, object] = {"empty": b""}
     if conn.dialect.name == "postgresql":
-        cte = ("WITH v(mid, pk, tmin, tend) AS (SELECT * FROM unnest(CAST(:mids AS text[]), "
-               "CAST(:pks AS integer[]), CAST(:tmins AS bigint[]), CAST(:tends AS bigint[]))) ")
-        params: dict[str, object] = {"mids": [r[0] for r in rows], "pks": [r[1] for r in rows],
-                                     "tmins": [r[2] for r in rows],
-                                     "tends": [r[3] for r in rows]}
-        greatest = "greatest"
+        params.update(mids=[r[0] for r in rows], pks=[r[1] for r in rows],
+                      tmins=[r[2] for r in rows], tends=[r[3] for r in rows])
+        stmt = _note_sql("postgresql", 0)
     else:
-        values = ", ".join(f"(:m{i}, :p{i}, :a{i}, :z{i})" for i in range(len(rows)))
-        cte = f"WITH v(mid, pk, tmin, tend) AS (VALUES {values}) "
-        params = {}
         for i, (mid, pk, a, z) in enumerate(rows):
             params.update({f"m{i}": mid, f"p{i}": pk, f"a{i}": a, f"z{i}": z})
-        greatest = "max"
-    params["empty"] = b""
-    session.execute(text(cte + _UPSERT.format(greatest=greatest)), params)
+        stmt = _note_sql(conn.dialect.name, len(rows))
+    session.execute(stmt, params)
 
 
 def bump_all(conn: Connection) -> None:
