@@ -17,8 +17,7 @@ from cranetwin.service.backend import Backend, Progress
 from cranetwin.service.worker import TwinWorker
 from cranetwin.settings import Settings
 from cranetwin.storage import analytics_windows as aw
-from cranetwin.storage import late_version
-from cranetwin.storage import writes
+from cranetwin.storage import late_version, writes
 from cranetwin.storage.engine import make_engine, migrate
 from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
