@@ -489,3 +489,18 @@ def test_delivery_count_read_from_the_ack_subject_as_nats_py_reads_it() -> None:
                   "$JS.ACK.S.c.1.9.9.1700000000000000000.2"):
         assert _delivered(reply) == Msg(None, subject="x", reply=reply).metadata.num_delivered
     assert _delivered(None) == _delivered("_INBOX.abc") == 1
+
+
+def test_late_data_version_is_raised_on_the_machines_shard_only(sharded: ShardedStore) -> None:
+    """The replay cache's late-data version (storage.late_version) through the sharded store:
+    read with the machine from its shard, raised by a block stored behind its newest one in
+    a batch split by shard, not by blocks in time order, not for the other shard's machine."""
+    ma, mb = f"crane-{A_WIRES[0]}", f"crane-{B_WIRES[0]}"
+    assert len(sharded.write_batch([block(ma, 0), block(mb, 0), block(ma, 2),
+                                    block(mb, 1)]).new) == 4
+    before = {m: sharded.get_machine(m).late_version for m in (ma, mb)}
+    assert before == {ma: 1, mb: 1}  # their rows made by the first write
+    assert len(sharded.write_batch([block(mb, 2), block(ma, 3)]).new) == 2  # time order
+    assert {m: sharded.get_machine(m).late_version for m in (ma, mb)} == before
+    assert len(sharded.write_batch([block(ma, 1), block(mb, 3)]).new) == 2  # ma's 1: late
+    assert {m: sharded.get_machine(m).late_version for m in (ma, mb)} == {ma: 2, mb: 1}

@@ -17,6 +17,7 @@ from cranetwin.samples import SampleArrays
 from cranetwin.service.backend import Backend
 from cranetwin.service.worker import TwinWorker
 from cranetwin.settings import Settings
+from cranetwin.storage import late_version
 from cranetwin.storage import summaries as summ
 from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
@@ -46,7 +47,8 @@ def _worker(b: Backend) -> TwinWorker:
 
 
 def _stored(b: Backend) -> dict[str, list[tuple[Any, ...]]]:
-    """Every row the worker writes (its duty-to-date blob and late-data marks left out)."""
+    """Every row the worker writes (its duty-to-date blob and late-data marks left out, and
+    the storage writers' late-data versions)."""
     with b.store.engine.connect() as c:
         return {
             "summaries": sorted(tuple(r) for r in c.execute(text(
@@ -54,7 +56,7 @@ def _stored(b: Backend) -> dict[str, list[tuple[Any, ...]]]:
                 "FROM summaries"))),
             "windows": sorted(tuple(r) for r in c.execute(text(
                 "SELECT machine_id, level_s, t0_ns, t1_ns, n, data FROM analytics_windows "
-                "WHERE level_s NOT IN (-2, -1, 0)"))),
+                f"WHERE level_s NOT IN (-2, -1, 0, {late_version.LEVEL})"))),
             "events": sorted(tuple(r) for r in c.execute(text(
                 "SELECT machine_pk, t_ns, kind, evidence_json FROM events"))),
             "progress": sorted(tuple(r) for r in c.execute(text(

@@ -17,7 +17,7 @@ from cranetwin.service.backend import Backend, Progress
 from cranetwin.service.worker import TwinWorker
 from cranetwin.settings import Settings
 from cranetwin.storage import analytics_windows as aw
-from cranetwin.storage import writes
+from cranetwin.storage import late_version, writes
 from cranetwin.storage.engine import make_engine, migrate
 from cranetwin.testing.blocks import kinematic_samples, tiled_blocks
 
@@ -66,8 +66,8 @@ def _xmin(b: Backend) -> int:
 
 @pytest.mark.postgres
 @pytest.mark.timeout(300)
-def test_block_committed_after_a_higher_id_was_seen_is_processed(pg_url: str,
-                                                                 base: SampleArrays) -> None:
+def test_block_committed_after_a_higher_id_was_seen_is_processed(
+        pg_url: str, base: SampleArrays, monkeypatch: pytest.MonkeyPatch) -> None:
     from cranetwin.service.worker import derived_channels
 
     b = _backend(pg_url)
@@ -89,8 +89,13 @@ def test_block_committed_after_a_higher_id_was_seen_is_processed(pg_url: str,
         def joined() -> Session:
             return Session(bind=held, join_transaction_mode="create_savepoint")
         low = _blocks(base, T0 + 125.0, 55.0, 2000)
-        res = writes.write(joined, low, {MID: pk})
-        assert all(o.status == "stored" for o in res.outcomes)
+        # its late-data note (the statement that makes writers of one machine pass one after
+        # the other: storage.late_version) comes last, just before its commit below
+        noted: list[list[tuple[str, int, int, int]]] = []
+        with monkeypatch.context() as m:
+            m.setattr(late_version, "note", lambda _s, stored: noted.append(list(stored)))
+            res = writes.write(joined, low, {MID: pk})
+        assert all(o.status == "stored" for o in res.outcomes) and len(noted) == 1
         xid = int(held.execute(text("SELECT pg_current_xact_id()::text::bigint")).scalar_one())
         # ...while writer 2 commits higher ids (minute 3) and a pass runs
         b.store.write_blocks(_blocks(base, T0 + 185.0, 55.0, 3000))
@@ -98,6 +103,8 @@ def test_block_committed_after_a_higher_id_was_seen_is_processed(pg_url: str,
                                                  "WHERE seq IN (2000, 3000)")).all())
         assert ids[2000] < ids[3000]  # writer 1's ids are the lower ones
         worker.catch_up(rec)
+        with Session(bind=held) as s:
+            late_version.note(s, noted[0])
         tx.commit()
     # every transaction below the writer's has to end (other clients of this server too)
     deadline = time.monotonic() + 60

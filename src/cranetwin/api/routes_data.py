@@ -42,19 +42,22 @@ async def get_twin(
     """Joint coordinates, body poses, tip path, cylinder pins and forces (Eq. 1–2), joint
     torques and reaction wrenches (inverse dynamics), payload estimate — for [from, to) at
     ``rate_hz``. At most CRANETWIN_MAX_TWIN_RANGE_S (120 s) and 12000 output samples per call;
-    results are cached per (machine, known-payload version, window, rate): a payload stored or
-    deleted is replayed at the next call. A heavy request (rate limit and heavy threads:
+    results of windows that end before the newest stored data are cached per (machine,
+    known-payload version, late-data version, window, rate): a payload stored or deleted, late
+    samples stored into a past window, data dropped by retention are replayed at the next call.
+    A heavy request (rate limit and heavy threads:
     docs/API.md "Service limits")."""
     from cranetwin.service import heavyproc
 
     fleet = services.fleet
     cache_key = fleet.twin_key(machine, rng, rate_hz)
-    cached = fleet.twin_cache.get(cache_key)
-    if cached is not None:
-        return Response(cached, media_type=JSON)
-    body, cacheable = await run_heavy(services, key, fleet.twin_body, machine, rng, rate_hz,
-                                      process_fn=heavyproc.twin_body)
-    if cacheable:
+    if cache_key is not None:
+        cached = fleet.twin_cache.get(cache_key)
+        if cached is not None:
+            return Response(cached, media_type=JSON)
+    body = await run_heavy(services, key, fleet.twin_body, machine, rng, rate_hz,
+                           process_fn=heavyproc.twin_body)
+    if cache_key is not None:
         fleet.twin_cache.put(cache_key, body)
     return Response(body, media_type=JSON)
 

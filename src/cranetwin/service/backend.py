@@ -56,6 +56,11 @@ class MachineRecord:
         payload_version: Version of the machine's stored known payload when the record was
             read (:meth:`Backend.machine`: with the record, no query of its own); None when
             not read (listings).
+        newest_block_s: End of the machine's newest stored block when the record was read [s
+            since the epoch], or None (nothing stored).
+        late_version: The machine's late-data version (:mod:`cranetwin.storage.late_version`),
+            read with ``newest_block_s`` (:meth:`Backend.machine`); None when not read
+            (listings).
     """
 
     machine_id: str
@@ -65,6 +70,8 @@ class MachineRecord:
     wire_id: int | None
     location: tuple[float, float, float] | None
     payload_version: int | None = None
+    newest_block_s: float | None = None
+    late_version: int | None = None
 
 
 @dataclass(frozen=True)
@@ -146,7 +153,10 @@ class Backend:
         return MachineRecord(machine_id=info.machine_id, name=str(meta.get("name") or
                                                                    info.machine_id),
                              model=model, model_source=source, wire_id=int(info.wire_id),
-                             location=loc, payload_version=info.payload_version)
+                             location=loc, payload_version=info.payload_version,
+                             newest_block_s=(None if info.newest_block_ns is None
+                                             else info.newest_block_ns / 1e9),
+                             late_version=info.late_version)
 
     def list_machines(self) -> list[MachineRecord]:
         """Every registered machine, by id."""

@@ -1,5 +1,6 @@
-"""A thread-safe LRU cache for replay results, keyed by (machine, known-payload version, window,
-rate: :meth:`cranetwin.service.fleet.FleetService.twin_key`), bounded by entries and by bytes.
+"""A thread-safe LRU cache for replay results, keyed by (machine, known-payload version,
+late-data version, window, rate: :meth:`cranetwin.service.fleet.FleetService.twin_key`),
+bounded by entries and by bytes.
 
 Twin results are large (a 60-s window at 50 Hz is a few MB of JSON), so a bound on the number of
 entries alone let 64 of them hold hundreds of MB. The byte bound counts what each value holds:

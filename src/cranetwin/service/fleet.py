@@ -52,6 +52,11 @@ MAX_LIST_LIVE_PAYLOADS = 32
 Status = Literal["live", "idle", "offline"]
 
 
+TwinKey = tuple[str, int, int, float, float, float]
+"""Key of a cached replay (:meth:`FleetService.twin_key`): machine id, known-payload version,
+late-data version, window start and end [s], output rate [Hz]."""
+
+
 @dataclass(frozen=True)
 class MachineStatus:
     """A machine as the fleet page shows it.
@@ -245,27 +250,32 @@ class FleetService:
     def twin_window(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> bytes:
         """Replay of [from, to) at ``rate_hz`` as JSON bytes (cached: :meth:`twin_key`)."""
         key = self.twin_key(rec, rng, rate_hz)
-        body = self.twin_cache.get(key)
+        body = None if key is None else self.twin_cache.get(key)
         if body is None:
-            body, cacheable = self.twin_body(rec, rng, rate_hz)
-            if cacheable:
+            body = self.twin_body(rec, rng, rate_hz)
+            if key is not None:
                 self.twin_cache.put(key, body)
         return body
 
-    def twin_key(self, rec: MachineRecord, rng: TimeRange,
-                 rate_hz: float) -> tuple[str, int, float, float, float]:
+    def twin_key(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> TwinKey | None:
         """The replay cache's key of a twin request, after checking its limits: the machine,
-        the version of its stored known payload (:meth:`Backend.payload_version`), the window
-        and the rate.
+        the version of its stored known payload (:mod:`cranetwin.storage.payload_version`),
+        its late-data version (:mod:`cranetwin.storage.late_version`), the window and the
+        rate; None when the window may still grow (it does not end ``twin_margin_s`` before
+        the end of the newest stored block): not cached.
 
-        A replay depends on the known payload stored for its samples, which any process may
-        store or delete (an import, ``cranetwin payload delete``, another API process): the
-        version read here, before the replay reads the payload, is raised in the transaction
-        of every such change, so a result replayed before a change is never found under the
-        key of a request made after it (an entry stored under an old version is simply not
-        hit again, and ages out of the cache). The version is the one read with ``rec``
-        (:meth:`Backend.machine`, read for the request: no query of its own), else read here
-        (one primary-key lookup).
+        A replay depends on the known payload and on the blocks stored around the window,
+        which any process may change: a payload stored or deleted (an import, ``cranetwin
+        payload delete``, another API process) raises the payload version, a block stored
+        behind the machine's newest one (late data from a machine that was offline, a
+        backfill, blocks committed out of order) and retention raise the late-data version,
+        each in the transaction of the change. Both are read with the newest block end in one
+        statement, before the replay reads anything (:meth:`Backend.machine`, read for the
+        request: no query of its own; a record without them, from a listing, is read again),
+        so a result replayed before a change is never found under the key of a request made
+        after it (an entry stored under an old version is simply not hit again, and ages out
+        of the cache), while blocks appended after the newest (a live machine) leave the keys
+        of past windows unchanged.
 
         Raises:
             InvalidRequestError: Window too long, rate too high, too many output samples.
@@ -280,19 +290,18 @@ class FleetService:
             raise InvalidRequestError(
                 "Too many points", f"{n_out:.0f} output samples requested ({rng.duration_s:g} s "
                 f"at {rate_hz:g} Hz); at most {s.max_twin_points} per call")
-        version = rec.payload_version
-        if version is None:
-            version = self.backend.payload_version(rec.machine_id)
-        return (rec.machine_id, version, round(rng.t0_s, 6), round(rng.t1_s, 6),
-                float(rate_hz))
+        if rec.payload_version is None or rec.late_version is None:
+            rec = self.backend.machine(rec.machine_id)
+        assert rec.payload_version is not None and rec.late_version is not None
+        newest = rec.newest_block_s
+        if newest is None or rng.t1_s + s.twin_margin_s > newest:
+            return None
+        return (rec.machine_id, rec.payload_version, rec.late_version, round(rng.t0_s, 6),
+                round(rng.t1_s, 6), float(rate_hz))
 
-    def twin_body(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> tuple[bytes, bool]:
-        """The replay of a twin request (checked by :meth:`twin_key`) as JSON bytes, and whether
-        it may be cached: the newest window may still grow, so only windows that end in stored
-        data are."""
-        body = orjson.dumps(self._twin(rec, rng, rate_hz), option=orjson.OPT_SERIALIZE_NUMPY)
-        dr = self.backend.data_range(rec.machine_id)
-        return body, dr is not None and rng.t1_s + self.settings.twin_margin_s <= dr[1]
+    def twin_body(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> bytes:
+        """The replay of a twin request (checked by :meth:`twin_key`) as JSON bytes."""
+        return orjson.dumps(self._twin(rec, rng, rate_hz), option=orjson.OPT_SERIALIZE_NUMPY)
 
     def _twin(self, rec: MachineRecord, rng: TimeRange, rate_hz: float) -> dict[str, Any]:
         machine = self.backend.model_of(rec)

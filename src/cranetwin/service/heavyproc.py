@@ -40,7 +40,7 @@ def warm() -> int:
     return 0
 
 
-def twin_body(rec: MachineRecord, rng: TimeRange, rate_hz: float) -> tuple[bytes, bool]:
+def twin_body(rec: MachineRecord, rng: TimeRange, rate_hz: float) -> bytes:
     """:meth:`FleetService.twin_body` in a worker process."""
     assert _FLEET is not None, "init_worker was not run"
     return _FLEET.twin_body(rec, rng, rate_hz)

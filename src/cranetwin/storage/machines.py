@@ -58,6 +58,10 @@ class MachineInfo:
         payload_version: Version of its stored known payload
             (:mod:`cranetwin.storage.payload_version`) when this was read, where read
             (:meth:`cranetwin.storage.Store.get_machine`); None in listings.
+        newest_block_ns: End of its newest stored block [ns since the epoch], or None.
+        late_version: Its late-data version (:mod:`cranetwin.storage.late_version`) when
+            this was read, read with ``newest_block_ns`` (:meth:`cranetwin.storage.Store.
+            get_machine`); None in listings.
     """
 
     machine_id: str
@@ -70,16 +74,20 @@ class MachineInfo:
     altitude_m: float | None = None
     operating_hours: float | None = None
     payload_version: int | None = None
+    newest_block_ns: int | None = None
+    late_version: int | None = None
 
 
 def to_info(row: MachineRow, newest_block_ns: int | None = None,
-            payload_version: int | None = None) -> MachineInfo:
+            payload_version: int | None = None,
+            late_version: int | None = None) -> MachineInfo:
     """Public view of a machine row (drops the secret).
 
     Args:
         row: The machine row.
         newest_block_ns: End of the machine's newest stored block [ns], if any.
         payload_version: Version of its stored known payload, if read.
+        late_version: Its late-data version, if read (with ``newest_block_ns``).
     """
     seen = [t for t in (row.last_seen_ns, newest_block_ns) if t is not None]
     return MachineInfo(
@@ -88,7 +96,8 @@ def to_info(row: MachineRow, newest_block_ns: int | None = None,
         last_seen_s=max(seen) / 1e9 if seen else None,
         latitude_deg=row.latitude_deg, longitude_deg=row.longitude_deg,
         altitude_m=row.altitude_m, operating_hours=row.operating_hours,
-        payload_version=payload_version,
+        payload_version=payload_version, newest_block_ns=newest_block_ns,
+        late_version=late_version,
     )
 
 

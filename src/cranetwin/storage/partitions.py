@@ -31,6 +31,9 @@ The known payload runs stored with those samples (``payload_runs``, not partitio
 same transaction: every run that starts in the dropped partition's range, whole — the rule of
 the sample blocks (a block lives in the partition of its start, and one reaching past the
 partition's end goes with it), so a run the importer stored for a block goes with that block.
+The same transaction raises every machine's late-data version
+(:func:`cranetwin.storage.late_version.bump_all`): a replay cached for a dropped window is not
+served again.
 
 The unique key is (machine_pk, epoch, seq, t_start_ns): PostgreSQL requires the partition column
 in every unique key. A retransmitted block carries the same seq and the same t_start, so it still
@@ -308,6 +311,7 @@ def drop_expired(engine: Engine, keep_days: float, now_s: float,
     if keep_days <= 0:
         raise StorageError(f"retention of {keep_days} days; expected > 0")
     cutoff = int((now_s - keep_days * 86400.0) * SEC)
+    from cranetwin.storage import late_version
     from cranetwin.storage.payloads import drop_starting_in
 
     dropped: list[str] = []
@@ -333,6 +337,8 @@ def drop_expired(engine: Engine, keep_days: float, now_s: float,
             runs += n
             dropped.append(p.name)
             log.info("retention: dropped partition %s (and %d known payload run(s))", p.name, n)
+        if dropped:  # a replay kept for a window of theirs is stale: in this transaction
+            late_version.bump_all(conn)
     return RetentionResult(dropped, kept, runs)
 
 

@@ -21,9 +21,9 @@ from cranetwin.errors import StorageError
 from cranetwin.samples import F64, SampleArrays, SampleBlock
 from cranetwin.storage import blocks as blocks_mod
 from cranetwin.storage import events as events_mod
+from cranetwin.storage import late_version, payload_version, redo
 from cranetwin.storage import machines as machines_mod
 from cranetwin.storage import partitions as partitions_mod
-from cranetwin.storage import payload_version, redo
 from cranetwin.storage import payloads as payloads_mod
 from cranetwin.storage import summaries as summaries_mod
 from cranetwin.storage import writes as writes_mod
@@ -172,8 +172,9 @@ class Store:
         return machines_mod.to_info(row)
 
     def get_machine(self, machine_id: str) -> MachineInfo:
-        """Public info of one machine, with the version of its stored known payload (read in
-        the statement that reads its newest block: no round trip of its own).
+        """Public info of one machine, with the version of its stored known payload and its
+        late-data version (:mod:`cranetwin.storage.late_version`), read in the statement that
+        reads its newest block (no round trip of their own; one snapshot for the three).
 
         Raises:
             UnknownMachineError: No such machine.
@@ -183,10 +184,12 @@ class Store:
             b, m = blocks_mod.BlockRow, MachineRow
             newest = (select(func.max(b.t_end_ns)).where(b.machine_pk == m.id)
                       .correlate(m).scalar_subquery())
-            t, version = s.execute(select(newest, payload_version.column(m.machine_id))
-                                   .where(m.id == row.id)).one()
+            t, version, late = s.execute(select(newest, payload_version.column(m.machine_id),
+                                                late_version.column(m.machine_id))
+                                         .where(m.id == row.id)).one()
             return machines_mod.to_info(row, None if t is None else int(t),
-                                        payload_version=int(version or 0))
+                                        payload_version=int(version or 0),
+                                        late_version=int(late or 0))
 
     def machines(self) -> list[MachineInfo]:
         """Every registered machine, ordered by machine id (no secrets)."""

@@ -25,7 +25,9 @@ the second copy the first one's outcome (``duplicate`` if the first is durable),
 How (:func:`write`): cheap checks and the compression first, per block; then one transaction
 that probes, for all blocks in one statement, the stored block with the same key and a stored
 block overlapping in time (two index probes per block), inserts the rest with ``ON CONFLICT DO
-NOTHING`` and marks their minutes for the summary rollup. Should that transaction still fail with
+NOTHING``, marks their minutes for the summary rollup and records them in the machines'
+late-data versions (:func:`cranetwin.storage.late_version.note`: a block stored behind the
+newest one raises it; the replay cache depends on it). Should that transaction still fail with
 a data or integrity error, the batch is bisected in transactions that are rolled back, down to
 the blocks that fail alone; those are refused and one last transaction stores all the others.
 Only one transaction commits, so when :class:`~cranetwin.errors.StorageUnavailableError`
@@ -52,6 +54,7 @@ from sqlalchemy.orm import Session
 from cranetwin.errors import StorageError
 from cranetwin.samples import SampleBlock
 from cranetwin.storage import blocks as blocks_mod
+from cranetwin.storage import late_version
 from cranetwin.storage import summaries as summaries_mod
 from cranetwin.storage.dberrors import is_data_error, is_unavailable, unavailable
 
@@ -214,9 +217,9 @@ def prepare(blocks: Sequence[SampleBlock], pks: dict[str, int],
 
 def _attempt(factory: Callable[[], Session], items: Sequence[Pending],
              commit: bool) -> dict[int, BlockOutcome]:
-    """One transaction over ``items`` (distinct keys): probe, insert, mark the minutes dirty;
-    committed if ``commit``, else rolled back (a trial for the bisection). Raises the database's
-    error unchanged."""
+    """One transaction over ``items`` (distinct keys): probe, insert, mark the minutes dirty,
+    note the late-data versions; committed if ``commit``, else rolled back (a trial for the
+    bisection). Raises the database's error unchanged."""
     out: dict[int, BlockOutcome] = {}
     with factory() as s:
         try:
@@ -248,11 +251,16 @@ def _attempt(factory: Callable[[], Session], items: Sequence[Pending],
                     out[it.i] = (DUPLICATE if got == it.shape
                                  else refused("seq_reused", _reused(it, got)))
             minutes: set[tuple[int, int]] = set()
+            spans: dict[str, tuple[int, int, int]] = {}
             for it in accepted:
                 if it.key in new:
                     out[it.i] = STORED
                     minutes.update(summaries_mod.block_minutes(it.pk, it.shape[0], it.t_end))
+                    mid = str(it.block.machine_id)
+                    _, a, z = spans.get(mid, (it.pk, it.shape[0], it.t_end))
+                    spans[mid] = (it.pk, min(a, it.shape[0]), max(z, it.t_end))
             summaries_mod.mark_dirty(s, minutes)
+            late_version.note(s, [(m, *v) for m, v in spans.items()])
             if commit:
                 s.commit()
             else:
