@@ -133,6 +133,33 @@ def offset_pressures(samples: Any, machine: Any, level: float, seed: int,
     return dataclasses.replace(samples, values=vals)
 
 
+def stream_in_random_chunks(samples: Any, machine: Any, opt: Any, seed: int,
+                            payload: float | None = None) -> Any:
+    """``samples`` replayed through :class:`cranetwin.twin.TwinStream` in chunks of 1–399
+    samples (seeded), the chunks' results concatenated: what a stream gives, to compare with
+    the batch replay."""
+    import numpy as np
+
+    from cranetwin.samples import SampleArrays
+    from cranetwin.twin import TwinResult, TwinStream
+
+    st = TwinStream(machine, samples.channels, opt, payload)
+    rng = np.random.default_rng(seed)
+    parts: list[Any] = []
+    i, n = 0, samples.t_s.shape[0]
+    while i < n:
+        j = min(n, i + int(rng.integers(1, 400)))
+        out = st.push(SampleArrays(samples.machine_id, samples.t_s[i:j], samples.channels,
+                                   samples.values[i:j]))
+        if out is not None:
+            parts.append(out)
+        i = j
+    last = st.flush()
+    if last is not None:
+        parts.append(last)
+    return TwinResult.concat(parts)
+
+
 # The files whose tests take minutes, run first: `make test` spreads whole files over two
 # processes (pytest-xdist, --dist loadfile --no-loadscope-reorder: in collection order, not by
 # number of tests), so a long file collected last would run alone at the end. Measured with

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import stream_in_random_chunks
 from cranetwin.model import Machine, load_machine
-from cranetwin.samples import SampleArrays
 from cranetwin.signal import inject_uniform_noise, nrmse
 from cranetwin.testing.recordings import make
-from cranetwin.twin import ReplayOptions, TwinResult, TwinStream, replay
+from cranetwin.twin import ReplayOptions, replay
 from cranetwin.twin.force_model import (
     MODEL_SHARE,
     interpolate,
@@ -27,23 +27,6 @@ def machine() -> Machine:
     return load_machine("patu655")
 
 
-def _stream(samples: SampleArrays, machine: Machine, opt: ReplayOptions,
-            seed: int) -> TwinResult:
-    st = TwinStream(machine, samples.channels, opt)
-    rng = np.random.default_rng(seed)
-    parts = []
-    i, n = 0, samples.t_s.shape[0]
-    while i < n:
-        j = min(n, i + int(rng.integers(1, 400)))
-        out = st.push(SampleArrays(samples.machine_id, samples.t_s[i:j], samples.channels,
-                                   samples.values[i:j]))
-        if out is not None:
-            parts.append(out)
-        i = j
-    last = st.flush()
-    if last is not None:
-        parts.append(last)
-    return TwinResult.concat(parts)
 
 
 @pytest.mark.timeout(300)
@@ -56,7 +39,7 @@ def test_streaming_equals_batch_with_model_forces(machine: Machine, with_angle: 
     assert all(c.model_based for k, c in first.smoothing.items() if k.endswith("_pA"))
     opt = ReplayOptions(smoothing=choices, sample_period_s=0.01, chunk_samples=700)
     batch = replay(noisy, machine, options=opt)
-    streamed = _stream(noisy, machine, opt, seed=2)
+    streamed = stream_in_random_chunks(noisy, machine, opt, seed=2)
     assert streamed.n == batch.n
     np.testing.assert_array_equal(streamed.t_s, batch.t_s)
     for name in ("cyl_force", "actuator_torque", "residual", "joint_wrench", "payload_kg"):

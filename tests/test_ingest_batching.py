@@ -142,28 +142,3 @@ def test_the_process_group_sleeps_until_the_next_due_restart(sqlite_url: str) ->
     assert 0.0 < g._sleep_s(5.0) <= 0.7
     g._children[1].due = now - 1.0  # overdue
     assert g._sleep_s(5.0) == 0.0
-
-
-@pytest.mark.timeout(60)
-def test_a_dying_thread_is_restarted_without_waiting_for_the_periodic_check(
-        sqlite_url: str) -> None:
-    store = Store.open(sqlite_url)
-    store.add_machine("crane-1", 1, SECRET)
-    with running_daemon(store, supervise_interval_s=3600.0) as d:  # no periodic check in time
-        original = d._decode
-        calls = {"n": 0}
-
-        def dying(raw: Any) -> Any:
-            calls["n"] += 1
-            if calls["n"] == 1:
-                raise SystemExit("decoder killed")  # a BaseException: ends the thread
-            return original(raw)
-
-        d._decode = dying  # type: ignore[method-assign]
-        s = udp()
-        s.sendto(datagram(1, 0), d.address)
-        wait_for(lambda: d.snapshot()["decoder_restarts"] == 1)
-        s.sendto(datagram(1, 0), d.address)  # the sender's retransmission
-        assert decode_ack(s.recv(2048), key(1)).covers(0)
-        s.close()
-    assert store.stats().blocks == 1

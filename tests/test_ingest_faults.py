@@ -333,8 +333,13 @@ def test_a_dead_writer_thread_is_restarted_and_counted(db_url: str,
 
 
 @pytest.mark.timeout(60)
-def test_a_dead_decoder_thread_is_restarted_and_counted(store_1: Store) -> None:
-    with running_daemon(store_1, supervise_interval_s=0.05) as d:
+@pytest.mark.parametrize("supervise_s", [0.05, 3600.0])
+def test_a_dead_decoder_thread_is_restarted_and_counted(store_1: Store,
+                                                        supervise_s: float) -> None:
+    """A decoder thread ended by a BaseException is restarted, counted, and the sender's
+    retransmission is stored once; with the periodic check effectively off (3600 s) too: a
+    dying thread asks for its restart at once."""
+    with running_daemon(store_1, supervise_interval_s=supervise_s) as d:
         original = d._decode
         calls = {"n": 0}
 

@@ -8,12 +8,11 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from conftest import offset_pressures
+from conftest import offset_pressures, stream_in_random_chunks
 from cranetwin.model import Machine, load_machine
-from cranetwin.samples import SampleArrays
 from cranetwin.signal import inject_uniform_noise
 from cranetwin.testing.recordings import make
-from cranetwin.twin import ReplayOptions, TwinResult, TwinStream, replay
+from cranetwin.twin import ReplayOptions, replay
 
 F64 = npt.NDArray[np.float64]
 
@@ -93,22 +92,6 @@ def test_systematic_part_is_the_stated_budget_less_the_estimated_noise() -> None
     np.testing.assert_allclose(got, [2.0, 0.0, 0.0, 4.0])
 
 
-def _stream(samples: SampleArrays, machine: Machine, opt: ReplayOptions) -> TwinResult:
-    st = TwinStream(machine, samples.channels, opt)
-    rng = np.random.default_rng(2)
-    parts = []
-    i, n = 0, samples.t_s.shape[0]
-    while i < n:
-        j = min(n, i + int(rng.integers(1, 400)))
-        out = st.push(SampleArrays(samples.machine_id, samples.t_s[i:j], samples.channels,
-                                   samples.values[i:j]))
-        if out is not None:
-            parts.append(out)
-        i = j
-    last = st.flush()
-    if last is not None:
-        parts.append(last)
-    return TwinResult.concat(parts)
 
 
 @pytest.mark.timeout(300)
@@ -122,7 +105,7 @@ def test_streaming_equals_batch_with_a_stated_accuracy(machine: Machine) -> None
     opt = ReplayOptions(smoothing=tuple(first.smoothing.values()), sample_period_s=0.01,
                         chunk_samples=700)
     batch = replay(noisy, sheet, options=opt)
-    streamed = _stream(noisy, sheet, opt)
+    streamed = stream_in_random_chunks(noisy, sheet, opt, seed=2)
     assert streamed.n == batch.n
     for name in ("payload_kg", "payload_std_kg", "payload_sys_std_kg"):
         a = getattr(streamed, name)

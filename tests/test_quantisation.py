@@ -12,6 +12,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from conftest import stream_in_random_chunks
 from cranetwin.model import Machine, load_machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal.quantisation import (
@@ -22,7 +23,7 @@ from cranetwin.signal.quantisation import (
     reconstruct,
 )
 from cranetwin.testing.recordings import Synthetic, make
-from cranetwin.twin import ReplayOptions, TwinResult, TwinStream, replay
+from cranetwin.twin import ReplayOptions, replay
 from cranetwin.twin.channels import detected_steps
 from cranetwin.twin.observability import effective_accuracy, stated_force_sigma
 
@@ -178,22 +179,6 @@ def _quantised(machine: Machine, share: float = 0.1) -> tuple[Synthetic, SampleA
     return s, dataclasses.replace(smp, values=values)
 
 
-def _stream(samples: SampleArrays, machine: Machine, opt: ReplayOptions,
-            seed: int) -> TwinResult:
-    st_ = TwinStream(machine, samples.channels, opt)
-    rng = np.random.default_rng(seed)
-    parts = []
-    i, n = 0, samples.t_s.shape[0]
-    while i < n:
-        j = min(n, i + int(rng.integers(1, 400)))
-        out = st_.push(samples.take(slice(i, j)))
-        if out is not None:
-            parts.append(out)
-        i = j
-    last = st_.flush()
-    if last is not None:
-        parts.append(last)
-    return TwinResult.concat(parts)
 
 
 @pytest.mark.timeout(300)
@@ -220,7 +205,7 @@ def test_replay_reconstructs_quantised_channels_and_streams_as_the_batch(
     choices = tuple(first.smoothing.values())
     opt = ReplayOptions(smoothing=choices, sample_period_s=0.01, chunk_samples=700)
     batch = replay(q, machine, options=opt)
-    streamed = _stream(q, machine, opt, seed=3)
+    streamed = stream_in_random_chunks(q, machine, opt, seed=3)
     assert streamed.n == batch.n
     for name in ("cyl_force", "rod_s", "payload_kg", "payload_std_kg"):
         a, b = getattr(streamed, name), getattr(batch, name)

@@ -6,6 +6,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from conftest import stream_in_random_chunks
 from cranetwin.errors import TwinError
 from cranetwin.model import Machine, load_machine
 from cranetwin.samples import SampleArrays
@@ -84,24 +85,6 @@ def test_theta0_integrated_from_slewing_torque(machine: Machine) -> None:
     assert np.abs(res.qd[INNER, 0] - s.qd[INNER, 0]).max() < 5e-3
 
 
-def _stream(samples: SampleArrays, machine: Machine, opt: ReplayOptions,
-            seed: int, payload: float | None) -> TwinResult:
-    st = TwinStream(machine, samples.channels, opt, payload)
-    rng = np.random.default_rng(seed)
-    parts: list[TwinResult] = []
-    i = 0
-    n = samples.t_s.shape[0]
-    while i < n:
-        j = min(n, i + int(rng.integers(1, 400)))
-        out = st.push(SampleArrays(samples.machine_id, samples.t_s[i:j], samples.channels,
-                                   samples.values[i:j]))
-        if out is not None:
-            parts.append(out)
-        i = j
-    last = st.flush()
-    if last is not None:
-        parts.append(last)
-    return TwinResult.concat(parts)
 
 
 @pytest.mark.parametrize("with_angle", [True, False])
@@ -112,7 +95,7 @@ def test_streaming_equals_batch_across_seams(machine: Machine, with_angle: bool)
     opt = ReplayOptions(smoothing=tuple(first.smoothing.values()), sample_period_s=0.01,
                         chunk_samples=700)
     batch = replay(noisy, machine, options=opt)
-    streamed = _stream(noisy, machine, opt, seed=2, payload=None)
+    streamed = stream_in_random_chunks(noisy, machine, opt, seed=2)
     assert streamed.n == batch.n
     np.testing.assert_array_equal(streamed.t_s, batch.t_s)
     for name in ("q", "qd", "qdd", "rod_s", "p_a", "cyl_force", "actuator_torque",
