@@ -135,6 +135,15 @@ def _lifts(p: Progress | None) -> tuple[object, ...]:
     return tuple(getattr(p, k) for k in LIFT)
 
 
+
+def _fresh(sqlite_url: str, base: SampleArrays) -> tuple[Backend, Progress | None]:
+    """A fresh processing of the whole history, everything stored at once (its own SQLite
+    file beside ``sqlite_url``): the backend and its progress."""
+    fresh_b = _backend(sqlite_url.replace("cranetwin.db", "fresh.db"))
+    fresh_b.store.write_blocks(_blocks(base, T0, 250.0, 0))
+    assert _worker(fresh_b).catch_up(fresh_b.machine(MID)) == 4
+    return fresh_b, fresh_b.progress(MID)
+
 @pytest.mark.timeout(300)
 def test_late_block_into_a_processed_minute_recounts_the_lifts(sqlite_url: str,
                                                                base: SampleArrays) -> None:
@@ -149,11 +158,7 @@ def test_late_block_into_a_processed_minute_recounts_the_lifts(sqlite_url: str,
     b.store.write_blocks(_blocks(base, T0 + 70.0, 40.0, 2000))
     assert worker.catch_up(rec) >= 1  # minute 1 (and its neighbours) redone
     after = b.progress(MID)
-    # a fresh processing of the whole history, everything stored at once
-    fresh_b = _backend(sqlite_url.replace("cranetwin.db", "fresh.db"))
-    fresh_b.store.write_blocks(_blocks(base, T0, 250.0, 0))
-    assert _worker(fresh_b).catch_up(fresh_b.machine(MID)) == 4
-    fresh = fresh_b.progress(MID)
+    fresh_b, fresh = _fresh(sqlite_url, base)
     assert fresh is not None and after is not None
     assert _lifts(before) != _lifts(fresh), "the late samples change a lift"
     assert _lifts(after) == pytest.approx(_lifts(fresh), rel=1e-9)
@@ -196,10 +201,7 @@ def test_late_block_into_a_minute_whose_replay_failed_counts_it_once(
     assert worker.catch_up(rec) >= 1  # minute 1 (and its neighbours) redone
     assert failed_spans(b.store.engine, MID, T0, T0 + 300) == []
     after = b.progress(MID)
-    fresh_b = _backend(sqlite_url.replace("cranetwin.db", "fresh.db"))
-    fresh_b.store.write_blocks(_blocks(base, T0, 250.0, 0))
-    assert _worker(fresh_b).catch_up(fresh_b.machine(MID)) == 4
-    fresh = fresh_b.progress(MID)
+    fresh_b, fresh = _fresh(sqlite_url, base)
     assert fresh is not None and after is not None
     assert after.windows == fresh.windows == 4
     assert (after.operating_s, after.idle_s) == pytest.approx((fresh.operating_s, fresh.idle_s),
