@@ -18,13 +18,14 @@ from sqlalchemy import (
     Float,
     Integer,
     LargeBinary,
+    Select,
     String,
     delete,
     func,
     select,
     text,
 )
-from sqlalchemy.orm import Mapped, Session, mapped_column
+from sqlalchemy.orm import InstrumentedAttribute, Mapped, Session, mapped_column
 from sqlalchemy.sql.elements import ColumnElement, TextClause
 
 from cranetwin.storage.base import Base
@@ -141,6 +142,13 @@ XMARK_LEVEL = -2
 ``pg_snapshot_xmin`` of the last pass; every block written by a transaction below it has been
 seen). ``-1`` is the duty to date (:mod:`cranetwin.service.history`)."""
 
+
+def counter(machine_id: str | ColumnElement[str] | InstrumentedAttribute[str],
+            level_s: int) -> Select[int]:
+    """The ``n`` of a machine's one row at ``level_s`` with ``t0_ns`` 0 (a per-machine counter:
+    the known-payload version, the late-data version); no row: NULL."""
+    w = AnalyticsWindowRow
+    return select(w.n).where(w.machine_id == machine_id, w.level_s == level_s, w.t0_ns == 0)
 
 def _mark(engine: Engine, machine_id: str, level: int) -> int | None:
     w = AnalyticsWindowRow

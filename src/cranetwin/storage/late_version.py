@@ -36,12 +36,12 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 
-from sqlalchemy import ScalarSelect, Select, select, text
+from sqlalchemy import ScalarSelect, text
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import InstrumentedAttribute, Session
 from sqlalchemy.sql.elements import ColumnElement, TextClause
 
-from cranetwin.storage.analytics_windows import AnalyticsWindowRow
+from cranetwin.storage import analytics_windows as aw
 from cranetwin.storage.blocks import MAX_SPAN_NS
 
 LEVEL = -7
@@ -114,23 +114,11 @@ def bump_all(conn: Connection) -> None:
         f"t1_ns = {greatest}(analytics_windows.t1_ns, excluded.t1_ns)"), {"empty": b""})
 
 
-def _select(machine_id: str | ColumnElement[str] | InstrumentedAttribute[str]
-            ) -> Select[int]:
-    w = AnalyticsWindowRow
-    return select(w.n).where(w.machine_id == machine_id, w.level_s == LEVEL, w.t0_ns == 0)
-
-
 def column(machine_id: ColumnElement[str] | InstrumentedAttribute[str]) -> ScalarSelect[int]:
     """The version as a scalar subquery of ``machine_id``, a column of the outer statement
     (read together with the newest block end: :meth:`cranetwin.storage.Store.get_machine`);
     NULL when 0."""
-    return _select(machine_id).scalar_subquery()
+    return aw.counter(machine_id, LEVEL).scalar_subquery()
 
 
-def read(session: Session, machine_id: str) -> int:
-    """The machine's version (0 when no late block was ever stored)."""
-    got = session.execute(_select(machine_id)).scalar()
-    return int(got) if got is not None else 0
-
-
-__all__ = ["LEVEL", "bump_all", "column", "note", "read"]
+__all__ = ["LEVEL", "bump_all", "column", "note"]

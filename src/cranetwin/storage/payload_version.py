@@ -20,11 +20,12 @@ deleted (machines are not), so a version is never used twice for a machine.
 
 from __future__ import annotations
 
-from sqlalchemy import ScalarSelect, Select, select
+from sqlalchemy import ScalarSelect
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import InstrumentedAttribute, Session
 from sqlalchemy.sql.elements import ColumnElement
 
+from cranetwin.storage import analytics_windows as aw
 from cranetwin.storage.analytics_windows import AnalyticsWindowRow
 
 VERSION_LEVEL = -5
@@ -44,22 +45,15 @@ def bump(session: Session, machine_id: str) -> None:
                                               set_={"n": w.n + 1}))
 
 
-def _select(machine_id: str | ColumnElement[str] | InstrumentedAttribute[str]
-            ) -> Select[int]:
-    w = AnalyticsWindowRow
-    return select(w.n).where(w.machine_id == machine_id, w.level_s == VERSION_LEVEL,
-                             w.t0_ns == 0)
-
-
 def column(machine_id: ColumnElement[str] | InstrumentedAttribute[str]) -> ScalarSelect[int]:
     """The version as a scalar subquery of ``machine_id``, a column of the outer statement
     (read together with it: :meth:`cranetwin.storage.Store.get_machine`); NULL when 0."""
-    return _select(machine_id).scalar_subquery()
+    return aw.counter(machine_id, VERSION_LEVEL).scalar_subquery()
 
 
 def read(session: Session, machine_id: str) -> int:
     """The machine's version (0 when its payload never changed)."""
-    got = session.execute(_select(machine_id)).scalar()
+    got = session.execute(aw.counter(machine_id, VERSION_LEVEL)).scalar()
     return int(got) if got is not None else 0
 
 
