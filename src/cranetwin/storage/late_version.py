@@ -121,4 +121,10 @@ def column(machine_id: ColumnElement[str] | InstrumentedAttribute[str]) -> Scala
     return aw.counter(machine_id, LEVEL).scalar_subquery()
 
 
-__all__ = ["LEVEL", "bump_all", "column", "note"]
+def read(session: Session, machine_id: str) -> int:
+    """The machine's version (0 when no late block was ever stored)."""
+    got = session.execute(aw.counter(machine_id, LEVEL)).scalar()
+    return int(got) if got is not None else 0
+
+
+__all__ = ["LEVEL", "bump_all", "column", "note", "read"]
