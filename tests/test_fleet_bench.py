@@ -46,9 +46,6 @@ def test_fleet_bench_with_faults_stores_every_sample_once_and_reports_the_docume
     pg = out["faults"][3]
     assert pg["duration_s"] >= cfg.outage_s and "proxy" in pg["how"]
     assert out["baseline"] is None
-    # the direct run had the twin workers beside it, as the bus runs do
-    assert out["settings"]["direct_workers"] is True
-    assert out["direct"]["worker_cpu_seconds"] > 0
     for run in (out["faults_run"], out["direct"]):
         assert run["sent"] > 0 and run["sent"] == run["stored"], run
         assert run["lost"] == run["doubled"] == run["machines_mismatched"] == 0, run

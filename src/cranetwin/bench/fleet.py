@@ -11,10 +11,7 @@ runs' processes are started side by side before the first one streams
 (:mod:`cranetwin.bench.fleet_setup`); then, one after the other:
 
 1. **direct** (the per-core baseline): one ``cranetwin ingest`` process writing straight to the
-   database, the same machines, rate and datagrams, ``--direct-s`` of data, with the same twin
-   workers as the bus runs processing its database (``--no-direct-workers``: without them, as
-   before 2026-12-03 evening, when the direct daemon had the cores to itself and the bus path
-   shared them with the workers);
+   database, the same machines, rate and datagrams, ``--direct-s`` of data;
 2. **baseline**: the bus topology without faults, ``--baseline-s`` of data;
 3. **faults** (``--faults``): the bus topology while, ``--fault-gap-s`` apart after
    ``--warm-s``: a daemon process is killed with SIGKILL (its group restarts it), a twin worker
@@ -79,22 +76,18 @@ def _direct(e: DirectEnv) -> dict[str, Any]:
     e.register()
     sampler = Sampler(e.db, e.cfg.machines, time.time())
     sampler.track("ingest", e.daemon.pid)
-    for w in e.workers:
-        sampler.track("worker", w.pid)
     sampler.poll_cpu()
     cpu0 = sampler.cpu_seconds("ingest")
-    wcpu0 = sampler.cpu_seconds("worker")
     t0 = time.monotonic()
     e.senders.go()
     drained = e.senders.wait(e.seconds + plan.drain_s + 60)  # acked = committed: all stored
     sampler.poll_cpu()
     cpu = sampler.cpu_seconds("ingest") - cpu0
-    wcpu = sampler.cpu_seconds("worker") - wcpu0
     seconds = time.monotonic() - t0
     e.close_processes()
     counts = readback(e.db, plan, e.senders.results())
     return {"data_seconds": e.seconds, "seconds": round(seconds, 1), "drained": drained,
-            "ingest_cpu_seconds": round(cpu, 2), "worker_cpu_seconds": round(wcpu, 2),
+            "ingest_cpu_seconds": round(cpu, 2),
             "samples_per_second_per_core": round(counts["stored"] / cpu) if cpu > 0 else None,
             **counts}
 
@@ -291,10 +284,6 @@ def fleet(
                                        help="Machines each twin worker replays at once."),
     window_s: float = typer.Option(4.0, help="Twin worker window [s]."),
     direct_s: float = typer.Option(20.0, help="Data seconds of the direct run."),
-    direct_workers: bool = typer.Option(
-        True, "--direct-workers/--no-direct-workers",
-        help="Run the twin workers beside the direct run too (on its database), as beside the "
-             "bus runs, so both paths' CPU per sample is measured under the same load."),
     baseline_s: float = typer.Option(40.0, help="Data seconds of the run without faults."),
     warm_s: float = typer.Option(25.0, help="Seconds before the first fault."),
     fault_gap_s: float = typer.Option(30.0, help="Seconds between fault starts."),
@@ -308,7 +297,7 @@ def fleet(
     cfg = FleetConfig(machines=machines, rate_hz=rate_hz, batch_samples=batch_samples,
                       sender_processes=sender_processes, daemons=daemons, writers=writers,
                       workers=workers, worker_threads=worker_threads, window_s=window_s,
-                      direct_s=direct_s, direct_workers=direct_workers,
+                      direct_s=direct_s,
                       baseline_s=baseline_s, warm_s=warm_s, fault_gap_s=fault_gap_s,
                       outage_s=outage_s, tail_s=tail_s)
     emit(run_fleet(cfg, faults, pg), as_json)

@@ -58,9 +58,6 @@ class FleetConfig:
     outage_s: float = 30.0
     tail_s: float = 45.0
     lag_target_s: float = 10.0
-    direct_workers: bool = True
-    """The direct run has the bus runs' twin workers beside it (on its own database), so that
-    its CPU per sample is measured under the same competition for the cores."""
 
     @property
     def faults_s(self) -> float:
@@ -110,9 +107,7 @@ def _register(db_url: str, machines: int) -> None:
 
 @dataclass
 class DirectEnv:
-    """Run 1: one ``cranetwin ingest`` writing straight to its database, beside the same twin
-    workers as the bus runs (on its database), so that both paths' CPU per sample is measured
-    while the workers compete for the cores (``cfg.direct_workers``)."""
+    """Run 1: one ``cranetwin ingest`` writing straight to its database."""
 
     cfg: FleetConfig
     pg: str
@@ -122,7 +117,6 @@ class DirectEnv:
     port: int = 0
     daemon: Any = None
     senders: Senders | None = None
-    workers: list[Any] = field(default_factory=list)
 
     def open(self) -> DirectEnv:
         env = child_env(self.cfg)
@@ -134,16 +128,10 @@ class DirectEnv:
             self.daemon = spawn_role(["ingest", "--bind", f"127.0.0.1:{self.port}", "--db",
                                       self.db, "--metrics-bind", "0", "--log-level", "WARNING"],
                                      log, env)
-            waits = [(self.daemon, log, READY)]
-            for i in range(self.cfg.workers if self.cfg.direct_workers else 0):
-                wlog = self.work / f"worker-{i}.stderr"
-                self.workers.append(spawn_role(worker_args(self.cfg, self.db), wlog, env))
-                waits.append((self.workers[-1], wlog, b"cranetwin worker ready"))
             (self.work / "senders").mkdir()
             self.senders = Senders(self.cfg.plan(self.seconds), ("127.0.0.1", self.port),
                                    self.work / "senders", env)
-            for proc, plog, ready in waits:
-                wait_ready(proc, plog, ready)
+            wait_ready(self.daemon, log, READY)
         except BaseException:
             self.close()
             raise
@@ -155,7 +143,8 @@ class DirectEnv:
     def close_processes(self) -> None:
         if self.senders is not None:
             self.senders.kill()
-        stop_procs([p for p in [self.daemon, *self.workers] if p is not None], 60)
+        if self.daemon is not None:
+            stop_procs([self.daemon], 60)
 
     def close(self) -> None:
         self.close_processes()
