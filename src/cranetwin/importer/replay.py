@@ -57,6 +57,7 @@ from cranetwin.samples import SampleArrays
 from cranetwin.signal import SmoothingChoice
 from cranetwin.twin import ReplayOptions, TwinResult, iter_replay
 from cranetwin.twin.consistency import ModelConsistency, ResidualStats
+from cranetwin.twin.lifts import Lift, lift_payloads, payload_smear_s, tare_span_s
 from cranetwin.twin.observability import ForceObservability, ForceRange
 
 F64 = npt.NDArray[np.float64]
@@ -190,21 +191,31 @@ def check_samples(samples: SampleArrays, machine: Machine) -> None:
 class ReplayNotes:
     """What a chunked replay learns about its whole window, filled as the chunks pass:
     the range of each cylinder's force and the smoothing choices, for the force
-    observability verdicts (:mod:`cranetwin.twin.observability`)."""
+    observability verdicts (:mod:`cranetwin.twin.observability`); with a known payload series
+    compared, per output row the time, the known payload, the estimate and its σ and
+    systematic σ (``payload``: t, known, estimate; ``payload_std``: σ, σ_b; each shape (m,)
+    per chunk), and the smear and tare span of the estimate's lifts (``lift_rule``), for
+    :meth:`lifts`."""
 
     forces: ForceRange
     smoothing: dict[str, SmoothingChoice]
     payload: list[tuple[F64, F64, F64]] = field(default_factory=list)
     residuals: ResidualStats = field(default_factory=ResidualStats)
+    payload_std: list[tuple[F64, F64]] = field(default_factory=list)
+    lift_rule: tuple[float, float | None] | None = None
 
     @staticmethod
     def empty() -> ReplayNotes:
         return ReplayNotes(ForceRange(), {})
 
     def add(self, res: TwinResult, known_kg: F64 | None = None,
-            machine: Machine | None = None) -> None:
+            machine: Machine | None = None, sample_period_s: float | None = None,
+            payload_window_s: float = 2.0) -> None:
         """Take in a chunk (with ``machine``: also its residuals, for
-        :meth:`model_consistency`)."""
+        :meth:`model_consistency`; with ``known_kg``, the known payload on the chunk's
+        instants, shape (m,) [kg]: the payload estimate for :meth:`lifts`, its lifts smeared
+        as :func:`cranetwin.twin.lifts.payload_smear_s` of ``sample_period_s`` — the replayed
+        samples' period [s]; None: the chunk's median step — and ``payload_window_s`` [s])."""
         self.forces.add(res.cyl_force)
         if machine is not None:
             self.residuals.add(machine, res.t_s, res.q, res.residual, res.id_torque, res.p_a,
@@ -213,14 +224,37 @@ class ReplayNotes:
             self.smoothing.update(res.smoothing)
         if known_kg is not None:
             self.payload.append((res.t_s, known_kg, res.payload_kg))
+            self.payload_std.append((res.payload_std_kg, res.payload_sys_std_kg))
+            if self.lift_rule is None and (sample_period_s is not None or res.n >= 2):
+                period = (float(np.median(np.diff(res.t_s))) if sample_period_s is None
+                          else sample_period_s)
+                self.lift_rule = (payload_smear_s(res, period, payload_window_s),
+                                  tare_span_s(res))
+
+    def twin_lifts(self) -> list[Lift] | None:
+        """The twin's lifts in the compared payload estimate, as
+        :func:`cranetwin.twin.lifts.result_lifts` finds them in the whole result (grab and
+        release left out, net of the empty reading, with σ); a lift is where the estimate
+        exceeds the work cycles' ``grab_kg``, as in the analytics
+        (:func:`cranetwin.service.analytics.lift_payload`). None: nothing compared."""
+        if not self.payload or self.lift_rule is None:
+            return None
+        from cranetwin.analytics import ProductivityConfig
+
+        t, _, est = (np.concatenate(x) for x in zip(*self.payload, strict=True))
+        std, sys_std = (np.concatenate(x) for x in zip(*self.payload_std, strict=True))
+        smear, span = self.lift_rule
+        return lift_payloads(t, est, std, smear, ProductivityConfig().grab_kg,
+                             payload_sys_std_kg=sys_std, tare_span_s=span)
 
     def lifts(self) -> list[LiftError] | None:
-        """The payload estimate's error per lift against the known payload series (None:
-        no known payload; :func:`cranetwin.importer.payload.lift_errors`)."""
+        """The payload estimate's error per lift against the known payload series, gross and
+        net (None: no known payload; :func:`cranetwin.importer.payload.lift_errors` with
+        :meth:`twin_lifts`)."""
         if not self.payload:
             return None
         t, known, est = (np.concatenate(x) for x in zip(*self.payload, strict=True))
-        return lift_errors(t, known, est)
+        return lift_errors(t, known, est, twin_lifts=self.twin_lifts())
 
     def force_observability(self, machine: Machine) -> tuple[ForceObservability, ...]:
         """Per cylinder, whether the pressures resolve its force over the replayed window."""
@@ -293,7 +327,8 @@ def iter_replay_table(source: Source, machine: Machine,
             if grid_known is not None:
                 cols = _with_known(cols, grid_known, not use)
             if notes is not None:
-                notes.add(res, None if use else grid_known, machine)
+                notes.add(res, None if use else grid_known, machine, period,
+                          opt.payload_window_s)
             cols.update(channel_flags(samples, res.t_s, period))
             yield cols
 
