@@ -185,3 +185,35 @@ def test_cli_prints_the_net_figures(machine: Machine, sim: Sim, tmp_path: Path) 
     assert abs(lift.net_error_pct) < 0.5 < 2.0 < abs(lift.error_pct), lift.line()
     assert summary_line(table.lifts) in r.output and f"  {lift.line()}" in r.output, r.output
     assert "; net of the empty reading: mean |error|" in r.output
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("span", [30.0, 5.0, None])
+@pytest.mark.parametrize("seed", range(4))
+def test_lifts_one_window_each_equal_one_call(seed: int, span: float | None) -> None:
+    """:func:`windowed_lift_payloads` (each lift on the window between its neighbours) gives
+    :func:`cranetwin.twin.lifts.lift_payloads` over the whole series bit for bit: lifts of
+    random lengths and gaps (some shorter than a steady part), loaded at the first and the
+    last instant, an offset, noise, NaN dropouts."""
+    from cranetwin.importer.replay import windowed_lift_payloads
+    from cranetwin.twin.lifts import lift_payloads
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 900.0, 0.01)
+    load = np.zeros_like(t)
+    edge = 0.0
+    while edge < t[-1]:
+        a = edge + rng.uniform(0.5, 60.0)
+        b = a + rng.uniform(0.5, 30.0)
+        load[(t >= a) & (t < b)] = rng.uniform(100.0, 400.0)
+        edge = b
+    load[t < 4.0] = 250.0
+    load[t > 890.0] = 250.0
+    m = load + rng.uniform(-20.0, 20.0) + rng.normal(0.0, 3.0, t.size)
+    m[rng.integers(0, t.size, 300)] = np.nan
+    s = np.full_like(t, 4.0)
+    sb = np.full_like(t, 1.0)
+    whole = lift_payloads(t, m, s, 2.06, 50.0, payload_sys_std_kg=sb, tare_span_s=span)
+    assert len(whole) > 10 and not whole[0].complete and not whole[-1].complete
+    assert any(lf.tare_kg != 0.0 for lf in whole) == (span is not None)
+    _same_lifts(windowed_lift_payloads(t, m, s, sb, 2.06, 50.0, span), whole)
