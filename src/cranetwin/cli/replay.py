@@ -37,7 +37,8 @@ def replay_cmd(
                                        "column (the mapping's [payload]): 'use' it in the "
                                        "inverse dynamics where known (the estimate "
                                        "elsewhere), or only 'compare' the estimate with it "
-                                       "per lift."),
+                                       "per lift (the gross estimate, and the twin's lift "
+                                       "payload net of the empty reading ± σ)."),
     grid_hz: float | None = typer.Option(None, "--grid-hz", help="Output rate [Hz], an "
                                          "integer multiple of the sample rate (default: the "
                                          "sample rate)."),
@@ -47,7 +48,7 @@ def replay_cmd(
     forces, joint torques and reaction wrenches, tip position, payload ± σ and gap flags; with
     a known payload column (the mapping's [payload]; for a stored range, the one the import
     stored), the dynamics use it where known (--payload-column compare: the estimate's error
-    per lift instead)."""
+    per lift instead, gross and net of the empty reading)."""
     from cranetwin.importer.payload import summary_line
     from cranetwin.importer.replay import (
         PayloadColumn,
@@ -109,7 +110,7 @@ def replay_cmd(
                    f"dynamics at {100.0 * float(np.isfinite(known).mean()):.1f} % of the "
                    "samples, the estimate elsewhere")
     lifts = notes.lifts()
-    if lifts is not None:  # a known payload series: the estimate's error per lift
+    if lifts is not None:  # a known payload series: the estimate's error per lift, gross and net
         typer.echo(summary_line(lifts))
         for lift in lifts:
             typer.echo(f"  {lift.line()}")

@@ -13,9 +13,16 @@ it is known (:mod:`cranetwin.twin.known_payload`; the estimate where it is NaN),
 report the estimate's error per lift.
 
 A lift is a maximal stretch where the known payload is at least ``min_kg`` for at least
-``min_duration_s``. Its error is the median estimate minus the median known payload over the
-lift's middle half: the estimate's sliding window (2 s) straddles pick-up and set-down, so the
-ends of a lift say how fast the estimate follows, not how right it is.
+``min_duration_s``. Two figures of the twin's are compared with it:
+
+* the gross estimate: the median per-instant estimate over the lift's middle half, minus the
+  median known payload there (the estimate's sliding window straddles pick-up and set-down, so
+  the ends of a lift say how fast the estimate follows, not how right it is);
+* the net lift payload: the twin's own payload of the lift that overlaps the known one longest
+  (:func:`cranetwin.twin.lifts.lift_payloads`: grab and release ramps left out, net of the
+  empty reading next to the lift when that is an offset, with its σ) — what the twin reports
+  for a lift elsewhere (the analytics' work-cycle payloads). A sensor's zero offset moves the
+  gross figure and is taken off the net one.
 
 A file's payload value is refused (with row and column, never clipped; the row's samples are
 kept and the payload is not known there) when it is below zero, or above the largest accepted
@@ -27,14 +34,18 @@ zero offset at an empty hook) is read as 0 kg and counted in the import's report
 from __future__ import annotations
 
 import datetime as dt
-from dataclasses import dataclass
-from typing import NamedTuple
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
 from cranetwin.importer.readers import Refusal
 from cranetwin.model import Machine
+
+if TYPE_CHECKING:  # (reading a file needs no twin)
+    from cranetwin.twin.lifts import Lift
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -176,41 +187,70 @@ def on_grid(t_s: F64, sample_t_s: F64, known_kg: F64,
 
 @dataclass(frozen=True)
 class LiftError:
-    """The twin's payload estimate over one lift against the known payload.
+    """The twin's payload over one lift against the known payload.
 
     Attributes:
         t_start_s, t_end_s: The lift [s since the epoch].
         known_kg: Median known payload over the lift's middle half [kg].
-        estimate_kg: Median estimate there [kg] (NaN: no estimate).
+        estimate_kg: Median (gross) estimate there [kg] (NaN: no estimate).
+        net_kg: The twin's payload of the lift that overlaps this one longest, net of its
+            empty reading (:attr:`cranetwin.twin.lifts.Lift.payload_kg`) [kg] (NaN: no lift of
+            the twin's over this one, or not compared).
+        net_std_kg: Its one-sigma uncertainty [kg] (NaN with ``net_kg``; inf: the twin's lift
+            had no steady part).
+        tare_kg: The empty reading taken off it [kg] (0: none; NaN with ``net_kg``).
     """
 
     t_start_s: float
     t_end_s: float
     known_kg: float
     estimate_kg: float
+    net_kg: float = float("nan")
+    net_std_kg: float = float("nan")
+    tare_kg: float = float("nan")
 
     @property
     def error_kg(self) -> float:
-        """Estimate − known [kg]."""
+        """Gross estimate − known [kg]."""
         return self.estimate_kg - self.known_kg
 
     @property
     def error_pct(self) -> float:
-        """Error as a share of the known payload [%]."""
+        """Gross error as a share of the known payload [%]."""
         return 100.0 * self.error_kg / self.known_kg
 
+    @property
+    def net_error_kg(self) -> float:
+        """Net lift payload − known [kg]."""
+        return self.net_kg - self.known_kg
+
+    @property
+    def net_error_pct(self) -> float:
+        """Net error as a share of the known payload [%]."""
+        return 100.0 * self.net_error_kg / self.known_kg
+
     def line(self) -> str:
-        """E.g. ``lift 2026-01-01T00:00:09.000Z, 14.0 s: known 312.3 kg, estimate …``."""
+        """E.g. ``lift 2026-01-01T00:00:09.000Z, 14.0 s: known 312.3 kg, estimate …`` — the
+        gross estimate and its error, then (where the twin found the lift) the net lift
+        payload ± σ, the empty reading taken off and its error."""
         start = dt.datetime.fromtimestamp(self.t_start_s, dt.UTC).strftime(
             "%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
-        return (f"lift {start}, {self.t_end_s - self.t_start_s:.1f} s: known "
-                f"{self.known_kg:.1f} kg, "
-                f"estimate {self.estimate_kg:.1f} kg, error {self.error_kg:+.1f} kg "
-                f"({self.error_pct:+.1f} %)")
+        out = (f"lift {start}, {self.t_end_s - self.t_start_s:.1f} s: known "
+               f"{self.known_kg:.1f} kg, "
+               f"estimate {self.estimate_kg:.1f} kg, error {self.error_kg:+.1f} kg "
+               f"({self.error_pct:+.1f} %)")
+        if np.isnan(self.tare_kg):  # no lift of the twin's over it (or not compared)
+            return out
+        if np.isnan(self.net_kg):
+            return f"{out}; net: none (the twin's lift is too short for a steady part)"
+        tare = "no tare" if self.tare_kg == 0.0 else f"tare {self.tare_kg:+.1f} kg"
+        return (f"{out}; net {self.net_kg:.1f} ± {self.net_std_kg:.1f} kg ({tare}), error "
+                f"{self.net_error_kg:+.1f} kg ({self.net_error_pct:+.1f} %)")
 
 
 def lift_errors(t_s: F64, known_kg: F64, estimate_kg: F64, min_kg: float = MIN_LIFT_KG,
-                min_duration_s: float = MIN_LIFT_S) -> list[LiftError]:
+                min_duration_s: float = MIN_LIFT_S,
+                twin_lifts: Sequence[Lift] | None = None) -> list[LiftError]:
     """The estimate's error per lift (module docstring).
 
     Args:
@@ -219,6 +259,9 @@ def lift_errors(t_s: F64, known_kg: F64, estimate_kg: F64, min_kg: float = MIN_L
         estimate_kg: The twin's payload at them [kg], shape (n,).
         min_kg: Least known payload of a lift [kg].
         min_duration_s: Shortest lift [s].
+        twin_lifts: The twin's lifts in the same estimate
+            (:func:`cranetwin.twin.lifts.lift_payloads`), for the net figures; None: not
+            compared (NaN).
     """
     on = np.zeros(t_s.size + 2, dtype=bool)
     with np.errstate(invalid="ignore"):
@@ -232,22 +275,49 @@ def lift_errors(t_s: F64, known_kg: F64, estimate_kg: F64, min_kg: float = MIN_L
         mid = slice(a + q, b - q)
         est = estimate_kg[mid]
         est = est[np.isfinite(est)]
-        out.append(LiftError(float(t_s[a]), float(t_s[b - 1]),
-                             float(np.median(known_kg[mid])),
-                             float(np.median(est)) if est.size else float("nan")))
+        t0, t1 = float(t_s[a]), float(t_s[b - 1])
+        gross = LiftError(t0, t1, float(np.median(known_kg[mid])),
+                          float(np.median(est)) if est.size else float("nan"))
+        twin = _overlapping(twin_lifts or (), t0, t1)
+        out.append(gross if twin is None else
+                   replace(gross, net_kg=twin.payload_kg, net_std_kg=twin.std_kg,
+                           tare_kg=twin.tare_kg))
     return out
 
 
+def _overlapping(lifts: Sequence[Lift], t0_s: float, t1_s: float) -> Lift | None:
+    """The lift of ``lifts`` whose grab-to-release overlaps [t0_s, t1_s] longest (the first
+    of equals), or None where none overlaps it."""
+    best, most = None, 0.0
+    for lf in lifts:
+        over = min(lf.release_s, t1_s) - max(lf.grab_s, t0_s)
+        if over > most:
+            best, most = lf, over
+    return best
+
+
 def summary_line(lifts: list[LiftError]) -> str:
-    """One line over all lifts: count, mean and largest absolute error."""
+    """One line over all lifts: count, mean and largest absolute error of the gross estimate,
+    and of the net lift payload where the twin found the lift (with how many of them lie
+    within 2σ)."""
     if not lifts:
         return "payload estimate vs known payload: no lift (known payload ≥ " \
                f"{MIN_LIFT_KG:g} kg for ≥ {MIN_LIFT_S:g} s)"
     err = np.array([x.error_kg for x in lifts])
     pct = np.array([x.error_pct for x in lifts])
-    return (f"payload estimate vs known payload over {len(lifts)} lift(s): mean |error| "
-            f"{np.nanmean(np.abs(err)):.1f} kg ({np.nanmean(np.abs(pct)):.1f} %), largest "
-            f"{np.nanmax(np.abs(err)):.1f} kg")
+    out = (f"payload estimate vs known payload over {len(lifts)} lift(s): mean |error| "
+           f"{np.nanmean(np.abs(err)):.1f} kg ({np.nanmean(np.abs(pct)):.1f} %), largest "
+           f"{np.nanmax(np.abs(err)):.1f} kg")
+    net = [x for x in lifts if not np.isnan(x.net_kg)]
+    if not net:
+        return out
+    nerr = np.array([x.net_error_kg for x in net])
+    npct = np.array([x.net_error_pct for x in net])
+    within = sum(abs(x.net_error_kg) <= 2.0 * x.net_std_kg for x in net)
+    found = "" if len(net) == len(lifts) else f" over the {len(net)} the twin found"
+    return (f"{out}; net of the empty reading{found}: mean |error| "
+            f"{np.mean(np.abs(nerr)):.1f} kg ({np.mean(np.abs(npct)):.1f} %), largest "
+            f"{np.max(np.abs(nerr)):.1f} kg, {within} of {len(net)} within 2σ")
 
 
 __all__ = ["LiftError", "PayloadCheck", "lift_errors", "on_grid", "payload_at",
