@@ -187,16 +187,42 @@ def test_cli_prints_the_net_figures(machine: Machine, sim: Sim, tmp_path: Path) 
     assert "; net of the empty reading: mean |error|" in r.output
 
 
+def _one_window_each(t: F64, m: F64, s: F64, sb: F64, smear: float, thr: float,
+                     span: float | None) -> list[Lift]:
+    """Each lift of :func:`lift_payloads` computed on its own window: from the previous lift's
+    last instant above the threshold to the next one's first, where it is the middle lift."""
+    from cranetwin.twin.lifts import lift_payloads
+
+    on = np.nan_to_num(m, nan=-np.inf) > thr
+    edges = np.flatnonzero(np.diff(on.astype(np.int8)))
+    firsts = edges[~on[edges]] + 1
+    lasts = edges[on[edges]]
+    if on[0]:
+        firsts = np.concatenate([[0], firsts])
+    if on[-1]:
+        lasts = np.concatenate([lasts, [t.size - 1]])
+    out: list[Lift] = []
+    for i in range(firsts.size):
+        lo = int(lasts[i - 1]) if i > 0 else 0
+        hi = int(firsts[i + 1]) + 1 if i + 1 < firsts.size else t.size
+        got = lift_payloads(t[lo:hi], m[lo:hi], s[lo:hi], smear, thr,
+                            payload_sys_std_kg=sb[lo:hi], tare_span_s=span)
+        assert len(got) == 1 + (i > 0) + (i + 1 < firsts.size)
+        out.append(got[1 if i > 0 else 0])
+    return out
+
+
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("span", [30.0, 5.0, None])
 @pytest.mark.parametrize("seed", range(4))
-def test_lifts_one_window_each_equal_one_call(seed: int, span: float | None) -> None:
-    """:func:`windowed_lift_payloads` (each lift on the window between its neighbours) gives
-    :func:`cranetwin.twin.lifts.lift_payloads` over the whole series bit for bit: lifts of
-    random lengths and gaps (some shorter than a steady part), loaded at the first and the
-    last instant, an offset, noise, NaN dropouts."""
-    from cranetwin.importer.replay import windowed_lift_payloads
-    from cranetwin.twin.lifts import lift_payloads
+def test_a_lift_depends_only_on_the_window_between_its_neighbours(
+        seed: int, span: float | None) -> None:
+    """:func:`cranetwin.twin.lifts.lift_payloads` over the whole series equals, bit for bit,
+    each lift computed on the window between its neighbours (what lets it read each lift's
+    instants as slices, in time linear in the length): lifts of random lengths and gaps
+    (some shorter than a steady part), loaded at the first and the last instant, an offset,
+    noise, NaN dropouts."""
+    from cranetwin.twin.lifts import lift_payloads, steady_mask
 
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, 900.0, 0.01)
@@ -216,4 +242,9 @@ def test_lifts_one_window_each_equal_one_call(seed: int, span: float | None) -> 
     whole = lift_payloads(t, m, s, 2.06, 50.0, payload_sys_std_kg=sb, tare_span_s=span)
     assert len(whole) > 10 and not whole[0].complete and not whole[-1].complete
     assert any(lf.tare_kg != 0.0 for lf in whole) == (span is not None)
-    _same_lifts(windowed_lift_payloads(t, m, s, sb, 2.06, 50.0, span), whole)
+    _same_lifts(_one_window_each(t, m, s, sb, 2.06, 50.0, span), whole)
+    # the steady mask: the instants of each lift's steady part, as a per-lift comparison
+    want = np.zeros(t.shape, dtype=bool)
+    for lf in whole:
+        want |= (t >= lf.t0_s) & (t <= lf.t1_s)
+    assert np.array_equal(steady_mask(t, whole), want)

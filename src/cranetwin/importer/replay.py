@@ -187,51 +187,6 @@ def check_samples(samples: SampleArrays, machine: Machine) -> None:
                         "\n".join(f"  - {p}" for p in problems))
 
 
-def windowed_lift_payloads(t_s: F64, payload_kg: F64, payload_std_kg: F64,
-                           payload_sys_std_kg: F64, smear_s: float, threshold_kg: float,
-                           tare_span_s: float | None) -> list[Lift]:
-    """:func:`cranetwin.twin.lifts.lift_payloads` of a long estimate (default margin), one
-    lift at a time: the same lifts, bit for bit, in time linear in the length.
-
-    One call masks the whole series for each lift (time ∝ length × lifts: a synthetic day at
-    100 Hz with 3200 lifts took 127 s of CPU in one call, 0.55 s this way). A lift reads only
-    instants between the previous lift's last instant above the threshold and the next one's
-    first (its steady part and its empty reading, which stops ``smear_s`` + margin short of
-    either), and finds its grab and release from the threshold alone; so each lift is computed
-    on the window from the previous lift's last instant above to the next one's first, where it
-    is the middle lift — the same instants, in the same order, as in one call over the whole
-    series.
-
-    Args:
-        t_s: Instants, shape (m,) [s], increasing.
-        payload_kg, payload_std_kg, payload_sys_std_kg: The estimate, its σ and its
-            systematic σ, shape (m,) each [kg].
-        smear_s, threshold_kg, tare_span_s: As for :func:`cranetwin.twin.lifts.lift_payloads`.
-    """
-    on = np.nan_to_num(payload_kg, nan=-np.inf) > threshold_kg  # as lift_payloads finds lifts
-    edges = np.flatnonzero(np.diff(on.astype(np.int8)))
-    starts = edges[~on[edges]] + 1  # the first instant above of each lift after the first
-    ends = edges[on[edges]]  # the last instant above of each lift before the last
-    n_lifts = starts.shape[0] + int(on[0]) if on.size else 0
-    m = t_s.shape[0]
-    if n_lifts <= 1:
-        return lift_payloads(t_s, payload_kg, payload_std_kg, smear_s, threshold_kg,
-                             payload_sys_std_kg=payload_sys_std_kg, tare_span_s=tare_span_s)
-    firsts = np.concatenate([[0], starts]) if on[0] else starts  # per lift
-    lasts = np.concatenate([ends, [m - 1]]) if on[-1] else ends
-    out: list[Lift] = []
-    for i in range(n_lifts):
-        lo = int(lasts[i - 1]) if i > 0 else 0
-        hi = int(firsts[i + 1]) + 1 if i + 1 < n_lifts else m
-        got = lift_payloads(t_s[lo:hi], payload_kg[lo:hi], payload_std_kg[lo:hi], smear_s,
-                            threshold_kg, payload_sys_std_kg=payload_sys_std_kg[lo:hi],
-                            tare_span_s=tare_span_s)
-        if len(got) != 1 + (i > 0) + (i + 1 < n_lifts):
-            raise TwinError(f"lift {i}: {len(got)} lifts in its window")  # (cannot happen)
-        out.append(got[1 if i > 0 else 0])
-    return out
-
-
 @dataclass
 class ReplayNotes:
     """What a chunked replay learns about its whole window, filled as the chunks pass:
@@ -289,8 +244,8 @@ class ReplayNotes:
         t, _, est = (np.concatenate(x) for x in zip(*self.payload, strict=True))
         std, sys_std = (np.concatenate(x) for x in zip(*self.payload_std, strict=True))
         smear, span = self.lift_rule
-        return windowed_lift_payloads(t, est, std, sys_std, smear,
-                                      ProductivityConfig().grab_kg, span)
+        return lift_payloads(t, est, std, smear, ProductivityConfig().grab_kg,
+                             payload_sys_std_kg=sys_std, tare_span_s=span)
 
     def lifts(self) -> list[LiftError] | None:
         """The payload estimate's error per lift against the known payload series, gross and

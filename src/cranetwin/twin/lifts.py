@@ -158,11 +158,20 @@ def lift_payloads(t_s: F64, payload_kg: F64, payload_std_kg: F64, smear_s: float
     skip = smear_s + margin_s
     ok = np.isfinite(m) & np.isfinite(s) & np.isfinite(sb)
 
-    def reading(sel: npt.NDArray[np.bool_], span_s: float) -> tuple[float, float, float]:
-        """Mean of the estimates where ``sel`` over ``span_s`` of time, the σ of that mean
-        (:func:`lift_std`) and its random part; (NaN, inf, inf) where none."""
-        sel = sel & ok
-        if not sel.any():
+    def between(spans: list[tuple[float, float]]) -> npt.NDArray[np.intp]:
+        """Indices of the instants with lo <= t <= hi for the (lo, hi) of ``spans`` (in time
+        order, disjoint), in index order and with an estimate (``ok``): slices of the sorted
+        instants, so each lift costs time in its own length, not the recording's."""
+        parts = [np.arange(np.searchsorted(t, lo_s, "left"), np.searchsorted(t, hi_s, "right"))
+                 for lo_s, hi_s in spans]
+        idx = np.concatenate(parts) if parts else np.zeros(0, dtype=np.intp)
+        return idx[ok[idx]]
+
+    def reading(sel: npt.NDArray[np.intp], span_s: float) -> tuple[float, float, float]:
+        """Mean of the estimates at the instants ``sel`` (:func:`between`) over ``span_s`` of
+        time, the σ of that mean (:func:`lift_std`) and its random part; (NaN, inf, inf)
+        where none."""
+        if not sel.size:
             return float("nan"), float("inf"), float("inf")
         k = max(1.0, span_s / smear_s)
         rand = np.sqrt(np.maximum(s[sel] * s[sel] - sb[sel] * sb[sel], 0.0))
@@ -175,7 +184,7 @@ def lift_payloads(t_s: F64, payload_kg: F64, payload_std_kg: F64, smear_s: float
         release_in = b < t.shape[0] - 1
         t0 = t[a] + (skip if grab_in else smear_s / 2)
         t1 = t[b] - (skip if release_in else smear_s / 2)
-        mean, std, rand = reading((t >= t0) & (t <= t1), t1 - t0)
+        mean, std, rand = reading(between([(t0, t1)]), t1 - t0)
         empty, tare = float("nan"), 0.0
         if np.isfinite(mean) and tare_span_s is not None:
             # the empty stretches either side, up to tare_span_s nearest the lift
@@ -187,15 +196,12 @@ def lift_payloads(t_s: F64, payload_kg: F64, payload_std_kg: F64, smear_s: float
                 hi = t[starts[i + 1]] - skip if i + 1 < len(starts) else t[-1]
                 sides.append((t[b] + skip, min(hi, t[b] + skip + tare_span_s)))
             sides = [(lo_s, hi_s) for lo_s, hi_s in sides if hi_s > lo_s]
-            near = np.zeros(t.shape, dtype=bool)
-            for lo_s, hi_s in sides:
-                near |= (t >= lo_s) & (t <= hi_s)
+            near = between(sides)
             span = sum(hi_s - lo_s for lo_s, hi_s in sides)
             empty, _, rand_e = reading(near, span)
-            near &= ok
             # the empty reading's standard error from its own scatter over k_E estimates
             se = float(np.std(m[near])) / np.sqrt(max(1.0, span / smear_s)) \
-                if near.any() else float("inf")
+                if near.size else float("inf")
             if abs(empty) > TARE_Z * se:  # an offset, not noise (NaN: no stretch)
                 tare = empty
                 mean -= tare
@@ -209,7 +215,7 @@ def steady_mask(t_s: F64, lifts: list[Lift]) -> npt.NDArray[np.bool_]:
     """Instants inside a lift's steady part (the instants its payload was averaged over).
 
     Args:
-        t_s: Instants, shape (m,) [s].
+        t_s: Instants, shape (m,) [s], increasing.
         lifts: Lifts found in an estimate on these instants (:func:`lift_payloads`).
 
     Returns:
@@ -217,8 +223,8 @@ def steady_mask(t_s: F64, lifts: list[Lift]) -> npt.NDArray[np.bool_]:
     """
     t = np.asarray(t_s, dtype=np.float64)
     out = np.zeros(t.shape, dtype=bool)
-    for lf in lifts:
-        out |= (t >= lf.t0_s) & (t <= lf.t1_s)
+    for lf in lifts:  # t increasing: each lift is a slice (time linear in the length)
+        out[np.searchsorted(t, lf.t0_s, "left"):np.searchsorted(t, lf.t1_s, "right")] = True
     return out
 
 
