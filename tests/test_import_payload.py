@@ -146,8 +146,11 @@ def test_report_source_analyses_the_known_payload(machine: Machine, logged: Logg
         th = np.concatenate([h.t_s for h in hist])
         ph = np.concatenate([h.payload_kg for h in hist])
         np.testing.assert_allclose(ph, np.interp(th, t, truth), rtol=1e-9, atol=1e-6)
-        if column == "compare":
+        if column == "compare":  # the same comparison as the replay's, net figures too
             assert src.lifts is not None and len(src.lifts) == 1
+            want = replay_table(f, machine, m, payload_column="compare").lifts
+            assert want is not None and src.lifts == want
+            assert np.isfinite(src.lifts[0].net_kg)
         else:  # used, not compared
             assert src.lifts is None
 

@@ -175,6 +175,16 @@ def load_source_and_payload(source: Source, machine: Machine,
     return got.samples, got.payload_kg
 
 
+def sample_period_s(samples: SampleArrays, options: ReplayOptions | None = None) -> float:
+    """The samples' period [s] as a replay of them takes it: the options' ``sample_period_s``,
+    else the samples' own ``period_ns``, else their median spacing."""
+    if options is not None and options.sample_period_s:
+        return float(options.sample_period_s)
+    if samples.period_ns:
+        return samples.period_ns / 1e9
+    return float(np.median(np.diff(samples.t_s)))
+
+
 def check_samples(samples: SampleArrays, machine: Machine) -> None:
     """Refuse samples the twin would silently clip (rod positions outside the strokes).
 
@@ -314,7 +324,7 @@ def iter_replay_table(source: Source, machine: Machine,
     opt = options or ReplayOptions()
     if opt.sample_period_s is None and samples.period_ns:
         opt = ReplayOptions(**{**opt.__dict__, "sample_period_s": samples.period_ns / 1e9})
-    period = opt.sample_period_s or float(np.median(np.diff(samples.t_s)))
+    period = sample_period_s(samples, opt)
     if grid_hz is None:
         grid_hz = float(round(1.0 / period))
     use = uses_known(known, payload, payload_column)

@@ -17,7 +17,7 @@ import numpy.typing as npt
 
 from cranetwin.analytics import AnalyticsConfig, AnalyticsState, LoadHistory
 from cranetwin.errors import CraneTwinError, ReportError
-from cranetwin.importer.payload import LiftError, lift_errors, on_grid
+from cranetwin.importer.payload import LiftError, on_grid
 from cranetwin.model import Machine, load_machine
 from cranetwin.testing.histories import Misuse, SyntheticCrane
 
@@ -346,42 +346,38 @@ class ImportedFileSource:
         return float(np.isfinite(self.known_payload_kg).mean())
 
     def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
-        from cranetwin.importer.replay import check_samples, uses_known
-        from cranetwin.signal import SmoothingChoice
+        from cranetwin.importer.replay import (
+            ReplayNotes,
+            check_samples,
+            sample_period_s,
+            uses_known,
+        )
         from cranetwin.twin import iter_replay
-        from cranetwin.twin.consistency import ResidualStats, inconsistent
-        from cranetwin.twin.observability import ForceRange, unobservable
+        from cranetwin.twin.consistency import inconsistent
+        from cranetwin.twin.observability import unobservable
 
         check_samples(self.samples, self.machine)
         done = 0
-        forces = ForceRange()
-        residuals = ResidualStats()
-        smoothing: dict[str, SmoothingChoice] = {}
-        pairs: list[tuple[F64, F64, F64]] = []
+        notes = ReplayNotes.empty()  # forces, residuals, smoothing, the compared payload
         use = uses_known(self.known_payload_kg, self.payload_kg, self.payload_column)
-        gap_s = 5.0 * float(np.median(np.diff(self.samples.t_s[:1000])))  # the replay's limit
+        period = sample_period_s(self.samples)
+        gap_s = 5.0 * period  # the replay's limit
         for res in iter_replay(self.samples, self.machine, grid_hz=self.grid_hz,
                                payload=self.known_payload_kg if use else self.payload_kg):
             if not res.n:
                 continue
-            forces.add(res.cyl_force)
-            residuals.add(self.machine, res.t_s, res.q, res.residual, res.id_torque, res.p_a,
-                          res.p_b, res.gap)
-            smoothing = smoothing or res.smoothing
             n = int(np.searchsorted(self.samples.t_s, res.t_s[-1], side="right")) - done
             done += n
-            if self.known_payload_kg is not None:
-                known = on_grid(res.t_s, self.samples.t_s, self.known_payload_kg, gap_s)
-                if not use:
-                    pairs.append((res.t_s, known, res.payload_kg))
+            known = (None if self.known_payload_kg is None
+                     else on_grid(res.t_s, self.samples.t_s, self.known_payload_kg, gap_s))
+            notes.add(res, None if use else known, self.machine, period)
+            if known is not None:
                 res = replace(res, payload_kg=np.where(np.isfinite(known), known,
                                                        res.payload_kg))
             h = history_from_twin(self.machine, res)
             yield (h if h.n else None), n
-        if pairs:
-            t, known, est = (np.concatenate(x) for x in zip(*pairs, strict=True))
-            self.lifts = lift_errors(t, known, est)
-        self.warnings = unobservable(forces.assess(self.machine, smoothing))
-        self.warnings += inconsistent(residuals.assess(self.machine, smoothing))
+        self.lifts = notes.lifts()
+        self.warnings = unobservable(notes.force_observability(self.machine))
+        self.warnings += inconsistent(notes.model_consistency(self.machine))
         if self.warnings:
             self.label += "; " + "; ".join(self.warnings)
