@@ -17,6 +17,7 @@ from cranetwin.model import Machine, load_machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal.quantisation import (
     _MAX_LEVELS,
+    CONTEXT,
     MIN_STEP_TOLS,
     REL_TOL,
     detect_lattice,
@@ -166,8 +167,9 @@ def machine() -> Machine:
     return load_machine("patu655")
 
 
-def _quantised(machine: Machine, share: float = 0.1) -> tuple[Synthetic, SampleArrays]:
-    s = make(machine, duration_s=14.0, payload=150.0, with_angle=True, fine_hz=None)
+def _quantised(machine: Machine, share: float = 0.1,
+               duration_s: float = 14.0) -> tuple[Synthetic, SampleArrays]:
+    s = make(machine, duration_s=duration_s, payload=150.0, with_angle=True, fine_hz=None)
     smp = s.samples
     values = smp.values.copy()
     for ch in machine.channels:
@@ -226,3 +228,53 @@ def test_uniform_noise_is_not_reconstructed(machine: Machine) -> None:
     s = make(machine, duration_s=6.0, payload=150.0, with_angle=True, fine_hz=None)
     res = replay(inject_uniform_noise(s.samples, machine, 0.05, seed=1), machine)
     assert all(c.step == 0.0 for c in res.smoothing.values())
+
+
+@pytest.mark.timeout(300)
+def test_model_based_forces_take_the_reconstructed_pressures_and_stream_as_the_batch(
+        machine: Machine) -> None:
+    """Quantised pressures with every force model-based: F_raw of the residual is Eq. 1–2 of
+    the reconstruction the smoothing used (:func:`force_model.raw_pressures`: a block with the
+    reconstruction's context equals the whole record's reconstruction, not the staircase), and
+    the stream, whose chunks reconstruct their own blocks, equals the batch at every seam."""
+    from cranetwin.twin import TwinStream
+    from cranetwin.twin.force_model import raw_context, raw_pressures
+
+    _, q = _quantised(machine, duration_s=40.0)  # long enough for seams inside
+    first = replay(q, machine, options=ReplayOptions(model_forces="on"))
+    choices = tuple(first.smoothing.values())
+    opt = ReplayOptions(smoothing=choices, sample_period_s=0.01, chunk_samples=700)
+    plan = TwinStream(machine, q.channels, opt).plan
+    cols = list(plan.cmap.p_a) + list(plan.cmap.p_b)
+    steps = [choices[j].step for j in cols]
+    assert all(c.model_based for k, c in first.smoothing.items() if k.endswith("_pA"))
+    assert sum(h > 0 for h in steps) >= 2
+    ctx = raw_context(plan, choices)
+    assert ctx == CONTEXT
+    p = np.stack([q.column(plan.cmap.names[j]) for j in cols], axis=1)
+    lo, hi = 500, 900
+    got = raw_pressures(plan, choices, p[lo - ctx : hi + ctx], ctx, hi - lo)
+    for k, h in enumerate(steps):
+        want = reconstruct(p[:, k], h)[lo:hi] if h > 0 else p[lo:hi, k]
+        np.testing.assert_array_equal(got[:, k], want)
+    moved = [k for k, h in enumerate(steps) if h > 0 and np.any(got[:, k] != p[lo:hi, k])]
+    assert moved  # the staircase was replaced (else the comparison shows nothing)
+    # not model-based: no context, the regularised pressures as they are
+    plain = tuple(dataclasses.replace(c, model_based=False) for c in choices)
+    assert raw_context(plan, plain) == 0
+    np.testing.assert_array_equal(raw_pressures(plan, plain, p[lo:hi], 0, hi - lo), p[lo:hi])
+    # the residual's windows reach far only where its noise σ is large: each force gets its
+    # step's σ (±h/2 uniform on A_A·p_A), so that the chunks' residual ranges reach their edges
+    loud = list(choices)
+    for c, (ia, ib) in enumerate(zip(plan.cmap.p_a, plan.cmap.p_b, strict=True)):
+        s = machine.cylinders[c].area_a_m2 * choices[ia].step / np.sqrt(12.0)
+        if s > 0:
+            loud[ia] = dataclasses.replace(choices[ia], sigma=s)
+            loud[ib] = dataclasses.replace(choices[ib], sigma=s)
+    opt = dataclasses.replace(opt, smoothing=tuple(loud))
+    batch = replay(q, machine, options=opt)
+    streamed = stream_in_random_chunks(q, machine, opt, seed=4)
+    assert streamed.n == batch.n
+    for name in ("cyl_force", "actuator_torque", "residual", "joint_wrench", "payload_kg"):
+        a, b = getattr(streamed, name), getattr(batch, name)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-8 * np.nanmax(np.abs(b)), err_msg=name)

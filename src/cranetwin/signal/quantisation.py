@@ -38,6 +38,7 @@ it, so a block with that much context on each side gives the same values as the 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -64,6 +65,9 @@ REACH = max(DEFAULT_WINDOWS) // 2
 """Default reach of :func:`reconstruct` [samples]: a level held longer than the longest
 smoothing window (2·REACH + 1) is taken as a rest; shorter ones as passages or turning points,
 which the smoothing windows would span anyway."""
+CONTEXT = 2 * REACH
+"""Samples of context on each side with which a block's reconstruction (default reach) equals
+the whole record's at the block's samples (:func:`reconstruct`)."""
 
 
 class Lattice(NamedTuple):
@@ -179,4 +183,26 @@ def reconstruct(y: F64, step: float, reach: int = REACH) -> F64:
     r = np.interp(np.arange(m, dtype=np.float64), t_a[order], v_a[order])
     np.clip(r, x - 0.5 * h, x + 0.5 * h, out=r)
     out[fin] = r
+    return out
+
+
+def reconstruct_columns(rows: F64, steps: Sequence[float]) -> F64:
+    """Rows of several channels with every quantised one reconstructed (:func:`reconstruct`,
+    default reach): what the replay smooths, and what the model-based force's raw pressures
+    are.
+
+    Args:
+        rows: Samples, shape (n, c) [channel units].
+        steps: Per column its detected step (c,) [channel unit]; 0: not quantised.
+
+    Returns:
+        A copy of ``rows`` with column j reconstructed where steps[j] > 0; ``rows`` itself
+        when no column is.
+    """
+    quantised = [j for j, h in enumerate(steps) if h > 0]
+    if not quantised:
+        return rows
+    out = rows.copy()
+    for j in quantised:
+        out[:, j] = reconstruct(rows[:, j], steps[j])
     return out

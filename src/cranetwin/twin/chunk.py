@@ -47,7 +47,9 @@ class ChunkRows(NamedTuple):
         r0: First sample of the model-based forces' residuals
             (:func:`cranetwin.twin.force_model.residual_range`).
         raw: The regularised, unsmoothed pressures at samples r0 … (pA then pB per cylinder,
-            (m, 2·n_c) [Pa]); m = 0 when no force is model-based.
+            (m, 2·n_c) [Pa]), a quantised channel reconstructed as the smoothing does
+            (:func:`cranetwin.twin.force_model.raw_pressures`); m = 0 when no force is
+            model-based.
         known: A known payload series at samples e0 … e1, (e1 − e0 + 1,) [kg], NaN where not
             known (:mod:`cranetwin.twin.known_payload`); None: none.
     """

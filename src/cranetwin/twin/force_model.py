@@ -12,12 +12,14 @@ gets wrong; the pressures see those. The estimate is the complementary filter::
     F = F_model + S(F_raw − F_model)
 
 with F_raw Eq. 1–2 from the unsmoothed (regularised) pressures at the smoothed rod velocity
-and S LPA-ICI on the residual (:func:`cranetwin.signal.ici_smooth_pair`, windows up to
-``max(MODEL_WINDOWS)`` samples, order ``MODEL_POLYORDER``, Γ = ``MODEL_GAMMA``): the residual
-is near zero between transients, so S takes long windows there (far longer than the force
-itself allows) and short ones at the transients. Where the model has no force (a rod in its
-end stop, whose reaction the pressures do not show; a non-finite moment arm) F_model is the
-pressure-smoothed force instead.
+(a pressure channel on a coarse lattice reconstructed through its level crossings first, as
+the smoothing does: :func:`raw_pressures`) and S LPA-ICI on the residual
+(:func:`cranetwin.signal.ici_smooth_pair`, windows up to ``max(MODEL_WINDOWS)`` samples,
+order ``MODEL_POLYORDER``, Γ = ``MODEL_GAMMA``): the residual is near zero between
+transients, so S takes long windows there (far longer than the force itself allows) and short
+ones at the transients. Where the model has no force (a rod in its end stop, whose reaction
+the pressures do not show; a non-finite moment arm) F_model is the pressure-smoothed force
+instead.
 
 Which cylinders use it is decided with the smoothing windows
 (:func:`cranetwin.twin.channels.choose_smoothing`, ``ReplayOptions.model_forces``): with
@@ -38,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from cranetwin.signal import SmoothingChoice, ici_smooth_pair
+from cranetwin.signal.quantisation import CONTEXT, reconstruct_columns
 from cranetwin.signal.window import DEFAULT_WINDOWS
 from cranetwin.twin.observability import RESOLVABLE_SHARE
 
@@ -97,6 +100,38 @@ def model_half(plan: ReplayPlan, choices: tuple[SmoothingChoice, ...] | None) ->
     return max(MODEL_WINDOWS) // 2
 
 
+def pressure_steps(plan: ReplayPlan, choices: tuple[SmoothingChoice, ...]) -> tuple[float, ...]:
+    """(2·n_c,) the detected quantisation step [Pa] of each pressure channel (pA then pB per
+    cylinder, :attr:`SmoothingChoice.step`) of a model-based cylinder; 0 for the others and
+    where none was detected."""
+    use = model_cylinders(plan, choices)
+    pa = [choices[j].step if u else 0.0 for j, u in zip(plan.cmap.p_a, use, strict=True)]
+    pb = [choices[j].step if u else 0.0 for j, u in zip(plan.cmap.p_b, use, strict=True)]
+    return tuple(pa + pb)
+
+
+def raw_context(plan: ReplayPlan, choices: tuple[SmoothingChoice, ...] | None) -> int:
+    """Samples of context on each side of the residual's range that :func:`raw_pressures`
+    needs: the reconstruction's (:data:`cranetwin.signal.quantisation.CONTEXT`) where a
+    model-based cylinder's pressure channel is quantised, else 0."""
+    if choices is None or not model_half(plan, choices):
+        return 0
+    return CONTEXT if any(h > 0 for h in pressure_steps(plan, choices)) else 0
+
+
+def raw_pressures(plan: ReplayPlan, choices: tuple[SmoothingChoice, ...], block: F64,
+                  lead: int, m: int) -> F64:
+    """The pressures F_raw is Eq. 1–2 of, at m samples, (m, 2·n_c) [Pa] (pA then pB per
+    cylinder): rows ``lead`` … ``lead + m − 1`` of ``block``, regularised pressures in that
+    layout (nb, 2·n_c) [Pa] with :func:`raw_context` samples of context on each side of those
+    rows (fewer only at the data's ends), each quantised channel of a model-based cylinder
+    reconstructed through its level crossings as the smoothing reconstructs it
+    (:func:`cranetwin.signal.quantisation.reconstruct_columns`): with that context the values
+    equal the whole record's, so the stream's seams do not show."""
+    out: F64 = reconstruct_columns(block, pressure_steps(plan, choices))[lead : lead + m]
+    return out
+
+
 def model_forces(plan: ReplayPlan, tau: F64, arm: F64, rod_s: F64, fallback: F64) -> F64:
     """F_model (n, n_c) [N]: the inverse-dynamics load of each cylinder's joint, τ_id (n, n_j)
     [N·m or N], over its moment arm ds/dq (n, n_c) [m/rad or 1]; ``fallback`` (n, n_c) where
@@ -112,9 +147,9 @@ def model_forces(plan: ReplayPlan, tau: F64, arm: F64, rod_s: F64, fallback: F64
 
 def residual_correction(raw_f: F64, f_model: F64, sigma: F64, use: B) -> F64:
     """S(F_raw − F_model) (n, n_c) [N] for the cylinders in ``use`` (0 for the others), from
-    Eq. 1–2 of the raw pressures ``raw_f`` and the model forces (n, n_c) [N]; ``sigma`` (n_c,)
-    the raw force noise [N] (module docstring). Non-finite residuals (a dropout's edges)
-    count as 0."""
+    Eq. 1–2 of the raw pressures ``raw_f`` (:func:`raw_pressures`) and the model forces
+    (n, n_c) [N]; ``sigma`` (n_c,) the raw force noise [N] (module docstring). Non-finite
+    residuals (a dropout's edges) count as 0."""
     out = np.zeros(raw_f.shape)
     zero = np.zeros(raw_f.shape[0])
     for k in np.flatnonzero(use):

@@ -152,6 +152,12 @@ class TwinStream:
         (:mod:`cranetwin.twin.force_model`; 0 when no force is model-based)."""
         return force_model.model_half(self.plan, self._choices)
 
+    @property
+    def _fc(self) -> int:
+        """Samples of context on each side of the residual's range that its raw pressures'
+        reconstruction needs (:func:`cranetwin.twin.force_model.raw_context`)."""
+        return force_model.raw_context(self.plan, self._choices)
+
     def _payload_setting(self) -> PayloadSetting:
         assert self._choices is not None
         hit = self._pw_cache
@@ -452,11 +458,18 @@ class TwinStream:
 
     def _raw_pressures(self, r0: int, r1: int) -> F64:
         """Regularised pressures at samples r0 … r1 (pA then pB per cylinder, (m, 2·n_c)
-        [Pa]) when a force is model-based, else (0, 2·n_c)."""
+        [Pa]; a quantised one reconstructed, :func:`cranetwin.twin.force_model.raw_pressures`)
+        when a force is model-based, else (0, 2·n_c)."""
+        assert self._choices is not None
         cols = list(self.cmap.p_a) + list(self.cmap.p_b)
         if not self._fh:
             return np.empty((0, len(cols)))
-        return self._reg.get(r0, r1 + 1)[:, cols]
+        # the context (≤ fh) lies within the rows _trim keeps (2·fh before the next output)
+        # and those the smoothing waits for (hw ≥ fc after the smoothed rows)
+        fc = self._fc
+        lo, hi = max(0, r0 - fc), min(self._reg.end, r1 + 1 + fc)
+        return force_model.raw_pressures(self.plan, self._choices,
+                                         self._reg.get(lo, hi)[:, cols], r0 - lo, r1 + 1 - r0)
 
 
 def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: float = 1000.0,

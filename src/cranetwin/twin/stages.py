@@ -28,8 +28,8 @@ from cranetwin.signal import (
     ici_smooth_pair,
     savgol_smooth,
 )
-from cranetwin.signal.quantisation import REACH as RECONSTRUCT_REACH
-from cranetwin.signal.quantisation import reconstruct
+from cranetwin.signal.quantisation import CONTEXT as RECONSTRUCT_CONTEXT
+from cranetwin.signal.quantisation import reconstruct_columns
 from cranetwin.signal.savgol import savgol_columns
 from cranetwin.twin import kintable
 from cranetwin.twin.channels import ChannelMap
@@ -211,13 +211,10 @@ def smooth_rows(plan: ReplayPlan, choices: tuple[SmoothingChoice, ...], raw: F64
     batched filter bank (``edges``: whether the rows reach within a window of the data's
     start, end: only there are the end fits needed). A channel on a coarse lattice
     (:attr:`SmoothingChoice.step` > 0) is reconstructed through its level crossings first
-    (:func:`cranetwin.signal.quantisation.reconstruct`; :func:`margins` adds its reach)."""
+    (:func:`cranetwin.signal.quantisation.reconstruct_columns`; :func:`margins` adds its
+    context)."""
     nch = plan.nch
-    quantised = [j for j, c in enumerate(choices[:nch]) if c.step > 0]
-    if quantised:
-        raw = raw.copy()
-        for j in quantised:
-            raw[:, j] = reconstruct(raw[:, j], choices[j].step)
+    raw = reconstruct_columns(raw, [c.step for c in choices[:nch]])
     dcols = list(plan.cmap.derivative_channels)
     out = np.empty((raw.shape[0], plan.width))
     written: set[int] = set()  # the rest is NaN (the integrated angles' columns)
@@ -391,7 +388,7 @@ def margins(choices: tuple[SmoothingChoice, ...] | None, nch: int, period: float
     which otherwise biases the estimate by tens of kg in fast motion."""
     hw = 0 if choices is None else max(c.window // 2 for c in choices)
     if choices is not None and any(c.step > 0 for c in choices[:nch]):
-        hw += 2 * RECONSTRUCT_REACH  # the reconstruction's context (:func:`smooth_rows`)
+        hw += RECONSTRUCT_CONTEXT  # the reconstruction's context (:func:`smooth_rows`)
     half = max(1, int(round(payload_window_s / period / 2)))
     pf = 1 if choices is None else max([1] + [c.window for c in choices[nch:]])
     return hw, half, pf
