@@ -246,10 +246,11 @@ class CrashingStore(Store):
 
 def run_writer(store: Store, cfg: BusConfig, until: Any, timeout_s: float = 30.0,
                batch_max: int = 50, batch_wait_s: float = 0.05,
-               on_ready: Any = None) -> dict[str, Any] | BaseException:
-    """A StoreWriter over every partition until ``until()`` holds; returns its counters, or the
-    exception it died of. ``on_ready()`` runs in a thread once it consumes."""
-    writer = StoreWriter(store, cfg, range(cfg.partitions), None,
+               on_ready: Any = None, live: Any = None) -> dict[str, Any] | BaseException:
+    """A StoreWriter over every partition (live fan-out ``live``) until ``until()`` holds;
+    returns its counters, or the exception it died of. ``on_ready()`` runs in a thread once it
+    consumes."""
+    writer = StoreWriter(store, cfg, range(cfg.partitions), live,
                          WriterConfig(batch_max=batch_max, batch_wait_s=batch_wait_s,
                                       fetch_wait_s=0.2))
     out: list[Any] = []
@@ -449,6 +450,89 @@ def test_writer_holds_messages_through_a_database_outage_without_redelivery(
         assert counters["stored_blocks"] == 60 and counters["duplicates"] == 0
         keys = stored_keys(store, ["crane-1", "crane-2", "crane-3"])
         assert len(keys) == len(set(keys)) == 60
+    finally:
+        store.close()
+
+
+class SlowStore(Store):
+    """The first ``write_batch`` takes ``slow_s`` [s] longer (a slow commit)."""
+
+    slow_s = 0.0
+
+    def write_batch(self, blocks: Any) -> Any:
+        import time
+
+        delay, self.slow_s = self.slow_s, 0.0
+        time.sleep(delay)
+        return super().write_batch(blocks)
+
+
+class SlowLive:
+    """A live fan-out whose first ``publish`` takes ``slow_s`` [s] (a stalled live bus)."""
+
+    def __init__(self, slow_s: float) -> None:
+        self.slow_s = slow_s
+        self.published = 0
+
+    def publish(self, blocks: Any) -> None:
+        import time
+
+        delay, self.slow_s = self.slow_s, 0.0
+        time.sleep(delay)
+        self.published += len(blocks)
+
+    def subscribe(self) -> Any:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("slow", ["commit", "fan-out", "setup"])
+def test_writer_keeps_messages_in_progress_however_slow_it_is(
+        bus: BusConfig, sqlite_url: str, slow: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One phase of the writer takes 2 × ack_wait: the first commit, the live fan-out of the
+    first batch (the later messages wait behind it), or the consumers' set-up at start (one
+    partition's messages arrive while the next partitions' consumers are created). Every
+    message in hand is kept in progress meanwhile: none is delivered again (no redelivery, no
+    duplicate write), every block stored once. Before, the last two redelivered."""
+    import time
+
+    import nats.js.manager
+
+    sink = _store(sqlite_url, bus)
+    sent = [block(f"crane-{1 + s % 3}", s) for s in range(30)]
+    try:
+        assert all(o.status == "stored" for o in sink.write_batch(sent).outcomes)
+    finally:
+        sink.close()
+    stall_s = 2 * bus.ack_wait_s
+    store = SlowStore.open(sqlite_url)
+    live = SlowLive(stall_s if slow == "fan-out" else 0.0)
+    if slow == "commit":
+        store.slow_s = stall_s
+    if slow == "setup":  # the 4 partitions' set-up takes 4 × 0.5 × stall_s in all
+        add = nats.js.manager.JetStreamManager.add_consumer
+
+        async def slow_add(self: Any, *a: Any, **k: Any) -> Any:
+            await asyncio.sleep(stall_s / 2)
+            return await add(self, *a, **k)
+
+        monkeypatch.setattr(nats.js.manager.JetStreamManager, "add_consumer", slow_add)
+    done_at: list[float] = []
+
+    def until() -> bool:  # every block stored, then 2 × ack_wait more for any redelivery
+        if not done_at and len(stored_keys(store, ["crane-1", "crane-2", "crane-3"])) >= 30:
+            done_at.append(time.monotonic())
+        return bool(done_at) and time.monotonic() > done_at[0] + 2 * bus.ack_wait_s
+    try:
+        counters = run_writer(store, bus, until=until, timeout_s=40, batch_max=10, live=live)
+        assert isinstance(counters, dict), counters
+        assert done_at, counters
+        assert (counters["redelivered"], counters["duplicates"]) == (0, 0), counters
+        assert counters["messages"] == counters["stored_blocks"] == live.published == 30
+        keys = stored_keys(store, ["crane-1", "crane-2", "crane-3"])
+        assert len(keys) == len(set(keys)) == 30
     finally:
         store.close()
 

@@ -325,9 +325,6 @@ def test_store_writer_stores_on_the_shards_and_serves_metrics(shards: Shards, tm
         delete_stream(cfg)
 
 
-# runs alone (`make test`'s serial part): with another test process beside it on 2 cores it once
-# counted 6 duplicate writes (nothing lost or doubled in storage); not yet explained
-@pytest.mark.serial
 @pytest.mark.postgres
 @pytest.mark.timeout(180)
 def test_store_writer_naks_a_down_shards_blocks_and_stores_them_once_it_is_back(

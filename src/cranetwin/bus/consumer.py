@@ -14,7 +14,12 @@ unacknowledged, which bounds what a writer holds) and::
                                         ack every message of the batch ─► live fan-out (optional)
 
 A message is acked only after the transaction that holds its block has committed (stored, or
-found already stored). A writer killed at any point leaves its unacked messages to be delivered
+found already stored). Until it is answered, every message in hand is kept in progress
+(``+WPI`` every ``ack_wait/4`` once it has been held that long), whatever it waits for: the
+consumers of the other partitions being set up at start, its batch, a slow commit, a database
+outage, the live fan-out of the batch before it. So a live writer's messages are not delivered
+again, however slow it is (a redelivery would be written twice, the second time as a
+``duplicate``). A writer killed at any point leaves its unacked messages to be delivered
 again after ``ack_wait``; storage's (machine, epoch, seq) uniqueness turns the second write into
 a ``duplicate``, so every block is stored exactly once. A block storage refuses (``overlap``,
 ``seq_reused``, …: its machine was already acknowledged by the daemon) is terminated on the bus
@@ -185,6 +190,9 @@ class StoreWriter:
         self._nats = nats_module()
         self._nc: Any = None
         self._pending: list[tuple[int, Any, float]] = []  # (partition, message, arrival [s])
+        # every message in hand, pending or in the batch being handled, until it is answered:
+        # id(message) → (message, arrival [s]); kept in progress by _heartbeat
+        self._held: dict[int, tuple[Any, float]] = {}
         self._arrived = asyncio.Event()  # the first message is in hand
         self._full = asyncio.Event()  # batch_max messages are in hand
         self._closing = False  # the background loops end at their next turn
@@ -236,10 +244,12 @@ class StoreWriter:
     def _on_msg(self, partition: int) -> Callable[[Any], Awaitable[None]]:
         """The subscription callback of one partition."""
 
-        pending, batch_max = self._pending, self.config.batch_max
+        pending, held, batch_max = self._pending, self._held, self.config.batch_max
 
         async def cb(msg: Any) -> None:
-            pending.append((partition, msg, time.monotonic()))
+            now = time.monotonic()
+            pending.append((partition, msg, now))
+            held[id(msg)] = (msg, now)
             if len(pending) == 1:
                 self._arrived.set()
             elif len(pending) >= batch_max:
@@ -253,22 +263,42 @@ class StoreWriter:
             await self._nc.publish(msg.reply, what)
 
     async def _ack(self, msg: Any, what: bytes) -> None:
-        """:meth:`_reply` after the commit; a reply lost to a reconnect is not an error (the
+        """:meth:`_answer` after the commit; a reply lost to a reconnect is not an error (the
         message is delivered again and stored as a duplicate, then acked)."""
         try:
-            await self._reply(msg, what)
+            await self._answer(msg, what)
         except Exception as exc:
             self._log_once("ack", "an ack was not sent (the message will be delivered again): "
                            "%s", exc)
 
-    async def _keep_in_progress(self, msgs: list[Any]) -> None:
-        """Tell JetStream the batch in hand and the messages waiting behind it are being worked
-        on (a long database outage), so they are not delivered again meanwhile."""
+    async def _answer(self, msg: Any, what: bytes) -> None:
+        """The final :meth:`_reply` to a message (``+ACK``, ``-NAK``, ``+TERM``): it is no
+        longer in hand, so :meth:`_heartbeat` sends it nothing more (a ``+WPI`` after a
+        ``-NAK`` would push its redelivery from ``nak_delay_s`` out to ``ack_wait``)."""
+        self._held.pop(id(msg), None)
+        await self._reply(msg, what)
+
+    async def _heartbeat(self) -> None:
+        """Keep every message in hand in progress (``+WPI``) while it waits for its batch, is
+        decoded, written (however long the commit or a database outage takes) or waits
+        behind the live fan-out, so JetStream does not deliver it again after ``ack_wait``
+        (its redelivery would be written a second time, as a ``duplicate``).
+
+        Every ``ack_wait/4`` each message held at least that long is marked: its first mark
+        goes out at most ``ack_wait/2`` after it arrived, the next ones every ``ack_wait/4``.
+        Runs from before the first subscription (messages arrive while the other partitions'
+        consumers are being set up) until the writer closes."""
+        period = max(self.bus.ack_wait_s / 4, 0.05)
+        held = self._held
         while not self._closing:
-            await asyncio.sleep(max(self.bus.ack_wait_s / 3, 0.1))
-            for m in [*msgs, *(m for _, m, _ in self._pending)]:
-                with contextlib.suppress(Exception):
-                    await self._reply(m, b"+WPI")
+            await asyncio.sleep(period)
+            old = time.monotonic() - period
+            for key, (m, t) in list(held.items()):
+                # checked again right before the publish, which queues the +WPI before
+                # yielding: a message answered meanwhile gets nothing after its answer
+                if t <= old and key in held:
+                    with contextlib.suppress(Exception):
+                        await self._reply(m, b"+WPI")
 
     def _count_delivery(self, items: list[tuple[int, Any]]) -> None:
         mt = self.metrics
@@ -293,18 +323,14 @@ class StoreWriter:
                 self._log_once("bad_message", "message on %s is not a block, terminated: %s",
                                m.subject, got)
                 with contextlib.suppress(Exception):
-                    await self._reply(m, b"+TERM")
+                    await self._answer(m, b"+TERM")
             else:
                 blocks.append(got)
                 kept.append(m)
                 parts.append(p)
         if not blocks:
             return
-        keep = asyncio.create_task(self._keep_in_progress(kept))
-        try:
-            result = await asyncio.to_thread(self._write_db, blocks)
-        finally:
-            keep.cancel()
+        result = await asyncio.to_thread(self._write_db, blocks)
         if result is None:  # stopped during an outage: delivered again to the next writer
             return
         c.batches += 1
@@ -318,7 +344,7 @@ class StoreWriter:
                                "database shard is unavailable (delivered again): %s", p,
                                o.detail)
                 with contextlib.suppress(Exception):
-                    await self._reply(m, nak)
+                    await self._answer(m, nak)
                 continue
             if o.status == "refused":
                 reason = o.reason or "unstorable"
@@ -404,6 +430,7 @@ class StoreWriter:
         tasks: list[asyncio.Task[None]] = []
         subs: list[Any] = []
         try:
+            tasks.append(asyncio.create_task(self._heartbeat()))
             js = nc.jetstream(timeout=5)
             await ensure_stream(js, self.bus)
             jsm = nc.jsm(timeout=5)
