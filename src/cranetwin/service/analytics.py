@@ -99,11 +99,14 @@ def cylinder_loads(machine: Machine, q: np.ndarray, id_torque: np.ndarray,
     return np.where(ok, tau / np.where(ok, arm, 1.0), cyl_force)
 
 
-def load_history(machine: Machine, res: Any, keep: np.ndarray) -> Any:
+def load_history(machine: Machine, res: Any, keep: np.ndarray,
+                 reach_m: np.ndarray | None = None) -> Any:
     """:class:`cranetwin.analytics.LoadHistory` of the kept instants of a replay result, with
     where its payload is steady and the payload net of each lift's empty reading
     (:func:`lift_payload`) and the cylinders' load forces by inverse dynamics
-    (:func:`cylinder_loads`: at a stroke end, what shock loads are taken from)."""
+    (:func:`cylinder_loads`: at a stroke end, what shock loads are taken from).
+    ``reach_m``: the kept instants' horizontal reach [m], shape (k,), when the caller has it
+    (None: computed here)."""
     from cranetwin.analytics import LoadHistory
     from cranetwin.physics import horizontal_reach
 
@@ -111,7 +114,8 @@ def load_history(machine: Machine, res: Any, keep: np.ndarray) -> Any:
     steady, net = lift_payload(res)
     return LoadHistory.from_arrays(
         machine, t_s=res.t_s[keep], cyl_force=res.cyl_force[keep], q=q, qd=res.qd[keep],
-        payload_kg=np.maximum(net[keep], 0.0), reach_m=horizontal_reach(machine, q),
+        payload_kg=np.maximum(net[keep], 0.0),
+        reach_m=horizontal_reach(machine, q) if reach_m is None else reach_m,
         joint_wrench=res.joint_wrench[keep], rod_s=res.rod_s[keep], rod_v=res.rod_v[keep],
         p_a=res.p_a[keep], p_b=res.p_b[keep], payload_steady=steady[keep],
         cyl_load=cylinder_loads(machine, q, res.id_torque[keep], res.cyl_force[keep]))
