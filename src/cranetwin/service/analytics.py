@@ -62,13 +62,14 @@ def lift_payload(res: Any, threshold_kg: float | None = None,
             result's grid, which the replay puts at the sample rate).
     """
     from cranetwin.analytics import ProductivityConfig
+    from cranetwin.analytics.history import median_step
     from cranetwin.twin.lifts import result_lifts, steady_mask
 
     net = np.array(res.payload_kg, dtype=np.float64, copy=True)
     if res.t_s.shape[0] < 2:
         return np.zeros(res.t_s.shape, dtype=bool), net
     thr = ProductivityConfig().grab_kg if threshold_kg is None else threshold_kg
-    dt = float(np.median(np.diff(res.t_s))) if sample_period_s is None else sample_period_s
+    dt = median_step(res.t_s) if sample_period_s is None else sample_period_s
     lifts = result_lifts(res, dt, thr)
     for lf in lifts:
         if lf.tare_kg != 0.0:
