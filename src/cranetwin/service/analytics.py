@@ -126,15 +126,18 @@ def stored_events(machine_id: str, events: list[Any]) -> list[Any]:
     """Analytics events as storage events (message and details in the evidence)."""
     from cranetwin.storage import Event as StoredEvent
 
+    def finite(v: float) -> float | None:  # what :func:`_jsonable` makes of a float
+        return v if math.isfinite(v) else None
+
     out = []
     for e in events:
         msg = (f"{e.kind.replace('_', ' ')} on {e.component}: {e.value:.4g} {e.unit} "
                f"(limit {e.limit:.4g} {e.unit})")
-        evidence = {"message": msg, "component": e.component, "value": float(e.value),
-                    "limit": float(e.limit), "unit": e.unit, "t_end": float(e.t_end),
-                    **{k: float(v) for k, v in e.evidence.items()}}
-        out.append(StoredEvent(machine_id, float(e.t_start), e.kind, e.severity,
-                               _jsonable(evidence)))
+        evidence = {"message": msg, "component": str(e.component),
+                    "value": finite(float(e.value)), "limit": finite(float(e.limit)),
+                    "unit": str(e.unit), "t_end": finite(float(e.t_end)),
+                    **{str(k): finite(float(v)) for k, v in e.evidence.items()}}
+        out.append(StoredEvent(machine_id, float(e.t_start), e.kind, e.severity, evidence))
     return out
 
 
