@@ -404,3 +404,30 @@ def test_payload_above_hook_rating_is_its_own_event(machine: Machine) -> None:
 def test_state_loads_rejects_foreign_bytes() -> None:
     with pytest.raises(AnalyticsError, match="not an analytics state"):
         AnalyticsState.loads(b"\x80\x04junk")
+
+
+def test_median_step_equals_numpy_median_to_the_bit() -> None:
+    from cranetwin.analytics.history import median_step
+
+    rng = np.random.default_rng(7)
+    for n in [2, 3, 4, 5, 8, 41, 80, 81, 100, 257, 258, 6000]:
+        grid = 1.78e9 + np.arange(n) / 10.0  # a replay grid: steps differing in the last bits
+        jitter = np.cumsum(rng.uniform(0.01, 0.2, n))
+        ties = np.cumsum(rng.choice([0.1, 0.2], n))
+        for t in (grid, jitter, ties):
+            assert median_step(t) == float(np.median(np.diff(t))), n
+
+
+def test_rainflow_counter_table_equals_merging_into_an_empty_one() -> None:
+    from cranetwin.analytics.rainflow import merge_tables
+
+    rng = np.random.default_rng(3)
+    y = np.cumsum(rng.normal(size=400))
+    fresh = RainflowCounter(0.5)
+    first = fresh.update(y)  # the first cycles closed: the counter's table
+    assert first.lower.size > 5
+    merged = merge_tables(RainflowCounter(0.5)._closed, first)
+    for a, b in ((fresh._closed, merged), (first, merged)):
+        for k in ("lower", "upper", "count"):
+            x, z = getattr(a, k), getattr(b, k)
+            assert x.dtype == z.dtype and x.tobytes() == z.tobytes(), k

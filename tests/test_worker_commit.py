@@ -16,6 +16,7 @@ from cranetwin.model import load_machine
 from cranetwin.samples import SampleArrays
 from cranetwin.service.backend import Backend
 from cranetwin.service.worker import TwinWorker
+from cranetwin.service.workercommit import LastPart
 from cranetwin.settings import Settings
 from cranetwin.storage import late_version
 from cranetwin.storage import summaries as summ
@@ -136,7 +137,7 @@ def test_a_machine_another_worker_committed_is_left_out_of_the_pass_commit(
         return real(commits)
 
     b.commit_spans = racing  # type: ignore[method-assign]
-    w._last_part["crane-b"] = (T0 - 60, T0, b"stale")
+    w._last_part["crane-b"] = LastPart(T0 - 60, T0, b"stale")
     assert w.run_once() == 3 * 7
     b.commit_spans = real  # type: ignore[method-assign]
     pa, pb = b.progress("crane-a"), b.progress("crane-b")

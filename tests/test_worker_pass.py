@@ -143,7 +143,8 @@ def test_ownership_away_and_back_keeps_windows_and_parts(pg_url: str,
     for m in moved:  # the look-back of A's next window is B's last part, not A's own last one
         stored = aw.windows(b.store.engine, m, 60, T0, T0 + 40.0)[-1]
         assert stored[1] == T0 + 40.0
-        assert wa._previous_part(b.machine(m), T0 + 40.0) == stored[3], m
+        last = wa._previous_part(b.machine(m), T0 + 40.0)
+        assert last is not None and last.data == stored[3], m
     fill(42.0, 20.0)
     _drain(wa)
     assert own_a.owned == set(range(P))
@@ -156,7 +157,8 @@ def test_ownership_away_and_back_keeps_windows_and_parts(pg_url: str,
         assert all(z == a2 for (_, z, _), (a2, _, _) in zip(parts, parts[1:], strict=False)), m
         assert sum(n for *_, n in parts) == 60 * 20, m  # every instant once
         stored = aw.windows(b.store.engine, m, 60, T0, T0 + 60.0)[-1]
-        assert wa._previous_part(b.machine(m), T0 + 60.0) == stored[3], m  # not a stale one
+        last = wa._previous_part(b.machine(m), T0 + 60.0)
+        assert last is not None and last.data == stored[3], m  # not a stale one
     s = b.summaries(ids[0], ["payload"], T0, T0 + 60, 1000)["payload"][0]
     np.testing.assert_array_equal(s, T0 + np.arange(60.0))  # every second summarised once
     own_a.close()

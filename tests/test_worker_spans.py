@@ -85,6 +85,48 @@ def test_spans_store_what_windows_one_by_one_store(tmp_path: object, base: Sampl
 
 
 @pytest.mark.timeout(300)
+def test_the_kept_look_back_part_stores_what_the_stored_one_stores(
+        tmp_path: object, base: SampleArrays) -> None:
+    """The worker folds its last part as it made it (not decoded from its stored bytes) into
+    the next window's events: a worker that forgets it before every window (and so reads and
+    decodes the stored one) stores the same parts and events, to the bit (the fleet
+    senders' data: events in most windows)."""
+    from sqlalchemy import text
+
+    from cranetwin.bench.worker import _source_base
+
+    fleet = _source_base(10.0, 70.0, 3)
+    urls = [f"sqlite:///{tmp_path}/{name}.db" for name in ("kept", "read")]
+    (bk, wk), (br, wr) = _setup(urls[0]), _setup(urls[1])
+    got = []
+    for b, w, forget in ((bk, wk, False), (br, wr, True)):
+        b.store.write_blocks(_blocks(fleet, T0, 66.0, 0))
+        rec = b.machine(MID)
+        n = 0
+        while True:
+            if forget:
+                w._forget(MID)
+            elif n:
+                assert w._last_part[MID].part is not None  # kept as made
+            if not w.catch_up(rec, 1):
+                break
+            n += 1
+        assert n == 16
+        with b.store.engine.connect() as c:
+            got.append((
+                sorted(tuple(r) for r in c.execute(text(
+                    "SELECT level_s, t0_ns, t1_ns, n, data FROM analytics_windows "
+                    "WHERE level_s = 60"))),
+                sorted(tuple(r) for r in c.execute(text(
+                    "SELECT t_ns, kind, severity, evidence_json FROM events")))))
+        b.close()
+    (parts_k, events_k), (parts_r, events_r) = got
+    assert len(parts_k) == 16 and len(events_k) >= 5
+    assert parts_k == parts_r
+    assert events_k == events_r
+
+
+@pytest.mark.timeout(300)
 def test_late_data_redoes_the_stored_span(sqlite_url: str, base: SampleArrays) -> None:
     b, worker = _setup(sqlite_url)
     b.store.write_blocks(_blocks(base, T0, 10.0, 0))

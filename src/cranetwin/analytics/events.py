@@ -16,7 +16,7 @@ from functools import partial
 import numpy as np
 import numpy.typing as npt
 
-from cranetwin.analytics.history import LoadHistory
+from cranetwin.analytics.history import LoadHistory, median_step
 from cranetwin.analytics.runs import Run, RunTracker, Segments, concat_segments, segments
 from cranetwin.errors import AnalyticsError
 from cranetwin.model import Machine
@@ -315,13 +315,19 @@ class EventDetector:
         start with a carried tail: the look-back reaches into it)."""
         c = self.cfg
         out: list[Event] = []
-        if rod_s is None or rod_v is None:
+        if rod_s is None or rod_v is None or e_hi <= max(e_lo, 1):
+            return out
+        lo_all = rod_s <= c.end_zone_m  # every cylinder at once: most chunks have no entry
+        hi_all = rod_s >= np.array([cyl.stroke_m for cyl in self.machine.cylinders]) \
+            - c.end_zone_m
+        ent_lo = lo_all[1:] & ~lo_all[:-1]
+        ent_hi = hi_all[1:] & ~hi_all[:-1]
+        if not (ent_lo.any() or ent_hi.any()):
             return out
         for i, cyl in enumerate(self.machine.cylinders):
             s, v = rod_s[:, i], rod_v[:, i]
-            lo, hi = s <= c.end_zone_m, s >= cyl.stroke_m - c.end_zone_m
-            for zone, end, sign in ((lo, 0.0, -1.0), (hi, 1.0, 1.0)):
-                entry = np.flatnonzero(zone[1:] & ~zone[:-1]) + 1
+            for ent, end, sign in ((ent_lo[:, i], 0.0, -1.0), (ent_hi[:, i], 1.0, 1.0)):
+                entry = np.flatnonzero(ent) + 1
                 for e in entry[(entry >= e_lo) & (entry < e_hi)].tolist():
                     w0 = int(np.searchsorted(t, t[e] - c.end_stop_window_s))
                     toward = float(np.max(sign * v[w0:e + 1]))
@@ -370,7 +376,7 @@ class EventDetector:
         if h.n == 0:
             return None
         t, f = h.t_s, load_force(self.machine, h, self.cfg.end_zone_m)  # one force for both
-        dt = float(np.median(np.diff(t[: min(t.shape[0], 100)]))) if t.shape[0] > 1 else 1.0
+        dt = median_step(t[:100]) if t.shape[0] > 1 else 1.0
         keep, lag = self._keep(dt), self._lag(dt)
         n = t.shape[0]
         hd = min(keep, n)
@@ -410,7 +416,7 @@ class EventDetector:
         # carried samples too, as update() did, when the chunk alone is one sample)
         lag = p.lag
         if p.n < 2 and t.shape[0] > 1:
-            lag = self._lag(float(np.median(np.diff(t[: min(t.shape[0], 100)]))))
+            lag = self._lag(median_step(t[:100]))
         first = max(k0, lag)
         stop = k0 + min(max(lag, hd), p.n) if p.n > lag else k0 + hd
         head_shock = self._shock_segments(t, f, lag, first, stop) if t.shape[0] > lag else {}
@@ -430,7 +436,7 @@ class EventDetector:
             crs = None if trs is None or prs is None else np.concatenate([trs, prs])
             crv = None if trv is None or prv is None else np.concatenate([trv, prv])
             cf = np.concatenate([tf, pf])
-        dt = float(np.median(np.diff(ct[: min(ct.shape[0], 100)]))) if ct.shape[0] > 1 else 1.0
+        dt = median_step(ct[:100]) if ct.shape[0] > 1 else 1.0
         keep = self._keep(dt)
         sl = slice(max(ct.shape[0] - keep, 0), None)
         self._tail = (ct[sl].copy(), None if crs is None else crs[sl].copy(),

@@ -19,6 +19,19 @@ from cranetwin.model import Machine
 F64 = npt.NDArray[np.float64]
 
 
+def median_step(t: F64) -> float:
+    """Median of the steps of the times ``t`` [s], shape (n,), n ≥ 2: the same value as
+    ``float(np.median(np.diff(t)))`` (the middle step, or the mean of the two middle ones), for
+    short series without its fixed cost (the steps are sorted as Python floats; long series go
+    to ``np.median``). The look-back sizes of the event detector read it per chunk."""
+    d = np.diff(t)
+    if d.shape[0] > 256 or not np.all(np.isfinite(d)):
+        return float(np.median(d))
+    s: list[float] = sorted(d.tolist())
+    k = len(s) // 2
+    return s[k] if len(s) % 2 else (s[k - 1] + s[k]) / 2
+
+
 def _arr(name: str, value: npt.ArrayLike | None, shape: tuple[int, ...]) -> F64 | None:
     if value is None:
         return None

@@ -133,10 +133,14 @@ class CycleTable:
         return float(self.count.sum())
 
 
+def _empty_table(width: float) -> CycleTable:
+    e = np.empty(0, dtype=np.int64)
+    return CycleTable(width, e, e.copy(), np.empty(0, dtype=np.float64))
+
+
 def _count_pairs(width: float, lo: I64, hi: I64, weight: F64) -> CycleTable:
     if lo.size == 0:
-        e = np.empty(0, dtype=np.int64)
-        return CycleTable(width, e, e.copy(), np.empty(0, dtype=np.float64))
+        return _empty_table(width)
     base = int(lo.min())
     span = int(hi.max()) - base + 1
     keys, inv = np.unique((lo - base) * span + (hi - base), return_inverse=True)
@@ -145,6 +149,8 @@ def _count_pairs(width: float, lo: I64, hi: I64, weight: F64) -> CycleTable:
 
 
 def _table(width: float, pairs: I64, weight: float) -> CycleTable:
+    if pairs.shape[0] == 0:
+        return _empty_table(width)
     lo = np.minimum(pairs[:, 0], pairs[:, 1])
     hi = np.maximum(pairs[:, 0], pairs[:, 1])
     return _count_pairs(width, lo, hi, np.full(lo.size, weight))
@@ -206,8 +212,9 @@ class RainflowCounter:
         self._tail = tp[-2:].copy()
         cycles, self._residue = _four_point(np.concatenate([self._residue, new_rev]))
         closed = _table(self.class_width, cycles, 1.0)
-        if closed.lower.size:
-            self._closed = merge_tables(self._closed, closed)
+        if closed.lower.size:  # (the first cycles are the table: merging them alone with the
+            self._closed = (closed if self._closed.lower.size == 0  # empty one is a copy)
+                            else merge_tables(self._closed, closed))
         return closed
 
     def absorb(self, other: RainflowCounter) -> RainflowCounter:

@@ -62,13 +62,14 @@ def lift_payload(res: Any, threshold_kg: float | None = None,
             result's grid, which the replay puts at the sample rate).
     """
     from cranetwin.analytics import ProductivityConfig
+    from cranetwin.analytics.history import median_step
     from cranetwin.twin.lifts import result_lifts, steady_mask
 
     net = np.array(res.payload_kg, dtype=np.float64, copy=True)
     if res.t_s.shape[0] < 2:
         return np.zeros(res.t_s.shape, dtype=bool), net
     thr = ProductivityConfig().grab_kg if threshold_kg is None else threshold_kg
-    dt = float(np.median(np.diff(res.t_s))) if sample_period_s is None else sample_period_s
+    dt = median_step(res.t_s) if sample_period_s is None else sample_period_s
     lifts = result_lifts(res, dt, thr)
     for lf in lifts:
         if lf.tare_kg != 0.0:
@@ -99,11 +100,14 @@ def cylinder_loads(machine: Machine, q: np.ndarray, id_torque: np.ndarray,
     return np.where(ok, tau / np.where(ok, arm, 1.0), cyl_force)
 
 
-def load_history(machine: Machine, res: Any, keep: np.ndarray) -> Any:
+def load_history(machine: Machine, res: Any, keep: np.ndarray,
+                 reach_m: np.ndarray | None = None) -> Any:
     """:class:`cranetwin.analytics.LoadHistory` of the kept instants of a replay result, with
     where its payload is steady and the payload net of each lift's empty reading
     (:func:`lift_payload`) and the cylinders' load forces by inverse dynamics
-    (:func:`cylinder_loads`: at a stroke end, what shock loads are taken from)."""
+    (:func:`cylinder_loads`: at a stroke end, what shock loads are taken from).
+    ``reach_m``: the kept instants' horizontal reach [m], shape (k,), when the caller has it
+    (None: computed here)."""
     from cranetwin.analytics import LoadHistory
     from cranetwin.physics import horizontal_reach
 
@@ -111,7 +115,8 @@ def load_history(machine: Machine, res: Any, keep: np.ndarray) -> Any:
     steady, net = lift_payload(res)
     return LoadHistory.from_arrays(
         machine, t_s=res.t_s[keep], cyl_force=res.cyl_force[keep], q=q, qd=res.qd[keep],
-        payload_kg=np.maximum(net[keep], 0.0), reach_m=horizontal_reach(machine, q),
+        payload_kg=np.maximum(net[keep], 0.0),
+        reach_m=horizontal_reach(machine, q) if reach_m is None else reach_m,
         joint_wrench=res.joint_wrench[keep], rod_s=res.rod_s[keep], rod_v=res.rod_v[keep],
         p_a=res.p_a[keep], p_b=res.p_b[keep], payload_steady=steady[keep],
         cyl_load=cylinder_loads(machine, q, res.id_torque[keep], res.cyl_force[keep]))
@@ -121,15 +126,18 @@ def stored_events(machine_id: str, events: list[Any]) -> list[Any]:
     """Analytics events as storage events (message and details in the evidence)."""
     from cranetwin.storage import Event as StoredEvent
 
+    def finite(v: float) -> float | None:  # what :func:`_jsonable` makes of a float
+        return v if math.isfinite(v) else None
+
     out = []
     for e in events:
         msg = (f"{e.kind.replace('_', ' ')} on {e.component}: {e.value:.4g} {e.unit} "
                f"(limit {e.limit:.4g} {e.unit})")
-        evidence = {"message": msg, "component": e.component, "value": float(e.value),
-                    "limit": float(e.limit), "unit": e.unit, "t_end": float(e.t_end),
-                    **{k: float(v) for k, v in e.evidence.items()}}
-        out.append(StoredEvent(machine_id, float(e.t_start), e.kind, e.severity,
-                               _jsonable(evidence)))
+        evidence = {"message": msg, "component": str(e.component),
+                    "value": finite(float(e.value)), "limit": finite(float(e.limit)),
+                    "unit": str(e.unit), "t_end": finite(float(e.t_end)),
+                    **{str(k): finite(float(v)) for k, v in e.evidence.items()}}
+        out.append(StoredEvent(machine_id, float(e.t_start), e.kind, e.severity, evidence))
     return out
 
 

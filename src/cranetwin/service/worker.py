@@ -89,6 +89,7 @@ from cranetwin.service.derived import (
 )
 from cranetwin.service.history import window_rows
 from cranetwin.service.liftcount import seconds_row
+from cranetwin.service.workercommit import LastPart
 from cranetwin.storage.failed_windows import failed_row
 
 if TYPE_CHECKING:
@@ -157,11 +158,11 @@ class TwinWorker:
         """Least time between two checks of one machine's service schedules [s of ``clock``]
         (each merges its stored analytics when it has lift or damage items)."""
         self._next_schedule_check: dict[str, float] = {}
-        self._last_part: dict[str, tuple[float, float, bytes]] = {}
-        """Machine → (start, end, data) of the last analytics part this worker committed (the
-        look-back of the next window's events), kept while nothing else can have written its
-        parts: dropped when the worker's partitions change, when the machine is not owned, when
-        a commit finds the watermark moved, and when late data redoes windows."""
+        self._last_part: dict[str, LastPart] = {}
+        """Machine → the last analytics part this worker committed (the look-back of the next
+        window's events, kept as made: not decoded again), kept while nothing else can have
+        written its parts: dropped when the worker's partitions change, when the machine is not
+        owned, when a commit finds the watermark moved, and when late data redoes windows."""
         self._seen: dict[str, tuple[int, Seen, float]] = {}
         """Machine → (the late-data mark of the pass that last committed its spans, what that
         pass saw, the watermark it committed): :func:`~cranetwin.service.workerpass.read_pass`
@@ -682,55 +683,59 @@ class TwinWorker:
     def _analytics(self, rec: MachineRecord, machine: Machine, res: object,
                    keep: npt.NDArray[np.bool_], w0: float, w1: float,
                    times: tuple[float, float] = (0.0, 0.0), batch: PassCommit | None = None,
-                   ) -> tuple[dict[str, Any] | None, list[Any] | None]:
+                   reach: F64 | None = None,
+                   ) -> tuple[dict[str, Any] | None, list[Any] | None, LastPart | None]:
         """The window's analytics part row (:mod:`cranetwin.service.history`: what any range's
         analytics merge from) and its events, stored with the window's commit: a redone
         window replaces its part and its events (storage keeps an event found again as it is
         stored: unique on machine, time, kind). Returns (part row or None, events or None when
-        they could not be found: a redone window then keeps the events stored); (None, None)
-        when the part could not be made (the span is recorded as failed:
-        :mod:`cranetwin.storage.failed_windows`).
+        they could not be found: a redone window then keeps the events stored, the part as
+        kept for the next window's look-back or None); (None, None, None) when the part could
+        not be made (the span is recorded as failed: :mod:`cranetwin.storage.failed_windows`).
+        ``reach``: the kept instants' horizontal reach [m], shape (k,), if already computed.
 
         The events are found the way a report merges parts: the previous minute's stored part
         is folded first (:meth:`_previous_part`), so the look-back detectors (force rates,
         end-stop entries) see the samples before the window, and a run that started before
-        the window is not a new event here. A window stores the events that start in it (a run
-        still open at its end is stored as it stands; a report joins it with its continuation,
-        same start)."""
+        the window is not a new event here; then the window's own part's events (what a
+        detector's ``update`` with the window's history computes). A window stores the events
+        that start in it (a run still open at its end is stored as it stands; a report joins it
+        with its continuation, same start)."""
         from cranetwin.analytics import EventDetector
         from cranetwin.service.analytics import load_history, stored_events
-        from cranetwin.service.history import load_part, part_row
+        from cranetwin.service.history import part_row
 
         if int(np.count_nonzero(keep)) < 2:
-            return None, []
+            return None, [], None
         try:
-            h = load_history(machine, res, keep)
+            h = load_history(machine, res, keep, reach)
             got = part_row(machine, rec.machine_id, w0, w1, h, *times)
         except CraneTwinError as exc:
             log.warning("machine %s: analytics of window %.0f failed: %s", rec.machine_id, w0,
                         exc)
-            return None, None
+            return None, None, None
         row = got[1] if got is not None else None
+        made = LastPart(w0, w1, got[1]["data"], got[0]) if got is not None else None
         try:
             det = EventDetector(machine)
             prev = self._previous_part(rec, w0, batch)
             if prev is not None:
-                part = load_part(prev)
+                part = prev.decoded()
                 if part.t_last < float(h.t_s[0]):
                     det.apply(part.events)
-            det.update(h)
+            det.apply(got[0].events if got is not None else det.part(h))
             events = stored_events(rec.machine_id,
                                    [e for e in det.all_events() if e.t_start >= w0])
         except CraneTwinError as exc:
             log.warning("machine %s: analytics of window %.0f failed: %s", rec.machine_id, w0,
                         exc)
-            return row, None
-        return row, events
+            return row, None, made
+        return row, events, made
 
     def _previous_part(self, rec: MachineRecord, w0: float,
-                       batch: PassCommit | None = None) -> bytes | None:
-        """The data of the last stored minute part inside [w0 − 60 s, w0), or None: the one
-        of the machine's span waiting in ``batch`` (not stored yet), else the one this worker
+                       batch: PassCommit | None = None) -> LastPart | None:
+        """The last stored minute part inside [w0 − 60 s, w0), or None: the one of the
+        machine's span waiting in ``batch`` (not stored yet), else the one this worker
         committed last when it is still valid (:attr:`_last_part`: only windows processed
         forward set it, so it is the newest part before the watermark), else read."""
         from cranetwin.storage import analytics_windows as aw
@@ -738,10 +743,13 @@ class TwinWorker:
         seen = batch.parts.get(rec.machine_id) if batch is not None else None
         if seen is None:
             seen = self._last_part.get(rec.machine_id)
-        if seen is not None and seen[1] <= w0:
-            return seen[2] if seen[0] >= w0 - 60 else None
+        if seen is not None and seen.end_s <= w0:
+            return seen if seen.start_s >= w0 - 60 else None
         prev = aw.windows(self._engine(rec), rec.machine_id, 60, w0 - 60, w0)
-        return prev[-1][3] if prev else None
+        if not prev:
+            return None
+        a, b, _, data = prev[-1]
+        return LastPart(a, b, data)
 
     def _quiet(self, machine_id: str, last_sample_s: float) -> bool:
         """Whether the machine's newest sample has stayed the same for ``quiet_s`` of this
@@ -1026,13 +1034,15 @@ class TwinWorker:
         rows: list[dict[str, Any]] = []
         events: list[Any] | None = []
         part: dict[str, Any] | None = None
+        made: LastPart | None = None
         failed = False
         if t.size:
             if redo_w0 is None:
                 new = dc_replace(new, theta0_rad=float(res.q[keep][-1, 0]))
             rows.append(seconds_row(rec.machine_id, w0, w1,
                                     *lift_seconds(machine, t, res.payload_kg[keep], reach)))
-            part, events = self._analytics(rec, machine, res, keep, w0, w1, times, batch)
+            part, events, made = self._analytics(rec, machine, res, keep, w0, w1, times,
+                                                 batch, reach)
             if part is not None:
                 rows.append(part)
             elif events is None:  # no part could be made: retried when its input changes
@@ -1040,8 +1050,8 @@ class TwinWorker:
                 rows.append(failed_row(rec.machine_id, w0, w1, n_windows, *times))
         if batch is not None and redo_w0 is None:
             batch.add(new, expected, names, t, values, rows, events, n_windows)
-            if part is not None:
-                batch.parts[rec.machine_id] = (w0, w1, part["data"])
+            if made is not None and part is not None:
+                batch.parts[rec.machine_id] = made
             return new
 
         def also(session: Any, machine_pk: int) -> None:
@@ -1065,8 +1075,8 @@ class TwinWorker:
                                           also if rows else None):
             self._forget(rec.machine_id)
             return None
-        if part is not None and redo_w0 is None:
-            self._last_part[rec.machine_id] = (w0, w1, part["data"])
+        if made is not None and part is not None and redo_w0 is None:
+            self._last_part[rec.machine_id] = made
         if self.metrics is not None:
             self.metrics.worker_windows.labels(rec.machine_id).inc()
         return new

@@ -27,9 +27,10 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 if TYPE_CHECKING:
+    from cranetwin.analytics import AnalyticsPart
     from cranetwin.samples import F64
     from cranetwin.service.backend import Backend, Progress, SpanCommit
 
@@ -39,6 +40,27 @@ them; the rows do)."""
 MAX_AGE_S = 2.0
 """Longest a collected span waits for its commit [s] (bounds the results' delay when spans
 are long: 60-s windows of 100 Hz data)."""
+
+
+class LastPart(NamedTuple):
+    """A machine's last analytics part as the worker keeps it (the look-back of the events of
+    its next span): the part's window [start_s, end_s) [s], its stored bytes, and the part
+    itself when the worker made it (None: read from storage, decoded when used)."""
+
+    start_s: float
+    end_s: float
+    data: bytes
+    part: AnalyticsPart | None = None
+
+    def decoded(self) -> AnalyticsPart:
+        """The part (decoded from :attr:`data` when not kept).
+
+        Raises:
+            AnalyticsError: The data is not a part of this version.
+        """
+        from cranetwin.service.history import load_part
+
+        return self.part if self.part is not None else load_part(self.data)
 
 
 class PassCommit:
@@ -60,9 +82,9 @@ class PassCommit:
         self._replayed: dict[str, int] = {}
         self._after: dict[str, list[Callable[[], None]]] = {}
         self._since: float | None = None
-        self.parts: dict[str, tuple[float, float, bytes]] = {}
-        """Machine → (start s, end s, data) of the last analytics part of its spans waiting
-        (the look-back of its next span's events; set by the worker)."""
+        self.parts: dict[str, LastPart] = {}
+        """Machine → the last analytics part of its spans waiting (the look-back of its next
+        span's events; set by the worker)."""
 
     def __len__(self) -> int:
         """Machines waiting."""
@@ -123,7 +145,7 @@ class PassCommit:
             return len(self._pending) >= self.max_machines or (
                 self._since is not None and time.monotonic() - self._since >= self.max_age_s)
 
-    def commit(self) -> tuple[dict[str, int], set[str], dict[str, tuple[float, float, bytes]]]:
+    def commit(self) -> tuple[dict[str, int], set[str], dict[str, LastPart]]:
         """Commit what waits (:meth:`Backend.commit_spans`) and run the committed machines'
         :meth:`after` steps. Call it while no machine's turn is running (between turns).
 
