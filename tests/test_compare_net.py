@@ -94,7 +94,7 @@ def test_chunked_notes_equal_the_whole_result(machine: Machine, sim: Sim) -> Non
     """``iter_replay_table`` with :class:`ReplayNotes` (what the CLI prints) gives the lifts
     :func:`cranetwin.twin.lifts.result_lifts` finds in the whole replay, exactly; and the notes
     fed the same result in random chunks give the same lifts again."""
-    from cranetwin.analytics import ProductivityConfig
+    from cranetwin.importer.payload import MIN_LIFT_KG
     from cranetwin.twin import replay
     from cranetwin.twin.known_payload import at_instants
     from cranetwin.twin.lifts import result_lifts
@@ -109,7 +109,7 @@ def test_chunked_notes_equal_the_whole_result(machine: Machine, sim: Sim) -> Non
 
     period = float(np.median(np.diff(samples.t_s)))  # as iter_replay_table takes it
     res = replay(samples, machine, float(round(1.0 / period)))
-    whole = result_lifts(res, period, ProductivityConfig().grab_kg)
+    whole = result_lifts(res, period, MIN_LIFT_KG)
     twin = notes.twin_lifts()
     assert twin is not None
     _same_lifts(twin, whole)

@@ -51,7 +51,7 @@ from cranetwin.errors import MissingExtraError, TwinError
 from cranetwin.importer.api import Columns, read_columns, read_file
 from cranetwin.importer.checks import check_rod_positions
 from cranetwin.importer.mapping import Mapping
-from cranetwin.importer.payload import LiftError, lift_errors, on_grid
+from cranetwin.importer.payload import MIN_LIFT_KG, LiftError, lift_errors, on_grid
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import SmoothingChoice
@@ -245,16 +245,15 @@ class ReplayNotes:
         """The twin's lifts in the compared payload estimate, as
         :func:`cranetwin.twin.lifts.result_lifts` finds them in the whole result (grab and
         release left out, net of the empty reading, with σ); a lift is where the estimate
-        exceeds the work cycles' ``grab_kg``, as in the analytics
-        (:func:`cranetwin.service.analytics.lift_payload`). None: nothing compared."""
+        exceeds :data:`cranetwin.importer.payload.MIN_LIFT_KG`, the comparison's least known
+        lift (50 kg, as the work cycles' default ``grab_kg`` in the analytics,
+        :func:`cranetwin.service.analytics.lift_payload`). None: nothing compared."""
         if not self.payload or self.lift_rule is None:
             return None
-        from cranetwin.analytics import ProductivityConfig
-
         t, _, est = (np.concatenate(x) for x in zip(*self.payload, strict=True))
         std, sys_std = (np.concatenate(x) for x in zip(*self.payload_std, strict=True))
         smear, span = self.lift_rule
-        return lift_payloads(t, est, std, smear, ProductivityConfig().grab_kg,
+        return lift_payloads(t, est, std, smear, MIN_LIFT_KG,
                              payload_sys_std_kg=sys_std, tare_span_s=span)
 
     def lifts(self) -> list[LiftError] | None:
