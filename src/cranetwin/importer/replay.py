@@ -54,7 +54,7 @@ from cranetwin.importer.mapping import Mapping
 from cranetwin.importer.payload import MIN_LIFT_KG, LiftError, lift_errors, on_grid
 from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
-from cranetwin.signal import SmoothingChoice
+from cranetwin.signal import SmoothingChoice, nominal_period
 from cranetwin.twin import ReplayOptions, TwinResult, iter_replay
 from cranetwin.twin.consistency import ModelConsistency, ResidualStats
 from cranetwin.twin.lifts import Lift, lift_payloads, payload_smear_s, tare_span_s
@@ -175,16 +175,6 @@ def load_source_and_payload(source: Source, machine: Machine,
     return got.samples, got.payload_kg
 
 
-def sample_period_s(samples: SampleArrays, options: ReplayOptions | None = None) -> float:
-    """The samples' period [s] as a replay of them takes it: the options' ``sample_period_s``,
-    else the samples' own ``period_ns``, else their median spacing."""
-    if options is not None and options.sample_period_s:
-        return float(options.sample_period_s)
-    if samples.period_ns:
-        return samples.period_ns / 1e9
-    return float(np.median(np.diff(samples.t_s)))
-
-
 def check_samples(samples: SampleArrays, machine: Machine) -> None:
     """Refuse samples the twin would silently clip (rod positions outside the strokes).
 
@@ -236,7 +226,7 @@ class ReplayNotes:
             self.payload.append((res.t_s, known_kg, res.payload_kg))
             self.payload_std.append((res.payload_std_kg, res.payload_sys_std_kg))
             if self.lift_rule is None and (sample_period_s is not None or res.n >= 2):
-                period = (float(np.median(np.diff(res.t_s))) if sample_period_s is None
+                period = (nominal_period(res.t_s) if sample_period_s is None
                           else sample_period_s)
                 self.lift_rule = (payload_smear_s(res, period, payload_window_s),
                                   tare_span_s(res))
@@ -323,7 +313,7 @@ def iter_replay_table(source: Source, machine: Machine,
     opt = options or ReplayOptions()
     if opt.sample_period_s is None and samples.period_ns:
         opt = ReplayOptions(**{**opt.__dict__, "sample_period_s": samples.period_ns / 1e9})
-    period = sample_period_s(samples, opt)
+    period = opt.sample_period_s or nominal_period(samples.t_s, samples.period_ns)
     if grid_hz is None:
         grid_hz = float(round(1.0 / period))
     use = uses_known(known, payload, payload_column)

@@ -346,12 +346,8 @@ class ImportedFileSource:
         return float(np.isfinite(self.known_payload_kg).mean())
 
     def chunks(self) -> Iterator[tuple[LoadHistory | None, int]]:
-        from cranetwin.importer.replay import (
-            ReplayNotes,
-            check_samples,
-            sample_period_s,
-            uses_known,
-        )
+        from cranetwin.importer.replay import ReplayNotes, check_samples, uses_known
+        from cranetwin.signal import nominal_period
         from cranetwin.twin import iter_replay
         from cranetwin.twin.consistency import inconsistent
         from cranetwin.twin.observability import unobservable
@@ -360,7 +356,7 @@ class ImportedFileSource:
         done = 0
         notes = ReplayNotes.empty()  # forces, residuals, smoothing, the compared payload
         use = uses_known(self.known_payload_kg, self.payload_kg, self.payload_column)
-        period = sample_period_s(self.samples)
+        period = nominal_period(self.samples.t_s, self.samples.period_ns)
         gap_s = 5.0 * period  # the replay's limit
         for res in iter_replay(self.samples, self.machine, grid_hz=self.grid_hz,
                                payload=self.known_payload_kg if use else self.payload_kg):
