@@ -71,9 +71,10 @@ def lift_payload(res: Any, threshold_kg: float | None = None,
     thr = ProductivityConfig().grab_kg if threshold_kg is None else threshold_kg
     dt = median_step(res.t_s) if sample_period_s is None else sample_period_s
     lifts = result_lifts(res, dt, thr)
-    for lf in lifts:
+    for lf in lifts:  # the grid is increasing: each lift a slice (time linear in its length)
         if lf.tare_kg != 0.0:
-            net[(res.t_s >= lf.grab_s) & (res.t_s <= lf.release_s)] -= lf.tare_kg
+            net[np.searchsorted(res.t_s, lf.grab_s, "left"):
+                np.searchsorted(res.t_s, lf.release_s, "right")] -= lf.tare_kg
     return steady_mask(res.t_s, lifts), net
 
 
