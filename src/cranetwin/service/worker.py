@@ -1050,7 +1050,7 @@ class TwinWorker:
                 rows.append(failed_row(rec.machine_id, w0, w1, n_windows, *times))
         if batch is not None and redo_w0 is None:
             batch.add(new, expected, names, t, values, rows, events, n_windows)
-            if made is not None and part is not None:
+            if made is not None:  # (made exactly when the part row is)
                 batch.parts[rec.machine_id] = made
             return new
 
@@ -1075,7 +1075,7 @@ class TwinWorker:
                                           also if rows else None):
             self._forget(rec.machine_id)
             return None
-        if made is not None and part is not None and redo_w0 is None:
+        if made is not None and redo_w0 is None:
             self._last_part[rec.machine_id] = made
         if self.metrics is not None:
             self.metrics.worker_windows.labels(rec.machine_id).inc()
