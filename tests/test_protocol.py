@@ -37,6 +37,7 @@ from cranetwin.protocol import (
     on_grid,
     peek_header,
 )
+from cranetwin.protocol.status import ALT_SCALE, DEG_SCALE
 from cranetwin.protocol.wire import get_varint, put_varint, tag, unzigzag, zigzag
 
 PATU = load_machine("patu655")
@@ -155,12 +156,20 @@ def test_status_round_trip(seq: int, t: int, lat: float, lon: float, alt: float,
                        alt, hours, {"slew_angle": angle_k * 1e-4})
     back = decode_status(encode_status(KEY, rep), KEY)
     assert back.seq == seq and back.t_ns == t and back.machine_id == "crane-042"
+    # Each field is the nearest point of its wire lattice; that point's float may lie one ulp
+    # beyond half a step from the input (0.3125 m → 312 mm → 0.312 is 0.5e-3 + 4e-19 away).
+    slack = 1 + 1e-12
     if gps:
-        assert abs(back.latitude_deg - lat) <= 0.5e-7 and abs(back.longitude_deg - lon) <= 0.5e-7
-        assert abs(back.altitude_m - alt) <= 0.5e-3
+        assert back.latitude_deg == round(lat * DEG_SCALE) / DEG_SCALE
+        assert back.longitude_deg == round(lon * DEG_SCALE) / DEG_SCALE
+        assert back.altitude_m == round(alt * ALT_SCALE) / ALT_SCALE
+        assert abs(back.latitude_deg - lat) <= 0.5e-7 * slack
+        assert abs(back.longitude_deg - lon) <= 0.5e-7 * slack
+        assert abs(back.altitude_m - alt) <= 0.5e-3 * slack
     else:
         assert math.isnan(back.latitude_deg) and math.isnan(back.altitude_m)
-    assert abs(back.operating_hours - hours) <= 0.5 / 3600
+    assert back.operating_hours == round(hours * 3600.0) / 3600.0
+    assert abs(back.operating_hours - hours) <= 0.5 / 3600 * slack
     assert back.channels == {"slew_angle": angle_k * 1e-4}
 
 
