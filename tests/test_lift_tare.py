@@ -113,6 +113,58 @@ def test_net_lift_mean_does_not_depend_on_a_constant_offset(c1: float, c2: float
         assert la.std_kg == pytest.approx(lb.std_kg, rel=1e-12)
 
 
+def _steady(t: F64) -> npt.NDArray[np.bool_]:
+    """Instants of the loaded profile at least two smear widths from a grab or a release."""
+    return np.any([(t > a + 2 * SMEAR_S) & (t < b - 2 * SMEAR_S) for a, b in LIFTS_S], axis=0)
+
+
+@pytest.mark.timeout(60)
+def test_each_instant_of_a_tared_lift_is_net_of_the_offset_with_the_tares_sigma() -> None:
+    """An offset of 15 σ: the gross instants' z is about 15; the net instants (the gross less
+    the lift's tare, σ with the tare's) have RMS z near 1 over many draws, and everything
+    outside the lifts is the gross estimate unchanged."""
+    from cranetwin.twin.lifts import lift_payloads, net_payload
+
+    z_net: list[F64] = []
+    z_gross: list[F64] = []
+    for seed in range(100):
+        t, m, s = _estimate(offset_kg=30.0, sigma_kg=2.0, seed=seed)
+        lifts = lift_payloads(t, m, s, SMEAR_S, threshold_kg=60.0)
+        assert all(lf.tare_kg != 0.0 and lf.tare_std_kg > 0.0 for lf in lifts)
+        net, std = net_payload(t, m, s, lifts)
+        on = _steady(t)
+        z_net.append((net[on] - LOAD_KG) / std[on])
+        z_gross.append((m[on] - LOAD_KG) / s[on])
+        inside = np.any([(t >= lf.grab_s) & (t <= lf.release_s) for lf in lifts], axis=0)
+        assert np.array_equal(net[~inside], m[~inside]) and np.array_equal(std[~inside], s[~inside])
+        for lf in lifts:
+            sel = (t >= lf.grab_s) & (t <= lf.release_s)
+            assert np.allclose(net[sel], m[sel] - lf.tare_kg, rtol=0, atol=1e-12)
+            assert np.allclose(std[sel], np.hypot(2.0, lf.tare_std_kg), rtol=1e-12)
+    rms_net = float(np.sqrt(np.mean(np.concatenate(z_net) ** 2)))
+    rms_gross = float(np.sqrt(np.mean(np.concatenate(z_gross) ** 2)))
+    assert rms_gross > 12.0
+    assert 0.8 < rms_net < 1.25, rms_net
+
+
+@pytest.mark.timeout(30)
+def test_net_instants_drop_the_systematic_sigma_and_untared_lifts_stay_gross() -> None:
+    """With a stated systematic σ_b the tared instants' σ is their random part with the tare's
+    (the offset σ_b stood for is taken off); a lift that is not tared is returned as it was."""
+    from cranetwin.twin.lifts import lift_payloads, net_payload
+
+    t, m, s = _estimate(offset_kg=30.0, sigma_kg=2.0, seed=3)
+    sb = np.full_like(t, 1.2)
+    lifts = lift_payloads(t, m, s, SMEAR_S, threshold_kg=60.0, payload_sys_std_kg=sb)
+    net, std = net_payload(t, m, s, lifts, sb)
+    for lf in lifts:
+        sel = (t >= lf.grab_s) & (t <= lf.release_s)
+        assert np.allclose(std[sel], np.hypot(1.6, lf.tare_std_kg), rtol=1e-12)  # √(2² − 1.2²)
+    untared = lift_payloads(t, m, s, SMEAR_S, threshold_kg=60.0, tare_span_s=None)
+    net, std = net_payload(t, m, s, untared, sb)
+    assert np.array_equal(net, m) and np.array_equal(std, s)
+
+
 @pytest.fixture(scope="module")
 def machine() -> Machine:
     return load_machine("patu655")

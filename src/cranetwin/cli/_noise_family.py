@@ -160,12 +160,12 @@ def target_table(targets: list[Target]) -> Table:
 def summary_table(groups: list[GroupSummary], title: str) -> Table:
     """One row per error model and normalisation: payload z, lift means, flag counts."""
     t = Table(title=title)
-    for col in ("error", "RMS z", "lifts", "lift bias [%]", "mean |lift err| [%]",
+    for col in ("error", "RMS z net (gross)", "lifts", "lift bias [%]", "mean |lift err| [%]",
                 "RMS lift z (all σ/√k)", "> 4 % flagged (noise share only)",
                 "flagged / all (noise share only)"):
         t.add_column(col)
     for g in groups:
-        t.add_row(g.group, f"{g.rms_z:.2f}", str(g.lifts), _pct(g.lift_bias),
+        t.add_row(g.group, f"{g.rms_z:.2f} ({g.rms_z_gross:.2f})", str(g.lifts), _pct(g.lift_bias),
                   _pct(g.lift_abs), f"{g.lift_rms_z:.2f} ({g.lift_rms_z_all_random:.2f})",
                   f"{g.over_flagged} / {g.over} ({g.over_flagged_noise})",
                   f"{g.flagged} / {g.cylinders} ({g.flagged_noise})")
@@ -184,6 +184,69 @@ def as_json(plan: FamilyPlan, cases: list[CaseResult], targets: list[Target]) ->
             "targets_stated": [{**asdict(g), "passed": g.passed} for g in evaluate(stated)],
             "groups": [asdict(g) for g in group_summary(cases)],
             "groups_stated": [asdict(g) for g in group_summary(stated)]}
+
+
+CYLINDER_COLUMNS = ("force_pct", "pressure_only_pct", "model_based", "best_fixed_pct",
+                    "best_window", "range_share_pct", "observable", "error_share_pct",
+                    "position_pct", "position_input_pct")
+STATED_COLUMNS = ("stated_force_pct", "stated_model_based", "stated_observable",
+                  "stated_error_share_pct")
+
+
+def csv_header(cylinders: tuple[str, ...]) -> list[str]:
+    """The columns of :func:`csv_row` (docs/accuracy-noise-family.csv)."""
+    return (["crane", "scenario", "rate_hz", "error", "scale"]
+            + [f"{c}_{k}" for c in cylinders for k in CYLINDER_COLUMNS]
+            + ["payload_rms_z", "payload_z_instants", "lift_errors_pct"]
+            + [f"{c}_{k}" for c in cylinders for k in STATED_COLUMNS]
+            + ["stated_payload_rms_z", "lift_z", "stated_lift_z"]
+            + [f"{c}_stated_systematic_share_pct" for c in cylinders]
+            + ["stated_lift_z_all_random", "payload_rms_z_gross"])
+
+
+def csv_row(case: dict[str, Any]) -> list[str]:
+    """One case of :func:`as_json` (``CaseResult.as_json``) as the cells of :func:`csv_header`:
+    shares in per cent (3 decimals), flags 0/1, z to 3 decimals, per-lift lists space-separated
+    (2 decimals), empty where there is no value."""
+    def num(x: float | None, scale: float = 1.0, digits: int = 3) -> str:
+        return "" if x is None else f"{scale * x:.{digits}f}"
+
+    def flag(x: bool | None) -> str:
+        return "" if x is None else str(int(x))
+
+    def many(xs: list[float | None], scale: float = 1.0) -> str:
+        return " ".join(num(x, scale, 2) for x in xs)
+
+    spec, cyls, stated = case["spec"], case["cylinders"], case["stated"]
+    row = [spec["crane"], spec["scenario"], f"{spec['rate_hz']:g}", spec["error"], spec["scale"]]
+    for c in cyls:
+        row += [num(c["force"], 100), num(c["pressure_only"], 100), flag(c["model_based"]),
+                num(c["best_fixed"], 100), str(c["best_fixed_window"]),
+                num(c["range_share"], 100), flag(c["observable"]), num(c["error_share"], 100),
+                num(c["position"], 100), num(c["position_input"], 100)]
+    row += [num(case["rms_z"]), str(case["z_count"]), many(case["lift_errors"], 100)]
+    st_cyls = stated["cylinders"] if stated else [None] * len(cyls)
+    for c in st_cyls:
+        row += (["", "", "", ""] if c is None else
+                [num(c["force"], 100), flag(c["model_based"]), flag(c["observable"]),
+                 num(c["error_share"], 100)])
+    row += [num(stated["rms_z"]) if stated else "", many(case["lift_z"]),
+            many(stated["lift_z"]) if stated else ""]
+    row += ["" if c is None else num(c["systematic_share"], 100) for c in st_cyls]
+    row += [many(stated["lift_z_all_random"]) if stated else "", num(case.get("rms_z_gross"))]
+    return row
+
+
+def write_csv(cases: list[dict[str, Any]], path: str) -> None:
+    """Every case of :func:`as_json`'s ``cases`` as one row of :func:`csv_header` into
+    ``path`` (the accuracy section's table of every case)."""
+    import csv
+
+    cylinders = tuple(c["cylinder"] for c in cases[0]["cylinders"]) if cases else ()
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(csv_header(cylinders))
+        w.writerows(csv_row(c) for c in cases)
 
 
 def print_family(cases: list[CaseResult], plan: FamilyPlan, console: Console) -> list[Target]:

@@ -45,6 +45,9 @@ def noise(
         "error models (uniform, Gaussian, quantised, biased; share of full and of recorded "
         "range) instead, and judge the accuracy targets (--scenario, --duration ignored)."),
     quick: bool = typer.Option(False, "--quick", help="With --family: a small subset."),
+    csv_out: str | None = typer.Option(
+        None, "--csv", help="With --family: also write every case as one row of this CSV "
+        "(the columns of docs/accuracy-noise-family.csv)."),
 ) -> None:
     """Simulate, sample at 100 Hz (quantisation only), add uniform error e, replay, and
     report NRMSE of Xc1, Xc2 (lift/jib rod positions) and Fc1, Fc2 (forces) vs the truth.
@@ -54,10 +57,10 @@ def noise(
 
     m = load_machine(machine)
     if family:
-        _family(m, levels, seeds, quick, as_json)
+        _family(m, levels, seeds, quick, as_json, csv_out)
         return
-    if quick:
-        raise TwinError("--quick needs --family")
+    if quick or csv_out is not None:
+        raise TwinError("--quick and --csv need --family")
     seeds = 20 if seeds is None else seeds
     levels = "0:10:1" if levels is None else levels
     rec = simulate(m, builtin_scenario(scenario, duration_s=duration), seed=0,
@@ -84,7 +87,7 @@ def noise(
 
 
 def _family(m: Machine, levels: str | None, seeds: int | None, quick: bool,
-            as_json: bool) -> None:
+            as_json: bool, csv_out: str | None = None) -> None:
     from cranetwin.cli import _noise_family as nf
     from cranetwin.twin.noise_targets import evaluate
 
@@ -94,6 +97,8 @@ def _family(m: Machine, levels: str | None, seeds: int | None, quick: bool,
     plan = nf.family_plan(quick, lv[0], 1 if seeds is None else seeds)
     err = Console(stderr=True)
     cases = nf.run_family(m, plan, progress=lambda msg: err.print(msg, highlight=False))
+    if csv_out is not None:
+        nf.write_csv([c.as_json() for c in cases], csv_out)
     if as_json:
         typer.echo(json.dumps(nf.as_json(plan, cases, evaluate(cases))))
         return

@@ -81,6 +81,8 @@ class Lift(NamedTuple):
             stretch on either side).
         tare_kg: What was taken off the lift's mean for it [kg] (0: the empty reading was
             within its noise, or none); ``payload_kg`` + ``tare_kg`` is the gross mean.
+        tare_std_kg: One-sigma random uncertainty of ``tare_kg`` [kg] (0 with no tare): what
+            taking it off adds to each instant's σ (:func:`net_payload`).
     """
 
     grab_s: float
@@ -92,6 +94,7 @@ class Lift(NamedTuple):
     complete: bool
     empty_kg: float = float("nan")
     tare_kg: float = 0.0
+    tare_std_kg: float = 0.0
 
 
 def payload_smear_s(result: TwinResult, sample_period_s: float,
@@ -185,7 +188,7 @@ def lift_payloads(t_s: F64, payload_kg: F64, payload_std_kg: F64, smear_s: float
         t0 = t[a] + (skip if grab_in else smear_s / 2)
         t1 = t[b] - (skip if release_in else smear_s / 2)
         mean, std, rand = reading(between([(t0, t1)]), t1 - t0)
-        empty, tare = float("nan"), 0.0
+        empty, tare, tare_std = float("nan"), 0.0, 0.0
         if np.isfinite(mean) and tare_span_s is not None:
             # the empty stretches either side, up to tare_span_s nearest the lift
             sides = []
@@ -203,12 +206,51 @@ def lift_payloads(t_s: F64, payload_kg: F64, payload_std_kg: F64, smear_s: float
             se = float(np.std(m[near])) / np.sqrt(max(1.0, span / smear_s)) \
                 if near.size else float("inf")
             if abs(empty) > TARE_Z * se:  # an offset, not noise (NaN: no stretch)
-                tare = empty
+                tare, tare_std = empty, rand_e
                 mean -= tare
                 std = float(np.hypot(rand, rand_e))
         lifts.append(Lift(float(t[a]), float(t[b]), float(t0), float(t1), mean, std,
-                          grab_in and release_in, empty, tare))
+                          grab_in and release_in, empty, tare, tare_std))
     return lifts
+
+
+def net_payload(t_s: F64, payload_kg: F64, payload_std_kg: F64, lifts: list[Lift],
+                payload_sys_std_kg: F64 | None = None) -> tuple[F64, F64]:
+    """The estimate at each instant net of its lift's empty reading, with its σ.
+
+    From grab to release of each tared lift (``tare_kg`` ≠ 0) the instant's estimate is the
+    gross one less the tare, and its σ the instant's random part and the tare's::
+
+        net = estimate − E,      σ_net² = max(σ² − σ_b², 0) + σ_E,rand²
+
+    (the offset E took out is the systematic σ_b, as for the lift's mean in
+    :func:`lift_payloads`). Elsewhere both are the gross estimate's. The tare is read after the
+    release as well as before the grab, so this needs the lift's whole neighbourhood: it is a
+    result of the whole recording, not of a live stream.
+
+    Args:
+        t_s: Instants, shape (m,) [s], increasing.
+        payload_kg: The estimate, shape (m,) [kg].
+        payload_std_kg: Its one-sigma uncertainty, shape (m,) [kg].
+        lifts: The lifts found in it (:func:`lift_payloads` on the same arrays).
+        payload_sys_std_kg: The systematic part of ``payload_std_kg``, shape (m,) [kg];
+            None: 0.
+
+    Returns:
+        (net estimate, its σ), each shape (m,) [kg]: new arrays.
+    """
+    t = np.asarray(t_s, dtype=np.float64)
+    net = np.array(payload_kg, dtype=np.float64)
+    std = np.array(payload_std_kg, dtype=np.float64)
+    sb = None if payload_sys_std_kg is None else np.asarray(payload_sys_std_kg, np.float64)
+    for lf in lifts:
+        if lf.tare_kg == 0.0:
+            continue
+        sl = slice(np.searchsorted(t, lf.grab_s, "left"), np.searchsorted(t, lf.release_s, "right"))
+        net[sl] -= lf.tare_kg
+        var = std[sl] * std[sl] - (0.0 if sb is None else sb[sl] * sb[sl])
+        std[sl] = np.sqrt(np.maximum(var, 0.0) + lf.tare_std_kg * lf.tare_std_kg)
+    return net, std
 
 
 def steady_mask(t_s: F64, lifts: list[Lift]) -> npt.NDArray[np.bool_]:

@@ -17,7 +17,9 @@ default and the fixed windows are compared on the same instants):
   targets apply from 10 %) and the replay's observability verdict
   (:mod:`cranetwin.twin.observability`);
 * the payload's z = (estimate − truth)/σ over steady lifts (payload on, no grab or release
-  within 1.5 s) and each complete lift's mean (:mod:`cranetwin.twin.lifts`) against the truth.
+  within 1.5 s), of the estimate net of its lift's empty reading
+  (:func:`cranetwin.twin.lifts.net_payload`; also of the gross estimate, for comparison), and
+  each complete lift's mean (:mod:`cranetwin.twin.lifts`) against the truth.
 
 Given ``stated`` (the machine with the sensors' stated accuracy, as a data sheet gives it:
 :func:`cranetwin.sim.sensor_error.data_sheet`) the default is replayed once more with it and
@@ -41,7 +43,13 @@ from cranetwin.model import Machine
 from cranetwin.samples import SampleArrays
 from cranetwin.signal import SmoothingChoice, nrmse
 from cranetwin.signal.window import DEFAULT_WINDOWS
-from cranetwin.twin.lifts import lift_payloads, payload_smear_s, result_lifts, tare_span_s
+from cranetwin.twin.lifts import (
+    lift_payloads,
+    net_payload,
+    payload_smear_s,
+    result_lifts,
+    tare_span_s,
+)
 from cranetwin.twin.options import ReplayOptions
 from cranetwin.twin.replay import replay
 from cranetwin.twin.result import TwinResult
@@ -143,7 +151,9 @@ class CaseResult:
     Attributes:
         spec: The case.
         cylinders: Per cylinder (machine order).
-        z_sq_sum, z_count: Σ z² and the number of steady-lift instants (pooled RMS z).
+        z_sq_sum, z_count: Σ z² and the number of steady-lift instants (pooled RMS z), z of
+            the estimate net of its lift's empty reading
+            (:func:`cranetwin.twin.lifts.net_payload`).
         lift_errors: Per complete lift, (mean estimate − truth) / truth.
         lift_z: Per complete lift, (mean estimate − truth) / its stated σ.
         lift_z_all_random: The same with the lift σ that takes all of the instants' σ as
@@ -151,6 +161,7 @@ class CaseResult:
             the systematic part; the lift σ before the data sheet was used), for comparison.
         stated: The same scores of the replay given the sensors' stated accuracy (None: not
             run); its cylinders share ``fixed``, ``position_input`` and ``pressure_only``.
+        gross_z_sq_sum: Σ z² of the gross estimate and its σ on the same instants.
     """
 
     spec: CaseSpec
@@ -161,11 +172,18 @@ class CaseResult:
     lift_z: tuple[float, ...] = field(default_factory=tuple)
     stated: CaseResult | None = None
     lift_z_all_random: tuple[float, ...] = field(default_factory=tuple)
+    gross_z_sq_sum: float = 0.0
 
     @property
     def rms_z(self) -> float:
         """RMS of the payload z over the steady-lift instants (NaN without any)."""
         return float(np.sqrt(self.z_sq_sum / self.z_count)) if self.z_count else float("nan")
+
+    @property
+    def rms_z_gross(self) -> float:
+        """The same of the gross estimate (NaN without any instant)."""
+        return (float(np.sqrt(self.gross_z_sq_sum / self.z_count)) if self.z_count
+                else float("nan"))
 
     def as_json(self) -> dict[str, Any]:
         """Plain numbers (NaN → None)."""
@@ -184,7 +202,8 @@ class CaseResult:
                                "model_based": c.model_based,
                                "systematic_share": num(c.systematic_share)}
                               for c in self.cylinders],
-                "rms_z": num(self.rms_z), "z_count": self.z_count,
+                "rms_z": num(self.rms_z), "rms_z_gross": num(self.rms_z_gross),
+                "z_count": self.z_count,
                 "lift_errors": [num(x) for x in self.lift_errors],
                 "lift_z": [num(x) for x in self.lift_z],
                 "lift_z_all_random": [num(x) for x in self.lift_z_all_random],
@@ -226,23 +245,27 @@ def _pressure_a(machine: Machine, cylinder: int) -> str:
 
 
 def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[
-        float, int, list[float], list[float], list[float]]:
-    """Σ z², count, lift errors, lift z and lift z with all of σ divided by √k
-    (:attr:`CaseResult.lift_z_all_random`)."""
+        float, float, int, list[float], list[float], list[float]]:
+    """Σ z² of the net and of the gross estimate, count, lift errors, lift z and lift z with
+    all of σ divided by √k (:attr:`CaseResult.lift_z_all_random`)."""
     steady = np.ones(res.n, dtype=bool)
     for c in np.flatnonzero(np.diff(truth_p) != 0):
         steady &= np.abs(res.t_s - res.t_s[c]) > STEADY_AWAY_S
     ok = steady & (truth_p > 0) & np.isfinite(res.payload_kg) & (res.payload_std_kg > 0)
-    z = (res.payload_kg[ok] - truth_p[ok]) / res.payload_std_kg[ok]
+    gross = (res.payload_kg[ok] - truth_p[ok]) / res.payload_std_kg[ok]
     errors: list[float] = []
     zs: list[float] = []
     z0: list[float] = []
+    net, net_std = res.payload_kg, res.payload_std_kg
     if spec.nominal_payload_kg > 0:
         period, thr = 1.0 / spec.rate_hz, LIFT_THRESHOLD * spec.nominal_payload_kg
         all_random = lift_payloads(res.t_s, res.payload_kg, res.payload_std_kg,
                                    payload_smear_s(res, period), thr,
                                    tare_span_s=tare_span_s(res))
-        for lf, lf0 in zip(result_lifts(res, period, thr), all_random, strict=True):
+        lifts = result_lifts(res, period, thr)
+        net, net_std = net_payload(res.t_s, res.payload_kg, res.payload_std_kg, lifts,
+                                   res.payload_sys_std_kg)
+        for lf, lf0 in zip(lifts, all_random, strict=True):
             sel = (res.t_s >= lf.t0_s) & (res.t_s <= lf.t1_s)
             if not lf.complete or not np.isfinite(lf.payload_kg) or not sel.any():
                 continue
@@ -252,7 +275,8 @@ def _payload_scores(res: TwinResult, truth_p: F64, spec: CaseSpec) -> tuple[
             errors.append((lf.payload_kg - true) / true)
             zs.append((lf.payload_kg - true) / lf.std_kg)
             z0.append((lf.payload_kg - true) / lf0.std_kg)
-    return float(np.sum(z**2)), int(z.shape[0]), errors, zs, z0
+    z = (net[ok] - truth_p[ok]) / net_std[ok]
+    return (float(np.sum(z**2)), float(np.sum(gross**2)), int(z.shape[0]), errors, zs, z0)
 
 
 def evaluate_case(noisy: SampleArrays, machine: Machine, truth: CaseTruth,
@@ -312,5 +336,6 @@ def _scored(res: TwinResult, machine: Machine, truth: CaseTruth, spec: CaseSpec,
         float(verdicts[k].share), float(pressure_only[k]),
         res.smoothing[_pressure_a(machine, k)].model_based, float(verdicts[k].systematic_share))
         for k, cyl in enumerate(machine.cylinders))
-    zsq, zn, errs, lz, lz0 = _payload_scores(res, truth.payload_kg[rows], spec)
-    return CaseResult(spec, cyls, zsq, zn, tuple(errs), tuple(lz), lift_z_all_random=tuple(lz0))
+    zsq, gross, zn, errs, lz, lz0 = _payload_scores(res, truth.payload_kg[rows], spec)
+    return CaseResult(spec, cyls, zsq, zn, tuple(errs), tuple(lz), lift_z_all_random=tuple(lz0),
+                      gross_z_sq_sum=gross)
