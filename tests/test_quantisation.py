@@ -278,3 +278,47 @@ def test_model_based_forces_take_the_reconstructed_pressures_and_stream_as_the_b
     for name in ("cyl_force", "actuator_torque", "residual", "joint_wrench", "payload_kg"):
         a, b = getattr(streamed, name), getattr(batch, name)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-8 * np.nanmax(np.abs(b)), err_msg=name)
+
+
+def test_a_reading_that_never_changes_is_flat() -> None:
+    """One value throughout (NaN and inf ignored, float32 storage too) is flat; a second level,
+    a tiny noise or too few samples are not."""
+    from cranetwin.signal.quantisation import FLAT_MIN_SAMPLES, single_level
+
+    n = FLAT_MIN_SAMPLES
+    assert single_level(np.full(n, 2.5e6))
+    assert single_level(np.r_[np.full(n, 2.5e6), [np.nan, np.inf]])
+    assert single_level(np.full(n, 2.5e6, dtype=np.float32).astype(np.float64))
+    assert not single_level(np.full(n - 1, 2.5e6))
+    assert not single_level(np.r_[np.full(n, 2.5e6), [2.5e6 + 1.0]])
+    assert not single_level(2.5e6 + np.random.default_rng(0).normal(0.0, 1.0, n))
+    assert not single_level(np.full(n, np.nan))
+
+
+@pytest.mark.timeout(120)
+def test_a_cylinder_whose_pressures_never_change_is_not_observable(machine: Machine) -> None:
+    """Both chamber pressures of the extension read one value (a 25 bar staircase on a small
+    idle force): its model-based force takes its shape from the dynamics, so only the flat
+    readings say the sensors saw nothing of it; it is flagged for them. One flat chamber (a
+    return line at tank pressure) is not flagged for it, and no other cylinder is."""
+    s = make(machine, duration_s=8.0, payload=150.0, with_angle=True, fine_hz=None)
+    smp = s.samples
+    ext = machine.cylinders[2].name
+    names = {ch.quantity: ch.name for ch in machine.channels if ch.source == ext}
+    values = smp.values.copy()
+    for q in ("pressure_a", "pressure_b"):
+        values[:, smp.channels.index(names[q])] = 2.5e6
+    flat = dataclasses.replace(smp, values=values)
+    res = replay(flat, machine, options=ReplayOptions(model_forces="on"))
+    verdicts = {v.cylinder: v for v in res.force_observability(machine)}
+    assert verdicts[ext].flat and not verdicts[ext].observable
+    assert "flat pressures" in verdicts[ext].causes
+    assert "one value throughout" in verdicts[ext].message()
+    assert verdicts[ext].as_json()["flat"] is True
+    assert not any(v.flat for name, v in verdicts.items() if name != ext)
+    one = smp.values.copy()
+    one[:, smp.channels.index(names["pressure_b"])] = 2.5e6
+    res1 = replay(dataclasses.replace(smp, values=one), machine,
+                  options=ReplayOptions(model_forces="on"))
+    assert res1.smoothing[names["pressure_b"]].flat
+    assert not any(v.flat for v in res1.force_observability(machine))

@@ -140,16 +140,19 @@ class ForceObservabilityOut(BaseModel):
                                     "'estimated noise' (from the data)")
     range_n: float = Field(description="range of the replayed force in the window [N]")
     share: float | None = Field(description="sigma_n / range_n (null for a constant force)")
-    observable: bool = Field(description="share ≤ 0.1 and systematic_share ≤ 0.04; false: the "
-                                         "force is mostly sensor error, or the sensors' stated "
-                                         "accuracy alone can put it off by more than the 4 % "
-                                         "accuracy target")
+    observable: bool = Field(description="share ≤ 0.1, systematic_share ≤ 0.04 and not flat; "
+                                         "false: the force is mostly sensor error, the sensors' "
+                                         "stated accuracy alone can put it off by more than the "
+                                         "4 % accuracy target, or its pressures never changed")
     systematic_n: float = Field(0.0, description="the systematic floor [N]: what the stated "
                                 "accuracy beyond the measured noise (offset, gain) leaves in "
                                 "the force after any smoothing (0 without a stated accuracy)")
     systematic_share: float | None = Field(0.0, description="systematic_n / range_n (null for "
                                            "a constant force with a floor)")
-    causes: list[Literal["noise share", "systematic floor"]] = Field(
+    flat: bool = Field(False, description="both chamber pressures read one value throughout "
+                       "the window: the sensors show none of the force's variation (a stuck "
+                       "sensor or a step coarser than it); the force is then not observable")
+    causes: list[Literal["noise share", "systematic floor", "flat pressures"]] = Field(
         default_factory=list, description="why the force is not observable (empty when it is)")
 
 

@@ -11,7 +11,7 @@ from cranetwin.signal.differentiate import newton_derivative
 from cranetwin.signal.ici import ICI_WINDOWS, ici_select, ici_smooth, ici_smooth_pair
 from cranetwin.signal.noise import NOISY_QUANTITIES, inject_uniform_noise, nrmse
 from cranetwin.signal.noise_level import estimate_noise_std
-from cranetwin.signal.quantisation import Lattice, detect_lattice, reconstruct
+from cranetwin.signal.quantisation import Lattice, detect_lattice, reconstruct, single_level
 from cranetwin.signal.resample import Regular, nominal_period, regularize, uniform_grid
 from cranetwin.signal.savgol import centre_weight, savgol_bank, savgol_smooth, sg_filter
 from cranetwin.signal.spline import NaturalCubicSpline, knot_pieces, natural_pieces
@@ -30,6 +30,7 @@ __all__ = [
     "choose_derivative_window",
     "choose_window",
     "detect_lattice",
+    "single_level",
     "estimate_noise_std",
     "ici_select",
     "ici_smooth",

@@ -129,6 +129,24 @@ def detect_lattice(y: npt.ArrayLike) -> Lattice | None:
     return Lattice(h, float(levels[0]), int(nl))
 
 
+FLAT_MIN_SAMPLES = 100
+"""Fewer finite samples than this are not called flat by :func:`single_level`."""
+
+
+def single_level(y: npt.ArrayLike) -> bool:
+    """True when at least :data:`FLAT_MIN_SAMPLES` finite values of ``y`` (shape (n,), any
+    unit) all lie within ``REL_TOL · max|y|`` of one value: a reading that never changed. It
+    shows none of the quantity's variation and no lattice (:func:`detect_lattice` needs two
+    levels), so its error is not bounded by anything seen in the data: a stuck sensor, or a
+    quantisation step coarser than all the variation."""
+    a = np.asarray(y, dtype=np.float64)
+    x = a[np.isfinite(a)]
+    if x.shape[0] < FLAT_MIN_SAMPLES:
+        return False
+    lo, hi = float(x.min()), float(x.max())
+    return hi - lo <= REL_TOL * max(abs(lo), abs(hi))
+
+
 def reconstruct(y: F64, step: float, reach: int = REACH) -> F64:
     """The piecewise-linear signal through the level crossings of quantised samples, inside
     every sample's cell (module docstring).

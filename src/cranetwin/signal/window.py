@@ -46,6 +46,10 @@ class SmoothingChoice:
             none (:mod:`cranetwin.signal.quantisation`): the samples are reconstructed through
             their level crossings before they are smoothed, and the channel's error bound is
             at least step/2 (:func:`cranetwin.twin.observability.effective_accuracy`).
+        flat: The channel read one value over the whole choice span
+            (:func:`cranetwin.signal.quantisation.single_level`): its error is bounded by
+            nothing in the data (a cylinder with both pressures flat is flagged not observable,
+            :mod:`cranetwin.twin.observability`).
     """
 
     window: int
@@ -55,6 +59,7 @@ class SmoothingChoice:
     adaptive: bool = False
     model_based: bool = False
     step: float = 0.0
+    flat: bool = False
 
 
 def _segments(n: int, seg: int, max_samples: int) -> list[slice]:

@@ -17,7 +17,7 @@ from cranetwin.signal import (
     choose_window,
     estimate_noise_std,
 )
-from cranetwin.signal.quantisation import detect_lattice, reconstruct
+from cranetwin.signal.quantisation import detect_lattice, reconstruct, single_level
 from cranetwin.twin.force_model import smoothed_range, wants_model
 from cranetwin.twin.observability import stated_force_sigma
 
@@ -135,7 +135,8 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
     (:func:`detected_steps`) carries the step in its choice (``step``) and every window is
     chosen on its reconstruction (:func:`cranetwin.signal.quantisation.reconstruct`), which
     :func:`cranetwin.twin.stages.smooth_rows` smooths; half the step bounds its error
-    (:func:`cranetwin.twin.observability.effective_accuracy`).
+    (:func:`cranetwin.twin.observability.effective_accuracy`). A channel that read one value
+    throughout (:func:`cranetwin.signal.quantisation.single_level`) is marked ``flat``.
     """
     none = SmoothingChoice(1, 0, 0.0, 0.0)
     out = [none] * len(cmap.choice_names)
@@ -143,6 +144,7 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         return tuple(out)
     cols = np.ascontiguousarray(np.asarray(values, dtype=np.float64).T)  # one pass, not ten
     steps = detected_steps(cols, cmap.resolution)
+    flat = [single_level(col) for col in cols]  # no lattice: a single level has none
     for j, h in enumerate(steps):
         if h > 0:  # windows chosen on what smooth_rows will smooth: the reconstruction
             cols[j] = reconstruct(cols[j], h)
@@ -173,7 +175,8 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
         if opt is not None:
             out[opt] = choose_window(cols[opt], sigma=sigma.get(opt),
                                      resolution=cmap.resolution[opt])
-    return tuple(replace(c, step=steps[j]) if j < len(steps) and c.step != steps[j] else c
+    return tuple(replace(c, step=steps[j], flat=flat[j])
+                 if j < len(steps) and (c.step != steps[j] or c.flat != flat[j]) else c
                  for j, c in enumerate(out))
 
 

@@ -14,6 +14,16 @@ to ±step/2, systematically where the signal is slow: its bound is the larger of
 accuracy and step/2 (:func:`effective_accuracy`), stated or not. A stated accuracy is mostly
 offset and gain error, which no smoothing removes, so σ_F is compared unsmoothed.
 
+Flat pressures. When both chamber pressures read one value each over the whole window
+(:attr:`cranetwin.signal.SmoothingChoice.flat`), the sensors show none of the force's
+variation and no step to bound their error: a stuck sensor, or a quantisation coarser than the
+force's whole variation (a small idle cylinder behind 25 bar steps). The pressure-only force is
+then constant (its range 0, share ∞), but a model-based force
+(:mod:`cranetwin.twin.force_model`) takes its shape from the inverse dynamics and its level from
+those readings, off by up to half an unknown step: such a force is flagged not observable
+whatever its share ("flat pressures"). One flat chamber alone (a return line at tank pressure)
+is not flagged for it.
+
 When σ_F exceeds ``RESOLVABLE_SHARE`` (10 %) of the range of the cylinder's replayed force
 (max − min over the window), the force is flagged as not observable: its shape is then mostly
 sensor error (a small telescope cylinder of a few kN behind 0–250 bar sensors: ±1 % of the
@@ -58,7 +68,7 @@ most 4 % (the noise family's force target, docs/ACCURACY.md "Noise family"). A f
 systematic error floor σ_b,F exceeds this share of its range is flagged not observable (module
 docstring)."""
 
-Cause = Literal["noise share", "systematic floor"]
+Cause = Literal["noise share", "systematic floor", "flat pressures"]
 
 
 class ForceObservability(NamedTuple):
@@ -75,6 +85,7 @@ class ForceObservability(NamedTuple):
         systematic_n: The systematic floor σ_b,F [N] (module docstring; 0 without a stated
             accuracy).
         systematic_share: systematic_n / range_n (inf for a constant force with a floor).
+        flat: Both pressures read one value over the window (module docstring).
     """
 
     cylinder: str
@@ -85,16 +96,20 @@ class ForceObservability(NamedTuple):
     observable: bool
     systematic_n: float = 0.0
     systematic_share: float = 0.0
+    flat: bool = False
 
     @property
     def causes(self) -> tuple[Cause, ...]:
         """Why the force is not observable (empty when it is): the noise share over
-        ``RESOLVABLE_SHARE``, the systematic floor over ``FORCE_ACCURACY_TARGET``, or both."""
+        ``RESOLVABLE_SHARE``, the systematic floor over ``FORCE_ACCURACY_TARGET``, flat
+        pressures, or several."""
         out: list[Cause] = []
         if not self.share <= RESOLVABLE_SHARE:
             out.append("noise share")
         if not self.systematic_share <= FORCE_ACCURACY_TARGET:
             out.append("systematic floor")
+        if self.flat:
+            out.append("flat pressures")
         return tuple(out)
 
     def message(self) -> str:
@@ -109,6 +124,9 @@ class ForceObservability(NamedTuple):
             line += (f"; systematic floor ±{self.systematic_n:.0f} N (stated accuracy beyond "
                      f"the noise) = {100 * self.systematic_share:.1f} % "
                      f"(limit {100 * FORCE_ACCURACY_TARGET:.0f} %)")
+        if self.flat:
+            line += ("; both pressures read one value throughout: the sensors show none of "
+                     "the force's variation")
         return line
 
     def as_json(self) -> dict[str, Any]:
@@ -121,7 +139,7 @@ class ForceObservability(NamedTuple):
                 "share": num(self.share), "observable": self.observable,
                 "systematic_n": round(self.systematic_n, 1),
                 "systematic_share": num(self.systematic_share),
-                "causes": list(self.causes)}
+                "flat": self.flat, "causes": list(self.causes)}
 
 
 def effective_accuracy(stated: float | None, step: float) -> float | None:
@@ -216,10 +234,14 @@ def assess(machine: Machine, smoothing: Mapping[str, SmoothingChoice], force_min
         span = float(force_max_n[k] - force_min_n[k])
         share = _share(sigma, span)
         sys_share = _share(float(floor[k]), span)
+        pair = [smoothing[ch.name].flat for ch in machine.channels
+                if ch.source == cyl.name and ch.quantity in ("pressure_a", "pressure_b")
+                and ch.name in smoothing]
+        flat = len(pair) == 2 and all(pair)
         out.append(ForceObservability(
             cyl.name, sigma, source, span, share,
-            bool(share <= RESOLVABLE_SHARE and sys_share <= FORCE_ACCURACY_TARGET),
-            float(floor[k]), sys_share))
+            bool(share <= RESOLVABLE_SHARE and sys_share <= FORCE_ACCURACY_TARGET and not flat),
+            float(floor[k]), sys_share, flat))
     return tuple(out)
 
 
