@@ -194,6 +194,11 @@ def test_group_summary_counts_flags_and_pools_lift_z() -> None:
     assert g.lift_bias == pytest.approx(0.005) and g.lift_abs == pytest.approx(0.015)
     assert g.rms_z == pytest.approx(np.sqrt(2.5))
     assert g.lift_rms_z == pytest.approx(np.sqrt(4.5))
+    assert (g.z_cases, g.z_cases_within) == (2, 1)  # z 1 is within 0.7–1.5, z 2 is not
+    # a pooled RMS z can pass where no case does: z 0.3 and 1.6 pool to 1.2
+    lo, hi = _case(0.02, 0.02, 0.01, True, 0.3, 0.0), _case(0.02, 0.02, 0.01, True, 1.6, 0.0)
+    (g,) = group_summary([lo, hi])
+    assert 0.7 <= g.rms_z <= 1.5 and g.z_cases_within == 0
 
 
 # -- the quick family, end to end ----------------------------------------------------------------

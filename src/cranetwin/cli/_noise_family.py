@@ -160,12 +160,14 @@ def target_table(targets: list[Target]) -> Table:
 def summary_table(groups: list[GroupSummary], title: str) -> Table:
     """One row per error model and normalisation: payload z, lift means, flag counts."""
     t = Table(title=title)
-    for col in ("error", "RMS z net (gross)", "lifts", "lift bias [%]", "mean |lift err| [%]",
+    for col in ("error", "RMS z net (gross)", "cases z in 0.7–1.5", "lifts", "lift bias [%]",
+                "mean |lift err| [%]",
                 "RMS lift z (all σ/√k)", "> 4 % flagged (noise share only)",
                 "flagged / all (noise share only)"):
         t.add_column(col)
     for g in groups:
-        t.add_row(g.group, f"{g.rms_z:.2f} ({g.rms_z_gross:.2f})", str(g.lifts), _pct(g.lift_bias),
+        t.add_row(g.group, f"{g.rms_z:.2f} ({g.rms_z_gross:.2f})",
+                  f"{g.z_cases_within} / {g.z_cases}", str(g.lifts), _pct(g.lift_bias),
                   _pct(g.lift_abs), f"{g.lift_rms_z:.2f} ({g.lift_rms_z_all_random:.2f})",
                   f"{g.over_flagged} / {g.over} ({g.over_flagged_noise})",
                   f"{g.flagged} / {g.cylinders} ({g.flagged_noise})")

@@ -181,6 +181,9 @@ class GroupSummary:
         lift_rms_z_all_random: RMS lift z with all of the σ divided by √k
             (:attr:`CaseResult.lift_z_all_random`; NaN: no lift).
         rms_z_gross: ``rms_z`` of the gross estimate (:attr:`CaseResult.rms_z_gross`).
+        z_cases, z_cases_within: Cases with a payload z, and of those the cases whose own RMS
+            z lies within ``Z_RANGE`` (the pooled figure can pass on cases too wide and too
+            narrow).
     """
 
     group: str
@@ -197,6 +200,8 @@ class GroupSummary:
     flagged_noise: int = 0
     lift_rms_z_all_random: float = float("nan")
     rms_z_gross: float = float("nan")
+    z_cases: int = 0
+    z_cases_within: int = 0
 
 
 def _noise_flag(c: CylinderScore) -> bool:
@@ -223,5 +228,7 @@ def group_summary(cases: Sequence[CaseResult]) -> list[GroupSummary]:
             sum(not c.observable for c in over), sum(not c.observable for c in cyls),
             len(cyls), sum(_noise_flag(c) for c in over), sum(_noise_flag(c) for c in cyls),
             float(np.sqrt(np.mean(lz0**2))) if lz0.size else nan,
-            float(np.sqrt(sum(c.gross_z_sq_sum for c in items) / n)) if n else nan))
+            float(np.sqrt(sum(c.gross_z_sq_sum for c in items) / n)) if n else nan,
+            sum(c.z_count > 0 for c in items),
+            sum(c.z_count > 0 and Z_RANGE[0] <= c.rms_z <= Z_RANGE[1] for c in items)))
     return out
