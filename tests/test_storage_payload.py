@@ -95,6 +95,29 @@ def test_overlapping_runs_read_each_time_once_from_the_earlier_run(store: Store)
     assert store.read_payload("crane-1", t[0] / 1e9, t[-1] / 1e9 + 1.0).n == 300
 
 
+def test_a_nan_run_that_hides_known_values_asks_for_their_redo(store: Store) -> None:
+    """An all-NaN run stored before (earlier start than) a run with known values over the same
+    times hides them from every read: the twin worker is asked to redo its whole span; deleting
+    that run reveals them again and asks the same. Found as silent before: only known values
+    were recorded as changed."""
+    from cranetwin.storage import redo
+
+    t, _ = _series()
+    store.write_payload_runs("crane-1", [PayloadRun(int(t[100]), PERIOD, np.full(200, 250.0))])
+    redo.done(store.engine, "crane-1", redo.pending(store.engine, ["crane-1"])["crane-1"])
+    store.write_payload_runs("crane-1", [PayloadRun(int(t[50]), PERIOD, np.full(200, np.nan))])
+    back = store.read_payload("crane-1", t[0] / 1e9, t[-1] / 1e9 + 1.0)
+    assert np.isnan(back.payload_kg[back.t_ns <= t[249]]).all()  # hidden from t[100] to t[249]
+    asked = redo.pending(store.engine, ["crane-1"])["crane-1"]
+    assert [(r.t0_ns, r.t1_ns) for r in asked] == [(int(t[50]), int(t[249]))]
+    redo.done(store.engine, "crane-1", asked)
+    assert store.delete_payload_runs("crane-1", [int(t[50])]) == 1
+    back = store.read_payload("crane-1", t[0] / 1e9, t[-1] / 1e9 + 1.0)
+    assert np.array_equal(back.payload_kg, np.full(200, 250.0))  # revealed again
+    asked = redo.pending(store.engine, ["crane-1"])["crane-1"]
+    assert [(r.t0_ns, r.t1_ns) for r in asked] == [(int(t[50]), int(t[249]))]
+
+
 @pytest.mark.parametrize(("bad", "match"), [(-0.5, "finite and ≥ 0"), (np.inf, "finite")])
 def test_a_negative_or_infinite_payload_is_refused_and_nothing_stored(
         store: Store, bad: float, match: str) -> None:

@@ -17,7 +17,11 @@ each time once, from the run that starts earliest.
 Deleting (:func:`delete_range`, ``cranetwin payload delete``) removes the values of a time
 range, cutting a run that straddles a bound; the store records the changed times for the twin
 worker in the same transaction (:mod:`cranetwin.storage.redo`), as it does for runs newly
-stored. Retention drops the runs starting in a dropped time partition of the samples
+stored. A run newly stored or deleted whole (:func:`delete`) changes the read series anywhere in
+its span, not only where it is known: its NaN values hide (or, deleted, reveal) the values of a
+later-starting run over the same times, so its whole span is recorded; :func:`delete_range`
+leaves no value in its range, so the known values it deleted are what changed. Retention drops
+the runs starting in a dropped time partition of the samples
 (:func:`drop_starting_in`).
 
 What a run may hold (:func:`check_run`): times 0 ≤ t_start ≤ t_end <
@@ -276,9 +280,7 @@ def delete(session: Session, machine_pk: int, starts: Sequence[int]) -> PayloadD
             run = PayloadRun(int(t_start), int(period), _decode(bytes(data), int(n)))
             values += run.n
             known += int(np.count_nonzero(np.isfinite(run.payload_kg)))
-            span = known_span(run)
-            if span is not None:
-                changed.append(span)
+            changed.append((run.t0_ns, run.t_end_ns))  # NaN too: it may have hidden a value
         gone += session.query(row).filter(row.machine_pk == machine_pk,
                                           row.t_start_ns.in_(chunk)).delete(
             synchronize_session=False)
@@ -303,8 +305,9 @@ class PayloadDelete:
             those outside stored again as runs of their own.
         values_deleted: Values deleted (NaN ones included).
         known_deleted: Known (not NaN) values deleted.
-        changed_ns: (first, last) time [ns] of each stretch of known values deleted (what
-            :func:`cranetwin.storage.redo.request` records).
+        changed_ns: (first, last) time [ns] of each stretch of known values deleted
+            (:func:`delete_range`), or of each run deleted whole (:func:`delete`; module
+            docstring): what :func:`cranetwin.storage.redo.request` records.
     """
 
     runs_deleted: int = 0

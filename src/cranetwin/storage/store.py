@@ -475,8 +475,10 @@ class Store:
             with self._session() as s, s.begin():
                 res = payloads_mod.write(s, self._machine_pk(s, machine_id), runs)
                 new = set(res.new_starts)
-                redo.request(s, machine_id, [span for r in runs if r.t0_ns in new
-                                             if (span := payloads_mod.known_span(r))])
+                # the whole span of each new run, NaN values too: a read takes each time from
+                # the earliest-starting run, so a NaN there can hide a later run's known value
+                redo.request(s, machine_id, [(r.t0_ns, r.t_end_ns) for r in runs
+                                             if r.t0_ns in new])
                 if res.stored:
                     payload_version.bump(s, machine_id)
                 return res
