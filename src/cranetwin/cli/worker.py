@@ -165,8 +165,8 @@ def redo_cmd(
         req = backend.store.request_redo(machine, t0, t1)
         prog = backend.progress(machine)
         wm = None if prog is None else prog.watermark_s
-        got = survey(backend.store.engine_for(machine), machine, req.t0_ns / 1e9,
-                     req.t1_ns / 1e9, win, wm)
+        got = survey(backend.store.engine_for(machine), machine, req.t0_ns, req.t1_ns, win,
+                     wm)
     finally:
         backend.close()
     a, z = iso(req.t0_ns / 1e9), iso((req.t1_ns + 1) / 1e9)

@@ -824,7 +824,7 @@ class TwinWorker:
         # samples; one inside no stored span was passed by the watermark with nothing stored
         # (redone like a span whose replay failed: its windows counted, no time)
         grid = sorted({w for r in requests if r.whole
-                       for w in redo.sampled_windows(engine, mid, *r.span_s, win)
+                       for w in redo.sampled_windows(engine, mid, r.t0_ns, r.t1_ns, win)
                        if w + win <= prog.watermark_s})
         held, alone = self._held_spans(engine, mid, grid)
         spans.update(held)
@@ -1062,6 +1062,10 @@ class TwinWorker:
             o = old or (0.0, 0.0)  # are recounted after the redo (:meth:`_recount_lifts`)
             new = dc_replace(new, operating_s=new.operating_s - o[0] + times[0],
                              idle_s=new.idle_s - o[1] + times[1])
+            finite = res.payload_kg[keep]
+            finite = finite[np.isfinite(finite)]
+            if w1 >= prog.watermark_s and finite.size:  # the newest processed span: the
+                new = dc_replace(new, last_payload_kg=float(finite[-1]))  # last estimate
         rows: list[dict[str, Any]] = []
         events: list[Any] | None = []
         part: dict[str, Any] | None = None

@@ -171,12 +171,12 @@ def done(engine: Engine, machine_id: str, requests: Sequence[RedoRequest]) -> in
         return int(getattr(res, "rowcount", 0) or 0)
 
 
-def sampled_windows(engine: Engine, machine_id: str, t0_s: float, t1_s: float,
+def sampled_windows(engine: Engine, machine_id: str, t0_ns: int, t1_ns: int,
                     window_s: float) -> list[float]:
     """Starts [s] of the windows (``window_s`` long, aligned to multiples of it, as the twin
-    worker's) that overlap [t0_s, t1_s] and a stored block of the machine, oldest first (a
-    block's span stands for its samples: a window inside a gap within a block is included).
-    Reads the blocks' times only, not their samples."""
+    worker's) that overlap [t0_ns, t1_ns] [ns, inclusive] and a stored block of the machine,
+    oldest first (a block's span stands for its samples: a window inside a gap within a block
+    is included). Reads the blocks' times only, not their samples."""
     from cranetwin.storage.blocks import spans
     from cranetwin.storage.machines import MachineRow
 
@@ -184,17 +184,16 @@ def sampled_windows(engine: Engine, machine_id: str, t0_s: float, t1_s: float,
         pk = s.scalar(select(MachineRow.id).where(MachineRow.machine_id == machine_id))
         if pk is None:
             return []
-        got = spans(s, int(pk), round(t0_s * SEC), round(t1_s * SEC))
-    first = math.floor(t0_s / window_s)
-    last = math.floor(t1_s / window_s)
+        got = spans(s, int(pk), t0_ns, t1_ns)
+    win_ns = round(window_s * SEC)
+    first, last = t0_ns // win_ns, t1_ns // win_ns
     out: list[int] = []
-    for a, b in got:  # ordered by start: the windows they reach grow, bar long blocks
-        lo = max(first, math.floor(a / SEC / window_s))
-        hi = min(last, math.floor(b / SEC / window_s))
+    for a, b in got:  # ordered by start; a long block may reach past the next ones
+        lo, hi = max(first, a // win_ns), min(last, b // win_ns)
         if out and lo <= out[-1]:
             lo = out[-1] + 1
         out.extend(range(lo, hi + 1))
-    return [k * window_s for k in sorted(set(out))]
+    return [k * window_s for k in out]
 
 
 @dataclass(frozen=True)
@@ -216,14 +215,14 @@ class RangeSurvey:
     ahead: int
 
 
-def survey(engine: Engine, machine_id: str, t0_s: float, t1_s: float, window_s: float,
+def survey(engine: Engine, machine_id: str, t0_ns: int, t1_ns: int, window_s: float,
            watermark_s: float | None) -> RangeSurvey:
-    """What a request for [t0_s, t1_s] [s, inclusive] covers (:func:`sampled_windows`) against
-    the watermark ``watermark_s`` [s] (None: nothing processed yet)."""
+    """What a request for [t0_ns, t1_ns] [ns, inclusive] covers (:func:`sampled_windows`)
+    against the watermark ``watermark_s`` [s] (None: nothing processed yet)."""
     from cranetwin.storage.analytics_windows import spans
     from cranetwin.storage.failed_windows import failed_spans
 
-    wins = sampled_windows(engine, machine_id, t0_s, t1_s, window_s)
+    wins = sampled_windows(engine, machine_id, t0_ns, t1_ns, window_s)
     behind = [w for w in wins if watermark_s is not None and w + window_s <= watermark_s]
     if not behind:
         return RangeSurvey(0, 0, 0, len(wins))
