@@ -14,10 +14,17 @@ Lifecycle: prints ``cranetwin worker ready …`` once the store is open; SIGTERM
 after the window being replayed is committed (each window is one transaction, so a kill instead
 loses nothing: the window is done again by the next run, or by the worker that takes over the
 partition); exit status 0.
+
+``cranetwin worker redo --machine ID --from T0 --to T1`` records an operator's redo request
+(:mod:`cranetwin.storage.redo`): the running worker's next pass processes again every window of
+the range behind the machine's watermark that holds stored samples — processed, failed or never
+processed — and rolls its hours and days up again (after the machine's description changed, or
+to retry windows skipped before failed spans were recorded). Exit status 2 on an error.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import signal
 from types import FrameType
@@ -32,7 +39,13 @@ _DB_HELP = "sqlite:///… or postgresql://… (default: $CRANETWIN_DATABASE_URL,
            "sqlite:///cranetwin.db)."
 
 
+worker_app = typer.Typer(help="Run the twin worker (no command), or ask it to redo a range "
+                         "(redo).", no_args_is_help=False, invoke_without_command=True)
+
+
+@worker_app.callback(invoke_without_command=True)
 def worker(
+    ctx: typer.Context,
     db: str | None = typer.Option(None, "--db", help=_DB_HELP),
     metrics_bind: str | None = typer.Option(
         None, help="HTTP address of the worker's Prometheus /metrics, HOST:PORT, or 0 for none "
@@ -58,7 +71,9 @@ def worker(
     log_level: str = typer.Option("info", help="Log level."),
 ) -> None:
     """Run the twin worker: replay stored samples window by window into derived summaries,
-    events and counters, until SIGTERM/SIGINT."""
+    events and counters, until SIGTERM/SIGINT (``redo``: have it process a range again)."""
+    if ctx.invoked_subcommand is not None:
+        return
     from cranetwin.service.backend import Backend
     from cranetwin.service.metrics import Metrics
     from cranetwin.service.ownership import Ownership, PartitionSpecError, parse_partitions
@@ -119,6 +134,60 @@ def worker(
     typer.echo(f"cranetwin worker stopped: {windows} window(s) replayed")
 
 
+@worker_app.command("redo")
+def redo_cmd(
+    machine: str = typer.Option(..., "--machine", "-m", help="Registered machine id."),
+    t_from: str = typer.Option(..., "--from", help="Start of the range (epoch s or ISO 8601 "
+                               "UTC)."),
+    t_to: str = typer.Option(..., "--to", help="End of the range, exclusive."),
+    db: str | None = typer.Option(None, "--db", help=_DB_HELP),
+    as_json: bool = typer.Option(False, "--json", help="Print the result as one JSON object."),
+) -> None:
+    """Have the twin worker process a machine's windows with from ≤ t < to again, at its next
+    pass: every window behind its watermark that holds stored samples (processed, failed or
+    never processed) is replayed with the machine's current description and payload, its hours
+    and days rolled up again; windows ahead of the watermark are processed as they come. The
+    request stays until the worker has done it (one recorded again meanwhile: once more)."""
+    from cranetwin.cli.report import parse_time
+    from cranetwin.errors import StorageError
+    from cranetwin.service.backend import Backend
+    from cranetwin.service.timerange import iso
+    from cranetwin.storage import store_spec
+    from cranetwin.storage.redo import survey
+
+    settings = load_settings(Settings, database_url=db)
+    t0, t1 = parse_time(t_from), parse_time(t_to)
+    if t1 <= t0:
+        raise StorageError(f"--to ({t_to}) must be after --from ({t_from})")
+    win = settings.worker_window_s
+    backend = Backend.open(store_spec(settings))
+    try:
+        req = backend.store.request_redo(machine, t0, t1)
+        prog = backend.progress(machine)
+        wm = None if prog is None else prog.watermark_s
+        got = survey(backend.store.engine_for(machine), machine, req.t0_ns, req.t1_ns, win,
+                     wm)
+    finally:
+        backend.close()
+    a, z = iso(req.t0_ns / 1e9), iso((req.t1_ns + 1) / 1e9)
+    if as_json:
+        typer.echo(json.dumps({
+            "machine": machine, "from": a, "to": z, "from_ns": req.t0_ns,
+            "to_ns": req.t1_ns + 1, "version": req.version,
+            "watermark": None if wm is None else iso(wm), "window_s": win,
+            "windows": {"processed": got.processed, "failed": got.failed,
+                        "never_processed": got.never, "ahead": got.ahead}}))
+        return
+    behind = got.processed + got.failed + got.never
+    typer.echo(
+        f"machine {machine}: redo of {a} – {z} requested (version {req.version}); "
+        + ("nothing processed yet" if wm is None else f"watermark {iso(wm)}")
+        + f"; windows of {win:g} s holding samples: {behind} behind the watermark "
+        f"({got.processed} processed, {got.failed} failed, {got.never} never processed), "
+        "redone at the twin worker's next pass"
+        + (f"; {got.ahead} ahead of it, processed as they come" if got.ahead else ""))
+
+
 def register(app: typer.Typer) -> None:
-    """Add ``cranetwin worker``."""
-    app.command("worker")(worker)
+    """Add ``cranetwin worker`` (and ``cranetwin worker redo``)."""
+    app.add_typer(worker_app, name="worker")

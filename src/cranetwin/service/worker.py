@@ -773,7 +773,10 @@ class TwinWorker:
         A known payload stored or deleted for processed samples is found the same way: its
         redo requests (:mod:`cranetwin.storage.redo`) mark their ranges like late blocks, and
         are deleted once their windows are redone (those ahead of the watermark at once: their
-        windows are replayed with the payload when they come).
+        windows are replayed with the payload when they come). An operator's request
+        (``cranetwin worker redo``) marks every window of its range behind the watermark that
+        holds stored samples, processed, failed or never processed (no margin), and is
+        deleted the same way.
 
         Its redo requests come from the pass's ``reads``, and so do its mark and late blocks
         when they hold them (PostgreSQL: its new mark is stored at the end of the pass or of
@@ -812,11 +815,21 @@ class TwinWorker:
                     w += win
             return sorted(grid)
 
-        grid = windows_of(late)
-        spans = set(self._stored_spans(engine, mid, grid)) if grid else set()
-        grid = windows_of([r.span_s for r in requests])
+        held, late_alone = self._held_spans(engine, mid, windows_of(late))
+        spans = set(held) | {(w, w + win) for w in late_alone}
+        grid = windows_of([r.span_s for r in requests if not r.whole])
         if grid:  # a known payload changes only windows already processed (failed ones too)
             spans.update(self._stored_spans(engine, mid, grid, only_stored=True))
+        # an operator's request: every window of its range behind the watermark holding
+        # samples; one inside no stored span was passed by the watermark with nothing stored
+        # (redone like a span whose replay failed: its windows counted, no time)
+        grid = sorted({w for r in requests if r.whole
+                       for w in redo.sampled_windows(engine, mid, r.t0_ns, r.t1_ns, win)
+                       if w + win <= prog.watermark_s})
+        held, alone = self._held_spans(engine, mid, grid)
+        spans.update(held)
+        spans.update((w, w + win) for w in alone)
+        passed = set(alone) - set(late_alone)  # (late samples there: counted as new)
         if not spans:  # nothing behind the watermark (requests ahead of it: nothing to redo)
             if top is not None and top != mark:
                 set_mark(top)
@@ -828,7 +841,7 @@ class TwinWorker:
             if self.stop_requested():
                 return prog, done  # the mark stays: the rest is found again next pass
             new = self.process_window(rec, prog, prog.watermark_s, redo_w0=w0, until_s=w1,
-                                      reads=reads)
+                                      reads=reads, passed=w0 in passed)
             if new is None:
                 return None
             prog = new
@@ -848,8 +861,8 @@ class TwinWorker:
         if top is not None:
             set_mark(top)
         redo.done(engine, mid, requests)
-        log.info("machine %s: %d window(s) redone for late data or a known payload",
-                 rec.machine_id, done)
+        log.info("machine %s: %d window(s) redone for late data, a known payload or an "
+                 "operator's request", rec.machine_id, done)
         return prog, done
 
     def _stored_spans(self, engine: Any, machine_id: str, grid: list[float],
@@ -860,24 +873,35 @@ class TwinWorker:
         is redone whole, a window inside no stored span alone (left out with ``only_stored``:
         a known payload changes nothing of a window never processed). Returns ``(start, end)``
         pairs, sorted, distinct."""
+        held, alone = self._held_spans(engine, machine_id, grid)
+        win = self.settings.worker_window_s
+        return sorted(set(held) | (set() if only_stored else {(w, w + win) for w in alone}))
+
+    def _held_spans(self, engine: Any, machine_id: str, grid: list[float],
+                    ) -> tuple[list[tuple[float, float]], list[float]]:
+        """For the windows starting at ``grid`` (sorted) [s]: the stored spans holding any of
+        them (:meth:`_stored_spans`), sorted and distinct, and the windows inside none."""
         from cranetwin.storage import analytics_windows as aw
         from cranetwin.storage.failed_windows import failed_spans
 
+        if not grid:
+            return [], []
         win = self.settings.worker_window_s
         reach = max(60.0, win)
         lo, hi = grid[0] - reach, grid[-1] + win + reach
-        stored = sorted({(a, b) for a, b, _, _ in aw.windows(engine, machine_id, 60, lo, hi)}
+        stored = sorted(set(aw.spans(engine, machine_id, 60, lo, hi))
                         | set(failed_spans(engine, machine_id, lo, hi)))
-        out: set[tuple[float, float]] = set()
+        held: set[tuple[float, float]] = set()
+        alone: list[float] = []
         i = 0
         for w in grid:
             while i < len(stored) and stored[i][1] <= w:
                 i += 1
             if i < len(stored) and stored[i][0] <= w < stored[i][1]:
-                out.add((stored[i][0], stored[i][1]))
-            elif not only_stored:
-                out.add((w, w + win))
-        return sorted(out)
+                held.add((stored[i][0], stored[i][1]))
+            else:
+                alone.append(w)
+        return sorted(held), alone
 
     def _recount_lifts(self, rec: MachineRecord, prog: Progress) -> Progress | None:
         """``prog`` with the lift counters folded again over the stored minutes
@@ -943,7 +967,8 @@ class TwinWorker:
                        redo_w0: float | None = None, until_s: float | None = None,
                        samples: SampleArrays | None = None,
                        reads: PassReads | None = None,
-                       batch: PassCommit | None = None) -> Progress | None:
+                       batch: PassCommit | None = None, passed: bool = False,
+                       ) -> Progress | None:
         """Replay [watermark, until_s) (default: one window), commit its summaries and progress
         together.
 
@@ -965,6 +990,10 @@ class TwinWorker:
             batch: Collect the span for the pass's commit instead of committing it now
                 (forward spans only, not with ``redo_w0``); the new progress is returned as
                 if committed (:mod:`cranetwin.service.workercommit`).
+            passed: With ``redo_w0``: the span has neither a part nor a failed span, and the
+                watermark passed it counting its windows and no time (an operator's redo of a
+                window never processed, or whose replay failed before failed spans were
+                recorded: :mod:`cranetwin.storage.redo`); its windows are not counted again.
 
         Returns:
             The new progress, or None when another worker committed the window first (nothing
@@ -994,6 +1023,8 @@ class TwinWorker:
             count = old is None
             if old is None and (got := failed_windows.counted(engine, rec.machine_id, w0)):
                 count, old = got[0] == 0, got[1:]
+            elif old is None and passed:
+                count, old = False, (0.0, 0.0)
             new = prog if not count else dc_replace(prog, windows=prog.windows + n_windows)
         n_in = int(np.count_nonzero((samples.t_s >= w0) & (samples.t_s < w1)))
         try:
@@ -1031,6 +1062,10 @@ class TwinWorker:
             o = old or (0.0, 0.0)  # are recounted after the redo (:meth:`_recount_lifts`)
             new = dc_replace(new, operating_s=new.operating_s - o[0] + times[0],
                              idle_s=new.idle_s - o[1] + times[1])
+            finite = res.payload_kg[keep]
+            finite = finite[np.isfinite(finite)]
+            if w1 >= prog.watermark_s and finite.size:  # the newest processed span: the
+                new = dc_replace(new, last_payload_kg=float(finite[-1]))  # last estimate
         rows: list[dict[str, Any]] = []
         events: list[Any] | None = []
         part: dict[str, Any] | None = None

@@ -95,6 +95,18 @@ def windows(engine: Engine, machine_id: str, level_s: int, t0_s: float,
         return [(a / SEC, b / SEC, int(n), bytes(d)) for a, b, n, d in s.execute(stmt)]
 
 
+def spans(engine: Engine, machine_id: str, level_s: int, t0_s: float,
+          t1_s: float) -> list[tuple[float, float]]:
+    """:func:`windows` without their data: ``(t0 s, t1 s)`` inside [t0_s, t1_s), oldest
+    first."""
+    w = AnalyticsWindowRow
+    stmt = (select(w.t0_ns, w.t1_ns)
+            .where(w.machine_id == machine_id, w.level_s == level_s, w.t0_ns >= _ns(t0_s),
+                   w.t1_ns <= _ns(t1_s)).order_by(w.t0_ns))
+    with Session(engine) as s:
+        return [(a / SEC, b / SEC) for a, b in s.execute(stmt)]
+
+
 def window_times(engine: Engine, machine_id: str, level_s: int,
                  t0_s: float) -> tuple[float, float] | None:
     """(operating s, idle s) stored with the window of ``level_s`` starting at ``t0_s``, or None

@@ -492,6 +492,17 @@ def read_range(session: Session, machine_pk: int, t0_ns: int, t1_ns: int) -> lis
     return [_stored(*row) for row in session.execute(stmt)]
 
 
+def spans(session: Session, machine_pk: int, t0_ns: int, t1_ns: int) -> list[tuple[int, int]]:
+    """(t_start_ns, t_end_ns) of the blocks of a machine that overlap [t0_ns, t1_ns] (their first
+    and last sample time [ns], inclusive), ordered by start; nothing decoded."""
+    stmt = (select(BlockRow.t_start_ns, BlockRow.t_end_ns)
+            .where(BlockRow.machine_pk == machine_pk, BlockRow.t_start_ns <= clamp_ns(t1_ns),
+                   BlockRow.t_end_ns >= clamp_ns(t0_ns),
+                   BlockRow.t_start_ns >= clamp_ns(clamp_ns(t0_ns) - MAX_SPAN_NS))
+            .order_by(BlockRow.t_start_ns))
+    return [(int(a), int(b)) for a, b in session.execute(stmt)]
+
+
 def _stored(seq: int, t0: int, period: int, chans: str, res: str, data: bytes) -> StoredBlock:
     resolution = tuple(float(r) for r in json.loads(res))
     steps, missing = codec.decode_ints(data)

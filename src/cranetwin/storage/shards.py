@@ -49,6 +49,7 @@ from cranetwin.storage.payloads import (
     PayloadWrite,
     Stretch,
 )
+from cranetwin.storage.redo import RedoRequest
 from cranetwin.storage.shardmap import ShardMap, ShardMapError, StoreSpec, store_spec
 from cranetwin.storage.store import StorageStats, Store
 from cranetwin.storage.summaries import Summaries
@@ -322,6 +323,9 @@ class ShardedStore(Store):
 
     def delete_payload(self, machine_id: str, t0_s: float, t1_s: float) -> PayloadDelete:
         return self._one(machine_id, lambda s: s.delete_payload(machine_id, t0_s, t1_s))
+
+    def request_redo(self, machine_id: str, t0_s: float, t1_s: float) -> RedoRequest:
+        return self._one(machine_id, lambda s: s.request_redo(machine_id, t0_s, t1_s))
 
     def payload_version(self, machine_id: str) -> int:
         return self._one(machine_id, lambda s: s.payload_version(machine_id))

@@ -521,6 +521,23 @@ class Store:
                 payload_version.bump(s, machine_id)
             return res
 
+    def request_redo(self, machine_id: str, t0_s: float, t1_s: float) -> redo.RedoRequest:
+        """Record an operator's request that the twin worker process again every window of
+        one machine with t0_s ≤ t < t1_s [s] that holds stored samples — processed, failed or
+        never processed (:func:`cranetwin.storage.redo.request_whole`; ``cranetwin worker
+        redo``); returns the request as stored.
+
+        Raises:
+            UnknownMachineError: No such machine.
+            StorageError: ``t1_s`` not after ``t0_s``.
+        """
+        t0, t1 = _ns(t0_s), _ns(t1_s)
+        if not t1 > t0:
+            raise StorageError(f"a redo range must end after it starts ({t0_s} s, {t1_s} s)")
+        with self._session() as s, s.begin():
+            self._machine_pk(s, machine_id)
+            return redo.request_whole(s, machine_id, t0, t1 - 1)
+
     def payload_version(self, machine_id: str) -> int:
         """The version of the machine's stored known payload
         (:mod:`cranetwin.storage.payload_version`: raised by every change of it, by any
