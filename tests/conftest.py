@@ -133,6 +133,17 @@ def offset_pressures(samples: Any, machine: Any, level: float, seed: int,
     return dataclasses.replace(samples, values=vals)
 
 
+def assert_same_progress(a: Any, b: Any) -> None:
+    """Two worker progress records (:class:`cranetwin.service.worker.Progress`) equal field by
+    field, floats to 1e-9 relative (1e-6 absolute)."""
+    from cranetwin.service.backend import Progress
+
+    assert isinstance(a, Progress) and isinstance(b, Progress)
+    for k in Progress.__dataclass_fields__:
+        x, y = getattr(a, k), getattr(b, k)
+        assert x == (pytest.approx(y, rel=1e-9, abs=1e-6) if isinstance(y, float) else y), k
+
+
 def stream_in_random_chunks(samples: Any, machine: Any, opt: Any, seed: int,
                             payload: float | None = None) -> Any:
     """``samples`` replayed through :class:`cranetwin.twin.TwinStream` in chunks of 1–399

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import assert_same_progress
 from cranetwin.model import load_machine
 from cranetwin.samples import SampleArrays
 from cranetwin.service.backend import Backend, Progress
@@ -75,11 +76,7 @@ def _state(b: Backend) -> dict[str, object]:
 
 
 def _same(a: dict[str, object], b: dict[str, object]) -> None:
-    pa, pb = a["progress"], b["progress"]
-    assert isinstance(pa, Progress) and isinstance(pb, Progress)
-    for k in Progress.__dataclass_fields__:
-        x, y = getattr(pa, k), getattr(pb, k)
-        assert x == (pytest.approx(y, rel=1e-9, abs=1e-6) if isinstance(y, float) else y), k
+    assert_same_progress(a["progress"], b["progress"])
     da, db = a["duty"], b["duty"]
     assert da is not None and db == pytest.approx(da, rel=1e-12), "duty"
     for k in ("parts", "seconds", "times", "events"):

@@ -17,10 +17,11 @@ from sqlalchemy import update
 from sqlalchemy.orm import Session
 from typer.testing import CliRunner
 
+from conftest import assert_same_progress
 from cranetwin.cli import app
 from cranetwin.model import load_machine
 from cranetwin.samples import SampleArrays
-from cranetwin.service.backend import Backend, Progress
+from cranetwin.service.backend import Backend
 from cranetwin.service.history import stored_duty
 from cranetwin.service.worker import TwinWorker
 from cranetwin.settings import Settings
@@ -85,11 +86,7 @@ def _state(b: Backend) -> dict[str, Any]:
 
 
 def _same(a: dict[str, Any], b: dict[str, Any]) -> None:
-    pa, pb = a["progress"], b["progress"]
-    assert isinstance(pa, Progress) and isinstance(pb, Progress)
-    for k in Progress.__dataclass_fields__:
-        x, y = getattr(pa, k), getattr(pb, k)
-        assert x == (pytest.approx(y, rel=1e-9, abs=1e-6) if isinstance(y, float) else y), k
+    assert_same_progress(a["progress"], b["progress"])
     assert a["duty"] is not None and b["duty"] == pytest.approx(a["duty"], rel=1e-12), "duty"
     for k in (*LEVELS, "times", "events"):
         assert a[k] == b[k], k
