@@ -144,6 +144,40 @@ def test_join_twin_drops_seam_duplicates() -> None:
     assert join_twin([])["t"] == []
 
 
+def test_join_twin_keeps_each_windows_verdicts() -> None:
+    """The verdicts are per replayed window: a joined export keeps each part's, not the first's
+    for all (the exported page picks the part its chunk overlaps)."""
+    def verdict(ok: bool) -> dict[str, object]:
+        return {"cylinder": "lift", "observable": ok, "causes": [] if ok else ["noise share"]}
+
+    a = {"t": [0.0, 1.0, 2.0], "force_observability": [verdict(True)],
+         "model_consistency": [{"cylinder": "lift", "consistent": True}]}
+    b = {"t": [2.0, 3.0], "force_observability": [verdict(False)], "model_consistency": []}
+    j = join_twin([a, b])
+    assert "force_observability" not in j and "model_consistency" not in j
+    assert [(n["from"], n["to"]) for n in j["notes"]] == [(0.0, 2.0), (2.0, 3.0)]
+    assert [n["force_observability"][0]["observable"] for n in j["notes"]] == [True, False]
+    assert j["notes"][0]["model_consistency"] == a["model_consistency"]
+    assert j["notes"][1]["model_consistency"] == []
+
+
+def test_the_pages_limits_are_the_services() -> None:
+    """The Now card states the limits the service judges by: the same numbers."""
+    from cranetwin.twin import consistency, observability
+
+    js = (web_dir() / "js" / "nowcard.js").read_text()
+
+    def const(name: str) -> float:
+        m = re.search(rf"export const {name} = ([0-9.]+);", js)
+        assert m, name
+        return float(m.group(1))
+
+    assert const("RESOLVABLE_SHARE") == observability.RESOLVABLE_SHARE
+    assert const("FORCE_ACCURACY_TARGET") == observability.FORCE_ACCURACY_TARGET
+    assert const("CONSISTENCY_SHARE") == consistency.SHARE_LIMIT
+    assert const("CONSISTENCY_NOISE") == consistency.NOISE_FACTOR
+
+
 def test_export_rate_keeps_frames_bounded() -> None:
     for seconds in (5.0, 60.0, 600.0):
         assert seconds * export_rate_hz(seconds) <= EXPORT_MAX_FRAMES + 1e-9
@@ -258,6 +292,12 @@ async def test_export_is_self_contained(client) -> None:  # type: ignore[no-unty
     assert embed["machine"]["machine_id"] == "crane-2"
     assert len(embed["twin"]["t"]) == pytest.approx(120 * export_rate_hz(120), abs=2)
     assert set(embed["twin"]["poses"]) == {"pillar", "lift_boom", "jib_boom", "extension_boom"}
+    # each minute's verdicts on the forces (none from the preview's synthetic twin), for the
+    # page to show the ones of the cursor's minute
+    notes = embed["twin"]["notes"]
+    assert [n["from"] for n in notes] == pytest.approx([t1 - 120, t1 - 60], abs=0.1)
+    assert notes[0]["to"] <= notes[1]["from"] and notes[1]["to"] <= t1
+    assert all(isinstance(n["force_observability"], list) for n in notes)
     assert len(html) < 5_000_000  # e-mailable
 
 

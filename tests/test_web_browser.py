@@ -374,6 +374,219 @@ def test_exported_file_replays_offline(page: Any, server: Service, tmp_path: Pat
     assert not page.errors
 
 
+def _verdicts_shown(page: Any) -> dict[str, dict[str, str | None]]:
+    """Per cylinder row of the Now card: the visible badges' text and title (None: no badge)."""
+    return page.evaluate("""() => {
+      const out = {};
+      for (const c of window.__crane.spec.cylinders) {
+        const seen = (id) => { const el = document.getElementById(id);
+          return el && el.checkVisibility()
+          ? el.textContent.replace(/\u00a0/g, ' ') + ' | ' + el.title : null; };
+        out[c] = {obs: seen('fo-' + c), con: seen('fc-' + c)};
+      }
+      return out; }""")
+
+
+def _notes_shown(page: Any) -> list[str]:
+    return page.evaluate("() => { const l = document.getElementById('force-notes');"
+                         " return l.checkVisibility() ? [...l.children].map((li) =>"
+                         " li.textContent) : []; }")
+
+
+def test_force_rows_flag_what_the_pressures_cannot_resolve(page: Any, server: Service) -> None:
+    """The first minute's twin results say the first cylinder's force is not observable (noise
+    share), the second's pressures disagree with the motion and the third's constant force is
+    not observable either (systematic floor) — the service's answers rewritten on the way: those
+    badges carry the reason, a short line each says it, no other badge is shown; a later minute
+    whose verdicts are all fine shows none."""
+    import json
+    from urllib.parse import parse_qs, urlparse
+
+    cyls: list[str] = []
+
+    def rewrite(route: Any) -> None:
+        resp = route.fetch()
+        body = resp.json()
+        if "cylinder_forces" not in body:  # a refused window: as it is
+            route.fulfill(response=resp)
+            return
+        frm = float(parse_qs(urlparse(route.request.url).query)["from"][0])
+        names = list(body["cylinder_forces"])
+        cyls[:] = names
+        first = frm < END - 540
+        body["force_observability"] = [
+            {"cylinder": c, "sigma_n": 1520.0, "source": "estimated noise", "range_n": 4000.0,
+             "share": 0.38, "observable": not (first and k == 0), "systematic_n": 0.0,
+             "systematic_share": 0.0,
+             "causes": ["noise share", "flat pressures"] if first and k == 0 else []}
+            for k, c in enumerate(names)]
+        if first:  # the third: a constant force, with a floor from the stated accuracy
+            body["force_observability"][2].update(
+                source="stated accuracy", range_n=0.0, share=None, observable=False,
+                systematic_n=120.0, systematic_share=None, causes=["systematic floor"])
+        body["model_consistency"] = [
+            {"cylinder": c, "typical_n": 2500.0, "residual_rms_n": 2600.0, "raw_rms_n": 3000.0,
+             "range_n": 9000.0, "level_n": 10000.0, "share": 0.25, "noise_n": 300.0,
+             "noise_ratio": 8.33, "consistent": not (first and k == 1), "c_a": 1.9,
+             "c_b": 1.8, "r2": 0.9,
+             "hint": "swapped chambers (p_A and p_B exchanged)" if first and k == 1 else None}
+            for k, c in enumerate(names)]
+        route.fulfill(response=resp, body=json.dumps(body),
+                      headers={**resp.headers, "content-type": "application/json"})
+
+    page.route("**/api/v1/machines/crane-2/twin?*", rewrite)
+    _replay(page, server, END - 570)
+    page.wait_for_function("document.getElementById('force-notes').children.length === 3",
+                           timeout=20000)
+    a, b, c3 = cyls
+    shown = _verdicts_shown(page)
+    obs = shown[a]["obs"]
+    assert obs is not None and obs.startswith("± not resolved | ")
+    assert ("a: force not resolved (noise share, flat pressures): pressure error ±1.5 kN "
+            "(1σ, estimated noise) against a force range of 4.0 kN (38 %; limit 10 %)"
+            ).replace("a:", f"{a}:", 1) in obs
+    con = shown[b]["con"]
+    assert con is not None and con.startswith("≠ model | ")
+    assert "force residual 2.5 kN = 25 % of the force the motion needs (10.0 kN RMS; " in con
+    assert "8.3× what sensor noise explains" in con and "likely swapped chambers" in con
+    assert shown[c3] == {"obs": (
+        "± not resolved | extension: force not resolved (systematic floor): pressure error "
+        "±1.5 kN (1σ, stated accuracy) against a force that does not change in this window; "
+        "systematic floor ±120 N (stated accuracy beyond the noise) (limit 4 %)"
+        ).replace("extension:", f"{c3}:", 1), "con": None}
+    assert shown[a]["con"] is None and shown[b]["obs"] is None
+    notes = _notes_shown(page)
+    assert notes == [
+        f"{a}: force not resolved (noise share, flat pressures): error ±1.5 kN against a "
+        "4.0 kN range (38 %)",
+        f"{b}: pressures disagree with the motion: residual 2.5 kN = 25 % of the force needed, "
+        "8.3× the noise; likely swapped chambers (p_A and p_B exchanged)",
+        f"{c3}: force not resolved (systematic floor): error ±1.5 kN, systematic floor ±120 N "
+        "on a force that does not change here"]
+    _shot(page.locator(".side .card").first, "force-verdicts.png")
+    # a later minute: every force resolved and consistent, no badge, no note
+    page.locator("#slider").evaluate("(el) => { el.value = '570';"
+                                     " el.dispatchEvent(new Event('input')); }")
+    page.wait_for_function(f"Math.abs(window.cranetwin.drawnT - {END - 30}) < 0.01",
+                           timeout=20000)
+    page.wait_for_function("document.getElementById('force-notes').hidden", timeout=20000)
+    assert all(v == {"obs": None, "con": None} for v in _verdicts_shown(page).values())
+    assert _notes_shown(page) == []
+    assert not page.errors
+
+
+def test_force_rows_agree_with_the_services_verdicts(page: Any, server: Service) -> None:
+    """Unaltered: a row carries the badge exactly when the twin result of the minute at the
+    cursor marks that cylinder's force not observable (or its pressures inconsistent)."""
+    r = httpx.get(f"{server.url}/api/v1/machines/crane-2/twin",
+                  params={"from": END - 300, "to": END - 240 + 1 / 25, "rate_hz": 25},
+                  headers={"X-API-Key": server.viewer}, timeout=60.0)
+    assert r.status_code == 200, r.text
+    body = r.json()
+    want = {v["cylinder"]: v["observable"] for v in body["force_observability"]}
+    agree = {v["cylinder"]: v["consistent"] for v in body["model_consistency"]}
+    assert set(want) == set(body["cylinder_forces"])
+    _replay(page, server, END - 290)
+    page.wait_for_function("window.cranetwin.drawnT !== null && document.getElementById"
+                           "('force-rows').children.length > 0")
+    page.wait_for_timeout(500)
+    shown = _verdicts_shown(page)
+    assert {c: v["obs"] is None for c, v in shown.items()} == want
+    assert {c: v["con"] is None for c, v in shown.items()} == {c: agree.get(c, True)
+                                                               for c in shown}
+    assert len(_notes_shown(page)) == sum(not ok for ok in want.values()) + sum(
+        not ok for ok in agree.values())
+    assert not page.errors
+
+
+def test_the_first_seconds_window_says_nothing_about_the_forces(page: Any,
+                                                               server: Service) -> None:
+    """The crane is drawn from a one-second window before its minute arrives; a force's range
+    over one second says nothing about whether the pressures resolve it, so that window's
+    verdicts (here all "not resolved") are not shown, the minute's (all fine) are."""
+    import json
+
+    held: list[Any] = []
+    release = False
+
+    def hold_minutes(route: Any) -> None:
+        q = {k: float(v) for k, v in (kv.split("=") for kv in
+                                      route.request.url.split("?", 1)[1].split("&"))}
+        if release:
+            route.continue_()
+            return
+        if q["to"] - q["from"] > 2:  # a minute: answered later
+            held.append(route)
+            return
+        resp = route.fetch()
+        body = resp.json()
+        for v in body["force_observability"]:
+            v.update(observable=False, causes=["noise share"], share=0.5)
+        route.fulfill(response=resp, body=json.dumps(body))
+
+    page.route("**/api/v1/machines/crane-2/twin?*", hold_minutes)
+    page.goto(f"{server.url}/machines/crane-2?mode=replay&from={END - 600}&to={END}"
+              f"&t={END - 200}")
+    _wait_ready(page)
+    assert page.evaluate("window.cranetwin.drawnT") == pytest.approx(END - 200, abs=0.6)
+    assert held, "the minute was answered before the first second's window"
+    assert all(v == {"obs": None, "con": None} for v in _verdicts_shown(page).values())
+    assert _notes_shown(page) == []
+    release = True
+    for route in held:
+        route.fulfill(response=route.fetch())
+    page.wait_for_function(f"Math.abs(window.cranetwin.drawnT - {END - 200}) < 0.01")
+    page.wait_for_timeout(300)
+    assert all(v == {"obs": None, "con": None} for v in _verdicts_shown(page).values())
+    assert not page.errors
+
+
+def test_exported_file_flags_unresolved_forces_of_its_minute(page: Any, server: Service,
+                                                             tmp_path: Path) -> None:
+    """An exported replay keeps each minute's verdicts: with the second minute's saying the lift
+    cylinder's force is not resolved, the offline page shows the badge there and not in the
+    first minute."""
+    import base64
+    import gzip
+    import json
+    import re
+
+    r = httpx.get(f"{server.url}/api/v1/machines/crane-2/export.html",
+                  params={"from": END - 120, "to": END}, headers={"X-API-Key": server.viewer},
+                  timeout=60.0)
+    assert r.status_code == 200
+    pattern = r'(<script type="text/plain" id="ct-data">)([A-Za-z0-9+/=]*)(</script>)'
+    m = re.search(pattern, r.text)
+    assert m
+    embed = json.loads(gzip.decompress(base64.b64decode(m.group(2))))
+    notes = embed["twin"]["notes"]
+    assert len(notes) == 2 and all(v["observable"] for n in notes
+                                   for v in n["force_observability"])
+    (lift,) = [v for v in notes[1]["force_observability"] if v["cylinder"] == "lift"]
+    lift.update(observable=False, sigma_n=900.0, range_n=3000.0, share=0.3,
+                causes=["noise share"])
+    blob = base64.b64encode(gzip.compress(json.dumps(embed).encode())).decode()
+    f = tmp_path / "replay.html"
+    f.write_text(r.text[:m.start(2)] + blob + r.text[m.end(2):])
+    page.route("http://**", lambda route: route.abort())
+    page.goto(f.as_uri())
+    _wait_ready(page)
+    page.wait_for_timeout(300)
+    assert all(v == {"obs": None, "con": None} for v in _verdicts_shown(page).values())
+    page.locator("#slider").evaluate("(el) => { el.value = '70';"
+                                     " el.dispatchEvent(new Event('input')); }")
+    page.wait_for_function(f"Math.abs(window.cranetwin.drawnT - {END - 50}) < 0.01")
+    page.wait_for_function("!document.getElementById('force-notes').hidden", timeout=10000)
+    shown = _verdicts_shown(page)
+    assert shown["lift"]["obs"] == (
+        "± not resolved | lift: force not resolved (noise share): pressure error ±900 N "
+        "(1σ, estimated noise) against a force range of 3.0 kN (30 %; limit 10 %)")
+    assert shown["jib"] == shown["extension"] == {"obs": None, "con": None}
+    assert _notes_shown(page) == [
+        "lift: force not resolved (noise share): error ±900 N against a 3.0 kN range (30 %)"]
+    assert not page.errors
+
+
 def test_range_without_data_says_so(page: Any, server: Service) -> None:
     a, b = END - 7200, END - 6600  # an hour before the stored data
     page.goto(f"{server.url}/machines/crane-2?mode=replay&from={a}&to={b}")

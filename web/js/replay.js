@@ -88,6 +88,10 @@ export class ReplayStore {
     f.tip = d.tip ? lerpArr(d.tip[i], d.tip[j], a, f.tip) : null;
     f.payload_kg = d.payloadAt(t);
     f.joint_torques = d.torques ? d.torques[i] : null;
+    // the verdicts of this chunk's window; none from the primer (one second says nothing
+    // about a force's range)
+    f.observability = entry === this.primer ? null : d.observability;
+    f.consistency = entry === this.primer ? null : d.consistency;
     return f;
   }
 
@@ -129,6 +133,8 @@ export function prepare(data) {
     util: data.utilisation || {},
     forces: data.cylinder_forces || {},
     torques: data.joint_torques || null,
+    observability: byCylinder(data.force_observability),
+    consistency: byCylinder(data.model_consistency),
     payloadAt(t) {
       if (pk.length === 0) return 0;
       const k = upperBound(pt, t) - 1;
@@ -138,6 +144,14 @@ export function prepare(data) {
       return pk[k] + a * (pk[k + 1] - pk[k]);
     },
   };
+}
+
+// The window's per-cylinder verdicts ({cylinder, ...} list) keyed by cylinder, or null.
+function byCylinder(list) {
+  if (!Array.isArray(list) || list.length === 0) return null;
+  const out = {};
+  for (const v of list) if (v && v.cylinder) out[v.cylinder] = v;
+  return out;
 }
 
 function lerpArr(x, y, a, out) {

@@ -29,7 +29,7 @@ export function embeddedSource(e) {
   };
 }
 
-// The frames of an embedded twin result inside [a, b].
+// The frames of an embedded twin result inside [a, b] (and the verdicts of its part there).
 export function sliceTwin(tw, a, b) {
   const idx = [];
   tw.t.forEach((t, i) => { if (t >= a - 1e-9 && t <= b + 1e-9) idx.push(i); });
@@ -39,6 +39,13 @@ export function sliceTwin(tw, a, b) {
   for (const k in tw.cylinder_pins || {}) out.cylinder_pins[k] = pick(tw.cylinder_pins[k]);
   for (const k in tw.utilisation || {}) out.utilisation[k] = pick(tw.utilisation[k]);
   for (const k in tw.cylinder_forces || {}) out.cylinder_forces[k] = pick(tw.cylinder_forces[k]);
+  // the verdicts of the exported window (part) [a, b] overlaps most
+  let best = null, most = 0;
+  for (const n of tw.notes || []) {
+    const overlap = Math.min(b, n.to) - Math.max(a, n.from);
+    if (overlap > most) { most = overlap; best = n; }
+  }
+  if (best) { out.force_observability = best.force_observability; out.model_consistency = best.model_consistency; }
   return out;
 }
 

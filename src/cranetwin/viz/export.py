@@ -51,7 +51,11 @@ def join_twin(parts: list[dict[str, Any]]) -> dict[str, Any]:
 
     Per-time lists (``t``, ``q``, ``tip``, ``joint_torques`` and each entry of ``poses``,
     ``cylinder_pins``, ``cylinder_forces``, ``utilisation``) are concatenated; ``payload``
-    series (own ``t``) likewise. Other keys come from the first part.
+    series (own ``t``) likewise. Other keys come from the first part, but for the window
+    verdicts (``force_observability``, ``model_consistency``): each part's are kept in
+    ``notes``, one ``{"from", "to", "force_observability", "model_consistency"}`` per part
+    (its first and last sample time [s]), so a replay of the joined result shows the verdicts
+    of the window it is in.
     """
     parts = [p for p in parts if p and p.get("t")]
     if not parts:
@@ -69,6 +73,12 @@ def join_twin(parts: list[dict[str, Any]]) -> dict[str, Any]:
     pay = parts[0].get("payload") or {}
     out["payload"] = {"t": list(pay.get("t", [])), "kg": list(pay.get("kg", []))}
     out.pop("wrenches", None)
+    out.pop("force_observability", None)
+    out.pop("model_consistency", None)
+    out["notes"] = [{"from": p["t"][0], "to": p["t"][-1],
+                     "force_observability": list(p.get("force_observability") or []),
+                     "model_consistency": list(p.get("model_consistency") or [])}
+                    for p in parts]
     for p in parts[1:]:
         last = out["t"][-1]
         keep = [i for i, t in enumerate(p["t"]) if t > last + 1e-9]
