@@ -113,7 +113,9 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
     Pressures pA and pB of a cylinder share their windows, chosen on the hydraulic force
     A1·pA − A2·pB (Eq. 1 without friction), the quantity the twin needs from them; the window
     adapts sample by sample (LPA-ICI, :func:`cranetwin.signal.ici_select`) because valve steps
-    make the pressures jump: long windows in between, short ones at the jumps.
+    make the pressures jump: long windows in between, short ones at the jumps. Where the force
+    is slow under heavy noise one long fixed window does better; by default (``"choose"``) each
+    cylinder takes whichever of the two predicts held-out samples of its force better.
 
     Args:
         machine: Machine (cylinder areas).
@@ -162,7 +164,8 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
                              cyl.area_b_m2 * cmap.resolution[ib]))
         ch = choose_window(force, resolution=res)
         # pressures: window adapted per sample (LPA-ICI) on the force, up to the longest
-        # candidate; sigma and the fixed window's risk kept for the payload weights
+        # candidate, or the fixed SURE window; sigma and the fixed window's risk kept for the
+        # payload weights either way
         ici = adaptive is True or (adaptive == "choose" and ici_or_fixed(
             force, ch.sigma, ch.window, ch.polyorder, ICI_WINDOWS, 3).adaptive)
         pair = (SmoothingChoice(max(ICI_WINDOWS), 3, ch.sigma, ch.risk, adaptive=True)
