@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 import numpy.typing as npt
 import pytest
@@ -87,11 +89,17 @@ def test_theta0_integrated_from_slewing_torque(machine: Machine) -> None:
 
 
 
+@pytest.mark.parametrize("pressures", ["choose", True])
 @pytest.mark.parametrize("with_angle", [True, False])
-def test_streaming_equals_batch_across_seams(machine: Machine, with_angle: bool) -> None:
+def test_streaming_equals_batch_across_seams(machine: Machine, with_angle: bool,
+                                             pressures: bool | Literal["choose"]) -> None:
+    """With the default choice of the pressure smoothing (here fixed windows on every
+    cylinder: these smooth synthetic pressures) and with LPA-ICI on every cylinder."""
     s = make(machine, duration_s=12.0, payload=150.0, with_angle=with_angle, fine_hz=None)
     noisy = inject_uniform_noise(s.samples, machine, 0.03, seed=1)
-    first = replay(noisy, machine)
+    first = replay(noisy, machine, options=ReplayOptions(adaptive_pressures=pressures))
+    assert all(c.adaptive is (pressures is True)
+               for k, c in first.smoothing.items() if k.endswith("_pA"))
     opt = ReplayOptions(smoothing=tuple(first.smoothing.values()), sample_period_s=0.01,
                         chunk_samples=700)
     batch = replay(noisy, machine, options=opt)

@@ -18,6 +18,7 @@ from cranetwin.signal import (
     estimate_noise_std,
 )
 from cranetwin.signal.quantisation import detect_lattice, reconstruct, single_level
+from cranetwin.signal.split_risk import ici_or_fixed
 from cranetwin.twin.force_model import smoothed_range, wants_model
 from cranetwin.twin.observability import stated_force_sigma
 
@@ -105,21 +106,26 @@ class ChannelMap:
 
 def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
                      enabled: bool = True,
-                     adaptive: bool = True,
+                     adaptive: bool | Literal["choose"] = "choose",
                      model: Literal["auto", "on", "off"] = "auto") -> tuple[SmoothingChoice, ...]:
     """Savitzky–Golay choices, from regularly sampled data, in ``cmap.choice_names`` order.
 
     Pressures pA and pB of a cylinder share their windows, chosen on the hydraulic force
     A1·pA − A2·pB (Eq. 1 without friction), the quantity the twin needs from them; the window
     adapts sample by sample (LPA-ICI, :func:`cranetwin.signal.ici_select`) because valve steps
-    make the pressures jump: long windows in between, short ones at the jumps.
+    make the pressures jump: long windows in between, short ones at the jumps. Where the force
+    is slow under heavy noise one long fixed window does better; by default (``"choose"``) each
+    cylinder takes whichever of the two predicts held-out samples of its force better.
 
     Args:
         machine: Machine (cylinder areas).
         cmap: Channel map.
         values: Regular samples in working order, shape (n, len(cmap.names)), finite.
         enabled: If False every channel gets window 1 (no smoothing).
-        adaptive: Pressures by LPA-ICI (True) or by the fixed SURE window (False).
+        adaptive: Pressures by LPA-ICI (True), by the fixed SURE window (False), or
+            ``"choose"``: per cylinder whichever of the two predicts held-out samples of the
+            force better (the two-fold split risk,
+            :func:`cranetwin.signal.split_risk.ici_or_fixed`).
         model: Which cylinders' forces are model-based (``model_based`` on the pressure
             pair's choices; :mod:`cranetwin.twin.force_model`): ``"auto"`` those whose force
             error σ_F (the larger of the stated accuracy's and the estimated noise, as the
@@ -160,9 +166,12 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
                              cyl.area_b_m2 * cmap.resolution[ib]))
         ch = choose_window(force, resolution=res)
         # pressures: window adapted per sample (LPA-ICI) on the force, up to the longest
-        # candidate; sigma and the fixed window's risk kept for the payload weights
+        # candidate, or the fixed SURE window; sigma and the fixed window's risk kept for the
+        # payload weights either way
+        ici = adaptive is True or (adaptive == "choose" and ici_or_fixed(
+            force, ch.sigma, ch.window, ch.polyorder, ICI_WINDOWS, 3).adaptive)
         pair = (SmoothingChoice(max(ICI_WINDOWS), 3, ch.sigma, ch.risk, adaptive=True)
-                if adaptive else ch)
+                if ici else ch)
         if model == "on" or (model == "auto" and wants_model(
                 max(stated_force_sigma(machine, c, named), ch.sigma),
                 smoothed_range(force, ch.window))):

@@ -2,9 +2,10 @@
 
 A case is one crane of the family (:mod:`cranetwin.sim.family`), one scenario, one sample rate
 and one sensor-error model (:func:`cranetwin.sim.sensor_error.inject_error`). For it
-:func:`evaluate_case` replays the noisy samples with the default settings (LPA-ICI pressures,
+:func:`evaluate_case` replays the noisy samples with the default settings (per cylinder LPA-ICI
+or the SURE fixed window on the pressures, :func:`cranetwin.signal.split_risk.ici_or_fixed`;
 model-based forces where the pressures cannot resolve the force,
-:mod:`cranetwin.twin.force_model`), again without model-based forces (Eq. 1–2 of the LPA-ICI
+:mod:`cranetwin.twin.force_model`), again without model-based forces (Eq. 1–2 of the smoothed
 pressures only) and again with each fixed Savitzky–Golay window on the pressures
 (:data:`FIXED_WINDOWS`, order 3, pressure-only, everything else as chosen by default), and
 measures against the simulator's truth at the sample instants (grid = sample rate, so the
@@ -117,7 +118,7 @@ class CylinderScore:
         observable: The replay's verdict (:mod:`cranetwin.twin.observability`).
         error_share: Its per-sample force error / replayed force range.
         pressure_only: Force NRMSE of the default without model-based forces
-            (``ReplayOptions(model_forces="off")``: LPA-ICI pressures, Eq. 1–2).
+            (``ReplayOptions(model_forces="off")``: the default's pressures, Eq. 1–2).
         model_based: The default chose the model-based force for this cylinder
             (:mod:`cranetwin.twin.force_model`).
         systematic_share: The verdict's systematic floor / replayed force range (0 without a

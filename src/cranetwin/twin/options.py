@@ -27,7 +27,10 @@ class ReplayOptions:
     Attributes:
         grid_hz: Output grid rate [Hz]; must be an integer multiple of the sample rate.
         smooth: Savitzky–Golay smoothing on (window chosen from the noise level) or off.
-        adaptive_pressures: Pressure windows adapted per sample (LPA-ICI) rather than fixed.
+        adaptive_pressures: Pressure windows adapted per sample (LPA-ICI, True), the fixed
+            window of least Stein risk (False), or per cylinder whichever of the two predicts
+            held-out samples of its force better (``"choose"``,
+            :func:`cranetwin.signal.split_risk.ici_or_fixed`).
         smoothing: Fixed smoothing choices per working channel (skips the automatic choice).
         velocity: Rod velocity from the derivative of the position spline (``"spline"``) or by
             Newton's divided-difference formula at the samples, then splined (``"newton"``).
@@ -66,7 +69,7 @@ class ReplayOptions:
 
     grid_hz: float = 1000.0
     smooth: bool = True
-    adaptive_pressures: bool = True
+    adaptive_pressures: bool | Literal["choose"] = "choose"
     smoothing: tuple[SmoothingChoice, ...] | None = None
     velocity: Literal["spline", "newton"] = "spline"
     payload_window_s: float = 2.0
