@@ -185,7 +185,7 @@ LONG_FILES = ("test_twin_calibration.py", "test_chaos.py", "test_analytics_bench
 # (marked `serial`: `make test` runs them after the parallel part, in one process).
 SERIAL_FILES = ("test_worker_late.py", "test_worker_pass.py", "test_worker_commit.py",
                 "test_worker_idle.py", "test_api_worker_history.py", "test_payload_redo.py",
-                "test_worker_redo.py")
+                "test_worker_redo.py", "test_service_schedules.py")
 
 
 @pytest.hookimpl(tryfirst=True)
