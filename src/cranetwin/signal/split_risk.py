@@ -54,30 +54,75 @@ def midpoint_predict(s: F64) -> F64:
     return out
 
 
-def split_risk(y: F64, smoother: Callable[[F64], F64]) -> float:
-    """Mean squared error of predicting each half of ``y`` (n,) from the smoothed other half.
+def split_errors(y: F64, smoother: Callable[[F64], F64]) -> F64:
+    """Errors of predicting each half of ``y`` (n,) from the smoothed other half, (about n − 2,)
+    [unit of y]: the odd samples predicted halfway between the smoothed even ones, then the
+    even samples (except the first) from the smoothed odd ones.
 
-    ``smoother`` maps samples (m,) to smoothed samples (m,) at half the rate. The odd samples
-    are predicted from the smoothed even ones halfway between them, then the even samples
-    (except the first) from the smoothed odd ones. Its expectation is σ² plus the smoother's
-    mean squared error at the held-out instants (module docstring) [unit of y squared].
-    """
+    ``smoother`` maps samples (m,) to smoothed samples (m,) at half the rate."""
     even = np.ascontiguousarray(y[0::2])
     odd = np.ascontiguousarray(y[1::2])
     p_odd = midpoint_predict(smoother(even))  # at 1, 3, …: odd[: len(even) − 1]
     p_even = midpoint_predict(smoother(odd))  # at 2, 4, …: even[1 : len(odd)]
+    out: F64 = np.concatenate([odd[: p_odd.shape[0]] - p_odd,
+                               even[1 : 1 + p_even.shape[0]] - p_even])
+    return out
+
+
+def split_risk(y: F64, smoother: Callable[[F64], F64]) -> float:
+    """Mean squared error of predicting each half of ``y`` (n,) from the smoothed other half
+    (:func:`split_errors`). Its expectation is σ² plus the smoother's mean squared error at the
+    held-out instants (module docstring) [unit of y squared]; NaN for fewer than 4 samples.
+    """
+    even = np.ascontiguousarray(y[0::2])
+    odd = np.ascontiguousarray(y[1::2])
+    p_odd = midpoint_predict(smoother(even))
+    p_even = midpoint_predict(smoother(odd))
     r1 = odd[: p_odd.shape[0]] - p_odd
     r2 = even[1 : 1 + p_even.shape[0]] - p_even
     count = r1.shape[0] + r2.shape[0]
     return float((r1 @ r1 + r2 @ r2) / count) if count else float("nan")
 
 
-def _segments(n: int) -> list[slice]:
+def segments(n: int) -> list[slice]:
+    """The samples of a signal of n samples the split risk is judged on: all of them, or
+    ``SPLIT_MAX_SAMPLES // SPLIT_SEGMENT`` evenly spread segments of ``SPLIT_SEGMENT``."""
     if n <= SPLIT_MAX_SAMPLES:
         return [slice(0, n)]
     count = SPLIT_MAX_SAMPLES // SPLIT_SEGMENT
     starts = np.linspace(0, n - SPLIT_SEGMENT, count).astype(int)
     return [slice(int(s), int(s) + SPLIT_SEGMENT) for s in starts]
+
+
+def ici_half(sigma: float, windows: tuple[int, ...], polyorder: int,
+             gamma: float = ICI_GAMMA) -> Callable[[F64], F64]:
+    """LPA-ICI (``windows`` at the full rate, order ``polyorder``, Γ = ``gamma``, noise
+    ``sigma``) as it runs on one half of the samples (:func:`half_window`); the identity where
+    fewer than two windows fit."""
+    ws = tuple(sorted({half_window(w, polyorder) for w in windows}))
+
+    def ici(x: F64) -> F64:
+        use = tuple(w for w in ws if w <= x.shape[0])
+        if len(use) < 2:
+            return x
+        out: F64 = ici_smooth_pair(x, x, 1.0, 0.0, sigma, use, polyorder, gamma)[:, 0]
+        return out
+
+    return ici
+
+
+def fixed_half(window: int, polyorder: int) -> Callable[[F64], F64]:
+    """The Savitzky–Golay window ``window`` (full rate; 1 = none) as it runs on one half of
+    the samples (:func:`half_window`)."""
+    wf = half_window(window, polyorder)
+
+    def fixed(x: F64) -> F64:
+        if wf <= 1 or x.shape[0] < wf:
+            return x
+        out: F64 = savgol_smooth(x, wf, polyorder)
+        return out
+
+    return fixed
 
 
 @dataclass(frozen=True)
@@ -114,23 +159,9 @@ def ici_or_fixed(y: npt.ArrayLike, sigma: float, window: int, polyorder: int,
     ``SPLIT_MAX_SAMPLES`` in all.
     """
     ya = np.asarray(y, dtype=np.float64)
-    ws = tuple(sorted({half_window(w, ici_polyorder) for w in ici_windows}))
-    wf = half_window(window, polyorder)
-
-    def ici(x: F64) -> F64:
-        use = tuple(w for w in ws if w <= x.shape[0])
-        if len(use) < 2:
-            return x
-        out: F64 = ici_smooth_pair(x, x, 1.0, 0.0, sigma, use, ici_polyorder, gamma)[:, 0]
-        return out
-
-    def fixed(x: F64) -> F64:
-        if wf <= 1 or x.shape[0] < wf:
-            return x
-        out: F64 = savgol_smooth(x, wf, polyorder)
-        return out
-
-    segs = _segments(ya.shape[0])
+    ici = ici_half(sigma, ici_windows, ici_polyorder, gamma)
+    fixed = fixed_half(window, polyorder)
+    segs = segments(ya.shape[0])
     r_ici = float(np.mean([split_risk(ya[s], ici) for s in segs]))
     r_fix = float(np.mean([split_risk(ya[s], fixed) for s in segs]))
     return SplitChoice(not r_fix < r_ici, r_ici, r_fix)

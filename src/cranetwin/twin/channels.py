@@ -131,7 +131,9 @@ def choose_smoothing(machine: Machine, cmap: ChannelMap, values: F64,
             error σ_F (the larger of the stated accuracy's and the estimated noise, as the
             observability flag) exceeds 20 % (``force_model.MODEL_SHARE``) of the range of
             the force smoothed over the fixed window (``force_model.smoothed_range``);
-            ``"on"`` all; ``"off"`` none.
+            ``"on"`` all; ``"off"`` none. (The replay then revisits the ``"auto"`` choice
+            by a split risk, :mod:`cranetwin.twin.model_choice`: it needs the inverse
+            dynamics.)
 
     Position channels get a second window for their derivatives (rod velocity and
     acceleration), chosen by Lepski's rule (:func:`cranetwin.signal.choose_derivative_window`):

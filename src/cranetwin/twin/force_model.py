@@ -27,7 +27,10 @@ Which cylinders use it is decided with the smoothing windows
 force range (the observability flag's criterion, :mod:`cranetwin.twin.observability`, at twice
 its share). On the noise family (docs/ACCURACY.md, "Noise family") the model-based force's
 NRMSE against the pressure-only one's grows with that share: median 0.6–0.85× above 20 %,
-about 1.0× at 10–20 %, 1.0–1.2× below 10 %, hence the rule (chosen on that family).
+about 1.0× at 10–20 %, 1.0–1.2× below 10 %, hence the rule (chosen on that family). The
+replay then checks each cylinder's choice by a held-out prediction risk
+(:mod:`cranetwin.twin.model_choice`) and switches it where the other force predicts better by
+more than two standard errors.
 
 Shapes: n samples, n_c cylinders; SI units (N, m, kg).
 """

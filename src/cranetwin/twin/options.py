@@ -60,6 +60,8 @@ class ReplayOptions:
         model_forces: Cylinder forces from the inverse dynamics corrected by the pressures
             (:mod:`cranetwin.twin.force_model`): ``"auto"`` for the cylinders whose pressure
             error σ_F exceeds 20 % of the force range (decided with the smoothing windows),
+            unless the two-fold split risk on the choice span shows the other force better by
+            more than two standard errors (:mod:`cranetwin.twin.model_choice`),
             ``"on"`` for every cylinder, ``"off"`` for none (Eq. 1–2 of the smoothed
             pressures only). Needs smoothing on.
         generated_kernels: Inverse dynamics and mass matrices by the kernels generated for

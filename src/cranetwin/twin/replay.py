@@ -56,6 +56,7 @@ from cranetwin.twin.buffer import RowBuffer
 from cranetwin.twin.channels import choose_smoothing
 from cranetwin.twin.chunk import ChunkRows, PayloadSetting, Timing, chunk
 from cranetwin.twin.known_payload import at_instants, fully_known
+from cranetwin.twin.model_choice import choose_model
 from cranetwin.twin.options import END_STOP_MARGIN_M, HasSamples, ReplayOptions
 from cranetwin.twin.plan import ReplayPlan
 from cranetwin.twin.result import TwinResult
@@ -287,14 +288,25 @@ class TwinStream:
             have = self._reg.end * self._period
             if not final and have < self.opt.choose_after_s:
                 return
-            self._choices = choose_smoothing(self.machine, self.cmap, self._reg.arr,
-                                             self.opt.smooth, self.opt.adaptive_pressures,
-                                             self.opt.model_forces)
+            self._choices = self._choose_model(choose_smoothing(
+                self.machine, self.cmap, self._reg.arr, self.opt.smooth,
+                self.opt.adaptive_pressures, self.opt.model_forces), self._reg.arr)
         self._stage_smooth(final)
         if self.plan.integrated:
             self._stage_integrate(final)
         yield from self._stage_output(final)
         self._trim()
+
+    def _choose_model(self, choices: tuple[SmoothingChoice, ...],
+                      raw: F64) -> tuple[SmoothingChoice, ...]:
+        """``model_forces="auto"``: model-based or pressure-only per cylinder by the split
+        risk on the choice span's regularised rows ``raw`` (:mod:`cranetwin.twin.model_choice`).
+        """
+        if self.opt.model_forces != "auto" or not self.opt.smooth:
+            return choices
+        period = self._period if self._period is not None else self.opt.sample_period_s
+        assert period is not None
+        return choose_model(self.plan, choices, raw, period, self.payload)
 
     def _stage_regular(self, final: bool) -> None:
         assert self._period is not None and self._origin is not None
@@ -508,8 +520,9 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
         # window choice then transposes for free; skipping it only moves that cost there)
         reg = regularize(samples.t_s, samples.values[:, cols], period=opt.sample_period_s,
                          max_gap_s=opt.max_gap_s)
-        stream.set_smoothing(choose_smoothing(machine, stream.cmap, reg.values, opt.smooth,
-                                              opt.adaptive_pressures, opt.model_forces))
+        stream.set_smoothing(stream._choose_model(choose_smoothing(
+            machine, stream.cmap, reg.values, opt.smooth, opt.adaptive_pressures,
+            opt.model_forces), reg.values))
         del reg
     for i in range(0, n, block_samples):
         j = min(n, i + block_samples)
