@@ -74,14 +74,8 @@ def split_risk(y: F64, smoother: Callable[[F64], F64]) -> float:
     (:func:`split_errors`). Its expectation is σ² plus the smoother's mean squared error at the
     held-out instants (module docstring) [unit of y squared]; NaN for fewer than 4 samples.
     """
-    even = np.ascontiguousarray(y[0::2])
-    odd = np.ascontiguousarray(y[1::2])
-    p_odd = midpoint_predict(smoother(even))
-    p_even = midpoint_predict(smoother(odd))
-    r1 = odd[: p_odd.shape[0]] - p_odd
-    r2 = even[1 : 1 + p_even.shape[0]] - p_even
-    count = r1.shape[0] + r2.shape[0]
-    return float((r1 @ r1 + r2 @ r2) / count) if count else float("nan")
+    e = split_errors(y, smoother)
+    return float(e @ e / e.shape[0]) if e.shape[0] else float("nan")
 
 
 def segments(n: int) -> list[slice]:

@@ -287,14 +287,6 @@ def delete(session: Session, machine_pk: int, starts: Sequence[int]) -> PayloadD
     return PayloadDelete(gone, 0, values, known, tuple(changed))
 
 
-def known_span(run: PayloadRun) -> tuple[int, int] | None:
-    """(first, last) time [ns] of the run's known (not NaN) values, or None when none is."""
-    f = np.flatnonzero(np.isfinite(run.payload_kg))
-    if f.size == 0:
-        return None
-    return run.t0_ns + int(f[0]) * run.period_ns, run.t0_ns + int(f[-1]) * run.period_ns
-
-
 @dataclass(frozen=True)
 class PayloadDelete:
     """What :func:`delete_range` did.
@@ -473,5 +465,5 @@ def stored_ranges(session: Session, machine_pks: Sequence[int]) -> dict[int, tup
 
 __all__ = ["GAP_PERIODS", "MAX_RUN", "PayloadDelete", "PayloadRun", "PayloadRunRow",
            "PayloadSeries", "PayloadWrite", "Stretch", "check_run", "delete", "delete_range",
-           "drop_starting_in", "known_span", "read", "runs_of", "stored_ranges", "stretches",
+           "drop_starting_in", "read", "runs_of", "stored_ranges", "stretches",
            "write"]

@@ -288,20 +288,20 @@ class TwinStream:
             have = self._reg.end * self._period
             if not final and have < self.opt.choose_after_s:
                 return
-            self._choices = self._choose_model(choose_smoothing(
-                self.machine, self.cmap, self._reg.arr, self.opt.smooth,
-                self.opt.adaptive_pressures, self.opt.model_forces), self._reg.arr)
+            self._choices = self._choose(self._reg.arr)
         self._stage_smooth(final)
         if self.plan.integrated:
             self._stage_integrate(final)
         yield from self._stage_output(final)
         self._trim()
 
-    def _choose_model(self, choices: tuple[SmoothingChoice, ...],
-                      raw: F64) -> tuple[SmoothingChoice, ...]:
-        """``model_forces="auto"``: model-based or pressure-only per cylinder by the split
-        risk on the choice span's regularised rows ``raw`` (:mod:`cranetwin.twin.model_choice`).
-        """
+    def _choose(self, raw: F64) -> tuple[SmoothingChoice, ...]:
+        """The smoothing choices of the choice span's regularised rows ``raw`` (n, nch)
+        (:func:`cranetwin.twin.channels.choose_smoothing`); with ``model_forces="auto"`` each
+        cylinder's model-based or pressure-only force then checked by the split risk
+        (:mod:`cranetwin.twin.model_choice`)."""
+        choices = choose_smoothing(self.machine, self.cmap, raw, self.opt.smooth,
+                                   self.opt.adaptive_pressures, self.opt.model_forces)
         if self.opt.model_forces != "auto" or not self.opt.smooth:
             return choices
         period = self._period if self._period is not None else self.opt.sample_period_s
@@ -520,9 +520,7 @@ def iter_replay(samples: SampleArrays | HasSamples, machine: Machine, grid_hz: f
         # window choice then transposes for free; skipping it only moves that cost there)
         reg = regularize(samples.t_s, samples.values[:, cols], period=opt.sample_period_s,
                          max_gap_s=opt.max_gap_s)
-        stream.set_smoothing(stream._choose_model(choose_smoothing(
-            machine, stream.cmap, reg.values, opt.smooth, opt.adaptive_pressures,
-            opt.model_forces), reg.values))
+        stream.set_smoothing(stream._choose(reg.values))
         del reg
     for i in range(0, n, block_samples):
         j = min(n, i + block_samples)
